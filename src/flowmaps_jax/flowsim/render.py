@@ -1,0 +1,455 @@
+"""Matplotlib drawings of FlowSim scenes: one map, a timeline, visiting orders, posteriors.
+
+Every function returns a :class:`matplotlib.figure.Figure` (or draws into a given ``ax`` and
+returns its figure); nothing calls ``plt.show()`` and no global pyplot state is touched, so the
+module works with the Agg backend in tests and scripts.
+
+Drawing conventions
+-------------------
+* Pixel coordinates as in :class:`~flowmaps_jax.flowsim.generate.Scenes`: boxes are
+  ``(y0, x0, y1, x1)`` and **y grows downwards** (image coordinates), so the y axis is inverted.
+* Furniture pieces are rectangles filled with their kind's colour; objects are drawn with their
+  category's shape (``config.SHAPES``) and colour. All colours and names come from
+  the config, so a new category or furniture kind renders without code changes.
+* Artists carry a ``gid`` (``"furniture"``, ``"object"``, ``"ghost"``, ``"move"``, ``"order"``,
+  ``"posterior"``, ``"overlay"``) so callers and tests can find them.
+"""
+
+from __future__ import annotations
+
+import itertools
+import operator
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.collections import PatchCollection
+from matplotlib.colors import to_rgba
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Circle, FancyArrowPatch, Patch, Polygon, Rectangle
+
+from flowmaps_jax.flowsim.config import SHAPES, FlowSimConfig
+from flowmaps_jax.flowsim.generate import Scenes
+
+# matplotlib marker used in legends for each object shape.
+_LEGEND_MARKERS = {"square": "s", "circle": "o", "triangle": "^", "diamond": "D",
+                   "pentagon": "p", "hexagon": "h", "star": "*"}
+_POLYGON_SIDES = {"pentagon": 5, "hexagon": 6}
+_ANGULAR_ORDERINGS = ("clockwise", "counter_clockwise")
+
+_FURNITURE_ALPHA = 0.55
+_POSTERIOR_MAX_ALPHA = 0.7  # opacity of the most probable place in draw_posterior
+_PANEL_SIZE = 4.0  # inches per map panel
+
+
+# --------------------------------------------------------------------------------------------
+# Validation and config look-ups
+# --------------------------------------------------------------------------------------------
+
+def _check_index(value: Any, size: int, name: str, what: str) -> int:
+    """Return ``value`` as an int in ``[0, size)`` or raise ``ValueError`` naming ``name``."""
+    if isinstance(value, bool):
+        raise ValueError(f"{name} must be an integer {what} index in [0, {size}); got {value!r}")
+    try:
+        index = operator.index(value)
+    except TypeError:
+        raise ValueError(
+            f"{name} must be an integer {what} index in [0, {size}); got {value!r}") from None
+    if not 0 <= index < size:
+        raise ValueError(f"{name}={index} is out of range: expected a {what} index in [0, {size})")
+    return index
+
+
+def _check_types(scenes: Any, config: Any) -> None:
+    if not isinstance(scenes, Scenes):
+        raise ValueError(f"scenes must be a flowsim Scenes; got {type(scenes).__name__}")
+    if not isinstance(config, FlowSimConfig):
+        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+
+
+def _num_timesteps(scenes: Scenes) -> int:
+    return int(np.shape(scenes.slot)[1])
+
+
+def _check_env_tau(scenes: Scenes, env: Any, tau: Any) -> tuple[int, int]:
+    env = _check_index(env, scenes.num_envs, "env", "environment")
+    tau = _check_index(tau, _num_timesteps(scenes), "tau", "timestep")
+    return env, tau
+
+
+def _by_descriptor(entries: Sequence[Any]) -> dict[int, Any]:
+    """Map descriptor id -> entry of ``config.furniture_kinds`` or ``config.categories``."""
+    return {int(entry.descriptor): entry for entry in entries}
+
+
+def _lookup(table: dict[int, Any], descriptor: int, field: str) -> Any:
+    try:
+        return table[int(descriptor)]
+    except KeyError:
+        raise ValueError(
+            f"scenes use descriptor id {int(descriptor)} that config.{field} does not define "
+            f"(known: {sorted(table)}); pass the config the scenes were generated with") from None
+
+
+class _EnvView:
+    """The numpy arrays of one environment, plus its config entries (built once per figure)."""
+
+    def __init__(self, scenes: Scenes, env: int, config: FlowSimConfig):
+        self.map_size = float(config.map_size)
+        self.furniture_boxes = np.asarray(scenes.furniture_boxes[env], dtype=float)  # (F, 4)
+        self.object_boxes = np.asarray(scenes.object_boxes[env], dtype=float)  # (T, M, 4)
+        self.slot = np.asarray(scenes.slot[env])  # (T, M)
+        self.visit_order = np.asarray(scenes.visit_order[env])  # (M, F)
+        self.num_slots = np.asarray(scenes.num_slots[env])  # (M,)
+        self.object_size = np.asarray(scenes.object_size[env], dtype=float)  # (M,)
+        kinds = _by_descriptor(config.furniture_kinds)
+        categories = _by_descriptor(config.categories)
+        self.furniture_entries = [_lookup(kinds, d, "furniture_kinds")
+                                  for d in np.asarray(scenes.furniture_kind[env])]
+        self.categories = [_lookup(categories, d, "categories")
+                           for d in np.asarray(scenes.object_kind[env])]
+        self.kinds_in_config = list(config.furniture_kinds)
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.categories)
+
+    def furniture_centres(self) -> np.ndarray:
+        """(F, 2) centres (y, x) in pixels."""
+        b = self.furniture_boxes
+        return np.stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2], axis=-1)
+
+    def order(self, obj: int) -> np.ndarray:
+        """Furniture indices of object ``obj``'s visiting order (length num_slots)."""
+        return self.visit_order[obj, : int(self.num_slots[obj])]
+
+
+# --------------------------------------------------------------------------------------------
+# Primitive drawing helpers
+# --------------------------------------------------------------------------------------------
+
+def _new_axes(figsize: tuple[float, float]) -> tuple[Figure, Axes]:
+    fig = Figure(figsize=figsize, layout="constrained")
+    return fig, fig.add_subplot()
+
+
+def _setup_map_axes(ax: Axes, map_size: float) -> None:
+    """Equal aspect, y inverted (image coordinates), a map border, light ticks."""
+    ax.set_xlim(-2, map_size + 2)
+    ax.set_ylim(map_size + 2, -2)
+    ax.set_aspect("equal")
+    ax.add_patch(Rectangle((0, 0), map_size, map_size, fill=False, edgecolor="0.2",
+                           linewidth=1.5, zorder=0.5, gid="border"))
+    ax.set_facecolor("white")
+    ticks = np.linspace(0, map_size, 5)
+    ax.set_xticks(ticks)
+    ax.set_yticks(ticks)
+    ax.tick_params(labelsize=7, length=2, colors="0.4")
+    for spine in ax.spines.values():
+        spine.set_visible(False)
+
+
+def _regular_vertices(cy: float, cx: float, radius: float, n: int,
+                      inner: float | None = None) -> np.ndarray:
+    """(n or 2n, 2) vertices (x, y) of a regular polygon (or star) with a vertex pointing up."""
+    if inner is None:
+        angles, radii = 2 * np.pi * np.arange(n) / n, np.full(n, radius)
+    else:
+        angles = np.pi * np.arange(2 * n) / n
+        radii = np.where(np.arange(2 * n) % 2 == 0, radius, inner * radius)
+    return np.stack([cx + radii * np.sin(angles), cy - radii * np.cos(angles)], axis=-1)
+
+
+def _box_patch(box: np.ndarray, shape: str, **style: Any):
+    """A patch of the given shape inscribed in a pixel box (y0, x0, y1, x1); "up" is small y."""
+    y0, x0, y1, x1 = (float(v) for v in box)
+    cy, cx, radius = (y0 + y1) / 2, (x0 + x1) / 2, min(x1 - x0, y1 - y0) / 2
+    if shape == "square":
+        return Rectangle((x0, y0), x1 - x0, y1 - y0, **style)
+    if shape == "circle":
+        return Circle((cx, cy), radius, **style)
+    if shape == "triangle":
+        return Polygon([(cx, y0), (x1, y1), (x0, y1)], closed=True, **style)
+    if shape == "diamond":
+        return Polygon([(cx, y0), (x1, cy), (cx, y1), (x0, cy)], closed=True, **style)
+    if shape in _POLYGON_SIDES:
+        return Polygon(_regular_vertices(cy, cx, radius, _POLYGON_SIDES[shape]), closed=True,
+                       **style)
+    if shape == "star":
+        return Polygon(_regular_vertices(cy, cx, 1.1 * radius, 5, inner=0.45), closed=True,
+                       **style)
+    raise ValueError(f"unknown object shape {shape!r}; render knows {SHAPES}")
+
+
+def _draw_furniture(ax: Axes, view: _EnvView, emphasise: set[int] | None = None) -> None:
+    """One rectangle per furniture piece; pieces outside ``emphasise`` (if given) are faded."""
+    for f, (box, kind) in enumerate(zip(view.furniture_boxes, view.furniture_entries,
+                                        strict=True)):
+        faded = emphasise is not None and f not in emphasise
+        colour = kind.colour
+        ax.add_patch(Rectangle(
+            (box[1], box[0]), box[3] - box[1], box[2] - box[0],
+            facecolor=to_rgba(colour, 0.12 if faded else _FURNITURE_ALPHA),
+            edgecolor=to_rgba(colour, 0.3 if faded else 1.0), linewidth=1.2, zorder=1,
+            gid="furniture"))
+
+
+def _draw_object(ax: Axes, box: np.ndarray, category: Any, ghost: bool = False,
+                 highlight: bool = False) -> None:
+    colour = category.colour
+    if ghost:
+        style = dict(facecolor=to_rgba(colour, 0.15), edgecolor=to_rgba(colour, 0.8),
+                     linestyle=(0, (2, 1.5)), linewidth=1.2, zorder=2, gid="ghost")
+    else:
+        style = dict(facecolor=colour, edgecolor="white", linewidth=1.2, zorder=3, gid="object")
+    ax.add_patch(_box_patch(box, category.shape, **style))
+    if highlight:
+        y0, x0, y1, x1 = box
+        pad = 0.35 * (y1 - y0) + 2
+        ax.add_patch(Circle(((x0 + x1) / 2, (y0 + y1) / 2), (y1 - y0) / 2 + pad, fill=False,
+                            edgecolor="gold", linewidth=2.5, zorder=2.5, gid="highlight"))
+
+
+def _legend_handles(view: _EnvView, kinds: bool = True, objects: bool = True) -> list:
+    """Legend entries for every furniture kind in the config and every object in the scene."""
+    handles: list = []
+    if kinds:
+        for kind in view.kinds_in_config:
+            handles.append(Patch(facecolor=to_rgba(kind.colour, _FURNITURE_ALPHA),
+                                 edgecolor=kind.colour, label=kind.name.replace("_", " ")))
+    if objects:
+        for category in view.categories:
+            handles.append(Line2D([], [], linestyle="none", marker=_LEGEND_MARKERS[category.shape],
+                                  markersize=8, markerfacecolor=category.colour,
+                                  markeredgecolor="white", label=category.name))
+    return handles
+
+
+def _draw_order_arrows(ax: Axes, view: _EnvView, obj: int, numbers: bool = True,
+                       curvature: float = 0.2) -> None:
+    """Arrows from each piece of ``obj``'s visiting order to the next (cyclic), numbered 1..K."""
+    centres = view.furniture_centres()
+    order = view.order(obj)
+    colour = view.categories[obj].colour
+    k = len(order)
+    for i in range(k if k > 1 else 0):
+        a, b = order[i], order[(i + 1) % k]
+        wrap = i == k - 1
+        ax.add_patch(FancyArrowPatch(
+            (centres[a, 1], centres[a, 0]), (centres[b, 1], centres[b, 0]),
+            connectionstyle=f"arc3,rad={curvature}", arrowstyle="-|>,head_length=6,head_width=3",
+            color=colour, linewidth=1.6, linestyle=(0, (4, 2)) if wrap else "-",
+            shrinkA=9, shrinkB=9, zorder=4, alpha=0.9, gid="order"))
+    if numbers:
+        for i, f in enumerate(order):
+            ax.text(centres[f, 1], centres[f, 0], str(i + 1), ha="center", va="center",
+                    fontsize=8, fontweight="bold", color="white", zorder=5, gid="order_label",
+                    bbox=dict(boxstyle="circle,pad=0.25", facecolor=colour, edgecolor="white",
+                              linewidth=0.8))
+
+
+# --------------------------------------------------------------------------------------------
+# Public figures
+# --------------------------------------------------------------------------------------------
+
+def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Axes | None = None,
+               show_orders: bool = False, highlight: int | None = None, legend: bool = True,
+               title: str | None = None) -> Figure:
+    """Draw environment ``env`` of ``scenes`` at timestep ``tau``; return the figure.
+
+    Furniture rectangles are coloured by kind, objects drawn with their category shape at their
+    box at ``tau``. ``show_orders`` overlays each category's visiting order (cyclic arrows in
+    the category colour); ``highlight`` (object index in [0, M)) rings one object. With
+    ``ax=None`` a new figure is made; otherwise the drawing goes into ``ax`` (e.g. a panel of a
+    larger figure) and ``ax.figure`` is returned. ``legend`` adds a furniture/object legend.
+    """
+    _check_types(scenes, config)
+    env, tau = _check_env_tau(scenes, env, tau)
+    view = _EnvView(scenes, env, config)
+    if highlight is not None:
+        highlight = _check_index(highlight, view.num_objects, "highlight", "object")
+    if ax is None:
+        _, ax = _new_axes((_PANEL_SIZE + 1.9, _PANEL_SIZE))
+    _setup_map_axes(ax, view.map_size)
+    _draw_furniture(ax, view)
+    for m, category in enumerate(view.categories):
+        _draw_object(ax, view.object_boxes[tau, m], category, highlight=highlight == m)
+    if show_orders:
+        for m in range(view.num_objects):
+            _draw_order_arrows(ax, view, m, numbers=False, curvature=0.25)
+    ax.set_title(f"environment {env}, τ = {tau}" if title is None else title, fontsize=10)
+    if legend:
+        ax.legend(handles=_legend_handles(view), loc="upper left", bbox_to_anchor=(1.02, 1.0),
+                  fontsize=8, frameon=False, borderaxespad=0.0)
+    return ax.figure
+
+
+def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSimConfig) -> Figure:
+    """A row of panels showing environment ``env`` at the strictly increasing timesteps ``taus``.
+
+    From the second panel on, each object's box at the previous panel's time is drawn as a dashed
+    ghost with an arrow to where it is now, and the panel's x-label lists how many places along its
+    visiting order each object advanced (modulo the number of places K). Paper Fig. 1.
+    """
+    _check_types(scenes, config)
+    flat = np.asarray(taus) if not isinstance(taus, (str, bytes)) else np.asarray(None)
+    if flat.ndim != 1 or flat.size == 0:
+        raise ValueError(f"taus must be a non-empty 1-D sequence of timestep indices; got {taus!r}")
+    env = _check_index(env, scenes.num_envs, "env", "environment")
+    taus = [_check_index(t, _num_timesteps(scenes), "taus", "timestep") for t in flat.tolist()]
+    if any(b <= a for a, b in itertools.pairwise(taus)):
+        raise ValueError(f"taus must be strictly increasing; got {taus}")
+    view = _EnvView(scenes, env, config)
+    fig = Figure(figsize=(_PANEL_SIZE * len(taus), _PANEL_SIZE + 0.9), layout="constrained")
+    axes = fig.subplots(1, len(taus), squeeze=False)[0]
+    for i, (ax, tau) in enumerate(zip(axes, taus, strict=True)):
+        draw_scene(scenes, env, tau, config, ax=ax, legend=False, title=f"τ = {tau}")
+        if i == 0:
+            ax.set_xlabel("start", fontsize=8)
+            continue
+        prev = taus[i - 1]
+        moves = []
+        for m, category in enumerate(view.categories):
+            k = int(view.num_slots[m])
+            step = int(view.slot[tau, m] - view.slot[prev, m]) % max(k, 1)
+            stayed = step == 0 and tau - prev == 1  # over several steps +0 may mean a full lap
+            moves.append(f"{category.name} stays" if stayed else f"{category.name} +{step}")
+            old, new = view.object_boxes[prev, m], view.object_boxes[tau, m]
+            if np.allclose(old, new):
+                continue
+            _draw_object(ax, old, category, ghost=True)
+            ax.add_patch(FancyArrowPatch(
+                ((old[1] + old[3]) / 2, (old[0] + old[2]) / 2),
+                ((new[1] + new[3]) / 2, (new[0] + new[2]) / 2),
+                connectionstyle="arc3,rad=0.2", arrowstyle="-|>,head_length=7,head_width=3.5",
+                color=category.colour, linewidth=1.8, shrinkA=4, shrinkB=7, zorder=4,
+                gid="move"))
+        ax.set_xlabel(", ".join(moves), fontsize=8)
+    fig.legend(handles=_legend_handles(view), loc="outside lower center",
+               ncol=len(view.kinds_in_config) + view.num_objects, fontsize=8, frameon=False)
+    fig.suptitle(f"FlowSim environment {env}: objects move along their visiting orders "
+                 "(dashed: previous place)", fontsize=10)
+    return fig
+
+
+def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure:
+    """One panel per object category: its visiting order as numbered, cyclic arrows.
+
+    Numbers 1..K mark the order of the category's furniture pieces (the object starts at 1); the
+    dashed arrow closes the cycle from the last piece back to the first. Other furniture is faded.
+    The map centre (the pivot of the angular orderings) is marked with a cross; for angular
+    orderings dotted rays join it to each table, and a short grey ray marks angle 0 (up).
+    """
+    _check_types(scenes, config)
+    env = _check_index(env, scenes.num_envs, "env", "environment")
+    view = _EnvView(scenes, env, config)
+    m_count = view.num_objects
+    fig = Figure(figsize=(_PANEL_SIZE * m_count, _PANEL_SIZE + 0.7), layout="constrained")
+    axes = fig.subplots(1, m_count, squeeze=False)[0]
+    for m, ax in enumerate(axes):
+        category = view.categories[m]
+        order = view.order(m)
+        _setup_map_axes(ax, view.map_size)
+        _draw_furniture(ax, view, emphasise={int(f) for f in order})
+        _draw_order_arrows(ax, view, m)
+        c = view.map_size / 2
+        ax.plot([c], [c], marker="+", markersize=10, color="0.4", zorder=1.5)
+        if category.ordering in _ANGULAR_ORDERINGS:  # show the angles the order is sorted by
+            centres = view.furniture_centres()[order]
+            ax.plot([c, c], [c, c - 0.12 * view.map_size], color="0.4", linewidth=1.0,
+                    zorder=1.5, gid="ray")
+            ax.text(c + 3, c - 0.12 * view.map_size, "0", fontsize=7, color="0.4",
+                    va="center", ha="left")
+            for cy, cx in centres:
+                ax.plot([c, cx], [c, cy], color=category.colour, linewidth=0.8,
+                        linestyle=":", alpha=0.6, zorder=1.5, gid="ray")
+        kind = view.furniture_entries[int(order[0])].name.replace("_", " ") if len(order) else "?"
+        ordering = category.ordering.replace("_", "-")
+        ax.set_title(f"{category.name}: {ordering}\n({len(order)} × {kind})", fontsize=10,
+                     color=category.colour)
+    fig.legend(handles=_legend_handles(view, objects=False), loc="outside lower center",
+               ncol=len(view.kinds_in_config), fontsize=8, frameon=False)
+    fig.suptitle(f"FlowSim environment {env}: visiting orders (dashed arrow closes the cycle)",
+                 fontsize=10)
+    return fig
+
+
+def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, config: FlowSimConfig,
+                   ax: Axes | None = None) -> Figure:
+    """Shade the places object ``obj`` could occupy by probability, over the scene at ``tau``.
+
+    ``probs`` is a 1-D array over positions along the object's visiting order, of length
+    ``num_slots`` or padded to F with zeros (as returned by ``exact_posterior``); it need not sum
+    to 1 (e.g. empirical slot frequencies). Each place is the object's box centred on that piece of
+    furniture, filled with an opacity proportional to its probability and labelled with it.
+    """
+    _check_types(scenes, config)
+    env, tau = _check_env_tau(scenes, env, tau)
+    view = _EnvView(scenes, env, config)
+    obj = _check_index(obj, view.num_objects, "obj", "object")
+    k = int(view.num_slots[obj])
+    probs = np.asarray(probs, dtype=float)
+    if probs.ndim != 1 or probs.shape[0] < k:
+        raise ValueError(f"probs must be a 1-D array over the {k} places of object {obj} "
+                         f"(optionally padded); got shape {probs.shape}")
+    if not np.all(np.isfinite(probs)) or np.any(probs < 0):
+        raise ValueError("probs must be finite and non-negative")
+    if np.any(probs[k:] > 1e-6):
+        raise ValueError(f"probs has mass beyond the object's {k} places")
+    probs = probs[:k]
+    fig = draw_scene(scenes, env, tau, config, ax=ax, highlight=obj, legend=ax is None)
+    ax = fig.axes[0] if ax is None else ax
+    category = view.categories[obj]
+    centres = view.furniture_centres()
+    half = view.object_size[obj] / 2
+    top = probs.max() if probs.max() > 0 else 1.0
+    for slot, f in enumerate(view.order(obj)):
+        cy, cx = centres[f]
+        p = probs[slot]
+        ax.add_patch(Rectangle(
+            (cx - 1.6 * half, cy - 1.6 * half), 3.2 * half, 3.2 * half,
+            facecolor=to_rgba(category.colour, _POSTERIOR_MAX_ALPHA * p / top),
+            edgecolor=category.colour, linewidth=1.0, linestyle="-" if p > 0 else ":",
+            zorder=2.2, gid="posterior"))
+        below = cy + 1.9 * half + 4  # label under the place, or above it at the map's bottom
+        y, va = (below, "top") if below + 10 < view.map_size else (cy - 1.9 * half - 4, "bottom")
+        ax.text(cx, y, f"{p:.2f}", ha="center", va=va, fontsize=8, color="0.1", zorder=5,
+                gid="posterior_label",
+                bbox=dict(boxstyle="round,pad=0.15", facecolor="white", edgecolor="none",
+                          alpha=0.8))
+    ax.set_title(f"{category.name}: where could it be? (map at τ = {tau})", fontsize=10)
+    return fig
+
+
+def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig,
+                  **style: Any) -> PatchCollection:
+    """Draw normalised (y, x, h, w) boxes (e.g. model samples) over a map drawn in ``ax``.
+
+    ``boxes_norm``: (N, 4) or (4,), coordinates in [0, 1] of the map (pixels / (map_size − 1));
+    values outside are drawn as they are (clipped by the axes). ``style`` overrides the
+    PatchCollection defaults (unfilled black outlines). Returns the added collection.
+    """
+    if not isinstance(config, FlowSimConfig):
+        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+    try:
+        boxes = np.asarray(boxes_norm, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"boxes_norm must be a numeric (N, 4) array; got {boxes_norm!r}") from None
+    if boxes.ndim == 1:
+        boxes = boxes[None]
+    if boxes.ndim != 2 or boxes.shape[1] != 4:
+        raise ValueError(f"boxes_norm must have shape (N, 4) or (4,) as (y, x, h, w); "
+                         f"got {np.shape(boxes_norm)}")
+    if not np.all(np.isfinite(boxes)):
+        raise ValueError("boxes_norm contains NaN or inf")
+    scale = float(config.map_size) - 1.0
+    y, x, h, w = (boxes * scale).T
+    patches = [Rectangle((xi, yi), wi, hi) for yi, xi, hi, wi in zip(y, x, h, w, strict=True)]
+    options = dict(facecolor="none", edgecolor="black", linewidth=1.0, alpha=0.7, zorder=6,
+                   gid="overlay")
+    options.update(style)
+    collection = PatchCollection(patches, match_original=False, **options)
+    ax.add_collection(collection)
+    return collection
