@@ -1,0 +1,315 @@
+"""FlowSim configuration: the category table (data, not code) and the simulator's numbers.
+
+``FlowSimConfig`` is a frozen, hashable dataclass so it can be a static argument of ``jax.jit``.
+Every field is checked when the config is built; a bad value raises ``ValueError`` naming the field.
+Adding an object category (or a furniture kind) is a change of data only: pass longer
+``categories`` / ``furniture_kinds`` tuples.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from typing import Any
+
+import numpy as np
+
+ORDERINGS = ("clockwise", "counter_clockwise", "top_to_bottom", "left_to_right", "bottom_to_top")
+"""Visiting-order rules. Angles are measured at the table centre around the map centre, 0 pointing
+up and increasing clockwise on screen (y grows downwards); "clockwise" visits tables by ascending
+angle, "counter_clockwise" by descending angle, the others by the centre's y or x coordinate."""
+
+SHAPES = ("square", "circle", "triangle", "diamond", "pentagon", "hexagon", "star")
+"""Marker shapes an object category may be drawn with (used by ``flowsim.render``)."""
+
+MAX_MAP_SIZE = 1024
+"""Largest map side: corners are drawn from 16 random bits, non-uniform by at most 1.6 % here."""
+
+DYNAMICS = ("markov", "schedule_jitter")
+"""``markov``: the paper's chain (stay / advance one / advance two). ``schedule_jitter``: the
+reference code's variant, slot = (t + offset) mod K with an independent offset in {-1, 0, +1}."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FurnitureKind:
+    """A kind of static furniture. ``descriptor`` is its integer descriptor (colour) id."""
+
+    name: str
+    descriptor: int
+    colour: str
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectCategory:
+    """One object category: exactly one object of it lives in every environment.
+
+    furniture_kind: name of the ``FurnitureKind`` the object always sits on.
+    ordering: one of ``ORDERINGS``, the rule ordering that kind's tables into a cyclic route.
+    shape: one of ``SHAPES``, only used for drawing.
+    """
+
+    name: str
+    descriptor: int
+    colour: str
+    shape: str
+    furniture_kind: str
+    ordering: str
+
+
+PAPER_FURNITURE_KINDS = (
+    FurnitureKind("kitchen_table", 3, "black"),
+    FurnitureKind("office_desk", 4, "brown"),
+    FurnitureKind("dining_table", 5, "purple"),
+)
+PAPER_CATEGORIES = (
+    ObjectCategory("fork", 0, "red", "square", "kitchen_table", "clockwise"),
+    ObjectCategory("bottle", 1, "green", "circle", "dining_table", "counter_clockwise"),
+    ObjectCategory("remote", 2, "blue", "triangle", "office_desk", "top_to_bottom"),
+)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check_probs(name: str, probs: Any) -> None:
+    if not isinstance(probs, tuple) or len(probs) != 3:
+        raise ValueError(f"{name} must be a tuple of 3 probabilities; got {probs!r}")
+    if any(not isinstance(p, (int, float)) or not math.isfinite(p) or p < 0 for p in probs):
+        raise ValueError(f"{name} must be finite and non-negative; got {probs!r}")
+    if abs(sum(probs) - 1.0) > 1e-6:
+        raise ValueError(f"{name} must sum to 1; got {probs!r} (sum {sum(probs):.6g})")
+
+
+@dataclasses.dataclass(frozen=True)
+class FlowSimConfig:
+    """All of FlowSim's parameters; the defaults are the paper's.
+
+    map_size: side of the square map in pixels.
+    num_furniture: F, pieces of furniture per environment.
+    min_per_kind: every furniture kind gets at least this many pieces; the rest get random kinds.
+    table_min_frac, table_max_frac: table height and width are uniform integers in
+        [floor(min_frac * map_size), floor(max_frac * map_size)] pixels.
+    object_frac, min_object_px: object side s = max(min_object_px, floor(object_frac * min side of
+        its start table)), constant over time.
+    transition_probs: Markov chain (stay, advance one, advance two) per timestep.
+    jitter_probs: schedule_jitter offsets (-1, 0, +1) around the one-place-per-step schedule.
+    num_timesteps: T.
+    max_tokens: S, scene tokens are padded to this length.
+    layout_budget: at most this many layout redraws per environment before ``generate`` gives up.
+    layout_candidates: random positions proposed for the last furniture piece of a layout
+        attempt (piece i of F gets ceil(layout_candidates * i / (F - 1)), at least 1); if none
+        fits next to the pieces already placed, the whole layout is redrawn.
+    dynamics: one of ``DYNAMICS``.
+    furniture_kinds, categories: the category table.
+    """
+
+    map_size: int = 256
+    num_furniture: int = 10
+    min_per_kind: int = 3
+    table_min_frac: float = 0.10
+    table_max_frac: float = 0.25
+    object_frac: float = 0.4
+    min_object_px: int = 5
+    transition_probs: tuple[float, float, float] = (0.2, 0.7, 0.1)
+    jitter_probs: tuple[float, float, float] = (0.1, 0.7, 0.2)
+    num_timesteps: int = 20
+    max_tokens: int = 20
+    layout_budget: int = 64
+    layout_candidates: int = 32
+    dynamics: str = "markov"
+    furniture_kinds: tuple[FurnitureKind, ...] = PAPER_FURNITURE_KINDS
+    categories: tuple[ObjectCategory, ...] = PAPER_CATEGORIES
+
+    def __post_init__(self) -> None:
+        for name in ("map_size", "num_furniture", "min_per_kind", "min_object_px",
+                     "num_timesteps", "max_tokens", "layout_budget", "layout_candidates"):
+            if not _is_int(getattr(self, name)):
+                raise ValueError(f"{name} must be an int; got {getattr(self, name)!r}")
+        for name, low in (("map_size", 2), ("num_furniture", 1), ("min_per_kind", 1),
+                          ("min_object_px", 1), ("num_timesteps", 2), ("max_tokens", 1),
+                          ("layout_budget", 0), ("layout_candidates", 1)):
+            if getattr(self, name) < low:
+                raise ValueError(f"{name} must be >= {low}; got {getattr(self, name)}")
+        if self.map_size > MAX_MAP_SIZE:
+            raise ValueError(f"map_size must be <= {MAX_MAP_SIZE} (positions are drawn from 16 "
+                             f"random bits); got {self.map_size}")
+        for name in ("table_min_frac", "table_max_frac", "object_frac"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not 0.0 < value <= 1.0:
+                raise ValueError(f"{name} must be a number in (0, 1]; got {value!r}")
+        if self.table_min_frac > self.table_max_frac:
+            raise ValueError(f"table_min_frac ({self.table_min_frac}) must be <= table_max_frac "
+                             f"({self.table_max_frac})")
+        _check_probs("transition_probs", self.transition_probs)
+        _check_probs("jitter_probs", self.jitter_probs)
+        if self.dynamics not in DYNAMICS:
+            raise ValueError(f"dynamics must be one of {DYNAMICS}; got {self.dynamics!r}")
+        self._check_table()
+        lo, _ = self.table_side_range
+        if lo < 1:
+            raise ValueError(f"map_size {self.map_size} is too small: table_min_frac "
+                             f"{self.table_min_frac} gives tables under one pixel")
+        if self.num_furniture * lo * lo > self.map_size ** 2:
+            raise ValueError(
+                f"map_size {self.map_size} is too small to place {self.num_furniture} tables of "
+                f"at least {lo}x{lo} px without overlap")
+        required = self.min_per_kind * len(self.furniture_kinds)
+        if self.num_furniture < required:
+            raise ValueError(
+                f"num_furniture must be >= min_per_kind * number of furniture kinds = {required}; "
+                f"got {self.num_furniture}")
+
+    def _check_table(self) -> None:
+        if not isinstance(self.furniture_kinds, tuple) or not self.furniture_kinds:
+            raise ValueError("furniture_kinds must be a non-empty tuple of FurnitureKind")
+        if not isinstance(self.categories, tuple) or not self.categories:
+            raise ValueError("categories must be a non-empty tuple of ObjectCategory")
+        for kind in self.furniture_kinds:
+            if not isinstance(kind, FurnitureKind):
+                raise ValueError(f"furniture_kinds entries must be FurnitureKind; got {kind!r}")
+        kind_names = [k.name for k in self.furniture_kinds]
+        for cat in self.categories:
+            if not isinstance(cat, ObjectCategory):
+                raise ValueError(f"categories entries must be ObjectCategory; got {cat!r}")
+            if cat.ordering not in ORDERINGS:
+                raise ValueError(f"categories: {cat.name!r} has unknown ordering "
+                                 f"{cat.ordering!r}; known: {ORDERINGS}")
+            if cat.shape not in SHAPES:
+                raise ValueError(f"categories: {cat.name!r} has unknown shape {cat.shape!r}; "
+                                 f"known: {SHAPES}")
+            if cat.furniture_kind not in kind_names:
+                raise ValueError(f"categories: {cat.name!r} sits on unknown furniture kind "
+                                 f"{cat.furniture_kind!r}; known: {kind_names}")
+        entries = [("furniture_kinds", k) for k in self.furniture_kinds]
+        entries += [("categories", c) for c in self.categories]
+        names: set[str] = set()
+        descriptors: set[int] = set()
+        for field, entry in entries:
+            if not isinstance(entry.name, str) or not entry.name:
+                raise ValueError(f"{field}: names must be non-empty strings; got {entry.name!r}")
+            if not _is_int(entry.descriptor) or entry.descriptor < 0:
+                raise ValueError(f"{field}: {entry.name!r} descriptor must be an int >= 0; "
+                                 f"got {entry.descriptor!r}")
+            if entry.name in names:
+                raise ValueError(f"{field}: name {entry.name!r} is used twice")
+            if entry.descriptor in descriptors:
+                raise ValueError(f"{field}: descriptor {entry.descriptor} is used twice")
+            if not isinstance(entry.colour, str) or not entry.colour:
+                raise ValueError(f"{field}: {entry.name!r} colour must be a non-empty string")
+            names.add(entry.name)
+            descriptors.add(entry.descriptor)
+
+    # ----------------------------------------------------------------- derived quantities
+    @property
+    def num_objects(self) -> int:
+        """M, one object per category."""
+        return len(self.categories)
+
+    @property
+    def num_kinds(self) -> int:
+        """Number of furniture kinds."""
+        return len(self.furniture_kinds)
+
+    @property
+    def num_descriptors(self) -> int:
+        """Size of the descriptor vocabulary: max descriptor id + 1."""
+        ids = [k.descriptor for k in self.furniture_kinds] + [c.descriptor for c in self.categories]
+        return max(ids) + 1
+
+    @property
+    def table_side_range(self) -> tuple[int, int]:
+        """(lo, hi) inclusive integer table side in pixels."""
+        return (math.floor(self.table_min_frac * self.map_size),
+                math.floor(self.table_max_frac * self.map_size))
+
+    @property
+    def category_kind_index(self) -> tuple[int, ...]:
+        """For each category, the index into ``furniture_kinds`` of the kind it sits on."""
+        names = [k.name for k in self.furniture_kinds]
+        return tuple(names.index(c.furniture_kind) for c in self.categories)
+
+    # ----------------------------------------------------------------- (de)serialisation
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict (tuples become lists, table entries become dicts)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> FlowSimConfig:
+        """Inverse of ``to_dict``; unknown keys raise ``ValueError``."""
+        if not isinstance(data, dict):
+            raise ValueError(f"FlowSimConfig.from_dict needs a dict; got {type(data).__name__}")
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"FlowSimConfig.from_dict: unknown fields {unknown}")
+        kwargs = dict(data)
+        try:
+            if "furniture_kinds" in kwargs:
+                kwargs["furniture_kinds"] = tuple(
+                    FurnitureKind(**k) for k in kwargs["furniture_kinds"])
+            if "categories" in kwargs:
+                kwargs["categories"] = tuple(ObjectCategory(**c) for c in kwargs["categories"])
+        except TypeError as err:
+            raise ValueError(f"FlowSimConfig.from_dict: bad category table entry: {err}") from err
+        for name in ("transition_probs", "jitter_probs"):
+            if name in kwargs and isinstance(kwargs[name], list):
+                kwargs[name] = tuple(kwargs[name])
+        return cls(**kwargs)
+
+
+DEFAULT_CONFIG = FlowSimConfig()
+"""The paper's configuration (used as the default argument everywhere)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SimShape:
+    """The part of a config that fixes array shapes and control flow (a static jit argument).
+
+    Configs differing only in numbers (map size, fractions, probabilities, descriptor ids) share
+    one ``SimShape`` and therefore one compiled simulator.
+    """
+
+    num_furniture: int
+    num_kinds: int
+    num_timesteps: int
+    layout_candidates: int
+    dynamics: str
+    orderings: tuple[str, ...]
+    category_kind: tuple[int, ...]
+
+    @property
+    def num_objects(self) -> int:
+        return len(self.orderings)
+
+
+def sim_shape(config: FlowSimConfig) -> SimShape:
+    """Static part of ``config`` (see ``SimShape``)."""
+    return SimShape(
+        num_furniture=config.num_furniture,
+        num_kinds=config.num_kinds,
+        num_timesteps=config.num_timesteps,
+        layout_candidates=config.layout_candidates,
+        dynamics=config.dynamics,
+        orderings=tuple(c.ordering for c in config.categories),
+        category_kind=config.category_kind_index,
+    )
+
+
+def sim_params(config: FlowSimConfig) -> dict[str, Any]:
+    """Numeric part of ``config`` as a dict of numpy arrays (a traced jit argument)."""
+    lo, hi = config.table_side_range
+    return {
+        "map_size": np.int32(config.map_size),
+        "side_lo": np.int32(lo),
+        "side_hi": np.int32(hi),
+        "min_per_kind": np.int32(config.min_per_kind),
+        "layout_budget": np.int32(config.layout_budget),
+        "object_frac": np.float32(config.object_frac),
+        "min_object_px": np.int32(config.min_object_px),
+        "transition_probs": np.asarray(config.transition_probs, np.float32),
+        "jitter_probs": np.asarray(config.jitter_probs, np.float32),
+        "kind_descriptor": np.asarray([k.descriptor for k in config.furniture_kinds], np.int32),
+        "category_descriptor": np.asarray([c.descriptor for c in config.categories], np.int32),
+    }

@@ -1,0 +1,202 @@
+"""Object dynamics along the visiting order, and their exact posterior.
+
+Two dynamics, chosen by ``FlowSimConfig.dynamics``:
+
+* ``"markov"`` (the paper's): every timestep, independently per object, the position k along the
+  cyclic visiting order of K slots stays with p0, advances one with p1, advances two with p2
+  (``transition_probs``, default 0.2 / 0.7 / 0.1), modulo K. The exact posterior Δτ steps ahead is
+  the Δτ-fold convolution of (p0, p1, p2) shifted by the current slot and folded modulo K, which
+  equals the Δτ-th power of the K × K transition matrix (``transition_matrix``).
+* ``"schedule_jitter"`` (the reference code's): slot_t = (t + o_t) mod K for t >= 1 with an
+  independent offset o_t in {-1, 0, +1} drawn with ``jitter_probs`` (0.1 / 0.7 / 0.2); slot_0 = 0.
+  Offsets are independent, so the posterior at query time τ_q depends only on τ_q = τ + Δτ (the
+  absolute time), not on the slot observed at τ.
+
+Every object starts at slot 0 (index 0 of its visiting order).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, DYNAMICS, FlowSimConfig, SimShape
+from flowmaps_jax.flowsim.layout import uniform16
+
+
+def _draw_offsets(u: jnp.ndarray, probs: jnp.ndarray) -> jnp.ndarray:
+    """Map uniforms u to {0, 1, 2} with probabilities ``probs`` (3,)."""
+    return ((u >= probs[0]).astype(jnp.int32) + (u >= probs[0] + probs[1]).astype(jnp.int32))
+
+
+def rollout_num_words(shape: SimShape) -> int:
+    """Random 32-bit words one rollout consumes (two 16-bit uniforms per word)."""
+    return math.ceil((shape.num_timesteps - 1) * shape.num_objects / 2)
+
+
+def rollout(words: jnp.ndarray, num_slots: jnp.ndarray, params: dict,
+            shape: SimShape) -> jnp.ndarray:
+    """Slots of M objects over T timesteps, environment axis last.
+
+    words: (rollout_num_words(shape), E) uint32 random words; each gives two uniforms on a
+        2**-16 grid, so the step probabilities are used to within 2**-16.
+    num_slots: (M, E) int32 number of slots K of each object's visiting order.
+    Returns (T, M, E) int32 position along the visiting order, 0 at t = 0.
+    """
+    t, m = shape.num_timesteps, shape.num_objects
+    halves = jnp.concatenate([words >> 16, words], axis=0)[: (t - 1) * m]
+    u = uniform16(halves).reshape((t - 1, m, *words.shape[1:]))
+    start = jnp.zeros((1, m, *words.shape[1:]), jnp.int32)
+    if shape.dynamics == "markov":
+        steps = _draw_offsets(u, params["transition_probs"])
+
+        def step(slot, advance):
+            slot = jnp.mod(slot + advance, num_slots)
+            return slot, slot
+
+        _, later = jax.lax.scan(step, start[0], steps)
+    elif shape.dynamics == "schedule_jitter":
+        offsets = _draw_offsets(u, params["jitter_probs"]) - 1
+        time = jnp.arange(1, t, dtype=jnp.int32).reshape((t - 1,) + (1,) * (u.ndim - 1))
+        later = jnp.mod(time + offsets, num_slots[None])
+    else:
+        raise ValueError(f"dynamics must be one of {DYNAMICS}; got {shape.dynamics!r}")
+    return jnp.concatenate([start, later], axis=0)
+
+
+# ---------------------------------------------------------------------- exact posterior
+
+
+def _advance_table(probs: tuple[float, float, float], max_horizon: int) -> np.ndarray:
+    """(H + 1, 2H + 1) float64: row h is the distribution of the total advance after h steps."""
+    table = np.zeros((max_horizon + 1, 2 * max_horizon + 1))
+    table[0, 0] = 1.0
+    for h in range(1, max_horizon + 1):
+        table[h] = np.convolve(table[h - 1], np.asarray(probs, np.float64))[: 2 * max_horizon + 1]
+    return table
+
+
+def _is_concrete(*arrays) -> bool:
+    return not any(isinstance(a, jax.core.Tracer) for a in arrays)
+
+
+def _check_slots(num_slots, slot_now, config: FlowSimConfig) -> None:
+    k = np.asarray(num_slots)
+    if not np.issubdtype(k.dtype, np.integer):
+        raise ValueError(f"num_slots must be integer; got dtype {k.dtype}")
+    if np.any((k < 1) | (k > config.num_furniture)):
+        raise ValueError(f"num_slots must lie in 1..num_furniture={config.num_furniture}; "
+                         f"got values in {k.min()}..{k.max()}")
+    if slot_now is not None:
+        s = np.asarray(slot_now)
+        if not np.issubdtype(s.dtype, np.integer):
+            raise ValueError(f"slot_now must be integer; got dtype {s.dtype}")
+        try:
+            ok = np.all((s >= 0) & (s < k))
+        except ValueError as err:
+            raise ValueError(f"slot_now {s.shape} and num_slots {k.shape} do not broadcast") \
+                from err
+        if not ok:
+            raise ValueError("slot_now must lie in 0..num_slots-1")
+
+
+def _check_time(name: str, value, low: int, high: int) -> None:
+    v = np.asarray(value)
+    if not np.issubdtype(v.dtype, np.integer):
+        raise ValueError(f"{name} must be integer; got dtype {v.dtype}")
+    if np.any((v < low) | (v > high)):
+        raise ValueError(f"{name} must lie in {low}..{high}; got values in {v.min()}..{v.max()}")
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _markov_posterior(num_slots, slot_now, horizon, config: FlowSimConfig):
+    max_h = config.num_timesteps - 1
+    table = jnp.asarray(_advance_table(config.transition_probs, max_h), jnp.float32)
+    num_slots, slot_now, horizon = jnp.broadcast_arrays(
+        jnp.asarray(num_slots, jnp.int32), jnp.asarray(slot_now, jnp.int32),
+        jnp.asarray(horizon, jnp.int32))
+    weights = table[jnp.clip(horizon, 0, max_h)]  # (..., 2H+1)
+    advance = jnp.arange(2 * max_h + 1)
+    position = jnp.mod(slot_now[..., None] + advance, num_slots[..., None])  # (..., 2H+1)
+    onehot = jax.nn.one_hot(position, config.num_furniture, dtype=jnp.float32)
+    return jnp.einsum("...n,...nf->...f", weights, onehot)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _jitter_posterior(num_slots, slot_now, tau_q, config: FlowSimConfig):
+    num_slots, slot_now, tau_q = jnp.broadcast_arrays(
+        jnp.asarray(num_slots, jnp.int32), jnp.asarray(slot_now, jnp.int32),
+        jnp.asarray(tau_q, jnp.int32))
+    probs = jnp.asarray(config.jitter_probs, jnp.float32)
+    offsets = jnp.arange(-1, 2)
+    position = jnp.mod(tau_q[..., None] + offsets, num_slots[..., None])  # (..., 3)
+    onehot = jax.nn.one_hot(position, config.num_furniture, dtype=jnp.float32)
+    jittered = jnp.einsum("n,...nf->...f", probs, onehot)
+    at_start = jax.nn.one_hot(jnp.zeros_like(tau_q), config.num_furniture, dtype=jnp.float32)
+    return jnp.where((tau_q == 0)[..., None], at_start, jittered)
+
+
+def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAULT_CONFIG,
+                    dynamics: str | None = None, tau=None) -> jnp.ndarray:
+    """Exact distribution (..., F) float32 of an object's slot ``horizon`` steps ahead.
+
+    num_slots: (...) int number of slots K of the object's visiting order (1..F).
+    slot_now: (...) int slot observed at state time tau (0..K-1).
+    horizon: (...) int Δτ in 0..T-1 (horizon 0 gives the observed slot).
+    dynamics: "markov" or "schedule_jitter"; default ``config.dynamics``.
+    tau: (...) int state time; only needed (and required) for "schedule_jitter", whose
+        posterior depends on the absolute query time τ + Δτ rather than on ``slot_now``.
+    Leading dims broadcast. Entries beyond K are zero; each row sums to 1.
+    Inputs are validated when concrete; under ``jit`` out-of-range horizons are clipped.
+    """
+    if not isinstance(config, FlowSimConfig):
+        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+    dynamics = config.dynamics if dynamics is None else dynamics
+    if dynamics not in DYNAMICS:
+        raise ValueError(f"dynamics must be one of {DYNAMICS}; got {dynamics!r}")
+    max_h = config.num_timesteps - 1
+    if _is_concrete(num_slots, slot_now, horizon):
+        _check_slots(num_slots, slot_now, config)
+        _check_time("horizon", horizon, 0, max_h)
+    if dynamics == "markov":
+        return _markov_posterior(num_slots, slot_now, horizon, config)
+    if tau is None:
+        raise ValueError("tau is required for dynamics='schedule_jitter' (its posterior depends "
+                         "on the absolute query time tau + horizon)")
+    if _is_concrete(tau, horizon):
+        _check_time("tau", tau, 0, max_h)
+        _check_time("tau + horizon", np.asarray(tau) + np.asarray(horizon), 0, max_h)
+    now = jax.nn.one_hot(jnp.asarray(slot_now), config.num_furniture, dtype=jnp.float32)
+    ahead = _jitter_posterior(num_slots, slot_now, jnp.asarray(tau) + jnp.asarray(horizon),
+                              config)
+    return jnp.where((jnp.asarray(horizon) == 0)[..., None], now, ahead)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _transition_matrix(num_slots, config: FlowSimConfig):
+    f = config.num_furniture
+    k = jnp.asarray(num_slots, jnp.int32)[..., None]  # (..., 1)
+    row = jnp.arange(f)
+    matrix = 0.0
+    for advance, prob in enumerate(config.transition_probs):
+        onehot = jax.nn.one_hot(jnp.mod(row + advance, k), f, dtype=jnp.float32)  # (..., F, F)
+        matrix = matrix + prob * onehot
+    return jnp.where((row < k)[..., None], matrix, 0.0)
+
+
+def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
+    """Markov transition matrix (..., F, F) float32: entry [i, j] = P(slot j next | slot i now).
+
+    The top-left K × K block (K = num_slots, (...) int) is the cyclic kernel of
+    ``config.transition_probs``; the rest is zero. ``onehot(slot) @ P^h`` equals
+    ``exact_posterior(K, slot, h)``.
+    """
+    if not isinstance(config, FlowSimConfig):
+        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+    if _is_concrete(num_slots):
+        _check_slots(num_slots, None, config)
+    return _transition_matrix(num_slots, config)

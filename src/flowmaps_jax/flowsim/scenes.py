@@ -1,0 +1,346 @@
+"""Model-facing views of FlowSim scenes: normalised boxes, tokens, queries, batches, splits, I/O.
+
+* Boxes for the model are ``(y, x, h, w)`` divided by ``map_size - 1`` (as the reference code).
+* ``scene_tokens``: the F furniture tokens, then the M object tokens, padded to
+  ``config.max_tokens`` (see ``flowmaps_jax.tokens``).
+* Queries follow PAPER.md: a scene uniformly, τ uniform in 0..T−2, τ_q uniform in τ+1..T−1, the
+  object uniform over the M categories.
+* Splits: ``train_split`` (2500 environments, seed ``TRAIN_SEED`` = 0) and ``validation_split``
+  (200, seed ``VALIDATION_SEED`` = 1). Each split also folds its own tag into the key
+  (``fold_in(key(seed), tag)``, tags 0 train / 1 validation / 2 endless stream), so the splits
+  are disjoint streams even if the same seed is passed to both.
+* ``save_scenes`` / ``load_scenes``: one ``.npz`` with ``FORMAT_VERSION`` and the config as JSON.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+from collections.abc import Iterator
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from flowmaps_jax import tokens as tok
+from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, FlowSimConfig
+from flowmaps_jax.flowsim.generate import Scenes, check_key, generate
+
+FORMAT_VERSION = 1
+TRAIN_SEED = 0
+VALIDATION_SEED = 1
+_TRAIN_TAG, _VALIDATION_TAG, _STREAM_TAG = 0, 1, 2
+
+
+@struct.dataclass
+class QuerySet:
+    """n queries into a Scenes batch; all (n,) int32.
+
+    env: environment index. tau: state time (0..T-2). tau_q: query time (tau+1..T-1).
+    obj: object index (category order of the config, 0..M-1).
+    """
+
+    env: jnp.ndarray
+    tau: jnp.ndarray
+    tau_q: jnp.ndarray
+    obj: jnp.ndarray
+
+
+# ------------------------------------------------------------------------------ validation
+
+
+def _check_config(config) -> None:
+    if not isinstance(config, FlowSimConfig):
+        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+
+
+def _check_scenes(scenes, config: FlowSimConfig) -> None:
+    if not isinstance(scenes, Scenes):
+        raise ValueError(f"scenes must be a flowsim Scenes; got {type(scenes).__name__}")
+    e = scenes.furniture_boxes.shape[0]
+    expected = (e, config.num_timesteps, config.num_objects, 4)
+    if (scenes.furniture_boxes.shape[1] != config.num_furniture
+            or scenes.object_boxes.shape != expected):
+        raise ValueError(
+            f"scenes do not match config: furniture_boxes {scenes.furniture_boxes.shape}, "
+            f"object_boxes {scenes.object_boxes.shape}; config expects F={config.num_furniture}, "
+            f"T={config.num_timesteps}, M={config.num_objects}")
+
+
+def _check_token_room(config: FlowSimConfig) -> None:
+    needed = config.num_furniture + config.num_objects
+    if needed > config.max_tokens:
+        raise ValueError(f"config.max_tokens={config.max_tokens} is smaller than the "
+                         f"{needed} tokens of a scene (F={config.num_furniture} furniture + "
+                         f"M={config.num_objects} objects)")
+
+
+def _check_positive(name: str, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be a positive int; got {value!r}")
+    return int(value)
+
+
+def _check_index(name: str, value, high: int, low: int = 0) -> None:
+    """Validate a concrete (N,) integer index array in [low, high)."""
+    if isinstance(value, jax.core.Tracer):
+        return
+    arr = np.asarray(value)
+    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{name} must be a 1-D integer array; got {arr.dtype} {arr.shape}")
+    if arr.size and (arr.min() < low or arr.max() >= high):
+        raise ValueError(f"{name} must lie in {low}..{high - 1}; got {arr.min()}..{arr.max()}")
+
+
+# ------------------------------------------------------------------------------ boxes
+
+
+def normalise_boxes(boxes_px, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
+    """Pixel boxes (..., 4) (y0, x0, y1, x1) → normalised (y, x, h, w) / (map_size − 1)."""
+    boxes = jnp.asarray(boxes_px, jnp.float32)
+    if boxes.ndim < 1 or boxes.shape[-1] != 4:
+        raise ValueError(f"boxes_px must have shape (..., 4); got {boxes.shape}")
+    yx, far = boxes[..., :2], boxes[..., 2:]
+    return jnp.concatenate([yx, far - yx], axis=-1) / (config.map_size - 1)
+
+
+def denormalise_boxes(boxes, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
+    """Inverse of ``normalise_boxes``: (..., 4) (y, x, h, w) → pixels (y0, x0, y1, x1)."""
+    boxes = jnp.asarray(boxes, jnp.float32)
+    if boxes.ndim < 1 or boxes.shape[-1] != 4:
+        raise ValueError(f"boxes must have shape (..., 4); got {boxes.shape}")
+    px = boxes * (config.map_size - 1)
+    return jnp.concatenate([px[..., :2], px[..., :2] + px[..., 2:]], axis=-1)
+
+
+# ------------------------------------------------------------------------------ tokens
+
+
+def _tokens(scenes: Scenes, env, tau, config: FlowSimConfig) -> tok.SceneTokens:
+    """Unchecked, jit-able body of ``scene_tokens``."""
+    f, m, s = config.num_furniture, config.num_objects, config.max_tokens
+    n = env.shape[0]
+    pad = s - f - m
+    boxes = jnp.concatenate([
+        normalise_boxes(scenes.furniture_boxes[env], config),
+        normalise_boxes(scenes.object_boxes[env, tau], config),
+        jnp.zeros((n, pad, 4), jnp.float32)], axis=1)
+    descriptor = jnp.concatenate([scenes.furniture_kind[env], scenes.object_kind[env],
+                                  jnp.zeros((n, pad), jnp.int32)], axis=1)
+    kind = jnp.concatenate([jnp.full((f,), tok.FURNITURE), jnp.full((m,), tok.OBJECT),
+                            jnp.zeros((pad,))]).astype(jnp.int32)
+    return tok.SceneTokens(boxes=boxes, descriptor=descriptor.astype(jnp.int32),
+                           kind=jnp.broadcast_to(kind, (n, s)),
+                           mask=jnp.broadcast_to(jnp.arange(s) < f + m, (n, s)),
+                           tau=tau.astype(jnp.int32))
+
+
+def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFIG
+                 ) -> tok.SceneTokens:
+    """Tokens of environments ``env`` (N,) at state times ``tau`` (N,): SceneTokens (N, S).
+
+    F furniture tokens, then M object tokens (object boxes at time tau), padded to
+    S = config.max_tokens. Raises ``ValueError`` if F + M > S. jit-able (a gather).
+    """
+    _check_config(config)
+    _check_token_room(config)
+    _check_scenes(scenes, config)
+    _check_index("env", env, scenes.num_envs)
+    _check_index("tau", tau, config.num_timesteps)
+    env, tau = jnp.asarray(env, jnp.int32), jnp.asarray(tau, jnp.int32)
+    if env.shape != tau.shape:
+        raise ValueError(f"env {env.shape} and tau {tau.shape} must have the same shape (N,)")
+    return _tokens(scenes, env, tau, config)
+
+
+def slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
+    """(N, F, 4) normalised (y, x, h, w) box object ``obj`` (N,) of environment ``env`` (N,)
+    would have at each position k of its visiting order (zeros for k >= num_slots)."""
+    _check_config(config)
+    _check_scenes(scenes, config)
+    _check_index("env", env, scenes.num_envs)
+    _check_index("obj", obj, config.num_objects)
+    return _slot_boxes(scenes, jnp.asarray(env, jnp.int32), jnp.asarray(obj, jnp.int32), config)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig):
+    order = scenes.visit_order[env, obj]  # (N, F)
+    furniture = scenes.furniture_boxes[env]  # (N, F, 4)
+    table = jnp.take_along_axis(furniture, jnp.maximum(order, 0)[..., None], axis=1)
+    centre = 0.5 * (table[..., :2] + table[..., 2:])
+    half = 0.5 * scenes.object_size[env, obj][:, None, None]
+    boxes = normalise_boxes(jnp.concatenate([centre - half, centre + half], axis=-1), config)
+    valid = jnp.arange(config.num_furniture)[None, :] < scenes.num_slots[env, obj][:, None]
+    return jnp.where(valid[..., None], boxes, 0.0)
+
+
+# ------------------------------------------------------------------------------ queries
+
+
+def _draw_times(key, shape_tau, shape_q, config: FlowSimConfig):
+    """τ uniform in 0..T−2 with shape ``shape_tau``; τ_q uniform in τ+1..T−1 with ``shape_q``."""
+    t = config.num_timesteps
+    key_tau, key_q = jax.random.split(key)
+    tau = jax.random.randint(key_tau, shape_tau, 0, t - 1)
+    tau_b = tau.reshape(shape_tau + (1,) * (len(shape_q) - len(shape_tau)))
+    tau_q = jax.random.randint(key_q, shape_q, tau_b + 1, t)
+    return tau, tau_q
+
+
+@functools.partial(jax.jit, static_argnames=("num_envs", "n", "config"))
+def _sample_queries(key, num_envs: int, n: int, config: FlowSimConfig) -> QuerySet:
+    key_env, key_time, key_obj = jax.random.split(key, 3)
+    env = jax.random.randint(key_env, (n,), 0, num_envs)
+    tau, tau_q = _draw_times(key_time, (n,), (n,), config)
+    obj = jax.random.randint(key_obj, (n,), 0, config.num_objects)
+    return QuerySet(env=env, tau=tau, tau_q=tau_q, obj=obj)
+
+
+def sample_queries(key, num_envs_or_scenes, n: int,
+                   config: FlowSimConfig = DEFAULT_CONFIG) -> QuerySet:
+    """Draw n queries: env uniform, τ uniform in 0..T−2, τ_q uniform in τ+1..T−1, object
+    uniform over M. ``num_envs_or_scenes``: an int or a Scenes (its number of environments)."""
+    _check_config(config)
+    if isinstance(num_envs_or_scenes, Scenes):
+        num_envs = num_envs_or_scenes.num_envs
+    else:
+        num_envs = _check_positive("num_envs_or_scenes", num_envs_or_scenes)
+    n = _check_positive("n", n)
+    return _sample_queries(check_key(key), num_envs, n, config)
+
+
+@functools.partial(jax.jit, static_argnames=("batch_size", "queries_per_scene", "config"))
+def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
+                 config: FlowSimConfig) -> tok.TrainBatch:
+    b, q = batch_size, queries_per_scene
+    key_env, key_time, key_obj = jax.random.split(key, 3)
+    env = jax.random.randint(key_env, (b,), 0, scenes.furniture_boxes.shape[0])
+    tau, tau_q = _draw_times(key_time, (b,), (b, q), config)
+    obj = jax.random.randint(key_obj, (b, q), 0, config.num_objects)
+    env_q = jnp.broadcast_to(env[:, None], (b, q))
+    target = normalise_boxes(scenes.object_boxes[env_q, tau_q, obj], config)
+    queries = tok.Queries(descriptor=scenes.object_kind[env_q, obj], tau_q=tau_q)
+    return tok.TrainBatch(tokens=_tokens(scenes, env, tau, config), queries=queries,
+                          target=target)
+
+
+def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
+                     config: FlowSimConfig = DEFAULT_CONFIG) -> tok.TrainBatch:
+    """A TrainBatch: B scenes drawn uniformly, τ uniform in 0..T−2 per scene, then Q queries per
+    scene (object uniform over M, τ_q uniform in τ+1..T−1); target = the queried object's
+    normalised (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config).
+    """
+    _check_config(config)
+    _check_token_room(config)
+    _check_scenes(scenes, config)
+    batch_size = _check_positive("batch_size", batch_size)
+    queries_per_scene = _check_positive("queries_per_scene", queries_per_scene)
+    return _train_batch(check_key(key), scenes, batch_size, queries_per_scene, config)
+
+
+# ------------------------------------------------------------------------------ datasets
+
+
+def _split_key(seed: int, tag: int) -> jax.Array:
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed must be an int; got {seed!r}")
+    return jax.random.fold_in(jax.random.key(int(seed)), tag)
+
+
+def train_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 2500,
+                seed: int = TRAIN_SEED) -> Scenes:
+    """The fixed training environments: ``generate(fold_in(key(seed), 0), num_envs, config)``."""
+    _check_config(config)
+    return generate(_split_key(seed, _TRAIN_TAG), num_envs, config)
+
+
+def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200,
+                     seed: int = VALIDATION_SEED) -> Scenes:
+    """The held-out environments: ``generate(fold_in(key(seed), 1), num_envs, config)``;
+    a different seed and tag from ``train_split``."""
+    _check_config(config)
+    return generate(_split_key(seed, _VALIDATION_TAG), num_envs, config)
+
+
+def endless_batches(key, batch_size: int, queries_per_scene: int,
+                    config: FlowSimConfig = DEFAULT_CONFIG,
+                    envs_per_chunk: int = 4096) -> Iterator[tok.TrainBatch]:
+    """Endless TrainBatches from freshly generated scenes.
+
+    Every chunk generates ``envs_per_chunk`` new environments (key: ``fold_in(key, 2)`` then the
+    chunk number) and yields ``envs_per_chunk // batch_size`` batches drawn from them, so each
+    scene is used about once.
+    """
+    _check_config(config)
+    _check_token_room(config)
+    batch_size = _check_positive("batch_size", batch_size)
+    queries_per_scene = _check_positive("queries_per_scene", queries_per_scene)
+    envs_per_chunk = _check_positive("envs_per_chunk", envs_per_chunk)
+    if envs_per_chunk < batch_size:
+        raise ValueError(f"envs_per_chunk ({envs_per_chunk}) must be >= batch_size "
+                         f"({batch_size})")
+    stream = jax.random.fold_in(check_key(key), _STREAM_TAG)
+    chunk = 0
+    while True:
+        key_scenes, key_batches = jax.random.split(jax.random.fold_in(stream, chunk))
+        scenes = generate(key_scenes, envs_per_chunk, config)
+        for i in range(envs_per_chunk // batch_size):
+            yield _train_batch(jax.random.fold_in(key_batches, i), scenes, batch_size,
+                               queries_per_scene, config)
+        chunk += 1
+
+
+# ------------------------------------------------------------------------------ .npz I/O
+
+_FIELDS = tuple(f.name for f in dataclasses.fields(Scenes))
+
+
+def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) -> None:
+    """Write scenes and their config to one ``.npz`` (with ``FORMAT_VERSION``) at ``path``."""
+    _check_config(config)
+    _check_scenes(scenes, config)
+    arrays = {name: np.asarray(getattr(scenes, name)) for name in _FIELDS}
+    with open(os.fspath(path), "wb") as handle:
+        np.savez_compressed(handle, format_version=np.int64(FORMAT_VERSION),
+                            config_json=np.asarray(json.dumps(config.to_dict())), **arrays)
+
+
+def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
+    """Read a file written by ``save_scenes``. Raises ``ValueError`` naming ``path`` if it is
+    missing, not an ``.npz``, of another format version, or lacks / has inconsistent arrays."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ValueError(f"load_scenes: {path!r} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            contents = {name: data[name] for name in data.files}
+    except Exception as err:  # zipfile / pickle / OS errors: not a readable .npz
+        raise ValueError(f"load_scenes: {path!r} is not a readable .npz file ({err})") from err
+    if "format_version" not in contents:
+        raise ValueError(f"load_scenes: {path!r} has no format_version; not a FlowSim file")
+    version = int(contents["format_version"])
+    if version != FORMAT_VERSION:
+        raise ValueError(f"load_scenes: {path!r} has format version {version}; this code reads "
+                         f"version {FORMAT_VERSION} only")
+    missing = [n for n in ("config_json", *_FIELDS) if n not in contents]
+    if missing:
+        raise ValueError(f"load_scenes: {path!r} is missing arrays {missing}")
+    try:
+        config = FlowSimConfig.from_dict(json.loads(str(contents["config_json"])))
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"load_scenes: {path!r} has an invalid config: {err}") from err
+    scenes = Scenes(**{name: jnp.asarray(contents[name]) for name in _FIELDS})
+    e = scenes.furniture_boxes.shape[0]
+    f, m, t = config.num_furniture, config.num_objects, config.num_timesteps
+    expected = {"furniture_boxes": (e, f, 4), "furniture_kind": (e, f), "object_kind": (e, m),
+                "object_size": (e, m), "visit_order": (e, m, f), "num_slots": (e, m),
+                "slot": (e, t, m), "object_boxes": (e, t, m, 4), "layout_redraws": (e,)}
+    for name, shape in expected.items():
+        if contents[name].shape != shape:
+            raise ValueError(f"load_scenes: {path!r} array {name} has shape "
+                             f"{contents[name].shape}, expected {shape}")
+    return scenes, config
