@@ -1,0 +1,105 @@
+"""Forward+backward throughput of the CFM loss (query-samples/s) at a given model size.
+
+Usage: python experiments/bench_model.py [--queries 1 4 8] [--batch 256] [--steps 5]
+       [--dim 256 --encoder-layers 8 --cdit-blocks 8 --heads 8] [--sampling]
+
+``--sampling`` also times inference: 100 scenes × 1 query × 25 samples, encoder once, then the
+default midpoint solver (10 grid points, 18 velocity evaluations), in samples/s.
+
+B scenes × Q queries per scene share one encoder pass; a query-sample is one (scene, query) pair.
+Timing starts after compilation and one warm-up step; dropout is on (as in training).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.flow import cfm_loss, integrate
+from flowmaps_jax.model import ModelConfig, encode, init_params, make_velocity_fn
+from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
+
+
+def synthetic_batch(key, batch: int, queries: int, config: ModelConfig) -> TrainBatch:
+    """Random but valid batch: 13 real tokens of 20, τ in [0, 18], τ_q in (τ, 19]."""
+    s = config.max_tokens
+    k_box, k_desc, k_tau, k_tq, k_tgt = jax.random.split(key, 5)
+    tau = jax.random.randint(k_tau, (batch,), 0, config.tau_max - 1)
+    tau_q = jax.random.randint(k_tq, (batch, queries), tau[:, None] + 1, config.tau_max)
+    tokens = SceneTokens(
+        boxes=jax.random.uniform(k_box, (batch, s, 4)) * 0.25,
+        descriptor=jax.random.randint(k_desc, (batch, s), 0, config.num_descriptors),
+        kind=(jnp.arange(s) >= 10).astype(jnp.int32)[None].repeat(batch, 0),
+        mask=(jnp.arange(s) < 13)[None].repeat(batch, 0),
+        tau=tau)
+    qs = Queries(descriptor=jax.random.randint(k_desc, (batch, queries), 0, 3), tau_q=tau_q)
+    return TrainBatch(tokens=tokens, queries=qs,
+                      target=jax.random.uniform(k_tgt, (batch, queries, 4)) * 0.5)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--queries", type=int, nargs="+", default=[1, 4, 8])
+    parser.add_argument("--batch", type=int, default=256)
+    parser.add_argument("--steps", type=int, default=5)
+    parser.add_argument("--dim", type=int, default=256)
+    parser.add_argument("--encoder-layers", type=int, default=8)
+    parser.add_argument("--cdit-blocks", type=int, default=8)
+    parser.add_argument("--heads", type=int, default=8)
+    parser.add_argument("--sampling", action="store_true", help="also time ODE sampling")
+    parser.add_argument("--no-training", action="store_true", help="skip the training benchmark")
+    args = parser.parse_args()
+    config = ModelConfig(dim=args.dim, encoder_layers=args.encoder_layers,
+                         cdit_blocks=args.cdit_blocks, heads=args.heads)
+    params = init_params(jax.random.key(0), config)
+    n_params = sum(x.size for x in jax.tree_util.tree_leaves(params))
+    print(f"{config}\nparameters: {n_params:,}  devices: {jax.devices()}")
+    grad_fn = jax.jit(jax.value_and_grad(cfm_loss, has_aux=True), static_argnames="config")
+    for q in [] if args.no_training else args.queries:
+        batch = synthetic_batch(jax.random.key(1), args.batch, q, config)
+        t0 = time.perf_counter()
+        jax.block_until_ready(grad_fn(params, config, batch, jax.random.key(2)))
+        compile_s = time.perf_counter() - t0
+        times = []
+        for i in range(args.steps):
+            t0 = time.perf_counter()
+            jax.block_until_ready(grad_fn(params, config, batch, jax.random.key(3 + i)))
+            times.append(time.perf_counter() - t0)
+        step = float(np.median(times))
+        print(f"B={args.batch} Q={q}: {step * 1e3:7.1f} ms/step (median of {args.steps}), "
+              f"{args.batch * q / step:8.1f} query-samples/s, {args.batch / step:7.1f} scenes/s "
+              f"(compile+first step {compile_s:.1f} s)")
+    if args.sampling:
+        bench_sampling(params, config, steps=args.steps)
+
+
+def bench_sampling(params, config: ModelConfig, scenes: int = 100, samples: int = 25,
+                   steps: int = 3) -> None:
+    """Samples/s of encode-once + midpoint integration (all samples of a query share c)."""
+    batch = synthetic_batch(jax.random.key(1), scenes, 1, config)
+
+    @jax.jit
+    def sample(params, key):
+        context = encode(params, config, batch.tokens)
+        field = make_velocity_fn(params, config, context, batch.queries)
+        return integrate(field, jax.random.normal(key, (scenes, 1, samples, 4)))
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(sample(params, jax.random.key(2)))
+    compile_s = time.perf_counter() - t0
+    times = []
+    for i in range(steps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(sample(params, jax.random.key(3 + i)))
+        times.append(time.perf_counter() - t0)
+    run = float(np.median(times))
+    print(f"sampling {scenes} queries x {samples} samples (midpoint, 18 evals): {run:.2f} s, "
+          f"{scenes * samples / run:.1f} samples/s (compile+first call {compile_s:.1f} s)")
+
+
+if __name__ == "__main__":
+    main()

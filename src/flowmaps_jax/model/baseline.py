@@ -1,0 +1,94 @@
+"""MLP-Gaussian baseline: the same Map Encoder, masked mean pool, MLP head → a Gaussian box.
+
+Head input per query: [pooled map (D), Embed(query descriptor), Embed(τ), Embed(τ_q)] → MLP →
+mean (4) (+ log-variance (4) for the ``"learned"`` variant; the ``"mean"`` variant has unit
+variance, as the paper's reference). ``config.baseline_variance`` picks the variant.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from flowmaps_jax.model.config import ModelConfig
+from flowmaps_jax.model.embeddings import FlatDense
+from flowmaps_jax.model.encoder import MapEncoder
+from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
+
+LOG_VAR_RANGE = (-12.0, 4.0)  # keeps the learned variance away from 0 and from blowing up
+
+
+class BaselineMLP(nn.Module):
+    """SceneTokens (B, S), Queries (B, Q) → mean (B, Q, 4), log_var (B, Q, 4)."""
+
+    config: ModelConfig
+
+    @nn.compact
+    def __call__(self, tokens: SceneTokens, queries: Queries, deterministic: bool = True):
+        cfg = self.config
+        context = MapEncoder(cfg, name="encoder")(tokens, deterministic)  # zero on padding
+        mask = tokens.mask.astype(context.dtype)
+        pooled = context.sum(1) / jnp.maximum(mask.sum(1, keepdims=True), 1.0)  # (B, D)
+        q = queries.descriptor.shape[1]
+        features = jnp.concatenate([
+            jnp.broadcast_to(pooled[:, None], (pooled.shape[0], q, cfg.dim)),
+            nn.Embed(cfg.num_descriptors, cfg.dim, name="descriptor_embed")(queries.descriptor),
+            jnp.broadcast_to(nn.Embed(cfg.tau_max, cfg.dim, name="tau_embed")(tokens.tau)[:, None],
+                             (pooled.shape[0], q, cfg.dim)),
+            nn.Embed(cfg.tau_max, cfg.dim, name="tau_q_embed")(queries.tau_q),
+        ], axis=-1)
+        h = features
+        for i in range(2):
+            h = nn.gelu(FlatDense(cfg.baseline_hidden, name=f"hidden_{i}")(h))
+            h = nn.Dropout(cfg.dropout)(h, deterministic=deterministic)
+        mean = FlatDense(4, name="mean")(h)
+        if cfg.baseline_variance == "mean":
+            return mean, jnp.zeros_like(mean)
+        log_var = FlatDense(4, kernel_init=nn.initializers.zeros_init(), name="log_var")(h)
+        return mean, jnp.clip(log_var, *LOG_VAR_RANGE)
+
+
+def _dummy_inputs(config: ModelConfig):
+    s = config.max_tokens
+    tokens = SceneTokens(boxes=jnp.zeros((1, s, 4)), descriptor=jnp.zeros((1, s), jnp.int32),
+                         kind=jnp.zeros((1, s), jnp.int32), mask=jnp.ones((1, s), bool),
+                         tau=jnp.zeros((1,), jnp.int32))
+    return tokens, Queries(descriptor=jnp.zeros((1, 1), jnp.int32),
+                           tau_q=jnp.ones((1, 1), jnp.int32))
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def init_baseline(key: jax.Array, config: ModelConfig):
+    """Fresh baseline parameters for ``config`` (variant from ``config.baseline_variance``)."""
+    return BaselineMLP(config).init(key, *_dummy_inputs(config))["params"]
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def baseline_predict(params, config: ModelConfig, tokens: SceneTokens, queries: Queries, *,
+                     dropout_key=None):
+    """Gaussian over each query's box: mean (B, Q, 4), log_var (B, Q, 4) (zeros for "mean")."""
+    rngs = {} if dropout_key is None else {"dropout": dropout_key}
+    return BaselineMLP(config).apply({"params": params}, tokens, queries, dropout_key is None,
+                                     rngs=rngs)
+
+
+def baseline_log_prob(mean: jnp.ndarray, log_var: jnp.ndarray, x: jnp.ndarray) -> jnp.ndarray:
+    """Diagonal-Gaussian log-density of boxes x. mean, log_var (..., 4); x (..., 4) → (...)."""
+    squared = jnp.square(x - mean) * jnp.exp(-log_var)
+    return -0.5 * jnp.sum(squared + log_var + math.log(2 * math.pi), axis=-1)
+
+
+def baseline_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array | None = None):
+    """Mean Gaussian NLL of the target boxes; returns ``(loss, aux)``.
+
+    For the ``"mean"`` variant (unit variance) this is ½·squared error + const. ``key`` drives
+    dropout (None = deterministic). aux: ``{"loss", "mse"}`` (mse averaged over the 4 numbers).
+    """
+    mean, log_var = baseline_predict(params, config, batch.tokens, batch.queries, dropout_key=key)
+    loss = -jnp.mean(baseline_log_prob(mean, log_var, batch.target))
+    mse = jnp.mean(jnp.square(mean - batch.target))
+    return loss, {"loss": loss, "mse": mse}

@@ -1,0 +1,164 @@
+"""CDiT block without self-attention (Navigation World Models' CDiT, as FlowMaps uses it).
+
+Each block takes query rows x (B, Q, N, D) — the N rows of one query share its conditioning
+c (B, Q, D) — and the context tokens (B, S, D) with their padding mask (B, S):
+
+    shift_ctx, scale_ctx, shift_ca, scale_ca, gate_ca, shift_mlp, scale_mlp, gate_mlp
+        = Dense(SiLU(c))                                                  (once per query)
+    m   = LN(context) ⊙ (1 + scale_ctx) + shift_ctx                    (modulated context)
+    x  += gate_ca  · CrossAttn(query = LN(x) ⊙ (1 + scale_ca) + shift_ca, keys/values = m)
+    x  += gate_mlp · MLP(LN(x) ⊙ (1 + scale_mlp) + shift_mlp)
+
+All LayerNorms here have no learned affine; the modulation Dense is zero-initialised (AdaLN-Zero),
+so every block starts as the identity, and the final layer's output projection is zero-initialised,
+so the network starts at velocity exactly 0.
+
+Cross-attention is computed by :func:`absorbed_cross_attention`, which never forms the per-query
+modulated context m (see its docstring); :func:`plain_cross_attention` is the textbook version with
+the same weights, kept as the reference that tests compare against.
+"""
+
+from __future__ import annotations
+
+import math
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from flowmaps_jax.model.embeddings import FlatDense
+from flowmaps_jax.model.encoder import FeedForward
+
+
+def _layer_norm(x: jnp.ndarray, eps: float = 1e-6) -> jnp.ndarray:
+    """LayerNorm over the last axis without learned scale or bias."""
+    mean = x.mean(-1, keepdims=True)
+    var = jnp.square(x - mean).mean(-1, keepdims=True)
+    return (x - mean) * jax.lax.rsqrt(var + eps)
+
+
+def modulate(x: jnp.ndarray, shift: jnp.ndarray, scale: jnp.ndarray) -> jnp.ndarray:
+    """AdaLN modulation ``x * (1 + scale) + shift`` (shift/scale broadcast against x)."""
+    return x * (1.0 + scale) + shift
+
+
+def _masked_softmax(scores: jnp.ndarray, key_mask: jnp.ndarray) -> jnp.ndarray:
+    """Softmax over the last axis (keys) with padding keys (mask False) excluded."""
+    scores = jnp.where(key_mask, scores, jnp.finfo(scores.dtype).min)
+    return jax.nn.softmax(scores, axis=-1)
+
+
+def absorbed_cross_attention(x, context_norm, mask, shift, scale, weights):
+    """Cross-attention to a per-query modulated context, without materialising it.
+
+    Shapes: x (B, Q, N, D) query rows; context_norm n = LN(context) (B, S, D); mask (B, S) bool;
+    shift, scale (B, Q, D) context modulation of each query; weights: dict with wq, wk, wv
+    (D, H, Dh), bq, bk, bv (H, Dh), wo (H, Dh, D), bo (D,). Returns (B, Q, N, D).
+
+    The keys/values would be m_s = n_s ⊙ (1 + scale_q) + shift_q, which differ per query, so the
+    textbook form costs S·D² per query for the K/V projections. Instead, per head h:
+
+    * score_{q,s} = q_h · (W_k^h m_s + b_k^h) = ((W_k^h)ᵀ q_h ⊙ (1 + scale_q)) · n_s + const_q,
+      and softmax over s ignores the per-query constant (it holds the shift and key-bias terms);
+    * Σ_s a_s (W_v^h m_s + b_v^h) = W_v^h ((Σ_s a_s n_s) ⊙ (1 + scale_q) + shift_q) + b_v^h,
+      because Σ_s a_s = 1.
+
+    So the key projection is absorbed into the query and the value projection is applied after
+    averaging: per query row the cost is O(H·S·D + D²) instead of O(S·D²). Exactly equal (up to
+    rounding) to :func:`plain_cross_attention`.
+    """
+    b, q, n, d = x.shape
+    heads, head_dim = weights["wq"].shape[1:]
+    gain = (1.0 + scale)[:, :, None, None, :]  # (B, Q, 1, 1, D), shared by the N rows
+    # Row-wise products are written on flat (rows, ...) arrays: one GEMM each, fast backward on CPU.
+    query = (x.reshape(-1, d) @ weights["wq"].reshape(d, heads * head_dim)
+             + weights["bq"].reshape(-1)).reshape(-1, heads, head_dim)  # (B·Q·N, H, Dh)
+    u = jnp.einsum("rhk,dhk->rhd", query, weights["wk"]).reshape(b, q, n, heads, d)
+    u = u * (gain / math.sqrt(head_dim))
+    # One batched matmul per scene over all its (query, row, head) triples: (B, QNH, D)·(B, S, D)ᵀ
+    u = u.reshape(b, q * n * heads, d)
+    scores = jnp.einsum("bxd,bsd->bxs", u, context_norm)
+    attn = _masked_softmax(scores, mask[:, None, :])
+    pooled = jnp.einsum("bxs,bsd->bxd", attn, context_norm).reshape(b, q, n, heads, d)
+    pooled = (pooled * gain + shift[:, :, None, None, :]).reshape(-1, heads, d)
+    values = jnp.einsum("rhd,dhk->rhk", pooled, weights["wv"]) + weights["bv"]
+    out = values.reshape(-1, heads * head_dim) @ weights["wo"].reshape(heads * head_dim, d)
+    return (out + weights["bo"]).reshape(b, q, n, d)
+
+
+def plain_cross_attention(x, context_norm, mask, shift, scale, weights):
+    """Reference cross-attention that forms the modulated context per query (O(S·D²) per query).
+
+    Same arguments and result as :func:`absorbed_cross_attention`; used only to test it.
+    """
+    head_dim = weights["wq"].shape[-1]
+    m = modulate(context_norm[:, None], shift[:, :, None, :], scale[:, :, None, :])  # (B,Q,S,D)
+    q = jnp.einsum("bqnd,dhk->bqnhk", x, weights["wq"]) + weights["bq"]
+    k = jnp.einsum("bqsd,dhk->bqshk", m, weights["wk"]) + weights["bk"]
+    v = jnp.einsum("bqsd,dhk->bqshk", m, weights["wv"]) + weights["bv"]
+    scores = jnp.einsum("bqnhk,bqshk->bqnhs", q, k) / math.sqrt(head_dim)
+    attn = _masked_softmax(scores, mask[:, None, None, None, :])
+    values = jnp.einsum("bqnhs,bqshk->bqnhk", attn, v)
+    return jnp.einsum("bqnhk,hkd->bqnd", values, weights["wo"]) + weights["bo"]
+
+
+class ModulatedCrossAttention(nn.Module):
+    """Holds the attention weights and applies :func:`absorbed_cross_attention`."""
+
+    dim: int
+    heads: int
+
+    @nn.compact
+    def __call__(self, x, context_norm, mask, shift, scale):
+        head_dim = self.dim // self.heads
+        proj_init = nn.initializers.lecun_normal(in_axis=0, out_axis=(1, 2))
+        out_init = nn.initializers.lecun_normal(in_axis=(0, 1), out_axis=2)
+        zeros = nn.initializers.zeros_init()
+        shape_in, shape_b = (self.dim, self.heads, head_dim), (self.heads, head_dim)
+        weights = {
+            "wq": self.param("wq", proj_init, shape_in), "bq": self.param("bq", zeros, shape_b),
+            "wk": self.param("wk", proj_init, shape_in), "bk": self.param("bk", zeros, shape_b),
+            "wv": self.param("wv", proj_init, shape_in), "bv": self.param("bv", zeros, shape_b),
+            "wo": self.param("wo", out_init, (self.heads, head_dim, self.dim)),
+            "bo": self.param("bo", zeros, (self.dim,)),
+        }
+        return absorbed_cross_attention(x, context_norm, mask, shift, scale, weights)
+
+
+class CDiTBlock(nn.Module):
+    """One cross-attention-only CDiT block. x (B, Q, N, D), c (B, Q, D), context (B, S, D)."""
+
+    dim: int
+    heads: int
+    mlp_ratio: int
+    dropout: float
+
+    @nn.compact
+    def __call__(self, x, c, context, mask, deterministic: bool):
+        mod = FlatDense(8 * self.dim, kernel_init=nn.initializers.zeros_init(),
+                       name="adaln_modulation")(nn.silu(c))  # once per query, not per row
+        (shift_ctx, scale_ctx, shift_ca, scale_ca, gate_ca,
+         shift_mlp, scale_mlp, gate_mlp) = jnp.split(mod, 8, axis=-1)
+        rows = lambda a: a[:, :, None, :]  # noqa: E731  (B, Q, D) → (B, Q, 1, D)
+        h = modulate(_layer_norm(x), rows(shift_ca), rows(scale_ca))
+        h = ModulatedCrossAttention(self.dim, self.heads, name="cross_attn")(
+            h, _layer_norm(context), mask, shift_ctx, scale_ctx)
+        x = x + rows(gate_ca) * nn.Dropout(self.dropout)(h, deterministic=deterministic)
+        h = modulate(_layer_norm(x), rows(shift_mlp), rows(scale_mlp))
+        h = FeedForward(self.dim, self.mlp_ratio, self.dropout, name="mlp")(h, deterministic)
+        return x + rows(gate_mlp) * nn.Dropout(self.dropout)(h, deterministic=deterministic)
+
+
+class FinalLayer(nn.Module):
+    """AdaLN (shift/scale from c) + zero-initialised projection to the 4 box numbers."""
+
+    dim: int
+    out_dim: int = 4
+
+    @nn.compact
+    def __call__(self, x, c):
+        mod = FlatDense(2 * self.dim, kernel_init=nn.initializers.zeros_init(),
+                       name="adaln_modulation")(nn.silu(c))
+        shift, scale = jnp.split(mod, 2, axis=-1)
+        h = modulate(_layer_norm(x), shift[:, :, None, :], scale[:, :, None, :])
+        return FlatDense(self.out_dim, kernel_init=nn.initializers.zeros_init(), name="proj")(h)

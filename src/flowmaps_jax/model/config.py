@@ -1,0 +1,73 @@
+"""``ModelConfig``: the sizes of the FlowMaps network and of the MLP baseline (a frozen dataclass).
+
+Frozen so it is hashable and can be a static argument of ``jax.jit``. The defaults are the paper's
+size (D = 256, 8 encoder layers, 8 CDiT blocks, 8 heads, dropout 0.1); training presets live in
+:mod:`flowmaps_jax.config`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+BASELINE_VARIANCES = ("mean", "learned")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Network sizes.
+
+    dim: model width D (tokens, conditioning, query token).
+    encoder_layers: pre-norm transformer layers in the Map Encoder.
+    cdit_blocks: cross-attention-only CDiT blocks in the velocity network.
+    heads: attention heads (must divide ``dim``).
+    mlp_ratio: hidden width of every MLP is ``mlp_ratio * dim``.
+    dropout: dropout rate in the encoder layers and the CDiT residual branches.
+    num_descriptors: number of descriptor ids (FlowSim: 6 colours).
+    max_tokens: largest number of scene tokens S the model accepts.
+    tau_max: number of timesteps; ``tau`` and ``tau_q`` lie in ``[0, tau_max)``.
+    freq_bands: sinusoidal frequencies per scalar (each gives a sin and a cos feature).
+    max_frequency: highest angular frequency (radians per unit); frequencies are geometric in
+        ``[1, max_frequency]``. 1000 resolves a pixel (1/255) on a box coordinate in [0, 1].
+    baseline_variance: MLP baseline variant, ``"mean"`` (unit variance, as the paper's reference) or
+        ``"learned"`` (diagonal log-variance trained by Gaussian NLL).
+    baseline_hidden: hidden width of the MLP baseline's head.
+    """
+
+    dim: int = 256
+    encoder_layers: int = 8
+    cdit_blocks: int = 8
+    heads: int = 8
+    mlp_ratio: int = 4
+    dropout: float = 0.1
+    num_descriptors: int = 6
+    max_tokens: int = 20
+    tau_max: int = 20
+    freq_bands: int = 16
+    max_frequency: float = 1000.0
+    baseline_variance: str = "mean"
+    baseline_hidden: int = 512
+
+    def __post_init__(self):
+        for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
+                     "num_descriptors", "max_tokens", "tau_max", "freq_bands", "baseline_hidden"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"ModelConfig.{name} must be a positive int; got {value!r}")
+        if self.dim % self.heads:
+            raise ValueError(
+                f"ModelConfig.dim={self.dim} must be divisible by ModelConfig.heads={self.heads}")
+        if not 0.0 <= float(self.dropout) < 1.0:
+            raise ValueError(f"ModelConfig.dropout must be in [0, 1); got {self.dropout!r}")
+        if not float(self.max_frequency) >= 1.0:
+            raise ValueError(
+                f"ModelConfig.max_frequency must be >= 1; got {self.max_frequency!r}")
+        if self.tau_max < 2:
+            raise ValueError(f"ModelConfig.tau_max must be >= 2; got {self.tau_max}")
+        if self.baseline_variance not in BASELINE_VARIANCES:
+            raise ValueError(f"ModelConfig.baseline_variance must be one of {BASELINE_VARIANCES}; "
+                             f"got {self.baseline_variance!r}")
+
+    @property
+    def head_dim(self) -> int:
+        """Width of one attention head, ``dim // heads``."""
+        return self.dim // self.heads

@@ -1,0 +1,88 @@
+"""Map Encoder: scene tokens at state time τ → context tokens (B, S, D).
+
+Token embedding = SinusoidalMLP(box y, x, h, w) + Embed(descriptor) + Embed(type flag)
++ Embed(τ), then ``encoder_layers`` pre-norm transformer layers (self-attention with a key-padding
+mask, GELU MLP, dropout on the MLP hidden layer and on both residual branches) and a final
+LayerNorm. There is no positional embedding over tokens, so the
+encoder is equivariant to permuting tokens. Padding rows of the output are set to zero.
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from flowmaps_jax.model.config import ModelConfig
+from flowmaps_jax.model.embeddings import FlatDense, SinusoidalMLP
+from flowmaps_jax.tokens import SceneTokens
+
+
+class FeedForward(nn.Module):
+    """Dense(mlp_ratio·D) → GELU → dropout → Dense(D). (..., D) → (..., D)."""
+
+    dim: int
+    mlp_ratio: int
+    dropout: float
+
+    @nn.compact
+    def __call__(self, x: jnp.ndarray, deterministic: bool) -> jnp.ndarray:
+        h = nn.gelu(FlatDense(self.dim * self.mlp_ratio, name="fc1")(x))
+        h = nn.Dropout(self.dropout)(h, deterministic=deterministic)
+        return FlatDense(self.dim, name="fc2")(h)
+
+
+class SelfAttention(nn.Module):
+    """Multi-head self-attention over tokens with a key-padding mask. x (B, S, D), mask (B, S).
+
+    Fused QKV projection as one flat GEMM, then ``jax.nn.dot_product_attention``.
+    """
+
+    dim: int
+    heads: int
+
+    @nn.compact
+    def __call__(self, x: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
+        b, s, d = x.shape
+        qkv = FlatDense(3 * self.dim, name="qkv")(x).reshape(b, s, 3, self.heads, -1)
+        out = jax.nn.dot_product_attention(qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2],
+                                           mask=mask[:, None, None, :])  # (B, S, H, Dh)
+        return FlatDense(self.dim, name="out")(out.reshape(b, s, d))
+
+
+class EncoderLayer(nn.Module):
+    """Pre-norm transformer layer: x += Drop(MHA(LN x)); x += Drop(MLP(LN x)). x (B, S, D)."""
+
+    dim: int
+    heads: int
+    mlp_ratio: int
+    dropout: float
+
+    @nn.compact
+    def __call__(self, x: jnp.ndarray, mask: jnp.ndarray, deterministic: bool) -> jnp.ndarray:
+        h = SelfAttention(self.dim, self.heads, name="attn")(nn.LayerNorm(name="norm1")(x), mask)
+        x = x + nn.Dropout(self.dropout)(h, deterministic=deterministic)
+        h = FeedForward(self.dim, self.mlp_ratio, self.dropout, name="mlp")(
+            nn.LayerNorm(name="norm2")(x), deterministic)
+        return x + nn.Dropout(self.dropout)(h, deterministic=deterministic)
+
+
+class MapEncoder(nn.Module):
+    """SceneTokens with leading dim (B,) → context tokens (B, S, D), zero on padding."""
+
+    config: ModelConfig
+
+    @nn.compact
+    def __call__(self, tokens: SceneTokens, deterministic: bool) -> jnp.ndarray:
+        cfg = self.config
+        x = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency, name="box_embed")(
+            tokens.boxes)
+        x = x + nn.Embed(cfg.num_descriptors, cfg.dim, name="descriptor_embed")(tokens.descriptor)
+        x = x + nn.Embed(2, cfg.dim, name="kind_embed")(tokens.kind)
+        x = x + nn.Embed(cfg.tau_max, cfg.dim, name="tau_embed")(tokens.tau)[:, None, :]
+        mask = tokens.mask.astype(bool)
+        for i in range(cfg.encoder_layers):
+            x = EncoderLayer(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout, name=f"layer_{i}")(
+                x, mask, deterministic)
+        x = nn.LayerNorm(name="final_norm")(x)
+        return jnp.where(mask[..., None], x, 0.0)

@@ -1,0 +1,174 @@
+"""FlowMaps: Map Encoder + CDiT velocity network, exposed as pure functions over a params pytree.
+
+* ``init_params(key, config) -> params`` (the ``"params"`` collection of the flax module).
+* ``encode(params, config, tokens) -> Context``: run the Map Encoder once per scene.
+* ``velocity(params, config, context, x_t, t, queries) -> v``: the vector field, reusing a context.
+  x_t (B, Q, N, 4), t (B, Q), queries (B, Q) → v (B, Q, N, 4). The N rows of a query share its
+  conditioning c = Embed(τ_q) + Embed(descriptor) + SinusoidalMLP(t), so N samples of one query are
+  N rows of one cross-attention call (training uses N = 1).
+* ``forward(...)`` = ``velocity(encode(...))``; ``check_inputs(...)`` validates with ``ValueError``.
+
+``dropout_key=None`` means deterministic (no dropout). ``config`` is a static jit argument.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from flowmaps_jax.model.cdit import CDiTBlock, FinalLayer
+from flowmaps_jax.model.config import ModelConfig
+from flowmaps_jax.model.embeddings import SinusoidalMLP
+from flowmaps_jax.model.encoder import MapEncoder
+from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
+
+
+@struct.dataclass
+class Context:
+    """Encoded map: tokens (B, S, D) from the Map Encoder (zero on padding), mask (B, S) bool."""
+
+    tokens: jnp.ndarray
+    mask: jnp.ndarray
+
+
+class FlowMaps(nn.Module):
+    """The flax module behind the pure functions; use ``encode``/``velocity`` methods via apply."""
+
+    config: ModelConfig
+
+    def setup(self):
+        cfg = self.config
+        self.encoder = MapEncoder(cfg)
+        self.query_embed = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency)
+        self.query_pos = self.param("query_pos", nn.initializers.normal(0.02), (cfg.dim,))
+        self.time_embed = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency)
+        self.tau_q_embed = nn.Embed(cfg.tau_max, cfg.dim)
+        self.descriptor_embed = nn.Embed(cfg.num_descriptors, cfg.dim)
+        self.blocks = [CDiTBlock(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout)
+                       for _ in range(cfg.cdit_blocks)]
+        self.final = FinalLayer(cfg.dim)
+
+    def encode(self, tokens: SceneTokens, deterministic: bool = True) -> Context:
+        mask = tokens.mask.astype(bool)
+        return Context(tokens=self.encoder(tokens, deterministic), mask=mask)
+
+    def velocity(self, context: Context, x_t, t, queries: Queries, deterministic: bool = True):
+        c = (self.tau_q_embed(queries.tau_q) + self.descriptor_embed(queries.descriptor)
+             + self.time_embed(t[..., None]))  # (B, Q, D)
+        x = self.query_embed(x_t) + self.query_pos  # (B, Q, N, D)
+        for block in self.blocks:
+            x = block(x, c, context.tokens, context.mask, deterministic)
+        return self.final(x, c)
+
+    def __call__(self, tokens, x_t, t, queries, deterministic: bool = True):
+        return self.velocity(self.encode(tokens, deterministic), x_t, t, queries, deterministic)
+
+
+def _rngs(dropout_key):
+    return {} if dropout_key is None else {"dropout": dropout_key}
+
+
+def _dummy_inputs(config: ModelConfig):
+    s = config.max_tokens
+    tokens = SceneTokens(boxes=jnp.zeros((1, s, 4)), descriptor=jnp.zeros((1, s), jnp.int32),
+                         kind=jnp.zeros((1, s), jnp.int32), mask=jnp.ones((1, s), bool),
+                         tau=jnp.zeros((1,), jnp.int32))
+    queries = Queries(descriptor=jnp.zeros((1, 1), jnp.int32), tau_q=jnp.ones((1, 1), jnp.int32))
+    return tokens, jnp.zeros((1, 1, 1, 4)), jnp.zeros((1, 1)), queries
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def init_params(key: jax.Array, config: ModelConfig):
+    """Fresh FlowMaps parameters (a nested dict pytree) for ``config``."""
+    return FlowMaps(config).init(key, *_dummy_inputs(config))["params"]
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def encode(params, config: ModelConfig, tokens: SceneTokens, *, dropout_key=None) -> Context:
+    """Encode B scenes once: SceneTokens (B, S) → Context (tokens (B, S, D), mask (B, S))."""
+    return FlowMaps(config).apply({"params": params}, tokens, dropout_key is None,
+                                  method=FlowMaps.encode, rngs=_rngs(dropout_key))
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def velocity(params, config: ModelConfig, context: Context, x_t, t, queries: Queries, *,
+             dropout_key=None):
+    """Velocity u_θ(x_t, t | map, query).
+
+    context: from :func:`encode`; x_t (B, Q, N, 4); t (B, Q); queries (B, Q) → v (B, Q, N, 4).
+    """
+    return FlowMaps(config).apply({"params": params}, context, x_t, t, queries,
+                                  dropout_key is None, method=FlowMaps.velocity,
+                                  rngs=_rngs(dropout_key))
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def forward(params, config: ModelConfig, tokens: SceneTokens, x_t, t, queries: Queries,
+            dropout_key=None):
+    """``velocity(encode(tokens))`` in one call. Shapes as in :func:`velocity`."""
+    enc_key = vel_key = None
+    if dropout_key is not None:
+        enc_key, vel_key = jax.random.split(dropout_key)
+    context = encode(params, config, tokens, dropout_key=enc_key)
+    return velocity(params, config, context, x_t, t, queries, dropout_key=vel_key)
+
+
+def make_velocity_fn(params, config: ModelConfig, context: Context,
+                     queries: Queries) -> Callable[[jnp.ndarray, jnp.ndarray], jnp.ndarray]:
+    """Close over a context and queries: returns ``fn(x (B, Q, N, 4), t scalar) -> v``.
+
+    This is the ``velocity_fn`` that :func:`flowmaps_jax.flow.integrate` and
+    :func:`flowmaps_jax.flow.log_prob` expect (deterministic: no dropout).
+    """
+    def velocity_fn(x, t):
+        t_bq = jnp.broadcast_to(jnp.asarray(t, x.dtype), x.shape[:2])
+        return velocity(params, config, context, x, t_bq, queries)
+    return velocity_fn
+
+
+def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries | None = None,
+                 x_t=None, t=None) -> None:
+    """Raise ``ValueError`` naming the argument if model inputs are malformed (call outside jit).
+
+    tokens: SceneTokens (B, S) with S <= config.max_tokens, boxes in [0, 1], known descriptors,
+    0 <= tau < tau_max - 1. queries: (B, Q) with known descriptors and tau < tau_q < tau_max.
+    x_t: (B, Q, N, 4) finite. t: (B, Q) in [0, 1].
+    """
+    validate_tokens(tokens, config.num_descriptors, name="tokens")
+    boxes = np.asarray(tokens.boxes)
+    if boxes.ndim != 3:
+        raise ValueError(f"tokens.boxes must have shape (B, S, 4); got {boxes.shape}")
+    b, s = boxes.shape[:2]
+    if s > config.max_tokens:
+        raise ValueError(f"tokens has {s} token slots, more than max_tokens={config.max_tokens}")
+    tau = np.asarray(tokens.tau)
+    if not np.issubdtype(tau.dtype, np.integer) or np.any((tau < 0) | (tau >= config.tau_max - 1)):
+        raise ValueError(f"tokens.tau must be integers in [0, {config.tau_max - 1}); got {tau}")
+    if queries is None:
+        return
+    validate_queries(queries, tau, config.num_descriptors, config.tau_max, name="queries")
+    desc = np.asarray(queries.descriptor)
+    if desc.ndim != 2:
+        raise ValueError(f"queries.descriptor and tau_q must have shape (B, Q); got {desc.shape}")
+    if not (np.issubdtype(desc.dtype, np.integer)
+            and np.issubdtype(np.asarray(queries.tau_q).dtype, np.integer)):
+        raise ValueError("queries.descriptor and queries.tau_q must be integer arrays")
+    q = desc.shape[1]
+    if x_t is not None:
+        x_t = np.asarray(x_t)
+        if x_t.ndim != 4 or x_t.shape[:2] != (b, q) or x_t.shape[-1] != 4:
+            raise ValueError(f"x_t must have shape (B={b}, Q={q}, N, 4); got {x_t.shape}")
+        if not np.all(np.isfinite(x_t)):
+            raise ValueError("x_t contains NaN or inf")
+    if t is not None:
+        t = np.asarray(t)
+        if t.shape != (b, q):
+            raise ValueError(f"t must have shape (B={b}, Q={q}); got {t.shape}")
+        if not np.all((t >= 0.0) & (t <= 1.0)):
+            raise ValueError("t (flow time) must lie in [0, 1]")
