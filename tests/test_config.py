@@ -1,0 +1,130 @@
+"""TrainConfig presets, overrides from strings, JSON round trip and CLI argument resolution."""
+
+import json
+
+import pytest
+
+from flowmaps_jax.config import (
+    PRESETS,
+    TrainConfig,
+    apply_overrides,
+    format_config,
+    get_preset,
+)
+from flowmaps_jax.train import build_parser, main, resolve_config
+
+
+def test_paper_preset_matches_the_paper():
+    cfg = get_preset("paper")
+    m = cfg.model
+    assert (m.dim, m.encoder_layers, m.cdit_blocks, m.heads, m.dropout) == (256, 8, 8, 8, 0.1)
+    assert (cfg.batch_size, cfg.steps, cfg.lr) == (256, 30_000, 1e-4)
+    assert (cfg.b1, cfg.b2, cfg.ema_decay) == (0.95, 0.999, 0.9999)
+    assert cfg.t_sampler == "beta"
+    assert cfg.model_kind == "flowmaps"
+
+
+def test_default_is_cpu_and_smoke_is_tiny():
+    assert get_preset() == get_preset("cpu")
+    smoke, cpu = get_preset("smoke"), get_preset("cpu")
+    assert smoke.model.dim < cpu.model.dim < get_preset("paper").model.dim
+    assert smoke.steps <= 50 and smoke.train_envs <= 100
+    assert cpu.t_sampler == "beta"
+
+
+def test_unknown_preset():
+    with pytest.raises(ValueError, match="preset"):
+        get_preset("huge")
+
+
+@pytest.mark.parametrize("name", sorted(PRESETS))
+def test_json_round_trip(name):
+    cfg = get_preset(name)
+    back = TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    assert back == cfg
+    assert "model.dim" in format_config(cfg)
+
+
+def test_from_dict_rejects_unknown_keys():
+    data = get_preset("smoke").to_dict()
+    data["learning_rate"] = 1.0
+    with pytest.raises(ValueError, match="learning_rate"):
+        TrainConfig.from_dict(data)
+
+
+def test_overrides_convert_types_including_nested_fields():
+    cfg = apply_overrides(get_preset("smoke"), [
+        "model.dim=64", "lr=2e-3", "steps=1e3", "clip_norm=none", "t_sampler=uniform",
+        "mlp_variance=learned", "model.dropout=0.0"])
+    assert cfg.model.dim == 64 and isinstance(cfg.model.dim, int)
+    assert cfg.lr == 2e-3 and cfg.steps == 1000 and cfg.clip_norm is None
+    assert cfg.t_sampler == "uniform" and cfg.model.dropout == 0.0
+    assert cfg.mlp_variance == "learned" == cfg.model.baseline_variance
+    again = apply_overrides(cfg, {"clip_norm": "0.5"})
+    assert again.clip_norm == 0.5
+
+
+def test_coupled_overrides_are_validated_together():
+    cfg = apply_overrides(get_preset("smoke"), ["flowsim.num_timesteps=10", "model.tau_max=10"])
+    assert cfg.model.tau_max == cfg.flowsim.num_timesteps == 10
+    with pytest.raises(ValueError, match="tau_max"):
+        apply_overrides(get_preset("smoke"), ["flowsim.num_timesteps=10"])
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("model.dimm=3", "model.dimm"),
+    ("nonsense=1", "nonsense"),
+    ("lr=fast", "'lr'"),
+    ("steps=1.5", "integer"),
+    ("model_kind=transformer", "model_kind"),
+    ("t_sampler=normal", "t_sampler"),
+    ("model=3", "section"),
+    ("lr.x=1", "lr.x"),
+    ("model.heads=5", "heads"),
+    ("warmup_steps=100000", "warmup_steps"),
+    ("ema_decay=1.0", "ema_decay"),
+    ("clip_norm=0", "clip_norm"),
+    ("batch_size=0", "batch_size"),
+    ("no_equals_sign", "key=value"),
+])
+def test_bad_overrides_raise_value_error_naming_the_key(override, fragment):
+    with pytest.raises(ValueError, match=fragment):
+        apply_overrides(get_preset("smoke"), [override])
+
+
+def test_cli_flags_override_the_preset(tmp_path):
+    args = build_parser().parse_args([
+        "--preset", "smoke", "--model", "mlp", "--steps", "7", "--set", "lr=0.01",
+        "--set", "model.dim=16", "--run-dir", str(tmp_path / "r")])
+    cfg, run_dir = resolve_config(args)
+    assert (cfg.model_kind, cfg.steps, cfg.lr, cfg.model.dim) == ("mlp", 7, 0.01, 16)
+    assert run_dir == tmp_path / "r"
+
+
+def test_default_run_dir_names_model_and_preset():
+    _, run_dir = resolve_config(build_parser().parse_args(["--preset", "smoke"]))
+    assert run_dir.parts[0] == "runs" and run_dir.name.startswith("flowmaps-smoke-")
+
+
+def test_resume_reads_the_saved_config(tmp_path):
+    saved = apply_overrides(get_preset("smoke"), ["model.dim=48", "model.heads=4"])
+    (tmp_path / "config.json").write_text(json.dumps(saved.to_dict()))
+    args = build_parser().parse_args(["--resume", "--run-dir", str(tmp_path), "--steps", "30"])
+    cfg, run_dir = resolve_config(args)
+    assert cfg.model.dim == 48 and cfg.steps == 30 and run_dir == tmp_path
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["--resume"], "--run-dir"),
+    (["--resume", "--run-dir", "RUN", "--preset", "smoke"], "saved config"),
+    (["--resume", "--run-dir", "RUN"], "does not exist"),
+    (["--preset", "smoke", "--set", "model.width=3"], "model.width"),
+    (["--preset", "smoke", "--stop-at", "999"], "stop_at"),
+])
+def test_cli_errors_are_clear(argv, fragment, tmp_path, capsys):
+    argv = [str(tmp_path / "missing") if a == "RUN" else a for a in argv]
+    argv += [] if "--run-dir" in argv else ["--run-dir", str(tmp_path / "out")]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    assert fragment in capsys.readouterr().err
