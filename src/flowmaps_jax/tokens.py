@@ -1,7 +1,8 @@
 """The arrays that cross from the simulator to the model: scene tokens and query batches.
 
 This module is the contract between :mod:`flowmaps_jax.flowsim` (which produces these pytrees) and
-:mod:`flowmaps_jax.model` / :mod:`flowmaps_jax.flow` (which consume them). It knows nothing of either.
+:mod:`flowmaps_jax.model` / :mod:`flowmaps_jax.flow` (which consume them). It knows nothing of
+either.
 
 Conventions
 -----------
@@ -93,7 +94,8 @@ def validate_tokens(tokens: SceneTokens, num_descriptors: int, max_tokens: int |
     lead = boxes.shape[:-1]
     for field, arr in (("descriptor", desc), ("kind", kind), ("mask", mask)):
         if arr.shape != lead:
-            raise ValueError(f"{name}.{field} must have shape {lead} to match boxes; got {arr.shape}")
+            raise ValueError(
+                f"{name}.{field} must have shape {lead} to match boxes; got {arr.shape}")
     if tau.shape != lead[:-1]:
         raise ValueError(f"{name}.tau must have shape {lead[:-1]}; got {tau.shape}")
     if max_tokens is not None and lead[-1] != max_tokens:
@@ -118,7 +120,7 @@ def validate_tokens(tokens: SceneTokens, num_descriptors: int, max_tokens: int |
 
 def validate_queries(queries: Queries, tau: np.ndarray, num_descriptors: int, tau_max: int,
                      name: str = "queries") -> None:
-    """Raise ``ValueError`` if query descriptors are unknown or ``tau_q`` is not in (tau, tau_max)."""
+    """Raise ``ValueError`` if a descriptor is unknown or ``tau_q`` is outside (tau, tau_max)."""
     desc = np.asarray(queries.descriptor)
     tau_q = np.asarray(queries.tau_q)
     tau = np.asarray(tau)
