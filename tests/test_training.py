@@ -98,6 +98,21 @@ def test_optimizer_applies_decoupled_weight_decay_and_clipping():
         np.testing.assert_allclose(optax.tree.norm(mu), (1 - cfg.b1) * norm, rtol=1e-5)
 
 
+def test_default_batches_trim_only_padding(small_scenes):
+    """The trainer's batches keep the F + M real tokens and drop only padding slots."""
+    cfg = SMOKE
+    key = jax.random.PRNGKey(3)
+    from flowmaps_jax.flowsim.scenes import make_train_batch
+    full = make_train_batch(key, small_scenes, cfg.batch_size, cfg.queries_per_scene,
+                            cfg.flowsim)
+    trimmed = training.default_batch_fn(cfg)(key, small_scenes)
+    real = cfg.flowsim.num_furniture + cfg.flowsim.num_objects
+    assert trimmed.tokens.mask.shape == (cfg.batch_size, real)
+    assert bool(full.tokens.mask[:, :real].all()) and not bool(full.tokens.mask[:, real:].any())
+    np.testing.assert_array_equal(trimmed.tokens.boxes, full.tokens.boxes[:, :real])
+    np.testing.assert_array_equal(trimmed.target, full.target)
+
+
 # --------------------------------------------------------------------------------------------
 # The jitted step (real FlowMaps smoke model, stand-in data)
 

@@ -146,3 +146,19 @@ def assert_batch_shapes(batch: TrainBatch) -> None:
     chex.assert_shape(batch.tokens.tau, (b,))
     chex.assert_shape([batch.queries.descriptor, batch.queries.tau_q], (b, q))
     chex.assert_shape(batch.target, (b, q, 4))
+
+
+def trim_padding(tokens: SceneTokens, num_tokens: int) -> SceneTokens:
+    """Keep the first ``num_tokens`` token slots, dropping trailing padding.
+
+    Padding is masked out of every attention and pooling, so a model's output is unchanged as long
+    as only padding is dropped (FlowSim scenes have F + M real tokens first). Training and
+    inference call this with ``num_tokens = F + M`` to skip the attention work on empty slots.
+    ``num_tokens`` must be static (a Python int). Shapes: (..., S, ·) → (..., num_tokens, ·).
+    """
+    if num_tokens < 1 or num_tokens > tokens.num_tokens:
+        raise ValueError(f"num_tokens must be in 1..{tokens.num_tokens}; got {num_tokens}")
+    return tokens.replace(boxes=tokens.boxes[..., :num_tokens, :],
+                          descriptor=tokens.descriptor[..., :num_tokens],
+                          kind=tokens.kind[..., :num_tokens],
+                          mask=tokens.mask[..., :num_tokens])

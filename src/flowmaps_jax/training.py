@@ -32,7 +32,7 @@ import optax
 from flax import struct
 
 from flowmaps_jax.config import TrainConfig
-from flowmaps_jax.tokens import TrainBatch, assert_batch_shapes
+from flowmaps_jax.tokens import TrainBatch, assert_batch_shapes, trim_padding
 
 Params = Any
 # loss(params, batch, key, train) -> (scalar loss, dict of scalar diagnostics)
@@ -215,11 +215,20 @@ def make_train_step(cfg: TrainConfig, objective: Objective | None = None):
 
 
 def default_batch_fn(cfg: TrainConfig) -> BatchFn:
-    """``batch_fn(key, scenes)``: B scenes drawn from ``scenes`` with Q queries each."""
+    """``batch_fn(key, scenes)``: B scenes drawn from ``scenes`` with Q queries each.
+
+    Token padding beyond the F + M real tokens is trimmed (exact: padding is masked anyway).
+    """
     from flowmaps_jax.flowsim.scenes import make_train_batch
 
     b, q, sim = cfg.batch_size, cfg.queries_per_scene, cfg.flowsim
-    return lambda key, scenes: make_train_batch(key, scenes, b, q, sim)
+    real_tokens = sim.num_furniture + sim.num_objects  # the rest of the S slots is padding
+
+    def batch_fn(key, scenes):
+        batch = make_train_batch(key, scenes, b, q, sim)
+        return batch.replace(tokens=trim_padding(batch.tokens, real_tokens))
+
+    return batch_fn
 
 
 _CHUNK_SALT = 0x7FFFFFFF
