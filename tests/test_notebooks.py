@@ -1,0 +1,160 @@
+"""The notebooks in experiments/ run end to end and produce their key outputs.
+
+Both notebooks are executed once per module, concurrently (two kernels, one per CPU core), each in
+its own temporary working directory, with nbclient and the "python3" kernel of this venv.
+``kl_plots.ipynb`` runs with its default parameters: the ``smoke`` preset (it trains FlowMaps and
+the MLP baseline for 20 steps and evaluates them on a few environments), so its numbers are not
+checked, only that the table, figures and files are there and the oracle row is exact.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import pathlib
+
+import nbformat
+import pytest
+from nbclient import NotebookClient
+
+EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1] / "experiments"
+TOUR = "flowsim_tour.ipynb"
+KL_PLOTS = "kl_plots.ipynb"
+NOTEBOOKS = (TOUR, KL_PLOTS)
+CELL_TIMEOUT = 900  # seconds; a cold kernel on a loaded 2-core machine compiles slowly
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _execute_all(workdirs: dict[str, pathlib.Path]) -> dict[str, nbformat.NotebookNode | Exception]:
+    """Execute each notebook in its working directory, concurrently. A failure is returned (and
+    raised by the tests of that notebook), not raised here, so one cannot hide the other."""
+    notebooks = {name: nbformat.read(EXPERIMENTS / name, as_version=4) for name in workdirs}
+    clients = [NotebookClient(notebooks[name], kernel_name="python3", timeout=CELL_TIMEOUT,
+                              resources={"metadata": {"path": str(workdir)}})
+               for name, workdir in workdirs.items()]
+
+    async def run_all():
+        return await asyncio.gather(*(c.async_execute() for c in clients), return_exceptions=True)
+
+    outcomes = asyncio.run(run_all())
+    return {name: outcome if isinstance(outcome, BaseException) else notebooks[name]
+            for name, outcome in zip(workdirs, outcomes, strict=True)}
+
+
+@pytest.fixture(scope="module")
+def workdirs(tmp_path_factory) -> dict[str, pathlib.Path]:
+    return {name: tmp_path_factory.mktemp(name.removesuffix(".ipynb")) for name in NOTEBOOKS}
+
+
+@pytest.fixture(scope="module")
+def executed(workdirs) -> dict:
+    return _execute_all(workdirs)
+
+
+def _notebook(executed: dict, name: str) -> nbformat.NotebookNode:
+    outcome = executed[name]
+    if isinstance(outcome, BaseException):
+        raise AssertionError(f"{name} failed to run:\n{outcome}") from outcome
+    return outcome
+
+
+def _outputs(nb: nbformat.NotebookNode) -> list[dict]:
+    return [out for cell in nb.cells if cell.cell_type == "code" for out in cell.outputs]
+
+
+def _stdout(nb: nbformat.NotebookNode) -> str:
+    return "".join(o["text"] for o in _outputs(nb)
+                   if o["output_type"] == "stream" and o["name"] == "stdout")
+
+
+def _images(nb: nbformat.NotebookNode) -> list[bytes]:
+    return [base64.b64decode(o["data"]["image/png"]) for o in _outputs(nb)
+            if "image/png" in o.get("data", {})]
+
+
+# --------------------------------------------------------------------------- stored notebooks
+
+
+@pytest.mark.parametrize("name", NOTEBOOKS)
+def test_notebook_is_stored_clean(name):
+    """Stored without outputs or execution counts (small diffs), with the venv's kernel."""
+    nb = nbformat.read(EXPERIMENTS / name, as_version=4)
+    nbformat.validate(nb)
+    assert nb.metadata["kernelspec"]["name"] == "python3"
+    code_cells = [c for c in nb.cells if c.cell_type == "code"]
+    assert code_cells and any(c.cell_type == "markdown" for c in nb.cells)
+    for cell in code_cells:
+        assert cell.outputs == [], f"{name} has stored outputs in:\n{cell.source[:200]}"
+        assert cell.execution_count is None
+
+
+def test_kl_plots_has_a_tagged_smoke_parameter_cell():
+    nb = nbformat.read(EXPERIMENTS / KL_PLOTS, as_version=4)
+    tagged = [c for c in nb.cells if "parameters" in c.metadata.get("tags", [])]
+    assert len(tagged) == 1
+    assert 'PRESET = "smoke"' in tagged[0].source
+    assert "CHECKPOINT = None" in tagged[0].source
+
+
+# --------------------------------------------------------------------------- flowsim_tour
+
+
+def test_flowsim_tour_runs_and_checks_the_posterior(executed):
+    nb = _notebook(executed, TOUR)
+    text = _stdout(nb)
+    # The notebook compares the exact posterior with simulated rollouts and asserts agreement;
+    # reaching these lines means those checks passed.
+    assert "rollouts start the same way" in text
+    assert "row s of P^Δτ equals exact_posterior" in text
+    assert "schedule_jitter" in text
+    assert "real tokens: 13 of 20" in text  # 10 tables + 3 objects, padded to 20
+    # scene, timeline, orders, posterior bars, posterior on the map, transition matrix
+    images = _images(nb)
+    assert len(images) == 6
+    assert all(image.startswith(PNG_MAGIC) for image in images)
+
+
+# --------------------------------------------------------------------------- kl_plots
+
+
+@pytest.mark.slow
+def test_kl_plots_shows_the_results_table(executed):
+    nb = _notebook(executed, KL_PLOTS)
+    tables = [o["data"]["text/markdown"] for o in _outputs(nb)
+              if "text/markdown" in o.get("data", {})]
+    assert len(tables) == 1
+    for row in ("oracle", "last-seen", "uniform", "MLP (mean)", "FlowMaps"):
+        assert f"| {row} |" in tables[0]
+    assert "TV @25" in tables[0]
+
+
+@pytest.mark.slow
+def test_kl_plots_shows_the_figures(executed):
+    images = _images(_notebook(executed, KL_PLOTS))
+    assert len(images) == 3  # KL, samples, slot bars
+    assert all(image.startswith(PNG_MAGIC) for image in images)
+
+
+@pytest.mark.slow
+def test_kl_plots_trains_both_models_and_writes_the_report(executed, workdirs):
+    _notebook(executed, KL_PLOTS)
+    runs = workdirs[KL_PLOTS] / "runs"
+    for kind in ("flowmaps", "mlp"):
+        assert (runs / f"{kind}-smoke-notebook" / "checkpoints").is_dir()
+    out = runs / "eval-smoke"
+    results = json.loads((out / "results.json").read_text())
+    assert list(results["rows"]) == ["oracle", "last-seen", "uniform", "MLP (mean)", "FlowMaps"]
+    assert results["protocol"]["num_queries"] == 32 * 3
+    assert results["protocol"]["samples"] == [25]
+    oracle = results["rows"]["oracle"]
+    assert oracle["kl"]["overall"]["mean"] == pytest.approx(0.0, abs=1e-6)
+    assert oracle["slots"]["25"]["tv"]["overall"]["mean"] == pytest.approx(0.0, abs=1e-6)
+    for row in ("MLP (mean)", "FlowMaps"):
+        kl = results["rows"][row]["kl"]
+        assert kl["overall"]["count"] == 96
+        assert set(kl["by_category"]) == {"fork", "bottle", "remote"}
+    assert results["figures"] == ["kl.png", "samples.png", "slots.png"]
+    for filename in ("results.md", *results["figures"]):
+        assert (out / filename).stat().st_size > 0
+    assert "| FlowMaps |" in (out / "results.md").read_text()
