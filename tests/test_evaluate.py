@@ -1,0 +1,254 @@
+"""Tests for flowmaps_jax.evaluate: the protocol's queries, reference rows with known answers, the
+wiring of model rows, the report and figures, and the CLI on a freshly trained checkpoint.
+
+Tiny models and a handful of environments; compiled functions are shared through module fixtures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from flowmaps_jax import evaluate as ev
+from flowmaps_jax import metrics, model
+from flowmaps_jax.flowsim import FlowSimConfig, normalise_boxes, validation_split
+from flowmaps_jax.sample import Predictor
+
+SIM = FlowSimConfig()
+CFG = model.ModelConfig(dim=16, encoder_layers=1, cdit_blocks=1, heads=2, mlp_ratio=2,
+                        dropout=0.0, freq_bands=4, max_frequency=8.0, baseline_hidden=16)
+NUM_ENVS = 6
+COUNTS = (4, 8)
+KL_DRAWS = 8
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return validation_split(SIM, num_envs=NUM_ENVS)
+
+
+@pytest.fixture(scope="module")
+def evalset(scenes):
+    return ev.build_eval_queries(scenes, SIM, jax.random.PRNGKey(0), kl_draws=KL_DRAWS)
+
+
+@pytest.fixture(scope="module")
+def predictors():
+    flow = Predictor.from_params(model.init_params(jax.random.PRNGKey(0), CFG), CFG)
+    mlp = Predictor.from_params(model.init_baseline(jax.random.PRNGKey(1), CFG), CFG, kind="mlp")
+    return mlp, flow
+
+
+@pytest.fixture(scope="module")
+def report(scenes, predictors, tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval")
+    results, rows, evalset = ev.run_evaluation(
+        list(predictors), scenes, SIM, out, seed=0, sample_counts=COUNTS, kl_draws=KL_DRAWS,
+        chunk_envs=4, progress=False)
+    return out, results, rows, evalset
+
+
+# --------------------------------------------------------------------------- the query set
+
+
+def test_queries_follow_the_protocol(scenes, evalset):
+    e, m, f = NUM_ENVS, SIM.num_objects, SIM.num_furniture
+    tau, tau_q = np.asarray(evalset.tau), np.asarray(evalset.tau_q)
+    assert evalset.num_queries == e * m
+    assert np.all((tau >= 0) & (tau <= SIM.num_timesteps - 2))
+    assert np.all((tau_q > tau) & (tau_q <= SIM.num_timesteps - 1))
+    np.testing.assert_array_equal(evalset.queries.tau_q, np.repeat(tau_q[:, None], m, 1))
+    np.testing.assert_array_equal(evalset.queries.descriptor, scenes.object_kind)
+    np.testing.assert_array_equal(evalset.horizon, np.repeat((tau_q - tau)[:, None], m, 1))
+    np.testing.assert_array_equal(evalset.tokens.tau, tau)
+    q = np.asarray(evalset.slot_probs)
+    assert q.shape == (e, m, f)
+    np.testing.assert_allclose(q.sum(-1), 1.0, atol=1e-5)
+    assert np.all(q[~np.asarray(evalset.slot_mask)] == 0)
+    assert evalset.kl_points.shape == (e, m, KL_DRAWS, 4)
+    np.testing.assert_allclose(
+        evalset.kl_log_q, metrics.gt_mixture_log_prob(evalset.kl_points, q, evalset.slot_boxes,
+                                                      evalset.slot_mask), rtol=1e-5)
+
+
+def test_slot_boxes_are_where_the_object_really_is(scenes, evalset):
+    """b at the slot observed at τ is the object's box at τ, and the box at τ_q is one of the b_k
+    that q gives positive probability."""
+    env = np.asarray(evalset.env)
+    boxes = np.asarray(evalset.slot_boxes)
+    now = np.take_along_axis(boxes, np.asarray(evalset.slot_now)[..., None, None], axis=2)[:, :, 0]
+    at_tau = normalise_boxes(np.asarray(scenes.object_boxes)[env, np.asarray(evalset.tau)], SIM)
+    np.testing.assert_allclose(now, at_tau, atol=1e-6)
+    slot_q = np.asarray(scenes.slot)[env, np.asarray(evalset.tau_q)]  # (E, M)
+    at_tau_q = np.take_along_axis(boxes, slot_q[..., None, None], axis=2)[:, :, 0]
+    np.testing.assert_allclose(at_tau_q, evalset.target, atol=1e-6)
+    q_true = np.take_along_axis(np.asarray(evalset.slot_probs), slot_q[..., None], axis=2)
+    assert np.all(q_true > 0)
+
+
+# --------------------------------------------------------------------------- reference rows
+
+
+def test_reference_rows_have_their_known_values(evalset):
+    oracle, last_seen, uniform = ev.reference_rows(evalset, COUNTS)
+    q = np.asarray(evalset.slot_probs)
+    assert (oracle.name, last_seen.name, uniform.name) == ev.REFERENCE_ROWS
+    np.testing.assert_allclose(oracle.kl, 0.0, atol=1e-5)
+    for n in COUNTS:
+        np.testing.assert_allclose(oracle.slots[n]["tv"], 0.0, atol=1e-6)
+        np.testing.assert_allclose(oracle.slots[n]["top1"], 1.0)
+        np.testing.assert_allclose(oracle.slots[n]["search_cost_ratio"], 1.0, rtol=1e-6)
+    q_now = np.take_along_axis(q, np.asarray(evalset.slot_now)[..., None], axis=-1)[..., 0]
+    np.testing.assert_allclose(last_seen.slots[COUNTS[0]]["tv"], 1.0 - q_now, atol=1e-6)
+    k = np.asarray(evalset.num_slots)[..., None]
+    expected_tv = 0.5 * np.sum(np.where(np.asarray(evalset.slot_mask), np.abs(1.0 / k - q), 0.0),
+                               -1)
+    np.testing.assert_allclose(uniform.slots[COUNTS[0]]["tv"], expected_tv, atol=1e-6)
+    # a predictor that ignores the dynamics is worse than the truth, in KL and search cost
+    assert np.mean(last_seen.kl) > 1.0 and np.mean(uniform.kl) > 0.0
+    assert np.all(last_seen.slots[COUNTS[0]]["search_cost_ratio"] >= 1.0 - 1e-6)
+
+
+class _LastSeenSampler:
+    """Stand-in model: every sample is exactly the box at the slot observed at τ (b_{slot now}),
+    and its density is the ground-truth mixture q. So its KL must be 0 and its slot metrics must
+    be exactly the last-seen row's — a check of how evaluate_predictor wires samples and
+    likelihoods to the metrics. Used with one chunk holding every environment, in order."""
+
+    kind, source, step, name = "stand-in", None, None, "stand-in"
+
+    def __init__(self, evalset):
+        self.evalset = evalset
+
+    def _check(self, tokens):
+        np.testing.assert_array_equal(tokens.tau, self.evalset.tau)
+
+    def sample(self, tokens, queries, num_samples, key, **_):
+        self._check(tokens)
+        e = self.evalset
+        now = jnp.take_along_axis(e.slot_boxes, e.slot_now[..., None, None], axis=2)
+        return jnp.repeat(now, num_samples, axis=2)
+
+    def log_prob(self, tokens, queries, x, **_):
+        self._check(tokens)
+        e = self.evalset
+        return metrics.gt_mixture_log_prob(x, e.slot_probs, e.slot_boxes, e.slot_mask)
+
+
+def test_samples_and_likelihoods_reach_the_right_metrics(evalset):
+    row = ev.evaluate_predictor(_LastSeenSampler(evalset), evalset, jax.random.PRNGKey(0),
+                                sample_counts=COUNTS, chunk_envs=NUM_ENVS, progress=False)
+    np.testing.assert_allclose(row.kl, 0.0, atol=1e-5)
+    last_seen = ev.reference_rows(evalset, COUNTS)[1]
+    for n in COUNTS:
+        for metric in ("p_hat", *ev.SLOT_METRICS):
+            np.testing.assert_allclose(row.slots[n][metric], last_seen.slots[n][metric],
+                                       atol=1e-6, err_msg=metric)
+    assert row.samples.shape == (NUM_ENVS, SIM.num_objects, COUNTS[-1], 4)
+
+
+# --------------------------------------------------------------------------- model rows, report
+
+
+def test_model_rows_do_not_depend_on_the_chunking(evalset, predictors, report):
+    """An environment's samples and KL are the same whichever chunk (and position) it is in."""
+    _, _, rows, _ = report
+    order = np.array([4, 5, 0, 1])  # other chunk neighbours and positions than in the report
+    again = ev.evaluate_predictor(predictors[1], evalset.take(order), jax.random.PRNGKey(0),
+                                  COUNTS, chunk_envs=4, progress=False)
+    first = next(r for r in rows if r.name == "FlowMaps")
+    np.testing.assert_allclose(again.samples, first.samples[order], atol=1e-5)
+    np.testing.assert_allclose(again.kl, first.kl[order], rtol=1e-4, atol=1e-4)
+
+
+def test_report_files_and_contents(report):
+    out, _, rows, evalset = report
+    assert [r.name for r in rows] == ["oracle", "last-seen", "uniform", "MLP (mean)", "FlowMaps"]
+    data = json.loads((out / "results.json").read_text())
+    assert data["protocol"]["num_queries"] == NUM_ENVS * SIM.num_objects
+    assert data["protocol"]["samples"] == list(COUNTS)
+    assert list(data["rows"]) == [r.name for r in rows]
+    flow = data["rows"]["FlowMaps"]
+    assert set(flow["kl"]) == {"overall", "by_category", "by_horizon"}
+    assert list(flow["kl"]["by_category"]) == ["fork", "bottle", "remote"]
+    horizons = sorted({int(h) for h in np.asarray(evalset.horizon).ravel()})
+    assert sorted(int(h) for h in flow["kl"]["by_horizon"]) == horizons
+    assert flow["kl"]["overall"]["count"] == NUM_ENVS * SIM.num_objects
+    assert set(flow["slots"]) == {str(n) for n in COUNTS}
+    assert set(flow["slots"]["8"]) == set(ev.SLOT_METRICS)
+    assert data["rows"]["oracle"]["kl"]["overall"]["mean"] == pytest.approx(0.0, abs=1e-5)
+    np.testing.assert_allclose(flow["kl"]["overall"]["mean"], np.mean(rows[-1].kl), rtol=1e-5)
+    text = (out / "results.md").read_text()
+    for name in data["rows"]:
+        assert f"| {name} |" in text
+    assert "by horizon" in text and "by category" in text
+    for figure in ("kl.png", "samples.png", "slots.png"):
+        assert figure in data["figures"]
+        assert (out / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert (out / figure).stat().st_size > 10_000
+
+
+def test_picked_queries_are_fork_remote_bottle_in_the_future(evalset):
+    picks = ev.pick_queries(evalset, SIM)
+    names = [SIM.categories[m].name for _, m in picks]
+    assert names == ["fork", "remote", "bottle"]
+    horizon = np.asarray(evalset.horizon)
+    for e, m in picks:
+        if np.any((horizon[:, m] >= 2) & (horizon[:, m] <= 4)):
+            assert 2 <= horizon[e, m] <= 4  # a few steps ahead: multimodal, not yet uniform
+
+
+def test_bad_arguments(scenes, evalset, predictors):
+    with pytest.raises(ValueError, match="kl_draws"):
+        ev.build_eval_queries(scenes, SIM, jax.random.PRNGKey(0), kl_draws=1)
+    with pytest.raises(ValueError, match="sample_counts"):
+        ev.evaluate_predictor(predictors[1], evalset, jax.random.PRNGKey(0), sample_counts=())
+    with pytest.raises(ValueError, match="predictors"):
+        ev.run_evaluation([], scenes, SIM)
+    other = dataclasses.replace(SIM, map_size=300)
+    with pytest.raises(ValueError, match="different FlowSim config"):
+        ev.run_evaluation([predictors[1]], scenes, other)
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
+    assert ev.main(["--checkpoint", str(tmp_path / "nowhere"), "--no-progress"]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        ev.main(["--checkpoint", str(tmp_path), "--samples", "0,x"])
+
+
+@pytest.mark.slow
+def test_train_then_evaluate_through_the_clis(tmp_path, capsys):
+    """The smoke preset trained for a few steps by ``python -m flowmaps_jax.train``, an MLP
+    baseline checkpoint, then ``python -m flowmaps_jax.evaluate`` on both."""
+    from flowmaps_jax import checkpoint, train, training
+    from flowmaps_jax.config import get_preset
+
+    run = tmp_path / "flow"
+    same_model = [f"model.{f.name}={getattr(CFG, f.name)}" for f in dataclasses.fields(CFG)]
+    sizes = [*same_model, f"train_envs={NUM_ENVS}", f"val_envs={NUM_ENVS}", "batch_size=4",
+             "val_every=2"]  # shapes shared with the fixtures above: compiled code is reused
+    assert train.main(["--preset", "smoke", "--steps", "4", "--run-dir", str(run),
+                       "--no-progress", *[a for kv in sizes for a in ("--set", kv)]]) == 0
+    mlp_cfg = dataclasses.replace(get_preset("smoke"), model=CFG, model_kind="mlp")
+    with checkpoint.CheckpointStore(tmp_path / "mlp", keep_last=1) as store:
+        store.save(training.init_state(mlp_cfg), mlp_cfg.to_dict())
+    out = tmp_path / "eval"
+    code = ev.main(["--checkpoint", str(run), "--baseline", str(tmp_path / "mlp"),
+                    "--out", str(out), "--num-envs", str(NUM_ENVS), "--samples", "4,8",
+                    "--kl-draws", str(KL_DRAWS), "--chunk-envs", "4", "--no-progress",
+                    "--no-figures"])
+    assert code == 0, capsys.readouterr().err
+    data = json.loads((out / "results.json").read_text())
+    assert list(data["rows"]) == ["oracle", "last-seen", "uniform", "MLP (mean)", "FlowMaps"]
+    assert data["rows"]["FlowMaps"]["info"]["step"] == 4
+    assert data["protocol"]["num_queries"] == NUM_ENVS * SIM.num_objects
+    assert "FlowMaps" in capsys.readouterr().out
