@@ -156,15 +156,20 @@ def _tiny_setup():
     return cfg, TrainBatch(tokens=tokens, queries=queries, target=target)
 
 
+@jax.jit
+def _perturb(params, key):
+    """Noise on every parameter (one compile) so the zero-initialised layers become active."""
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    keys = jax.random.split(key, len(leaves))
+    return treedef.unflatten([x + 0.2 * jax.random.normal(k, x.shape)
+                              for x, k in zip(leaves, keys, strict=True)])
+
+
 @pytest.fixture(scope="module")
 def tiny():
     cfg, batch = _tiny_setup()
     params = init_params(jax.random.key(7), cfg)
-    leaves, treedef = jax.tree_util.tree_flatten(params)
-    keys = jax.random.split(jax.random.key(8), len(leaves))
-    active = treedef.unflatten([x + 0.2 * jax.random.normal(k, x.shape)
-                                for x, k in zip(leaves, keys, strict=True)])
-    return cfg, batch, params, active
+    return cfg, batch, params, _perturb(params, jax.random.key(8))
 
 
 def test_cfm_loss_at_zero_velocity_is_target_energy(tiny):

@@ -24,7 +24,12 @@ from flowmaps_jax.model import (
     init_params,
     velocity,
 )
-from flowmaps_jax.model.cdit import absorbed_cross_attention, plain_cross_attention
+from flowmaps_jax.model.cdit import (
+    absorbed_cross_attention,
+    cross_attention,
+    plain_cross_attention,
+    shared_kv_cross_attention,
+)
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
 
 CFG = ModelConfig(dim=32, encoder_layers=1, cdit_blocks=2, heads=2, mlp_ratio=2, freq_bands=8,
@@ -50,8 +55,11 @@ def make_queries(tokens: SceneTokens, q=Q) -> Queries:
     return Queries(descriptor=(jnp.arange(q)[None] % 3).repeat(len(tokens.tau), 0), tau_q=tau_q)
 
 
+@jax.jit
 def perturb(params, key, scale=0.3):
-    """Add noise to every parameter so zero-initialised gates/projections become active."""
+    """Add noise to every parameter so zero-initialised gates/projections become active.
+
+    Jitted: one compile instead of one eager dispatch (and compile) per parameter shape."""
     leaves, treedef = jax.tree_util.tree_flatten(params)
     keys = jax.random.split(key, len(leaves))
     return treedef.unflatten([x + scale * jax.random.normal(k, x.shape)
@@ -105,6 +113,7 @@ def test_encode_once_equals_fused_forward(params, data):
 
 
 def test_rows_sharing_conditioning_equal_separate_calls(params, data):
+    """N rows of a query (shared-K/V attention) equal N one-row calls (absorbed attention)."""
     tokens, queries, x_t, t = data
     context = encode(params, CFG, tokens)
     together = velocity(params, CFG, context, x_t, t, queries)
@@ -140,7 +149,7 @@ def test_encoder_is_permutation_invariant(params, data):
 
 
 @pytest.mark.parametrize("rows", [1, 4])
-def test_absorbed_cross_attention_equals_plain(rows):
+def test_fast_cross_attention_forms_equal_plain(rows):
     d, h, dh, s, b, q = 24, 3, 8, 7, 2, 3
     rng = np.random.default_rng(rows)
     rnd = lambda *shape: jnp.asarray(rng.normal(size=shape), jnp.float32)  # noqa: E731
@@ -151,10 +160,31 @@ def test_absorbed_cross_attention_equals_plain(rows):
     x, n = rnd(b, q, rows, d), rnd(b, s, d)
     shift, scale = rnd(b, q, d), 0.5 * rnd(b, q, d)
     mask = jnp.array([[True] * 4 + [False] * 3, [True] * 7])
-    fast = jax.jit(absorbed_cross_attention)(x, n, mask, shift, scale, weights)
-    plain = jax.jit(plain_cross_attention)(x, n, mask, shift, scale, weights)
-    assert fast.shape == (b, q, rows, d)
-    np.testing.assert_allclose(fast, plain, atol=1e-5, rtol=1e-5)
+    args = (x, n, mask, shift, scale, weights)
+    plain = jax.jit(plain_cross_attention)(*args)
+    for form in (absorbed_cross_attention, shared_kv_cross_attention, cross_attention):
+        fast = jax.jit(form)(*args)
+        assert fast.shape == (b, q, rows, d)
+        np.testing.assert_allclose(fast, plain, atol=1e-5, rtol=1e-5, err_msg=form.__name__)
+    # padding keys are really excluded: junk in the padded context rows changes nothing
+    junk = n.at[0, 4:].set(50.0)
+    np.testing.assert_allclose(jax.jit(cross_attention)(x, junk, *args[2:]), plain,
+                               atol=1e-5, rtol=1e-5)
+
+
+def test_trimmed_padding_gives_identical_outputs(params, data):
+    """Callers may drop trailing padding slots (S < max_tokens): same context and velocity."""
+    tokens, queries, x_t, t = data
+    num_real = (6, 13, 9)
+    tokens = make_tokens(jax.random.key(6), num_real)
+    trimmed = jax.tree_util.tree_map(lambda a: a[:, :max(num_real)] if a.ndim >= 2 else a, tokens)
+    full_ctx, trim_ctx = encode(params, CFG, tokens), encode(params, CFG, trimmed)
+    np.testing.assert_allclose(full_ctx.tokens[:, :max(num_real)], trim_ctx.tokens,
+                               rtol=1e-5, atol=1e-5)
+    for rows in (1, N):  # both cross-attention forms
+        np.testing.assert_allclose(velocity(params, CFG, full_ctx, x_t[:, :, :rows], t, queries),
+                                   velocity(params, CFG, trim_ctx, x_t[:, :, :rows], t, queries),
+                                   rtol=1e-5, atol=1e-5)
 
 
 def test_dropout_key_is_stochastic_and_reproducible(params, data):

@@ -13,9 +13,11 @@ All LayerNorms here have no learned affine; the modulation Dense is zero-initial
 so every block starts as the identity, and the final layer's output projection is zero-initialised,
 so the network starts at velocity exactly 0.
 
-Cross-attention is computed by :func:`absorbed_cross_attention`, which never forms the per-query
-modulated context m (see its docstring); :func:`plain_cross_attention` is the textbook version with
-the same weights, kept as the reference that tests compare against.
+Cross-attention is computed by :func:`cross_attention`: with one row per query (training) by
+:func:`absorbed_cross_attention`, which never forms the per-query modulated context m (see its
+docstring); with several rows per query (sampling) by :func:`shared_kv_cross_attention`, which
+projects m once per query and shares it across the rows. :func:`plain_cross_attention` is the
+textbook version with the same weights, kept as the reference that tests compare against.
 """
 
 from __future__ import annotations
@@ -86,6 +88,45 @@ def absorbed_cross_attention(x, context_norm, mask, shift, scale, weights):
     return (out + weights["bo"]).reshape(b, q, n, d)
 
 
+def shared_kv_cross_attention(x, context_norm, mask, shift, scale, weights):
+    """Cross-attention that projects the modulated context once per query, shared by its N rows.
+
+    Same arguments and result as :func:`absorbed_cross_attention`. Cost per query: 2·S·D² for the
+    keys and values of m = n ⊙ (1 + scale) + shift (one flat GEMM over all queries), then per row
+    2·D² (query and output projections) + 2·S·D. Cheaper than the absorbed form as soon as a query
+    has several rows (sampling: N samples per query), and its products are plain GEMMs or batched
+    matmuls with the batch dims leading, which XLA on CPU runs well.
+    """
+    b, q, n, d = x.shape
+    heads, head_dim = weights["wq"].shape[1:]
+    s = context_norm.shape[1]
+    m = modulate(context_norm[:, None], shift[:, :, None, :], scale[:, :, None, :])  # (B,Q,S,D)
+    w_kv = jnp.concatenate([weights["wk"].reshape(d, -1), weights["wv"].reshape(d, -1)], axis=1)
+    b_kv = jnp.concatenate([weights["bk"].reshape(-1), weights["bv"].reshape(-1)])
+    kv = (m.reshape(-1, d) @ w_kv + b_kv).reshape(b * q, s, 2, heads, head_dim)
+    query = (x.reshape(-1, d) @ weights["wq"].reshape(d, -1) + weights["bq"].reshape(-1))
+    query = query.reshape(b * q, n, heads, head_dim) / math.sqrt(head_dim)
+    scores = jnp.einsum("xnhk,xshk->xhns", query, kv[:, :, 0])  # (B·Q, H, N, S)
+    key_mask = jnp.broadcast_to(mask[:, None], (b, q, s)).reshape(b * q, 1, 1, s)
+    attn = _masked_softmax(scores, key_mask)
+    values = jnp.einsum("xhns,xshk->xnhk", attn, kv[:, :, 1]).reshape(-1, heads * head_dim)
+    out = values @ weights["wo"].reshape(heads * head_dim, d) + weights["bo"]
+    return out.reshape(b, q, n, d)
+
+
+def cross_attention(x, context_norm, mask, shift, scale, weights):
+    """Modulated cross-attention, picking the faster exact form from the (static) row count N.
+
+    One row per query (training): :func:`absorbed_cross_attention` (no S·D² per query). Several
+    rows per query (sampling): :func:`shared_kv_cross_attention`, whose per-query K/V cost is
+    shared by the rows. Measured on a 2-core CPU at D = 256, S = 13: at N = 1 (fwd+bwd) the two are
+    within ~10 % (absorbed ahead); at N = 25 (forward) the shared-K/V form is ~5× faster.
+    """
+    rows = x.shape[2]
+    form = absorbed_cross_attention if rows == 1 else shared_kv_cross_attention
+    return form(x, context_norm, mask, shift, scale, weights)
+
+
 def plain_cross_attention(x, context_norm, mask, shift, scale, weights):
     """Reference cross-attention that forms the modulated context per query (O(S·D²) per query).
 
@@ -103,7 +144,7 @@ def plain_cross_attention(x, context_norm, mask, shift, scale, weights):
 
 
 class ModulatedCrossAttention(nn.Module):
-    """Holds the attention weights and applies :func:`absorbed_cross_attention`."""
+    """Holds the attention weights and applies :func:`cross_attention`."""
 
     dim: int
     heads: int
@@ -122,7 +163,7 @@ class ModulatedCrossAttention(nn.Module):
             "wo": self.param("wo", out_init, (self.heads, head_dim, self.dim)),
             "bo": self.param("bo", zeros, (self.dim,)),
         }
-        return absorbed_cross_attention(x, context_norm, mask, shift, scale, weights)
+        return cross_attention(x, context_norm, mask, shift, scale, weights)
 
 
 class CDiTBlock(nn.Module):
