@@ -102,6 +102,18 @@ def test_sample_is_deterministic_by_key(flowmaps, inputs):
     assert legacy.shape == a.shape
 
 
+def test_trailing_padding_is_dropped_without_changing_results(flowmaps, inputs):
+    """The predictor trims empty token slots before the jitted model; results must not change."""
+    from flowmaps_jax.sample import _scene_keys, flow_sample
+
+    tokens, queries = inputs
+    keys = _scene_keys(jax.random.key(4), B)
+    untrimmed = flow_sample(flowmaps.params, CFG, jax.tree.map(jnp.asarray, tokens),
+                            jax.tree.map(jnp.asarray, queries), keys, 8)
+    trimmed = flowmaps.sample(tokens, queries, 8, keys)
+    np.testing.assert_allclose(trimmed, untrimmed, atol=1e-4)
+
+
 def test_per_scene_keys_make_samples_independent_of_the_batch(flowmaps, inputs):
     """With one key per scene, a scene's samples follow its key, wherever it sits in the batch."""
     tokens, queries = inputs

@@ -46,7 +46,7 @@ from flowmaps_jax.model import (
     encode,
     make_velocity_fn,
 )
-from flowmaps_jax.tokens import Queries, SceneTokens
+from flowmaps_jax.tokens import Queries, SceneTokens, trim_padding
 
 MODEL_KINDS = ("flowmaps", "mlp")
 SOLVERS = flow.SOLVERS
@@ -146,7 +146,14 @@ def _scene_keys(key: Any, num_scenes: int) -> jax.Array:
 
 
 def _as_arrays(tokens: SceneTokens, queries: Queries) -> tuple[SceneTokens, Queries]:
-    """Canonical dtypes, so every call with the same shapes hits one compiled function."""
+    """Canonical dtypes, so every call with the same shapes hits one compiled function.
+
+    Token slots after the last real token of every scene are dropped (``tokens.trim_padding``):
+    padding is masked anyway, so results are identical and the encoder and cross-attention skip
+    empty slots (FlowSim maps have 13 real tokens of the 20 slots).
+    """
+    used = np.flatnonzero(np.asarray(tokens.mask).reshape(-1, np.shape(tokens.mask)[-1]).any(0))
+    tokens = trim_padding(tokens, int(used[-1]) + 1)
     tokens = SceneTokens(boxes=jnp.asarray(tokens.boxes, jnp.float32),
                          descriptor=jnp.asarray(tokens.descriptor, jnp.int32),
                          kind=jnp.asarray(tokens.kind, jnp.int32),
