@@ -138,6 +138,17 @@ def _check_count(name: str, n) -> int:
     return int(n)
 
 
+def _check_int_range(name: str, values, low: int, high: int, what: str) -> None:
+    """Concrete ``values`` must be integers in low..high (inclusive); tracers pass unchecked."""
+    if not _is_concrete(values):
+        return
+    v = np.asarray(values)
+    if not np.issubdtype(v.dtype, np.integer):
+        raise ValueError(f"{name} must be integer {what}; got dtype {v.dtype}")
+    if np.any((v < low) | (v > high)):
+        raise ValueError(f"{name} must lie in {low}..{high}")
+
+
 def _check_tie_break(tie_break: str) -> None:
     if tie_break not in TIE_BREAKS:
         raise ValueError(f"tie_break must be one of {TIE_BREAKS}; got {tie_break!r}")
@@ -399,12 +410,8 @@ def slot_histogram(assignment: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     """
     num_slots = _check_count("num_slots", num_slots)
     _check_last("assignment", assignment, None)
-    if _is_concrete(assignment):
-        a = np.asarray(assignment)
-        if not np.issubdtype(a.dtype, np.integer):
-            raise ValueError(f"assignment must be integer slot indices; got dtype {a.dtype}")
-        if np.any((a < 0) | (a > num_slots)):
-            raise ValueError(f"assignment must lie in 0..{num_slots} (num_slots is the off bin)")
+    _check_int_range("assignment", assignment, 0, num_slots,
+                     "slot indices (num_slots is the off bin)")
     return _histogram(jnp.asarray(assignment), num_slots)
 
 
@@ -555,12 +562,7 @@ def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     num_slots: K, the padded slot count. slot_now indexes the same slot axis as q.
     """
     num_slots = _check_count("num_slots", num_slots)
-    if _is_concrete(slot_now):
-        s = np.asarray(slot_now)
-        if not np.issubdtype(s.dtype, np.integer):
-            raise ValueError(f"slot_now must be integer slot indices; got dtype {s.dtype}")
-        if np.any((s < 0) | (s >= num_slots)):
-            raise ValueError(f"slot_now must lie in 0..{num_slots - 1}")
+    _check_int_range("slot_now", slot_now, 0, num_slots - 1, "slot indices")
     return _one_hot_slots(jnp.asarray(slot_now), num_slots)
 
 
@@ -577,12 +579,7 @@ def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     Real slots are the first ``count`` of the K padded ones (as in ``Scenes.visit_order``).
     """
     num_slots = _check_count("num_slots", num_slots)
-    if _is_concrete(count):
-        c = np.asarray(count)
-        if not np.issubdtype(c.dtype, np.integer):
-            raise ValueError(f"count must be an integer number of slots; got dtype {c.dtype}")
-        if np.any((c < 1) | (c > num_slots)):
-            raise ValueError(f"count must lie in 1..{num_slots}")
+    _check_int_range("count", count, 1, num_slots, "numbers of slots")
     return _uniform_slots(jnp.asarray(count), num_slots)
 
 
