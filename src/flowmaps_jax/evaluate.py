@@ -642,8 +642,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate FlowMaps (and baselines) against FlowSim's exact posterior.")
     parser.add_argument("--checkpoint", required=True,
                         help="run or checkpoint directory of the model to evaluate (FlowMaps)")
-    parser.add_argument("--baseline", action="append", default=[],
-                        help="run or checkpoint directory of a baseline (repeatable)")
+    parser.add_argument("--baseline", action="extend", nargs="+", default=[], metavar="DIR",
+                        help="run or checkpoint directories of baselines (several after one "
+                             "flag, or the flag repeated)")
     parser.add_argument("--out", default=None,
                         help="output directory (default: <checkpoint>/eval)")
     parser.add_argument("--num-envs", type=int, default=DEFAULT_NUM_ENVS,
