@@ -44,7 +44,6 @@ import pathlib
 import sys
 import time
 from collections.abc import Sequence
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -58,6 +57,7 @@ from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.dynamics import exact_posterior
 from flowmaps_jax.sample import DEFAULT_NUM_STEPS, SOLVERS, Predictor, load
 from flowmaps_jax.tokens import Queries, SceneTokens
+from flowmaps_jax.validation import check_int
 
 DEFAULT_NUM_ENVS = 200
 DEFAULT_SAMPLES = (25, 100)
@@ -123,12 +123,6 @@ class EvalSet:
         return jax.tree_util.tree_map(lambda a: a[index], self)
 
 
-def _check_int(name: str, value: Any, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}; got {value!r}")
-    return int(value)
-
-
 def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
                        kl_draws: int = DEFAULT_KL_DRAWS) -> EvalSet:
     """The protocol's queries for every environment of ``scenes`` (all E of them).
@@ -141,7 +135,7 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
 
     if not isinstance(config, FlowSimConfig):
         raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
-    kl_draws = _check_int("kl_draws", kl_draws, 2)
+    kl_draws = check_int("kl_draws", kl_draws, 2)
     num_envs = scenes.num_envs
     t_max = config.num_timesteps
     m = config.num_objects
@@ -251,7 +245,7 @@ def _check_counts(sample_counts: Sequence[int]) -> tuple[int, ...]:
     if not counts:
         raise ValueError("sample_counts must hold at least one sample count")
     for n in counts:
-        _check_int("sample_counts entries", n, 1)
+        check_int("sample_counts entries", n, 1)
     if len(set(counts)) != len(counts):
         raise ValueError(f"sample_counts must not repeat values; got {counts}")
     return tuple(sorted(int(n) for n in counts))
@@ -271,7 +265,7 @@ def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
     on the chunk size. ``logp_steps``: ODE grid points of the likelihood (default num_steps).
     """
     counts = _check_counts(sample_counts)
-    chunk_envs = _check_int("chunk_envs", chunk_envs, 1)
+    chunk_envs = check_int("chunk_envs", chunk_envs, 1)
     logp_steps = num_steps if logp_steps is None else logp_steps
     n_max = counts[-1]
     num_envs = evalset.num_envs
@@ -676,12 +670,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        _check_int("--num-envs", args.num_envs, 1)
-        _check_int("--kl-draws", args.kl_draws, 2)
-        _check_int("--num-steps", args.num_steps, 2)
-        _check_int("--chunk-envs", args.chunk_envs, 1)
+        check_int("--num-envs", args.num_envs, 1)
+        check_int("--kl-draws", args.kl_draws, 2)
+        check_int("--num-steps", args.num_steps, 2)
+        check_int("--chunk-envs", args.chunk_envs, 1)
         if args.logp_steps is not None:
-            _check_int("--logp-steps", args.logp_steps, 2)
+            check_int("--logp-steps", args.logp_steps, 2)
         model = load(args.checkpoint, which=args.which)
         baselines = [load(path, which=args.which) for path in args.baseline]
         config = model.flowsim

@@ -48,6 +48,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.validation import check_int, is_concrete
+
 CENTRE_SIGMA_SCALE = 0.35
 """Centre std of a mixture component as a fraction of the box side (h for cy, w for cx)."""
 SIZE_SIGMA_SCALE = 0.02
@@ -74,10 +76,6 @@ class Estimate(NamedTuple):
 # --------------------------------------------------------------------------- validation helpers
 
 
-def _is_concrete(*arrays) -> bool:
-    return not any(isinstance(a, jax.core.Tracer) for a in arrays)
-
-
 def _check_last(name: str, arr, size: int | None, min_ndim: int = 1) -> tuple[int, ...]:
     shape = tuple(np.shape(arr))
     if len(shape) < min_ndim:
@@ -94,7 +92,7 @@ def _check_same(name: str, shape: tuple[int, ...], expected: tuple[int, ...], wh
 
 def _check_distribution(name: str, probs, mask=None, atol: float = PROB_ATOL) -> None:
     """Values of a probability vector over the last axis: finite, ≥ 0, sums to 1, 0 on padding."""
-    if not _is_concrete(probs, mask):
+    if not is_concrete(probs, mask):
         return
     p = np.asarray(probs, dtype=np.float64)
     if not np.all(np.isfinite(p)):
@@ -113,7 +111,7 @@ def _check_distribution(name: str, probs, mask=None, atol: float = PROB_ATOL) ->
 
 def _check_boxes_values(name: str, boxes, active=None) -> None:
     """Boxes (..., K, 4): finite and with positive sides where ``active`` (default: everywhere)."""
-    if not _is_concrete(boxes, active):
+    if not is_concrete(boxes, active):
         return
     b = np.asarray(boxes, dtype=np.float64)
     act = np.ones(b.shape[:-1], bool) if active is None else np.asarray(active, bool)
@@ -127,20 +125,14 @@ def _check_mask(name: str, mask, expected: tuple[int, ...]):
     if mask is None:
         return None
     _check_same(name, np.shape(mask), expected, "one flag per slot")
-    if _is_concrete(mask) and not np.issubdtype(np.asarray(mask).dtype, np.bool_):
+    if is_concrete(mask) and not np.issubdtype(np.asarray(mask).dtype, np.bool_):
         raise ValueError(f"{name} must be boolean; got dtype {np.asarray(mask).dtype}")
     return mask
 
 
-def _check_count(name: str, n) -> int:
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"{name} must be a positive Python int; got {n!r}")
-    return int(n)
-
-
 def _check_int_range(name: str, values, low: int, high: int, what: str) -> None:
     """Concrete ``values`` must be integers in low..high (inclusive); tracers pass unchecked."""
-    if not _is_concrete(values):
+    if not is_concrete(values):
         return
     v = np.asarray(values)
     if not np.issubdtype(v.dtype, np.integer):
@@ -161,7 +153,7 @@ def _check_mixture(slot_probs, slot_boxes, slot_mask) -> tuple[int, ...]:
     _check_same("slot_boxes", b_shape, (*q_shape, 4), "slot_probs.shape + (4,)")
     _check_mask("slot_mask", slot_mask, q_shape)
     _check_distribution("slot_probs", slot_probs, slot_mask)
-    if _is_concrete(slot_probs, slot_mask):
+    if is_concrete(slot_probs, slot_mask):
         active = np.asarray(slot_probs) > 0
         if slot_mask is not None:
             active &= np.asarray(slot_mask, bool)
@@ -263,7 +255,7 @@ def sample_gt_mixture(key: jax.Array, slot_probs: jnp.ndarray, slot_boxes: jnp.n
     slot_probs: (..., K). slot_boxes: (..., K, 4). Returns (..., n, 4) boxes (y, x, h, w).
     """
     q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
-    n = _check_count("n", n)
+    n = check_int("n", n)
     return _sample_mixture(key, slot_probs, slot_boxes, _full_mask(q_shape, slot_mask), n)
 
 
@@ -297,7 +289,7 @@ def kl_from_log_prob_fn(key: jax.Array, slot_probs: jnp.ndarray, slot_boxes: jnp
     The callable should close over the model and its conditioning. Returns Estimate (...).
     """
     q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
-    n = _check_count("n", n)
+    n = check_int("n", n)
     if n < 2:
         raise ValueError(f"n must be at least 2 for a standard error; got {n}")
     mask = _full_mask(q_shape, slot_mask)
@@ -391,7 +383,7 @@ def assign_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jnp.n
     b_shape = _check_last("slot_boxes", slot_boxes, 4, min_ndim=2)
     _check_same("samples.shape[:-2]", s_shape[:-2], b_shape[:-2], "the leading dims of slot_boxes")
     _check_mask("slot_mask", slot_mask, b_shape[:-1])
-    if _is_concrete(radius) and not float(radius) > 0:
+    if is_concrete(radius) and not float(radius) > 0:
         raise ValueError(f"radius must be positive; got {radius}")
     return _assign(jnp.asarray(samples, jnp.float32), jnp.asarray(slot_boxes, jnp.float32),
                    jnp.asarray(slot_mask, bool), radius)
@@ -408,7 +400,7 @@ def slot_histogram(assignment: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     assignment: (..., N) ints in 0..num_slots (num_slots = K = the off bin), from assign_slots.
     Returns (..., K + 1) float32: the K slots then the off bin.
     """
-    num_slots = _check_count("num_slots", num_slots)
+    num_slots = check_int("num_slots", num_slots)
     _check_last("assignment", assignment, None)
     _check_int_range("assignment", assignment, 0, num_slots,
                      "slot indices (num_slots is the off bin)")
@@ -561,7 +553,7 @@ def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
 
     num_slots: K, the padded slot count. slot_now indexes the same slot axis as q.
     """
-    num_slots = _check_count("num_slots", num_slots)
+    num_slots = check_int("num_slots", num_slots)
     _check_int_range("slot_now", slot_now, 0, num_slots - 1, "slot indices")
     return _one_hot_slots(jnp.asarray(slot_now), num_slots)
 
@@ -578,7 +570,7 @@ def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
 
     Real slots are the first ``count`` of the K padded ones (as in ``Scenes.visit_order``).
     """
-    num_slots = _check_count("num_slots", num_slots)
+    num_slots = check_int("num_slots", num_slots)
     _check_int_range("count", count, 1, num_slots, "numbers of slots")
     return _uniform_slots(jnp.asarray(count), num_slots)
 

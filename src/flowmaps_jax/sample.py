@@ -47,6 +47,7 @@ from flowmaps_jax.model import (
     make_velocity_fn,
 )
 from flowmaps_jax.tokens import Queries, SceneTokens, trim_padding
+from flowmaps_jax.validation import check_int
 
 MODEL_KINDS = ("flowmaps", "mlp")
 SOLVERS = flow.SOLVERS
@@ -112,14 +113,8 @@ def gaussian_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries:
 # --------------------------------------------------------------------------- validation helpers
 
 
-def _check_positive_int(name: str, value: Any, minimum: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an int >= {minimum}; got {value!r}")
-    return int(value)
-
-
 def _check_solver(num_steps: Any, method: Any) -> tuple[int, str]:
-    num_steps = _check_positive_int("num_steps", num_steps, minimum=2)
+    num_steps = check_int("num_steps", num_steps, minimum=2)
     if method not in SOLVERS:
         raise ValueError(f"method must be one of {SOLVERS}; got {method!r}")
     return num_steps, method
@@ -258,7 +253,7 @@ class Predictor:
         Same key and inputs → the same samples.
         """
         b, _ = self.validate(tokens, queries)
-        num_samples = _check_positive_int("num_samples", num_samples)
+        num_samples = check_int("num_samples", num_samples)
         num_steps, method = _check_solver(num_steps, method)
         keys = _scene_keys(key, b)
         tokens, queries = _as_arrays(tokens, queries)

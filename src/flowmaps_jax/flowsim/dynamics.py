@@ -26,6 +26,7 @@ import numpy as np
 
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, DYNAMICS, FlowSimConfig, SimShape
 from flowmaps_jax.flowsim.layout import uniform16
+from flowmaps_jax.validation import is_concrete
 
 
 def _draw_offsets(u: jnp.ndarray, probs: jnp.ndarray) -> jnp.ndarray:
@@ -78,10 +79,6 @@ def _advance_table(probs: tuple[float, float, float], max_horizon: int) -> np.nd
     for h in range(1, max_horizon + 1):
         table[h] = np.convolve(table[h - 1], np.asarray(probs, np.float64))[: 2 * max_horizon + 1]
     return table
-
-
-def _is_concrete(*arrays) -> bool:
-    return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
 def _check_slots(num_slots, slot_now, config: FlowSimConfig) -> None:
@@ -159,7 +156,7 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     if dynamics not in DYNAMICS:
         raise ValueError(f"dynamics must be one of {DYNAMICS}; got {dynamics!r}")
     max_h = config.num_timesteps - 1
-    if _is_concrete(num_slots, slot_now, horizon):
+    if is_concrete(num_slots, slot_now, horizon):
         _check_slots(num_slots, slot_now, config)
         _check_time("horizon", horizon, 0, max_h)
     if dynamics == "markov":
@@ -167,7 +164,7 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     if tau is None:
         raise ValueError("tau is required for dynamics='schedule_jitter' (its posterior depends "
                          "on the absolute query time tau + horizon)")
-    if _is_concrete(tau, horizon):
+    if is_concrete(tau, horizon):
         _check_time("tau", tau, 0, max_h)
         _check_time("tau + horizon", np.asarray(tau) + np.asarray(horizon), 0, max_h)
     now = jax.nn.one_hot(jnp.asarray(slot_now), config.num_furniture, dtype=jnp.float32)
@@ -197,6 +194,6 @@ def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.
     """
     if not isinstance(config, FlowSimConfig):
         raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
-    if _is_concrete(num_slots):
+    if is_concrete(num_slots):
         _check_slots(num_slots, None, config)
     return _transition_matrix(num_slots, config)

@@ -28,6 +28,7 @@ from flax import struct
 from flowmaps_jax import tokens as tok
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, FlowSimConfig
 from flowmaps_jax.flowsim.generate import Scenes, check_key, generate
+from flowmaps_jax.validation import check_int
 
 FORMAT_VERSION = 1
 TRAIN_SEED = 0
@@ -76,12 +77,6 @@ def _check_token_room(config: FlowSimConfig) -> None:
         raise ValueError(f"config.max_tokens={config.max_tokens} is smaller than the "
                          f"{needed} tokens of a scene (F={config.num_furniture} furniture + "
                          f"M={config.num_objects} objects)")
-
-
-def _check_positive(name: str, value) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name} must be a positive int; got {value!r}")
-    return int(value)
 
 
 def _check_index(name: str, value, high: int, low: int = 0) -> None:
@@ -208,8 +203,8 @@ def sample_queries(key, num_envs_or_scenes, n: int,
     if isinstance(num_envs_or_scenes, Scenes):
         num_envs = num_envs_or_scenes.num_envs
     else:
-        num_envs = _check_positive("num_envs_or_scenes", num_envs_or_scenes)
-    n = _check_positive("n", n)
+        num_envs = check_int("num_envs_or_scenes", num_envs_or_scenes)
+    n = check_int("n", n)
     return _sample_queries(check_key(key), num_envs, n, config)
 
 
@@ -237,8 +232,8 @@ def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: in
     _check_config(config)
     _check_token_room(config)
     _check_scenes(scenes, config)
-    batch_size = _check_positive("batch_size", batch_size)
-    queries_per_scene = _check_positive("queries_per_scene", queries_per_scene)
+    batch_size = check_int("batch_size", batch_size)
+    queries_per_scene = check_int("queries_per_scene", queries_per_scene)
     return _train_batch(check_key(key), scenes, batch_size, queries_per_scene, config)
 
 
@@ -277,9 +272,9 @@ def endless_batches(key, batch_size: int, queries_per_scene: int,
     """
     _check_config(config)
     _check_token_room(config)
-    batch_size = _check_positive("batch_size", batch_size)
-    queries_per_scene = _check_positive("queries_per_scene", queries_per_scene)
-    envs_per_chunk = _check_positive("envs_per_chunk", envs_per_chunk)
+    batch_size = check_int("batch_size", batch_size)
+    queries_per_scene = check_int("queries_per_scene", queries_per_scene)
+    envs_per_chunk = check_int("envs_per_chunk", envs_per_chunk)
     if envs_per_chunk < batch_size:
         raise ValueError(f"envs_per_chunk ({envs_per_chunk}) must be >= batch_size "
                          f"({batch_size})")
