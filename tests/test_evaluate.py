@@ -95,10 +95,18 @@ def test_slot_boxes_are_where_the_object_really_is(scenes, evalset):
 
 
 def test_reference_rows_have_their_known_values(evalset):
-    oracle, last_seen, uniform = ev.reference_rows(evalset, COUNTS)
+    oracle, sampled, last_seen, uniform = ev.reference_rows(evalset, COUNTS)
     q = np.asarray(evalset.slot_probs)
-    assert (oracle.name, last_seen.name, uniform.name) == ev.REFERENCE_ROWS
+    assert (oracle.name, sampled.name, last_seen.name, uniform.name) == ev.REFERENCE_ROWS
     np.testing.assert_allclose(oracle.kl, 0.0, atol=1e-5)
+    np.testing.assert_allclose(sampled.kl, 0.0, atol=1e-5)
+    for n in COUNTS:  # n draws from q: histograms in steps of 1/n, nothing off, never above 1
+        p_hat = sampled.slots[n]["p_hat"]
+        np.testing.assert_allclose(p_hat * n, np.round(p_hat * n), atol=1e-4)
+        np.testing.assert_allclose(p_hat[..., -1], 0.0)
+        assert np.all(p_hat[..., :-1][~np.asarray(evalset.slot_mask)] == 0.0)
+        assert np.all(sampled.slots[n]["tv"] > -1e-6) and np.all(sampled.slots[n]["tv"] < 1.0)
+    assert np.mean(sampled.slots[COUNTS[-1]]["tv"]) < np.mean(sampled.slots[COUNTS[0]]["tv"])
     for n in COUNTS:
         np.testing.assert_allclose(oracle.slots[n]["tv"], 0.0, atol=1e-6)
         np.testing.assert_allclose(oracle.slots[n]["top1"], 1.0)
@@ -144,7 +152,7 @@ def test_samples_and_likelihoods_reach_the_right_metrics(evalset):
     row = ev.evaluate_predictor(_LastSeenSampler(evalset), evalset, jax.random.PRNGKey(0),
                                 sample_counts=COUNTS, chunk_envs=NUM_ENVS, progress=False)
     np.testing.assert_allclose(row.kl, 0.0, atol=1e-5)
-    last_seen = ev.reference_rows(evalset, COUNTS)[1]
+    last_seen = ev.reference_rows(evalset, COUNTS)[2]
     for n in COUNTS:
         for metric in ("p_hat", *ev.SLOT_METRICS):
             np.testing.assert_allclose(row.slots[n][metric], last_seen.slots[n][metric],
@@ -168,7 +176,8 @@ def test_model_rows_do_not_depend_on_the_chunking(evalset, predictors, report):
 
 def test_report_files_and_contents(report):
     out, _, rows, evalset = report
-    assert [r.name for r in rows] == ["oracle", "last-seen", "uniform", "MLP (mean)", "FlowMaps"]
+    assert [r.name for r in rows] == ["oracle", "oracle samples", "last-seen", "uniform",
+                                      "MLP (mean)", "FlowMaps"]
     data = json.loads((out / "results.json").read_text())
     assert data["protocol"]["num_queries"] == NUM_ENVS * SIM.num_objects
     assert data["protocol"]["samples"] == list(COUNTS)
@@ -248,7 +257,8 @@ def test_train_then_evaluate_through_the_clis(tmp_path, capsys):
                     "--no-figures"])
     assert code == 0, capsys.readouterr().err
     data = json.loads((out / "results.json").read_text())
-    assert list(data["rows"]) == ["oracle", "last-seen", "uniform", "MLP (mean)", "FlowMaps"]
+    assert list(data["rows"]) == ["oracle", "oracle samples", "last-seen", "uniform", "MLP (mean)",
+                                  "FlowMaps"]
     assert data["rows"]["FlowMaps"]["info"]["step"] == 4
     assert data["protocol"]["num_queries"] == NUM_ENVS * SIM.num_objects
     assert "FlowMaps" in capsys.readouterr().out

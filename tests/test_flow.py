@@ -3,6 +3,7 @@ log-likelihood (closed-form affine flow, sample moments, importance weights, exa
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -182,6 +183,17 @@ def test_cfm_loss_at_zero_velocity_is_target_energy(tiny):
     np.testing.assert_allclose(loss, jnp.mean(jnp.square(batch.target - x0)), rtol=1e-5)
     with pytest.raises(ValueError, match="t_sampler"):
         cfm_loss(params, cfg, batch, key, "gaussian")
+
+
+def test_cfm_loss_regresses_the_target_in_the_flow_space(tiny):
+    """With box_offset/box_scale the data end of the path is box_scale · (box − box_offset)."""
+    cfg, batch, params, _ = tiny
+    scaled = dataclasses.replace(cfg, box_offset=0.5, box_scale=4.0)
+    key = jax.random.key(9)
+    loss, _ = cfm_loss(params, scaled, batch, key, "uniform", deterministic=True)
+    x0 = jax.random.normal(jax.random.split(key, 4)[0], batch.target.shape)
+    np.testing.assert_allclose(loss, jnp.mean(jnp.square(4.0 * (batch.target - 0.5) - x0)),
+                               rtol=1e-5)
 
 
 def test_model_divergence_is_exact_and_log_prob_runs(tiny):

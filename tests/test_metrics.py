@@ -212,6 +212,27 @@ def test_reference_predictors():
     np.testing.assert_allclose(M.oracle_slots(Q), [0.3, 0.7, 0.0, 0.0], atol=1e-7)
 
 
+def test_sampled_oracle_is_an_unbiased_noisy_histogram_of_q():
+    q = jnp.asarray([[0.5, 0.3, 0.2, 0.0], [0.1, 0.0, 0.9, 0.0]])
+    one = M.sampled_oracle_slots(jax.random.PRNGKey(0), q, 1)  # a single draw: one-hot
+    np.testing.assert_allclose(one.sum(-1), 1.0)
+    assert set(np.unique(np.asarray(one))) <= {0.0, 1.0}
+    many = jax.vmap(lambda k: M.sampled_oracle_slots(k, q, 25))(
+        jax.random.split(jax.random.PRNGKey(1), 4000))  # (4000, 2, 5)
+    np.testing.assert_allclose(many.mean(0)[:, :-1], q, atol=0.01)
+    assert np.all(many[..., 3] == 0.0) and np.all(many[..., 1, 1] == 0.0)  # q = 0: never drawn
+    assert np.all(many[..., -1] == 0.0)  # nothing "off"
+    # finite-sample TV shrinks like 1/sqrt(n)
+    qs = jnp.broadcast_to(q, (500, 2, 4))
+    tv = lambda n: float(jnp.mean(M.slot_tv(  # noqa: E731
+        M.sampled_oracle_slots(jax.random.PRNGKey(2), qs, n), qs)))
+    assert 1.6 < tv(25) / tv(100) < 2.4
+    with pytest.raises(ValueError, match="q"):
+        M.sampled_oracle_slots(jax.random.PRNGKey(0), jnp.asarray([0.5, 0.6]), 4)
+    with pytest.raises(ValueError, match="n"):
+        M.sampled_oracle_slots(jax.random.PRNGKey(0), q, 0)
+
+
 def test_top1_and_ties():
     q = np.array([0.2, 0.5, 0.3], np.float32)
     mask = np.ones(3, bool)

@@ -141,6 +141,25 @@ def test_zero_velocity_flow_is_the_standard_normal(fresh, inputs):
     np.testing.assert_allclose(log_p, expected, rtol=1e-5, atol=1e-5)
 
 
+def test_box_scale_maps_samples_and_densities_between_spaces(flowmaps, inputs):
+    """The same weights with box_scale = 4, box_offset = 0.5 sample z/4 + 0.5 from the same noise,
+    and their log-density is the identity model's at z = 4 (x − 0.5) plus 4 · log 4."""
+    tokens, queries = inputs
+    scaled = Predictor.from_params(flowmaps.params,
+                                   dataclasses.replace(CFG, box_offset=0.5, box_scale=4.0))
+    keys = jax.random.split(jax.random.key(3), B)
+    z = np.asarray(flowmaps.sample(tokens, queries, N, keys))
+    x = np.asarray(scaled.sample(tokens, queries, N, keys))
+    np.testing.assert_allclose(x, z / 4.0 + 0.5, atol=1e-5)
+    np.testing.assert_allclose(scaled.log_prob(tokens, queries, x),
+                               np.asarray(flowmaps.log_prob(tokens, queries, z)) + 4 * math.log(4),
+                               rtol=1e-4, atol=1e-3)
+    with pytest.raises(ValueError, match="box_scale"):
+        dataclasses.replace(CFG, box_scale=0.0)
+    with pytest.raises(ValueError, match="box_offset"):
+        dataclasses.replace(CFG, box_offset=float("nan"))
+
+
 def test_log_prob_is_the_change_of_variables_of_the_sampler(flowmaps, inputs):
     """log p(x1) of a sample x1 = T(x0) equals log N(x0) − log|det ∂T/∂x0|, with the Jacobian of the
     discrete sampler T taken by forward-mode autodiff (rows are independent, so 4 JVPs give every

@@ -63,9 +63,10 @@ DEFAULT_NUM_ENVS = 200
 DEFAULT_SAMPLES = (25, 100)
 DEFAULT_KL_DRAWS = 100
 DEFAULT_CHUNK_ENVS = 50
-REFERENCE_ROWS = ("oracle", "last-seen", "uniform")
+REFERENCE_ROWS = ("oracle", "oracle samples", "last-seen", "uniform")
 SLOT_METRICS = ("tv", "top1", "search_cost_ratio")
-_SALT_QUERIES, _SALT_KL, _SALT_SAMPLES = 0, 1, 2  # fold_in salts of the evaluation seed
+# fold_in salts of the evaluation seed
+_SALT_QUERIES, _SALT_KL, _SALT_SAMPLES, _SALT_ORACLE = 0, 1, 2, 3
 
 
 # --------------------------------------------------------------------------- the query set
@@ -215,28 +216,38 @@ class RowResult:
     info: dict = dataclasses.field(default_factory=dict)
 
 
-def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMPLES
-                   ) -> list[RowResult]:
-    """The oracle (q itself), last-seen (stays at its slot) and uniform (over the K slots) rows.
+def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMPLES,
+                   key: jax.Array | None = None) -> list[RowResult]:
+    """The reference rows: oracle (q itself), oracle samples (n draws from q: the finite-sample
+    ceiling of any sampler's slot metrics), last-seen (stays at its slot), uniform (K slots).
 
     Their KL uses the ground-truth mixture with the row's slot weights as the density
-    (:func:`metrics.kl_slot_model` on the shared draws): exactly 0 for the oracle.
+    (:func:`metrics.kl_slot_model` on the shared draws): exactly 0 for the oracle, and for oracle
+    samples too (a perfect sampler's density is q; only its slot histogram is noisy).
+    ``key``: the draws of "oracle samples" (default ``PRNGKey(0)``).
     """
     f = evalset.num_slots_padded
-    p_hats = {
+    key = jax.random.PRNGKey(0) if key is None else key
+    exact = {
         "oracle": metrics.oracle_slots(evalset.slot_probs),
         "last-seen": metrics.last_seen_slots(evalset.slot_now, f),
         "uniform": metrics.uniform_slots(evalset.num_slots, f),
     }
     rows = []
     for name in REFERENCE_ROWS:
-        p_hat = p_hats[name]
-        log_p = metrics.gt_mixture_log_prob(evalset.kl_points, p_hat[..., :-1],
+        p_exact = exact.get(name, exact["oracle"])
+        log_p = metrics.gt_mixture_log_prob(evalset.kl_points, p_exact[..., :-1],
                                             evalset.slot_boxes, evalset.slot_mask)
         kl = metrics.continuous_kl(evalset.kl_log_q, log_p)
-        scores = {"p_hat": np.asarray(p_hat), **slot_scores(evalset, p_hat)}
+        slots = {}
+        for n in sample_counts:
+            p_hat = p_exact
+            if name == "oracle samples":
+                oracle_key = jax.random.fold_in(jax.random.fold_in(key, _SALT_ORACLE), n)
+                p_hat = metrics.sampled_oracle_slots(oracle_key, evalset.slot_probs, int(n))
+            slots[int(n)] = {"p_hat": np.asarray(p_hat), **slot_scores(evalset, p_hat)}
         rows.append(RowResult(name=name, kl=np.asarray(kl.mean), kl_stderr=np.asarray(kl.stderr),
-                              slots={int(n): scores for n in sample_counts}))
+                              slots=slots))
     return rows
 
 
@@ -574,7 +585,7 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     start = time.perf_counter()
     key = jax.random.PRNGKey(seed)
     evalset = build_eval_queries(scenes, config, key, kl_draws)
-    rows = reference_rows(evalset, counts)
+    rows = reference_rows(evalset, counts, key)
     names = _unique_names([p.name for p in predictors])
     for predictor, name in zip(predictors, names, strict=True):
         rows.append(evaluate_predictor(predictor, evalset, key, counts, chunk_envs, num_steps,

@@ -34,6 +34,21 @@ def target_velocity(x0: jnp.ndarray, x1: jnp.ndarray) -> jnp.ndarray:
     return x1 - x0
 
 
+def to_flow_space(box: jnp.ndarray, config: ModelConfig) -> jnp.ndarray:
+    """Normalised boxes (..., 4) → the flow's data space z = box_scale · (box − box_offset)."""
+    return config.box_scale * (box - config.box_offset)
+
+
+def from_flow_space(z: jnp.ndarray, config: ModelConfig) -> jnp.ndarray:
+    """Inverse of :func:`to_flow_space`: z (..., 4) → normalised boxes (..., 4)."""
+    return z / config.box_scale + config.box_offset
+
+
+def flow_space_log_det(config: ModelConfig, dim: int = 4) -> float:
+    """log |det ∂z/∂box| = dim · log(box_scale): add to log p(z) to get log p(box)."""
+    return dim * math.log(config.box_scale)
+
+
 def sample_t(key: jax.Array, shape: tuple[int, ...], kind: str = "beta") -> jnp.ndarray:
     """Flow times in [0, 1] of the given shape.
 
@@ -55,7 +70,8 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
 
     The map of each of the B scenes is encoded once and shared by its Q queries. Per query:
     X_0 ~ N(0, I_4), t ~ ``t_sampler``, x_t on the linear path (B, Q, 1, 4), and the loss is the
-    squared error to X_1 − X_0 averaged over the 4 numbers, then over queries and scenes.
+    squared error to X_1 − X_0 averaged over the 4 numbers (X_1 is the target box in the flow's
+    space, :func:`to_flow_space`), then over queries and scenes.
     ``deterministic=True`` turns dropout off (validation).
     aux: ``{"loss": scalar, "mse_per_query": (B, Q)}``.
     """
@@ -64,7 +80,7 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
     noise_key, t_key, enc_key, vel_key = jax.random.split(key, 4)
     if deterministic:
         enc_key = vel_key = None
-    x1 = batch.target  # (B, Q, 4)
+    x1 = to_flow_space(batch.target, config)  # (B, Q, 4)
     x0 = jax.random.normal(noise_key, x1.shape, x1.dtype)
     t = sample_t(t_key, x1.shape[:2], t_sampler)  # (B, Q)
     x_t = linear_path(x0, x1, t)[:, :, None, :]  # (B, Q, 1, 4)

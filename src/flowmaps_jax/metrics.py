@@ -543,6 +543,25 @@ def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
     return jnp.concatenate([q, jnp.zeros_like(q[..., :1])], axis=-1)
 
 
+@partial(jax.jit, static_argnames="n")
+def _sampled_slots(key, q, n):
+    draws = jax.random.categorical(key, jnp.log(q)[..., None, :], shape=(*q.shape[:-1], n))
+    counts = jnp.sum(jax.nn.one_hot(draws, q.shape[-1] + 1), axis=-2)  # (..., K + 1), off = 0
+    return counts / n
+
+
+def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:
+    """A perfect sampler seen through n samples: slot counts / n of n draws from q itself.
+
+    (..., K) → (..., K + 1) (off bin empty). Its slot TV / top-1 / search cost are the best any
+    sampler can expect from n samples: the gap to the exact oracle is pure finite-sample noise.
+    """
+    _check_last("q", q, None)
+    _check_distribution("q", q)
+    n = check_int("n", n, 1)
+    return _sampled_slots(key, jnp.asarray(q, jnp.float32), n)
+
+
 @partial(jax.jit, static_argnames="num_slots")
 def _one_hot_slots(slot_now, num_slots):
     return jax.nn.one_hot(slot_now, num_slots + 1)

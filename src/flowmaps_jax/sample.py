@@ -77,7 +77,7 @@ def flow_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queri
     context = encode(params, config, tokens)
     x0 = _noise(keys, (q, num_samples, 4))
     velocity_fn = make_velocity_fn(params, config, context, queries)
-    return flow.integrate(velocity_fn, x0, num_steps, method)
+    return flow.from_flow_space(flow.integrate(velocity_fn, x0, num_steps, method), config)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "num_steps", "method"))
@@ -86,11 +86,13 @@ def flow_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Que
                   method: str = "midpoint") -> jnp.ndarray:
     """Exact log-density (B, Q, N) of boxes x (B, Q, N, 4) under FlowMaps (change of variables).
 
-    Encodes the maps once; the backward ODE for all rows runs in one ``lax.scan``.
+    Encodes the maps once; the backward ODE for all rows runs in one ``lax.scan`` in the flow's
+    space (``ModelConfig.box_scale``/``box_offset``), plus that map's constant log-Jacobian.
     """
     context = encode(params, config, tokens)
     velocity_fn = make_velocity_fn(params, config, context, queries)
-    return flow.log_prob(velocity_fn, x, num_steps, method)
+    z = flow.to_flow_space(x, config)
+    return flow.log_prob(velocity_fn, z, num_steps, method) + flow.flow_space_log_det(config)
 
 
 @functools.partial(jax.jit, static_argnames=("config", "num_samples"))

@@ -8,6 +8,7 @@ size (D = 256, 8 encoder layers, 8 CDiT blocks, 8 heads, dropout 0.1); training 
 from __future__ import annotations
 
 import dataclasses
+import math
 
 BASELINE_VARIANCES = ("mean", "learned")
 
@@ -31,6 +32,10 @@ class ModelConfig:
     baseline_variance: MLP baseline variant, ``"mean"`` (unit variance, as the paper's reference) or
         ``"learned"`` (diagonal log-variance trained by Gaussian NLL).
     baseline_hidden: hidden width of the MLP baseline's head.
+    box_offset, box_scale: FlowMaps' flow runs on z = box_scale · (box − box_offset) instead of
+        the normalised box itself (samples are mapped back; ``log_prob`` adds the Jacobian).
+        Centring and scaling up the data raises the signal-to-noise ratio against X_0 ~ N(0, I)
+        at every flow time, which sharpens the boxes; (0, 1) is the paper's identity map.
     """
 
     dim: int = 256
@@ -46,6 +51,8 @@ class ModelConfig:
     max_frequency: float = 1000.0
     baseline_variance: str = "mean"
     baseline_hidden: int = 512
+    box_offset: float = 0.0
+    box_scale: float = 1.0
 
     def __post_init__(self):
         for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
@@ -61,6 +68,13 @@ class ModelConfig:
         if not float(self.max_frequency) >= 1.0:
             raise ValueError(
                 f"ModelConfig.max_frequency must be >= 1; got {self.max_frequency!r}")
+        if not (isinstance(self.box_scale, (int, float)) and float(self.box_scale) > 0.0
+                and math.isfinite(self.box_scale)):
+            raise ValueError(f"ModelConfig.box_scale must be a positive number; got "
+                             f"{self.box_scale!r}")
+        if not (isinstance(self.box_offset, (int, float)) and math.isfinite(self.box_offset)):
+            raise ValueError(f"ModelConfig.box_offset must be a finite number; got "
+                             f"{self.box_offset!r}")
         if self.tau_max < 2:
             raise ValueError(f"ModelConfig.tau_max must be >= 2; got {self.tau_max}")
         if self.baseline_variance not in BASELINE_VARIANCES:
