@@ -1,8 +1,12 @@
-"""How precisely a trained model's samples land on the slot boxes b_k of the exact posterior.
+"""Where a trained model's samples land: how precisely (distance to the slot boxes) and on which
+slots (mass by offset from the object's current slot, against the exact posterior).
 
 The evaluation protocol assigns a sample to a slot only within 0.05 (L2 over the 4 normalised
-numbers), so slot TV / top-1 depend on precision as much as on mode coverage. This prints the
-distance from each sample to its nearest valid slot box and the per-coordinate error.
+numbers), so slot TV / top-1 depend on precision as much as on mode coverage; and top-1 / search
+cost depend on the model ranking the slots as q does, i.e. on having learned the dynamics. This
+prints (1) the distance from each sample to its nearest valid slot box and the per-coordinate
+error, (2) for the queries one step ahead (Δτ = 1, where q is (0.2, 0.7, 0.1) on offsets 0, 1, 2
+along the visiting order) the mean slot mass at offsets 0..3 from the current slot, model vs q.
 
     python experiments/diagnose_precision.py --checkpoint runs/flowmaps-cpu/checkpoints
 """
@@ -14,15 +18,30 @@ import argparse
 import jax
 import numpy as np
 
-from flowmaps_jax import evaluate
+from flowmaps_jax import evaluate, metrics
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.sample import load
+
+
+def mass_by_offset(dist: np.ndarray, slot_now: np.ndarray, num_slots: np.ndarray,
+                   max_offset: int = 4) -> np.ndarray:
+    """Mean mass at offsets 0..max_offset−1 along the visiting order from the current slot.
+
+    dist (Q, K[+1]) slot distributions (an off bin, if any, is ignored); slot_now, num_slots (Q,).
+    Offsets ≥ num_slots of a query contribute 0 (they would wrap onto a counted slot).
+    """
+    offsets = np.arange(max_offset)
+    index = (slot_now[:, None] + offsets) % num_slots[:, None]  # (Q, max_offset)
+    mass = np.take_along_axis(dist, index, axis=1)
+    return np.where(offsets < num_slots[:, None], mass, 0.0).mean(0)
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", required=True)
-    parser.add_argument("--num-envs", type=int, default=20)
+    parser.add_argument("--num-envs", type=int, default=20, help="environments for (1)")
+    parser.add_argument("--ranking-envs", type=int, default=200,
+                        help="environments searched for Δτ = 1 queries for (2)")
     parser.add_argument("--samples", type=int, default=100)
     parser.add_argument("--num-steps", type=int, default=10, help="ODE grid points")
     parser.add_argument("--method", default="midpoint", choices=("midpoint", "euler"))
@@ -30,23 +49,44 @@ def main(argv=None) -> None:
 
     predictor = load(args.checkpoint)
     config = predictor.flowsim
-    evalset = evaluate.build_eval_queries(validation_split(config, args.num_envs), config,
+    n_envs = max(args.num_envs, args.ranking_envs)
+    evalset = evaluate.build_eval_queries(validation_split(config, n_envs), config,
                                           jax.random.key(0), kl_draws=2)
-    samples = np.asarray(predictor.sample(evalset.tokens, evalset.queries, args.samples,
-                                          jax.random.key(1), num_steps=args.num_steps,
-                                          method=args.method))  # (E, M, N, 4)
-    boxes, mask = np.asarray(evalset.slot_boxes), np.asarray(evalset.slot_mask)  # (E, M, F, ·)
+
+    def draw(part):
+        return np.asarray(predictor.sample(part.tokens, part.queries, args.samples,
+                                           jax.random.key(1), num_steps=args.num_steps,
+                                           method=args.method))  # (E, M, N, 4)
+
+    part = evalset.take(np.arange(args.num_envs))
+    samples = draw(part)
+    boxes, mask = np.asarray(part.slot_boxes), np.asarray(part.slot_mask)  # (E, M, F, ·)
     dist = np.linalg.norm(samples[:, :, :, None] - boxes[:, :, None], axis=-1)  # (E, M, N, F)
     dist = np.where(mask[:, :, None], dist, np.inf)
     nearest = np.take_along_axis(boxes[:, :, None], dist.argmin(-1)[..., None, None], axis=3)
     error = np.abs(samples - nearest[..., 0, :]).mean((0, 1, 2))
     d = dist.min(-1)
-    print(f"{evalset.num_queries} queries × {args.samples} samples ({predictor.source}; "
+    print(f"(1) {part.num_queries} queries × {args.samples} samples ({predictor.source}; "
           f"{args.method}, {args.num_steps} grid points)")
     print(f"distance to nearest slot box: median {np.median(d):.3f}, "
           f"within 0.05: {np.mean(d < 0.05):.1%}, within 0.10: {np.mean(d < 0.10):.1%}")
     print("mean absolute error to nearest slot box (y, x, h, w): "
           + ", ".join(f"{e:.3f}" for e in error))
+
+    envs = np.flatnonzero(np.asarray(evalset.horizon)[: args.ranking_envs, 0] == 1)
+    if not len(envs):
+        print("(2) no Δτ = 1 query among the first --ranking-envs environments")
+        return
+    part = evalset.take(envs)
+    p_hat = np.asarray(metrics.empirical_slots(draw(part), part.slot_boxes, part.slot_mask))
+    flat = lambda a: np.asarray(a).reshape(-1, *np.shape(a)[2:])  # noqa: E731
+    now, count = flat(part.slot_now), flat(part.num_slots)
+    print(f"(2) {part.num_queries} queries with Δτ = 1: mean slot mass at offsets 0, 1, 2, 3 "
+          "from the current slot (visiting order)")
+    print("exact q:  " + "  ".join(f"{m:.3f}" for m in mass_by_offset(flat(part.slot_probs),
+                                                                         now, count)))
+    print("model p̂: " + "  ".join(f"{m:.3f}" for m in mass_by_offset(flat(p_hat), now, count))
+          + f"   (off: {flat(p_hat)[:, -1].mean():.3f})")
 
 
 if __name__ == "__main__":

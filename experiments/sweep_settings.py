@@ -5,7 +5,8 @@ barely separates settings that differ in box *precision*, which is what slot TV 
 (a sample counts for a slot only within 0.05). Each variant ``name:key=value,key=value`` trains
 the preset with those overrides (``--set`` syntax), then is scored on the first ``--eval-envs``
 validation environments of the evaluation protocol: KL, slot TV @100, and the share of samples
-within 0.05 of a slot box.
+within 0.05 of a slot box. Caution (docs/results.md, "Sharper boxes"): precision forms late in
+training, so a short screen can rank settings by KL while their full-length precision disagrees.
 
     python experiments/sweep_settings.py --steps 1500 --out runs/sweep_settings \\
         base: uniform:t_sampler=uniform lr1e-3:lr=1e-3

@@ -29,7 +29,7 @@ def test_default_is_cpu_and_smoke_is_tiny():
     smoke, cpu = get_preset("smoke"), get_preset("cpu")
     assert smoke.model.dim < cpu.model.dim < get_preset("paper").model.dim
     assert smoke.steps <= 50 and smoke.train_envs <= 100
-    assert cpu.t_sampler == "beta"
+    assert cpu.t_sampler == "beta" and cpu.model.box_scale == 1.0
 
 
 def test_unknown_preset():

@@ -77,13 +77,20 @@ def test_queries_follow_the_protocol(scenes, evalset):
 
 
 def test_slot_boxes_are_where_the_object_really_is(scenes, evalset):
-    """b at the slot observed at τ is the object's box at τ, and the box at τ_q is one of the b_k
-    that q gives positive probability."""
+    """b at the slot observed at τ is the object's box at τ and the object's token in the map the
+    model is given, and the box at τ_q is one of the b_k that q gives positive probability."""
     env = np.asarray(evalset.env)
     boxes = np.asarray(evalset.slot_boxes)
     now = np.take_along_axis(boxes, np.asarray(evalset.slot_now)[..., None, None], axis=2)[:, :, 0]
     at_tau = normalise_boxes(np.asarray(scenes.object_boxes)[env, np.asarray(evalset.tau)], SIM)
     np.testing.assert_allclose(now, at_tau, atol=1e-6)
+    # ... and it is what the model sees: the one object token with the query's descriptor
+    tokens, desc = evalset.tokens, np.asarray(evalset.queries.descriptor)
+    is_obj = np.asarray(tokens.mask) & (np.asarray(tokens.kind) == 1)  # (E, S)
+    match = is_obj[:, None, :] & (np.asarray(tokens.descriptor)[:, None, :] == desc[..., None])
+    assert np.all(match.sum(-1) == 1)
+    seen = np.take_along_axis(np.asarray(tokens.boxes), match.argmax(-1)[..., None], axis=1)
+    np.testing.assert_allclose(seen, now, atol=1e-6)
     slot_q = np.asarray(scenes.slot)[env, np.asarray(evalset.tau_q)]  # (E, M)
     at_tau_q = np.take_along_axis(boxes, slot_q[..., None, None], axis=2)[:, :, 0]
     np.testing.assert_allclose(at_tau_q, evalset.target, atol=1e-6)
