@@ -105,6 +105,8 @@ def main() -> None:
           f"{median:.3f} s → {total / median:,.0f} samples/s "
           f"(first call incl. compilation {first:.1f} s; {_cores(cpu, median)})")
 
+    if args.logp_queries < 3 or args.logp_queries % 3:
+        raise SystemExit("--logp-queries must be a positive multiple of 3 (3 objects per scene)")
     scenes = args.logp_queries // 3
     chunk = min(args.chunk_scenes, scenes)
     if scenes % chunk:

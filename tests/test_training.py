@@ -26,13 +26,13 @@ SMOKE = get_preset("smoke")
 
 def synthetic_batch(key, batch_size=8, queries=2, tokens=20, real=13) -> TrainBatch:
     """A valid random TrainBatch (13 real tokens: 10 furniture + 3 objects, then padding)."""
-    k_box, k_desc, k_tau, k_q, k_target = jax.random.split(key, 5)
+    k_box, k_desc, k_tau, _, k_target = jax.random.split(key, 5)  # same keys as before
     mask = jnp.broadcast_to(jnp.arange(tokens) < real, (batch_size, tokens))
     boxes = jax.random.uniform(k_box, (batch_size, tokens, 4), maxval=0.5) * mask[..., None]
     kind = (jnp.arange(tokens) >= 10).astype(jnp.int32) * mask
     desc = jax.random.randint(k_desc, (batch_size, tokens), 0, 6) * mask
     tau = jax.random.randint(k_tau, (batch_size,), 0, 18)
-    tau_q = tau[:, None] + 1 + jax.random.randint(k_q, (batch_size, queries), 0, 1)
+    tau_q = jnp.broadcast_to(tau[:, None] + 1, (batch_size, queries))
     scene = SceneTokens(boxes=boxes, descriptor=desc.astype(jnp.int32),
                         kind=kind.astype(jnp.int32), mask=mask, tau=tau.astype(jnp.int32))
     query = Queries(descriptor=jnp.zeros((batch_size, queries), jnp.int32),

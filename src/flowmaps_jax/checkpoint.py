@@ -27,6 +27,8 @@ from typing import Any
 
 import orbax.checkpoint as ocp
 
+from flowmaps_jax.validation import check_int
+
 LAST = "last"
 BEST = "best"
 _ITEMS = ("state", "config")
@@ -68,8 +70,7 @@ class CheckpointStore:
     """
 
     def __init__(self, directory: str | pathlib.Path, keep_last: int = 2):
-        if keep_last < 1:
-            raise ValueError(f"keep_last must be >= 1; got {keep_last}")
+        keep_last = check_int("keep_last", keep_last)
         self.directory = pathlib.Path(directory).absolute()
         self.directory.mkdir(parents=True, exist_ok=True)
         self._last = _last_manager(self.directory / LAST, keep_last)

@@ -28,6 +28,7 @@ from typing import Any, Literal
 
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.model.config import ModelConfig
+from flowmaps_jax.validation import check_int
 
 MODEL_KINDS = ("flowmaps", "mlp")
 T_SAMPLERS = ("beta", "uniform", "logit_normal")
@@ -90,10 +91,8 @@ class TrainConfig:
         _check_choice("data", self.data, DATA_SOURCES)
         for name in ("batch_size", "queries_per_scene", "steps", "train_envs", "val_envs",
                      "val_batches", "log_every", "val_every", "ckpt_every", "keep_last"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"{name} must be a positive integer; got {value!r}")
-        if not isinstance(self.warmup_steps, int) or not 0 <= self.warmup_steps < self.steps:
+            check_int(name, getattr(self, name))
+        if check_int("warmup_steps", self.warmup_steps, minimum=0) >= self.steps:
             raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
                              f"got {self.warmup_steps!r}")
         if not self.lr > 0:

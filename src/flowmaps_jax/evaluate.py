@@ -52,7 +52,7 @@ from flax import struct
 from matplotlib.figure import Figure
 from tqdm import tqdm
 
-from flowmaps_jax import metrics
+from flowmaps_jax import flow, metrics
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.dynamics import exact_posterior
 from flowmaps_jax.sample import DEFAULT_NUM_STEPS, SOLVERS, Predictor, load
@@ -233,19 +233,24 @@ def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMP
         "last-seen": metrics.last_seen_slots(evalset.slot_now, f),
         "uniform": metrics.uniform_slots(evalset.num_slots, f),
     }
-    rows = []
-    for name in REFERENCE_ROWS:
-        p_exact = exact.get(name, exact["oracle"])
+    kls = {}
+    for name, p_exact in exact.items():
         log_p = metrics.gt_mixture_log_prob(evalset.kl_points, p_exact[..., :-1],
                                             evalset.slot_boxes, evalset.slot_mask)
-        kl = metrics.continuous_kl(evalset.kl_log_q, log_p)
-        slots = {}
-        for n in sample_counts:
-            p_hat = p_exact
-            if name == "oracle samples":
+        kls[name] = metrics.continuous_kl(evalset.kl_log_q, log_p)
+    rows = []
+    for name in REFERENCE_ROWS:
+        # a perfect sampler's density is q: "oracle samples" shares the oracle's q and KL
+        p_exact, kl = exact.get(name, exact["oracle"]), kls.get(name, kls["oracle"])
+        if name == "oracle samples":  # a fresh histogram of n draws per sample count
+            slots = {}
+            for n in sample_counts:
                 oracle_key = jax.random.fold_in(jax.random.fold_in(key, _SALT_ORACLE), n)
                 p_hat = metrics.sampled_oracle_slots(oracle_key, evalset.slot_probs, int(n))
-            slots[int(n)] = {"p_hat": np.asarray(p_hat), **slot_scores(evalset, p_hat)}
+                slots[int(n)] = {"p_hat": np.asarray(p_hat), **slot_scores(evalset, p_hat)}
+        else:  # exact slot distributions: the same scores for every n
+            scores = {"p_hat": np.asarray(p_exact), **slot_scores(evalset, p_exact)}
+            slots = {int(n): scores for n in sample_counts}
         rows.append(RowResult(name=name, kl=np.asarray(kl.mean), kl_stderr=np.asarray(kl.stderr),
                               slots=slots))
     return rows
@@ -260,6 +265,14 @@ def _check_counts(sample_counts: Sequence[int]) -> tuple[int, ...]:
     if len(set(counts)) != len(counts):
         raise ValueError(f"sample_counts must not repeat values; got {counts}")
     return tuple(sorted(int(n) for n in counts))
+
+
+def _check_ode(num_steps, method, logp_steps) -> tuple[int, str, int]:
+    """Validated (num_steps, method, logp_steps); logp_steps defaults to num_steps."""
+    num_steps, method = flow.check_solver(num_steps, method)
+    if logp_steps is None:
+        return num_steps, method, num_steps
+    return num_steps, method, flow.check_solver(logp_steps, method, name="logp_steps")[0]
 
 
 def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
@@ -277,7 +290,7 @@ def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
     """
     counts = _check_counts(sample_counts)
     chunk_envs = check_int("chunk_envs", chunk_envs, 1)
-    logp_steps = num_steps if logp_steps is None else logp_steps
+    num_steps, method, logp_steps = _check_ode(num_steps, method, logp_steps)
     n_max = counts[-1]
     num_envs = evalset.num_envs
     chunk = min(chunk_envs, num_envs)
@@ -574,8 +587,7 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     counts = _check_counts(sample_counts)
     if not predictors:
         raise ValueError("predictors must hold at least one Predictor")
-    if method not in SOLVERS:
-        raise ValueError(f"method must be one of {SOLVERS}; got {method!r}")
+    num_steps, method, logp_steps = _check_ode(num_steps, method, logp_steps)
     for p in predictors:
         if not isinstance(p, Predictor):
             raise ValueError(f"predictors must be Predictor objects; got {type(p).__name__}")
@@ -594,7 +606,7 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         "protocol": {"num_envs": evalset.num_envs, "objects_per_env": config.num_objects,
                      "num_queries": evalset.num_queries, "samples": list(counts),
                      "kl_draws": kl_draws, "num_steps": num_steps, "method": method,
-                     "logp_steps": num_steps if logp_steps is None else logp_steps,
+                     "logp_steps": logp_steps,
                      "seed": seed, "assign_radius": metrics.ASSIGN_RADIUS,
                      "dynamics": config.dynamics},
         "rows": summarise_rows(rows, evalset, config),

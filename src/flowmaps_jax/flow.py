@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.flowmaps import encode, velocity
 from flowmaps_jax.tokens import TrainBatch
+from flowmaps_jax.validation import check_int
 
 T_SAMPLERS = ("uniform", "beta", "logit_normal")
 SOLVERS = ("midpoint", "euler")
@@ -44,9 +45,9 @@ def from_flow_space(z: jnp.ndarray, config: ModelConfig) -> jnp.ndarray:
     return z / config.box_scale + config.box_offset
 
 
-def flow_space_log_det(config: ModelConfig, dim: int = 4) -> float:
-    """log |det ∂z/∂box| = dim · log(box_scale): add to log p(z) to get log p(box)."""
-    return dim * math.log(config.box_scale)
+def flow_space_log_det(config: ModelConfig) -> float:
+    """log |det ∂z/∂box| = 4 · log(box_scale): add to log p(z) to get log p(box)."""
+    return 4 * math.log(config.box_scale)
 
 
 def sample_t(key: jax.Array, shape: tuple[int, ...], kind: str = "beta") -> jnp.ndarray:
@@ -91,11 +92,12 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
     return loss, {"loss": loss, "mse_per_query": mse}
 
 
-def _check_solver(num_steps, method):
-    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 2:
-        raise ValueError(f"num_steps (grid points, >= 2) must be an int; got {num_steps!r}")
+def check_solver(num_steps, method, name: str = "num_steps") -> tuple[int, str]:
+    """(num_steps, method) validated: grid points an int >= 2, method one of ``SOLVERS``."""
+    num_steps = check_int(f"{name} (ODE grid points)", num_steps, minimum=2)
     if method not in SOLVERS:
         raise ValueError(f"method must be one of {SOLVERS}; got {method!r}")
+    return num_steps, method
 
 
 def _odeint(fn, state, t_start: float, t_end: float, num_steps: int, method: str):
@@ -125,7 +127,7 @@ def integrate(velocity_fn: VelocityFn, x0: jnp.ndarray, num_steps: int = 10,
     velocity twice per interval (default 10 points → 9 intervals → 18 evaluations), ``"euler"``
     once (9 evaluations). x0: any shape (..., 4) → x at t1, same shape.
     """
-    _check_solver(num_steps, method)
+    check_solver(num_steps, method)
     return _odeint(velocity_fn, x0, t0, t1, num_steps, method)
 
 
@@ -161,7 +163,7 @@ def log_prob(velocity_fn: VelocityFn, x1: jnp.ndarray, num_steps: int = 10,
     only error is the ODE discretisation (``num_steps`` grid points as in :func:`integrate`).
     x1 (..., 4) → (...).
     """
-    _check_solver(num_steps, method)
+    check_solver(num_steps, method)
 
     def augmented(state, t):
         v, div = divergence(velocity_fn, state[0], t)

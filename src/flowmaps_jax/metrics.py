@@ -546,8 +546,7 @@ def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
 @partial(jax.jit, static_argnames="n")
 def _sampled_slots(key, q, n):
     draws = jax.random.categorical(key, jnp.log(q)[..., None, :], shape=(*q.shape[:-1], n))
-    counts = jnp.sum(jax.nn.one_hot(draws, q.shape[-1] + 1), axis=-2)  # (..., K + 1), off = 0
-    return counts / n
+    return _histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
 
 
 def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:

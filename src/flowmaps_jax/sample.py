@@ -115,13 +115,6 @@ def gaussian_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries:
 # --------------------------------------------------------------------------- validation helpers
 
 
-def _check_solver(num_steps: Any, method: Any) -> tuple[int, str]:
-    num_steps = check_int("num_steps", num_steps, minimum=2)
-    if method not in SOLVERS:
-        raise ValueError(f"method must be one of {SOLVERS}; got {method!r}")
-    return num_steps, method
-
-
 def _scene_keys(key: Any, num_scenes: int) -> jax.Array:
     """One typed PRNG key per scene from a single key (split) or a batch of B keys (as given).
 
@@ -228,6 +221,9 @@ class Predictor:
                              f"{np.shape(queries.descriptor)}")
         check_inputs(self.model, tokens, queries)
         b, q = np.shape(queries.descriptor)
+        if b < 1 or q < 1:
+            raise ValueError(f"tokens/queries must hold at least one scene and one query; got "
+                             f"B={b}, Q={q}")
         return b, q
 
     def _check_x(self, x, b: int, q: int) -> jnp.ndarray:
@@ -256,7 +252,7 @@ class Predictor:
         """
         b, _ = self.validate(tokens, queries)
         num_samples = check_int("num_samples", num_samples)
-        num_steps, method = _check_solver(num_steps, method)
+        num_steps, method = flow.check_solver(num_steps, method)
         keys = _scene_keys(key, b)
         tokens, queries = _as_arrays(tokens, queries)
         if self.kind == "flowmaps":
@@ -275,7 +271,7 @@ class Predictor:
         MLP: the closed-form diagonal Gaussian.
         """
         b, q = self.validate(tokens, queries)
-        num_steps, method = _check_solver(num_steps, method)
+        num_steps, method = flow.check_solver(num_steps, method)
         x = self._check_x(x, b, q)
         tokens, queries = _as_arrays(tokens, queries)
         if self.kind == "flowmaps":

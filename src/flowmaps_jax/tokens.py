@@ -24,6 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from flowmaps_jax.validation import check_int
+
 FURNITURE = 0
 OBJECT = 1
 
@@ -156,7 +158,7 @@ def trim_padding(tokens: SceneTokens, num_tokens: int) -> SceneTokens:
     inference call this with ``num_tokens = F + M`` to skip the attention work on empty slots.
     ``num_tokens`` must be static (a Python int). Shapes: (..., S, ·) → (..., num_tokens, ·).
     """
-    if num_tokens < 1 or num_tokens > tokens.num_tokens:
+    if check_int("num_tokens", num_tokens) > tokens.num_tokens:
         raise ValueError(f"num_tokens must be in 1..{tokens.num_tokens}; got {num_tokens}")
     return tokens.replace(boxes=tokens.boxes[..., :num_tokens, :],
                           descriptor=tokens.descriptor[..., :num_tokens],

@@ -44,6 +44,7 @@ from flowmaps_jax.config import (
     format_config,
     get_preset,
 )
+from flowmaps_jax.validation import check_int
 
 EXIT_OK, EXIT_NAN, EXIT_INTERRUPTED = 0, 1, 130
 
@@ -181,7 +182,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     """
     run_dir = pathlib.Path(run_dir)
     ckpt_dir = run_dir / "checkpoints"
-    if stop_at is not None and not 0 < stop_at <= cfg.steps:
+    if stop_at is not None and not check_int("stop_at", stop_at) <= cfg.steps:
         raise ValueError(f"stop_at must lie in 1..steps={cfg.steps}; got {stop_at}")
     if resume:
         checkpoint.resolve_checkpoint_dir(ckpt_dir if ckpt_dir.exists() else run_dir)
@@ -278,15 +279,15 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         if bar is not None:
             bar.close()
         metrics_log.close()
+        latest = store.latest_step()
         store.close()
 
-    _print_summary(log, status, step, cfg, run_dir, ckpt_dir, best)
+    _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best)
     return RunResult(status=status, step=step, state=None if status == "nan" else state,
                      run_dir=run_dir, checkpoint_dir=ckpt_dir, best_val_loss=best)
 
 
-def _print_summary(log, status, step, cfg, run_dir, ckpt_dir, best) -> None:
-    latest = _latest_step(ckpt_dir)
+def _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best) -> None:
     headline = {"done": f"Finished {step} steps.",
                 "stopped": f"Stopped after step {step} of {cfg.steps}.",
                 "interrupted": f"Interrupted at step {step} of {cfg.steps}; checkpoint saved.",
@@ -300,13 +301,6 @@ def _print_summary(log, status, step, cfg, run_dir, ckpt_dir, best) -> None:
     log(f"Evaluate it:  python -m flowmaps_jax.evaluate --checkpoint {ckpt_dir}")
     if status != "done":
         log(f"Resume it:    python -m flowmaps_jax.train --resume --run-dir {run_dir}")
-
-
-def _latest_step(ckpt_dir: pathlib.Path) -> int | None:
-    if not (ckpt_dir / checkpoint.LAST).is_dir():
-        return None
-    steps = [int(p.name) for p in (ckpt_dir / checkpoint.LAST).iterdir() if p.name.isdigit()]
-    return max(steps) if steps else None
 
 
 # --------------------------------------------------------------------------------------------

@@ -28,7 +28,7 @@ from flax import struct
 from flowmaps_jax import tokens as tok
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, FlowSimConfig
 from flowmaps_jax.flowsim.generate import Scenes, check_key, generate
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_int, is_concrete
 
 FORMAT_VERSION = 1
 TRAIN_SEED = 0
@@ -81,7 +81,7 @@ def _check_token_room(config: FlowSimConfig) -> None:
 
 def _check_index(name: str, value, high: int, low: int = 0) -> None:
     """Validate a concrete (N,) integer index array in [low, high)."""
-    if isinstance(value, jax.core.Tracer):
+    if not is_concrete(value):
         return
     arr = np.asarray(value)
     if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
