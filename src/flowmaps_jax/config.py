@@ -50,9 +50,20 @@ class TrainConfig:
     b1, b2, weight_decay: AdamW parameters; clip_norm: global-norm clipping (None = off).
     ema_decay: EMA rate of the weights (ema <- decay * ema + (1 - decay) * params).
     t_sampler: flow-time law, "beta" (paper's choice), "uniform" or "logit_normal".
+    short_horizon_frac, short_horizon_max: fraction of training queries whose horizon
+        τ_q − τ is drawn from 1..short_horizon_max instead of the protocol's mixture (0 = paper).
+    target_noise: train on targets jittered by ``target_noise`` × the evaluation protocol's
+        ground-truth std (centre 0.35 × side, size 0.02 × side), i.e. on samples of the protocol's
+        smoothed q rather than on its delta peaks (0 = paper).
+    pointer_loss: weight of an auxiliary cross-entropy on the pointer head's anchor logits
+        against the table the target stands on (``flow.cfm_loss``; needs ``model.head="pointer"``;
+        departs from the paper; 0 = off).
     data: "train" (fixed FlowSim split of ``train_envs`` environments) or "endless" (a fresh
         chunk of ``train_envs`` environments every ``train_envs // batch_size`` steps).
     train_envs, val_envs: split sizes; val_batches: fixed validation batches per evaluation.
+    routine_envs, routine_samples: the routine diagnostic (:mod:`flowmaps_jax.routine`) run at
+        every validation on this many validation environments (× 3 objects, once one step ahead
+        and once at mixed horizons) with this many samples per query; 0 environments = off.
     seed: the single seed from which params, dropout and data keys are derived.
     log_every, val_every, ckpt_every: intervals in steps; keep_last: recent checkpoints kept.
     run_dir: output directory (None = ``runs/<model_kind>-<preset>-<timestamp>``).
@@ -73,10 +84,16 @@ class TrainConfig:
     clip_norm: float | None = 1.0
     ema_decay: float = 0.999
     t_sampler: str = "beta"
+    short_horizon_frac: float = 0.0
+    short_horizon_max: int = 3
+    target_noise: float = 0.0
+    pointer_loss: float = 0.0
     data: str = "train"
     train_envs: int = 2500
     val_envs: int = 200
     val_batches: int = 4
+    routine_envs: int = 20
+    routine_samples: int = 32
     seed: int = 0
     log_every: int = 50
     val_every: int = 500
@@ -92,6 +109,11 @@ class TrainConfig:
         for name in ("batch_size", "queries_per_scene", "steps", "train_envs", "val_envs",
                      "val_batches", "log_every", "val_every", "ckpt_every", "keep_last"):
             check_int(name, getattr(self, name))
+        check_int("routine_envs", self.routine_envs, minimum=0)
+        check_int("routine_samples", self.routine_samples)
+        if self.routine_envs > self.val_envs:
+            raise ValueError(f"routine_envs={self.routine_envs} must be <= val_envs="
+                             f"{self.val_envs} (the diagnostic uses validation environments)")
         if check_int("warmup_steps", self.warmup_steps, minimum=0) >= self.steps:
             raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
                              f"got {self.warmup_steps!r}")
@@ -101,6 +123,18 @@ class TrainConfig:
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
                 raise ValueError(f"{name} must lie in [0, 1); got {value!r}")
+        if not 0.0 <= self.short_horizon_frac <= 1.0:
+            raise ValueError(f"short_horizon_frac must lie in [0, 1]; got "
+                             f"{self.short_horizon_frac!r}")
+        check_int("short_horizon_max", self.short_horizon_max)
+        if not 0.0 <= self.target_noise < 10.0:
+            raise ValueError(f"target_noise must lie in [0, 10); got {self.target_noise!r}")
+        if not 0.0 <= self.pointer_loss < 100.0:
+            raise ValueError(f"pointer_loss must lie in [0, 100); got {self.pointer_loss!r}")
+        if self.pointer_loss > 0 and not (self.model_kind == "flowmaps"
+                                          and self.model.head == "pointer"):
+            raise ValueError("pointer_loss > 0 needs model_kind='flowmaps' and "
+                             "model.head='pointer'")
         if self.weight_decay < 0:
             raise ValueError(f"weight_decay must be >= 0; got {self.weight_decay!r}")
         if self.clip_norm is not None and not self.clip_norm > 0:

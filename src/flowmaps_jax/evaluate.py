@@ -125,12 +125,13 @@ class EvalSet:
 
 
 def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
-                       kl_draws: int = DEFAULT_KL_DRAWS) -> EvalSet:
+                       kl_draws: int = DEFAULT_KL_DRAWS, horizon: int | None = None) -> EvalSet:
     """The protocol's queries for every environment of ``scenes`` (all E of them).
 
     τ ~ U{0..T−2} and τ_q ~ U{τ+1..T−1} per environment, all M objects queried; exact posterior,
     slot boxes, and ``kl_draws`` draws from the ground-truth mixture q per query (≥ 2).
-    Environment e's times and draws depend only on ``key`` and e.
+    Environment e's times and draws depend only on ``key`` and e. ``horizon``: instead a fixed
+    Δτ (τ ~ U{0..T−1−Δτ}, τ_q = τ + Δτ), e.g. 1 for the routine diagnostic.
     """
     from flowmaps_jax.flowsim.scenes import normalise_boxes, scene_tokens, slot_boxes
 
@@ -139,6 +140,10 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     kl_draws = check_int("kl_draws", kl_draws, 2)
     num_envs = scenes.num_envs
     t_max = config.num_timesteps
+    if horizon is not None:
+        horizon = check_int("horizon", horizon, 1)
+        if horizon >= t_max:
+            raise ValueError(f"horizon must be < num_timesteps={t_max}; got {horizon}")
     m = config.num_objects
     env = jnp.arange(num_envs, dtype=jnp.int32)
     env_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_QUERIES), e))(
@@ -146,6 +151,9 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
 
     def times(k):
         k_tau, k_q = jax.random.split(k)
+        if horizon is not None:
+            tau = jax.random.randint(k_tau, (), 0, t_max - horizon)
+            return tau, tau + horizon
         tau = jax.random.randint(k_tau, (), 0, t_max - 1)
         return tau, jax.random.randint(k_q, (), tau + 1, t_max)
 

@@ -15,8 +15,8 @@ import jax
 import jax.numpy as jnp
 
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.flowmaps import encode, velocity
-from flowmaps_jax.tokens import TrainBatch
+from flowmaps_jax.model.flowmaps import encode, velocity, velocity_and_anchor_logits
+from flowmaps_jax.tokens import FURNITURE, SceneTokens, TrainBatch
 from flowmaps_jax.validation import check_int
 
 T_SAMPLERS = ("uniform", "beta", "logit_normal")
@@ -65,8 +65,17 @@ def sample_t(key: jax.Array, shape: tuple[int, ...], kind: str = "beta") -> jnp.
     raise ValueError(f"t_sampler (kind) must be one of {T_SAMPLERS}; got {kind!r}")
 
 
+def supporting_token(tokens: SceneTokens, boxes: jnp.ndarray) -> jnp.ndarray:
+    """Index (B, Q) of the furniture token whose centre is nearest each box's centre (B, Q, 4):
+    the table an object box stands on. Normalised (y, x, h, w) boxes."""
+    centre = lambda b: b[..., :2] + 0.5 * b[..., 2:]  # noqa: E731
+    d = jnp.sum(jnp.square(centre(boxes)[:, :, None] - centre(tokens.boxes)[:, None]), -1)
+    ok = (tokens.mask.astype(bool) & (tokens.kind == FURNITURE))[:, None, :]
+    return jnp.argmin(jnp.where(ok, d, jnp.inf), axis=-1)
+
+
 def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
-             t_sampler: str = "beta", deterministic: bool = False):
+             t_sampler: str = "beta", deterministic: bool = False, pointer_loss: float = 0.0):
     """Conditional flow-matching loss on one batch; returns ``(loss, aux)``.
 
     The map of each of the B scenes is encoded once and shared by its Q queries. Per query:
@@ -74,7 +83,10 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
     squared error to X_1 − X_0 averaged over the 4 numbers (X_1 is the target box in the flow's
     space, :func:`to_flow_space`), then over queries and scenes.
     ``deterministic=True`` turns dropout off (validation).
-    aux: ``{"loss": scalar, "mse_per_query": (B, Q)}``.
+    ``pointer_loss`` > 0 (pointer head only; departs from the paper) adds that weight times the
+    cross-entropy of the head's anchor logits against the table the target stands on
+    (:func:`supporting_token`): direct supervision of *which* table, as a pointer probe gets.
+    aux: ``{"loss": scalar, "mse_per_query": (B, Q)}`` (+ ``"pointer_ce"`` when used).
     """
     if t_sampler not in T_SAMPLERS:
         raise ValueError(f"t_sampler must be one of {T_SAMPLERS}; got {t_sampler!r}")
@@ -86,10 +98,22 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
     t = sample_t(t_key, x1.shape[:2], t_sampler)  # (B, Q)
     x_t = linear_path(x0, x1, t)[:, :, None, :]  # (B, Q, 1, 4)
     context = encode(params, config, batch.tokens, dropout_key=enc_key)
-    v = velocity(params, config, context, x_t, t, batch.queries, dropout_key=vel_key)[:, :, 0]
+    extra = {}
+    if pointer_loss > 0:
+        v, logits = velocity_and_anchor_logits(params, config, context, x_t, t, batch.queries,
+                                               dropout_key=vel_key)
+        table = supporting_token(batch.tokens, batch.target)  # (B, Q)
+        log_w = jax.nn.log_softmax(logits[:, :, 0], axis=-1)  # (B, Q, S)
+        ce = -jnp.mean(jnp.take_along_axis(log_w, table[..., None], axis=-1))
+        extra = {"pointer_ce": ce}
+        v = v[:, :, 0]
+    else:
+        v = velocity(params, config, context, x_t, t, batch.queries, dropout_key=vel_key)[:, :, 0]
     mse = jnp.mean(jnp.square(v - target_velocity(x0, x1)), axis=-1)  # (B, Q)
     loss = jnp.mean(mse)
-    return loss, {"loss": loss, "mse_per_query": mse}
+    if pointer_loss > 0:
+        loss = loss + pointer_loss * extra["pointer_ce"]
+    return loss, {"loss": loss, "mse_per_query": mse, **extra}
 
 
 def check_solver(num_steps, method, name: str = "num_steps") -> tuple[int, str]:

@@ -596,6 +596,45 @@ def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
 # --------------------------------------------------------------------------- aggregation
 
 
+# --------------------------------------------------------------------------- routines
+
+ROUTE_OFFSETS = 4
+"""Route offsets reported by :func:`route_offset_mass`: 0 (stays), +1, +2, +3."""
+
+
+@jax.jit
+def _route_offset_mass(p_hat, slot_now, num_slots):
+    k = p_hat.shape[-1] - 1
+    offsets = jnp.arange(ROUTE_OFFSETS)
+    slot = (slot_now[..., None] + offsets) % jnp.maximum(num_slots[..., None], 1)  # (..., 4)
+    mass = jnp.take_along_axis(p_hat[..., :k], slot, axis=-1)
+    mass = jnp.where(offsets < num_slots[..., None], mass, 0.0)  # offset ≥ K wraps: not counted
+    off = p_hat[..., k:]
+    beyond = jnp.clip(1.0 - mass.sum(-1, keepdims=True) - off, 0.0, 1.0)
+    return jnp.concatenate([mass, beyond, off], axis=-1)
+
+
+def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
+                      num_slots: jnp.ndarray) -> jnp.ndarray:
+    """Where along the visiting order a slot distribution puts its mass, relative to now.
+
+    p_hat: (..., K + 1) slot distribution (positions along the object's visiting order, last bin
+    "off"), e.g. :func:`empirical_slots` or :func:`oracle_slots`. slot_now: (...) int position
+    at τ. num_slots: (...) int number of real slots.
+    Returns (..., 6): mass at route offsets 0, +1, +2, +3 (offsets ≥ the route length are not
+    counted there), at every larger offset ("beyond"), and off every slot. One step ahead the
+    exact posterior gives 0.2 / 0.7 / 0.1 / 0 / 0 / 0.
+    """
+    shape = _check_last("p_hat", p_hat, None)
+    k = shape[-1] - 1
+    _check_int_range("slot_now", slot_now, 0, k - 1, "a slot position")
+    _check_int_range("num_slots", num_slots, 1, k, "a slot count")
+    _check_same("slot_now.shape", tuple(np.shape(slot_now)), shape[:-1], "p_hat.shape[:-1]")
+    _check_same("num_slots.shape", tuple(np.shape(num_slots)), shape[:-1], "p_hat.shape[:-1]")
+    return _route_offset_mass(jnp.asarray(p_hat, jnp.float32), jnp.asarray(slot_now, jnp.int32),
+                              jnp.asarray(num_slots, jnp.int32))
+
+
 def _stats(values: np.ndarray) -> dict:
     n = values.size
     stderr = float(values.std(ddof=1) / math.sqrt(n)) if n > 1 else float("nan")

@@ -322,3 +322,13 @@ def _checkpoint_step(root: pathlib.Path, which: str) -> int | None:
     if which == "best" and best:
         return max(best)
     return max(last) if last else None
+
+
+def load_pretrained(name: str) -> Predictor:
+    """A trained default model shipped inside the package: ``"flowmaps"``, ``"mlp"`` or
+    ``"mlp-learned"`` (the EMA weights of the `cpu`-preset runs in docs/results.md). The same
+    :class:`Predictor` as :func:`load` of that run; a wrong name raises ``ValueError`` listing the
+    names. See :mod:`flowmaps_jax.pretrained`."""
+    from flowmaps_jax.pretrained import load_pretrained as _load
+
+    return _load(name)

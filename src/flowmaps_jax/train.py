@@ -148,7 +148,9 @@ def _computational(cfg: TrainConfig) -> TrainConfig:
     base = TrainConfig()
     return dataclasses.replace(cfg, log_every=base.log_every, val_every=base.val_every,
                                ckpt_every=base.ckpt_every, keep_last=base.keep_last,
-                               run_dir=None, preset=base.preset, data=base.data)
+                               run_dir=None, preset=base.preset, data=base.data,
+                               routine_envs=base.routine_envs,
+                               routine_samples=base.routine_samples)
 
 
 class _MetricsLog:
@@ -208,14 +210,29 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     metrics_log = _MetricsLog(run_dir / "metrics.jsonl", start if resume else None)
     best = store.best_val_loss
 
+    probe = None
+    if cfg.routine_envs > 0:
+        from flowmaps_jax import routine
+
+        probe = routine.build_probe(val_scenes, cfg.flowsim, cfg.routine_envs, cfg.seed)
+    last_routine: dict = {}
+
     def validate(step: int) -> float:
-        nonlocal best
+        nonlocal best, last_routine
         val_loss = float(eval_fn(state.ema_params, val_batches))
         improved = step > 0 and store.save_if_best(state, cfg_dict, val_loss)
         if improved:
             best = val_loss
         metrics_log.write({"kind": "val", "step": step, "val_loss": val_loss,
                            "best": bool(improved)})
+        if probe is not None:
+            from flowmaps_jax.sample import Predictor
+
+            predictor = Predictor.from_params(state.ema_params, cfg.model, cfg.model_kind,
+                                              cfg.flowsim)
+            last_routine = routine.routine_metrics(predictor, probe,
+                                                   num_samples=cfg.routine_samples)
+            metrics_log.write({"kind": "routine", "step": step, **last_routine})
         return val_loss
 
     status, step, last_val = "done", start, None
@@ -257,6 +274,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
                 window.append(metrics)
                 bar.set_postfix(loss=f"{metrics['loss']:.4f}",
                                 val=f"{last_val:.4f}" if last_val is not None else "-",
+                                next=f"{last_routine['offset_+1']:.2f}" if last_routine else "-",
                                 refresh=False)
                 if step % cfg.log_every == 0 or step == end:
                     rate = timed_steps / step_seconds if step_seconds > 0 else 0.0
@@ -282,9 +300,26 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         latest = store.latest_step()
         store.close()
 
+    if probe is not None:
+        _write_routine_curve(run_dir, log)
     _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best)
     return RunResult(status=status, step=step, state=None if status == "nan" else state,
                      run_dir=run_dir, checkpoint_dir=ckpt_dir, best_val_loss=best)
+
+
+def _write_routine_curve(run_dir: pathlib.Path, log: Callable[[str], None]) -> None:
+    """routine_curve.png from the run's routine records (skipped when there are none)."""
+    from flowmaps_jax import routine
+
+    records = routine.read_routine_records(run_dir / "metrics.jsonl")
+    if records:
+        routine.plot_learning_curve(records, title=run_dir.name).savefig(
+            run_dir / "routine_curve.png", dpi=100)
+        last = records[-1]
+        log(f"Routines at step {last['step']} (one step ahead, exact 0.2 / 0.7 / 0.1): "
+            f"offsets 0 / +1 / +2 = {last['offset_0']:.2f} / {last['offset_+1']:.2f} / "
+            f"{last['offset_+2']:.2f}; TV {last['tv']:.3f}, search cost ratio "
+            f"{last['search_cost_ratio']:.3f} → {run_dir / 'routine_curve.png'}")
 
 
 def _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best) -> None:

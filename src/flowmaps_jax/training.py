@@ -87,7 +87,7 @@ def objective_for(cfg: TrainConfig) -> Objective:
 
         def loss(params, batch, key, train):
             value, aux = flow.cfm_loss(params, cfg.model, batch, key, cfg.t_sampler,
-                                       deterministic=not train)
+                                       deterministic=not train, pointer_loss=cfg.pointer_loss)
             return value, _scalars(aux)
 
         return Objective(init=init, loss=loss)
@@ -225,10 +225,27 @@ def default_batch_fn(cfg: TrainConfig) -> BatchFn:
     real_tokens = sim.num_furniture + sim.num_objects  # the rest of the S slots is padding
 
     def batch_fn(key, scenes):
-        batch = make_train_batch(key, scenes, b, q, sim)
-        return batch.replace(tokens=trim_padding(batch.tokens, real_tokens))
+        if cfg.target_noise > 0:
+            key, noise_key = jax.random.split(key)
+        batch = make_train_batch(key, scenes, b, q, sim, cfg.short_horizon_frac,
+                                 cfg.short_horizon_max)
+        batch = batch.replace(tokens=trim_padding(batch.tokens, real_tokens))
+        if cfg.target_noise > 0:
+            batch = batch.replace(target=jitter_targets(noise_key, batch.target,
+                                                        cfg.target_noise))
+        return batch
 
     return batch_fn
+
+
+def jitter_targets(key: jax.Array, boxes: jnp.ndarray, scale: float) -> jnp.ndarray:
+    """Boxes (..., 4) moved by ``scale`` × the protocol's ground-truth std (metrics.gt_mixture_sigma):
+    a draw from the smoothed q around each box when scale = 1."""
+    from flowmaps_jax import metrics
+
+    centres = metrics.to_centre(boxes)
+    noise = jax.random.normal(key, boxes.shape, boxes.dtype)
+    return metrics.from_centre(centres + scale * metrics.gt_mixture_sigma(boxes) * noise)
 
 
 _CHUNK_SALT = 0x7FFFFFFF

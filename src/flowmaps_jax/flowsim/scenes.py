@@ -176,13 +176,22 @@ def _slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig):
 # ------------------------------------------------------------------------------ queries
 
 
-def _draw_times(key, shape_tau, shape_q, config: FlowSimConfig):
-    """τ uniform in 0..T−2 with shape ``shape_tau``; τ_q uniform in τ+1..T−1 with ``shape_q``."""
+def _draw_times(key, shape_tau, shape_q, config: FlowSimConfig, short_frac: float = 0.0,
+                short_max: int = 3):
+    """τ uniform in 0..T−2 with shape ``shape_tau``; τ_q uniform in τ+1..T−1 with ``shape_q``.
+
+    With ``short_frac`` > 0, that fraction of the queries instead gets τ_q = min(τ + d, T − 1)
+    with d uniform in 1..short_max (more of the sharp, short-horizon posteriors).
+    """
     t = config.num_timesteps
     key_tau, key_q = jax.random.split(key)
     tau = jax.random.randint(key_tau, shape_tau, 0, t - 1)
     tau_b = tau.reshape(shape_tau + (1,) * (len(shape_q) - len(shape_tau)))
     tau_q = jax.random.randint(key_q, shape_q, tau_b + 1, t)
+    if short_frac > 0:
+        key_pick, key_d = jax.random.split(jax.random.fold_in(key_q, 1))
+        short = jnp.minimum(tau_b + jax.random.randint(key_d, shape_q, 1, short_max + 1), t - 1)
+        tau_q = jnp.where(jax.random.uniform(key_pick, shape_q) < short_frac, short, tau_q)
     return tau, tau_q
 
 
@@ -208,13 +217,15 @@ def sample_queries(key, num_envs_or_scenes, n: int,
     return _sample_queries(check_key(key), num_envs, n, config)
 
 
-@functools.partial(jax.jit, static_argnames=("batch_size", "queries_per_scene", "config"))
+@functools.partial(jax.jit, static_argnames=("batch_size", "queries_per_scene", "config",
+                                             "short_frac", "short_max"))
 def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
-                 config: FlowSimConfig) -> tok.TrainBatch:
+                 config: FlowSimConfig, short_frac: float = 0.0,
+                 short_max: int = 3) -> tok.TrainBatch:
     b, q = batch_size, queries_per_scene
     key_env, key_time, key_obj = jax.random.split(key, 3)
     env = jax.random.randint(key_env, (b,), 0, scenes.furniture_boxes.shape[0])
-    tau, tau_q = _draw_times(key_time, (b,), (b, q), config)
+    tau, tau_q = _draw_times(key_time, (b,), (b, q), config, short_frac, short_max)
     obj = jax.random.randint(key_obj, (b, q), 0, config.num_objects)
     env_q = jnp.broadcast_to(env[:, None], (b, q))
     target = normalise_boxes(scenes.object_boxes[env_q, tau_q, obj], config)
@@ -224,17 +235,23 @@ def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
 
 
 def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
-                     config: FlowSimConfig = DEFAULT_CONFIG) -> tok.TrainBatch:
+                     config: FlowSimConfig = DEFAULT_CONFIG, short_frac: float = 0.0,
+                     short_max: int = 3) -> tok.TrainBatch:
     """A TrainBatch: B scenes drawn uniformly, τ uniform in 0..T−2 per scene, then Q queries per
-    scene (object uniform over M, τ_q uniform in τ+1..T−1); target = the queried object's
-    normalised (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config).
+    scene (object uniform over M, τ_q uniform in τ+1..T−1, or with probability ``short_frac``
+    τ_q = τ + U{1..short_max} capped at T−1); target = the queried object's normalised
+    (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config, short_*).
     """
     _check_config(config)
     _check_token_room(config)
     _check_scenes(scenes, config)
     batch_size = check_int("batch_size", batch_size)
     queries_per_scene = check_int("queries_per_scene", queries_per_scene)
-    return _train_batch(check_key(key), scenes, batch_size, queries_per_scene, config)
+    if not 0.0 <= float(short_frac) <= 1.0:
+        raise ValueError(f"short_frac must lie in [0, 1]; got {short_frac!r}")
+    short_max = check_int("short_max", short_max)
+    return _train_batch(check_key(key), scenes, batch_size, queries_per_scene, config,
+                        float(short_frac), short_max)
 
 
 # ------------------------------------------------------------------------------ datasets

@@ -191,10 +191,11 @@ class CDiTBlock(nn.Module):
 
 
 class FinalLayer(nn.Module):
-    """AdaLN (shift/scale from c) + zero-initialised projection to the 4 box numbers."""
+    """AdaLN (shift/scale from c) + zero-initialised projection to the 4 box numbers
+    (``out_dim=None``: the modulated rows themselves, for a read-out head)."""
 
     dim: int
-    out_dim: int = 4
+    out_dim: int | None = 4
 
     @nn.compact
     def __call__(self, x, c):
@@ -202,4 +203,6 @@ class FinalLayer(nn.Module):
                        name="adaln_modulation")(nn.silu(c))
         shift, scale = jnp.split(mod, 2, axis=-1)
         h = modulate(_layer_norm(x), shift[:, :, None, :], scale[:, :, None, :])
+        if self.out_dim is None:
+            return h
         return FlatDense(self.out_dim, kernel_init=nn.initializers.zeros_init(), name="proj")(h)

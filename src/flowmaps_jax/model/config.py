@@ -13,6 +13,7 @@ import math
 from flowmaps_jax.validation import check_int
 
 BASELINE_VARIANCES = ("mean", "learned")
+HEADS = ("velocity", "pointer")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +57,8 @@ class ModelConfig:
     baseline_hidden: int = 512
     box_offset: float = 0.0
     box_scale: float = 1.0
+    head: str = "velocity"
+    condition_on_dtau: bool = False
 
     def __post_init__(self):
         for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
@@ -78,6 +81,11 @@ class ModelConfig:
                              f"{self.box_offset!r}")
         if self.tau_max < 2:
             raise ValueError(f"ModelConfig.tau_max must be >= 2; got {self.tau_max}")
+        if self.head not in HEADS:
+            raise ValueError(f"ModelConfig.head must be one of {HEADS}; got {self.head!r}")
+        if not isinstance(self.condition_on_dtau, bool):
+            raise ValueError(f"ModelConfig.condition_on_dtau must be a bool; got "
+                             f"{self.condition_on_dtau!r}")
         if self.baseline_variance not in BASELINE_VARIANCES:
             raise ValueError(f"ModelConfig.baseline_variance must be one of {BASELINE_VARIANCES}; "
                              f"got {self.baseline_variance!r}")

@@ -26,15 +26,19 @@ from flowmaps_jax.model.cdit import CDiTBlock, FinalLayer
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.embeddings import SinusoidalMLP
 from flowmaps_jax.model.encoder import MapEncoder
+from flowmaps_jax.model.readout import PointerReadout
 from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
 
 
 @struct.dataclass
 class Context:
-    """Encoded map: tokens (B, S, D) from the Map Encoder (zero on padding), mask (B, S) bool."""
+    """Encoded map: tokens (B, S, D) from the Map Encoder (zero on padding), mask (B, S) bool,
+    and what the heads read besides: the tokens' normalised boxes (B, S, 4) and the map's τ (B,)."""
 
     tokens: jnp.ndarray
     mask: jnp.ndarray
+    boxes: jnp.ndarray
+    tau: jnp.ndarray
 
 
 class FlowMaps(nn.Module):
@@ -50,20 +54,34 @@ class FlowMaps(nn.Module):
         self.time_embed = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency)
         self.tau_q_embed = nn.Embed(cfg.tau_max, cfg.dim)
         self.descriptor_embed = nn.Embed(cfg.num_descriptors, cfg.dim)
+        if cfg.condition_on_dtau:
+            self.dtau_embed = nn.Embed(cfg.tau_max, cfg.dim)
         self.blocks = [CDiTBlock(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout)
                        for _ in range(cfg.cdit_blocks)]
-        self.final = FinalLayer(cfg.dim)
+        if cfg.head == "pointer":
+            self.final_norm = FinalLayer(cfg.dim, out_dim=None)
+            self.readout = PointerReadout(cfg.dim, cfg.box_scale, cfg.box_offset)
+        else:
+            self.final = FinalLayer(cfg.dim)
 
     def encode(self, tokens: SceneTokens, deterministic: bool = True) -> Context:
         mask = tokens.mask.astype(bool)
-        return Context(tokens=self.encoder(tokens, deterministic), mask=mask)
+        return Context(tokens=self.encoder(tokens, deterministic), mask=mask,
+                       boxes=jnp.asarray(tokens.boxes, jnp.float32), tau=tokens.tau)
 
     def velocity(self, context: Context, x_t, t, queries: Queries, deterministic: bool = True):
+        cfg = self.config
         c = (self.tau_q_embed(queries.tau_q) + self.descriptor_embed(queries.descriptor)
              + self.time_embed(t[..., None]))  # (B, Q, D)
+        if cfg.condition_on_dtau:
+            dtau = jnp.clip(queries.tau_q - context.tau[:, None], 0, cfg.tau_max - 1)
+            c = c + self.dtau_embed(dtau)
         x = self.query_embed(x_t) + self.query_pos  # (B, Q, N, D)
         for block in self.blocks:
             x = block(x, c, context.tokens, context.mask, deterministic)
+        if cfg.head == "pointer":
+            return self.readout(self.final_norm(x, c), c, context.tokens, context.mask,
+                                context.boxes, x_t, t)
         return self.final(x, c)
 
     def __call__(self, tokens, x_t, t, queries, deterministic: bool = True):
@@ -106,6 +124,19 @@ def velocity(params, config: ModelConfig, context: Context, x_t, t, queries: Que
     return FlowMaps(config).apply({"params": params}, context, x_t, t, queries,
                                   dropout_key is None, method=FlowMaps.velocity,
                                   rngs=_rngs(dropout_key))
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def velocity_and_anchor_logits(params, config: ModelConfig, context: Context, x_t, t,
+                               queries: Queries, *, dropout_key=None):
+    """:func:`velocity` plus the pointer head's anchor logits (B, Q, N, S) (``head="pointer"``
+    only): the mixture's log-weights over the map's tokens before the x_t likelihood."""
+    if config.head != "pointer":
+        raise ValueError("anchor logits exist only for ModelConfig.head='pointer'")
+    v, state = FlowMaps(config).apply({"params": params}, context, x_t, t, queries,
+                                      dropout_key is None, method=FlowMaps.velocity,
+                                      rngs=_rngs(dropout_key), mutable=["intermediates"])
+    return v, state["intermediates"]["readout"]["anchor_logits"][0]
 
 
 @functools.partial(jax.jit, static_argnames="config")

@@ -1,0 +1,114 @@
+"""Pointer read-out: the velocity of a Gaussian mixture whose components are copied out of the map.
+
+Why. FlowMaps' answer is always "the object's box on one of the tables in the map". With the
+paper's linear velocity head the CDiT rows must *regress* a table's coordinates out of
+cross-attention features (sinusoidal, high-frequency), which takes thousands of steps before the
+choice of table can matter (docs/results.md, "Learning the routines"). This head instead lets the
+network *point* at tokens and copy their box numbers, as a supervised pointer probe does in a few
+hundred steps, while the sampler still integrates an ODE from Gaussian noise.
+
+What. From the CDiT rows h (B, Q, N, D), the context tokens (B, S, D) and their normalised boxes
+(B, S, 4), with x_t (B, Q, N, 4) and t (B, Q):
+
+    a_s  = softmax_s(<W_a h, K_a ctx_s> / √D)            anchor logits (which table)
+    b_s  = softmax_s(<W_b h, K_b ctx_s> / √D)            source pointer (whose size)
+    μ_s  = A · c(box_s) + B · Σ_j b_j c(box_j) + β       component means, in centre form
+                                                         c(y, x, h, w) = (y + h/2, x + w/2, h, w),
+                                                         then back to (y, x, h, w) and flow space
+    σ²   = exp(log σ²₀ + Dense₀(c))                      per-query, per-number widths
+    var_s = t² σ² + (1 − t)²                             X_t | component s ~ N(t μ_s, var)
+    w_s  ∝ exp(ℓ_s) · N(x_t; t μ_s, var)                 ℓ_s = anchor logit: the mixture weight
+    v    = Σ_s w_s [(1 − t) μ_s − ((1 − t) − t σ²) x_t] / var  +  Dense₀(h)
+
+For fixed weights, means and widths this is exactly E[X_1 − X_0 | X_t = x_t] for the linear path
+and X_1 ~ Σ_s π_s N(μ_s, σ²) (no division by 1 − t anywhere, so it is finite at t = 1). The
+zero-initialised residual Dense₀(h) lets the network depart from that form. Everything the
+routines need (which table comes next, given the query and Δτ) lives in the anchor logits.
+
+Initialisation: A = diag(1, 1, 0, 0), B = diag(0, 0, 1, 1), β = 0, i.e. "centred on the anchor
+token, with the size of the source token": the prior that an object stands on a piece of furniture
+and keeps its own size. Both maps are trained; only the starting point is this prior (from an
+identity start, Adam needs thousands of steps to move these entries by ~1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from flowmaps_jax.model.embeddings import FlatDense
+
+_INIT_LOG_VAR = 2.0 * math.log(0.02)  # a component's initial std in flow units
+
+
+def to_centre(boxes):
+    """(..., 4) (y, x, h, w) → (y + h/2, x + w/2, h, w)."""
+    return boxes + 0.5 * jnp.concatenate([boxes[..., 2:], jnp.zeros_like(boxes[..., 2:])], -1)
+
+
+def from_centre(centres):
+    """Inverse of :func:`to_centre`."""
+    return centres - 0.5 * jnp.concatenate([centres[..., 2:], jnp.zeros_like(centres[..., 2:])],
+                                           -1)
+
+
+def _diag(*values):
+    """A flax initialiser returning diag(values) (ignores the key)."""
+    return lambda key, shape, dtype=jnp.float32: jnp.diag(jnp.asarray(values, dtype))
+
+
+def _pointer_logits(h, context, name: str, dim: int):
+    """Bilinear scores <W h_row, K ctx_s> / √dim: h (B, Q, N, D), context (B, S, D) → (B, Q, N, S)."""
+    query = FlatDense(dim, name=f"{name}_query")(h)
+    key = FlatDense(dim, name=f"{name}_key")(context)
+    return jnp.einsum("bqnd,bsd->bqns", query, key) / math.sqrt(dim)
+
+
+def mixture_velocity(logits, means, log_var, x_t, t):
+    """Velocity of the linear path towards a Gaussian mixture, given its parameters.
+
+    logits (B, Q, N, S) mixture log-weights (−inf or very negative on excluded components);
+    means (B, Q, N, S, 4); log_var (B, Q, 1, 1, 4) per-number log σ²; x_t (B, Q, N, 4); t (B, Q).
+    Returns v (B, Q, N, 4) = E[X_1 − X_0 | X_t = x_t].
+    """
+    tt = t[:, :, None, None, None]
+    var0 = jnp.exp(log_var)
+    var = jnp.square(tt) * var0 + jnp.square(1.0 - tt)  # (B, Q, 1, 1, 4)
+    x = x_t[:, :, :, None, :]  # (B, Q, N, 1, 4)
+    resid = x - tt * means
+    log_lik = -0.5 * jnp.sum(jnp.square(resid) / var + jnp.log(var), axis=-1)  # (B, Q, N, S)
+    weights = jax.nn.softmax(logits + log_lik, axis=-1)
+    v_comp = ((1.0 - tt) * means - ((1.0 - tt) - tt * var0) * x) / var  # (B, Q, N, S, 4)
+    return jnp.einsum("bqns,bqnsd->bqnd", weights, v_comp)
+
+
+class PointerReadout(nn.Module):
+    """The pointer head. See the module docstring for the maths and the shapes."""
+
+    dim: int
+    box_scale: float = 1.0
+    box_offset: float = 0.0
+
+    @nn.compact
+    def __call__(self, h, c, context, mask, boxes, x_t, t):
+        big_negative = jnp.finfo(h.dtype).min / 4
+        keep = mask[:, None, None, :]  # (B, 1, 1, S)
+        anchor = jnp.where(keep, _pointer_logits(h, context, "anchor", self.dim), big_negative)
+        self.sow("intermediates", "anchor_logits", anchor)  # for the optional pointer loss
+        source = jnp.where(keep, _pointer_logits(h, context, "source", self.dim), big_negative)
+        source = jax.nn.softmax(source, axis=-1)
+        a_map = self.param("anchor_map", _diag(1.0, 1.0, 0.0, 0.0), (4, 4))
+        b_map = self.param("source_map", _diag(0.0, 0.0, 1.0, 1.0), (4, 4))
+        bias = self.param("mean_bias", nn.initializers.zeros_init(), (4,))
+        centres = to_centre(boxes)  # (B, S, 4)
+        shared = jnp.einsum("bqns,bsd->bqnd", source, centres) @ b_map  # (B, Q, N, 4)
+        means = (centres @ a_map)[:, None, None] + (shared + bias)[:, :, :, None, :]
+        means = self.box_scale * (from_centre(means) - self.box_offset)  # the flow's space
+        log_var = self.param("log_var", nn.initializers.constant(_INIT_LOG_VAR), (4,))
+        log_var = log_var + FlatDense(4, kernel_init=nn.initializers.zeros_init(),
+                                      name="log_var_shift")(nn.silu(c))
+        v = mixture_velocity(anchor, means, log_var[:, :, None, None, :], x_t, t)
+        return v + FlatDense(4, kernel_init=nn.initializers.zeros_init(), name="residual")(h)

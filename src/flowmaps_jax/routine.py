@@ -1,0 +1,137 @@
+"""Routine diagnostic: does a predictor know *which* table comes next, not only which kind?
+
+FlowSim's objects walk their visiting order (stay 0.2, advance 0.7, skip 0.1), so one step ahead
+the exact posterior puts 0.2 / 0.7 / 0.1 on route offsets 0 / +1 / +2. A model that only knows the
+kind of table spreads its mass evenly. This module measures that, cheaply enough to run at every
+validation interval of a training run:
+
+* :class:`RoutineProbe` — two small fixed query sets built from validation environments with
+  :func:`flowmaps_jax.evaluate.build_eval_queries`: every object one step ahead (Δτ = 1), and the
+  protocol's horizon mixture.
+* :func:`routine_metrics` — samples a predictor and returns the mass at route offsets
+  0 / +1 / +2 / +3 / beyond / off one step ahead (:func:`flowmaps_jax.metrics.route_offset_mass`)
+  and slot TV, top-1 and search-cost ratio on both sets. The training loop logs these into
+  ``metrics.jsonl`` (records with ``"kind": "routine"``).
+* :func:`plot_learning_curve` — the figure of those records against the training step.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+import jax
+import numpy as np
+from flax import struct
+from matplotlib.figure import Figure
+
+from flowmaps_jax import metrics
+from flowmaps_jax.validation import check_int
+
+OFFSET_LABELS = ("0", "+1", "+2", "+3", "beyond", "off")
+EXACT_ONE_STEP = (0.2, 0.7, 0.1, 0.0, 0.0, 0.0)
+"""The exact posterior's route-offset mass one step ahead (FlowSim's Markov dynamics)."""
+
+
+@struct.dataclass
+class RoutineProbe:
+    """Fixed query sets (EvalSets) for the diagnostic: ``one_step`` (Δτ = 1) and ``mixed``."""
+
+    one_step: object
+    mixed: object
+
+
+def build_probe(scenes, config, num_envs: int = 20, seed: int = 0) -> RoutineProbe:
+    """The probe from the first ``num_envs`` environments of ``scenes`` (3 queries each)."""
+    from flowmaps_jax.evaluate import build_eval_queries
+
+    num_envs = check_int("num_envs", num_envs, 1)
+    if num_envs > scenes.num_envs:
+        raise ValueError(f"num_envs={num_envs} is more than the {scenes.num_envs} environments "
+                         "in scenes")
+    part = jax.tree_util.tree_map(lambda a: a[:num_envs], scenes)
+    key = jax.random.PRNGKey(seed)
+    return RoutineProbe(
+        one_step=build_eval_queries(part, config, jax.random.fold_in(key, 1), 2, horizon=1),
+        mixed=build_eval_queries(part, config, jax.random.fold_in(key, 2), 2))
+
+
+def _slot_summary(evalset, p_hat) -> dict[str, float]:
+    q, mask = evalset.slot_probs, evalset.slot_mask
+    return {"tv": float(np.mean(metrics.slot_tv(p_hat, q))),
+            "top1": float(np.mean(metrics.top1(p_hat, q, mask))),
+            "search_cost_ratio": float(np.mean(metrics.search_cost_ratio(p_hat, q, mask)))}
+
+
+def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None,
+                    num_samples: int = 32) -> dict[str, float]:
+    """Sample ``predictor`` on the probe; a flat dict of floats (JSON-ready).
+
+    Keys: ``offset_0``, ``offset_+1``, ``offset_+2``, ``offset_+3``, ``offset_beyond``,
+    ``offset_off`` (one step ahead, mean over queries); ``one_step_tv``, ``one_step_top1``,
+    ``one_step_search_cost_ratio``; ``tv``, ``top1``, ``search_cost_ratio`` (horizon mixture).
+    """
+    num_samples = check_int("num_samples", num_samples, 1)
+    key = jax.random.PRNGKey(0) if key is None else key
+    out: dict[str, float] = {}
+    for i, (label, evalset) in enumerate((("one_step", probe.one_step), ("mixed", probe.mixed))):
+        samples = predictor.sample(evalset.tokens, evalset.queries, num_samples,
+                                   jax.random.fold_in(key, i))
+        p_hat = metrics.empirical_slots(samples, evalset.slot_boxes, evalset.slot_mask)
+        scores = _slot_summary(evalset, p_hat)
+        if label == "one_step":
+            mass = np.asarray(metrics.route_offset_mass(p_hat, evalset.slot_now,
+                                                        evalset.num_slots)).mean(axis=(0, 1))
+            out.update({f"offset_{name}": float(m) for name, m in zip(OFFSET_LABELS, mass,
+                                                                      strict=True)})
+            out.update({f"one_step_{k}": v for k, v in scores.items()})
+        else:
+            out.update(scores)
+    return out
+
+
+def read_routine_records(metrics_path: str | pathlib.Path) -> list[dict]:
+    """The ``"kind": "routine"`` records of a run's metrics.jsonl, in order."""
+    path = pathlib.Path(metrics_path)
+    if path.is_dir():
+        path = path / "metrics.jsonl"
+    if not path.is_file():
+        raise ValueError(f"metrics_path: no metrics.jsonl at {path}")
+    records = []
+    for line in path.read_text().splitlines():
+        if line.strip():
+            record = json.loads(line)
+            if record.get("kind") == "routine":
+                records.append(record)
+    return records
+
+
+def plot_learning_curve(records: list[dict], title: str = "") -> Figure:
+    """Route-offset mass one step ahead, and TV / search cost, against the training step."""
+    if not records:
+        raise ValueError("records: no routine records to plot (was the run validated?)")
+    steps = [r["step"] for r in records]
+    fig = Figure(figsize=(10, 3.6))
+    ax_mass, ax_slot = fig.subplots(1, 2)
+    colours = ("tab:grey", "tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:red")
+    for name, exact, colour in zip(OFFSET_LABELS, EXACT_ONE_STEP, colours, strict=True):
+        if name in ("+3", "beyond"):
+            continue
+        ax_mass.plot(steps, [r[f"offset_{name}"] for r in records], color=colour,
+                     label=f"offset {name}", marker=".")
+        if exact > 0:
+            ax_mass.axhline(exact, color=colour, linestyle=":", linewidth=1)
+    ax_mass.set(xlabel="training step", ylabel="sample mass", ylim=(0, 1),
+                title="one step ahead (dotted: exact)")
+    ax_mass.legend(fontsize=8)
+    for key, label, colour in (("tv", "slot TV (mixed Δτ)", "tab:blue"),
+                               ("one_step_tv", "slot TV (Δτ = 1)", "tab:cyan"),
+                               ("search_cost_ratio", "search cost ratio − 1", "tab:red")):
+        values = [r[key] - (1.0 if key == "search_cost_ratio" else 0.0) for r in records]
+        ax_slot.plot(steps, values, label=label, color=colour, marker=".")
+    ax_slot.set(xlabel="training step", ylim=(0, None), title="slot metrics (lower is better)")
+    ax_slot.legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
