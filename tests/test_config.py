@@ -22,6 +22,9 @@ def test_paper_preset_matches_the_paper():
     assert (cfg.b1, cfg.b2, cfg.ema_decay) == (0.95, 0.999, 0.9999)
     assert cfg.t_sampler == "beta"
     assert cfg.model_kind == "flowmaps"
+    # none of the routine-learning departures (issue 8): the paper's velocity head and objective
+    assert (m.head, m.condition_on_dtau) == ("velocity", False)
+    assert (cfg.short_horizon_frac, cfg.target_noise, cfg.pointer_loss) == (0.0, 0.0, 0.0)
 
 
 def test_default_is_cpu_and_smoke_is_tiny():
@@ -30,6 +33,15 @@ def test_default_is_cpu_and_smoke_is_tiny():
     assert smoke.model.dim < cpu.model.dim < get_preset("paper").model.dim
     assert smoke.steps <= 50 and smoke.train_envs <= 100
     assert cpu.t_sampler == "beta" and cpu.model.box_scale == 1.0
+    assert cpu.model.head == "pointer" and cpu.pointer_loss > 0
+
+
+def test_pointer_loss_needs_the_pointer_head_but_the_mlp_ignores_it():
+    cpu = get_preset("cpu")
+    with pytest.raises(ValueError, match="pointer_loss"):
+        apply_overrides(cpu, ["model.head=velocity"])
+    mlp = apply_overrides(cpu, ["model_kind=mlp", "model.head=velocity"])
+    assert mlp.pointer_loss == cpu.pointer_loss
 
 
 def test_unknown_preset():

@@ -313,3 +313,40 @@ def test_load_errors_are_value_errors(tmp_path, checkpoints):
         load(tmp_path)
     with pytest.raises(ValueError, match="which"):
         load(checkpoints["flowmaps"][0], which="first")
+
+
+def test_exported_weights_load_as_the_same_predictor(tmp_path, checkpoints, inputs):
+    from flowmaps_jax.pretrained import export_pretrained, load_pretrained
+
+    path, _ = checkpoints["flowmaps"]
+    export_pretrained(path, "flowmaps", tmp_path)
+    mlp_path, _ = checkpoints["mlp"]
+    export_pretrained(mlp_path, "mlp-learned", tmp_path)
+    for name, source in (("flowmaps", path), ("mlp-learned", mlp_path)):
+        shipped, loaded = load_pretrained(name, tmp_path), load(source, which="latest")
+        assert (shipped.kind, shipped.model, shipped.step) == (loaded.kind, loaded.model, 7)
+        same = jax.tree_util.tree_map(np.array_equal, shipped.params, loaded.params)
+        assert all(jax.tree_util.tree_leaves(same))
+        key = jax.random.key(3)
+        np.testing.assert_array_equal(shipped.sample(*inputs, N, key),
+                                      loaded.sample(*inputs, N, key))
+
+
+def test_pretrained_errors_are_value_errors(tmp_path, checkpoints):
+    from flowmaps_jax.pretrained import export_pretrained, load_pretrained
+    from flowmaps_jax.sample import load_pretrained as public_load
+
+    with pytest.raises(ValueError, match=r"flowmaps.*mlp.*mlp-learned"):
+        public_load("flowmap")
+    with pytest.raises(ValueError, match="not in"):
+        load_pretrained("mlp", tmp_path)
+    with pytest.raises(ValueError, match="needs a 'mlp' model"):
+        export_pretrained(checkpoints["flowmaps"][0], "mlp", tmp_path)
+    with pytest.raises(ValueError, match="baseline_variance"):
+        export_pretrained(checkpoints["mlp"][0], "mlp", tmp_path)  # the fixture's MLP is learned
+    npz = export_pretrained(checkpoints["flowmaps"][0], "flowmaps", tmp_path)
+    data = bytearray(npz.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    npz.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match="damaged"):
+        load_pretrained("flowmaps", tmp_path)

@@ -9,8 +9,8 @@ Presets (``get_preset(name)``):
 
 * ``paper`` — the paper's hyper-parameters: D = 256, 8 encoder layers, 8 CDiT blocks, 8 heads,
   dropout 0.1, batch 256, 30k steps, AdamW β = (0.95, 0.999), cosine schedule from 1e-4, EMA 0.9999.
-* ``cpu`` — the default: a smaller model and schedule meant to train in about 20 minutes on a
-  2-core CPU (sizes are placeholders until tuned by measurement; see docs/results.md).
+* ``cpu`` — the default: a smaller model and schedule that trains in about 20 minutes on a
+  2-core CPU, with the recipe that learns the routines (pointer head; see :func:`cpu_preset`).
 * ``smoke`` — a tiny model on a tiny dataset that trains in seconds; used by the tests.
 
 Any field, including nested ones (``model.dim``, ``flowsim.num_timesteps``), can be overridden from
@@ -56,8 +56,9 @@ class TrainConfig:
         ground-truth std (centre 0.35 × side, size 0.02 × side), i.e. on samples of the protocol's
         smoothed q rather than on its delta peaks (0 = paper).
     pointer_loss: weight of an auxiliary cross-entropy on the pointer head's anchor logits
-        against the table the target stands on (``flow.cfm_loss``; needs ``model.head="pointer"``;
-        departs from the paper; 0 = off).
+        against the table the target stands on (``flow.cfm_loss``; FlowMaps with
+        ``model.head="pointer"`` only; the MLP baseline ignores it. Departs from the paper;
+        0 = off).
     data: "train" (fixed FlowSim split of ``train_envs`` environments) or "endless" (a fresh
         chunk of ``train_envs`` environments every ``train_envs // batch_size`` steps).
     train_envs, val_envs: split sizes; val_batches: fixed validation batches per evaluation.
@@ -131,10 +132,10 @@ class TrainConfig:
             raise ValueError(f"target_noise must lie in [0, 10); got {self.target_noise!r}")
         if not 0.0 <= self.pointer_loss < 100.0:
             raise ValueError(f"pointer_loss must lie in [0, 100); got {self.pointer_loss!r}")
-        if self.pointer_loss > 0 and not (self.model_kind == "flowmaps"
-                                          and self.model.head == "pointer"):
-            raise ValueError("pointer_loss > 0 needs model_kind='flowmaps' and "
-                             "model.head='pointer'")
+        if self.pointer_loss > 0 and self.model_kind == "flowmaps" and \
+                self.model.head != "pointer":
+            raise ValueError("pointer_loss > 0 needs model.head='pointer' (the MLP baseline "
+                             "ignores it)")
         if self.weight_decay < 0:
             raise ValueError(f"weight_decay must be >= 0; got {self.weight_decay!r}")
         if self.clip_norm is not None and not self.clip_norm > 0:
@@ -191,21 +192,20 @@ def paper_preset() -> TrainConfig:
 
 
 def cpu_preset() -> TrainConfig:
-    """Default: the model a 2-core CPU trains in under 30 minutes.
+    """Default: the model a 2-core CPU trains in under 30 minutes, and that learns the routines.
 
-    Sized by measurement (docs/results.md, "Choosing the cpu preset"): D = 128 with 4 + 4 layers
-    runs 0.167 s per step at B = 64 scenes × Q = 8 queries (3,061 query-samples/s on an idle
-    2-core CPU, ``experiments/bench_train.py --presets cpu --queries 4 8 16``); Q = 8 nearly
-    doubles samples/s over Q = 4 for +11 % step time, Q = 16 adds only 40 % more. 8,500 steps
-    then take about 25 minutes with validation. Centring and scaling the flow's boxes ×4 with
-    uniform flow times lowered the KL at 2,000 steps but made the positions of a full run far less
-    precise, so the preset keeps the paper's boxes and Beta law (docs/results.md, "Sharper boxes").
+    Size (docs/results.md, "Choosing the cpu preset"): D = 128 with 4 + 4 layers, B = 64 scenes ×
+    Q = 8 queries, 8,500 steps. Recipe (docs/results.md, "Learning the routines", ablation by
+    ``experiments/ablate_routines.py``; docs/design.md says why): the pointer read-out head with
+    its auxiliary pointer loss, Δτ conditioning, half the queries one step ahead, targets jittered
+    by the protocol's σ, lr 1e-3 and no dropout. ``--preset paper`` keeps the paper's recipe.
     """
     return TrainConfig(
-        model=ModelConfig(dim=128, encoder_layers=4, cdit_blocks=4, heads=4, dropout=0.1,
-                          baseline_hidden=256),
-        batch_size=64, queries_per_scene=8, steps=8500, lr=5e-4, warmup_steps=200,
-        clip_norm=1.0, ema_decay=0.999, log_every=50, val_every=500,
+        model=ModelConfig(dim=128, encoder_layers=4, cdit_blocks=4, heads=4, dropout=0.0,
+                          baseline_hidden=256, head="pointer", condition_on_dtau=True),
+        batch_size=64, queries_per_scene=8, steps=8500, lr=1e-3, warmup_steps=200,
+        clip_norm=1.0, ema_decay=0.999, short_horizon_frac=0.5, short_horizon_max=1,
+        target_noise=1.0, pointer_loss=1.0, log_every=50, val_every=500,
         ckpt_every=500, preset="cpu")
 
 

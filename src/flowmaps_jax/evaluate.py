@@ -25,7 +25,8 @@ Protocol
 * Every number overall, by category and by horizon Δτ = τ_q − τ, as mean ± standard error over
   queries.
 
-Outputs (``--out``): ``results.json``, ``results.md`` and the figures ``kl.png`` (paper Fig. 2),
+Outputs (``--out``): ``results.json``, ``results.md`` (with the route-offset mass one step
+ahead: the routine diagnostic) and the figures ``kl.png`` (paper Fig. 2), ``by_horizon.png``,
 ``samples.png`` (paper Fig. 3) and ``slots.png`` (learned vs exact slot distributions).
 
 The pieces are functions so notebooks can call them: :func:`build_eval_queries`,
@@ -65,6 +66,7 @@ DEFAULT_KL_DRAWS = 100
 DEFAULT_CHUNK_ENVS = 50
 REFERENCE_ROWS = ("oracle", "oracle samples", "last-seen", "uniform")
 SLOT_METRICS = ("tv", "top1", "search_cost_ratio")
+ROUTE_LABELS = ("0", "+1", "+2", "+3", "beyond", "off")
 # fold_in salts of the evaluation seed
 _SALT_QUERIES, _SALT_KL, _SALT_SAMPLES, _SALT_ORACLE = 0, 1, 2, 3
 
@@ -368,8 +370,16 @@ def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimC
     "kl_mc_stderr" is the mean per-query Monte-Carlo standard error.
     """
     out = {}
+    one_step = np.asarray(evalset.horizon) == 1
     for row in rows:
-        entry = {"kl": _breakdown(row.kl, evalset, config),
+        p_hat = row.slots[max(row.slots)]["p_hat"]
+        mass = np.asarray(metrics.route_offset_mass(p_hat, evalset.slot_now, evalset.num_slots))
+        entry = {"route_offsets_one_step": {
+                     "labels": list(ROUTE_LABELS), "count": int(one_step.sum()),
+                     "mean": [_json_number(float(v)) for v in
+                              (mass[one_step].mean(axis=0) if one_step.any()
+                               else np.full(len(ROUTE_LABELS), np.nan))]},
+                 "kl": _breakdown(row.kl, evalset, config),
                  "kl_mc_stderr": _json_number(float(np.mean(row.kl_stderr))),
                  "slots": {str(n): {m: _breakdown(s[m], evalset, config) for m in SLOT_METRICS}
                            for n, s in row.slots.items()},
@@ -408,14 +418,26 @@ def markdown_table(results: dict) -> str:
             cells += [_fmt(slot[m]["overall"]) for m in SLOT_METRICS]
         lines.append("| " + " | ".join(cells) + " |")
     n_big = str(counts[-1])
+    first = next(iter(rows.values())).get("route_offsets_one_step")
+    if first is not None:
+        lines.append(f"\n## Routines: slot mass at route offsets one step ahead (Δτ = 1, "
+                     f"{first['count']} queries, @{n_big})\n")
+        lines.append("| row | " + " | ".join(f"offset {k}" if k[0] in "0+" else k
+                                              for k in first["labels"]) + " |")
+        lines.append("|---|" + "---|" * len(first["labels"]))
+        for name, row in rows.items():
+            cells = ["–" if v is None else f"{v:.3f}"
+                     for v in row["route_offsets_one_step"]["mean"]]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
     for group, title in (("by_category", "category"), ("by_horizon", "horizon Δτ")):
         keys = list(next(iter(rows.values()))["kl"][group])
-        for metric, label in (("kl", "KL(q‖p)"), ("tv", f"slot TV @{n_big}")):
+        for metric, label in (("kl", "KL(q‖p)"), ("tv", f"slot TV @{n_big}"),
+                              ("search_cost_ratio", f"search cost ratio @{n_big}")):
             lines.append(f"\n## {label} by {title}\n")
             lines.append("| row | " + " | ".join(keys) + " |")
             lines.append("|---|" + "---|" * len(keys))
             for name, row in rows.items():
-                table = row["kl"] if metric == "kl" else row["slots"][n_big]["tv"]
+                table = row["kl"] if metric == "kl" else row["slots"][n_big][metric]
                 digits = 2 if metric == "kl" else 3
                 lines.append(f"| {name} | "
                              + " | ".join(_fmt(table[group].get(k), digits) for k in keys) + " |")
@@ -484,6 +506,37 @@ def plot_kl(results: dict, rows: Sequence[str] | None = None) -> Figure:
         ax.grid(axis="y", alpha=0.3)
     ax_h.legend(fontsize=8)
     fig.suptitle("KL(q‖p) against the exact posterior (lower is better; mean ± s.e.)")
+    return fig
+
+
+def plot_by_horizon(results: dict, rows: Sequence[str] | None = None) -> Figure:
+    """KL(q‖p), slot TV and search-cost ratio (largest sample count) against the horizon Δτ, for
+    the model rows and the "oracle samples" and "uniform" reference rows (mean ± s.e.)."""
+    table = results["rows"]
+    n_big = str(results["protocol"]["samples"][-1])
+    if rows is None:
+        rows = [n for n in ("oracle samples", "uniform") if n in table]
+        rows += [n for n in table if n not in REFERENCE_ROWS]
+    fig = Figure(figsize=(13, 3.8), layout="constrained")
+    axes = fig.subplots(1, 3)
+    panels = (("KL(q‖p) [nats]", lambda r: r["kl"]),
+              (f"slot TV @{n_big}", lambda r: r["slots"][n_big]["tv"]),
+              (f"search cost ratio @{n_big}", lambda r: r["slots"][n_big]["search_cost_ratio"]))
+    for ax, (label, pick) in zip(axes, panels, strict=True):
+        for i, name in enumerate(rows):
+            by_h = pick(table[name])["by_horizon"]
+            hs = list(by_h)
+            mean = np.array([np.nan if by_h[h]["mean"] is None else by_h[h]["mean"] for h in hs])
+            err = np.array([by_h[h]["stderr"] or 0.0 for h in hs], float)
+            x = np.array([int(h) for h in hs])
+            style = "--" if name in REFERENCE_ROWS else "-"
+            ax.plot(x, mean, style, marker="o", markersize=3, color=f"C{i}", label=name)
+            ax.fill_between(x, mean - err, mean + err, color=f"C{i}", alpha=0.15)
+        ax.set(xlabel="Δτ = τ_q − τ", ylabel=label, title=label + " by horizon")
+        ax.grid(alpha=0.3)
+    axes[0].set_yscale("symlog", linthresh=1.0)
+    axes[-1].legend(fontsize=8)
+    fig.suptitle("By horizon: short horizons have sharp posteriors (dashed: reference rows)")
     return fig
 
 
@@ -626,6 +679,7 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         if figures:
             model_rows = [r for r in rows if r.samples is not None]
             plots = {"kl.png": lambda: plot_kl(results),
+                     "by_horizon.png": lambda: plot_by_horizon(results),
                      "samples.png": lambda: plot_samples(scenes, evalset, model_rows, config),
                      "slots.png": lambda: plot_slot_bars(evalset, model_rows, config)}
             for filename, make in plots.items():

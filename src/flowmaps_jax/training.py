@@ -239,8 +239,8 @@ def default_batch_fn(cfg: TrainConfig) -> BatchFn:
 
 
 def jitter_targets(key: jax.Array, boxes: jnp.ndarray, scale: float) -> jnp.ndarray:
-    """Boxes (..., 4) moved by ``scale`` × the protocol's ground-truth std (metrics.gt_mixture_sigma):
-    a draw from the smoothed q around each box when scale = 1."""
+    """Boxes (..., 4) moved by ``scale`` × the protocol's ground-truth std
+    (:func:`metrics.gt_mixture_sigma`): a draw from the smoothed q around each box at scale 1."""
     from flowmaps_jax import metrics
 
     centres = metrics.to_centre(boxes)

@@ -61,7 +61,9 @@ def _diag(*values):
 
 
 def _pointer_logits(h, context, name: str, dim: int):
-    """Bilinear scores <W h_row, K ctx_s> / √dim: h (B, Q, N, D), context (B, S, D) → (B, Q, N, S)."""
+    """Bilinear scores <W h_row, K ctx_s> / √dim.
+
+    h (B, Q, N, D), context (B, S, D) → (B, Q, N, S)."""
     query = FlatDense(dim, name=f"{name}_query")(h)
     key = FlatDense(dim, name=f"{name}_key")(context)
     return jnp.einsum("bqnd,bsd->bqns", query, key) / math.sqrt(dim)

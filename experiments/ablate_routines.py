@@ -1,0 +1,112 @@
+"""Ablation: what makes FlowMaps learn the routines? Equal steps of one schedule per variant.
+
+Every variant is the `cpu` preset's full schedule (8,500 steps, cosine) with some fields changed,
+trained sequentially (never side by side) and stopped after ``--stop-at`` steps, so variants are
+compared at equal steps of the same learning-rate schedule; the step time of each is reported, so
+equal wall-clock can be read off too. Each is then scored on the evaluation protocol (first
+``--num-envs`` validation environments × 3 objects, 100 samples, exact-likelihood KL) plus the
+routine diagnostic (route-offset mass one step ahead).
+
+    python experiments/ablate_routines.py --stop-at 2000 --out runs/ablation
+
+Writes ``<out>/ablation.json`` and prints a Markdown table (docs/results.md keeps it). A variant
+whose run directory already holds a checkpoint at ``--stop-at`` is not retrained.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import time
+
+import numpy as np
+
+from flowmaps_jax import evaluate, train
+from flowmaps_jax.config import apply_overrides, get_preset
+from flowmaps_jax.flowsim.scenes import validation_split
+from flowmaps_jax.sample import load
+
+RECIPE = ["model.condition_on_dtau=true", "short_horizon_frac=0.5", "short_horizon_max=1",
+          "target_noise=1", "lr=1e-3", "model.dropout=0"]
+VARIANTS = {
+    "paper (old cpu)": [],
+    "recipe, velocity head": RECIPE,
+    "recipe, pointer head": [*RECIPE, "model.head=pointer"],
+    "recipe, pointer head + pointer loss": [*RECIPE, "model.head=pointer", "pointer_loss=1"],
+    "… without short horizons": [*RECIPE, "model.head=pointer", "pointer_loss=1",
+                                 "short_horizon_frac=0"],
+    "… without Δτ conditioning": [*RECIPE, "model.head=pointer", "pointer_loss=1",
+                                  "model.condition_on_dtau=false"],
+    "… with lr 5e-4, dropout 0.1": [*RECIPE, "model.head=pointer", "pointer_loss=1",
+                                    "lr=5e-4", "model.dropout=0.1"],
+}
+
+
+def slug(name: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in name).strip("-").replace("--", "-")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--stop-at", type=int, default=2000)
+    parser.add_argument("--num-envs", type=int, default=100)
+    parser.add_argument("--out", default="runs/ablation")
+    parser.add_argument("--only", nargs="*", default=None, help="variant names to run")
+    args = parser.parse_args()
+    out = pathlib.Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results_path = out / "ablation.json"
+    results = json.loads(results_path.read_text()) if results_path.exists() else {}
+    for name, overrides in VARIANTS.items():
+        if args.only and name not in args.only:
+            continue
+        cfg = apply_overrides(get_preset("cpu"), overrides)
+        run_dir = out / slug(name)
+        ckpt = run_dir / "checkpoints" / "last" / str(args.stop_at)
+        start = time.perf_counter()
+        if not ckpt.exists():
+            print(f"=== {name}: training to step {args.stop_at} → {run_dir}", flush=True)
+            train.run(cfg, run_dir, stop_at=args.stop_at, progress=False)
+        train_s = time.perf_counter() - start
+        records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().split("\n")
+                   if line.strip()]
+        rates = [r["steps_per_sec"] for r in records
+                 if r["kind"] == "train" and r.get("steps_per_sec", 0) > 0]
+        routine = [r for r in records if r["kind"] == "routine"][-1]
+        predictor = load(run_dir / "checkpoints", which="latest")
+        scenes = validation_split(cfg.flowsim, num_envs=args.num_envs)
+        res, _, _ = evaluate.run_evaluation([predictor], scenes, cfg.flowsim, None,
+                                            sample_counts=(100,), figures=False, progress=False)
+        row = res["rows"][predictor.name]
+        slot = row["slots"]["100"]
+        results[name] = {
+            "overrides": overrides, "steps": args.stop_at,
+            "step_s": float(1.0 / np.median(rates)) if rates else None,
+            "train_s": round(train_s, 1),
+            "kl": row["kl"]["overall"]["mean"],
+            "kl_by_horizon": {h: v["mean"] for h, v in row["kl"]["by_horizon"].items()},
+            "tv": slot["tv"]["overall"]["mean"], "top1": slot["top1"]["overall"]["mean"],
+            "search_cost_ratio": slot["search_cost_ratio"]["overall"]["mean"],
+            "offsets_one_step": row["route_offsets_one_step"]["mean"],
+            "routine_probe": {k: routine[k] for k in ("offset_0", "offset_+1", "offset_+2",
+                                                      "offset_off")},
+        }
+        results_path.write_text(json.dumps(results, indent=2) + "\n")
+        print(table(results), flush=True)
+
+
+def table(results: dict) -> str:
+    lines = ["| variant | step s | KL | TV@100 | top-1@100 | search cost@100 | "
+             "Δτ=1 mass at offsets 0 / +1 / +2 (off) |", "|---|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        m = r["offsets_one_step"]
+        step_s = "–" if r["step_s"] is None else f"{r['step_s']:.3f}"
+        lines.append(f"| {name} | {step_s} | {r['kl']:.2f} | {r['tv']:.3f} | {r['top1']:.2f} | "
+                     f"{r['search_cost_ratio']:.3f} | {m[0]:.2f} / {m[1]:.2f} / {m[2]:.2f} "
+                     f"({m[5]:.2f}) |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,51 @@
+"""The trained default models shipped inside the package (issue 8): they load through
+``sample.load_pretrained``, have the cpu preset's shapes, and put samples on tables of the queried
+object's kind."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from flowmaps_jax.config import get_preset
+from flowmaps_jax.flowsim.scenes import scene_tokens, slot_boxes, validation_split
+from flowmaps_jax.pretrained import available
+from flowmaps_jax.sample import load_pretrained
+from flowmaps_jax.tokens import Queries
+
+SHIPPED = ("flowmaps", "mlp", "mlp-learned")
+
+
+def test_every_default_model_is_shipped():
+    assert available() == list(SHIPPED)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_weights_have_the_cpu_preset_shapes(name):
+    predictor = load_pretrained(name)
+    cpu = get_preset("cpu")
+    assert predictor.kind == ("flowmaps" if name == "flowmaps" else "mlp")
+    assert predictor.model.dim == cpu.model.dim
+    assert predictor.model.encoder_layers == cpu.model.encoder_layers
+    leaves = jax.tree_util.tree_leaves(predictor.params)
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
+    assert predictor.source == f"pretrained:{name}"
+
+
+def test_shipped_flowmaps_puts_samples_on_tables_of_the_queried_kind():
+    predictor = load_pretrained("flowmaps")
+    config = predictor.flowsim
+    scenes = validation_split(config, num_envs=8)
+    env = np.arange(8)
+    tau = np.full(8, 4)
+    tokens = scene_tokens(scenes, env, tau, config)
+    queries = Queries(descriptor=np.asarray(scenes.object_kind, np.int32),
+                      tau_q=np.full((8, 3), 6, np.int32))
+    x = np.asarray(predictor.sample(tokens, queries, 32, jax.random.key(0)))  # (8, 3, 32, 4)
+    boxes = np.asarray(slot_boxes(scenes, np.repeat(env, 3), np.tile(np.arange(3), 8), config))
+    boxes = boxes.reshape(8, 3, -1, 4)
+    real = np.arange(boxes.shape[2]) < np.asarray(scenes.num_slots)[:, :, None]
+    dist = np.linalg.norm(x[:, :, :, None] - boxes[:, :, None], axis=-1)  # to its own route's slots
+    dist = np.where(real[:, :, None], dist, np.inf).min(-1)
+    assert np.mean(dist < 0.05) > 0.8  # on a table of its own kind, where the object would sit
