@@ -1,6 +1,7 @@
 """Ablation: what makes FlowMaps learn the routines? Equal steps of one schedule per variant.
 
-Every variant is the `cpu` preset's full schedule (8,500 steps, cosine) with some fields changed,
+Every variant is the `cpu` preset's full schedule (8,500 steps, cosine) with the paper's recipe
+(the preset before issue 8, ``OLD_CPU``) and then some fields changed,
 trained sequentially (never side by side) and stopped after ``--stop-at`` steps, so variants are
 compared at equal steps of the same learning-rate schedule; the step time of each is reported, so
 equal wall-clock can be read off too. Each is then scored on the evaluation protocol (first
@@ -27,6 +28,10 @@ from flowmaps_jax.config import apply_overrides, get_preset
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.sample import load
 
+# the cpu preset before issue 8 (paper recipe at cpu size); every variant starts from it
+OLD_CPU = ["model.head=velocity", "model.condition_on_dtau=false", "short_horizon_frac=0",
+           "short_horizon_max=3", "target_noise=0", "pointer_loss=0", "lr=5e-4",
+           "model.dropout=0.1"]
 RECIPE = ["model.condition_on_dtau=true", "short_horizon_frac=0.5", "short_horizon_max=1",
           "target_noise=1", "lr=1e-3", "model.dropout=0"]
 VARIANTS = {
@@ -40,6 +45,9 @@ VARIANTS = {
                                   "model.condition_on_dtau=false"],
     "… with lr 5e-4, dropout 0.1": [*RECIPE, "model.head=pointer", "pointer_loss=1",
                                     "lr=5e-4", "model.dropout=0.1"],
+    "… with fast log-widths (×10)": [*RECIPE, "model.head=pointer", "pointer_loss=1",
+                                     "model.pointer_width_scale=10"],
+    "… with pointer loss ×3": [*RECIPE, "model.head=pointer", "pointer_loss=3"],
 }
 
 
@@ -61,7 +69,7 @@ def main() -> None:
     for name, overrides in VARIANTS.items():
         if args.only and name not in args.only:
             continue
-        cfg = apply_overrides(get_preset("cpu"), overrides)
+        cfg = apply_overrides(get_preset("cpu"), [*OLD_CPU, *overrides])
         run_dir = out / slug(name)
         ckpt = run_dir / "checkpoints" / "last" / str(args.stop_at)
         start = time.perf_counter()

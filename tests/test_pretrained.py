@@ -49,3 +49,17 @@ def test_shipped_flowmaps_puts_samples_on_tables_of_the_queried_kind():
     dist = np.linalg.norm(x[:, :, :, None] - boxes[:, :, None], axis=-1)  # to its own route's slots
     dist = np.where(real[:, :, None], dist, np.inf).min(-1)
     assert np.mean(dist < 0.05) > 0.8  # on a table of its own kind, where the object would sit
+
+
+def test_readme_quick_start_runs_and_draws_the_figure(tmp_path, monkeypatch):
+    """The README's quick-start block, run as written (from a fresh clone it needs only the
+    shipped weights)."""
+    import pathlib
+    import re
+
+    readme = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("## Quick start")[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "README quick start", "exec"), {})
+    assert (tmp_path / "fork_next.png").stat().st_size > 10_000

@@ -58,6 +58,7 @@ class ModelConfig:
     box_offset: float = 0.0
     box_scale: float = 1.0
     head: str = "velocity"
+    pointer_width_scale: float = 1.0
     condition_on_dtau: bool = False
 
     def __post_init__(self):
@@ -83,6 +84,10 @@ class ModelConfig:
             raise ValueError(f"ModelConfig.tau_max must be >= 2; got {self.tau_max}")
         if self.head not in HEADS:
             raise ValueError(f"ModelConfig.head must be one of {HEADS}; got {self.head!r}")
+        if not (isinstance(self.pointer_width_scale, (int, float))
+                and 0.0 < float(self.pointer_width_scale) <= 1000.0):
+            raise ValueError(f"ModelConfig.pointer_width_scale must lie in (0, 1000]; got "
+                             f"{self.pointer_width_scale!r}")
         if not isinstance(self.condition_on_dtau, bool):
             raise ValueError(f"ModelConfig.condition_on_dtau must be a bool; got "
                              f"{self.condition_on_dtau!r}")

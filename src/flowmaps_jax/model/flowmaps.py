@@ -60,7 +60,8 @@ class FlowMaps(nn.Module):
                        for _ in range(cfg.cdit_blocks)]
         if cfg.head == "pointer":
             self.final_norm = FinalLayer(cfg.dim, out_dim=None)
-            self.readout = PointerReadout(cfg.dim, cfg.box_scale, cfg.box_offset)
+            self.readout = PointerReadout(cfg.dim, cfg.box_scale, cfg.box_offset,
+                                          cfg.pointer_width_scale)
         else:
             self.final = FinalLayer(cfg.dim)
 

@@ -93,6 +93,7 @@ class PointerReadout(nn.Module):
     dim: int
     box_scale: float = 1.0
     box_offset: float = 0.0
+    width_scale: float = 1.0  # log σ² = width_scale · θ: Adam moves the widths this much faster
 
     @nn.compact
     def __call__(self, h, c, context, mask, boxes, x_t, t):
@@ -109,8 +110,9 @@ class PointerReadout(nn.Module):
         shared = jnp.einsum("bqns,bsd->bqnd", source, centres) @ b_map  # (B, Q, N, 4)
         means = (centres @ a_map)[:, None, None] + (shared + bias)[:, :, :, None, :]
         means = self.box_scale * (from_centre(means) - self.box_offset)  # the flow's space
-        log_var = self.param("log_var", nn.initializers.constant(_INIT_LOG_VAR), (4,))
-        log_var = log_var + FlatDense(4, kernel_init=nn.initializers.zeros_init(),
+        theta = self.param("log_var", nn.initializers.constant(_INIT_LOG_VAR / self.width_scale),
+                           (4,))
+        log_var = self.width_scale * theta + FlatDense(4, kernel_init=nn.initializers.zeros_init(),
                                       name="log_var_shift")(nn.silu(c))
         v = mixture_velocity(anchor, means, log_var[:, :, None, None, :], x_t, t)
         return v + FlatDense(4, kernel_init=nn.initializers.zeros_init(), name="residual")(h)

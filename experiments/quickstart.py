@@ -1,0 +1,26 @@
+"""The README quick start, as a script: samples the shipped FlowMaps for the fork one step ahead.
+
+    python experiments/quickstart.py        # writes fork_next.png; docs/figures/quickstart_fork.png
+                                            # is this figure (copied there)
+tests/test_pretrained.py runs the README code block itself.
+"""
+import jax
+import numpy as np
+
+from flowmaps_jax.flowsim import exact_posterior, render
+from flowmaps_jax.flowsim.scenes import scene_tokens, validation_split
+from flowmaps_jax.sample import load_pretrained
+from flowmaps_jax.tokens import Queries
+
+predictor = load_pretrained("flowmaps")            # shipped inside the package (8.9 MB)
+config = predictor.flowsim
+scenes = validation_split(config, num_envs=1)      # a held-out FlowSim home
+env, fork, tau, tau_q = 0, 0, 5, 6                 # where is the fork one step after τ = 5?
+tokens = scene_tokens(scenes, np.array([env]), np.array([tau]), config)
+queries = Queries(descriptor=np.asarray(scenes.object_kind)[:1, :1], tau_q=np.array([[tau_q]]))
+boxes = predictor.sample(tokens, queries, num_samples=100, key=jax.random.key(0))  # (1, 1, 100, 4)
+
+q = exact_posterior(scenes.num_slots[env, fork], scenes.slot[env, tau, fork], tau_q - tau, config)
+fig = render.draw_posterior(scenes, env, fork, tau, q, config)   # shaded: the exact answer
+render.overlay_boxes(fig.axes[0], boxes[0, 0], config, edgecolor="red")  # outlines: FlowMaps
+fig.savefig("fork_next.png")
