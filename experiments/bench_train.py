@@ -8,6 +8,7 @@ compile time are its own.
 
     python experiments/bench_train.py                       # paper + cpu presets, Q in 1 4 8
     python experiments/bench_train.py --presets cpu --queries 1 2 4 8 --steps 20
+    python experiments/bench_train.py --presets cpu --queries 8 --set model.head=velocity ...
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ import sys
 import time
 
 
-def measure(preset: str, queries: int, steps: int, envs: int, batch: int | None) -> dict:
+def measure(preset: str, queries: int, steps: int, envs: int, batch: int | None,
+            extra: list[str] | tuple[str, ...] = ()) -> dict:
     """Compile + time ``steps`` fused train steps for one configuration (in this process)."""
     import jax
 
@@ -31,7 +33,7 @@ def measure(preset: str, queries: int, steps: int, envs: int, batch: int | None)
     overrides = {"queries_per_scene": queries, "train_envs": envs}
     if batch is not None:
         overrides["batch_size"] = batch
-    cfg = apply_overrides(get_preset(preset), overrides)
+    cfg = apply_overrides(apply_overrides(get_preset(preset), list(extra)), overrides)
     scenes = train_split(cfg.flowsim, num_envs=cfg.train_envs)
     objective = training.objective_for(cfg)
     state = training.init_state(cfg, objective=objective)
@@ -69,13 +71,15 @@ def main(argv=None) -> None:
     parser.add_argument("--envs", type=int, default=256,
                         help="training-split size (does not affect speed)")
     parser.add_argument("--batch", type=int, default=None, help="override the preset's batch")
+    parser.add_argument("--set", dest="extra", action="append", default=[], metavar="KEY=VALUE",
+                        help="config overrides applied to every preset (label gets a '*')")
     parser.add_argument("--one", nargs=2, metavar=("PRESET", "Q"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
 
     if args.one:  # child process: measure one configuration, print JSON
         preset, q = args.one[0], int(args.one[1])
         steps = args.steps or (3 if preset == "paper" else 10)
-        print(json.dumps(measure(preset, q, steps, args.envs, args.batch)))
+        print(json.dumps(measure(preset, q, steps, args.envs, args.batch, args.extra)))
         return
 
     import jax
@@ -93,12 +97,15 @@ def main(argv=None) -> None:
                 cmd += ["--steps", str(args.steps)]
             if args.batch:
                 cmd += ["--batch", str(args.batch)]
+            for item in args.extra:
+                cmd += ["--set", item]
             out = subprocess.run(cmd, capture_output=True, text=True, check=False)
             if out.returncode != 0:
                 print(f"{preset:<6} Q={q}: failed\n{out.stderr[-2000:]}")
                 continue
             r = json.loads(out.stdout.strip().splitlines()[-1])
-            print(f"{r['preset']:<6} {r['dim']:>4} {r['layers']:>6} {r['batch']:>4} {r['Q']:>3} "
+            label = r["preset"] + ("*" if args.extra else "")
+            print(f"{label:<6} {r['dim']:>4} {r['layers']:>6} {r['batch']:>4} {r['Q']:>3} "
                   f"{r['params']:>9,} {r['compile_s']:>9.1f} {r['step_s']:>7.3f} "
                   f"{r['samples_per_s']:>10.0f} {r['peak_rss_mb']:>8.0f}", flush=True)
 

@@ -203,10 +203,25 @@ def test_report_files_and_contents(report):
     for name in data["rows"]:
         assert f"| {name} |" in text
     assert "by horizon" in text and "by category" in text
-    for figure in ("kl.png", "samples.png", "slots.png"):
+    for figure in ("kl.png", "by_horizon.png", "samples.png", "slots.png"):
         assert figure in data["figures"]
         assert (out / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert (out / figure).stat().st_size > 10_000
+
+
+def test_route_offset_table_matches_the_one_step_queries(report):
+    """The routine table: the oracle row is exactly 0.2 / 0.7 / 0.1 one step ahead and last-seen
+    puts everything at offset 0, over the protocol's Δτ = 1 queries."""
+    out, _, _, evalset = report
+    data = json.loads((out / "results.json").read_text())
+    one_step = int(np.sum(np.asarray(evalset.horizon) == 1))
+    oracle = data["rows"]["oracle"]["route_offsets_one_step"]
+    assert one_step > 0  # environment 3 of the fixture is queried one step ahead
+    assert oracle["labels"] == list(ev.ROUTE_LABELS) and oracle["count"] == one_step
+    np.testing.assert_allclose(oracle["mean"], [0.2, 0.7, 0.1, 0, 0, 0], atol=1e-5)
+    np.testing.assert_allclose(data["rows"]["last-seen"]["route_offsets_one_step"]["mean"],
+                               [1, 0, 0, 0, 0, 0], atol=1e-6)
+    assert "route offsets one step ahead" in (out / "results.md").read_text()
 
 
 def test_picked_queries_are_fork_remote_bottle_in_the_future(evalset):
@@ -239,6 +254,22 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
     assert "does not exist" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         ev.main(["--checkpoint", str(tmp_path), "--samples", "0,x"])
+    assert ev.main(["--checkpoint", "pretrained:flowmap", "--out", str(tmp_path)]) == 2
+    assert "mlp-learned" in capsys.readouterr().err  # the error lists the shipped names
+    assert ev.main(["--checkpoint", "pretrained:flowmaps", "--no-progress"]) == 2
+    assert "--out is required" in capsys.readouterr().err
+
+
+def test_cli_evaluates_the_shipped_models(tmp_path, capsys):
+    """``--checkpoint pretrained:flowmaps --baseline pretrained:mlp``: the command that
+    reproduces docs/results.md's table, here on 3 environments."""
+    code = ev.main(["--checkpoint", "pretrained:flowmaps", "--baseline", "pretrained:mlp",
+                    "--num-envs", "3", "--samples", "8", "--kl-draws", "4", "--no-figures",
+                    "--no-progress", "--out", str(tmp_path)])
+    assert code == 0
+    data = json.loads((tmp_path / "results.json").read_text())
+    assert {"FlowMaps", "MLP (mean)"} <= set(data["rows"])
+    assert data["rows"]["FlowMaps"]["info"]["source"] == "pretrained:flowmaps"
 
 
 @pytest.mark.slow

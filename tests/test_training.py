@@ -247,6 +247,12 @@ def test_cli_smoke_run_writes_config_metrics_and_checkpoints(straight_run):
     val_steps = [r["step"] for r in records if r["kind"] == "val"]
     assert train_steps == [5, 10, 15, 20] and val_steps == [0, 10, 20]
     assert all(math.isfinite(r["loss"]) and r["lr"] >= 0 for r in records if r["kind"] == "train")
+    # the routine diagnostic runs at every validation and its learning curve is drawn
+    routine = [r for r in records if r["kind"] == "routine"]
+    assert [r["step"] for r in routine] == val_steps
+    assert all(0.0 <= r["offset_+1"] <= 1.0 and r["search_cost_ratio"] >= 1.0 for r in routine)
+    assert "Routines at step 20" in printed
+    assert (run_dir / "routine_curve.png").stat().st_size > 10_000
     state, config = checkpoint.restore_latest(run_dir, training.abstract_state(SMOKE))
     assert int(state.step) == 20 and config == SMOKE.to_dict()
     best, _ = checkpoint.restore_best(run_dir, training.abstract_state(SMOKE))

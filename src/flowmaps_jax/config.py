@@ -63,8 +63,9 @@ class TrainConfig:
         chunk of ``train_envs`` environments every ``train_envs // batch_size`` steps).
     train_envs, val_envs: split sizes; val_batches: fixed validation batches per evaluation.
     routine_envs, routine_samples: the routine diagnostic (:mod:`flowmaps_jax.routine`) run at
-        every validation on this many validation environments (× 3 objects, once one step ahead
-        and once at mixed horizons) with this many samples per query; 0 environments = off.
+        every validation on this many validation environments (at most ``val_envs``; × 3
+        objects, once one step ahead and once at mixed horizons) with this many samples per
+        query; 0 environments = off.
     seed: the single seed from which params, dropout and data keys are derived.
     log_every, val_every, ckpt_every: intervals in steps; keep_last: recent checkpoints kept.
     run_dir: output directory (None = ``runs/<model_kind>-<preset>-<timestamp>``).
@@ -112,9 +113,6 @@ class TrainConfig:
             check_int(name, getattr(self, name))
         check_int("routine_envs", self.routine_envs, minimum=0)
         check_int("routine_samples", self.routine_samples)
-        if self.routine_envs > self.val_envs:
-            raise ValueError(f"routine_envs={self.routine_envs} must be <= val_envs="
-                             f"{self.val_envs} (the diagnostic uses validation environments)")
         if check_int("warmup_steps", self.warmup_steps, minimum=0) >= self.steps:
             raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
                              f"got {self.warmup_steps!r}")

@@ -720,10 +720,11 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m flowmaps_jax.evaluate",
         description="Evaluate FlowMaps (and baselines) against FlowSim's exact posterior.")
     parser.add_argument("--checkpoint", required=True,
-                        help="run or checkpoint directory of the model to evaluate (FlowMaps)")
+                        help="run or checkpoint directory of the model to evaluate (FlowMaps), "
+                             "or pretrained:NAME for a shipped model (e.g. pretrained:flowmaps)")
     parser.add_argument("--baseline", action="extend", nargs="+", default=[], metavar="DIR",
-                        help="run or checkpoint directories of baselines (several after one "
-                             "flag, or the flag repeated)")
+                        help="run or checkpoint directories (or pretrained:NAME) of baselines "
+                             "(several after one flag, or the flag repeated)")
     parser.add_argument("--out", default=None,
                         help="output directory (default: <checkpoint>/eval)")
     parser.add_argument("--num-envs", type=int, default=DEFAULT_NUM_ENVS,
@@ -750,6 +751,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+PRETRAINED_PREFIX = "pretrained:"
+
+
+def _load_model(spec: str, which: str) -> Predictor:
+    """A checkpoint directory, or ``pretrained:NAME`` for a model shipped with the package."""
+    if spec.startswith(PRETRAINED_PREFIX):
+        from flowmaps_jax.sample import load_pretrained
+
+        return load_pretrained(spec[len(PRETRAINED_PREFIX):])
+    return load(spec, which=which)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; returns the exit code (0 on success, 2 on a bad argument)."""
     parser = build_parser()
@@ -761,8 +774,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_int("--chunk-envs", args.chunk_envs, 1)
         if args.logp_steps is not None:
             check_int("--logp-steps", args.logp_steps, 2)
-        model = load(args.checkpoint, which=args.which)
-        baselines = [load(path, which=args.which) for path in args.baseline]
+        model = _load_model(args.checkpoint, args.which)
+        baselines = [_load_model(path, args.which) for path in args.baseline]
         config = model.flowsim
         if args.scenes is not None:
             from flowmaps_jax.flowsim.scenes import load_scenes
@@ -774,7 +787,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             from flowmaps_jax.flowsim.scenes import validation_split
 
             scenes = validation_split(config, num_envs=args.num_envs)
-        out = pathlib.Path(args.out) if args.out else pathlib.Path(args.checkpoint) / "eval"
+        if args.out:
+            out = pathlib.Path(args.out)
+        elif args.checkpoint.startswith(PRETRAINED_PREFIX):
+            raise ValueError("--out is required when --checkpoint is a pretrained model")
+        else:
+            out = pathlib.Path(args.checkpoint) / "eval"
         print(f"Evaluating {model.name} ({model.source}, step {model.step})"
               + "".join(f" vs {b.name} ({b.source}, step {b.step})" for b in baselines)
               + f" on {scenes.num_envs} environments → {out}", flush=True)

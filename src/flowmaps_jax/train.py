@@ -214,7 +214,8 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     if cfg.routine_envs > 0:
         from flowmaps_jax import routine
 
-        probe = routine.build_probe(val_scenes, cfg.flowsim, cfg.routine_envs, cfg.seed)
+        probe = routine.build_probe(val_scenes, cfg.flowsim,
+                                    min(cfg.routine_envs, val_scenes.num_envs), cfg.seed)
     last_routine: dict = {}
 
     def validate(step: int) -> float:
