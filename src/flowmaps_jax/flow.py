@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.flowmaps import encode, velocity, velocity_and_anchor_logits
-from flowmaps_jax.tokens import FURNITURE, SceneTokens, TrainBatch
+from flowmaps_jax.tokens import FURNITURE, SceneTokens, TrainBatch, to_centre
 from flowmaps_jax.validation import check_int
 
 T_SAMPLERS = ("uniform", "beta", "logit_normal")
@@ -68,8 +68,8 @@ def sample_t(key: jax.Array, shape: tuple[int, ...], kind: str = "beta") -> jnp.
 def supporting_token(tokens: SceneTokens, boxes: jnp.ndarray) -> jnp.ndarray:
     """Index (B, Q) of the furniture token whose centre is nearest each box's centre (B, Q, 4):
     the table an object box stands on. Normalised (y, x, h, w) boxes."""
-    centre = lambda b: b[..., :2] + 0.5 * b[..., 2:]  # noqa: E731
-    d = jnp.sum(jnp.square(centre(boxes)[:, :, None] - centre(tokens.boxes)[:, None]), -1)
+    centre, token_centre = to_centre(boxes)[..., :2], to_centre(tokens.boxes)[..., :2]
+    d = jnp.sum(jnp.square(centre[:, :, None] - token_centre[:, None]), -1)  # (B, Q, S)
     ok = (tokens.mask.astype(bool) & (tokens.kind == FURNITURE))[:, None, :]
     return jnp.argmin(jnp.where(ok, d, jnp.inf), axis=-1)
 
@@ -104,15 +104,11 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
                                                dropout_key=vel_key)
         table = supporting_token(batch.tokens, batch.target)  # (B, Q)
         log_w = jax.nn.log_softmax(logits[:, :, 0], axis=-1)  # (B, Q, S)
-        ce = -jnp.mean(jnp.take_along_axis(log_w, table[..., None], axis=-1))
-        extra = {"pointer_ce": ce}
-        v = v[:, :, 0]
+        extra["pointer_ce"] = -jnp.mean(jnp.take_along_axis(log_w, table[..., None], axis=-1))
     else:
-        v = velocity(params, config, context, x_t, t, batch.queries, dropout_key=vel_key)[:, :, 0]
-    mse = jnp.mean(jnp.square(v - target_velocity(x0, x1)), axis=-1)  # (B, Q)
-    loss = jnp.mean(mse)
-    if pointer_loss > 0:
-        loss = loss + pointer_loss * extra["pointer_ce"]
+        v = velocity(params, config, context, x_t, t, batch.queries, dropout_key=vel_key)
+    mse = jnp.mean(jnp.square(v[:, :, 0] - target_velocity(x0, x1)), axis=-1)  # (B, Q)
+    loss = jnp.mean(mse) + pointer_loss * extra.get("pointer_ce", 0.0)
     return loss, {"loss": loss, "mse_per_query": mse, **extra}
 
 

@@ -48,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.tokens import from_centre, to_centre
 from flowmaps_jax.validation import check_int, is_concrete
 
 CENTRE_SIGMA_SCALE = 0.35
@@ -168,18 +169,7 @@ def _full_mask(shape, slot_mask):
 # --------------------------------------------------------------------------- box coordinates
 
 
-def to_centre(boxes: jnp.ndarray) -> jnp.ndarray:
-    """(..., 4) boxes (y, x, h, w) → (cy, cx, h, w). A shear with unit Jacobian."""
-    boxes = jnp.asarray(boxes)
-    y, x, h, w = jnp.moveaxis(boxes, -1, 0)
-    return jnp.stack([y + h / 2, x + w / 2, h, w], axis=-1)
-
-
-def from_centre(centres: jnp.ndarray) -> jnp.ndarray:
-    """(..., 4) (cy, cx, h, w) → boxes (y, x, h, w); inverse of :func:`to_centre`."""
-    centres = jnp.asarray(centres)
-    cy, cx, h, w = jnp.moveaxis(centres, -1, 0)
-    return jnp.stack([cy - h / 2, cx - w / 2, h, w], axis=-1)
+# to_centre / from_centre live in tokens.py (the box convention); re-exported here.
 
 
 # --------------------------------------------------------------------------- ground-truth mixture

@@ -56,13 +56,6 @@ def build_probe(scenes, config, num_envs: int = 20, seed: int = 0) -> RoutinePro
         mixed=build_eval_queries(part, config, jax.random.fold_in(key, 2), 2))
 
 
-def _slot_summary(evalset, p_hat) -> dict[str, float]:
-    q, mask = evalset.slot_probs, evalset.slot_mask
-    return {"tv": float(np.mean(metrics.slot_tv(p_hat, q))),
-            "top1": float(np.mean(metrics.top1(p_hat, q, mask))),
-            "search_cost_ratio": float(np.mean(metrics.search_cost_ratio(p_hat, q, mask)))}
-
-
 def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None,
                     num_samples: int = 32) -> dict[str, float]:
     """Sample ``predictor`` on the probe; a flat dict of floats (JSON-ready).
@@ -71,6 +64,8 @@ def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None
     ``offset_off`` (one step ahead, mean over queries); ``one_step_tv``, ``one_step_top1``,
     ``one_step_search_cost_ratio``; ``tv``, ``top1``, ``search_cost_ratio`` (horizon mixture).
     """
+    from flowmaps_jax.evaluate import slot_scores
+
     num_samples = check_int("num_samples", num_samples, 1)
     key = jax.random.PRNGKey(0) if key is None else key
     out: dict[str, float] = {}
@@ -78,7 +73,7 @@ def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None
         samples = predictor.sample(evalset.tokens, evalset.queries, num_samples,
                                    jax.random.fold_in(key, i))
         p_hat = metrics.empirical_slots(samples, evalset.slot_boxes, evalset.slot_mask)
-        scores = _slot_summary(evalset, p_hat)
+        scores = {k: float(np.mean(v)) for k, v in slot_scores(evalset, p_hat).items()}
         if label == "one_step":
             mass = np.asarray(metrics.route_offset_mass(p_hat, evalset.slot_now,
                                                         evalset.num_slots)).mean(axis=(0, 1))

@@ -30,6 +30,20 @@ FURNITURE = 0
 OBJECT = 1
 
 
+def to_centre(boxes: jnp.ndarray) -> jnp.ndarray:
+    """(..., 4) boxes (y, x, h, w) → (cy, cx, h, w). A shear with unit Jacobian."""
+    boxes = jnp.asarray(boxes)
+    y, x, h, w = jnp.moveaxis(boxes, -1, 0)
+    return jnp.stack([y + h / 2, x + w / 2, h, w], axis=-1)
+
+
+def from_centre(centres: jnp.ndarray) -> jnp.ndarray:
+    """(..., 4) (cy, cx, h, w) → boxes (y, x, h, w); inverse of :func:`to_centre`."""
+    centres = jnp.asarray(centres)
+    cy, cx, h, w = jnp.moveaxis(centres, -1, 0)
+    return jnp.stack([cy - h / 2, cx - w / 2, h, w], axis=-1)
+
+
 @struct.dataclass
 class SceneTokens:
     """One map at state time τ as padded tokens. Leading batch dims ``...`` are free.

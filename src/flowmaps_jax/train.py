@@ -213,6 +213,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     probe = None
     if cfg.routine_envs > 0:
         from flowmaps_jax import routine
+        from flowmaps_jax.sample import Predictor
 
         probe = routine.build_probe(val_scenes, cfg.flowsim,
                                     min(cfg.routine_envs, val_scenes.num_envs), cfg.seed)
@@ -227,8 +228,6 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         metrics_log.write({"kind": "val", "step": step, "val_loss": val_loss,
                            "best": bool(improved)})
         if probe is not None:
-            from flowmaps_jax.sample import Predictor
-
             predictor = Predictor.from_params(state.ema_params, cfg.model, cfg.model_kind,
                                               cfg.flowsim)
             last_routine = routine.routine_metrics(predictor, probe,

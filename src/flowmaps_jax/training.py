@@ -32,7 +32,13 @@ import optax
 from flax import struct
 
 from flowmaps_jax.config import TrainConfig
-from flowmaps_jax.tokens import TrainBatch, assert_batch_shapes, trim_padding
+from flowmaps_jax.tokens import (
+    TrainBatch,
+    assert_batch_shapes,
+    from_centre,
+    to_centre,
+    trim_padding,
+)
 
 Params = Any
 # loss(params, batch, key, train) -> (scalar loss, dict of scalar diagnostics)
@@ -243,9 +249,9 @@ def jitter_targets(key: jax.Array, boxes: jnp.ndarray, scale: float) -> jnp.ndar
     (:func:`metrics.gt_mixture_sigma`): a draw from the smoothed q around each box at scale 1."""
     from flowmaps_jax import metrics
 
-    centres = metrics.to_centre(boxes)
+    centres = to_centre(boxes)
     noise = jax.random.normal(key, boxes.shape, boxes.dtype)
-    return metrics.from_centre(centres + scale * metrics.gt_mixture_sigma(boxes) * noise)
+    return from_centre(centres + scale * metrics.gt_mixture_sigma(boxes) * noise)
 
 
 _CHUNK_SALT = 0x7FFFFFFF

@@ -40,19 +40,9 @@ import jax
 import jax.numpy as jnp
 
 from flowmaps_jax.model.embeddings import FlatDense
+from flowmaps_jax.tokens import from_centre, to_centre
 
 _INIT_LOG_VAR = 2.0 * math.log(0.02)  # a component's initial std in flow units
-
-
-def to_centre(boxes):
-    """(..., 4) (y, x, h, w) → (y + h/2, x + w/2, h, w)."""
-    return boxes + 0.5 * jnp.concatenate([boxes[..., 2:], jnp.zeros_like(boxes[..., 2:])], -1)
-
-
-def from_centre(centres):
-    """Inverse of :func:`to_centre`."""
-    return centres - 0.5 * jnp.concatenate([centres[..., 2:], jnp.zeros_like(centres[..., 2:])],
-                                           -1)
 
 
 def _diag(*values):
