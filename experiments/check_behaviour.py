@@ -1,0 +1,101 @@
+"""Behaviour fingerprint: fixed-seed trainings and a smoke evaluation, through the public CLIs only.
+
+Refactors must not change numbers. This script trains three tiny models (FlowMaps with the
+velocity head, FlowMaps with the cpu preset's pointer recipe, the MLP baseline) for a few steps
+with a fixed seed, evaluates them against the exact posterior, and prints one JSON document:
+every ``metrics.jsonl`` record (timings removed) and every ``results.json`` row. Compare two
+fingerprints with ``--compare``::
+
+    python experiments/check_behaviour.py --out /tmp/after.json --compare docs/behaviour_reference.json
+
+exits 1 and prints the first differences if anything moved by more than ``--atol`` (default 0:
+bit-identical on the same machine). The reference was written before the issue-9 restructure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import subprocess
+import sys
+import tempfile
+
+RUNS = {
+    "flowmaps": ["--preset", "smoke", "--steps", "30"],
+    "pointer": ["--preset", "smoke", "--steps", "30", "--set", "model.head=pointer",
+                "--set", "model.condition_on_dtau=true", "--set", "short_horizon_frac=0.5",
+                "--set", "target_noise=1.0", "--set", "pointer_loss=1.0"],
+    "mlp": ["--preset", "smoke", "--steps", "30", "--model", "mlp"],
+}
+TIMING_KEYS = {"seconds", "sec_per_step", "steps_per_sec", "elapsed", "time", "wall_s"}
+
+
+def _strip(obj):
+    if isinstance(obj, dict):
+        return {k: _strip(v) for k, v in obj.items() if k not in TIMING_KEYS}
+    if isinstance(obj, list):
+        return [_strip(v) for v in obj]
+    return obj
+
+
+def _run(args: list[str]) -> None:
+    proc = subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(args)} failed:\n{proc.stdout}\n{proc.stderr}")
+
+
+def fingerprint(work: pathlib.Path) -> dict:
+    out: dict = {}
+    for name, args in RUNS.items():
+        run_dir = work / name
+        _run(["flowmaps_jax.train", *args, "--run-dir", str(run_dir), "--no-progress"])
+        lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+        out[f"train/{name}"] = [_strip(json.loads(line)) for line in lines]
+    _run(["flowmaps_jax.evaluate", "--checkpoint", str(work / "flowmaps"),
+          "--baseline", str(work / "pointer"), str(work / "mlp"), "--num-envs", "12",
+          "--samples", "8,16", "--kl-draws", "16", "--no-figures", "--no-progress",
+          "--out", str(work / "eval")])
+    results = json.loads((work / "eval" / "results.json").read_text())
+    out["evaluate"] = _strip({"protocol": results["protocol"], "rows": results["rows"]})
+    return out
+
+
+def _diff(a, b, atol: float, path: str = "") -> list[str]:
+    if isinstance(a, dict) and isinstance(b, dict):
+        keys = sorted(set(a) | set(b))
+        return [d for k in keys for d in (_diff(a.get(k), b.get(k), atol, f"{path}/{k}")
+                                          if k in a and k in b else [f"{path}/{k}: missing"])]
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: length {len(a)} != {len(b)}"]
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _diff(x, y, atol, f"{path}[{i}]")]
+    if isinstance(a, float) and isinstance(b, float):
+        return [] if abs(a - b) <= atol else [f"{path}: {a!r} != {b!r}"]
+    return [] if a == b else [f"{path}: {a!r} != {b!r}"]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default=None, help="write the fingerprint JSON here")
+    parser.add_argument("--compare", default=None, help="reference fingerprint to compare with")
+    parser.add_argument("--atol", type=float, default=0.0, help="tolerance on float values")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        fp = fingerprint(pathlib.Path(tmp))
+    text = json.dumps(fp, indent=1, sort_keys=True)
+    if args.out:
+        pathlib.Path(args.out).write_text(text + "\n")
+    if args.compare:
+        diffs = _diff(json.loads(pathlib.Path(args.compare).read_text()), fp, args.atol)
+        if diffs:
+            print(f"{len(diffs)} differences from {args.compare}:\n" + "\n".join(diffs[:30]))
+            return 1
+        print(f"identical to {args.compare} (atol {args.atol})")
+    elif not args.out:
+        print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
