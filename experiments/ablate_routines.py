@@ -23,10 +23,11 @@ import time
 
 import numpy as np
 
-from flowmaps_jax import evaluate, train
-from flowmaps_jax.config import apply_overrides, get_preset
+from flowmaps_jax import evaluation
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.sample import load
+from flowmaps_jax.training import loop as train
+from flowmaps_jax.training.config import apply_overrides, get_preset
 
 # the cpu preset before issue 8 (paper recipe at cpu size); every variant starts from it
 OLD_CPU = ["model.head=velocity", "model.condition_on_dtau=false", "short_horizon_frac=0",
@@ -75,7 +76,7 @@ def main() -> None:
         start = time.perf_counter()
         if not ckpt.exists():
             print(f"=== {name}: training to step {args.stop_at} → {run_dir}", flush=True)
-            train.run(cfg, run_dir, stop_at=args.stop_at, progress=False)
+            train.run(cfg, run_dir, stop_at=args.stop_at, progress=False, overwrite=True)
         train_s = time.perf_counter() - start
         records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().split("\n")
                    if line.strip()]
@@ -84,8 +85,9 @@ def main() -> None:
         routine = [r for r in records if r["kind"] == "routine"][-1]
         predictor = load(run_dir / "checkpoints", which="latest")
         scenes = validation_split(cfg.flowsim, num_envs=args.num_envs)
-        res, _, _ = evaluate.run_evaluation([predictor], scenes, cfg.flowsim, None,
-                                            sample_counts=(100,), figures=False, progress=False)
+        res, _, _ = evaluation.run_evaluation([predictor], scenes, cfg.flowsim, None,
+                                              sample_counts=(100,), figures=False,
+                                              progress=False)
         row = res["rows"][predictor.name]
         slot = row["slots"]["100"]
         results[name] = {

@@ -24,10 +24,10 @@ import time
 import jax
 import numpy as np
 
-from flowmaps_jax.config import get_preset
 from flowmaps_jax.model import init_params
 from flowmaps_jax.sample import Predictor
 from flowmaps_jax.tokens import Queries, SceneTokens
+from flowmaps_jax.training.config import get_preset
 
 
 def synthetic_inputs(num_scenes: int, queries_per_scene: int, max_tokens: int, seed: int = 0):
@@ -84,7 +84,7 @@ def main() -> None:
     args = parser.parse_args()
 
     cfg = get_preset(args.preset).model
-    predictor = Predictor.from_params(init_params(jax.random.PRNGKey(0), cfg), cfg)
+    predictor = Predictor.from_params(init_params(jax.random.key(0), cfg), cfg)
     n_params = sum(x.size for x in jax.tree_util.tree_leaves(predictor.params))
     print(f"{args.preset} model: {cfg}\n{n_params:,} parameters; devices {jax.devices()}")
 

@@ -26,18 +26,19 @@ def measure(preset: str, queries: int, steps: int, envs: int, batch: int | None,
     """Compile + time ``steps`` fused train steps for one configuration (in this process)."""
     import jax
 
-    from flowmaps_jax import training
-    from flowmaps_jax.config import apply_overrides, get_preset
     from flowmaps_jax.flowsim.scenes import train_split
+    from flowmaps_jax.training import objectives
+    from flowmaps_jax.training import state as train_state
+    from flowmaps_jax.training.config import apply_overrides, get_preset
 
     overrides = {"queries_per_scene": queries, "train_envs": envs}
     if batch is not None:
         overrides["batch_size"] = batch
     cfg = apply_overrides(apply_overrides(get_preset(preset), list(extra)), overrides)
     scenes = train_split(cfg.flowsim, num_envs=cfg.train_envs)
-    objective = training.objective_for(cfg)
-    state = training.init_state(cfg, objective=objective)
-    step_fn = training.make_fused_train_step(cfg, objective)
+    objective = objectives.objective_for(cfg)
+    state = train_state.init_state(cfg, objective=objective)
+    step_fn = train_state.make_fused_train_step(cfg, objective)
     jax.block_until_ready((scenes, state))
 
     start = time.perf_counter()

@@ -6,7 +6,8 @@ with a fixed seed, evaluates them against the exact posterior, and prints one JS
 every ``metrics.jsonl`` record (timings removed) and every ``results.json`` row. Compare two
 fingerprints with ``--compare``::
 
-    python experiments/check_behaviour.py --out /tmp/after.json --compare docs/behaviour_reference.json
+    python experiments/check_behaviour.py --out /tmp/now.json \
+        --compare docs/behaviour_reference.json
 
 exits 1 and prints the first differences if anything moved by more than ``--atol`` (default 0:
 bit-identical on the same machine). The reference was written before the issue-9 restructure.
@@ -28,12 +29,14 @@ RUNS = {
                 "--set", "target_noise=1.0", "--set", "pointer_loss=1.0"],
     "mlp": ["--preset", "smoke", "--steps", "30", "--model", "mlp"],
 }
-TIMING_KEYS = {"seconds", "sec_per_step", "steps_per_sec", "elapsed", "time", "wall_s"}
+# Wall-clock rates and temp-dir paths differ from run to run; everything else must not.
+VOLATILE_KEYS = {"seconds", "sec_per_step", "steps_per_sec", "samples_per_sec", "elapsed",
+                 "time", "wall_s", "source"}
 
 
 def _strip(obj):
     if isinstance(obj, dict):
-        return {k: _strip(v) for k, v in obj.items() if k not in TIMING_KEYS}
+        return {k: _strip(v) for k, v in obj.items() if k not in VOLATILE_KEYS}
     if isinstance(obj, list):
         return [_strip(v) for v in obj]
     return obj
@@ -69,7 +72,8 @@ def _diff(a, b, atol: float, path: str = "") -> list[str]:
     if isinstance(a, list) and isinstance(b, list):
         if len(a) != len(b):
             return [f"{path}: length {len(a)} != {len(b)}"]
-        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _diff(x, y, atol, f"{path}[{i}]")]
+        pairs = enumerate(zip(a, b, strict=True))
+        return [d for i, (x, y) in pairs for d in _diff(x, y, atol, f"{path}[{i}]")]
     if isinstance(a, float) and isinstance(b, float):
         return [] if abs(a - b) <= atol else [f"{path}: {a!r} != {b!r}"]
     return [] if a == b else [f"{path}: {a!r} != {b!r}"]
@@ -87,7 +91,8 @@ def main() -> int:
     if args.out:
         pathlib.Path(args.out).write_text(text + "\n")
     if args.compare:
-        diffs = _diff(json.loads(pathlib.Path(args.compare).read_text()), fp, args.atol)
+        reference = _strip(json.loads(pathlib.Path(args.compare).read_text()))
+        diffs = _diff(reference, fp, args.atol)
         if diffs:
             print(f"{len(diffs)} differences from {args.compare}:\n" + "\n".join(diffs[:30]))
             return 1

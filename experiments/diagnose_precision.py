@@ -6,7 +6,8 @@ numbers), so slot TV / top-1 depend on precision as much as on mode coverage; an
 cost depend on the model ranking the slots as q does, i.e. on having learned the dynamics. This
 prints (1) the distance from each sample to its nearest valid slot box and the per-coordinate
 error, (2) for the queries one step ahead (Δτ = 1, where q is (0.2, 0.7, 0.1) on offsets 0, 1, 2
-along the visiting order) the mean slot mass at offsets 0..3 from the current slot, model vs q.
+along the visiting order) the mean slot mass at route offsets 0..+3, beyond and off from the
+current slot (``evaluation.route_offset_mass``), model vs q.
 
     python experiments/diagnose_precision.py --checkpoint runs/flowmaps-cpu/checkpoints
 """
@@ -18,22 +19,9 @@ import argparse
 import jax
 import numpy as np
 
-from flowmaps_jax import evaluate, metrics
+from flowmaps_jax import evaluation
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.sample import load
-
-
-def mass_by_offset(dist: np.ndarray, slot_now: np.ndarray, num_slots: np.ndarray,
-                   max_offset: int = 4) -> np.ndarray:
-    """Mean mass at offsets 0..max_offset−1 along the visiting order from the current slot.
-
-    dist (Q, K[+1]) slot distributions (an off bin, if any, is ignored); slot_now, num_slots (Q,).
-    Offsets ≥ num_slots of a query contribute 0 (they would wrap onto a counted slot).
-    """
-    offsets = np.arange(max_offset)
-    index = (slot_now[:, None] + offsets) % num_slots[:, None]  # (Q, max_offset)
-    mass = np.take_along_axis(dist, index, axis=1)
-    return np.where(offsets < num_slots[:, None], mass, 0.0).mean(0)
 
 
 def main(argv=None) -> None:
@@ -50,8 +38,8 @@ def main(argv=None) -> None:
     predictor = load(args.checkpoint)
     config = predictor.flowsim
     n_envs = max(args.num_envs, args.ranking_envs)
-    evalset = evaluate.build_eval_queries(validation_split(config, n_envs), config,
-                                          jax.random.key(0), kl_draws=2)
+    evalset = evaluation.build_eval_queries(validation_split(config, n_envs), config,
+                                            jax.random.key(0), kl_draws=2)
 
     def draw(part):
         return np.asarray(predictor.sample(part.tokens, part.queries, args.samples,
@@ -78,15 +66,15 @@ def main(argv=None) -> None:
         print("(2) no Δτ = 1 query among the first --ranking-envs environments")
         return
     part = evalset.take(envs)
-    p_hat = np.asarray(metrics.empirical_slots(draw(part), part.slot_boxes, part.slot_mask))
-    flat = lambda a: np.asarray(a).reshape(-1, *np.shape(a)[2:])  # noqa: E731
-    now, count = flat(part.slot_now), flat(part.num_slots)
-    print(f"(2) {part.num_queries} queries with Δτ = 1: mean slot mass at offsets 0, 1, 2, 3 "
-          "from the current slot (visiting order)")
-    print("exact q:  " + "  ".join(f"{m:.3f}" for m in mass_by_offset(flat(part.slot_probs),
-                                                                         now, count)))
-    print("model p̂: " + "  ".join(f"{m:.3f}" for m in mass_by_offset(flat(p_hat), now, count))
-          + f"   (off: {flat(p_hat)[:, -1].mean():.3f})")
+    p_hat = evaluation.empirical_slots(draw(part), part.slot_boxes, part.slot_mask)
+    exact = evaluation.oracle_slots(part.slot_probs)
+    mass = {name: np.asarray(evaluation.route_offset_mass(p, part.slot_now, part.num_slots))
+            .mean(axis=(0, 1)) for name, p in (("exact q", exact), ("model p̂", p_hat))}
+    print(f"(2) {part.num_queries} queries with Δτ = 1: mean slot mass at route offsets from the "
+          "current slot (visiting order)")
+    print("offset:   " + "  ".join(f"{k:>6}" for k in evaluation.ROUTE_OFFSET_LABELS))
+    for name, m in mass.items():
+        print(f"{name}:  " + "  ".join(f"{v:6.3f}" for v in m))
 
 
 if __name__ == "__main__":

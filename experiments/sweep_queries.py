@@ -14,8 +14,8 @@ import argparse
 import pathlib
 import time
 
-from flowmaps_jax.config import apply_overrides, get_preset
-from flowmaps_jax.train import run
+from flowmaps_jax.training.config import apply_overrides, get_preset
+from flowmaps_jax.training.loop import run
 
 
 def main(argv=None) -> None:
@@ -33,7 +33,8 @@ def main(argv=None) -> None:
             "ema_decay": 0.99, "val_every": args.steps, "ckpt_every": args.steps,
             "log_every": max(1, args.steps // 10)})
         start = time.perf_counter()
-        result = run(cfg, pathlib.Path(args.out) / f"q{q}", progress=False, log=lambda _: None)
+        result = run(cfg, pathlib.Path(args.out) / f"q{q}", progress=False, log=lambda _: None,
+                     overwrite=True)
         seconds = time.perf_counter() - start
         rows.append((q, result.step, result.best_val_loss, seconds,
                      args.steps * cfg.batch_size * q))

@@ -21,11 +21,11 @@ import time
 
 import numpy as np
 
-from flowmaps_jax import evaluate
-from flowmaps_jax.config import apply_overrides, get_preset
+from flowmaps_jax import evaluation
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.sample import load
-from flowmaps_jax.train import run
+from flowmaps_jax.training.config import apply_overrides, get_preset
+from flowmaps_jax.training.loop import run
 
 
 def parse_variant(text: str) -> tuple[str, list[str]]:
@@ -54,11 +54,11 @@ def main(argv=None) -> None:
         cfg = apply_overrides(apply_overrides(get_preset(args.preset), base), overrides)
         run_dir = pathlib.Path(args.out) / name
         start = time.perf_counter()
-        result = run(cfg, run_dir, progress=False, log=lambda _: None)
+        result = run(cfg, run_dir, progress=False, log=lambda _: None, overwrite=True)
         train_s = time.perf_counter() - start
         predictor = load(result.checkpoint_dir)
         scenes = validation_split(cfg.flowsim, args.eval_envs)
-        results, model_rows, _ = evaluate.run_evaluation(
+        results, model_rows, _ = evaluation.run_evaluation(
             [predictor], scenes, cfg.flowsim, sample_counts=(100,), figures=False,
             progress=False)
         row = results["rows"][predictor.name]

@@ -5,6 +5,15 @@ should use this size to reuse the compiled function."""
 
 from __future__ import annotations
 
+import os
+import tempfile
+
+# One persistent XLA compilation cache per test session, shared with the subprocesses and notebook
+# kernels the tests start (they inherit the environment): the same smoke-model functions compiled
+# by several processes are compiled once. Set before JAX is imported; a user's own setting wins.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", tempfile.mkdtemp(prefix="flowmaps-jax-xla-"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+
 import jax
 import pytest
 

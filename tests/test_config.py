@@ -1,17 +1,18 @@
 """TrainConfig presets, overrides from strings, JSON round trip and CLI argument resolution."""
 
+import dataclasses
 import json
 
 import pytest
 
-from flowmaps_jax.config import (
+from flowmaps_jax.training.config import (
     PRESETS,
     TrainConfig,
     apply_overrides,
     format_config,
     get_preset,
 )
-from flowmaps_jax.train import build_parser, main, resolve_config
+from flowmaps_jax.training.loop import build_parser, main, resolve_config
 
 
 def test_paper_preset_matches_the_paper():
@@ -64,14 +65,25 @@ def test_from_dict_rejects_unknown_keys():
         TrainConfig.from_dict(data)
 
 
+def test_configs_saved_with_removed_fields_still_load():
+    """run_dir (TrainConfig) and max_tokens (ModelConfig) configured nothing and were removed;
+    checkpoints written before still restore, and a really unknown key is still refused."""
+    data = get_preset("smoke").to_dict()
+    data["run_dir"], data["model"]["max_tokens"] = "runs/x", 20
+    assert TrainConfig.from_dict(data) == get_preset("smoke")
+    data["model"]["max_token"] = 20
+    with pytest.raises(ValueError, match="max_token"):
+        TrainConfig.from_dict(data)
+
+
 def test_overrides_convert_types_including_nested_fields():
     cfg = apply_overrides(get_preset("smoke"), [
         "model.dim=64", "lr=2e-3", "steps=1e3", "clip_norm=none", "t_sampler=uniform",
-        "mlp_variance=learned", "model.dropout=0.0"])
+        "model.baseline_variance=learned", "model.dropout=0.0"])
     assert cfg.model.dim == 64 and isinstance(cfg.model.dim, int)
     assert cfg.lr == 2e-3 and cfg.steps == 1000 and cfg.clip_norm is None
     assert cfg.t_sampler == "uniform" and cfg.model.dropout == 0.0
-    assert cfg.mlp_variance == "learned" == cfg.model.baseline_variance
+    assert cfg.model.baseline_variance == "learned"
     again = apply_overrides(cfg, {"clip_norm": "0.5"})
     assert again.clip_norm == 0.5
 
@@ -118,12 +130,61 @@ def test_default_run_dir_names_model_and_preset():
     assert run_dir.parts[0] == "runs" and run_dir.name.startswith("flowmaps-smoke-")
 
 
+def _save_run(run_dir, cfg):
+    """A run directory whose checkpoint (a stand-in state) carries ``cfg``."""
+    import jax.numpy as jnp
+
+    from flowmaps_jax.training import checkpoint, objectives
+    from flowmaps_jax.training import state as train_state
+
+    stand_in = objectives.Objective(init=lambda key: {"w": jnp.ones(3)}, loss=None)
+    with checkpoint.CheckpointStore(run_dir / "checkpoints") as store:
+        store.save(train_state.init_state(cfg, objective=stand_in), cfg.to_dict())
+
+
 def test_resume_reads_the_saved_config(tmp_path):
     saved = apply_overrides(get_preset("smoke"), ["model.dim=48", "model.heads=4"])
-    (tmp_path / "config.json").write_text(json.dumps(saved.to_dict()))
+    _save_run(tmp_path, saved)
     args = build_parser().parse_args(["--resume", "--run-dir", str(tmp_path), "--steps", "30"])
     cfg, run_dir = resolve_config(args)
     assert cfg.model.dim == 48 and cfg.steps == 30 and run_dir == tmp_path
+    # config.json (the last run's --steps etc.) is read for the fields --resume may change only
+    (tmp_path / "config.json").write_text(json.dumps(
+        apply_overrides(saved, ["steps=40", "model.dim=64"]).to_dict()))
+    cfg, _ = resolve_config(build_parser().parse_args(["--resume", "--run-dir", str(tmp_path)]))
+    assert cfg.steps == 40 and cfg.model.dim == 48
+    (tmp_path / "config.json").write_text("{half")
+    cfg, _ = resolve_config(build_parser().parse_args(["--resume", "--run-dir", str(tmp_path)]))
+    assert cfg == saved
+
+
+FLOAT_FIELDS = ("lr", "weight_decay", "b1", "b2", "ema_decay", "clip_norm", "target_noise",
+                "pointer_loss", "short_horizon_frac")
+
+
+@pytest.mark.parametrize("name", FLOAT_FIELDS)
+@pytest.mark.parametrize("value", [float("inf"), float("-inf"), float("nan"), True, "0.1"])
+def test_every_float_field_must_be_a_finite_real_number(name, value):
+    with pytest.raises(ValueError, match=f"^{name} must be"):
+        dataclasses.replace(get_preset("smoke"), **{name: value})
+    if isinstance(value, float):
+        with pytest.raises(ValueError, match=f"{name} must be a finite real number"):
+            apply_overrides(get_preset("smoke"), [f"{name}={value}"])
+
+
+@pytest.mark.parametrize("override, fragment", [
+    ("seed=99999999999999999999", "seed must be an int in 0..4294967295"),
+    ("seed=-1", "seed"),
+    ("steps=3000000000", "steps must be an int in 1..2147483647"),
+    ("lr=1e400", "lr must be a finite real number"),
+])
+def test_out_of_range_numbers_are_value_errors(override, fragment):
+    with pytest.raises(ValueError, match=fragment):
+        apply_overrides(get_preset("smoke"), [override])
+
+
+def test_large_integers_convert_exactly():
+    assert apply_overrides(get_preset("smoke"), ["seed=4294967295"]).seed == 2**32 - 1
 
 
 @pytest.mark.parametrize("argv, fragment", [
@@ -132,6 +193,10 @@ def test_resume_reads_the_saved_config(tmp_path):
     (["--resume", "--run-dir", "RUN"], "does not exist"),
     (["--preset", "smoke", "--set", "model.width=3"], "model.width"),
     (["--preset", "smoke", "--stop-at", "999"], "stop_at"),
+    (["--preset", "smoke", "--set", "seed=99999999999999999999"], "seed"),
+    (["--preset", "smoke", "--set", "lr=inf"], "lr must be a finite real number"),
+    (["--preset", "smoke", "--from-step", "3"], "--from-step needs --resume"),
+    (["--resume", "--overwrite", "--run-dir", "RUN"], "exclude each other"),
 ])
 def test_cli_errors_are_clear(argv, fragment, tmp_path, capsys):
     argv = [str(tmp_path / "missing") if a == "RUN" else a for a in argv]
@@ -140,3 +205,4 @@ def test_cli_errors_are_clear(argv, fragment, tmp_path, capsys):
         main(argv)
     assert exit_info.value.code == 2
     assert fragment in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # nothing was written

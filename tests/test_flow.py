@@ -10,19 +10,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support import TINY, perturb, synthetic_queries, synthetic_tokens
 
 from flowmaps_jax.flow import (
-    cfm_loss,
     divergence,
     integrate,
     linear_path,
     log_prob,
     sample_t,
+    sample_with_log_prob,
     standard_normal_log_prob,
     target_velocity,
 )
-from flowmaps_jax.model import ModelConfig, encode, init_params, make_velocity_fn
-from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
+from flowmaps_jax.model import encode, init_params, make_velocity_fn
+from flowmaps_jax.tokens import TrainBatch
+from flowmaps_jax.training.objectives import cfm_loss
 
 # An affine field v(x, t) = A x + b with non-diagonal A: x1 = e^A x0 + A⁻¹(e^A − I) b is Gaussian.
 A = jnp.array([[-0.5, 0.3, 0.0, 0.1], [0.2, 0.4, -0.3, 0.0],
@@ -121,6 +123,21 @@ def test_log_prob_of_affine_flow_matches_closed_form_gaussian():
     assert float(jnp.abs(coarse - exact).max()) < 0.05
 
 
+def test_forward_log_prob_gives_the_samples_and_their_density_in_one_solve():
+    """sample_with_log_prob: the same samples as integrate, and a density that matches the
+    closed form (affine flow) and the backward solve of log_prob as the grid is refined."""
+    x0 = jax.random.normal(jax.random.key(11), (64, 4))
+    x1, log_p = jax.jit(lambda x: sample_with_log_prob(nonlinear_field, x, num_steps=41))(x0)
+    np.testing.assert_allclose(x1, integrate(nonlinear_field, x0, num_steps=41), atol=1e-5)
+    backward = jax.jit(lambda x: log_prob(nonlinear_field, x, num_steps=41))(x1)
+    np.testing.assert_allclose(log_p, backward, atol=5e-3)
+    y1, log_q = sample_with_log_prob(affine_field, x0, num_steps=41)
+    exact = jax.scipy.stats.multivariate_normal.logpdf(y1, MEAN1, COV1)
+    np.testing.assert_allclose(log_q, exact, atol=2e-3)
+    with pytest.raises(ValueError, match="method"):
+        sample_with_log_prob(affine_field, x0, method="rk4")
+
+
 def test_samples_of_affine_flow_have_the_density_moments():
     x0 = jax.random.normal(jax.random.key(3), (20000, 4))
     x1 = integrate(affine_field, x0, num_steps=41)
@@ -144,33 +161,14 @@ def test_log_prob_of_nonlinear_flow_is_a_normalised_density():
     assert float(jnp.abs(log_p - standard_normal_log_prob(x0)).mean()) > 0.1
 
 
-def _tiny_setup():
-    cfg = ModelConfig(dim=16, encoder_layers=1, cdit_blocks=1, heads=2, mlp_ratio=2,
-                      freq_bands=4)
-    b, s, q = 2, cfg.max_tokens, 2
-    mask = jnp.arange(s)[None] < jnp.array([[5], [12]])
-    tokens = SceneTokens(boxes=jax.random.uniform(jax.random.key(5), (b, s, 4)) * mask[..., None],
-                         descriptor=jnp.zeros((b, s), jnp.int32), kind=jnp.ones((b, s), jnp.int32),
-                         mask=mask, tau=jnp.array([1, 7]))
-    queries = Queries(descriptor=jnp.array([[0, 1], [2, 0]]), tau_q=jnp.array([[3, 4], [9, 19]]))
-    target = jax.random.uniform(jax.random.key(6), (b, q, 4))
-    return cfg, TrainBatch(tokens=tokens, queries=queries, target=target)
-
-
-@jax.jit
-def _perturb(params, key):
-    """Noise on every parameter (one compile) so the zero-initialised layers become active."""
-    leaves, treedef = jax.tree_util.tree_flatten(params)
-    keys = jax.random.split(key, len(leaves))
-    return treedef.unflatten([x + 0.2 * jax.random.normal(k, x.shape)
-                              for x, k in zip(leaves, keys, strict=True)])
-
-
 @pytest.fixture(scope="module")
 def tiny():
-    cfg, batch = _tiny_setup()
-    params = init_params(jax.random.key(7), cfg)
-    return cfg, batch, params, _perturb(params, jax.random.key(8))
+    """TINY, a batch of 2 scenes (5 and 12 real tokens) × 2 queries, fresh and perturbed params."""
+    tokens = synthetic_tokens(5, (5, 12), tau=(1, 7))
+    target = jax.random.uniform(jax.random.key(6), (2, 2, 4))
+    batch = TrainBatch(tokens=tokens, queries=synthetic_queries(tokens, 2), target=target)
+    params = init_params(jax.random.key(7), TINY)
+    return TINY, batch, params, perturb(params, jax.random.key(8), 0.2)
 
 
 def test_cfm_loss_at_zero_velocity_is_target_energy(tiny):

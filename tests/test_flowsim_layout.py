@@ -84,6 +84,7 @@ def check_scenes(scenes, config: FlowSimConfig) -> None:
         side = np.minimum(start[:, 2] - start[:, 0], start[:, 3] - start[:, 1])
         expected = np.maximum(config.min_object_px, np.floor(config.object_frac * side))
         np.testing.assert_allclose(size[:, m], expected)
+        assert obj[:, :, m].min() >= 0 and obj[:, :, m].max() <= config.map_size  # on the map
         for far, near in ((2, 0), (3, 1)):
             side = obj[:, :, m, far] - obj[:, :, m, near]
             np.testing.assert_allclose(side, np.broadcast_to(size[:, m, None], side.shape),
@@ -108,12 +109,14 @@ def test_known_orderings_on_a_hand_made_layout():
 
 @settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(map_size=st.integers(160, 400), lo=st.floats(0.05, 0.12), hi=st.floats(0.12, 0.25),
-       per_kind=st.integers(1, 3), object_frac=st.floats(0.2, 0.6), min_px=st.integers(1, 8),
+       per_kind=st.integers(1, 3), object_share=st.floats(0.3, 0.95), min_px=st.integers(1, 8),
        seed=st.integers(0, 2**31 - 1))
-def test_layouts_valid_for_random_configs(map_size, lo, hi, per_kind, object_frac, min_px,
+def test_layouts_valid_for_random_configs(map_size, lo, hi, per_kind, object_share, min_px,
                                           seed):
+    # object_frac up to the largest the config allows: objects no larger than the smallest table
     config = FlowSimConfig(map_size=map_size, table_min_frac=lo, table_max_frac=hi,
-                           min_per_kind=per_kind, object_frac=object_frac, min_object_px=min_px)
+                           min_per_kind=per_kind, object_frac=object_share * lo / hi,
+                           min_object_px=min_px)
     check_scenes(generate(jax.random.key(seed), SMALL_NUM_ENVS, config), config)
 
 

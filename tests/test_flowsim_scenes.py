@@ -92,6 +92,8 @@ def test_sample_queries_ranges(small_scenes, flowsim_config):
     assert abs(np.mean(tau_q[tau == 17] == 18) - 0.5) < 0.1
     same = sample_queries(jax.random.key(0), SMALL_NUM_ENVS, 20_000, flowsim_config)
     np.testing.assert_array_equal(same.tau_q, q.tau_q)
+    legacy = sample_queries(jax.random.PRNGKey(0), SMALL_NUM_ENVS, 20_000, flowsim_config)
+    np.testing.assert_array_equal(legacy.tau_q, q.tau_q)  # raw keys become the same typed key
     with pytest.raises(ValueError, match="n"):
         sample_queries(jax.random.key(0), small_scenes, 0, flowsim_config)
 

@@ -10,8 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from support import perturb, synthetic_queries, synthetic_tokens
 
-from flowmaps_jax.flow import cfm_loss
 from flowmaps_jax.model import (
     ModelConfig,
     baseline_log_prob,
@@ -31,39 +31,22 @@ from flowmaps_jax.model.cdit import (
     shared_kv_cross_attention,
 )
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
+from flowmaps_jax.training.objectives import cfm_loss
 
 CFG = ModelConfig(dim=32, encoder_layers=1, cdit_blocks=2, heads=2, mlp_ratio=2, freq_bands=8,
                   baseline_hidden=32)
-B, S, Q, N = 3, CFG.max_tokens, 2, 5
+B, S, Q, N = 3, 20, 2, 5
 NUM_REAL = (6, 13, 20)  # real tokens per scene; the rest is padding
 
 
-def make_tokens(key, num_real=NUM_REAL, s=S) -> SceneTokens:
-    """Synthetic valid scenes: random boxes in [0, 0.75], random descriptors, padded to s."""
-    k_box, k_desc, k_kind = jax.random.split(key, 3)
-    b = len(num_real)
-    mask = jnp.arange(s)[None] < jnp.asarray(num_real)[:, None]
-    boxes = jax.random.uniform(k_box, (b, s, 4), maxval=0.75)
-    desc = jax.random.randint(k_desc, (b, s), 0, CFG.num_descriptors)
-    kind = jax.random.randint(k_kind, (b, s), 0, 2)
-    return SceneTokens(boxes=jnp.where(mask[..., None], boxes, 0.0), descriptor=desc * mask,
-                       kind=kind * mask, mask=mask, tau=jnp.array([0, 4, 17])[:b])
+def make_tokens(seed: int, num_real=NUM_REAL, s=S) -> SceneTokens:
+    """Synthetic valid scenes (tests/support.py) with τ = 0, 4, 17, boxes in [0, 0.75]."""
+    tokens = synthetic_tokens(seed, num_real, s, tau=(0, 4, 17)[:len(num_real)], max_box=0.75)
+    return jax.tree.map(jnp.asarray, tokens)
 
 
 def make_queries(tokens: SceneTokens, q=Q) -> Queries:
-    tau_q = jnp.minimum(tokens.tau[:, None] + 1 + jnp.arange(q)[None], CFG.tau_max - 1)
-    return Queries(descriptor=(jnp.arange(q)[None] % 3).repeat(len(tokens.tau), 0), tau_q=tau_q)
-
-
-@jax.jit
-def perturb(params, key, scale=0.3):
-    """Add noise to every parameter so zero-initialised gates/projections become active.
-
-    Jitted: one compile instead of one eager dispatch (and compile) per parameter shape."""
-    leaves, treedef = jax.tree_util.tree_flatten(params)
-    keys = jax.random.split(key, len(leaves))
-    return treedef.unflatten([x + scale * jax.random.normal(k, x.shape)
-                              for x, k in zip(leaves, keys, strict=True)])
+    return jax.tree.map(jnp.asarray, synthetic_queries(tokens, q, CFG.tau_max))
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +61,7 @@ def params(init):
 
 @pytest.fixture(scope="module")
 def data():
-    tokens = make_tokens(jax.random.key(2))
+    tokens = make_tokens(2)
     queries = make_queries(tokens)
     x_t = jax.random.normal(jax.random.key(3), (B, Q, N, 4))
     t = jax.random.uniform(jax.random.key(4), (B, Q))
@@ -173,10 +156,10 @@ def test_fast_cross_attention_forms_equal_plain(rows):
 
 
 def test_trimmed_padding_gives_identical_outputs(params, data):
-    """Callers may drop trailing padding slots (S < max_tokens): same context and velocity."""
+    """Callers may drop trailing padding slots (fewer slots): same context and velocity."""
     tokens, queries, x_t, t = data
     num_real = (6, 13, 9)
-    tokens = make_tokens(jax.random.key(6), num_real)
+    tokens = make_tokens(6, num_real)
     trimmed = jax.tree_util.tree_map(lambda a: a[:, :max(num_real)] if a.ndim >= 2 else a, tokens)
     full_ctx, trim_ctx = encode(params, CFG, tokens), encode(params, CFG, trimmed)
     np.testing.assert_allclose(full_ctx.tokens[:, :max(num_real)], trim_ctx.tokens,
@@ -198,7 +181,7 @@ def test_dropout_key_is_stochastic_and_reproducible(params, data):
 
 def test_tiny_model_cfm_loss_falls():
     cfg = dataclasses.replace(CFG, dropout=0.0)
-    tokens = make_tokens(jax.random.key(8))
+    tokens = make_tokens(8)
     queries = make_queries(tokens)
     target = jax.random.uniform(jax.random.key(9), (B, Q, 4), maxval=0.5)
     batch = TrainBatch(tokens=tokens, queries=queries, target=target)
@@ -280,7 +263,7 @@ def _bad(tokens=None, queries=None, **kw):
 
 @pytest.mark.parametrize("case", [
     "boxes_shape", "box_out_of_range", "unknown_descriptor", "tau_q_not_after_tau",
-    "tau_q_too_large", "unknown_query_descriptor", "too_many_tokens", "x_t_shape", "t_range",
+    "tau_q_too_large", "unknown_query_descriptor", "x_t_shape", "t_range",
     "queries_batch", "no_real_token"])
 def test_check_inputs_raises_value_error(data, case):
     tokens, queries, x_t, t = data
@@ -298,8 +281,6 @@ def test_check_inputs_raises_value_error(data, case):
         queries = queries.replace(tau_q=queries.tau_q.at[0, 0].set(CFG.tau_max))
     elif case == "unknown_query_descriptor":
         queries = queries.replace(descriptor=queries.descriptor.at[0, 0].set(-1))
-    elif case == "too_many_tokens":
-        tokens = make_tokens(jax.random.key(2), s=S + 1)
     elif case == "x_t_shape":
         kw["x_t"] = x_t[..., :3]
     elif case == "t_range":

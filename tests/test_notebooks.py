@@ -1,7 +1,8 @@
 """The notebooks in experiments/ run end to end and produce their key outputs.
 
-Both notebooks are executed once per module, concurrently (two kernels, one per CPU core), each in
-its own temporary working directory, with nbclient and the "python3" kernel of this venv.
+Each notebook is executed at most once per module, when the first test that needs it runs (so
+``-m "not slow"`` does not pay for the slow one), in its own temporary working directory, with
+nbclient and the "python3" kernel of this venv.
 ``kl_plots.ipynb`` runs with its default parameters: the ``smoke`` preset (it trains FlowMaps and
 the MLP baseline for 20 steps and evaluates them on a few environments), so its numbers are not
 checked, only that the table, figures and files are there and the oracle row is exact.
@@ -9,7 +10,6 @@ checked, only that the table, figures and files are there and the oracle row is 
 
 from __future__ import annotations
 
-import asyncio
 import base64
 import json
 import pathlib
@@ -21,25 +21,35 @@ from nbclient import NotebookClient
 EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1] / "experiments"
 TOUR = "flowsim_tour.ipynb"
 KL_PLOTS = "kl_plots.ipynb"
-NOTEBOOKS = (TOUR, KL_PLOTS)
+SEARCH = "search_demo.ipynb"
+NOTEBOOKS = (TOUR, KL_PLOTS, SEARCH)
 CELL_TIMEOUT = 900  # seconds; a cold kernel on a loaded 2-core machine compiles slowly
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def _execute_all(workdirs: dict[str, pathlib.Path]) -> dict[str, nbformat.NotebookNode | Exception]:
-    """Execute each notebook in its working directory, concurrently. A failure is returned (and
-    raised by the tests of that notebook), not raised here, so one cannot hide the other."""
-    notebooks = {name: nbformat.read(EXPERIMENTS / name, as_version=4) for name in workdirs}
-    clients = [NotebookClient(notebooks[name], kernel_name="python3", timeout=CELL_TIMEOUT,
-                              resources={"metadata": {"path": str(workdir)}})
-               for name, workdir in workdirs.items()]
+def _execute(name: str, workdir: pathlib.Path) -> nbformat.NotebookNode | Exception:
+    """Execute one notebook in its working directory. A failure is returned (and raised by the
+    tests of that notebook), not raised here."""
+    notebook = nbformat.read(EXPERIMENTS / name, as_version=4)
+    client = NotebookClient(notebook, kernel_name="python3", timeout=CELL_TIMEOUT,
+                            resources={"metadata": {"path": str(workdir)}})
+    try:
+        client.execute()
+    except Exception as err:
+        return err
+    return notebook
 
-    async def run_all():
-        return await asyncio.gather(*(c.async_execute() for c in clients), return_exceptions=True)
 
-    outcomes = asyncio.run(run_all())
-    return {name: outcome if isinstance(outcome, BaseException) else notebooks[name]
-            for name, outcome in zip(workdirs, outcomes, strict=True)}
+class _Executed(dict):
+    """name -> executed notebook (or its failure), run on first access."""
+
+    def __init__(self, workdirs: dict[str, pathlib.Path]):
+        super().__init__()
+        self.workdirs = workdirs
+
+    def __missing__(self, name: str):
+        self[name] = _execute(name, self.workdirs[name])
+        return self[name]
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +59,7 @@ def workdirs(tmp_path_factory) -> dict[str, pathlib.Path]:
 
 @pytest.fixture(scope="module")
 def executed(workdirs) -> dict:
-    return _execute_all(workdirs)
+    return _Executed(workdirs)
 
 
 def _notebook(executed: dict, name: str) -> nbformat.NotebookNode:
@@ -159,3 +169,22 @@ def test_kl_plots_trains_both_models_and_writes_the_report(executed, workdirs):
     for filename in ("results.md", *results["figures"]):
         assert (out / filename).stat().st_size > 0
     assert "| FlowMaps |" in (out / "results.md").read_text()
+
+
+# --------------------------------------------------------------------------- search_demo
+
+
+def test_search_demo_searches_with_every_prior(executed):
+    nb = _notebook(executed, SEARCH)
+    text = _stdout(nb)
+    assert "episode: environment" in text and "dict form (FlowMaps)" in text
+    assert "no prior and no policy expects to drive less" in text and "— found" in text
+    tables = [o["data"]["text/markdown"] for o in _outputs(nb)
+              if "text/markdown" in o.get("data", {})]
+    assert len(tables) == 2
+    for row in ("exact posterior", "FlowMaps", "MLP (mean)", "MLP (learned)",
+                "uniform over the kind", "last-seen first"):
+        assert all(f"| {row} |" in t for t in tables)
+    assert "| nearest table first |" in tables[1]
+    images = _images(nb)
+    assert len(images) == 1 and images[0].startswith(PNG_MAGIC)

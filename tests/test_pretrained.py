@@ -8,11 +8,11 @@ import jax
 import numpy as np
 import pytest
 
-from flowmaps_jax.config import get_preset
 from flowmaps_jax.flowsim.scenes import scene_tokens, slot_boxes, validation_split
 from flowmaps_jax.pretrained import available
 from flowmaps_jax.sample import load_pretrained
 from flowmaps_jax.tokens import Queries
+from flowmaps_jax.training.config import get_preset
 
 SHIPPED = ("flowmaps", "mlp", "mlp-learned")
 

@@ -1,5 +1,5 @@
-"""Learning the routines: the pointer read-out's mixture velocity, route-offset mass, the routine
-diagnostic, short-horizon sampling, target jitter and Δτ conditioning."""
+"""Learning the routines: the pointer read-out's mixture velocity, the routine diagnostic,
+short-horizon sampling, target jitter and Δτ conditioning."""
 
 from __future__ import annotations
 
@@ -10,13 +10,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from flowmaps_jax import flow, metrics, routine, training
-from flowmaps_jax.config import get_preset
+from flowmaps_jax import flow
+from flowmaps_jax.boxes import to_centre
+from flowmaps_jax.evaluation import routine
+from flowmaps_jax.evaluation.kl import gt_mixture_sigma
+from flowmaps_jax.evaluation.slots import ROUTE_OFFSET_LABELS, oracle_slots, route_offset_mass
 from flowmaps_jax.flowsim.scenes import make_train_batch
 from flowmaps_jax.model import ModelConfig, encode, init_params, velocity
 from flowmaps_jax.model.readout import mixture_velocity
 from flowmaps_jax.sample import Predictor
 from flowmaps_jax.tokens import Queries
+from flowmaps_jax.training import objectives
+from flowmaps_jax.training.config import get_preset
 
 POINTER = ModelConfig(dim=32, encoder_layers=1, cdit_blocks=1, heads=2, mlp_ratio=2,
                       freq_bands=8, baseline_hidden=32, head="pointer", condition_on_dtau=True)
@@ -93,33 +98,17 @@ def test_dtau_conditioning_changes_the_field_and_paper_config_has_no_dtau_params
         dataclasses.replace(POINTER, condition_on_dtau="yes")
 
 
-def test_route_offset_mass_of_the_exact_posterior_one_step_ahead():
-    q = jnp.array([[0.0, 0.2, 0.7, 0.1, 0.0, 0.0],     # now at slot 1 of 5
-                   [0.7, 0.1, 0.0, 0.0, 0.2, 0.0]])    # now at slot 4 of 5: wraps around
-    p_hat = jnp.concatenate([q, jnp.zeros((2, 1))], axis=-1)
-    mass = metrics.route_offset_mass(p_hat, jnp.array([1, 4]), jnp.array([5, 5]))
-    np.testing.assert_allclose(mass, [[0.2, 0.7, 0.1, 0.0, 0.0, 0.0]] * 2, atol=1e-6)
-    # a 3-slot route: offset +3 is offset 0 again, so it is not counted twice
-    p3 = jnp.array([[0.5, 0.25, 0.0, 0.0, 0.25]])
-    mass3 = metrics.route_offset_mass(p3, jnp.array([0]), jnp.array([3]))
-    np.testing.assert_allclose(mass3, [[0.5, 0.25, 0.0, 0.0, 0.0, 0.25]], atol=1e-6)
-    with pytest.raises(ValueError, match="slot_now"):
-        metrics.route_offset_mass(p_hat, jnp.array([1, 9]), jnp.array([5, 5]))
-    with pytest.raises(ValueError, match="num_slots"):
-        metrics.route_offset_mass(p_hat, jnp.array([1, 1]), jnp.array([5, 0]))
-
-
 def test_routine_diagnostic_scores_the_exact_posterior_and_a_fresh_model(small_scenes,
                                                                           flowsim_config):
     probe = routine.build_probe(small_scenes, flowsim_config, num_envs=6)
     assert np.all(np.asarray(probe.one_step.horizon) == 1)
-    exact = metrics.route_offset_mass(metrics.oracle_slots(probe.one_step.slot_probs),
-                                      probe.one_step.slot_now, probe.one_step.num_slots)
+    exact = route_offset_mass(oracle_slots(probe.one_step.slot_probs),
+                              probe.one_step.slot_now, probe.one_step.num_slots)
     np.testing.assert_allclose(np.asarray(exact).mean(axis=(0, 1)), routine.EXACT_ONE_STEP,
                                atol=1e-5)
     predictor = Predictor.from_params(init_params(jax.random.key(0), POINTER), POINTER)
     out = routine.routine_metrics(predictor, probe, num_samples=4)
-    mass = [out[f"offset_{k}"] for k in routine.OFFSET_LABELS]
+    mass = [out[f"offset_{k}"] for k in ROUTE_OFFSET_LABELS]
     assert abs(sum(mass) - 1.0) < 1e-5
     assert 0.0 <= out["tv"] <= 1.0 and out["search_cost_ratio"] >= 1.0
     with pytest.raises(ValueError, match="num_envs"):
@@ -128,7 +117,7 @@ def test_routine_diagnostic_scores_the_exact_posterior_and_a_fresh_model(small_s
 
 def test_learning_curve_figure_and_missing_records(tmp_path):
     records = [{"kind": "routine", "step": s, **{f"offset_{k}": 0.1 for k in
-                                                 routine.OFFSET_LABELS},
+                                                 ROUTE_OFFSET_LABELS},
                 "tv": 0.5, "one_step_tv": 0.4, "search_cost_ratio": 1.1} for s in (0, 100)]
     (tmp_path / "metrics.jsonl").write_text(
         "\n".join(__import__("json").dumps(r) for r in [{"kind": "val", "step": 0}, *records]))
@@ -158,9 +147,9 @@ def test_short_horizons_are_oversampled(small_scenes, flowsim_config):
 def test_target_jitter_has_the_protocol_std():
     box = jnp.array([0.3, 0.4, 0.05, 0.08])
     boxes = jnp.broadcast_to(box, (20000, 4))
-    out = training.jitter_targets(jax.random.key(0), boxes, 1.0)
-    spread = np.asarray(metrics.to_centre(out)).std(axis=0)
-    expected = np.asarray(metrics.gt_mixture_sigma(box[None]))[0]
+    out = objectives.jitter_targets(jax.random.key(0), boxes, 1.0)
+    spread = np.asarray(to_centre(out)).std(axis=0)
+    expected = np.asarray(gt_mixture_sigma(box[None]))[0]
     np.testing.assert_allclose(spread, expected, rtol=0.05)
     cfg = dataclasses.replace(get_preset("smoke"), target_noise=1.0)
     with pytest.raises(ValueError, match="target_noise"):

@@ -16,10 +16,12 @@ import numpy as np
 import optax
 import pytest
 
-from flowmaps_jax import checkpoint, training
-from flowmaps_jax import train as train_cli
-from flowmaps_jax.config import apply_overrides, get_preset
+from flowmaps_jax.sample import load
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
+from flowmaps_jax.training import checkpoint, data, objectives
+from flowmaps_jax.training import loop as train_cli
+from flowmaps_jax.training import state as train_state
+from flowmaps_jax.training.config import apply_overrides, get_preset
 
 SMOKE = get_preset("smoke")
 
@@ -57,16 +59,16 @@ def fixed_batch_fn(key, scenes):
 def test_ema_update_matches_the_formula():
     ema = {"a": jnp.array([1.0, 2.0]), "b": {"c": jnp.array(3.0)}}
     params = {"a": jnp.array([5.0, -2.0]), "b": {"c": jnp.array(0.0)}}
-    out = training.ema_update(ema, params, 0.9)
+    out = train_state.ema_update(ema, params, 0.9)
     np.testing.assert_allclose(out["a"], 0.9 * np.array([1.0, 2.0]) + 0.1 * np.array([5.0, -2.0]),
                                rtol=1e-6)
     np.testing.assert_allclose(out["b"]["c"], 2.7, rtol=1e-6)
-    np.testing.assert_array_equal(training.ema_update(ema, params, 0.0)["a"], params["a"])
+    np.testing.assert_array_equal(train_state.ema_update(ema, params, 0.0)["a"], params["a"])
 
 
 def test_schedule_warmup_then_cosine():
     cfg = apply_overrides(SMOKE, {"lr": 1e-3, "warmup_steps": 10, "steps": 110})
-    schedule = training.make_schedule(cfg)
+    schedule = train_state.make_schedule(cfg)
     assert float(schedule(0)) == 0.0
     np.testing.assert_allclose(float(schedule(5)), 0.5e-3, rtol=1e-5)
     np.testing.assert_allclose(float(schedule(10)), 1e-3, rtol=1e-5)
@@ -76,7 +78,7 @@ def test_schedule_warmup_then_cosine():
 
 def test_schedule_without_warmup_starts_at_peak():
     cfg = apply_overrides(SMOKE, {"lr": 1e-4, "warmup_steps": 0, "steps": 100})
-    schedule = training.make_schedule(cfg)
+    schedule = train_state.make_schedule(cfg)
     np.testing.assert_allclose(float(schedule(0)), 1e-4, rtol=1e-6)
     np.testing.assert_allclose(float(schedule(50)), 0.5e-4, rtol=1e-4)
 
@@ -84,7 +86,7 @@ def test_schedule_without_warmup_starts_at_peak():
 def test_optimizer_applies_decoupled_weight_decay_and_clipping():
     cfg = apply_overrides(SMOKE, {"lr": 0.1, "warmup_steps": 0, "steps": 10,
                                   "weight_decay": 0.5, "clip_norm": "none"})
-    tx = training.make_optimizer(cfg)
+    tx = train_state.make_optimizer(cfg)
     params = {"w": jnp.array([2.0, -4.0])}
     updates, _ = tx.update({"w": jnp.zeros(2)}, tx.init(params), params)
     np.testing.assert_allclose(updates["w"], -0.1 * 0.5 * params["w"], rtol=1e-6)
@@ -92,7 +94,7 @@ def test_optimizer_applies_decoupled_weight_decay_and_clipping():
     # one step is (1 - b1) * the (clipped) gradient.
     big = {"w": jnp.array([3e3, 4e3])}
     for clip, norm in ((1.0, 1.0), ("none", 5e3)):
-        tx = training.make_optimizer(apply_overrides(cfg, {"clip_norm": clip}))
+        tx = train_state.make_optimizer(apply_overrides(cfg, {"clip_norm": clip}))
         _, state = tx.update(big, tx.init(params), params)
         mu = optax.tree_utils.tree_get(state, "mu")
         np.testing.assert_allclose(optax.tree.norm(mu), (1 - cfg.b1) * norm, rtol=1e-5)
@@ -105,7 +107,7 @@ def test_default_batches_trim_only_padding(small_scenes):
     from flowmaps_jax.flowsim.scenes import make_train_batch
     full = make_train_batch(key, small_scenes, cfg.batch_size, cfg.queries_per_scene,
                             cfg.flowsim)
-    trimmed = training.default_batch_fn(cfg)(key, small_scenes)
+    trimmed = data.default_batch_fn(cfg)(key, small_scenes)
     real = cfg.flowsim.num_furniture + cfg.flowsim.num_objects
     assert trimmed.tokens.mask.shape == (cfg.batch_size, real)
     assert bool(full.tokens.mask[:, :real].all()) and not bool(full.tokens.mask[:, real:].any())
@@ -124,7 +126,7 @@ def flow_setup():
     cfg = apply_overrides(SMOKE, {"lr": 3e-3, "steps": 200, "warmup_steps": 0})
     objective, _, eval_fn = train_cli.compiled_functions(SMOKE)
     return {"cfg": cfg, "objective": objective,
-            "step_fn": training.make_train_step(cfg, objective),
+            "step_fn": train_state.make_train_step(cfg, objective),
             "eval_fn": eval_fn,
             # same shapes as SMOKE's validation batches (val_batches=2 stacked)
             "stacked": jax.tree.map(lambda x: jnp.stack([x, x]), FIXED_BATCH)}
@@ -134,7 +136,7 @@ def flow_setup():
 def fitted(flow_setup):
     """80 steps on one fixed batch (fresh noise per step); loss before/after on fixed noise."""
     cfg, step_fn, eval_fn = flow_setup["cfg"], flow_setup["step_fn"], flow_setup["eval_fn"]
-    state = training.init_state(cfg, objective=flow_setup["objective"])
+    state = train_state.init_state(cfg, objective=flow_setup["objective"])
     start = float(eval_fn(state.params, flow_setup["stacked"]))
     losses = []
     for i in range(80):
@@ -162,7 +164,7 @@ def test_eval_loss_is_deterministic(fitted):
 
 def test_train_step_updates_params_ema_and_step(flow_setup):
     cfg = flow_setup["cfg"]
-    state = training.init_state(cfg, objective=flow_setup["objective"])
+    state = train_state.init_state(cfg, objective=flow_setup["objective"])
     before = jax.tree.map(np.array, state)  # copies: a zero-copy view would block donation
     new, metrics = flow_setup["step_fn"](state, FIXED_BATCH, jax.random.PRNGKey(3))
     assert int(new.step) == 1
@@ -180,34 +182,34 @@ def test_train_step_updates_params_ema_and_step(flow_setup):
 
 
 def test_bad_step_inputs_raise_value_error(flow_setup):
-    state = training.init_state(flow_setup["cfg"], objective=flow_setup["objective"])
+    state = train_state.init_state(flow_setup["cfg"], objective=flow_setup["objective"])
     bad = FIXED_BATCH.replace(target=FIXED_BATCH.target[:, :1])  # Q = 1 target for Q = 2
     with pytest.raises(ValueError, match="batch"):
         flow_setup["step_fn"](state, bad, jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="TrainBatch"):
         flow_setup["step_fn"](state, {"target": FIXED_BATCH.target}, jax.random.PRNGKey(0))
     with pytest.raises(ValueError, match="TrainConfig"):
-        training.init_state({"lr": 1.0})
+        train_state.init_state({"lr": 1.0})
 
 
 def test_same_state_batch_and_key_give_the_same_step(flow_setup):
     cfg, step_fn = flow_setup["cfg"], flow_setup["step_fn"]
-    a, _ = step_fn(training.init_state(cfg, objective=flow_setup["objective"]), FIXED_BATCH,
+    a, _ = step_fn(train_state.init_state(cfg, objective=flow_setup["objective"]), FIXED_BATCH,
                    jax.random.PRNGKey(5))
-    b, _ = step_fn(training.init_state(cfg, objective=flow_setup["objective"]), FIXED_BATCH,
+    b, _ = step_fn(train_state.init_state(cfg, objective=flow_setup["objective"]), FIXED_BATCH,
                    jax.random.PRNGKey(5))
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(x, y)
-    keys = [training.step_keys(a)[0], training.step_keys(a.replace(step=a.step + 1))[0]]
+    keys = [train_state.step_keys(a)[0], train_state.step_keys(a.replace(step=a.step + 1))[0]]
     assert not np.array_equal(*keys)  # each step draws a different batch
 
 
 def test_mlp_baseline_trains_with_learned_variance():
-    cfg = apply_overrides(SMOKE, {"model_kind": "mlp", "mlp_variance": "learned",
+    cfg = apply_overrides(SMOKE, {"model_kind": "mlp", "model.baseline_variance": "learned",
                                   "lr": 3e-3, "steps": 100})
-    objective = training.objective_for(cfg)
-    step_fn = training.make_fused_train_step(cfg, objective, batch_fn=fixed_batch_fn)
-    state = training.init_state(cfg, objective=objective)
+    objective = objectives.objective_for(cfg)
+    step_fn = train_state.make_fused_train_step(cfg, objective, batch_fn=fixed_batch_fn)
+    state = train_state.init_state(cfg, objective=objective)
     losses = []
     for _ in range(30):
         state, metrics = step_fn(state, None)
@@ -239,7 +241,7 @@ def test_cli_smoke_run_writes_config_metrics_and_checkpoints(straight_run):
     assert code == 0
     assert "model.dim" in printed and "Generating the FlowSim training split" in printed
     assert f"python -m flowmaps_jax.evaluate --checkpoint {run_dir / 'checkpoints'}" in printed
-    from flowmaps_jax.config import TrainConfig
+    from flowmaps_jax.training.config import TrainConfig
 
     assert TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text())) == SMOKE
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
@@ -253,13 +255,13 @@ def test_cli_smoke_run_writes_config_metrics_and_checkpoints(straight_run):
     assert all(0.0 <= r["offset_+1"] <= 1.0 and r["search_cost_ratio"] >= 1.0 for r in routine)
     assert "Routines at step 20" in printed
     assert (run_dir / "routine_curve.png").stat().st_size > 10_000
-    state, config = checkpoint.restore_latest(run_dir, training.abstract_state(SMOKE))
+    state, config = checkpoint.restore_latest(run_dir, train_state.abstract_state(SMOKE))
     assert int(state.step) == 20 and config == SMOKE.to_dict()
-    best, _ = checkpoint.restore_best(run_dir, training.abstract_state(SMOKE))
+    best, _ = checkpoint.restore_best(run_dir, train_state.abstract_state(SMOKE))
     assert int(best.step) in (10, 20)
-    params, cfg = checkpoint.load_for_inference(run_dir)
-    assert cfg == SMOKE
-    for got, want in zip(_leaves(params), _leaves(best.ema_params), strict=True):
+    predictor = load(run_dir)
+    assert predictor.model == SMOKE.model and predictor.step == int(best.step)
+    for got, want in zip(_leaves(predictor.params), _leaves(best.ema_params), strict=True):
         np.testing.assert_array_equal(got, want)
 
 
@@ -269,7 +271,7 @@ def test_resume_continues_exactly(straight_run, tmp_path):
     assert first.status == "stopped" and first.step == 10
     second = train_cli.run(SMOKE, tmp_path, resume=True, progress=False)
     assert second.status == "done" and second.step == 20
-    target = training.abstract_state(SMOKE)
+    target = train_state.abstract_state(SMOKE)
     split, _ = checkpoint.restore_latest(tmp_path, target)
     straight, _ = checkpoint.restore_latest(straight_dir, target)
     for a, b in zip(_leaves(split), _leaves(straight), strict=True):
@@ -285,7 +287,7 @@ def test_ctrl_c_saves_a_checkpoint_and_stops(tmp_path):
 
     result = train_cli.run(SMOKE, tmp_path, on_step=press_ctrl_c, progress=False)
     assert result.status == "interrupted" and result.step == 7
-    state, _ = checkpoint.restore_latest(tmp_path, training.abstract_state(SMOKE))
+    state, _ = checkpoint.restore_latest(tmp_path, train_state.abstract_state(SMOKE))
     assert int(state.step) == 7
 
 
@@ -304,7 +306,7 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch
     result = train_cli.run(SMOKE, tmp_path, progress=False)
     assert result.status == "nan" and result.step == 12 and result.state is None
     assert "Loss is nan at step 13" in capsys.readouterr().out
-    state, _ = checkpoint.restore_latest(tmp_path, training.abstract_state(SMOKE))
+    state, _ = checkpoint.restore_latest(tmp_path, train_state.abstract_state(SMOKE))
     assert int(state.step) == 10  # the last good checkpoint; nothing saved after the NaN
     assert sorted(int(p.name) for p in (tmp_path / "checkpoints" / "last").iterdir()) == [10]
 
@@ -317,6 +319,6 @@ def test_endless_data_is_fresh_and_resumes_exactly(straight_run, tmp_path):
     assert straight.status == resumed.status == "done"
     for a, b in zip(_leaves(straight.state), _leaves(resumed.state), strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
-    fixed_split, _ = checkpoint.restore_latest(straight_run[1], training.abstract_state(SMOKE))
+    fixed_split, _ = checkpoint.restore_latest(straight_run[1], train_state.abstract_state(SMOKE))
     pairs = zip(_leaves(straight.state.params), _leaves(fixed_split.params), strict=True)
     assert any(not np.allclose(a, b) for a, b in pairs)  # other data, other weights

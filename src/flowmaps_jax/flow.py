@@ -1,9 +1,11 @@
-"""Flow-matching maths: linear path, t-samplers, CFM loss, ODE solvers, exact log-likelihood.
+"""Flow-matching maths that knows no model: linear path, t-samplers, ODE solvers, exact
+log-likelihood.
 
-Conventions: noise X_0 ~ N(0, I_4) at t = 0, data X_1 (a normalised box) at t = 1, linear path
-X_t = t·X_1 + (1 − t)·X_0 with target velocity X_1 − X_0. Solvers take a ``velocity_fn(x, t)``
-(x any shape (..., 4), t a scalar array) that closes over everything else (context, queries), e.g.
-:func:`flowmaps_jax.model.make_velocity_fn`.
+Conventions: noise X_0 ~ N(0, I_d) at t = 0, data X_1 at t = 1, linear path
+X_t = t·X_1 + (1 − t)·X_0 with target velocity X_1 − X_0. Solvers take any
+``velocity_fn(x, t)`` (x of shape (..., d), t a scalar array) that closes over everything else
+(for FlowMaps: context and queries, :func:`flowmaps_jax.model.make_velocity_fn`). The training
+objective that uses the path lives in :mod:`flowmaps_jax.training.objectives`.
 """
 
 from __future__ import annotations
@@ -14,9 +16,6 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.flowmaps import encode, velocity, velocity_and_anchor_logits
-from flowmaps_jax.tokens import FURNITURE, SceneTokens, TrainBatch, to_centre
 from flowmaps_jax.validation import check_int
 
 T_SAMPLERS = ("uniform", "beta", "logit_normal")
@@ -35,21 +34,6 @@ def target_velocity(x0: jnp.ndarray, x1: jnp.ndarray) -> jnp.ndarray:
     return x1 - x0
 
 
-def to_flow_space(box: jnp.ndarray, config: ModelConfig) -> jnp.ndarray:
-    """Normalised boxes (..., 4) → the flow's data space z = box_scale · (box − box_offset)."""
-    return config.box_scale * (box - config.box_offset)
-
-
-def from_flow_space(z: jnp.ndarray, config: ModelConfig) -> jnp.ndarray:
-    """Inverse of :func:`to_flow_space`: z (..., 4) → normalised boxes (..., 4)."""
-    return z / config.box_scale + config.box_offset
-
-
-def flow_space_log_det(config: ModelConfig) -> float:
-    """log |det ∂z/∂box| = 4 · log(box_scale): add to log p(z) to get log p(box)."""
-    return 4 * math.log(config.box_scale)
-
-
 def sample_t(key: jax.Array, shape: tuple[int, ...], kind: str = "beta") -> jnp.ndarray:
     """Flow times in [0, 1] of the given shape.
 
@@ -63,53 +47,6 @@ def sample_t(key: jax.Array, shape: tuple[int, ...], kind: str = "beta") -> jnp.
     if kind == "logit_normal":
         return jax.nn.sigmoid(jax.random.normal(key, shape))
     raise ValueError(f"t_sampler (kind) must be one of {T_SAMPLERS}; got {kind!r}")
-
-
-def supporting_token(tokens: SceneTokens, boxes: jnp.ndarray) -> jnp.ndarray:
-    """Index (B, Q) of the furniture token whose centre is nearest each box's centre (B, Q, 4):
-    the table an object box stands on. Normalised (y, x, h, w) boxes."""
-    centre, token_centre = to_centre(boxes)[..., :2], to_centre(tokens.boxes)[..., :2]
-    d = jnp.sum(jnp.square(centre[:, :, None] - token_centre[:, None]), -1)  # (B, Q, S)
-    ok = (tokens.mask.astype(bool) & (tokens.kind == FURNITURE))[:, None, :]
-    return jnp.argmin(jnp.where(ok, d, jnp.inf), axis=-1)
-
-
-def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
-             t_sampler: str = "beta", deterministic: bool = False, pointer_loss: float = 0.0):
-    """Conditional flow-matching loss on one batch; returns ``(loss, aux)``.
-
-    The map of each of the B scenes is encoded once and shared by its Q queries. Per query:
-    X_0 ~ N(0, I_4), t ~ ``t_sampler``, x_t on the linear path (B, Q, 1, 4), and the loss is the
-    squared error to X_1 − X_0 averaged over the 4 numbers (X_1 is the target box in the flow's
-    space, :func:`to_flow_space`), then over queries and scenes.
-    ``deterministic=True`` turns dropout off (validation).
-    ``pointer_loss`` > 0 (pointer head only; departs from the paper) adds that weight times the
-    cross-entropy of the head's anchor logits against the table the target stands on
-    (:func:`supporting_token`): direct supervision of *which* table, as a pointer probe gets.
-    aux: ``{"loss": scalar, "mse_per_query": (B, Q)}`` (+ ``"pointer_ce"`` when used).
-    """
-    if t_sampler not in T_SAMPLERS:
-        raise ValueError(f"t_sampler must be one of {T_SAMPLERS}; got {t_sampler!r}")
-    noise_key, t_key, enc_key, vel_key = jax.random.split(key, 4)
-    if deterministic:
-        enc_key = vel_key = None
-    x1 = to_flow_space(batch.target, config)  # (B, Q, 4)
-    x0 = jax.random.normal(noise_key, x1.shape, x1.dtype)
-    t = sample_t(t_key, x1.shape[:2], t_sampler)  # (B, Q)
-    x_t = linear_path(x0, x1, t)[:, :, None, :]  # (B, Q, 1, 4)
-    context = encode(params, config, batch.tokens, dropout_key=enc_key)
-    extra = {}
-    if pointer_loss > 0:
-        v, logits = velocity_and_anchor_logits(params, config, context, x_t, t, batch.queries,
-                                               dropout_key=vel_key)
-        table = supporting_token(batch.tokens, batch.target)  # (B, Q)
-        log_w = jax.nn.log_softmax(logits[:, :, 0], axis=-1)  # (B, Q, S)
-        extra["pointer_ce"] = -jnp.mean(jnp.take_along_axis(log_w, table[..., None], axis=-1))
-    else:
-        v = velocity(params, config, context, x_t, t, batch.queries, dropout_key=vel_key)
-    mse = jnp.mean(jnp.square(v[:, :, 0] - target_velocity(x0, x1)), axis=-1)  # (B, Q)
-    loss = jnp.mean(mse) + pointer_loss * extra.get("pointer_ce", 0.0)
-    return loss, {"loss": loss, "mse_per_query": mse, **extra}
 
 
 def check_solver(num_steps, method, name: str = "num_steps") -> tuple[int, str]:
@@ -173,6 +110,14 @@ def standard_normal_log_prob(x: jnp.ndarray) -> jnp.ndarray:
     return -0.5 * jnp.sum(jnp.square(x), axis=-1) - 0.5 * x.shape[-1] * math.log(2 * math.pi)
 
 
+def _augmented(velocity_fn: VelocityFn, sign: float):
+    """The change-of-variables system (x, ℓ): dx/dt = v(x, t), dℓ/dt = sign · div v(x, t)."""
+    def field(state, t):
+        v, div = divergence(velocity_fn, state[0], t)
+        return v, sign * div
+    return field
+
+
 def log_prob(velocity_fn: VelocityFn, x1: jnp.ndarray, num_steps: int = 10,
              method: str = "midpoint") -> jnp.ndarray:
     """Exact log-density of x1 under the flow (instantaneous change of variables).
@@ -181,14 +126,24 @@ def log_prob(velocity_fn: VelocityFn, x1: jnp.ndarray, num_steps: int = 10,
     t = 1 (x = x1, ℓ = 0) to t = 0, giving x0 and ℓ = −∫_0^1 div v dt; then
     log p_1(x1) = log N(x0; 0, I) + ℓ. The divergence is exact (see :func:`divergence`), so the
     only error is the ODE discretisation (``num_steps`` grid points as in :func:`integrate`).
-    x1 (..., 4) → (...).
+    x1 (..., d) → (...).
     """
     check_solver(num_steps, method)
-
-    def augmented(state, t):
-        v, div = divergence(velocity_fn, state[0], t)
-        return v, div
-
     state = (x1, jnp.zeros(x1.shape[:-1], x1.dtype))
-    x0, delta = _odeint(augmented, state, 1.0, 0.0, num_steps, method)
+    x0, delta = _odeint(_augmented(velocity_fn, 1.0), state, 1.0, 0.0, num_steps, method)
     return standard_normal_log_prob(x0) + delta
+
+
+def sample_with_log_prob(velocity_fn: VelocityFn, x0: jnp.ndarray, num_steps: int = 10,
+                         method: str = "midpoint") -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Samples and their exact log-density in one forward solve: x0 (..., d) → (x1, log p (...)).
+
+    The same augmented ODE as :func:`log_prob`, run forwards from the noise: ℓ starts at
+    log N(x0; 0, I) and accumulates −∫_0^1 div v dt, so log p_1(x1) = ℓ(1) with no second,
+    backward solve. The samples equal :func:`integrate`'s on the same grid (to float rounding);
+    the density is that of the discretised forward map (it agrees with :func:`log_prob` as the
+    grid is refined).
+    """
+    check_solver(num_steps, method)
+    state = (x0, standard_normal_log_prob(x0))
+    return _odeint(_augmented(velocity_fn, -1.0), state, 0.0, 1.0, num_steps, method)

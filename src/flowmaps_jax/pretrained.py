@@ -65,8 +65,8 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     checkpoint is missing, holds a different model kind than the name implies, or is too big.
     Returns the path of the .npz.
     """
-    from flowmaps_jax import checkpoint
     from flowmaps_jax.sample import load
+    from flowmaps_jax.training import checkpoint
 
     name = _check_name(name)
     predictor = load(checkpoint_dir, which=which)
@@ -103,9 +103,9 @@ def load_pretrained(name: str, directory: str | pathlib.Path = PRETRAINED_DIR):
     import jax
     import jax.numpy as jnp
 
-    from flowmaps_jax.config import TrainConfig
     from flowmaps_jax.sample import Predictor
-    from flowmaps_jax.training import objective_for
+    from flowmaps_jax.training.config import TrainConfig
+    from flowmaps_jax.training.objectives import objective_for
 
     name = _check_name(name)
     root = pathlib.Path(directory)
@@ -125,7 +125,7 @@ def load_pretrained(name: str, directory: str | pathlib.Path = PRETRAINED_DIR):
     with np.load(io.BytesIO(data)) as arrays:
         params = traverse_util.unflatten_dict({k: jnp.asarray(arrays[k]) for k in arrays.files},
                                               sep="/")
-    expected = jax.eval_shape(objective_for(cfg).init, jax.random.PRNGKey(0))
+    expected = jax.eval_shape(objective_for(cfg).init, jax.random.key(0))
     got = jax.tree.map(lambda a: (a.shape, a.dtype), params)
     if jax.tree.map(lambda a: (a.shape, a.dtype), expected) != got:
         raise ValueError(f"pretrained {name!r}: the weights do not match the model config in "

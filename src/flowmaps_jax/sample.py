@@ -27,7 +27,6 @@ batch when per-scene keys are given.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import pathlib
 from typing import Any
 
@@ -38,78 +37,26 @@ import numpy as np
 from flowmaps_jax import flow
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
-from flowmaps_jax.model import (
-    ModelConfig,
-    baseline_log_prob,
-    baseline_predict,
-    check_inputs,
-    encode,
-    make_velocity_fn,
+from flowmaps_jax.model import ModelConfig, baseline_predict, check_inputs
+from flowmaps_jax.model.sampling import DEFAULT_NUM_STEPS
+from flowmaps_jax.tokens import Queries, SceneTokens, check_query_roles, trim_padding
+from flowmaps_jax.training.objectives import model_kind
+from flowmaps_jax.validation import (
+    check_array,
+    check_flag,
+    check_instance,
+    check_int,
+    check_key,
+    check_real_array,
+    check_request_size,
 )
-from flowmaps_jax.tokens import Queries, SceneTokens, trim_padding
-from flowmaps_jax.validation import check_int
 
-MODEL_KINDS = ("flowmaps", "mlp")
 SOLVERS = flow.SOLVERS
-DEFAULT_NUM_STEPS = 10
-"""ODE grid points (the reference's ``linspace(0, 1, 10)``): 18 midpoint evaluations."""
-WHICH = ("best", "latest")
-
-
-# --------------------------------------------------------------------------- jitted cores
-
-
-def _noise(keys: jax.Array, shape: tuple[int, ...]) -> jnp.ndarray:
-    """Standard normal (B, *shape) with scene b drawn from keys[b]."""
-    return jax.vmap(lambda k: jax.random.normal(k, shape, jnp.float32))(keys)
-
-
-@functools.partial(jax.jit, static_argnames=("config", "num_samples", "num_steps", "method"))
-def flow_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                keys: jax.Array, num_samples: int, num_steps: int = DEFAULT_NUM_STEPS,
-                method: str = "midpoint") -> jnp.ndarray:
-    """FlowMaps samples (B, Q, N, 4) normalised (y, x, h, w); keys (B,) one PRNG key per scene.
-
-    Encodes the B maps once, then integrates all B·Q·N noise rows together (``lax.scan`` over the
-    num_steps − 1 intervals). No validation: use :meth:`Predictor.sample`.
-    """
-    q = queries.tau_q.shape[1]
-    context = encode(params, config, tokens)
-    x0 = _noise(keys, (q, num_samples, 4))
-    velocity_fn = make_velocity_fn(params, config, context, queries)
-    return flow.from_flow_space(flow.integrate(velocity_fn, x0, num_steps, method), config)
-
-
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "method"))
-def flow_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                  x: jnp.ndarray, num_steps: int = DEFAULT_NUM_STEPS,
-                  method: str = "midpoint") -> jnp.ndarray:
-    """Exact log-density (B, Q, N) of boxes x (B, Q, N, 4) under FlowMaps (change of variables).
-
-    Encodes the maps once; the backward ODE for all rows runs in one ``lax.scan`` in the flow's
-    space (``ModelConfig.box_scale``/``box_offset``), plus that map's constant log-Jacobian.
-    """
-    context = encode(params, config, tokens)
-    velocity_fn = make_velocity_fn(params, config, context, queries)
-    z = flow.to_flow_space(x, config)
-    return flow.log_prob(velocity_fn, z, num_steps, method) + flow.flow_space_log_det(config)
-
-
-@functools.partial(jax.jit, static_argnames=("config", "num_samples"))
-def gaussian_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                    keys: jax.Array, num_samples: int) -> jnp.ndarray:
-    """MLP-baseline samples (B, Q, N, 4): mean + exp(log_var / 2) · ε, ε from keys (B,)."""
-    mean, log_var = baseline_predict(params, config, tokens, queries)
-    eps = _noise(keys, (mean.shape[1], num_samples, 4))
-    return mean[:, :, None] + jnp.exp(0.5 * log_var)[:, :, None] * eps
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def gaussian_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                      x: jnp.ndarray) -> jnp.ndarray:
-    """Closed-form diagonal-Gaussian log-density (B, Q, N) of x (B, Q, N, 4) under the baseline."""
-    mean, log_var = baseline_predict(params, config, tokens, queries)
-    return baseline_log_prob(mean[:, :, None], log_var[:, :, None], x)
+# Working memory per sampled box (float32 activations of one velocity call, kept for the solver
+# step), by model kind; the exact divergence of a density multiplies it by about 5 (4 JVPs).
+_ROW_BYTES = {"flowmaps": lambda cfg: 4 * cfg.dim * (cfg.mlp_ratio + 4),
+              "mlp": lambda cfg: 64}
+_DENSITY_FACTOR = 5
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -120,19 +67,8 @@ def _scene_keys(key: Any, num_scenes: int) -> jax.Array:
 
     Raw uint32 keys (``jax.random.PRNGKey``) are wrapped, so both kinds share compiled code.
     """
-    if not (isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key)):
-        arr = np.asarray(key)
-        if arr.dtype != np.uint32 or arr.ndim not in (1, 2) or arr.shape[-1] != 2:
-            raise ValueError("key must be a JAX PRNG key (jax.random.key(seed) or "
-                             "jax.random.PRNGKey(seed)), or a batch of one key per scene; got "
-                             f"{type(key).__name__} with shape {arr.shape} and dtype {arr.dtype}")
-        key = jax.random.wrap_key_data(jnp.asarray(arr))
-    if key.shape == ():
-        return jax.random.split(key, num_scenes)
-    if key.shape != (num_scenes,):
-        raise ValueError(f"key must be one PRNG key or one per scene (shape ({num_scenes},)); "
-                         f"got shape {key.shape}")
-    return key
+    key = check_key(key, shapes=((), (num_scenes,)))
+    return jax.random.split(key, num_scenes) if key.shape == () else key
 
 
 def _as_arrays(tokens: SceneTokens, queries: Queries) -> tuple[SceneTokens, Queries]:
@@ -177,12 +113,9 @@ class Predictor:
     step: int | None = None
 
     def __post_init__(self):
-        if self.kind not in MODEL_KINDS:
-            raise ValueError(f"kind must be one of {MODEL_KINDS}; got {self.kind!r}")
-        if not isinstance(self.model, ModelConfig):
-            raise ValueError(f"model must be a ModelConfig; got {type(self.model).__name__}")
-        if not isinstance(self.flowsim, FlowSimConfig):
-            raise ValueError(f"flowsim must be a FlowSimConfig; got {type(self.flowsim).__name__}")
+        model_kind(self.kind)  # ValueError listing the kinds
+        check_instance("model", self.model, ModelConfig)
+        check_instance("flowsim", self.flowsim, FlowSimConfig)
 
     @classmethod
     def from_params(cls, params, model: ModelConfig, kind: str = "flowmaps",
@@ -197,70 +130,80 @@ class Predictor:
     @property
     def name(self) -> str:
         """Row label for reports: "FlowMaps", "MLP (mean)" or "MLP (learned)"."""
-        if self.kind == "flowmaps":
-            return "FlowMaps"
-        return f"MLP ({self.model.baseline_variance})"
+        return model_kind(self.kind).label(self.model)
 
     # ----------------------------------------------------------------------- validation
 
     def validate(self, tokens: SceneTokens, queries: Queries) -> tuple[int, int]:
         """Check tokens (B, S) and queries (B, Q) for this model; returns (B, Q).
 
-        Raises ``ValueError`` for wrong shapes, boxes outside [0, 1], unknown descriptors,
-        more than ``model.max_tokens`` tokens, τ out of range or τ_q ≤ τ.
+        Raises ``ValueError`` for wrong shapes or dtypes, boxes outside [0, 1], unknown
+        descriptors, a query that names a table instead of an object category, more token slots
+        than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
-        if not isinstance(tokens, SceneTokens):
-            raise ValueError(f"tokens must be a SceneTokens; got {type(tokens).__name__}")
-        if not isinstance(queries, Queries):
-            raise ValueError(f"queries must be a Queries; got {type(queries).__name__}")
-        if np.ndim(tokens.boxes) != 3:
-            raise ValueError(f"tokens.boxes must have shape (B, S, 4); got "
-                             f"{np.shape(tokens.boxes)}")
-        if np.ndim(queries.descriptor) != 2:
-            raise ValueError(f"queries.descriptor must have shape (B, Q); got "
-                             f"{np.shape(queries.descriptor)}")
+        check_instance("tokens", tokens, SceneTokens)
+        check_instance("queries", queries, Queries)
+        check_real_array("tokens.boxes", tokens.boxes, (None, None, 4))
+        b, q = check_array("queries.descriptor", queries.descriptor, (None, None)).shape
+        slots = np.shape(tokens.boxes)[1]
+        if slots > self.flowsim.max_tokens:
+            raise ValueError(f"tokens has {slots} token slots, more than the "
+                             f"max_tokens={self.flowsim.max_tokens} of the maps the model was "
+                             "trained on (flowsim.max_tokens)")
         check_inputs(self.model, tokens, queries)
-        b, q = np.shape(queries.descriptor)
+        check_query_roles(queries, self.flowsim.object_descriptors)
         if b < 1 or q < 1:
             raise ValueError(f"tokens/queries must hold at least one scene and one query; got "
                              f"B={b}, Q={q}")
         return b, q
 
-    def _check_x(self, x, b: int, q: int) -> jnp.ndarray:
-        shape = np.shape(x)
-        if len(shape) != 4 or shape[:2] != (b, q) or shape[-1] != 4:
-            raise ValueError(f"x must have shape (B={b}, Q={q}, N, 4) of normalised (y, x, h, w) "
-                             f"boxes; got {shape}")
-        if shape[2] < 1:
-            raise ValueError("x must hold at least one box per query (N >= 1)")
-        x = jnp.asarray(x, jnp.float32)
-        if not bool(jnp.all(jnp.isfinite(x))):
-            raise ValueError("x contains NaN or inf")
-        return x
+    def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool) -> None:
+        """Refuse (ValueError) a request whose working memory would not fit, before XLA tries."""
+        per_row = _ROW_BYTES[self.kind](self.model) * (_DENSITY_FACTOR if with_density else 1)
+        check_request_size(f"{what} of {b} scenes x {q} queries x {n} boxes", b * q * n * per_row)
 
     # ----------------------------------------------------------------------- inference
 
     def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
                num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
-               pixels: bool = False) -> jnp.ndarray:
+               pixels: bool = False, return_log_prob: bool = False):
         """Draw num_samples boxes per query → (B, Q, num_samples, 4).
 
         Normalised (y, x, h, w) by default; ``pixels=True`` gives pixel corners (y0, x0, y1, x1).
         key: one PRNG key (split over the B scenes) or one key per scene (B,). The solver
         (``num_steps`` grid points, ``method`` "midpoint" or "euler") is ignored by the MLP.
         Same key and inputs → the same samples.
+
+        ``return_log_prob=True`` returns ``(boxes, log_p)`` with log_p (B, Q, num_samples) the
+        exact log-density of each normalised box, from the same forward solve (FlowMaps
+        integrates the augmented ODE with the exact divergence: no second, backward solve;
+        the boxes equal those without it, to float rounding). Planners weigh samples with it.
         """
-        b, _ = self.validate(tokens, queries)
+        b, q = self.validate(tokens, queries)
         num_samples = check_int("num_samples", num_samples)
         num_steps, method = flow.check_solver(num_steps, method)
+        check_flag("pixels", pixels)
+        check_flag("return_log_prob", return_log_prob)
+        self._check_request("sample", b, q, num_samples, return_log_prob)
         keys = _scene_keys(key, b)
         tokens, queries = _as_arrays(tokens, queries)
-        if self.kind == "flowmaps":
-            boxes = flow_sample(self.params, self.model, tokens, queries, keys, num_samples,
-                                num_steps, method)
-        else:
-            boxes = gaussian_sample(self.params, self.model, tokens, queries, keys, num_samples)
-        return denormalise_boxes(boxes, self.flowsim) if pixels else boxes
+        kind = model_kind(self.kind)
+        draw = kind.sample_with_log_prob if return_log_prob else kind.sample
+        out = draw(self.params, self.model, tokens, queries, keys, num_samples,
+                   num_steps=num_steps, method=method)
+        boxes, log_p = out if return_log_prob else (out, None)
+        if pixels:
+            boxes = denormalise_boxes(boxes, self.flowsim)
+        return (boxes, log_p) if return_log_prob else boxes
+
+    def table_probabilities(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
+                            **sample_kwargs) -> jnp.ndarray:
+        """Mass (B, Q, S + 1) on each table of the map (furniture tokens; zero on other tokens)
+        plus an "off" mass in the last entry, from ``num_samples`` samples per query: the prior
+        a search planner calls. See :func:`flowmaps_jax.search.table_probabilities`."""
+        from flowmaps_jax.search.probabilities import table_probabilities
+
+        return table_probabilities(self, tokens, queries, num_samples, key, **sample_kwargs)
 
     def log_prob(self, tokens: SceneTokens, queries: Queries, x,
                  num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
@@ -272,11 +215,13 @@ class Predictor:
         """
         b, q = self.validate(tokens, queries)
         num_steps, method = flow.check_solver(num_steps, method)
-        x = self._check_x(x, b, q)
+        x = jnp.asarray(check_real_array("x", x, (b, q, None, 4)), jnp.float32)
+        if x.shape[2] < 1:
+            raise ValueError("x must hold at least one box per query (N >= 1)")
+        self._check_request("log_prob", b, q, x.shape[2], True)
         tokens, queries = _as_arrays(tokens, queries)
-        if self.kind == "flowmaps":
-            return flow_log_prob(self.params, self.model, tokens, queries, x, num_steps, method)
-        return gaussian_log_prob(self.params, self.model, tokens, queries, x)
+        return model_kind(self.kind).log_prob(self.params, self.model, tokens, queries, x,
+                                              num_steps=num_steps, method=method)
 
     def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
         """MLP baseline only: (mean, log_var), each (B, Q, 4), of the predicted Gaussian."""
@@ -291,37 +236,33 @@ class Predictor:
 
 
 def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
-         use_ema: bool = True) -> Predictor:
+         use_ema: bool = True, step: int | None = None) -> Predictor:
     """Load a trained model from a checkpoint directory (or a run directory holding one).
 
     which: "best" (lowest validation loss; falls back to the latest save when no validation
-    has run yet) or "latest". use_ema: the EMA weights (default) or the raw training weights.
-    The model kind (FlowMaps or MLP baseline) and sizes come from the config saved with the
-    checkpoint. Raises ``ValueError`` for a missing, empty or corrupt directory.
+    has run yet) or "latest". step: load this saved step instead (from last/ or best/), e.g.
+    the older intact step that the error about a damaged newest step names. use_ema: the EMA
+    weights (default) or the raw training weights. The model kind (FlowMaps or MLP baseline)
+    and sizes come from the config saved with the checkpoint. Every array is checked against
+    the checksums saved with it and for NaN/inf. Raises ``ValueError`` for a missing, empty,
+    damaged or non-finite checkpoint (naming the newest intact step when there is one).
     """
-    from flowmaps_jax import checkpoint
+    from flowmaps_jax.training import checkpoint
+    from flowmaps_jax.training.state import abstract_state
+    from flowmaps_jax.validation import check_choice
 
-    if which not in WHICH:
-        raise ValueError(f"which must be one of {WHICH}; got {which!r}")
-    if not isinstance(use_ema, bool):
-        raise ValueError(f"use_ema must be True or False; got {use_ema!r}")
+    which = check_choice("which", which, checkpoint.WHICH)
+    use_ema = check_flag("use_ema", use_ema)
     root = checkpoint.resolve_checkpoint_dir(checkpoint_dir)
-    store_which = checkpoint.BEST if which == "best" else checkpoint.LAST
-    params, cfg = checkpoint.load_for_inference(root, which=store_which, ema=use_ema)
-    step = _checkpoint_step(root, store_which)
+    if step is not None:
+        step = check_int("step", step, minimum=0)
+    elif which == checkpoint.BEST and checkpoint.saved_step(root, checkpoint.BEST) is None:
+        which = checkpoint.LATEST
+    cfg = checkpoint.load_config(root, which, step=step)
+    restored = checkpoint.restore(root, abstract_state(cfg), which=which, step=step)
+    params = restored.state.ema_params if use_ema else restored.state.params
     return Predictor(params=params, model=cfg.model, kind=cfg.model_kind, flowsim=cfg.flowsim,
-                     source=str(root), step=step)
-
-
-def _checkpoint_step(root: pathlib.Path, which: str) -> int | None:
-    """Step of the checkpoint ``load_for_inference`` restored (best, else latest); for reports."""
-    def steps(sub: pathlib.Path) -> list[int]:
-        return [int(p.name) for p in sub.iterdir() if p.name.isdigit()] if sub.is_dir() else []
-
-    best, last = steps(root / "best"), steps(root / "last")
-    if which == "best" and best:
-        return max(best)
-    return max(last) if last else None
+                     source=str(root), step=int(restored.state.step))
 
 
 def load_pretrained(name: str) -> Predictor:

@@ -19,29 +19,26 @@ Conventions
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 import chex
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from flowmaps_jax.validation import check_int
+# Box geometry lives in flowmaps_jax.boxes; re-exported here for existing imports.
+from flowmaps_jax.boxes import from_centre, to_centre  # noqa: F401
+from flowmaps_jax.validation import (
+    check_array,
+    check_instance,
+    check_int,
+    check_int_array,
+    check_mask,
+    check_real_array,
+)
 
 FURNITURE = 0
 OBJECT = 1
-
-
-def to_centre(boxes: jnp.ndarray) -> jnp.ndarray:
-    """(..., 4) boxes (y, x, h, w) → (cy, cx, h, w). A shear with unit Jacobian."""
-    boxes = jnp.asarray(boxes)
-    y, x, h, w = jnp.moveaxis(boxes, -1, 0)
-    return jnp.stack([y + h / 2, x + w / 2, h, w], axis=-1)
-
-
-def from_centre(centres: jnp.ndarray) -> jnp.ndarray:
-    """(..., 4) (cy, cx, h, w) → boxes (y, x, h, w); inverse of :func:`to_centre`."""
-    centres = jnp.asarray(centres)
-    cy, cx, h, w = jnp.moveaxis(centres, -1, 0)
-    return jnp.stack([cy - h / 2, cx - w / 2, h, w], axis=-1)
 
 
 @struct.dataclass
@@ -63,7 +60,7 @@ class SceneTokens:
 
     @property
     def num_tokens(self) -> int:
-        return self.mask.shape[-1]
+        return np.shape(self.mask)[-1]
 
 
 @struct.dataclass
@@ -93,64 +90,78 @@ class TrainBatch:
 
 
 def validate_tokens(tokens: SceneTokens, num_descriptors: int, max_tokens: int | None = None,
-                    name: str = "tokens") -> None:
+                    name: str = "tokens", num_timesteps: int | None = None) -> None:
     """Raise ``ValueError`` naming the field if ``tokens`` is malformed.
 
-    Checks shapes agree, boxes lie in [0, 1] on real tokens, descriptors are known
-    (``0 <= id < num_descriptors``), kinds are 0/1 and the token axis equals ``max_tokens``.
-    Works on concrete (numpy or jax) arrays only; call it at public API boundaries, outside jit.
+    Every field must be an array (numpy or jax, not a list): boxes real and finite, in [0, 1] on
+    real tokens; descriptor, kind and tau integers; mask booleans (or 0/1 only). Shapes must
+    agree, descriptors be known (``0 <= id < num_descriptors``), kinds 0/1, every scene hold a
+    real token, the token axis equal ``max_tokens`` and, if ``num_timesteps`` is given, tau lie
+    in 0..num_timesteps − 2. Works on concrete (numpy or jax) arrays; call it at public API
+    boundaries, outside jit.
     """
-    boxes = np.asarray(tokens.boxes)
-    desc = np.asarray(tokens.descriptor)
-    kind = np.asarray(tokens.kind)
-    mask = np.asarray(tokens.mask)
-    tau = np.asarray(tokens.tau)
-    if boxes.ndim < 2 or boxes.shape[-1] != 4:
-        raise ValueError(f"{name}.boxes must have shape (..., S, 4); got {boxes.shape}")
+    check_instance(name, tokens, SceneTokens)
+    fields = {field: check_array(f"{name}.{field}", getattr(tokens, field))
+              for field in ("boxes", "descriptor", "kind", "mask", "tau")}
+    boxes = check_real_array(f"{name}.boxes", fields["boxes"], (..., None, 4))
     lead = boxes.shape[:-1]
-    for field, arr in (("descriptor", desc), ("kind", kind), ("mask", mask)):
-        if arr.shape != lead:
-            raise ValueError(
-                f"{name}.{field} must have shape {lead} to match boxes; got {arr.shape}")
-    if tau.shape != lead[:-1]:
-        raise ValueError(f"{name}.tau must have shape {lead[:-1]}; got {tau.shape}")
+    desc = np.asarray(check_int_array(f"{name}.descriptor", fields["descriptor"], shape=lead))
+    kind = np.asarray(check_int_array(f"{name}.kind", fields["kind"], shape=lead))
+    real = check_mask(f"{name}.mask", fields["mask"], shape=lead)
+    check_int_array(f"{name}.tau", fields["tau"], shape=lead[:-1])
     if max_tokens is not None and lead[-1] != max_tokens:
         raise ValueError(
             f"{name} has {lead[-1]} token slots but the model expects max_tokens={max_tokens}")
-    if not np.issubdtype(desc.dtype, np.integer):
-        raise ValueError(f"{name}.descriptor must be integer; got {desc.dtype}")
-    real = mask.astype(bool)
-    if not np.all(np.isfinite(boxes)):
-        raise ValueError(f"{name}.boxes contains NaN or inf")
     if np.any((boxes < 0.0)[real] | (boxes > 1.0)[real]):
         raise ValueError(f"{name}.boxes must lie in [0, 1] (normalised y, x, h, w)")
-    if np.any(((desc < 0) | (desc >= num_descriptors))[real]):
-        bad = np.unique(desc[real & ((desc < 0) | (desc >= num_descriptors))])
-        raise ValueError(f"{name}.descriptor has unknown ids {bad.tolist()} "
+    unknown = real & ((desc < 0) | (desc >= num_descriptors))
+    if np.any(unknown):
+        raise ValueError(f"{name}.descriptor has unknown ids {np.unique(desc[unknown]).tolist()} "
                          f"(known: 0..{num_descriptors - 1})")
     if np.any(((kind != FURNITURE) & (kind != OBJECT))[real]):
         raise ValueError(f"{name}.kind must be 0 (furniture) or 1 (object)")
     if not np.all(real.any(axis=-1)):
         raise ValueError(f"{name}.mask: every scene needs at least one real token")
+    if num_timesteps is not None:
+        check_int_array(f"{name}.tau", fields["tau"], 0, num_timesteps - 2)
 
 
-def validate_queries(queries: Queries, tau: np.ndarray, num_descriptors: int, tau_max: int,
-                     name: str = "queries") -> None:
-    """Raise ``ValueError`` if a descriptor is unknown or ``tau_q`` is outside (tau, tau_max)."""
-    desc = np.asarray(queries.descriptor)
-    tau_q = np.asarray(queries.tau_q)
-    tau = np.asarray(tau)
+def validate_queries(queries: Queries, tau, num_descriptors: int, tau_max: int,
+                     name: str = "queries",
+                     object_descriptors: Collection[int] | None = None) -> None:
+    """Raise ``ValueError`` if ``queries`` is malformed: fields not integer arrays, shapes that
+    do not match ``tau`` (the scenes' state times), a descriptor unknown or, when
+    ``object_descriptors`` is given, not one of them (a query names an object category, not a
+    furniture kind), or ``tau_q`` outside (tau, tau_max)."""
+    check_instance(name, queries, Queries)
+    desc = check_int_array(f"{name}.descriptor",
+                           check_array(f"{name}.descriptor", queries.descriptor),
+                           0, num_descriptors - 1)
+    tau_q = check_int_array(f"{name}.tau_q", check_array(f"{name}.tau_q", queries.tau_q),
+                            None, tau_max - 1)
+    tau = np.asarray(check_int_array("tau", tau))
     if desc.shape != tau_q.shape:
         raise ValueError(f"{name}.descriptor {desc.shape} and {name}.tau_q {tau_q.shape} differ")
     if desc.shape[: tau.ndim] != tau.shape:
         raise ValueError(f"{name} leading dims {desc.shape} do not match tau {tau.shape}")
-    if np.any((desc < 0) | (desc >= num_descriptors)):
-        raise ValueError(f"{name}.descriptor has unknown ids (known: 0..{num_descriptors - 1})")
-    tau_b = tau.reshape(tau.shape + (1,) * (tau_q.ndim - tau.ndim))
+    if object_descriptors is not None:
+        check_query_roles(queries, object_descriptors, name)
+    tau_b = np.reshape(tau, tau.shape + (1,) * (tau_q.ndim - tau.ndim))
     if np.any(tau_q <= tau_b):
         raise ValueError(f"{name}.tau_q must be strictly greater than tau")
-    if np.any(tau_q >= tau_max):
-        raise ValueError(f"{name}.tau_q must be < tau_max={tau_max}")
+
+
+def check_query_roles(queries: Queries, object_descriptors: Collection[int],
+                      name: str = "queries") -> None:
+    """Raise ``ValueError`` unless every query descriptor is one of ``object_descriptors``
+    (e.g. ``FlowSimConfig.object_descriptors``): a query asks where an object is, so a
+    furniture kind's descriptor (a table) is not a query."""
+    desc = np.asarray(check_int_array(f"{name}.descriptor", queries.descriptor))
+    wrong = ~np.isin(desc, np.asarray(list(object_descriptors), np.int64))
+    if np.any(wrong):
+        raise ValueError(f"{name}.descriptor must name object categories "
+                         f"{sorted(int(d) for d in object_descriptors)}; got "
+                         f"{np.unique(desc[wrong]).tolist()} (furniture or unknown)")
 
 
 def assert_batch_shapes(batch: TrainBatch) -> None:
@@ -172,8 +183,7 @@ def trim_padding(tokens: SceneTokens, num_tokens: int) -> SceneTokens:
     inference call this with ``num_tokens = F + M`` to skip the attention work on empty slots.
     ``num_tokens`` must be static (a Python int). Shapes: (..., S, ·) → (..., num_tokens, ·).
     """
-    if check_int("num_tokens", num_tokens) > tokens.num_tokens:
-        raise ValueError(f"num_tokens must be in 1..{tokens.num_tokens}; got {num_tokens}")
+    check_int("num_tokens", num_tokens, 1, tokens.num_tokens)
     return tokens.replace(boxes=tokens.boxes[..., :num_tokens, :],
                           descriptor=tokens.descriptor[..., :num_tokens],
                           kind=tokens.kind[..., :num_tokens],

@@ -33,7 +33,9 @@ Entry points
 rollouts in ``lax.scan``); ``exact_posterior``, ``transition_matrix``; model-facing views in
 ``flowsim.scenes`` (normalised boxes, ``scene_tokens``, ``slot_boxes``, ``sample_queries``,
 ``make_train_batch``, ``train_split`` / ``validation_split`` / ``endless_batches``,
-``save_scenes`` / ``load_scenes``).
+``save_scenes`` / ``load_scenes``); ``validate_scenes`` checks a ``Scenes`` (every public function
+here checks its arguments with :mod:`flowmaps_jax.validation` before anything is jitted, and
+raises ``ValueError`` naming the argument).
 """
 
 from flowmaps_jax.flowsim.config import (
@@ -45,7 +47,7 @@ from flowmaps_jax.flowsim.config import (
     ObjectCategory,
 )
 from flowmaps_jax.flowsim.dynamics import exact_posterior, transition_matrix
-from flowmaps_jax.flowsim.generate import Scenes, generate
+from flowmaps_jax.flowsim.generate import Scenes, generate, validate_scenes
 from flowmaps_jax.flowsim.scenes import (
     QuerySet,
     denormalise_boxes,
@@ -83,5 +85,6 @@ __all__ = [
     "slot_boxes",
     "train_split",
     "transition_matrix",
+    "validate_scenes",
     "validation_split",
 ]

@@ -15,6 +15,15 @@ from typing import Any
 
 import numpy as np
 
+from flowmaps_jax.validation import (
+    INT32_MAX,
+    check_choice,
+    check_instance,
+    check_int,
+    check_probabilities,
+    check_real,
+)
+
 ORDERINGS = ("clockwise", "counter_clockwise", "top_to_bottom", "left_to_right", "bottom_to_top")
 """Visiting-order rules. Angles are measured at the table centre around the map centre, 0 pointing
 up and increasing clockwise on screen (y grows downwards); "clockwise" visits tables by ascending
@@ -69,19 +78,6 @@ PAPER_CATEGORIES = (
 )
 
 
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _check_probs(name: str, probs: Any) -> None:
-    if not isinstance(probs, tuple) or len(probs) != 3:
-        raise ValueError(f"{name} must be a tuple of 3 probabilities; got {probs!r}")
-    if any(not isinstance(p, (int, float)) or not math.isfinite(p) or p < 0 for p in probs):
-        raise ValueError(f"{name} must be finite and non-negative; got {probs!r}")
-    if abs(sum(probs) - 1.0) > 1e-6:
-        raise ValueError(f"{name} must sum to 1; got {probs!r} (sum {sum(probs):.6g})")
-
-
 @dataclasses.dataclass(frozen=True)
 class FlowSimConfig:
     """All of FlowSim's parameters; the defaults are the paper's.
@@ -103,6 +99,12 @@ class FlowSimConfig:
         fits next to the pieces already placed, the whole layout is redrawn.
     dynamics: one of ``DYNAMICS``.
     furniture_kinds, categories: the category table.
+
+    Numpy numbers are stored as Python ``int``/``float`` (the config stays JSON-able). Configs
+    that cannot produce valid scenes are refused: tables under one pixel, more table area than
+    the map, fewer pieces than ``min_per_kind`` × kinds, objects larger than the smallest table
+    (one on such a table at the map's edge would leave the map: the paper's fractions need
+    ``map_size >= 50``), and ``max_tokens`` < F + M.
     """
 
     map_size: int = 256
@@ -123,30 +125,35 @@ class FlowSimConfig:
     categories: tuple[ObjectCategory, ...] = PAPER_CATEGORIES
 
     def __post_init__(self) -> None:
-        for name in ("map_size", "num_furniture", "min_per_kind", "min_object_px",
-                     "num_timesteps", "max_tokens", "layout_budget", "layout_candidates"):
-            if not _is_int(getattr(self, name)):
-                raise ValueError(f"{name} must be an int; got {getattr(self, name)!r}")
-        for name, low in (("map_size", 2), ("num_furniture", 1), ("min_per_kind", 1),
-                          ("min_object_px", 1), ("num_timesteps", 2), ("max_tokens", 1),
-                          ("layout_budget", 0), ("layout_candidates", 1)):
-            if getattr(self, name) < low:
-                raise ValueError(f"{name} must be >= {low}; got {getattr(self, name)}")
+        self._store("map_size", check_int("map_size", self.map_size, 2))
         if self.map_size > MAX_MAP_SIZE:
             raise ValueError(f"map_size must be <= {MAX_MAP_SIZE} (positions are drawn from 16 "
                              f"random bits); got {self.map_size}")
+        for name, low in (("num_furniture", 1), ("min_per_kind", 1), ("min_object_px", 1),
+                          ("num_timesteps", 2), ("max_tokens", 1), ("layout_budget", 0),
+                          ("layout_candidates", 1)):  # all become int32 arrays somewhere
+            self._store(name, check_int(name, getattr(self, name), low, INT32_MAX))
         for name in ("table_min_frac", "table_max_frac", "object_frac"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not 0.0 < value <= 1.0:
-                raise ValueError(f"{name} must be a number in (0, 1]; got {value!r}")
+            self._store(name, check_real(name, getattr(self, name), 0.0, 1.0, low_open=True))
         if self.table_min_frac > self.table_max_frac:
             raise ValueError(f"table_min_frac ({self.table_min_frac}) must be <= table_max_frac "
                              f"({self.table_max_frac})")
-        _check_probs("transition_probs", self.transition_probs)
-        _check_probs("jitter_probs", self.jitter_probs)
-        if self.dynamics not in DYNAMICS:
-            raise ValueError(f"dynamics must be one of {DYNAMICS}; got {self.dynamics!r}")
+        for name in ("transition_probs", "jitter_probs"):
+            probs = getattr(self, name)
+            if not isinstance(probs, (tuple, list)) or len(probs) != 3:
+                raise ValueError(f"{name} must be a tuple of 3 probabilities; got {probs!r}")
+            self._store(name, tuple(float(p) for p in check_probabilities(name, probs)))
+        check_choice("dynamics", self.dynamics, DYNAMICS)
         self._check_table()
+        self._check_sizes()
+
+    def _store(self, name: str, value: Any) -> None:
+        """Keep the checked, plain-Python form of a field (e.g. numpy scalars become int/float,
+        so the config stays JSON-able and hashes like one built from Python numbers)."""
+        object.__setattr__(self, name, value)
+
+    def _check_sizes(self) -> None:
+        """Refuse configs that cannot produce valid scenes."""
         lo, _ = self.table_side_range
         if lo < 1:
             raise ValueError(f"map_size {self.map_size} is too small: table_min_frac "
@@ -160,38 +167,55 @@ class FlowSimConfig:
             raise ValueError(
                 f"num_furniture must be >= min_per_kind * number of furniture kinds = {required}; "
                 f"got {self.num_furniture}")
+        largest, start = self._largest_object(self.map_size)
+        if largest > lo:
+            fits = next((size for size in range(self.map_size + 1, MAX_MAP_SIZE + 1)
+                         if self._largest_object(size)[0] <= math.floor(
+                             self.table_min_frac * size)), None)
+            hint = f"map_size >= {fits}" if fits else "a larger table_min_frac"
+            raise ValueError(
+                f"objects would leave the map: an object can be {largest} px wide "
+                f"(max(min_object_px={self.min_object_px}, floor(object_frac={self.object_frac} "
+                f"* its start table's side, up to {start} px))) but the smallest table is {lo} "
+                f"px (table_min_frac={self.table_min_frac} * map_size={self.map_size}), and an "
+                f"object centred on such a table at the map's edge would stick out; use {hint}, "
+                f"or a smaller object_frac/min_object_px")
+        needed = self.num_furniture + self.num_objects
+        if needed > self.max_tokens:
+            raise ValueError(f"max_tokens={self.max_tokens} is smaller than the {needed} tokens "
+                             f"of a scene (num_furniture={self.num_furniture} + "
+                             f"{self.num_objects} objects)")
+
+    def _largest_object(self, map_size: int) -> tuple[int, int]:
+        """(largest object side, the start-table side giving it) in px on a ``map_size`` map.
+
+        An object is centred on its table, and a table of the smallest side can touch the map's
+        edge, so objects stay on the map iff none is larger than the smallest table. An
+        object's side is fixed by its start table (as ``layout.object_sizes`` computes it, in
+        float32), which can be the largest table unless no kind ever has two tables (then the
+        object never moves, and only ``min_object_px`` can exceed its table).
+        """
+        movable = (self.min_per_kind > 1
+                   or self.num_furniture > self.min_per_kind * len(self.furniture_kinds))
+        start = math.floor((self.table_max_frac if movable else self.table_min_frac) * map_size)
+        side = np.floor(np.float32(self.object_frac) * np.float32(start))
+        return max(self.min_object_px, int(side)), start
 
     def _check_table(self) -> None:
-        if not isinstance(self.furniture_kinds, tuple) or not self.furniture_kinds:
-            raise ValueError("furniture_kinds must be a non-empty tuple of FurnitureKind")
-        if not isinstance(self.categories, tuple) or not self.categories:
-            raise ValueError("categories must be a non-empty tuple of ObjectCategory")
-        for kind in self.furniture_kinds:
-            if not isinstance(kind, FurnitureKind):
-                raise ValueError(f"furniture_kinds entries must be FurnitureKind; got {kind!r}")
+        for field, entries, cls in (("furniture_kinds", self.furniture_kinds, FurnitureKind),
+                                    ("categories", self.categories, ObjectCategory)):
+            if not isinstance(entries, tuple) or not entries:
+                raise ValueError(f"{field} must be a non-empty tuple of {cls.__name__}")
+            for entry in entries:
+                check_instance(f"{field} entries", entry, cls)
         kind_names = [k.name for k in self.furniture_kinds]
-        for cat in self.categories:
-            if not isinstance(cat, ObjectCategory):
-                raise ValueError(f"categories entries must be ObjectCategory; got {cat!r}")
-            if cat.ordering not in ORDERINGS:
-                raise ValueError(f"categories: {cat.name!r} has unknown ordering "
-                                 f"{cat.ordering!r}; known: {ORDERINGS}")
-            if cat.shape not in SHAPES:
-                raise ValueError(f"categories: {cat.name!r} has unknown shape {cat.shape!r}; "
-                                 f"known: {SHAPES}")
-            if cat.furniture_kind not in kind_names:
-                raise ValueError(f"categories: {cat.name!r} sits on unknown furniture kind "
-                                 f"{cat.furniture_kind!r}; known: {kind_names}")
-        entries = [("furniture_kinds", k) for k in self.furniture_kinds]
-        entries += [("categories", c) for c in self.categories]
         names: set[str] = set()
         descriptors: set[int] = set()
-        for field, entry in entries:
+        for field, entry in [("furniture_kinds", k) for k in self.furniture_kinds] + [
+                ("categories", c) for c in self.categories]:
             if not isinstance(entry.name, str) or not entry.name:
                 raise ValueError(f"{field}: names must be non-empty strings; got {entry.name!r}")
-            if not _is_int(entry.descriptor) or entry.descriptor < 0:
-                raise ValueError(f"{field}: {entry.name!r} descriptor must be an int >= 0; "
-                                 f"got {entry.descriptor!r}")
+            check_int(f"{field}: {entry.name!r} descriptor", entry.descriptor, 0, INT32_MAX)
             if entry.name in names:
                 raise ValueError(f"{field}: name {entry.name!r} is used twice")
             if entry.descriptor in descriptors:
@@ -200,6 +224,16 @@ class FlowSimConfig:
                 raise ValueError(f"{field}: {entry.name!r} colour must be a non-empty string")
             names.add(entry.name)
             descriptors.add(entry.descriptor)
+        for field in ("furniture_kinds", "categories"):  # numpy ids -> int (JSON-able)
+            entries = getattr(self, field)
+            if any(type(e.descriptor) is not int for e in entries):
+                self._store(field, tuple(dataclasses.replace(e, descriptor=int(e.descriptor))
+                                         for e in entries))
+        for cat in self.categories:
+            check_choice(f"categories: {cat.name!r} ordering", cat.ordering, ORDERINGS)
+            check_choice(f"categories: {cat.name!r} shape", cat.shape, SHAPES)
+            check_choice(f"categories: {cat.name!r} sits on furniture kind", cat.furniture_kind,
+                         kind_names)
 
     # ----------------------------------------------------------------- derived quantities
     @property
@@ -223,6 +257,11 @@ class FlowSimConfig:
         """(lo, hi) inclusive integer table side in pixels."""
         return (math.floor(self.table_min_frac * self.map_size),
                 math.floor(self.table_max_frac * self.map_size))
+
+    @property
+    def object_descriptors(self) -> tuple[int, ...]:
+        """Descriptor ids of the object categories: the only ids a query may name."""
+        return tuple(c.descriptor for c in self.categories)
 
     @property
     def category_kind_index(self) -> tuple[int, ...]:

@@ -26,7 +26,7 @@ import numpy as np
 
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, DYNAMICS, FlowSimConfig, SimShape
 from flowmaps_jax.flowsim.layout import uniform16
-from flowmaps_jax.validation import is_concrete
+from flowmaps_jax.validation import check_choice, check_instance, check_int_array, is_concrete
 
 
 def _draw_offsets(u: jnp.ndarray, probs: jnp.ndarray) -> jnp.ndarray:
@@ -65,7 +65,7 @@ def rollout(words: jnp.ndarray, num_slots: jnp.ndarray, params: dict,
         time = jnp.arange(1, t, dtype=jnp.int32).reshape((t - 1,) + (1,) * (u.ndim - 1))
         later = jnp.mod(time + offsets, num_slots[None])
     else:
-        raise ValueError(f"dynamics must be one of {DYNAMICS}; got {shape.dynamics!r}")
+        check_choice("dynamics", shape.dynamics, DYNAMICS)
     return jnp.concatenate([start, later], axis=0)
 
 
@@ -82,31 +82,11 @@ def _advance_table(probs: tuple[float, float, float], max_horizon: int) -> np.nd
 
 
 def _check_slots(num_slots, slot_now, config: FlowSimConfig) -> None:
-    k = np.asarray(num_slots)
-    if not np.issubdtype(k.dtype, np.integer):
-        raise ValueError(f"num_slots must be integer; got dtype {k.dtype}")
-    if np.any((k < 1) | (k > config.num_furniture)):
-        raise ValueError(f"num_slots must lie in 1..num_furniture={config.num_furniture}; "
-                         f"got values in {k.min()}..{k.max()}")
+    """num_slots in 1..F and, if given, slot_now in 0..num_slots − 1 (concrete values only)."""
+    check_int_array("num_slots", num_slots, 1, config.num_furniture)
     if slot_now is not None:
-        s = np.asarray(slot_now)
-        if not np.issubdtype(s.dtype, np.integer):
-            raise ValueError(f"slot_now must be integer; got dtype {s.dtype}")
-        try:
-            ok = np.all((s >= 0) & (s < k))
-        except ValueError as err:
-            raise ValueError(f"slot_now {s.shape} and num_slots {k.shape} do not broadcast") \
-                from err
-        if not ok:
-            raise ValueError("slot_now must lie in 0..num_slots-1")
-
-
-def _check_time(name: str, value, low: int, high: int) -> None:
-    v = np.asarray(value)
-    if not np.issubdtype(v.dtype, np.integer):
-        raise ValueError(f"{name} must be integer; got dtype {v.dtype}")
-    if np.any((v < low) | (v > high)):
-        raise ValueError(f"{name} must lie in {low}..{high}; got values in {v.min()}..{v.max()}")
+        check_int_array("slot_now", slot_now, 0, np.asarray(num_slots) - 1,
+                        high_name="num_slots - 1")
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -150,23 +130,21 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     Leading dims broadcast. Entries beyond K are zero; each row sums to 1.
     Inputs are validated when concrete; under ``jit`` out-of-range horizons are clipped.
     """
-    if not isinstance(config, FlowSimConfig):
-        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
-    dynamics = config.dynamics if dynamics is None else dynamics
-    if dynamics not in DYNAMICS:
-        raise ValueError(f"dynamics must be one of {DYNAMICS}; got {dynamics!r}")
+    check_instance("config", config, FlowSimConfig)
+    dynamics = check_choice("dynamics", config.dynamics if dynamics is None else dynamics,
+                            DYNAMICS)
     max_h = config.num_timesteps - 1
     if is_concrete(num_slots, slot_now, horizon):
         _check_slots(num_slots, slot_now, config)
-        _check_time("horizon", horizon, 0, max_h)
+        check_int_array("horizon", horizon, 0, max_h)
     if dynamics == "markov":
         return _markov_posterior(num_slots, slot_now, horizon, config)
     if tau is None:
         raise ValueError("tau is required for dynamics='schedule_jitter' (its posterior depends "
                          "on the absolute query time tau + horizon)")
     if is_concrete(tau, horizon):
-        _check_time("tau", tau, 0, max_h)
-        _check_time("tau + horizon", np.asarray(tau) + np.asarray(horizon), 0, max_h)
+        check_int_array("tau", tau, 0, max_h)
+        check_int_array("tau + horizon", np.asarray(tau) + np.asarray(horizon), 0, max_h)
     now = jax.nn.one_hot(jnp.asarray(slot_now), config.num_furniture, dtype=jnp.float32)
     ahead = _jitter_posterior(num_slots, slot_now, jnp.asarray(tau) + jnp.asarray(horizon),
                               config)
@@ -192,8 +170,7 @@ def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.
     ``config.transition_probs``; the rest is zero. ``onehot(slot) @ P^h`` equals
     ``exact_posterior(K, slot, h)``.
     """
-    if not isinstance(config, FlowSimConfig):
-        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+    check_instance("config", config, FlowSimConfig)
     if is_concrete(num_slots):
         _check_slots(num_slots, None, config)
     return _transition_matrix(num_slots, config)

@@ -11,6 +11,7 @@ vectorised over the whole batch.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -25,6 +26,17 @@ from flowmaps_jax.flowsim.config import (
     SimShape,
     sim_params,
     sim_shape,
+)
+from flowmaps_jax.validation import (
+    array_bytes,
+    check_array,
+    check_instance,
+    check_int,
+    check_int_array,
+    check_key,
+    check_real_array,
+    check_request_size,
+    is_concrete,
 )
 
 
@@ -56,6 +68,86 @@ class Scenes:
     @property
     def num_envs(self) -> int:
         return self.furniture_boxes.shape[0]
+
+
+_FIELDS = tuple(field.name for field in dataclasses.fields(Scenes))
+_FLOAT_FIELDS = ("furniture_boxes", "object_size", "object_boxes")
+
+
+def _field_shapes(e: int, f: int, m: int, t: int) -> dict[str, tuple[int, ...]]:
+    return {"furniture_boxes": (e, f, 4), "furniture_kind": (e, f), "object_kind": (e, m),
+            "object_size": (e, m), "visit_order": (e, m, f), "num_slots": (e, m),
+            "slot": (e, t, m), "object_boxes": (e, t, m, 4), "layout_redraws": (e,)}
+
+
+def scenes_bytes_per_env(config: FlowSimConfig) -> int:
+    """Bytes of one environment's ``Scenes`` arrays (all 4-byte numbers): a lower bound on
+    what ``generate`` needs per environment."""
+    shapes = _field_shapes(1, config.num_furniture, config.num_objects, config.num_timesteps)
+    return sum(array_bytes(shape) for shape in shapes.values())
+
+
+def validate_scenes(scenes, config: FlowSimConfig | None = None, *, values: bool = True,
+                    name: str = "scenes") -> None:
+    """Raise ``ValueError`` naming the field if ``scenes`` is not a well-formed ``Scenes``.
+
+    Always (also on tracers, no device transfer): every field is an array of the right kind
+    (float boxes and sizes, integer ids, orders and slots) and of shapes consistent with each
+    other and with ``config`` (F, M, T) when given. With ``values`` (concrete arrays): boxes
+    finite, non-negative and, with ``config``, within the map, with positive sides; object
+    sizes positive; descriptor ids those of the config; visit orders valid furniture indices
+    exactly on the first num_slots places; num_slots in 1..F; slots in 0..num_slots − 1;
+    redraw counts >= 0.
+    """
+    check_instance(name, scenes, Scenes)
+    arrays = {field: check_array(f"{name}.{field}", getattr(scenes, field))
+              for field in _FIELDS}
+    check_array(f"{name}.furniture_boxes", arrays["furniture_boxes"], (None, None, 4))
+    e, f = arrays["furniture_boxes"].shape[:2]
+    if config is None:  # sizes from the arrays themselves
+        t, m = check_array(f"{name}.slot", arrays["slot"], (e, None, None)).shape[1:]
+        origin = "E, F from furniture_boxes and T, M from slot"
+    else:
+        f, m, t = config.num_furniture, config.num_objects, config.num_timesteps
+        origin = f"E from furniture_boxes; F={f}, M={m}, T={t} from the config"
+    for field, shape in _field_shapes(e, f, m, t).items():
+        if tuple(arrays[field].shape) != shape:
+            raise ValueError(f"{name}.{field} has shape {tuple(arrays[field].shape)}, expected "
+                             f"{shape} ({origin})")
+        if field in _FLOAT_FIELDS:
+            arrays[field] = check_real_array(f"{name}.{field}", arrays[field], finite=values)
+        else:
+            arrays[field] = check_int_array(f"{name}.{field}", arrays[field])
+    if values and is_concrete(*arrays.values()):
+        _check_scene_values(name, {k: np.asarray(v) for k, v in arrays.items()}, config)
+
+
+def _check_scene_values(name: str, a: dict[str, np.ndarray], config: FlowSimConfig | None):
+    f = a["furniture_boxes"].shape[1]
+    top = np.inf if config is None else config.map_size
+    for field in ("furniture_boxes", "object_boxes"):
+        boxes = a[field]
+        if np.any(boxes < 0) or np.any(boxes > top):
+            raise ValueError(f"{name}.{field} must lie within the map [0, {top}] px")
+        if np.any(boxes[..., 2:] <= boxes[..., :2]):
+            raise ValueError(f"{name}.{field} must have y1 > y0 and x1 > x0 (y0, x0, y1, x1)")
+    if np.any(a["object_size"] <= 0):
+        raise ValueError(f"{name}.object_size must be positive")
+    if config is not None:
+        for field, entries in (("furniture_kind", config.furniture_kinds),
+                               ("object_kind", config.categories)):
+            known = [entry.descriptor for entry in entries]
+            if not np.all(np.isin(a[field], known)):
+                raise ValueError(f"{name}.{field} holds descriptor ids outside {known}")
+    num_slots = check_int_array(f"{name}.num_slots", a["num_slots"], 1, f)
+    check_int_array(f"{name}.visit_order", a["visit_order"], -1, f - 1)
+    used = np.arange(f) < num_slots[..., None]
+    if np.any((a["visit_order"] >= 0) != used):
+        raise ValueError(f"{name}.visit_order must hold furniture indices on exactly the first "
+                         f"num_slots places and -1 after them")
+    check_int_array(f"{name}.slot", a["slot"], 0, num_slots[:, None, :] - 1,
+                    high_name="num_slots - 1")
+    check_int_array(f"{name}.layout_redraws", a["layout_redraws"], 0)
 
 
 BLOCK = 512
@@ -143,34 +235,21 @@ def scenes_from_env_keys(env_keys, params, shape: SimShape):
     return scenes, ok
 
 
-def check_key(key) -> jax.Array:
-    """A single PRNG key as a typed key; ``ValueError`` naming ``key`` otherwise."""
-    if isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
-        if key.shape != ():
-            raise ValueError(f"key must be a single PRNG key; got shape {key.shape}")
-        return key
-    shape, dtype = getattr(key, "shape", None), getattr(key, "dtype", None)
-    if shape != (2,) or dtype != np.uint32:
-        raise ValueError("key must be a JAX PRNG key (jax.random.key(seed) or "
-                         f"jax.random.PRNGKey(seed)); got {type(key).__name__} "
-                         f"with shape {shape} and dtype {dtype}")
-    return jax.random.wrap_key_data(jnp.asarray(key))  # legacy raw key -> typed key
-
-
 def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG) -> Scenes:
     """Generate ``num_envs`` FlowSim environments (layouts, visiting orders, T-step rollouts).
 
     key: a JAX PRNG key; the same key, num_envs and config give the same Scenes.
-    Raises ``ValueError`` on bad arguments and ``RuntimeError`` if some layout could not be
+    Raises ``ValueError`` on bad arguments (also when ``num_envs`` environments would not fit in
+    memory, see ``validation.check_request_size``) and ``RuntimeError`` if some layout could not be
     placed within ``config.layout_budget`` redraws (the config is too crowded). Not for use
     inside ``jit`` (it checks the layouts on the host); there, call ``scenes_from_env_keys``.
     """
-    if not isinstance(config, FlowSimConfig):
-        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
-    if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-        raise ValueError(f"num_envs must be a positive int; got {num_envs!r}")
+    check_instance("config", config, FlowSimConfig)
+    num_envs = check_int("num_envs", num_envs, 1)
+    check_request_size(f"generate({num_envs} environments)",
+                       num_envs * scenes_bytes_per_env(config))
     key = check_key(key)
-    env_keys = jax.random.split(key, int(num_envs))
+    env_keys = jax.random.split(key, num_envs)
     scenes, ok = scenes_from_env_keys(env_keys, sim_params(config), sim_shape(config))
     failed = int(np.sum(~np.asarray(ok)))
     if failed:

@@ -25,6 +25,7 @@ import math
 import jax
 import jax.numpy as jnp
 
+from flowmaps_jax.boxes import centred_squares, corner_centres
 from flowmaps_jax.flowsim.config import SimShape
 
 Params = dict  # numeric config part: see config.sim_params
@@ -129,7 +130,7 @@ def attempt_layouts(words: jnp.ndarray, params: Params, shape: SimShape):
 def box_centres(boxes: jnp.ndarray, axis: int = -1) -> jnp.ndarray:
     """Centres (cy, cx) of pixel boxes (y0, x0, y1, x1) whose coordinates lie on ``axis``."""
     boxes = jnp.moveaxis(boxes.astype(jnp.float32), axis, -1)
-    return jnp.moveaxis(0.5 * (boxes[..., :2] + boxes[..., 2:]), -1, axis)
+    return jnp.moveaxis(corner_centres(boxes), -1, axis)
 
 
 def table_angle(cy: jnp.ndarray, cx: jnp.ndarray, map_size) -> jnp.ndarray:
@@ -198,5 +199,4 @@ def object_boxes(boxes: jnp.ndarray, visit_order: jnp.ndarray, slot: jnp.ndarray
     """
     table = jnp.take_along_axis(visit_order[None], slot[:, :, None], axis=2)[..., 0]  # (T, M)
     centre = box_centres(boxes)[table]  # (T, M, 2)
-    half = 0.5 * size[None, :, None]
-    return jnp.concatenate([centre - half, centre + half], axis=-1)
+    return centred_squares(centre, 0.5 * size[None, :, None])

@@ -18,7 +18,6 @@ Drawing conventions
 from __future__ import annotations
 
 import itertools
-import operator
 from collections.abc import Sequence
 from typing import Any
 
@@ -31,7 +30,14 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, FancyArrowPatch, Patch, Polygon, Rectangle
 
 from flowmaps_jax.flowsim.config import SHAPES, FlowSimConfig
-from flowmaps_jax.flowsim.generate import Scenes
+from flowmaps_jax.flowsim.generate import Scenes, validate_scenes
+from flowmaps_jax.validation import (
+    check_flag,
+    check_instance,
+    check_int,
+    check_probabilities,
+    check_real_array,
+)
 
 # matplotlib marker used in legends for each object shape.
 _LEGEND_MARKERS = {"square": "s", "circle": "o", "triangle": "^", "diamond": "D",
@@ -48,25 +54,11 @@ _PANEL_SIZE = 4.0  # inches per map panel
 # Validation and config look-ups
 # --------------------------------------------------------------------------------------------
 
-def _check_index(value: Any, size: int, name: str, what: str) -> int:
-    """Return ``value`` as an int in ``[0, size)`` or raise ``ValueError`` naming ``name``."""
-    if isinstance(value, bool):
-        raise ValueError(f"{name} must be an integer {what} index in [0, {size}); got {value!r}")
-    try:
-        index = operator.index(value)
-    except TypeError:
-        raise ValueError(
-            f"{name} must be an integer {what} index in [0, {size}); got {value!r}") from None
-    if not 0 <= index < size:
-        raise ValueError(f"{name}={index} is out of range: expected a {what} index in [0, {size})")
-    return index
-
-
 def _check_types(scenes: Any, config: Any) -> None:
-    if not isinstance(scenes, Scenes):
-        raise ValueError(f"scenes must be a flowsim Scenes; got {type(scenes).__name__}")
-    if not isinstance(config, FlowSimConfig):
-        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+    """Scenes well formed (shapes and dtypes; the scenes' own sizes, not the config's: a
+    descriptor the config lacks is named when it is looked up) and a FlowSimConfig."""
+    validate_scenes(scenes, values=False)
+    check_instance("config", config, FlowSimConfig)
 
 
 def _num_timesteps(scenes: Scenes) -> int:
@@ -74,9 +66,8 @@ def _num_timesteps(scenes: Scenes) -> int:
 
 
 def _check_env_tau(scenes: Scenes, env: Any, tau: Any) -> tuple[int, int]:
-    env = _check_index(env, scenes.num_envs, "env", "environment")
-    tau = _check_index(tau, _num_timesteps(scenes), "tau", "timestep")
-    return env, tau
+    return (check_int("env", env, 0, scenes.num_envs - 1),
+            check_int("tau", tau, 0, _num_timesteps(scenes) - 1))
 
 
 def _by_descriptor(entries: Sequence[Any]) -> dict[int, Any]:
@@ -267,9 +258,14 @@ def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Ax
     """
     _check_types(scenes, config)
     env, tau = _check_env_tau(scenes, env, tau)
+    show_orders, legend = check_flag("show_orders", show_orders), check_flag("legend", legend)
+    if ax is not None:
+        check_instance("ax", ax, Axes)
+    if title is not None:
+        check_instance("title", title, str)
     view = _EnvView(scenes, env, config)
     if highlight is not None:
-        highlight = _check_index(highlight, view.num_objects, "highlight", "object")
+        highlight = check_int("highlight", highlight, 0, view.num_objects - 1)
     if ax is None:
         _, ax = _new_axes((_PANEL_SIZE + 1.9, _PANEL_SIZE))
     _setup_map_axes(ax, view.map_size)
@@ -297,8 +293,8 @@ def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSim
     flat = np.asarray(taus) if not isinstance(taus, (str, bytes)) else np.asarray(None)
     if flat.ndim != 1 or flat.size == 0:
         raise ValueError(f"taus must be a non-empty 1-D sequence of timestep indices; got {taus!r}")
-    env = _check_index(env, scenes.num_envs, "env", "environment")
-    taus = [_check_index(t, _num_timesteps(scenes), "taus", "timestep") for t in flat.tolist()]
+    env = check_int("env", env, 0, scenes.num_envs - 1)
+    taus = [check_int("taus", t, 0, _num_timesteps(scenes) - 1) for t in flat.tolist()]
     if any(b <= a for a, b in itertools.pairwise(taus)):
         raise ValueError(f"taus must be strictly increasing; got {taus}")
     view = _EnvView(scenes, env, config)
@@ -343,7 +339,7 @@ def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure
     orderings dotted rays join it to each table, and a short grey ray marks angle 0 (up).
     """
     _check_types(scenes, config)
-    env = _check_index(env, scenes.num_envs, "env", "environment")
+    env = check_int("env", env, 0, scenes.num_envs - 1)
     view = _EnvView(scenes, env, config)
     m_count = view.num_objects
     fig = Figure(figsize=(_PANEL_SIZE * m_count, _PANEL_SIZE + 0.7), layout="constrained")
@@ -388,14 +384,12 @@ def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, con
     _check_types(scenes, config)
     env, tau = _check_env_tau(scenes, env, tau)
     view = _EnvView(scenes, env, config)
-    obj = _check_index(obj, view.num_objects, "obj", "object")
+    obj = check_int("obj", obj, 0, view.num_objects - 1)
     k = int(view.num_slots[obj])
-    probs = np.asarray(probs, dtype=float)
-    if probs.ndim != 1 or probs.shape[0] < k:
+    if np.ndim(probs) != 1 or np.shape(probs)[0] < k:
         raise ValueError(f"probs must be a 1-D array over the {k} places of object {obj} "
-                         f"(optionally padded); got shape {probs.shape}")
-    if not np.all(np.isfinite(probs)) or np.any(probs < 0):
-        raise ValueError("probs must be finite and non-negative")
+                         f"(optionally padded); got shape {np.shape(probs)}")
+    probs = check_probabilities("probs", probs, normalised=False)
     if np.any(probs[k:] > 1e-6):
         raise ValueError(f"probs has mass beyond the object's {k} places")
     probs = probs[:k]
@@ -431,19 +425,14 @@ def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig,
     values outside are drawn as they are (clipped by the axes). ``style`` overrides the
     PatchCollection defaults (unfilled black outlines). Returns the added collection.
     """
-    if not isinstance(config, FlowSimConfig):
-        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
-    try:
-        boxes = np.asarray(boxes_norm, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"boxes_norm must be a numeric (N, 4) array; got {boxes_norm!r}") from None
+    check_instance("config", config, FlowSimConfig)
+    check_instance("ax", ax, Axes)
+    boxes = np.asarray(check_real_array("boxes_norm", boxes_norm), dtype=float)
     if boxes.ndim == 1:
         boxes = boxes[None]
     if boxes.ndim != 2 or boxes.shape[1] != 4:
         raise ValueError(f"boxes_norm must have shape (N, 4) or (4,) as (y, x, h, w); "
                          f"got {np.shape(boxes_norm)}")
-    if not np.all(np.isfinite(boxes)):
-        raise ValueError("boxes_norm contains NaN or inf")
     scale = float(config.map_size) - 1.0
     y, x, h, w = (boxes * scale).T
     patches = [Rectangle((xi, yi), wi, hi) for yi, xi, hi, wi in zip(y, x, h, w, strict=True)]

@@ -14,7 +14,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import os
@@ -25,10 +24,29 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from flowmaps_jax import boxes as box_geometry
 from flowmaps_jax import tokens as tok
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, FlowSimConfig
-from flowmaps_jax.flowsim.generate import Scenes, check_key, generate
-from flowmaps_jax.validation import check_int, is_concrete
+from flowmaps_jax.flowsim.generate import (
+    _FIELDS,
+    _FLOAT_FIELDS,
+    Scenes,
+    generate,
+    validate_scenes,
+)
+from flowmaps_jax.validation import (
+    array_bytes,
+    check_file,
+    check_instance,
+    check_int,
+    check_int_array,
+    check_key,
+    check_output_file,
+    check_real,
+    check_real_array,
+    check_request_size,
+    check_seed,
+)
 
 FORMAT_VERSION = 1
 TRAIN_SEED = 0
@@ -53,41 +71,25 @@ class QuerySet:
 # ------------------------------------------------------------------------------ validation
 
 
-def _check_config(config) -> None:
-    if not isinstance(config, FlowSimConfig):
-        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+def _check_inputs(config, *scenes) -> None:
+    """The config and (shapes and dtypes only: cheap, and fine under jit) the scenes given."""
+    check_instance("config", config, FlowSimConfig)
+    for each in scenes:
+        validate_scenes(each, config, values=False)
 
 
-def _check_scenes(scenes, config: FlowSimConfig) -> None:
-    if not isinstance(scenes, Scenes):
-        raise ValueError(f"scenes must be a flowsim Scenes; got {type(scenes).__name__}")
-    e = scenes.furniture_boxes.shape[0]
-    expected = (e, config.num_timesteps, config.num_objects, 4)
-    if (scenes.furniture_boxes.shape[1] != config.num_furniture
-            or scenes.object_boxes.shape != expected):
-        raise ValueError(
-            f"scenes do not match config: furniture_boxes {scenes.furniture_boxes.shape}, "
-            f"object_boxes {scenes.object_boxes.shape}; config expects F={config.num_furniture}, "
-            f"T={config.num_timesteps}, M={config.num_objects}")
+def _check_indices(**indices: tuple) -> tuple[jnp.ndarray, ...]:
+    """1-D integer index arrays of one length N, each in 0..high; as int32 jax arrays.
 
-
-def _check_token_room(config: FlowSimConfig) -> None:
-    needed = config.num_furniture + config.num_objects
-    if needed > config.max_tokens:
-        raise ValueError(f"config.max_tokens={config.max_tokens} is smaller than the "
-                         f"{needed} tokens of a scene (F={config.num_furniture} furniture + "
-                         f"M={config.num_objects} objects)")
-
-
-def _check_index(name: str, value, high: int, low: int = 0) -> None:
-    """Validate a concrete (N,) integer index array in [low, high)."""
-    if not is_concrete(value):
-        return
-    arr = np.asarray(value)
-    if arr.ndim != 1 or not np.issubdtype(arr.dtype, np.integer):
-        raise ValueError(f"{name} must be a 1-D integer array; got {arr.dtype} {arr.shape}")
-    if arr.size and (arr.min() < low or arr.max() >= high):
-        raise ValueError(f"{name} must lie in {low}..{high - 1}; got {arr.min()}..{arr.max()}")
+    ``indices``: name -> (value, high).
+    """
+    checked = {name: check_int_array(name, value, 0, high, shape=(None,))
+               for name, (value, high) in indices.items()}
+    shapes = {name: tuple(np.shape(value)) for name, value in checked.items()}
+    if len(set(shapes.values())) > 1:
+        raise ValueError(f"{' and '.join(shapes)} must have the same shape (N,); got "
+                         f"{', '.join(f'{n} {s}' for n, s in shapes.items())}")
+    return tuple(jnp.asarray(value, jnp.int32) for value in checked.values())
 
 
 # ------------------------------------------------------------------------------ boxes
@@ -95,20 +97,19 @@ def _check_index(name: str, value, high: int, low: int = 0) -> None:
 
 def normalise_boxes(boxes_px, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Pixel boxes (..., 4) (y0, x0, y1, x1) → normalised (y, x, h, w) / (map_size − 1)."""
-    boxes = jnp.asarray(boxes_px, jnp.float32)
-    if boxes.ndim < 1 or boxes.shape[-1] != 4:
-        raise ValueError(f"boxes_px must have shape (..., 4); got {boxes.shape}")
-    yx, far = boxes[..., :2], boxes[..., 2:]
-    return jnp.concatenate([yx, far - yx], axis=-1) / (config.map_size - 1)
+    check_instance("config", config, FlowSimConfig)
+    boxes = check_real_array("boxes_px", boxes_px, (..., 4))
+    return box_geometry.normalise(jnp.asarray(boxes, jnp.float32), config.map_size)
 
 
 def denormalise_boxes(boxes, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
-    """Inverse of ``normalise_boxes``: (..., 4) (y, x, h, w) → pixels (y0, x0, y1, x1)."""
-    boxes = jnp.asarray(boxes, jnp.float32)
-    if boxes.ndim < 1 or boxes.shape[-1] != 4:
-        raise ValueError(f"boxes must have shape (..., 4); got {boxes.shape}")
-    px = boxes * (config.map_size - 1)
-    return jnp.concatenate([px[..., :2], px[..., :2] + px[..., 2:]], axis=-1)
+    """Inverse of ``normalise_boxes``: (..., 4) (y, x, h, w) → pixels (y0, x0, y1, x1).
+
+    NaN or inf pass through (model samples are converted as they are; check them separately).
+    """
+    check_instance("config", config, FlowSimConfig)
+    boxes = check_real_array("boxes", boxes, (..., 4), finite=False)
+    return box_geometry.denormalise(jnp.asarray(boxes, jnp.float32), config.map_size)
 
 
 # ------------------------------------------------------------------------------ tokens
@@ -120,8 +121,8 @@ def _tokens(scenes: Scenes, env, tau, config: FlowSimConfig) -> tok.SceneTokens:
     n = env.shape[0]
     pad = s - f - m
     boxes = jnp.concatenate([
-        normalise_boxes(scenes.furniture_boxes[env], config),
-        normalise_boxes(scenes.object_boxes[env, tau], config),
+        box_geometry.normalise(scenes.furniture_boxes[env], config.map_size),
+        box_geometry.normalise(scenes.object_boxes[env, tau], config.map_size),
         jnp.zeros((n, pad, 4), jnp.float32)], axis=1)
     descriptor = jnp.concatenate([scenes.furniture_kind[env], scenes.object_kind[env],
                                   jnp.zeros((n, pad), jnp.int32)], axis=1)
@@ -140,25 +141,19 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
     F furniture tokens, then M object tokens (object boxes at time tau), padded to
     S = config.max_tokens. Raises ``ValueError`` if F + M > S. jit-able (a gather).
     """
-    _check_config(config)
-    _check_token_room(config)
-    _check_scenes(scenes, config)
-    _check_index("env", env, scenes.num_envs)
-    _check_index("tau", tau, config.num_timesteps)
-    env, tau = jnp.asarray(env, jnp.int32), jnp.asarray(tau, jnp.int32)
-    if env.shape != tau.shape:
-        raise ValueError(f"env {env.shape} and tau {tau.shape} must have the same shape (N,)")
+    _check_inputs(config, scenes)
+    env, tau = _check_indices(env=(env, scenes.num_envs - 1),
+                              tau=(tau, config.num_timesteps - 1))
     return _tokens(scenes, env, tau, config)
 
 
 def slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """(N, F, 4) normalised (y, x, h, w) box object ``obj`` (N,) of environment ``env`` (N,)
     would have at each position k of its visiting order (zeros for k >= num_slots)."""
-    _check_config(config)
-    _check_scenes(scenes, config)
-    _check_index("env", env, scenes.num_envs)
-    _check_index("obj", obj, config.num_objects)
-    return _slot_boxes(scenes, jnp.asarray(env, jnp.int32), jnp.asarray(obj, jnp.int32), config)
+    _check_inputs(config, scenes)
+    env, obj = _check_indices(env=(env, scenes.num_envs - 1),
+                              obj=(obj, config.num_objects - 1))
+    return _slot_boxes(scenes, env, obj, config)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -166,9 +161,9 @@ def _slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig):
     order = scenes.visit_order[env, obj]  # (N, F)
     furniture = scenes.furniture_boxes[env]  # (N, F, 4)
     table = jnp.take_along_axis(furniture, jnp.maximum(order, 0)[..., None], axis=1)
-    centre = 0.5 * (table[..., :2] + table[..., 2:])
     half = 0.5 * scenes.object_size[env, obj][:, None, None]
-    boxes = normalise_boxes(jnp.concatenate([centre - half, centre + half], axis=-1), config)
+    boxes = box_geometry.normalise(
+        box_geometry.centred_squares(box_geometry.corner_centres(table), half), config.map_size)
     valid = jnp.arange(config.num_furniture)[None, :] < scenes.num_slots[env, obj][:, None]
     return jnp.where(valid[..., None], boxes, 0.0)
 
@@ -208,12 +203,14 @@ def sample_queries(key, num_envs_or_scenes, n: int,
                    config: FlowSimConfig = DEFAULT_CONFIG) -> QuerySet:
     """Draw n queries: env uniform, τ uniform in 0..T−2, τ_q uniform in τ+1..T−1, object
     uniform over M. ``num_envs_or_scenes``: an int or a Scenes (its number of environments)."""
-    _check_config(config)
+    _check_inputs(config)
     if isinstance(num_envs_or_scenes, Scenes):
+        validate_scenes(num_envs_or_scenes, config, values=False, name="num_envs_or_scenes")
         num_envs = num_envs_or_scenes.num_envs
     else:
         num_envs = check_int("num_envs_or_scenes", num_envs_or_scenes)
     n = check_int("n", n)
+    check_request_size(f"sample_queries(n={n})", array_bytes((4, n), np.int32))
     return _sample_queries(check_key(key), num_envs, n, config)
 
 
@@ -228,7 +225,7 @@ def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
     tau, tau_q = _draw_times(key_time, (b,), (b, q), config, short_frac, short_max)
     obj = jax.random.randint(key_obj, (b, q), 0, config.num_objects)
     env_q = jnp.broadcast_to(env[:, None], (b, q))
-    target = normalise_boxes(scenes.object_boxes[env_q, tau_q, obj], config)
+    target = box_geometry.normalise(scenes.object_boxes[env_q, tau_q, obj], config.map_size)
     queries = tok.Queries(descriptor=scenes.object_kind[env_q, obj], tau_q=tau_q)
     return tok.TrainBatch(tokens=_tokens(scenes, env, tau, config), queries=queries,
                           target=target)
@@ -242,31 +239,34 @@ def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: in
     τ_q = τ + U{1..short_max} capped at T−1); target = the queried object's normalised
     (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config, short_*).
     """
-    _check_config(config)
-    _check_token_room(config)
-    _check_scenes(scenes, config)
-    batch_size = check_int("batch_size", batch_size)
-    queries_per_scene = check_int("queries_per_scene", queries_per_scene)
-    if not 0.0 <= float(short_frac) <= 1.0:
-        raise ValueError(f"short_frac must lie in [0, 1]; got {short_frac!r}")
+    _check_inputs(config, scenes)
+    batch_size, queries_per_scene = _check_batch_size(batch_size, queries_per_scene, config)
+    short_frac = check_real("short_frac", short_frac, 0.0, 1.0)
     short_max = check_int("short_max", short_max)
     return _train_batch(check_key(key), scenes, batch_size, queries_per_scene, config,
-                        float(short_frac), short_max)
+                        short_frac, short_max)
+
+
+def _check_batch_size(batch_size, queries_per_scene, config: FlowSimConfig) -> tuple[int, int]:
+    """Positive ints whose TrainBatch (tokens, queries, targets) fits in memory."""
+    b = check_int("batch_size", batch_size)
+    q = check_int("queries_per_scene", queries_per_scene)
+    check_request_size(f"a batch of {b} scenes x {q} queries",
+                       array_bytes((b, config.max_tokens, 7)) + array_bytes((b, q, 6)))
+    return b, q
 
 
 # ------------------------------------------------------------------------------ datasets
 
 
 def _split_key(seed: int, tag: int) -> jax.Array:
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise ValueError(f"seed must be an int; got {seed!r}")
-    return jax.random.fold_in(jax.random.key(int(seed)), tag)
+    return jax.random.fold_in(jax.random.key(check_seed("seed", seed)), tag)
 
 
 def train_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 2500,
                 seed: int = TRAIN_SEED) -> Scenes:
     """The fixed training environments: ``generate(fold_in(key(seed), 0), num_envs, config)``."""
-    _check_config(config)
+    _check_inputs(config)
     return generate(_split_key(seed, _TRAIN_TAG), num_envs, config)
 
 
@@ -274,7 +274,7 @@ def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200
                      seed: int = VALIDATION_SEED) -> Scenes:
     """The held-out environments: ``generate(fold_in(key(seed), 1), num_envs, config)``;
     a different seed and tag from ``train_split``."""
-    _check_config(config)
+    _check_inputs(config)
     return generate(_split_key(seed, _VALIDATION_TAG), num_envs, config)
 
 
@@ -285,17 +285,20 @@ def endless_batches(key, batch_size: int, queries_per_scene: int,
 
     Every chunk generates ``envs_per_chunk`` new environments (key: ``fold_in(key, 2)`` then the
     chunk number) and yields ``envs_per_chunk // batch_size`` batches drawn from them, so each
-    scene is used about once.
+    scene is used about once. Arguments are checked at the call, before the first batch.
     """
-    _check_config(config)
-    _check_token_room(config)
-    batch_size = check_int("batch_size", batch_size)
-    queries_per_scene = check_int("queries_per_scene", queries_per_scene)
+    _check_inputs(config)
+    batch_size, queries_per_scene = _check_batch_size(batch_size, queries_per_scene, config)
     envs_per_chunk = check_int("envs_per_chunk", envs_per_chunk)
     if envs_per_chunk < batch_size:
         raise ValueError(f"envs_per_chunk ({envs_per_chunk}) must be >= batch_size "
                          f"({batch_size})")
-    stream = jax.random.fold_in(check_key(key), _STREAM_TAG)
+    return _endless_batches(jax.random.fold_in(check_key(key), _STREAM_TAG), batch_size,
+                            queries_per_scene, config, envs_per_chunk)
+
+
+def _endless_batches(stream: jax.Array, batch_size: int, queries_per_scene: int,
+                     config: FlowSimConfig, envs_per_chunk: int) -> Iterator[tok.TrainBatch]:
     chunk = 0
     while True:
         key_scenes, key_batches = jax.random.split(jax.random.fold_in(stream, chunk))
@@ -308,25 +311,36 @@ def endless_batches(key, batch_size: int, queries_per_scene: int,
 
 # ------------------------------------------------------------------------------ .npz I/O
 
-_FIELDS = tuple(f.name for f in dataclasses.fields(Scenes))
-
-
 def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) -> None:
-    """Write scenes and their config to one ``.npz`` (with ``FORMAT_VERSION``) at ``path``."""
-    _check_config(config)
-    _check_scenes(scenes, config)
+    """Write scenes and their config to one ``.npz`` (with ``FORMAT_VERSION``) at ``path``.
+
+    Everything is checked first (the path's folder exists and is writable, the scenes match the
+    config in every array); the file appears whole or not at all (written aside, then renamed).
+    """
+    path = check_output_file("path", path)
+    _check_inputs(config)
+    validate_scenes(scenes, config)
     arrays = {name: np.asarray(getattr(scenes, name)) for name in _FIELDS}
-    with open(os.fspath(path), "wb") as handle:
-        np.savez_compressed(handle, format_version=np.int64(FORMAT_VERSION),
-                            config_json=np.asarray(json.dumps(config.to_dict())), **arrays)
+    partial = f"{path}.partial-{os.getpid()}"
+    try:
+        with open(partial, "wb") as handle:
+            np.savez_compressed(handle, format_version=np.int64(FORMAT_VERSION),
+                                config_json=np.asarray(json.dumps(config.to_dict())), **arrays)
+        os.replace(partial, path)
+    finally:
+        if os.path.exists(partial):
+            os.remove(partial)
 
 
 def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
     """Read a file written by ``save_scenes``. Raises ``ValueError`` naming ``path`` if it is
-    missing, not an ``.npz``, of another format version, or lacks / has inconsistent arrays."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ValueError(f"load_scenes: {path!r} does not exist")
+    missing, a directory, not an ``.npz``, of another format version, lacks arrays or holds
+    arrays that ``save_scenes`` could not have written: wrong shapes or dtypes, boxes not finite
+    or off the map, ids, visit orders or slots out of range (see ``validate_scenes``)."""
+    try:
+        path = check_file("path", path)
+    except ValueError as err:
+        raise ValueError(f"load_scenes: {err}") from None
     try:
         with np.load(path, allow_pickle=False) as data:
             contents = {name: data[name] for name in data.files}
@@ -334,7 +348,10 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
         raise ValueError(f"load_scenes: {path!r} is not a readable .npz file ({err})") from err
     if "format_version" not in contents:
         raise ValueError(f"load_scenes: {path!r} has no format_version; not a FlowSim file")
-    version = int(contents["format_version"])
+    try:
+        version = check_int("format_version", contents["format_version"], None)
+    except ValueError as err:
+        raise ValueError(f"load_scenes: {path!r}: {err}") from None
     if version != FORMAT_VERSION:
         raise ValueError(f"load_scenes: {path!r} has format version {version}; this code reads "
                          f"version {FORMAT_VERSION} only")
@@ -345,14 +362,11 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
         config = FlowSimConfig.from_dict(json.loads(str(contents["config_json"])))
     except (ValueError, TypeError) as err:
         raise ValueError(f"load_scenes: {path!r} has an invalid config: {err}") from err
-    scenes = Scenes(**{name: jnp.asarray(contents[name]) for name in _FIELDS})
-    e = scenes.furniture_boxes.shape[0]
-    f, m, t = config.num_furniture, config.num_objects, config.num_timesteps
-    expected = {"furniture_boxes": (e, f, 4), "furniture_kind": (e, f), "object_kind": (e, m),
-                "object_size": (e, m), "visit_order": (e, m, f), "num_slots": (e, m),
-                "slot": (e, t, m), "object_boxes": (e, t, m, 4), "layout_redraws": (e,)}
-    for name, shape in expected.items():
-        if contents[name].shape != shape:
-            raise ValueError(f"load_scenes: {path!r} array {name} has shape "
-                             f"{contents[name].shape}, expected {shape}")
+    try:
+        validate_scenes(Scenes(**{name: contents[name] for name in _FIELDS}), config)
+    except ValueError as err:
+        raise ValueError(f"load_scenes: {path!r}: {err}") from None
+    scenes = Scenes(**{name: jnp.asarray(contents[name],
+                                         jnp.float32 if name in _FLOAT_FIELDS else jnp.int32)
+                       for name in _FIELDS})
     return scenes, config

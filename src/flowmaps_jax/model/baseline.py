@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.embeddings import FlatDense
-from flowmaps_jax.model.encoder import MapEncoder
+from flowmaps_jax.model.encoder import MapEncoder, example_inputs
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
 
 LOG_VAR_RANGE = (-12.0, 4.0)  # keeps the learned variance away from 0 and from blowing up
@@ -52,19 +52,10 @@ class BaselineMLP(nn.Module):
         return mean, jnp.clip(log_var, *LOG_VAR_RANGE)
 
 
-def _dummy_inputs(config: ModelConfig):
-    s = config.max_tokens
-    tokens = SceneTokens(boxes=jnp.zeros((1, s, 4)), descriptor=jnp.zeros((1, s), jnp.int32),
-                         kind=jnp.zeros((1, s), jnp.int32), mask=jnp.ones((1, s), bool),
-                         tau=jnp.zeros((1,), jnp.int32))
-    return tokens, Queries(descriptor=jnp.zeros((1, 1), jnp.int32),
-                           tau_q=jnp.ones((1, 1), jnp.int32))
-
-
 @functools.partial(jax.jit, static_argnames="config")
 def init_baseline(key: jax.Array, config: ModelConfig):
     """Fresh baseline parameters for ``config`` (variant from ``config.baseline_variance``)."""
-    return BaselineMLP(config).init(key, *_dummy_inputs(config))["params"]
+    return BaselineMLP(config).init(key, *example_inputs())["params"]
 
 
 @functools.partial(jax.jit, static_argnames="config")

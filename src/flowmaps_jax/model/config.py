@@ -8,9 +8,8 @@ size (D = 256, 8 encoder layers, 8 CDiT blocks, 8 heads, dropout 0.1); training 
 from __future__ import annotations
 
 import dataclasses
-import math
 
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_choice, check_flag, check_int, check_real
 
 BASELINE_VARIANCES = ("mean", "learned")
 HEADS = ("velocity", "pointer")
@@ -27,7 +26,6 @@ class ModelConfig:
     mlp_ratio: hidden width of every MLP is ``mlp_ratio * dim``.
     dropout: dropout rate in the encoder layers and the CDiT residual branches.
     num_descriptors: number of descriptor ids (FlowSim: 6 colours).
-    max_tokens: largest number of scene tokens S the model accepts.
     tau_max: number of timesteps; ``tau`` and ``tau_q`` lie in ``[0, tau_max)``.
     freq_bands: sinusoidal frequencies per scalar (each gives a sin and a cos feature).
     max_frequency: highest angular frequency (radians per unit); frequencies are geometric in
@@ -49,7 +47,6 @@ class ModelConfig:
     mlp_ratio: int = 4
     dropout: float = 0.1
     num_descriptors: int = 6
-    max_tokens: int = 20
     tau_max: int = 20
     freq_bands: int = 16
     max_frequency: float = 1000.0
@@ -63,37 +60,22 @@ class ModelConfig:
 
     def __post_init__(self):
         for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
-                     "num_descriptors", "max_tokens", "tau_max", "freq_bands", "baseline_hidden"):
+                     "num_descriptors", "tau_max", "freq_bands", "baseline_hidden"):
             check_int(f"ModelConfig.{name}", getattr(self, name))
         if self.dim % self.heads:
             raise ValueError(
                 f"ModelConfig.dim={self.dim} must be divisible by ModelConfig.heads={self.heads}")
-        if not 0.0 <= float(self.dropout) < 1.0:
-            raise ValueError(f"ModelConfig.dropout must be in [0, 1); got {self.dropout!r}")
-        if not float(self.max_frequency) >= 1.0:
-            raise ValueError(
-                f"ModelConfig.max_frequency must be >= 1; got {self.max_frequency!r}")
-        if not (isinstance(self.box_scale, (int, float)) and float(self.box_scale) > 0.0
-                and math.isfinite(self.box_scale)):
-            raise ValueError(f"ModelConfig.box_scale must be a positive number; got "
-                             f"{self.box_scale!r}")
-        if not (isinstance(self.box_offset, (int, float)) and math.isfinite(self.box_offset)):
-            raise ValueError(f"ModelConfig.box_offset must be a finite number; got "
-                             f"{self.box_offset!r}")
+        check_real("ModelConfig.dropout", self.dropout, 0.0, 1.0, high_open=True)
+        check_real("ModelConfig.max_frequency", self.max_frequency, 1.0)
+        check_real("ModelConfig.box_scale", self.box_scale, 0.0, low_open=True)
+        check_real("ModelConfig.box_offset", self.box_offset)
         if self.tau_max < 2:
             raise ValueError(f"ModelConfig.tau_max must be >= 2; got {self.tau_max}")
-        if self.head not in HEADS:
-            raise ValueError(f"ModelConfig.head must be one of {HEADS}; got {self.head!r}")
-        if not (isinstance(self.pointer_width_scale, (int, float))
-                and 0.0 < float(self.pointer_width_scale) <= 1000.0):
-            raise ValueError(f"ModelConfig.pointer_width_scale must lie in (0, 1000]; got "
-                             f"{self.pointer_width_scale!r}")
-        if not isinstance(self.condition_on_dtau, bool):
-            raise ValueError(f"ModelConfig.condition_on_dtau must be a bool; got "
-                             f"{self.condition_on_dtau!r}")
-        if self.baseline_variance not in BASELINE_VARIANCES:
-            raise ValueError(f"ModelConfig.baseline_variance must be one of {BASELINE_VARIANCES}; "
-                             f"got {self.baseline_variance!r}")
+        check_choice("ModelConfig.head", self.head, HEADS)
+        check_real("ModelConfig.pointer_width_scale", self.pointer_width_scale, 0.0, 1000.0,
+                   low_open=True)
+        check_flag("ModelConfig.condition_on_dtau", self.condition_on_dtau)
+        check_choice("ModelConfig.baseline_variance", self.baseline_variance, BASELINE_VARIANCES)
 
     @property
     def head_dim(self) -> int:

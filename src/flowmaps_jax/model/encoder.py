@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.embeddings import FlatDense, SinusoidalMLP
-from flowmaps_jax.tokens import SceneTokens
+from flowmaps_jax.tokens import Queries, SceneTokens
 
 
 class FeedForward(nn.Module):
@@ -86,3 +86,13 @@ class MapEncoder(nn.Module):
                 x, mask, deterministic)
         x = nn.LayerNorm(name="final_norm")(x)
         return jnp.where(mask[..., None], x, 0.0)
+
+
+def example_inputs() -> tuple[SceneTokens, Queries]:
+    """One scene with one token and one query: the smallest input that initialises parameters
+    (their shapes depend on the config only, not on B, S or Q)."""
+    tokens = SceneTokens(boxes=jnp.zeros((1, 1, 4)), descriptor=jnp.zeros((1, 1), jnp.int32),
+                         kind=jnp.zeros((1, 1), jnp.int32), mask=jnp.ones((1, 1), bool),
+                         tau=jnp.zeros((1,), jnp.int32))
+    return tokens, Queries(descriptor=jnp.zeros((1, 1), jnp.int32),
+                           tau_q=jnp.ones((1, 1), jnp.int32))

@@ -25,9 +25,10 @@ from flax import struct
 from flowmaps_jax.model.cdit import CDiTBlock, FinalLayer
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.embeddings import SinusoidalMLP
-from flowmaps_jax.model.encoder import MapEncoder
+from flowmaps_jax.model.encoder import MapEncoder, example_inputs
 from flowmaps_jax.model.readout import PointerReadout
 from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
+from flowmaps_jax.validation import check_array, check_real_array
 
 
 @struct.dataclass
@@ -93,19 +94,12 @@ def _rngs(dropout_key):
     return {} if dropout_key is None else {"dropout": dropout_key}
 
 
-def _dummy_inputs(config: ModelConfig):
-    s = config.max_tokens
-    tokens = SceneTokens(boxes=jnp.zeros((1, s, 4)), descriptor=jnp.zeros((1, s), jnp.int32),
-                         kind=jnp.zeros((1, s), jnp.int32), mask=jnp.ones((1, s), bool),
-                         tau=jnp.zeros((1,), jnp.int32))
-    queries = Queries(descriptor=jnp.zeros((1, 1), jnp.int32), tau_q=jnp.ones((1, 1), jnp.int32))
-    return tokens, jnp.zeros((1, 1, 1, 4)), jnp.zeros((1, 1)), queries
-
-
 @functools.partial(jax.jit, static_argnames="config")
 def init_params(key: jax.Array, config: ModelConfig):
     """Fresh FlowMaps parameters (a nested dict pytree) for ``config``."""
-    return FlowMaps(config).init(key, *_dummy_inputs(config))["params"]
+    tokens, queries = example_inputs()
+    return FlowMaps(config).init(key, tokens, jnp.zeros((1, 1, 1, 4)), jnp.zeros((1, 1)),
+                                 queries)["params"]
 
 
 @functools.partial(jax.jit, static_argnames="config")
@@ -168,39 +162,20 @@ def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries | No
                  x_t=None, t=None) -> None:
     """Raise ``ValueError`` naming the argument if model inputs are malformed (call outside jit).
 
-    tokens: SceneTokens (B, S) with S <= config.max_tokens, boxes in [0, 1], known descriptors,
+    tokens: SceneTokens (B, S), boxes in [0, 1], known descriptors,
     0 <= tau < tau_max - 1. queries: (B, Q) with known descriptors and tau < tau_q < tau_max.
     x_t: (B, Q, N, 4) finite. t: (B, Q) in [0, 1].
     """
-    validate_tokens(tokens, config.num_descriptors, name="tokens")
-    boxes = np.asarray(tokens.boxes)
-    if boxes.ndim != 3:
-        raise ValueError(f"tokens.boxes must have shape (B, S, 4); got {boxes.shape}")
-    b, s = boxes.shape[:2]
-    if s > config.max_tokens:
-        raise ValueError(f"tokens has {s} token slots, more than max_tokens={config.max_tokens}")
-    tau = np.asarray(tokens.tau)
-    if not np.issubdtype(tau.dtype, np.integer) or np.any((tau < 0) | (tau >= config.tau_max - 1)):
-        raise ValueError(f"tokens.tau must be integers in [0, {config.tau_max - 1}); got {tau}")
+    validate_tokens(tokens, config.num_descriptors, name="tokens",
+                    num_timesteps=config.tau_max)
+    b = check_real_array("tokens.boxes", tokens.boxes, (None, None, 4)).shape[0]
     if queries is None:
         return
-    validate_queries(queries, tau, config.num_descriptors, config.tau_max, name="queries")
-    desc = np.asarray(queries.descriptor)
-    if desc.ndim != 2:
-        raise ValueError(f"queries.descriptor and tau_q must have shape (B, Q); got {desc.shape}")
-    if not (np.issubdtype(desc.dtype, np.integer)
-            and np.issubdtype(np.asarray(queries.tau_q).dtype, np.integer)):
-        raise ValueError("queries.descriptor and queries.tau_q must be integer arrays")
-    q = desc.shape[1]
+    q = check_array("queries.descriptor", queries.descriptor, (b, None)).shape[1]
+    validate_queries(queries, tokens.tau, config.num_descriptors, config.tau_max, name="queries")
     if x_t is not None:
-        x_t = np.asarray(x_t)
-        if x_t.ndim != 4 or x_t.shape[:2] != (b, q) or x_t.shape[-1] != 4:
-            raise ValueError(f"x_t must have shape (B={b}, Q={q}, N, 4); got {x_t.shape}")
-        if not np.all(np.isfinite(x_t)):
-            raise ValueError("x_t contains NaN or inf")
+        check_real_array("x_t", x_t, (b, q, None, 4))
     if t is not None:
-        t = np.asarray(t)
-        if t.shape != (b, q):
-            raise ValueError(f"t must have shape (B={b}, Q={q}); got {t.shape}")
+        t = np.asarray(check_real_array("t", t, (b, q)))
         if not np.all((t >= 0.0) & (t <= 1.0)):
             raise ValueError("t (flow time) must lie in [0, 1]")

@@ -11,43 +11,31 @@ Everything here is a pure function of explicit pytrees:
 * :func:`make_fused_train_step` additionally draws the batch inside the same compiled function
   from the scenes arrays (no host round trip): ``(state, scenes) -> (state, metrics)``. With
   ``data="endless"`` the scenes argument is swapped for fresh environments every few steps
-  (:func:`endless_scenes`).
+  (:func:`flowmaps_jax.training.data.endless_scenes`).
 * :func:`make_eval_loss` scores EMA params on fixed validation batches with a fixed key and no
   dropout, so values are comparable across evaluations.
 
 The model kind (FlowMaps flow matching or the MLP Gaussian baseline) is hidden behind an
-:class:`Objective` (``init`` + ``loss``); tests may pass a stand-in objective.
+:class:`~flowmaps_jax.training.objectives.Objective` (``init`` + ``loss``); tests may pass a
+stand-in objective.
 """
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from flax import struct
 
-from flowmaps_jax.config import TrainConfig
-from flowmaps_jax.tokens import (
-    TrainBatch,
-    assert_batch_shapes,
-    from_centre,
-    to_centre,
-    trim_padding,
-)
+from flowmaps_jax.tokens import TrainBatch, assert_batch_shapes
+from flowmaps_jax.training.config import TrainConfig
+from flowmaps_jax.training.data import EVAL_KEY_SALT, BatchFn, default_batch_fn
+from flowmaps_jax.training.objectives import Objective, objective_for
+from flowmaps_jax.validation import check_instance
 
 Params = Any
-# loss(params, batch, key, train) -> (scalar loss, dict of scalar diagnostics)
-LossFn = Callable[[Params, TrainBatch, jax.Array, bool], tuple[jax.Array, dict]]
-# batch_fn(key, scenes) -> TrainBatch, traceable
-BatchFn = Callable[[jax.Array, Any], TrainBatch]
-
-# Fixed seed offset of the validation key: evaluations at different steps use the same noise.
-_EVAL_KEY_SALT = 0x5EED
 
 
 @struct.dataclass
@@ -59,6 +47,9 @@ class TrainState:
     opt_state: optax state (AdamW moments, schedule count, ...).
     rng: (2,) uint32 PRNG key for dropout and flow noise; step i uses fold_in(rng, i).
     data_key: (2,) uint32 PRNG key for batches; step i draws batch fold_in(data_key, i).
+
+    The two keys are kept as raw key data (uint32), not typed keys: orbax checkpoints them as
+    plain arrays, and resumed runs read them back unchanged. Everywhere else keys are typed.
     """
 
     step: jax.Array
@@ -67,51 +58,6 @@ class TrainState:
     opt_state: optax.OptState
     rng: jax.Array
     data_key: jax.Array
-
-
-@dataclasses.dataclass(frozen=True)
-class Objective:
-    """How to initialise and score one model kind.
-
-    init(key) -> params.
-    loss(params, batch, key, train) -> (loss, aux): scalar training loss and a dict of scalar
-        diagnostics; ``train=False`` must be deterministic given ``key`` (no dropout).
-    """
-
-    init: Callable[[jax.Array], Params]
-    loss: LossFn
-
-
-def objective_for(cfg: TrainConfig) -> Objective:
-    """The FlowMaps (``flow.cfm_loss``) or MLP-baseline (``model.baseline_loss``) objective."""
-    # Imported here so config/checkpoint code does not pay for building the model modules.
-    from flowmaps_jax import flow, model
-
-    if cfg.model_kind == "flowmaps":
-        def init(key):
-            return model.init_params(key, cfg.model)
-
-        def loss(params, batch, key, train):
-            value, aux = flow.cfm_loss(params, cfg.model, batch, key, cfg.t_sampler,
-                                       deterministic=not train, pointer_loss=cfg.pointer_loss)
-            return value, _scalars(aux)
-
-        return Objective(init=init, loss=loss)
-    if cfg.model_kind == "mlp":
-        def init(key):
-            return model.init_baseline(key, cfg.model)
-
-        def loss(params, batch, key, train):
-            value, aux = model.baseline_loss(params, cfg.model, batch, key if train else None)
-            return value, _scalars(aux)
-
-        return Objective(init=init, loss=loss)
-    raise ValueError(f"model_kind must be 'flowmaps' or 'mlp'; got {cfg.model_kind!r}")
-
-
-def _scalars(aux: dict) -> dict:
-    """The scalar diagnostics of a loss's aux dict (per-query arrays and ``loss`` dropped)."""
-    return {k: v for k, v in aux.items() if k != "loss" and jnp.ndim(v) == 0}
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,8 +93,7 @@ def ema_update(ema_params: Params, params: Params, decay: float) -> Params:
 def init_state(cfg: TrainConfig, key: jax.Array | None = None,
                objective: Objective | None = None) -> TrainState:
     """Fresh state at step 0: params from ``key`` (default ``PRNGKey(cfg.seed)``), EMA = params."""
-    if not isinstance(cfg, TrainConfig):
-        raise ValueError(f"cfg must be a TrainConfig; got {type(cfg).__name__}")
+    check_instance("cfg", cfg, TrainConfig)
     objective = objective or objective_for(cfg)
     if key is None:
         key = jax.random.PRNGKey(cfg.seed)
@@ -201,10 +146,8 @@ def _update_fn(cfg: TrainConfig, objective: Objective):
 
 def _check_step_inputs(state, batch) -> None:
     """Raise ValueError (not an XLA error) for a wrong state type or inconsistent batch shapes."""
-    if not isinstance(state, TrainState):
-        raise ValueError(f"state must be a TrainState; got {type(state).__name__}")
-    if not isinstance(batch, TrainBatch):
-        raise ValueError(f"batch must be a tokens.TrainBatch; got {type(batch).__name__}")
+    check_instance("state", state, TrainState)
+    check_instance("batch", batch, TrainBatch)
     try:
         assert_batch_shapes(batch)
     except AssertionError as err:
@@ -218,65 +161,6 @@ def make_train_step(cfg: TrainConfig, objective: Objective | None = None):
     objective's diagnostics.
     """
     return jax.jit(_update_fn(cfg, objective or objective_for(cfg)), donate_argnums=0)
-
-
-def default_batch_fn(cfg: TrainConfig) -> BatchFn:
-    """``batch_fn(key, scenes)``: B scenes drawn from ``scenes`` with Q queries each.
-
-    Token padding beyond the F + M real tokens is trimmed (exact: padding is masked anyway).
-    """
-    from flowmaps_jax.flowsim.scenes import make_train_batch
-
-    b, q, sim = cfg.batch_size, cfg.queries_per_scene, cfg.flowsim
-    real_tokens = sim.num_furniture + sim.num_objects  # the rest of the S slots is padding
-
-    def batch_fn(key, scenes):
-        if cfg.target_noise > 0:
-            key, noise_key = jax.random.split(key)
-        batch = make_train_batch(key, scenes, b, q, sim, cfg.short_horizon_frac,
-                                 cfg.short_horizon_max)
-        batch = batch.replace(tokens=trim_padding(batch.tokens, real_tokens))
-        if cfg.target_noise > 0:
-            batch = batch.replace(target=jitter_targets(noise_key, batch.target,
-                                                        cfg.target_noise))
-        return batch
-
-    return batch_fn
-
-
-def jitter_targets(key: jax.Array, boxes: jnp.ndarray, scale: float) -> jnp.ndarray:
-    """Boxes (..., 4) moved by ``scale`` × the protocol's ground-truth std
-    (:func:`metrics.gt_mixture_sigma`): a draw from the smoothed q around each box at scale 1."""
-    from flowmaps_jax import metrics
-
-    centres = to_centre(boxes)
-    noise = jax.random.normal(key, boxes.shape, boxes.dtype)
-    return from_centre(centres + scale * metrics.gt_mixture_sigma(boxes) * noise)
-
-
-_CHUNK_SALT = 0x7FFFFFFF
-
-
-def endless_chunk_steps(cfg: TrainConfig) -> int:
-    """With ``data="endless"``, steps served by one chunk of ``train_envs`` fresh environments
-    (each environment is then drawn about once)."""
-    return max(1, cfg.train_envs // cfg.batch_size)
-
-
-def endless_scenes(cfg: TrainConfig, data_key: jax.Array, step: int):
-    """Fresh FlowSim environments (``cfg.train_envs`` of them) for the chunk holding ``step``.
-
-    Chunk c = step // endless_chunk_steps(cfg) is generated from a key derived from
-    (data_key, c) only, so a resumed run regenerates exactly the same environments.
-    """
-    from flowmaps_jax.flowsim.generate import generate
-
-    chunk = int(step) // endless_chunk_steps(cfg)
-    raw = jax.random.fold_in(jax.random.fold_in(data_key, _CHUNK_SALT), chunk)
-    # An uncommitted typed key, as the fixed splits use, so that generation and the train step
-    # (which specialise on key type and device commitment) reuse their compiled code.
-    key = jax.random.wrap_key_data(jnp.asarray(np.asarray(raw)))
-    return generate(key, cfg.train_envs, cfg.flowsim)
 
 
 def make_fused_train_step(cfg: TrainConfig, objective: Objective | None = None,
@@ -301,17 +185,6 @@ def make_fused_train_step(cfg: TrainConfig, objective: Objective | None = None,
 # Validation
 
 
-def make_val_batches(cfg: TrainConfig, scenes, batch_fn: BatchFn | None = None) -> TrainBatch:
-    """``cfg.val_batches`` fixed batches stacked on a leading axis, drawn with a fixed key.
-
-    Built once per run (not a hot path); each batch reuses the compiled batch sampler.
-    """
-    batch_fn = batch_fn or default_batch_fn(cfg)
-    keys = jax.random.split(jax.random.PRNGKey(cfg.seed + _EVAL_KEY_SALT), cfg.val_batches)
-    batches = [batch_fn(key, scenes) for key in keys]
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *batches)
-
-
 def make_eval_loss(cfg: TrainConfig, objective: Objective | None = None):
     """Jitted ``(params, val_batches) -> mean loss`` over stacked batches (leading axis).
 
@@ -319,7 +192,7 @@ def make_eval_loss(cfg: TrainConfig, objective: Objective | None = None):
     so calls at different training steps differ only through ``params`` (pass the EMA params).
     """
     objective = objective or objective_for(cfg)
-    eval_key = jax.random.PRNGKey(cfg.seed + _EVAL_KEY_SALT + 1)
+    eval_key = jax.random.PRNGKey(cfg.seed + EVAL_KEY_SALT + 1)
 
     def eval_loss(params, batches: TrainBatch):
         num = jax.tree.leaves(batches)[0].shape[0]

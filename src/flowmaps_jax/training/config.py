@@ -20,18 +20,19 @@ unknown keys or bad values raise ``ValueError`` naming the key.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import types
 import typing
 from typing import Any, Literal
 
+from flowmaps_jax.flow import T_SAMPLERS
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.training.objectives import MODEL_KINDS
+from flowmaps_jax.validation import INT32_MAX, check_int, check_real, check_seed
 
-MODEL_KINDS = ("flowmaps", "mlp")
-T_SAMPLERS = ("beta", "uniform", "logit_normal")
 DATA_SOURCES = ("train", "endless")
 
 
@@ -40,9 +41,8 @@ class TrainConfig:
     """Everything that defines a training run (model, data, optimiser, logging, checkpoints).
 
     model: network sizes (``ModelConfig``); also used by the MLP baseline's Map Encoder.
-    model_kind: "flowmaps" (flow matching, CDiT) or "mlp" (Gaussian baseline).
-    mlp_variance (property, alias of ``model.baseline_variance``): MLP baseline variant, "mean"
-        (unit variance) or "learned" (diagonal log-variance); settable as ``mlp_variance=...``.
+    model_kind: "flowmaps" (flow matching, CDiT) or "mlp" (Gaussian baseline; its variant is
+        ``model.baseline_variance``, "mean" or "learned").
     flowsim: simulator settings for the generated train/validation splits.
     batch_size: scenes per step (B); queries_per_scene: queries sharing one encoder pass (Q).
     steps: total optimiser steps; the cosine schedule decays over exactly this many.
@@ -68,7 +68,6 @@ class TrainConfig:
         query; 0 environments = off.
     seed: the single seed from which params, dropout and data keys are derived.
     log_every, val_every, ckpt_every: intervals in steps; keep_last: recent checkpoints kept.
-    run_dir: output directory (None = ``runs/<model_kind>-<preset>-<timestamp>``).
     preset: name of the preset this config started from (informational, used in run names).
     """
 
@@ -101,62 +100,46 @@ class TrainConfig:
     val_every: int = 500
     ckpt_every: int = 500
     keep_last: int = 2
-    run_dir: str | None = None
     preset: str = "cpu"
 
     def __post_init__(self):
-        _check_choice("model_kind", self.model_kind, MODEL_KINDS)
+        _check_choice("model_kind", self.model_kind, tuple(MODEL_KINDS))
         _check_choice("t_sampler", self.t_sampler, T_SAMPLERS)
         _check_choice("data", self.data, DATA_SOURCES)
         for name in ("batch_size", "queries_per_scene", "steps", "train_envs", "val_envs",
-                     "val_batches", "log_every", "val_every", "ckpt_every", "keep_last"):
-            check_int(name, getattr(self, name))
-        check_int("routine_envs", self.routine_envs, minimum=0)
-        check_int("routine_samples", self.routine_samples)
+                     "val_batches", "log_every", "val_every", "ckpt_every", "keep_last",
+                     "routine_samples", "short_horizon_max"):
+            check_int(name, getattr(self, name), maximum=INT32_MAX)
+        check_int("routine_envs", self.routine_envs, minimum=0, maximum=INT32_MAX)
+        check_seed("seed", self.seed)
         if check_int("warmup_steps", self.warmup_steps, minimum=0) >= self.steps:
             raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
                              f"got {self.warmup_steps!r}")
-        if not self.lr > 0:
-            raise ValueError(f"lr must be > 0; got {self.lr!r}")
+        # Every float: a finite real number (not inf, NaN, a bool or a string) within its range.
+        check_real("lr", self.lr, 0.0, low_open=True)
         for name in ("b1", "b2", "ema_decay"):
-            value = getattr(self, name)
-            if not 0.0 <= value < 1.0:
-                raise ValueError(f"{name} must lie in [0, 1); got {value!r}")
-        if not 0.0 <= self.short_horizon_frac <= 1.0:
-            raise ValueError(f"short_horizon_frac must lie in [0, 1]; got "
-                             f"{self.short_horizon_frac!r}")
-        check_int("short_horizon_max", self.short_horizon_max)
-        if not 0.0 <= self.target_noise < 10.0:
-            raise ValueError(f"target_noise must lie in [0, 10); got {self.target_noise!r}")
-        if not 0.0 <= self.pointer_loss < 100.0:
-            raise ValueError(f"pointer_loss must lie in [0, 100); got {self.pointer_loss!r}")
-        if self.pointer_loss > 0 and self.model_kind == "flowmaps" and \
-                self.model.head != "pointer":
-            raise ValueError("pointer_loss > 0 needs model.head='pointer' (the MLP baseline "
-                             "ignores it)")
-        if self.weight_decay < 0:
-            raise ValueError(f"weight_decay must be >= 0; got {self.weight_decay!r}")
-        if self.clip_norm is not None and not self.clip_norm > 0:
-            raise ValueError(f"clip_norm must be > 0 or None (off); got {self.clip_norm!r}")
+            check_real(name, getattr(self, name), 0.0, 1.0, high_open=True)
+        check_real("weight_decay", self.weight_decay, 0.0)
+        if self.clip_norm is not None:
+            check_real("clip_norm", self.clip_norm, 0.0, low_open=True)
+        check_real("short_horizon_frac", self.short_horizon_frac, 0.0, 1.0)
+        check_real("target_noise", self.target_noise, 0.0, 10.0, high_open=True)
+        check_real("pointer_loss", self.pointer_loss, 0.0, 100.0, high_open=True)
         if not isinstance(self.model, ModelConfig):
             raise ValueError(f"model must be a ModelConfig; got {type(self.model).__name__}")
         if not isinstance(self.flowsim, FlowSimConfig):
             raise ValueError(f"flowsim must be a FlowSimConfig; got {type(self.flowsim).__name__}")
+        if self.pointer_loss > 0 and self.model_kind == "flowmaps" and \
+                self.model.head != "pointer":
+            raise ValueError("pointer_loss > 0 needs model.head='pointer' (the MLP baseline "
+                             "ignores it)")
         sim, net = self.flowsim, self.model
         if net.num_descriptors < sim.num_descriptors:
             raise ValueError(f"model.num_descriptors={net.num_descriptors} is smaller than the "
                              f"simulator's {sim.num_descriptors} descriptor ids")
-        if net.max_tokens != sim.max_tokens:
-            raise ValueError(f"model.max_tokens={net.max_tokens} must equal "
-                             f"flowsim.max_tokens={sim.max_tokens}")
         if net.tau_max != sim.num_timesteps:
             raise ValueError(f"model.tau_max={net.tau_max} must equal "
                              f"flowsim.num_timesteps={sim.num_timesteps}")
-
-    @property
-    def mlp_variance(self) -> str:
-        """The MLP baseline variant ("mean" or "learned"); stored as ``model.baseline_variance``."""
-        return self.model.baseline_variance
 
     def to_dict(self) -> dict:
         """A JSON-able dict (nested configs become nested dicts)."""
@@ -255,7 +238,7 @@ def apply_overrides(cfg: TrainConfig, overrides: typing.Iterable[str] | dict[str
         return cfg
     data = cfg.to_dict()
     for key, value in items:
-        path = _ALIASES.get(key, key).split(".")
+        path = key.split(".")
         _set_path(TrainConfig, data, path, value, key)
     try:
         return TrainConfig.from_dict(data)
@@ -288,9 +271,6 @@ def _field_names(cls: type) -> list[str]:
     """Field names of dataclass ``cls`` in declaration order."""
     return [f.name for f in dataclasses.fields(cls)]
 
-
-# Short names accepted by apply_overrides for fields that live in a nested config.
-_ALIASES = {"mlp_variance": "model.baseline_variance"}
 
 _NONE_WORDS = ("none", "null")
 _TRUE_WORDS = ("true", "1", "yes", "on")
@@ -326,6 +306,8 @@ def _convert(text: str, hint: Any, key: str) -> Any:
             return False
         raise ValueError(f"bad value {text!r} for {key!r}: expected a boolean (true/false)")
     if hint is int:
+        with contextlib.suppress(ValueError):
+            return int(text)
         try:
             as_float = float(text)
         except ValueError:
@@ -360,6 +342,11 @@ def _to_jsonable(obj: Any) -> Any:
     return obj
 
 
+# Fields that older versions wrote and that no longer exist (they configured nothing): configs
+# saved with them still load.
+_REMOVED_KEYS = {"TrainConfig": ("run_dir",), "ModelConfig": ("max_tokens",)}
+
+
 def _from_dict(cls: type, data: Any, where: str) -> Any:
     """Build dataclass ``cls`` from a dict, using ``cls.from_dict`` for nested configs."""
     if not isinstance(data, dict):
@@ -368,6 +355,7 @@ def _from_dict(cls: type, data: Any, where: str) -> Any:
     if cls is not TrainConfig and hasattr(cls, "from_dict"):
         return cls.from_dict(data)
     fields = {f.name: f for f in dataclasses.fields(cls)}
+    data = {k: v for k, v in data.items() if k not in _REMOVED_KEYS.get(cls.__name__, ())}
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ValueError(f"{where} has unknown keys {unknown} for {cls.__name__}")

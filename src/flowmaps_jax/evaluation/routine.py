@@ -6,12 +6,12 @@ kind of table spreads its mass evenly. This module measures that, cheaply enough
 validation interval of a training run:
 
 * :class:`RoutineProbe` — two small fixed query sets built from validation environments with
-  :func:`flowmaps_jax.evaluate.build_eval_queries`: every object one step ahead (Δτ = 1), and the
-  protocol's horizon mixture.
+  :func:`.protocol.build_eval_queries`: every object one step ahead (Δτ = 1), and the protocol's
+  horizon mixture.
 * :func:`routine_metrics` — samples a predictor and returns the mass at route offsets
-  0 / +1 / +2 / +3 / beyond / off one step ahead (:func:`flowmaps_jax.metrics.route_offset_mass`)
-  and slot TV, top-1 and search-cost ratio on both sets. The training loop logs these into
-  ``metrics.jsonl`` (records with ``"kind": "routine"``).
+  0 / +1 / +2 / +3 / beyond / off one step ahead (:func:`.slots.route_offset_mass`) and slot TV,
+  top-1 and search-cost ratio on both sets. The training loop logs these into ``metrics.jsonl``
+  (records with ``"kind": "routine"``).
 * :func:`plot_learning_curve` — the figure of those records against the training step.
 """
 
@@ -25,32 +25,35 @@ import numpy as np
 from flax import struct
 from matplotlib.figure import Figure
 
-from flowmaps_jax import metrics
+from flowmaps_jax.evaluation.protocol import EvalSet, build_eval_queries
+from flowmaps_jax.evaluation.slots import (
+    ROUTE_OFFSET_LABELS,
+    empirical_slots,
+    route_offset_mass,
+    slot_scores,
+)
 from flowmaps_jax.validation import check_int
 
-OFFSET_LABELS = ("0", "+1", "+2", "+3", "beyond", "off")
 EXACT_ONE_STEP = (0.2, 0.7, 0.1, 0.0, 0.0, 0.0)
 """The exact posterior's route-offset mass one step ahead (FlowSim's Markov dynamics)."""
 
 
 @struct.dataclass
 class RoutineProbe:
-    """Fixed query sets (EvalSets) for the diagnostic: ``one_step`` (Δτ = 1) and ``mixed``."""
+    """Fixed query sets for the diagnostic: ``one_step`` (Δτ = 1) and ``mixed``."""
 
-    one_step: object
-    mixed: object
+    one_step: EvalSet
+    mixed: EvalSet
 
 
 def build_probe(scenes, config, num_envs: int = 20, seed: int = 0) -> RoutineProbe:
     """The probe from the first ``num_envs`` environments of ``scenes`` (3 queries each)."""
-    from flowmaps_jax.evaluate import build_eval_queries
-
     num_envs = check_int("num_envs", num_envs, 1)
     if num_envs > scenes.num_envs:
         raise ValueError(f"num_envs={num_envs} is more than the {scenes.num_envs} environments "
                          "in scenes")
     part = jax.tree_util.tree_map(lambda a: a[:num_envs], scenes)
-    key = jax.random.PRNGKey(seed)
+    key = jax.random.key(seed)
     return RoutineProbe(
         one_step=build_eval_queries(part, config, jax.random.fold_in(key, 1), 2, horizon=1),
         mixed=build_eval_queries(part, config, jax.random.fold_in(key, 2), 2))
@@ -64,21 +67,20 @@ def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None
     ``offset_off`` (one step ahead, mean over queries); ``one_step_tv``, ``one_step_top1``,
     ``one_step_search_cost_ratio``; ``tv``, ``top1``, ``search_cost_ratio`` (horizon mixture).
     """
-    from flowmaps_jax.evaluate import slot_scores
-
     num_samples = check_int("num_samples", num_samples, 1)
-    key = jax.random.PRNGKey(0) if key is None else key
+    key = jax.random.key(0) if key is None else key
     out: dict[str, float] = {}
     for i, (label, evalset) in enumerate((("one_step", probe.one_step), ("mixed", probe.mixed))):
         samples = predictor.sample(evalset.tokens, evalset.queries, num_samples,
                                    jax.random.fold_in(key, i))
-        p_hat = metrics.empirical_slots(samples, evalset.slot_boxes, evalset.slot_mask)
-        scores = {k: float(np.mean(v)) for k, v in slot_scores(evalset, p_hat).items()}
+        p_hat = empirical_slots(samples, evalset.slot_boxes, evalset.slot_mask)
+        scores = {k: float(np.mean(v))
+                  for k, v in slot_scores(p_hat, evalset.slot_probs, evalset.slot_mask).items()}
         if label == "one_step":
-            mass = np.asarray(metrics.route_offset_mass(p_hat, evalset.slot_now,
-                                                        evalset.num_slots)).mean(axis=(0, 1))
-            out.update({f"offset_{name}": float(m) for name, m in zip(OFFSET_LABELS, mass,
-                                                                      strict=True)})
+            mass = np.asarray(route_offset_mass(p_hat, evalset.slot_now,
+                                                evalset.num_slots)).mean(axis=(0, 1))
+            out.update({f"offset_{name}": float(m)
+                        for name, m in zip(ROUTE_OFFSET_LABELS, mass, strict=True)})
             out.update({f"one_step_{k}": v for k, v in scores.items()})
         else:
             out.update(scores)
@@ -109,7 +111,7 @@ def plot_learning_curve(records: list[dict], title: str = "") -> Figure:
     fig = Figure(figsize=(10, 3.6))
     ax_mass, ax_slot = fig.subplots(1, 2)
     colours = ("tab:grey", "tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:red")
-    for name, exact, colour in zip(OFFSET_LABELS, EXACT_ONE_STEP, colours, strict=True):
+    for name, exact, colour in zip(ROUTE_OFFSET_LABELS, EXACT_ONE_STEP, colours, strict=True):
         if name in ("+3", "beyond"):
             continue
         ax_mass.plot(steps, [r[f"offset_{name}"] for r in records], color=colour,

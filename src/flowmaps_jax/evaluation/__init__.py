@@ -1,0 +1,106 @@
+"""Evaluation against FlowSim's exact posterior (the protocol of docs/design.md).
+
+Module map, in the order data flows::
+
+    kl.py        the ground-truth Gaussian mixture q (σ, log q, draws) and the KL(q‖p) estimate
+    slots.py     slot assignment, p̂, TV / top-1 / search cost, reference slot predictors,
+                 route-offset mass
+    protocol.py  the queries (EvalSet, build_eval_queries) and one RowResult per predictor
+                 (reference_rows, evaluate_predictor)
+    report.py    rows → results.json / results.md (summarise_rows, markdown_table, write_report)
+    figures.py   the report's figures (plot_kl, plot_by_horizon, plot_samples, plot_slot_bars)
+    run.py       run_evaluation: all of the above in one call
+    routine.py   the routine diagnostic the training loop logs, and its learning-curve figure
+    cli.py       ``python -m flowmaps_jax.evaluate``
+"""
+
+from flowmaps_jax.evaluation.figures import (
+    pick_queries,
+    plot_by_horizon,
+    plot_kl,
+    plot_samples,
+    plot_slot_bars,
+)
+from flowmaps_jax.evaluation.kl import (
+    Estimate,
+    continuous_kl,
+    gt_mixture_log_prob,
+    gt_mixture_sigma,
+    sample_gt_mixture,
+)
+from flowmaps_jax.evaluation.protocol import (
+    DEFAULT_CHUNK_ENVS,
+    DEFAULT_KL_DRAWS,
+    DEFAULT_NUM_ENVS,
+    DEFAULT_SAMPLES,
+    REFERENCE_ROWS,
+    EvalSet,
+    RowResult,
+    build_eval_queries,
+    evaluate_predictor,
+    reference_rows,
+)
+from flowmaps_jax.evaluation.report import markdown_table, summarise, summarise_rows, write_report
+from flowmaps_jax.evaluation.routine import (
+    RoutineProbe,
+    build_probe,
+    plot_learning_curve,
+    read_routine_records,
+    routine_metrics,
+)
+from flowmaps_jax.evaluation.run import run_evaluation
+from flowmaps_jax.evaluation.slots import (
+    ASSIGN_RADIUS,
+    ROUTE_OFFSET_LABELS,
+    SLOT_METRICS,
+    empirical_slots,
+    last_seen_slots,
+    oracle_slots,
+    route_offset_mass,
+    sampled_oracle_slots,
+    slot_scores,
+    uniform_slots,
+)
+
+__all__ = [
+    "ASSIGN_RADIUS",
+    "DEFAULT_CHUNK_ENVS",
+    "DEFAULT_KL_DRAWS",
+    "DEFAULT_NUM_ENVS",
+    "DEFAULT_SAMPLES",
+    "REFERENCE_ROWS",
+    "ROUTE_OFFSET_LABELS",
+    "SLOT_METRICS",
+    "Estimate",
+    "EvalSet",
+    "RoutineProbe",
+    "RowResult",
+    "build_eval_queries",
+    "build_probe",
+    "continuous_kl",
+    "empirical_slots",
+    "evaluate_predictor",
+    "gt_mixture_log_prob",
+    "gt_mixture_sigma",
+    "last_seen_slots",
+    "markdown_table",
+    "oracle_slots",
+    "pick_queries",
+    "plot_by_horizon",
+    "plot_kl",
+    "plot_learning_curve",
+    "plot_samples",
+    "plot_slot_bars",
+    "read_routine_records",
+    "reference_rows",
+    "route_offset_mass",
+    "routine_metrics",
+    "run_evaluation",
+    "sample_gt_mixture",
+    "sampled_oracle_slots",
+    "slot_scores",
+    "summarise",
+    "summarise_rows",
+    "uniform_slots",
+    "write_report",
+]

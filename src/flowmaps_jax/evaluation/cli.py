@@ -1,0 +1,137 @@
+"""``python -m flowmaps_jax.evaluate``: evaluate a model and baselines against the exact posterior.
+
+    python -m flowmaps_jax.evaluate --checkpoint runs/flowmaps-cpu-X \\
+        --baseline runs/mlp-cpu-Y [--baseline ...] [--out DIR] [--num-envs 200] \\
+        [--samples 25,100] [--kl-draws 100] [--seed 0]
+
+Writes into ``--out`` (default ``<checkpoint>/eval``) ``results.json``, ``results.md`` (with the
+route-offset mass one step ahead: the routine diagnostic) and the figures ``kl.png`` (paper
+Fig. 2), ``by_horizon.png``, ``samples.png`` (paper Fig. 3) and ``slots.png``.
+``--checkpoint``/``--baseline`` take run or checkpoint directories, or ``pretrained:NAME``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+from collections.abc import Sequence
+
+import jax
+
+from flowmaps_jax.evaluation.protocol import (
+    DEFAULT_CHUNK_ENVS,
+    DEFAULT_KL_DRAWS,
+    DEFAULT_NUM_ENVS,
+    DEFAULT_SAMPLES,
+)
+from flowmaps_jax.evaluation.report import markdown_table
+from flowmaps_jax.evaluation.run import run_evaluation
+from flowmaps_jax.sample import DEFAULT_NUM_STEPS, SOLVERS, Predictor, load, load_pretrained
+from flowmaps_jax.validation import check_int, check_output_dir
+
+PRETRAINED_PREFIX = "pretrained:"
+
+
+def _parse_counts(text: str) -> tuple[int, ...]:
+    try:
+        counts = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--samples must be comma-separated integers like 25,100; got {text!r}") from None
+    if not counts or any(n < 1 for n in counts):
+        raise argparse.ArgumentTypeError(f"--samples must be positive integers; got {text!r}")
+    return counts
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m flowmaps_jax.evaluate",
+        description="Evaluate FlowMaps (and baselines) against FlowSim's exact posterior.")
+    parser.add_argument("--checkpoint", required=True,
+                        help="run or checkpoint directory of the model to evaluate (FlowMaps), "
+                             "or pretrained:NAME for a shipped model (e.g. pretrained:flowmaps)")
+    parser.add_argument("--baseline", action="extend", nargs="+", default=[], metavar="DIR",
+                        help="run or checkpoint directories (or pretrained:NAME) of baselines "
+                             "(several after one flag, or the flag repeated)")
+    parser.add_argument("--out", default=None,
+                        help="output directory (default: <checkpoint>/eval)")
+    parser.add_argument("--num-envs", type=int, default=DEFAULT_NUM_ENVS,
+                        help="validation environments (3 queries each)")
+    parser.add_argument("--samples", type=_parse_counts, default=DEFAULT_SAMPLES,
+                        help="sample counts for the slot metrics, e.g. 25,100")
+    parser.add_argument("--kl-draws", type=int, default=DEFAULT_KL_DRAWS,
+                        help="draws from q per query for the KL estimate")
+    parser.add_argument("--seed", type=int, default=0, help="seed of times, draws and samples")
+    parser.add_argument("--which", choices=("best", "latest"), default="best",
+                        help="which checkpoint to load")
+    parser.add_argument("--num-steps", type=int, default=DEFAULT_NUM_STEPS,
+                        help="ODE grid points for sampling (10 = 18 midpoint evaluations)")
+    parser.add_argument("--logp-steps", type=int, default=None,
+                        help="ODE grid points for the likelihood (default: --num-steps)")
+    parser.add_argument("--method", choices=SOLVERS, default="midpoint", help="ODE solver")
+    parser.add_argument("--chunk-envs", type=int, default=DEFAULT_CHUNK_ENVS,
+                        help="environments per compiled batch")
+    parser.add_argument("--scenes", default=None,
+                        help="evaluate on scenes from an .npz (flowsim.scenes.save_scenes) instead "
+                             "of the validation split")
+    parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def _load_model(spec: str, which: str) -> Predictor:
+    """A checkpoint directory, or ``pretrained:NAME`` for a model shipped with the package."""
+    if spec.startswith(PRETRAINED_PREFIX):
+        return load_pretrained(spec[len(PRETRAINED_PREFIX):])
+    return load(spec, which=which)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """CLI entry point; returns the exit code (0 on success, 2 on a bad argument)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        check_int("--num-envs", args.num_envs, 1)
+        check_int("--kl-draws", args.kl_draws, 2)
+        check_int("--num-steps", args.num_steps, 2)
+        check_int("--chunk-envs", args.chunk_envs, 1)
+        if args.logp_steps is not None:
+            check_int("--logp-steps", args.logp_steps, 2)
+        if args.out:
+            out = pathlib.Path(args.out)
+        elif args.checkpoint.startswith(PRETRAINED_PREFIX):
+            raise ValueError("--out is required when --checkpoint is a pretrained model")
+        else:
+            out = pathlib.Path(args.checkpoint) / "eval"
+        out = pathlib.Path(check_output_dir("--out", out))  # before the evaluation runs
+        model = _load_model(args.checkpoint, args.which)
+        baselines = [_load_model(path, args.which) for path in args.baseline]
+        config = model.flowsim
+        if args.scenes is not None:
+            from flowmaps_jax.flowsim.scenes import load_scenes
+
+            scenes, config = load_scenes(args.scenes)
+            if args.num_envs < scenes.num_envs:
+                scenes = jax.tree_util.tree_map(lambda a: a[: args.num_envs], scenes)
+        else:
+            from flowmaps_jax.flowsim.scenes import validation_split
+
+            scenes = validation_split(config, num_envs=args.num_envs)
+        print(f"Evaluating {model.name} ({model.source}, step {model.step})"
+              + "".join(f" vs {b.name} ({b.source}, step {b.step})" for b in baselines)
+              + f" on {scenes.num_envs} environments → {out}", flush=True)
+        results, _, _ = run_evaluation(
+            [*baselines, model], scenes, config, out, seed=args.seed, sample_counts=args.samples,
+            kl_draws=args.kl_draws, chunk_envs=args.chunk_envs, num_steps=args.num_steps,
+            method=args.method, logp_steps=args.logp_steps, figures=not args.no_figures,
+            progress=not args.no_progress)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(markdown_table(results).split("\n## KL")[0])
+    print(f"wrote {out / 'results.json'}, {out / 'results.md'}"
+          + "".join(f", {out / f}" for f in results["figures"])
+          + f" in {results['seconds']:.1f} s")
+    return 0
+

@@ -1,0 +1,158 @@
+"""The continuous KL(q‖p) of the protocol: the ground-truth Gaussian mixture q and its estimate.
+
+q(x) = Σ_k q_k N(c(b_k), diag(σ_k²)) lives in centre coordinates c = (cy, cx, h, w), with q_k the
+exact slot posterior, b_k the object's box at slot k and
+σ_k = (0.35 h_k, 0.35 w_k, 0.02 h_k, 0.02 w_k). The map (y, x, h, w) → (cy, cx, h, w) is a shear
+with unit Jacobian, so log q evaluated at c(x) *is* the log-density of boxes x in (y, x, h, w):
+samples are drawn in centre coordinates and returned as (y, x, h, w), and densities are evaluated
+the other way round. KL(q‖p) = E_{x~q}[log q(x) − log p(x)] is estimated from draws of q.
+
+Shapes: ``...`` are free leading batch dims (one per query); ``K`` slots per query, padded to a
+common size, ``slot_mask`` (..., K) True on real slots (padded slots carry q_k = 0). Public
+functions validate their inputs once (shapes always, values on concrete arrays) and call a jitted
+core that does not.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.boxes import from_centre, to_centre
+from flowmaps_jax.evaluation._checks import check_boxes_values, check_distribution, check_same
+from flowmaps_jax.validation import check_array, check_int, check_mask, is_concrete
+
+CENTRE_SIGMA_SCALE = 0.35
+"""Centre std of a mixture component as a fraction of the box side (h for cy, w for cx)."""
+SIZE_SIGMA_SCALE = 0.02
+"""Size std of a mixture component as a fraction of the box side (h for h, w for w)."""
+
+_LOG_2PI = math.log(2.0 * math.pi)
+_DUMMY_BOX = (0.0, 0.0, 1.0, 1.0)  # stands in for padded slots so no NaN appears (masked anyway)
+
+
+class Estimate(NamedTuple):
+    """A Monte-Carlo mean and its standard error, each of shape (...)."""
+
+    mean: jnp.ndarray
+    stderr: jnp.ndarray
+
+
+def _check_mixture(slot_probs, slot_boxes, slot_mask) -> tuple[int, ...]:
+    """Shapes and values of (q, b, mask); returns the shape (..., K) of q."""
+    q_shape = check_array("slot_probs", slot_probs, (..., None)).shape
+    b_shape = check_array("slot_boxes", slot_boxes, (..., None, 4)).shape
+    check_same("slot_boxes", b_shape, (*q_shape, 4), "slot_probs.shape + (4,)")
+    if slot_mask is not None:
+        check_mask("slot_mask", slot_mask, q_shape)
+    check_distribution("slot_probs", slot_probs, slot_mask)
+    if is_concrete(slot_probs, slot_mask):
+        active = np.asarray(slot_probs) > 0
+        if slot_mask is not None:
+            active &= np.asarray(slot_mask, bool)
+        check_boxes_values("slot_boxes", slot_boxes, active)
+    return q_shape
+
+
+def _full_mask(shape, slot_mask):
+    return jnp.ones(shape, bool) if slot_mask is None else jnp.asarray(slot_mask, bool)
+
+
+@jax.jit
+def _sigma(boxes):
+    h, w = boxes[..., 2], boxes[..., 3]
+    return jnp.stack([CENTRE_SIGMA_SCALE * h, CENTRE_SIGMA_SCALE * w,
+                      SIZE_SIGMA_SCALE * h, SIZE_SIGMA_SCALE * w], axis=-1)
+
+
+def gt_mixture_sigma(slot_boxes: jnp.ndarray) -> jnp.ndarray:
+    """Per-slot std of the ground-truth mixture, in centre coordinates.
+
+    slot_boxes: (..., K, 4) boxes b_k (y, x, h, w).
+    Returns (..., K, 4) std of (cy, cx, h, w): (0.35 h, 0.35 w, 0.02 h, 0.02 w).
+    """
+    check_array("slot_boxes", slot_boxes, (..., 4))
+    return _sigma(jnp.asarray(slot_boxes, jnp.float32))
+
+
+def _active_components(slot_probs, slot_boxes, slot_mask):
+    """Log-weights (-inf on unused slots), centre means and stds with safe values on padding."""
+    probs = jnp.asarray(slot_probs, jnp.float32)
+    active = (probs > 0) & slot_mask
+    boxes = jnp.where(active[..., None], jnp.asarray(slot_boxes, jnp.float32),
+                      jnp.asarray(_DUMMY_BOX, jnp.float32))
+    log_w = jnp.where(active, jnp.log(jnp.where(active, probs, 1.0)), -jnp.inf)
+    return log_w, to_centre(boxes), _sigma(boxes)
+
+
+@jax.jit
+def _mixture_log_prob(x, slot_probs, slot_boxes, slot_mask):
+    """The mixture's log-density; the evaluation's only Gaussian density (components inline)."""
+    log_w, mu, sigma = _active_components(slot_probs, slot_boxes, slot_mask)
+    z = (to_centre(x)[..., :, None, :] - mu[..., None, :, :]) / sigma[..., None, :, :]
+    log_comp = (-0.5 * jnp.sum(z**2, axis=-1) - jnp.sum(jnp.log(sigma), axis=-1)[..., None, :]
+                - 2.0 * _LOG_2PI)  # 4 dims × ½ log 2π
+    return jax.nn.logsumexp(log_comp + log_w[..., None, :], axis=-1)
+
+
+def gt_mixture_log_prob(x: jnp.ndarray, slot_probs: jnp.ndarray, slot_boxes: jnp.ndarray,
+                        slot_mask: jnp.ndarray | None = None) -> jnp.ndarray:
+    """log q(x) of boxes under the ground-truth mixture (see module doc).
+
+    x: (..., N, 4) boxes (y, x, h, w). slot_probs: (..., K) exact posterior q (or any slot
+    weights: a slot predictor's density is this mixture with its weights).
+    slot_boxes: (..., K, 4) b_k. slot_mask: optional (..., K) real slots (default: all).
+    Returns (..., N) log-densities w.r.t. Lebesgue measure on (y, x, h, w).
+    """
+    q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
+    x_shape = check_array("x", x, (..., None, 4)).shape
+    check_same("x.shape[:-2]", x_shape[:-2], q_shape[:-1], "the leading dims of slot_probs")
+    return _mixture_log_prob(jnp.asarray(x, jnp.float32), slot_probs, slot_boxes,
+                             _full_mask(q_shape, slot_mask))
+
+
+@partial(jax.jit, static_argnames="n")
+def _sample_mixture(key, slot_probs, slot_boxes, slot_mask, n):
+    log_w, mu, sigma = _active_components(slot_probs, slot_boxes, slot_mask)
+    k_slot, k_noise = jax.random.split(key)
+    logits = jnp.broadcast_to(log_w[..., None, :], (*log_w.shape[:-1], n, log_w.shape[-1]))
+    slot = jax.random.categorical(k_slot, logits)  # (..., n)
+    mean = jnp.take_along_axis(mu, slot[..., None], axis=-2)  # (..., n, 4)
+    std = jnp.take_along_axis(sigma, slot[..., None], axis=-2)
+    eps = jax.random.normal(k_noise, mean.shape)
+    return from_centre(mean + std * eps)
+
+
+def sample_gt_mixture(key: jax.Array, slot_probs: jnp.ndarray, slot_boxes: jnp.ndarray, n: int,
+                      slot_mask: jnp.ndarray | None = None) -> jnp.ndarray:
+    """n draws from the ground-truth mixture q: pick slot k with prob q_k, then jitter.
+
+    slot_probs: (..., K). slot_boxes: (..., K, 4). Returns (..., n, 4) boxes (y, x, h, w).
+    """
+    q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
+    n = check_int("n", n)
+    return _sample_mixture(key, slot_probs, slot_boxes, _full_mask(q_shape, slot_mask), n)
+
+
+@jax.jit
+def _mean_and_stderr(diff):
+    n = diff.shape[-1]
+    return Estimate(jnp.mean(diff, axis=-1), jnp.std(diff, axis=-1, ddof=1) / math.sqrt(n))
+
+
+def continuous_kl(log_q: jnp.ndarray, log_p: jnp.ndarray) -> Estimate:
+    """KL(q‖p) ≈ mean over draws x_i ~ q of log q(x_i) − log p(x_i), with its standard error.
+
+    log_q, log_p: (..., N) log-densities at the same N ≥ 2 draws from q (e.g. from
+    :func:`sample_gt_mixture`; log p exact for the model). Returns Estimate (...).
+    """
+    shape = check_array("log_q", log_q, (..., None)).shape
+    check_same("log_p", np.shape(log_p), shape, "same as log_q")
+    if shape[-1] < 2:
+        raise ValueError(f"log_q needs at least 2 draws for a standard error; got {shape[-1]}")
+    return _mean_and_stderr(jnp.asarray(log_q, jnp.float32) - jnp.asarray(log_p, jnp.float32))

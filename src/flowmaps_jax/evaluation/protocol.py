@@ -1,0 +1,318 @@
+"""The evaluation protocol: which queries are asked, and one row of per-query numbers per predictor.
+
+* E validation environments (``flowsim.scenes.validation_split``; 200 by default). For each
+  environment one state time τ ~ U{0..T−2} and one query time τ_q ~ U{τ+1..T−1}; each of its M
+  objects is queried (E·M = 600 queries). The map at τ is encoded once and shared by its M queries.
+* Ground truth: the exact posterior q (M objects × F slots, zero beyond the K real slots) of
+  ``flowsim.exact_posterior`` and the boxes b_k the object would have at slot k
+  (``flowsim.scenes.slot_boxes``).
+* Continuous KL(q‖p) with q the Gaussian mixture of :mod:`.kl`, from ``kl_draws`` draws per query.
+  The draws are made once and shared by every row (common random numbers, so row differences are
+  less noisy). log p is exact: change of variables for FlowMaps, closed form for the MLP, and for
+  the slot predictors (oracle / last-seen / uniform) the same mixture with their slot weights.
+* Slot metrics (:mod:`.slots`) from n samples (n in ``sample_counts``; the first n of the largest
+  n drawn). The reference rows use their slot distribution directly (no sampling), so the oracle
+  has TV 0.
+
+:func:`build_eval_queries` makes the :class:`EvalSet`; :func:`reference_rows` and
+:func:`evaluate_predictor` score it into :class:`RowResult` rows.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from tqdm import tqdm
+
+from flowmaps_jax import flow
+from flowmaps_jax.evaluation.kl import _mixture_log_prob, _sample_mixture, continuous_kl
+from flowmaps_jax.evaluation.slots import (
+    empirical_slots,
+    last_seen_slots,
+    oracle_slots,
+    sampled_oracle_slots,
+    slot_scores,
+    uniform_slots,
+)
+from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.flowsim.dynamics import exact_posterior
+from flowmaps_jax.sample import DEFAULT_NUM_STEPS, Predictor
+from flowmaps_jax.tokens import Queries, SceneTokens
+from flowmaps_jax.validation import check_int
+
+DEFAULT_NUM_ENVS = 200
+DEFAULT_SAMPLES = (25, 100)
+DEFAULT_KL_DRAWS = 100
+DEFAULT_CHUNK_ENVS = 50
+REFERENCE_ROWS = ("oracle", "oracle samples", "last-seen", "uniform")
+# fold_in salts of the evaluation seed
+_SALT_QUERIES, _SALT_KL, _SALT_SAMPLES, _SALT_ORACLE = 0, 1, 2, 3
+
+
+# --------------------------------------------------------------------------- the query set
+
+
+@struct.dataclass
+class EvalSet:
+    """The evaluation queries with their ground truth. E environments × M objects each.
+
+    env, tau, tau_q: (E,) int32 environment index into the scenes, state and query time.
+    tokens: SceneTokens (E, S), the map of each environment at its τ.
+    queries: Queries (E, M), every object of the environment at τ_q.
+    obj, horizon, slot_now, num_slots: (E, M) int32 object index (category), Δτ = τ_q − τ,
+        slot observed at τ, number of real slots K.
+    slot_probs: (E, M, F) exact posterior q over slots (zero beyond K).
+    slot_boxes: (E, M, F, 4) normalised (y, x, h, w) box b_k at each slot (zeros beyond K).
+    slot_mask: (E, M, F) bool, True on the K real slots.
+    target: (E, M, 4) the object's actual normalised box at τ_q (one draw of the truth).
+    kl_points: (E, M, D, 4) draws x ~ q shared by every row's KL estimate.
+    kl_log_q: (E, M, D) log q at those draws.
+    """
+
+    env: jnp.ndarray
+    tau: jnp.ndarray
+    tau_q: jnp.ndarray
+    tokens: SceneTokens
+    queries: Queries
+    obj: jnp.ndarray
+    horizon: jnp.ndarray
+    slot_now: jnp.ndarray
+    num_slots: jnp.ndarray
+    slot_probs: jnp.ndarray
+    slot_boxes: jnp.ndarray
+    slot_mask: jnp.ndarray
+    target: jnp.ndarray
+    kl_points: jnp.ndarray
+    kl_log_q: jnp.ndarray
+
+    @property
+    def num_envs(self) -> int:
+        return int(self.env.shape[0])
+
+    @property
+    def num_queries(self) -> int:
+        return int(np.prod(self.obj.shape))
+
+    @property
+    def num_slots_padded(self) -> int:
+        """F, the padded slot axis."""
+        return int(self.slot_probs.shape[-1])
+
+    def take(self, index: np.ndarray) -> EvalSet:
+        """The sub-set of environments ``index`` (a 1-D integer array)."""
+        index = np.asarray(index)
+        return jax.tree_util.tree_map(lambda a: a[index], self)
+
+
+def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
+                       kl_draws: int = DEFAULT_KL_DRAWS, horizon: int | None = None) -> EvalSet:
+    """The protocol's queries for every environment of ``scenes`` (all E of them).
+
+    τ ~ U{0..T−2} and τ_q ~ U{τ+1..T−1} per environment, all M objects queried; exact posterior,
+    slot boxes, and ``kl_draws`` draws from the ground-truth mixture q per query (≥ 2).
+    Environment e's times and draws depend only on ``key`` and e. ``horizon``: instead a fixed
+    Δτ (τ ~ U{0..T−1−Δτ}, τ_q = τ + Δτ), e.g. 1 for the routine diagnostic.
+    """
+    from flowmaps_jax.flowsim.scenes import normalise_boxes, scene_tokens, slot_boxes
+
+    if not isinstance(config, FlowSimConfig):
+        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+    kl_draws = check_int("kl_draws", kl_draws, 2)
+    num_envs = scenes.num_envs
+    t_max = config.num_timesteps
+    if horizon is not None:
+        horizon = check_int("horizon", horizon, 1)
+        if horizon >= t_max:
+            raise ValueError(f"horizon must be < num_timesteps={t_max}; got {horizon}")
+    m = config.num_objects
+    env = jnp.arange(num_envs, dtype=jnp.int32)
+    env_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_QUERIES), e))(
+        env)
+
+    def times(k):
+        k_tau, k_q = jax.random.split(k)
+        if horizon is not None:
+            tau = jax.random.randint(k_tau, (), 0, t_max - horizon)
+            return tau, tau + horizon
+        tau = jax.random.randint(k_tau, (), 0, t_max - 1)
+        return tau, jax.random.randint(k_q, (), tau + 1, t_max)
+
+    tau, tau_q = jax.vmap(times)(env_keys)
+    tau, tau_q = tau.astype(jnp.int32), tau_q.astype(jnp.int32)
+    tokens = scene_tokens(scenes, env, tau, config)
+    obj = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32), (num_envs, m))
+    descriptor = jnp.asarray(scenes.object_kind, jnp.int32)[env]
+    queries = Queries(descriptor=descriptor, tau_q=jnp.broadcast_to(tau_q[:, None], (num_envs, m)))
+    horizon = (tau_q - tau)[:, None] + jnp.zeros_like(obj)
+    slot_now = jnp.asarray(scenes.slot)[env, tau]  # (E, M)
+    num_slots = jnp.asarray(scenes.num_slots)[env]  # (E, M)
+    probs = exact_posterior(np.asarray(num_slots), np.asarray(slot_now), np.asarray(horizon),
+                            config, tau=np.asarray(tau)[:, None] + np.zeros((1, m), np.int32))
+    flat_env = jnp.repeat(env, m)
+    boxes = slot_boxes(scenes, flat_env, obj.reshape(-1), config)
+    boxes = jnp.asarray(boxes, jnp.float32).reshape(num_envs, m, *boxes.shape[1:])
+    f = probs.shape[-1]
+    mask = jnp.arange(f) < num_slots[..., None]
+    target = normalise_boxes(jnp.asarray(scenes.object_boxes)[env, tau_q], config)
+
+    # the ground truth is made here from validated inputs: the mixture's jitted cores directly
+    kl_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_KL), e))(env)
+    points = jax.vmap(lambda k, p, b, bm: _sample_mixture(k, p, b, bm, kl_draws))(
+        kl_keys, probs, boxes, mask)  # (E, M, kl_draws, 4), environment e from kl_keys[e]
+    log_q = _mixture_log_prob(points, probs, boxes, mask)
+    return EvalSet(env=env, tau=tau, tau_q=tau_q, tokens=tokens, queries=queries, obj=obj,
+                   horizon=horizon.astype(jnp.int32), slot_now=slot_now.astype(jnp.int32),
+                   num_slots=num_slots.astype(jnp.int32), slot_probs=probs, slot_boxes=boxes,
+                   slot_mask=mask, target=jnp.asarray(target, jnp.float32), kl_points=points,
+                   kl_log_q=log_q)
+
+
+# --------------------------------------------------------------------------- rows
+
+
+@dataclasses.dataclass
+class RowResult:
+    """Per-query numbers of one row of the results table (numpy arrays, (E, M) unless noted).
+
+    name: row label. kl, kl_stderr: Monte-Carlo KL(q‖p) and its standard error per query.
+    slots: {n: {"p_hat": (E, M, F + 1), "tv", "top1", "search_cost_ratio"}} for each sample count
+        n (reference rows: the same exact slot distribution for every n).
+    samples: (E, M, n_max, 4) model samples (None for reference rows).
+    info: free-form facts for the report (checkpoint, step, seconds).
+    """
+
+    name: str
+    kl: np.ndarray
+    kl_stderr: np.ndarray
+    slots: dict[int, dict[str, np.ndarray]]
+    samples: np.ndarray | None = None
+    info: dict = dataclasses.field(default_factory=dict)
+
+
+def _slot_entry(evalset: EvalSet, p_hat) -> dict[str, np.ndarray]:
+    """One sample count's entry of RowResult.slots: p̂ and its slot scores against q."""
+    return {"p_hat": np.asarray(p_hat),
+            **slot_scores(p_hat, evalset.slot_probs, evalset.slot_mask)}
+
+
+def check_counts(sample_counts: Sequence[int]) -> tuple[int, ...]:
+    """Distinct positive sample counts, sorted."""
+    counts = tuple(sample_counts)
+    if not counts:
+        raise ValueError("sample_counts must hold at least one sample count")
+    for n in counts:
+        check_int("sample_counts entries", n, 1)
+    if len(set(counts)) != len(counts):
+        raise ValueError(f"sample_counts must not repeat values; got {counts}")
+    return tuple(sorted(int(n) for n in counts))
+
+
+def check_ode(num_steps, method, logp_steps) -> tuple[int, str, int]:
+    """Validated (num_steps, method, logp_steps); logp_steps defaults to num_steps."""
+    num_steps, method = flow.check_solver(num_steps, method)
+    if logp_steps is None:
+        return num_steps, method, num_steps
+    return num_steps, method, flow.check_solver(logp_steps, method, name="logp_steps")[0]
+
+
+def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMPLES,
+                   key: jax.Array | None = None) -> list[RowResult]:
+    """The reference rows: oracle (q itself), oracle samples (n draws from q: the finite-sample
+    ceiling of any sampler's slot metrics), last-seen (stays at its slot), uniform (K slots).
+
+    Their KL uses the ground-truth mixture with the row's slot weights as the density, on the
+    shared draws: 0 for the oracle, and the oracle's for oracle samples (a perfect sampler's
+    density is q; only its slot histogram is noisy).
+    ``key``: the draws of "oracle samples" (default ``key(0)``).
+    """
+    return _reference_rows(evalset, check_counts(sample_counts), key)
+
+
+def _reference_rows(evalset: EvalSet, counts: tuple[int, ...], key) -> list[RowResult]:
+    key = jax.random.key(0) if key is None else key
+    exact = {"oracle": oracle_slots(evalset.slot_probs),
+             "last-seen": last_seen_slots(evalset.slot_now, evalset.num_slots_padded),
+             "uniform": uniform_slots(evalset.num_slots, evalset.num_slots_padded)}
+    kls = {name: continuous_kl(evalset.kl_log_q, _mixture_log_prob(
+               evalset.kl_points, p_exact[..., :-1], evalset.slot_boxes, evalset.slot_mask))
+           for name, p_exact in exact.items()}
+    rows = []
+    for name in REFERENCE_ROWS:
+        if name == "oracle samples":  # q's density, a fresh histogram of n draws per count
+            kl = kls["oracle"]
+            slots = {n: _slot_entry(evalset, sampled_oracle_slots(
+                         jax.random.fold_in(jax.random.fold_in(key, _SALT_ORACLE), n),
+                         evalset.slot_probs, n)) for n in counts}
+        else:  # exact slot distributions: the same scores for every n
+            kl, entry = kls[name], _slot_entry(evalset, exact[name])
+            slots = dict.fromkeys(counts, entry)
+        rows.append(RowResult(name=name, kl=np.asarray(kl.mean), kl_stderr=np.asarray(kl.stderr),
+                              slots=slots))
+    return rows
+
+
+def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
+                       sample_counts: Sequence[int] = DEFAULT_SAMPLES,
+                       chunk_envs: int = DEFAULT_CHUNK_ENVS, num_steps: int = DEFAULT_NUM_STEPS,
+                       method: str = "midpoint", logp_steps: int | None = None,
+                       progress: bool = True, name: str | None = None) -> RowResult:
+    """Score one model on every query of ``evalset``.
+
+    Works in chunks of ``chunk_envs`` environments (M queries each, one encoder pass per
+    environment; the last chunk is padded so every chunk has one compiled shape). Per chunk:
+    max(sample_counts) samples per query (the first n are used for n < max) and log p at the
+    shared KL draws. Environment e's samples use ``fold_in(key, e)``, so results do not depend
+    on the chunk size. ``logp_steps``: ODE grid points of the likelihood (default num_steps).
+    """
+    return _evaluate_predictor(predictor, evalset, key, check_counts(sample_counts),
+                               check_int("chunk_envs", chunk_envs, 1),
+                               check_ode(num_steps, method, logp_steps), progress, name)
+
+
+def _evaluate_predictor(predictor, evalset: EvalSet, key, counts: tuple[int, ...],
+                        chunk_envs: int, ode: tuple[int, str, int], progress: bool,
+                        name: str | None) -> RowResult:
+    num_steps, method, logp_steps = ode
+    n_max = counts[-1]
+    num_envs = evalset.num_envs
+    chunk = min(chunk_envs, num_envs)
+    num_chunks = math.ceil(num_envs / chunk)
+    sample_key = jax.random.fold_in(key, _SALT_SAMPLES)
+    env_keys = jax.vmap(lambda e: jax.random.fold_in(sample_key, e))(jnp.asarray(evalset.env))
+    samples, log_p = [], []
+    label = name or predictor.name
+    start = time.perf_counter()
+    for c in tqdm(range(num_chunks), desc=f"evaluating {label}", unit="chunk",
+                  disable=not progress, leave=False):
+        index = np.minimum(np.arange(c * chunk, (c + 1) * chunk), num_envs - 1)
+        part = evalset.take(index)
+        s = predictor.sample(part.tokens, part.queries, n_max, env_keys[index],
+                             num_steps=num_steps, method=method)
+        lp = predictor.log_prob(part.tokens, part.queries, part.kl_points, num_steps=logp_steps,
+                                method=method)
+        keep = min(chunk, num_envs - c * chunk)
+        s, lp = np.asarray(s)[:keep], np.asarray(lp)[:keep]
+        if not (np.all(np.isfinite(s)) and np.all(np.isfinite(lp))):
+            raise ValueError(f"{label} ({predictor.source}) gave non-finite samples or "
+                             "log-densities: its parameters are probably diverged (NaN/inf or "
+                             "huge); no metric computed from them would mean anything")
+        samples.append(s)
+        log_p.append(lp)
+    seconds = time.perf_counter() - start
+    samples_all = np.concatenate(samples)
+    kl = continuous_kl(evalset.kl_log_q, jnp.asarray(np.concatenate(log_p)))
+    slots = {n: _slot_entry(evalset, empirical_slots(samples_all[:, :, :n], evalset.slot_boxes,
+                                                     evalset.slot_mask))
+             for n in counts}
+    info = {"kind": predictor.kind, "source": predictor.source, "step": predictor.step,
+            "seconds": round(seconds, 2), "num_steps": num_steps, "logp_steps": logp_steps,
+            "method": method}
+    return RowResult(name=label, kl=np.asarray(kl.mean), kl_stderr=np.asarray(kl.stderr),
+                     slots=slots, samples=samples_all, info=info)

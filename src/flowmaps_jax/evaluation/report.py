@@ -1,0 +1,177 @@
+"""The results: per-query rows summarised into ``results.json`` and ``results.md``.
+
+Every number is reported overall, by category and by horizon Δτ = τ_q − τ, as mean ± standard
+error over queries; the route-offset mass one step ahead is the routine diagnostic's table.
+JSON holds no NaN: a missing standard error (a group of one) is ``null``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+from collections.abc import Hashable, Sequence
+
+import numpy as np
+
+from flowmaps_jax.evaluation.protocol import EvalSet, RowResult
+from flowmaps_jax.evaluation.slots import ROUTE_OFFSET_LABELS, SLOT_METRICS, route_offset_mass
+from flowmaps_jax.flowsim.config import FlowSimConfig
+
+# --------------------------------------------------------------------------- aggregation
+
+
+def _stats(values: np.ndarray) -> dict:
+    n = values.size
+    stderr = float(values.std(ddof=1) / math.sqrt(n)) if n > 1 else float("nan")
+    return {"mean": float(values.mean()), "stderr": stderr, "count": int(n)}
+
+
+def summarise(values, groups=None) -> dict:
+    """Mean, standard error and count, overall and per group id (numpy; not a hot path).
+
+    values: (Q,) or any shape, per-query numbers. groups: same shape, group ids (ints or strings,
+    e.g. category or horizon Δτ), or None. Returns
+    ``{"overall": {"mean", "stderr", "count"}, "by_group": {id: {...}}}`` (``by_group`` only with
+    groups; ids as Python scalars, sorted). stderr is NaN for a group of one.
+    """
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 0:
+        raise ValueError("values is empty")
+    out: dict = {"overall": _stats(v.ravel())}
+    if groups is None:
+        return out
+    g = np.asarray(groups)
+    if g.shape != v.shape:
+        raise ValueError(f"groups must have the shape of values {v.shape}; got {g.shape}")
+    by_group: dict[Hashable, dict] = {}
+    for gid in np.unique(g):
+        by_group[gid.item()] = _stats(v[g == gid])
+    out["by_group"] = by_group
+    return out
+
+
+def _json_number(x: float) -> float | None:
+    return None if not math.isfinite(x) else float(x)
+
+
+def _clean(summary: dict) -> dict:
+    """A :func:`summarise` entry → JSON-safe {mean, stderr, count} (NaN → None)."""
+    return {"mean": _json_number(summary["mean"]), "stderr": _json_number(summary["stderr"]),
+            "count": int(summary["count"])}
+
+
+def _breakdown(values: np.ndarray, evalset: EvalSet, config: FlowSimConfig) -> dict:
+    """{"overall", "by_category", "by_horizon"} of per-query values (E, M)."""
+    names = np.asarray([c.name for c in config.categories])[np.asarray(evalset.obj)]
+    overall = summarise(values)["overall"]
+    by_cat = summarise(values, names)["by_group"]
+    by_h = summarise(values, np.asarray(evalset.horizon))["by_group"]
+    cat_order = [c.name for c in config.categories if c.name in by_cat]
+    return {"overall": _clean(overall),
+            "by_category": {k: _clean(by_cat[k]) for k in cat_order},
+            "by_horizon": {str(k): _clean(v) for k, v in sorted(by_h.items())}}
+
+
+def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimConfig) -> dict:
+    """{row name: {"kl": breakdown, "slots": {n: {metric: breakdown}}, "info": {...}}}.
+
+    A breakdown is {"overall": {mean, stderr, count}, "by_category": {name: ...},
+    "by_horizon": {Δτ: ...}}. The KL stderr is over queries (it includes the Monte-Carlo error);
+    "kl_mc_stderr" is the mean per-query Monte-Carlo standard error. "route_offsets_one_step":
+    the mean route-offset mass over the Δτ = 1 queries (largest sample count).
+    """
+    out = {}
+    one_step = np.asarray(evalset.horizon) == 1
+    for row in rows:
+        p_hat = row.slots[max(row.slots)]["p_hat"]
+        mass = np.asarray(route_offset_mass(p_hat, evalset.slot_now, evalset.num_slots))
+        entry = {"route_offsets_one_step": {
+                     "labels": list(ROUTE_OFFSET_LABELS), "count": int(one_step.sum()),
+                     "mean": [_json_number(float(v)) for v in
+                              (mass[one_step].mean(axis=0) if one_step.any()
+                               else np.full(len(ROUTE_OFFSET_LABELS), np.nan))]},
+                 "kl": _breakdown(row.kl, evalset, config),
+                 "kl_mc_stderr": _json_number(float(np.mean(row.kl_stderr))),
+                 "slots": {str(n): {m: _breakdown(s[m], evalset, config) for m in SLOT_METRICS}
+                           for n, s in row.slots.items()},
+                 "info": row.info}
+        out[row.name] = entry
+    return out
+
+
+# --------------------------------------------------------------------------- Markdown and files
+
+
+def _fmt(stat: dict | None, digits: int = 3) -> str:
+    if stat is None or stat["mean"] is None:
+        return "–"
+    if stat["stderr"] is None:
+        return f"{stat['mean']:.{digits}f}"
+    return f"{stat['mean']:.{digits}f} ± {stat['stderr']:.{digits}f}"
+
+
+def markdown_table(results: dict) -> str:
+    """The results as Markdown: the main table, then KL and TV by category and by horizon."""
+    rows = results["rows"]
+    counts = results["protocol"]["samples"]
+    lines = ["# Evaluation against the exact posterior\n",
+             _protocol_line(results["protocol"]) + "\n",
+             "## Overall (mean ± standard error over queries)\n"]
+    header = ["row", "KL(q‖p) [nats]"]
+    for n in counts:
+        header += [f"TV @{n}", f"top-1 @{n}", f"search cost ratio @{n}"]
+    lines.append("| " + " | ".join(header) + " |")
+    lines.append("|" + "---|" * len(header))
+    for name, row in rows.items():
+        cells = [name, _fmt(row["kl"]["overall"], 2)]
+        for n in counts:
+            slot = row["slots"][str(n)]
+            cells += [_fmt(slot[m]["overall"]) for m in SLOT_METRICS]
+        lines.append("| " + " | ".join(cells) + " |")
+    n_big = str(counts[-1])
+    first = next(iter(rows.values())).get("route_offsets_one_step")
+    if first is not None:
+        lines.append(f"\n## Routines: slot mass at route offsets one step ahead (Δτ = 1, "
+                     f"{first['count']} queries, @{n_big})\n")
+        lines.append("| row | " + " | ".join(f"offset {k}" if k[0] in "0+" else k
+                                              for k in first["labels"]) + " |")
+        lines.append("|---|" + "---|" * len(first["labels"]))
+        for name, row in rows.items():
+            cells = ["–" if v is None else f"{v:.3f}"
+                     for v in row["route_offsets_one_step"]["mean"]]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    for group, title in (("by_category", "category"), ("by_horizon", "horizon Δτ")):
+        keys = list(next(iter(rows.values()))["kl"][group])
+        for metric, label in (("kl", "KL(q‖p)"), ("tv", f"slot TV @{n_big}"),
+                              ("search_cost_ratio", f"search cost ratio @{n_big}")):
+            lines.append(f"\n## {label} by {title}\n")
+            lines.append("| row | " + " | ".join(keys) + " |")
+            lines.append("|---|" + "---|" * len(keys))
+            for name, row in rows.items():
+                table = row["kl"] if metric == "kl" else row["slots"][n_big][metric]
+                digits = 2 if metric == "kl" else 3
+                lines.append(f"| {name} | "
+                             + " | ".join(_fmt(table[group].get(k), digits) for k in keys) + " |")
+    if results.get("figures"):
+        lines.append("\n## Figures\n")
+        lines += [f"![{f}]({f})" for f in results["figures"]]
+    return "\n".join(lines) + "\n"
+
+
+def _protocol_line(p: dict) -> str:
+    return (f"{p['num_envs']} validation environments × {p['objects_per_env']} objects = "
+            f"{p['num_queries']} queries; τ ~ U{{0..T−2}}, τ_q ~ U{{τ+1..T−1}}; KL from "
+            f"{p['kl_draws']} draws of q per query; slot metrics from "
+            f"{', '.join(str(n) for n in p['samples'])} samples; ODE: {p['method']} on "
+            f"{p['num_steps']} grid points (likelihood: {p['logp_steps']}); seed {p['seed']}.")
+
+
+def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathlib.Path]:
+    """Write ``results.json`` and ``results.md`` into out_dir (created); returns their paths."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"json": out / "results.json", "markdown": out / "results.md"}
+    paths["json"].write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
+    paths["markdown"].write_text(markdown_table(results))
+    return paths

@@ -1,0 +1,101 @@
+"""The whole evaluation in one call: queries, reference rows, each predictor, report and figures.
+
+``python -m flowmaps_jax.evaluate`` (:mod:`.cli`) is this function behind a command line.
+"""
+
+from __future__ import annotations
+
+import pathlib
+import time
+from collections.abc import Sequence
+
+import jax
+
+from flowmaps_jax.evaluation.figures import plot_by_horizon, plot_kl, plot_samples, plot_slot_bars
+from flowmaps_jax.evaluation.protocol import (
+    DEFAULT_CHUNK_ENVS,
+    DEFAULT_KL_DRAWS,
+    DEFAULT_SAMPLES,
+    EvalSet,
+    RowResult,
+    _evaluate_predictor,
+    _reference_rows,
+    build_eval_queries,
+    check_counts,
+    check_ode,
+)
+from flowmaps_jax.evaluation.report import summarise_rows, write_report
+from flowmaps_jax.evaluation.slots import ASSIGN_RADIUS
+from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.sample import DEFAULT_NUM_STEPS, Predictor
+from flowmaps_jax.validation import check_int
+
+
+def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfig,
+                   out_dir: str | pathlib.Path | None = None, *, seed: int = 0,
+                   sample_counts: Sequence[int] = DEFAULT_SAMPLES,
+                   kl_draws: int = DEFAULT_KL_DRAWS, chunk_envs: int = DEFAULT_CHUNK_ENVS,
+                   num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
+                   logp_steps: int | None = None, figures: bool = True,
+                   progress: bool = True) -> tuple[dict, list[RowResult], EvalSet]:
+    """Evaluate ``predictors`` (baselines first, FlowMaps last, as they should appear) on every
+    environment of ``scenes``; write the report and figures into out_dir if given.
+
+    Arguments are checked before any model runs. Returns (results dict as written to
+    results.json, the RowResults, the EvalSet).
+    """
+    counts = check_counts(sample_counts)
+    if not predictors:
+        raise ValueError("predictors must hold at least one Predictor")
+    chunk_envs = check_int("chunk_envs", chunk_envs, 1)
+    num_steps, method, logp_steps = ode = check_ode(num_steps, method, logp_steps)
+    for p in predictors:
+        if not isinstance(p, Predictor):
+            raise ValueError(f"predictors must be Predictor objects; got {type(p).__name__}")
+        if p.flowsim.map_size != config.map_size or p.flowsim.categories != config.categories:
+            raise ValueError(f"predictor {p.name} ({p.source}) was trained on a different FlowSim "
+                             "config (map size or categories) than the evaluation scenes")
+    start = time.perf_counter()
+    key = jax.random.key(seed)
+    evalset = build_eval_queries(scenes, config, key, kl_draws)
+    rows = _reference_rows(evalset, counts, key)
+    names = _unique_names([p.name for p in predictors])
+    for predictor, name in zip(predictors, names, strict=True):
+        rows.append(_evaluate_predictor(predictor, evalset, key, counts, chunk_envs, ode,
+                                        progress, name))
+    results = {
+        "protocol": {"num_envs": evalset.num_envs, "objects_per_env": config.num_objects,
+                     "num_queries": evalset.num_queries, "samples": list(counts),
+                     "kl_draws": kl_draws, "num_steps": num_steps, "method": method,
+                     "logp_steps": logp_steps,
+                     "seed": seed, "assign_radius": ASSIGN_RADIUS,
+                     "dynamics": config.dynamics},
+        "rows": summarise_rows(rows, evalset, config),
+        "figures": [],
+    }
+    if out_dir is not None:
+        out = pathlib.Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        if figures:
+            model_rows = [r for r in rows if r.samples is not None]
+            plots = {"kl.png": lambda: plot_kl(results),
+                     "by_horizon.png": lambda: plot_by_horizon(results),
+                     "samples.png": lambda: plot_samples(scenes, evalset, model_rows, config),
+                     "slots.png": lambda: plot_slot_bars(evalset, model_rows, config)}
+            for filename, make in plots.items():
+                make().savefig(out / filename, dpi=110)
+                results["figures"].append(filename)
+        results["seconds"] = round(time.perf_counter() - start, 1)
+        write_report(results, out)
+    else:
+        results["seconds"] = round(time.perf_counter() - start, 1)
+    return results, rows, evalset
+
+
+def _unique_names(names: Sequence[str]) -> list[str]:
+    seen: dict[str, int] = {}
+    out = []
+    for n in names:
+        seen[n] = seen.get(n, 0) + 1
+        out.append(n if seen[n] == 1 else f"{n} #{seen[n]}")
+    return out

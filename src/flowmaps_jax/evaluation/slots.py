@@ -1,0 +1,234 @@
+"""Slot metrics: where samples land among the places an object can be, scored against q.
+
+A sample counts for slot k if it lies within ``ASSIGN_RADIUS`` of the slot's box b_k (L2 over the
+4 normalised numbers); samples near no slot fall in the "off" bin. A slot distribution p̂ has
+``K + 1`` entries: the K slots, then "off". Against the exact posterior q (K entries) the protocol
+scores total variation, top-1 and the search-cost ratio (:func:`slot_scores`). The reference
+predictors (oracle, oracle samples, last-seen, uniform) and the route-offset mass of the routine
+diagnostic are slot distributions too.
+
+Shapes: ``...`` are free leading batch dims (one per query); ``K`` slots padded to a common size,
+``slot_mask`` (..., K) True on real slots. Public functions validate once and call jitted cores.
+
+Ties: top-1 and the search cost break ties between slots with equal p̂ uniformly at random and
+report the expectation: deterministic, and independent of how slots happen to be numbered. Scores
+within ``TIE_ATOL`` of each other count as tied.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.evaluation._checks import check_distribution, check_same
+from flowmaps_jax.validation import check_array, check_int, check_int_array, check_mask, is_concrete
+
+ASSIGN_RADIUS = 0.05
+"""A sample counts for slot k if its L2 distance to b_k (4 numbers) is below this."""
+TIE_ATOL = 1e-6
+"""Two slot scores closer than this are tied."""
+SLOT_METRICS = ("tv", "top1", "search_cost_ratio")
+"""The keys of :func:`slot_scores`."""
+ROUTE_OFFSET_LABELS = ("0", "+1", "+2", "+3", "beyond", "off")
+"""The entries of :func:`route_offset_mass`: route offsets 0 (stays) to +3, larger ones, off."""
+_ROUTE_OFFSETS = 4  # offsets reported one by one: 0, +1, +2, +3
+
+
+# --------------------------------------------------------------------------- empirical p̂
+
+
+@jax.jit
+def _assign(samples, slot_boxes, slot_mask, radius):
+    diff = samples[..., :, None, :] - slot_boxes[..., None, :, :]  # (..., N, K, 4)
+    dist = jnp.sqrt(jnp.sum(diff**2, axis=-1))
+    dist = jnp.where(slot_mask[..., None, :], dist, jnp.inf)
+    nearest = jnp.argmin(dist, axis=-1)
+    closest = jnp.min(dist, axis=-1)
+    return jnp.where(closest < radius, nearest, slot_boxes.shape[-2]).astype(jnp.int32)
+
+
+@partial(jax.jit, static_argnames="num_slots")
+def _histogram(assignment, num_slots):
+    return jnp.mean(jax.nn.one_hot(assignment, num_slots + 1), axis=-2)
+
+
+def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jnp.ndarray,
+                    radius: float = ASSIGN_RADIUS) -> jnp.ndarray:
+    """p̂ of samples: each goes to the nearest real b_k if closer than ``radius``, else off.
+
+    samples: (..., N, 4). slot_boxes: (..., K, 4). slot_mask: (..., K) bool.
+    Returns (..., K + 1) float32 counts / N: the K slots then the off bin.
+    """
+    s_shape = check_array("samples", samples, (..., None, 4)).shape
+    b_shape = check_array("slot_boxes", slot_boxes, (..., None, 4)).shape
+    check_same("samples.shape[:-2]", s_shape[:-2], b_shape[:-2], "the leading dims of slot_boxes")
+    check_mask("slot_mask", slot_mask, b_shape[:-1])
+    if is_concrete(radius) and not float(radius) > 0:
+        raise ValueError(f"radius must be positive; got {radius}")
+    assignment = _assign(jnp.asarray(samples, jnp.float32), jnp.asarray(slot_boxes, jnp.float32),
+                         jnp.asarray(slot_mask, bool), radius)
+    return _histogram(assignment, b_shape[-2])
+
+
+# --------------------------------------------------------------------------- scores against q
+
+
+@jax.jit
+def _tv(p_hat, q):
+    return 0.5 * jnp.sum(jnp.abs(p_hat[..., :-1] - q), axis=-1) + 0.5 * p_hat[..., -1]
+
+
+def _modes(scores, valid):
+    """(..., K) bool: the real slots whose score is within TIE_ATOL of the best real score."""
+    best = jnp.max(jnp.where(valid, scores, -jnp.inf), axis=-1, keepdims=True)
+    return valid & (scores >= best - TIE_ATOL)
+
+
+@jax.jit
+def _top1(p_hat, q, slot_mask):
+    p_modes = _modes(p_hat[..., :-1], slot_mask)
+    q_modes = _modes(q, slot_mask)
+    return jnp.sum(p_modes & q_modes, axis=-1) / jnp.sum(p_modes, axis=-1)
+
+
+def _visit_ranks(scores, valid):
+    """(..., K) mean rank (1 = visited first) of each real slot, visiting by decreasing score.
+
+    Tied slots share the mean rank of their group. Padded slots are visited after all real ones
+    (they carry no probability, so their rank never matters) and do not push real slots back.
+    """
+    k = scores.shape[-1]
+    s_i, s_j = scores[..., :, None], scores[..., None, :]
+    real_j = valid[..., None, :]
+    higher = real_j & (s_j > s_i + TIE_ATOL)
+    tied = real_j & (jnp.abs(s_j - s_i) <= TIE_ATOL) & ~jnp.eye(k, dtype=bool)
+    rank = 1.0 + jnp.sum(higher, axis=-1) + 0.5 * jnp.sum(tied, axis=-1)
+    return jnp.where(valid, rank, jnp.sum(valid, axis=-1, keepdims=True) + 1.0)
+
+
+@jax.jit
+def _search_cost(scores, q, slot_mask):
+    return jnp.sum(_visit_ranks(scores, slot_mask) * q, axis=-1)
+
+
+def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
+                ) -> dict[str, np.ndarray]:
+    """The protocol's slot metrics of p̂ (..., K + 1) against q (..., K); slot_mask (..., K) bool.
+
+    Returns ``{"tv", "top1", "search_cost_ratio"}`` (:data:`SLOT_METRICS`), each (...) numpy:
+
+    * tv: total variation ½Σ_k|p̂_k − q_k| + ½p̂_off.
+    * top1: is p̂'s best real slot a mode of q? Ties in q: any mode counts; ties in p̂: the fraction
+      of p̂'s tied best slots that are modes of q. All samples off: every real slot ties.
+    * search_cost_ratio: Σ_k rank_k q_k visiting slots by decreasing p̂ (tied groups share their
+      mean rank), over the same sum visiting by decreasing q (the least possible); ≥ 1.
+    """
+    q_shape = check_array("q", q, (..., None)).shape
+    p_shape = check_array("p_hat", p_hat, (..., None)).shape
+    check_same("p_hat", p_shape, (*q_shape[:-1], q_shape[-1] + 1), "q's K slots plus the off bin")
+    check_mask("slot_mask", slot_mask, q_shape)
+    check_distribution("q", q, slot_mask)
+    check_distribution("p_hat", p_hat, slot_mask)
+    p_hat, q = jnp.asarray(p_hat, jnp.float32), jnp.asarray(q, jnp.float32)
+    mask = jnp.asarray(slot_mask, bool)
+    ratio = _search_cost(p_hat[..., :-1], q, mask) / _search_cost(q, q, mask)
+    return {"tv": np.asarray(_tv(p_hat, q)), "top1": np.asarray(_top1(p_hat, q, mask)),
+            "search_cost_ratio": np.asarray(ratio)}
+
+
+# --------------------------------------------------------------------------- reference predictors
+
+
+def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
+    """The oracle predictor: q itself. (..., K) → (..., K + 1) with an empty off bin."""
+    check_array("q", q, (..., None))
+    check_distribution("q", q)
+    q = jnp.asarray(q, jnp.float32)
+    return jnp.concatenate([q, jnp.zeros_like(q[..., :1])], axis=-1)
+
+
+@partial(jax.jit, static_argnames="n")
+def _sampled_slots(key, q, n):
+    draws = jax.random.categorical(key, jnp.log(q)[..., None, :], shape=(*q.shape[:-1], n))
+    return _histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
+
+
+def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:
+    """A perfect sampler seen through n samples: slot counts / n of n draws from q itself.
+
+    (..., K) → (..., K + 1) (off bin empty). Its slot scores are the best any sampler can expect
+    from n samples: the gap to the exact oracle is pure finite-sample noise.
+    """
+    check_array("q", q, (..., None))
+    check_distribution("q", q)
+    n = check_int("n", n, 1)
+    return _sampled_slots(key, jnp.asarray(q, jnp.float32), n)
+
+
+@partial(jax.jit, static_argnames="num_slots")
+def _one_hot_slots(slot_now, num_slots):
+    return jax.nn.one_hot(slot_now, num_slots + 1)
+
+
+def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
+    """Last-seen predictor: the object stays where it is. slot_now (...) ints → (..., K + 1).
+
+    num_slots: K, the padded slot count. slot_now indexes the same slot axis as q.
+    """
+    num_slots = check_int("num_slots", num_slots)
+    check_int_array("slot_now", slot_now, 0, num_slots - 1)
+    return _one_hot_slots(jnp.asarray(slot_now), num_slots)
+
+
+@partial(jax.jit, static_argnames="num_slots")
+def _uniform_slots(count, num_slots):
+    real = jnp.arange(num_slots) < count[..., None]
+    probs = jnp.where(real, 1.0 / count[..., None], 0.0)
+    return jnp.concatenate([probs, jnp.zeros_like(probs[..., :1])], axis=-1)
+
+
+def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
+    """Uniform predictor over the real slots. count (...) ints in 1..K → (..., K + 1).
+
+    Real slots are the first ``count`` of the K padded ones (as in ``Scenes.visit_order``).
+    """
+    num_slots = check_int("num_slots", num_slots)
+    check_int_array("count", count, 1, num_slots)
+    return _uniform_slots(jnp.asarray(count), num_slots)
+
+
+# --------------------------------------------------------------------------- routines
+
+
+@jax.jit
+def _route_offset_mass(p_hat, slot_now, num_slots):
+    k = p_hat.shape[-1] - 1
+    offsets = jnp.arange(_ROUTE_OFFSETS)
+    slot = (slot_now[..., None] + offsets) % jnp.maximum(num_slots[..., None], 1)  # (..., 4)
+    mass = jnp.take_along_axis(p_hat[..., :k], slot, axis=-1)
+    mass = jnp.where(offsets < num_slots[..., None], mass, 0.0)  # offset ≥ K wraps: not counted
+    off = p_hat[..., k:]
+    beyond = jnp.clip(1.0 - mass.sum(-1, keepdims=True) - off, 0.0, 1.0)
+    return jnp.concatenate([mass, beyond, off], axis=-1)
+
+
+def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
+                      num_slots: jnp.ndarray) -> jnp.ndarray:
+    """Where along the visiting order a slot distribution puts its mass, relative to now.
+
+    p_hat: (..., K + 1) slot distribution (positions along the object's visiting order, last bin
+    "off"), e.g. :func:`empirical_slots` or :func:`oracle_slots`. slot_now: (...) int position
+    at τ. num_slots: (...) int number of real slots.
+    Returns (..., 6), labelled :data:`ROUTE_OFFSET_LABELS`: mass at route offsets 0, +1, +2, +3
+    (offsets ≥ the route length are not counted there), at every larger offset ("beyond"), and
+    off every slot. One step ahead the exact posterior gives 0.2 / 0.7 / 0.1 / 0 / 0 / 0.
+    """
+    shape = check_array("p_hat", p_hat, (..., None)).shape
+    k = shape[-1] - 1
+    check_int_array("slot_now", slot_now, 0, k - 1, shape=shape[:-1])
+    check_int_array("num_slots", num_slots, 1, k, shape=shape[:-1])
+    return _route_offset_mass(jnp.asarray(p_hat, jnp.float32), jnp.asarray(slot_now, jnp.int32),
+                              jnp.asarray(num_slots, jnp.int32))

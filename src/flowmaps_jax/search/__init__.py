@@ -1,0 +1,102 @@
+"""Object search with a placement prior: look at a table, fail, update the belief, look again.
+
+A robot searches the tables of the object's kind for it. Each look drives to a table (Euclidean
+travel between box centres, pixels) and finds the object if it is there (missing it with
+probability ``p_miss``); after every failed look the belief is updated by Bayes' rule and the
+policy re-plans. FlowSim's exact posterior drives the Bayes-optimal searcher, so every prior —
+FlowMaps, the MLP baseline, uniform over the kind, last-seen — is scored against the optimum.
+The protocol is documented in docs/search.md.
+
+    from flowmaps_jax import search
+    probs = search.table_probabilities(predictor, tokens, queries, 100, jax.random.key(0))
+    # (B, Q, S + 1): mass on each table token, then "off"; search.table_dict(probs, tokens)
+    s = search.build_search_set(scenes, config, jax.random.key(0))
+    episodes, _ = search.make_episodes(s, search.exact_tables(s))
+    outcome = search.run_episodes(episodes, "optimal")
+    scores = search.episode_scores(outcome)            # sr@1..3, looks, travel, spl per episode
+
+Modules: ``probabilities`` (table probabilities of any prior, plain-dict form), ``policies``
+(most-probable, greedy, exact optimal DP, nearest), ``episodes`` (episodes, Bayes update, runs,
+FlowSim queries and priors), ``scores`` (SR@k, looks, travel, SPL, ratios), ``report`` (JSON,
+Markdown, figures) and ``cli`` (``python -m flowmaps_jax.search``).
+"""
+
+from flowmaps_jax.search.episodes import (
+    DEFAULT_BUDGET,
+    STARTS,
+    Episodes,
+    Outcome,
+    SearchSet,
+    at_targets,
+    bayes_update,
+    build_search_set,
+    exact_tables,
+    expected_outcomes,
+    last_seen_tables,
+    make_episodes,
+    predictor_tables,
+    run_episodes,
+    simulate,
+    truth_probs,
+    uniform_tables,
+)
+from flowmaps_jax.search.policies import (
+    MAX_OPTIMAL_TABLES,
+    POLICIES,
+    choose_batch,
+    optimal_expected_travel,
+    plan_costs,
+)
+from flowmaps_jax.search.probabilities import (
+    ASSIGN_TOLERANCE,
+    slots_to_tables,
+    table_boxes,
+    table_dict,
+    table_probabilities,
+)
+from flowmaps_jax.search.scores import (
+    SCORES,
+    episode_scores,
+    expected_scores,
+    ratios,
+    spl,
+    success_curves,
+    summarise_scores,
+)
+
+__all__ = [
+    "ASSIGN_TOLERANCE",
+    "DEFAULT_BUDGET",
+    "MAX_OPTIMAL_TABLES",
+    "POLICIES",
+    "SCORES",
+    "STARTS",
+    "Episodes",
+    "Outcome",
+    "SearchSet",
+    "at_targets",
+    "bayes_update",
+    "build_search_set",
+    "choose_batch",
+    "episode_scores",
+    "exact_tables",
+    "expected_outcomes",
+    "expected_scores",
+    "last_seen_tables",
+    "make_episodes",
+    "optimal_expected_travel",
+    "plan_costs",
+    "predictor_tables",
+    "ratios",
+    "run_episodes",
+    "simulate",
+    "slots_to_tables",
+    "spl",
+    "success_curves",
+    "summarise_scores",
+    "table_boxes",
+    "table_dict",
+    "table_probabilities",
+    "truth_probs",
+    "uniform_tables",
+]

@@ -1,0 +1,131 @@
+"""``python -m flowmaps_jax.search``: search episodes driven by FlowMaps, baselines and the exact
+posterior, on FlowSim's validation split.
+
+    python -m flowmaps_jax.search --checkpoint pretrained:flowmaps \\
+        --baseline pretrained:mlp pretrained:mlp-learned --out docs/results_search
+
+Writes ``search.json``, ``search.md`` and the figures ``episodes.png``, ``success_vs_looks.png``
+and ``success_vs_distance.png`` into ``--out`` (default ``<checkpoint>/search``). Models are
+run or checkpoint directories, or ``pretrained:NAME`` for a model shipped with the package.
+The protocol is documented in docs/search.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+from collections.abc import Sequence
+
+from flowmaps_jax.flowsim import validation_split
+from flowmaps_jax.sample import load, load_pretrained
+from flowmaps_jax.search import episodes as ep
+from flowmaps_jax.search import figures as fg
+from flowmaps_jax.search import protocol as pr
+from flowmaps_jax.search.report import markdown_table, write_report
+from flowmaps_jax.validation import check_int
+
+PRETRAINED = "pretrained:"
+FIGURES = ("episodes.png", "success_vs_looks.png", "success_vs_distance.png")
+
+
+def load_model(spec: str, which: str = "best"):
+    """A Predictor from a run/checkpoint directory, or ``pretrained:NAME`` (shipped weights)."""
+    if spec.startswith(PRETRAINED):
+        return load_pretrained(spec.removeprefix(PRETRAINED))
+    return load(spec, which=which)
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers; got {text!r}") \
+            from None
+    if not values:
+        raise argparse.ArgumentTypeError(f"expected at least one integer; got {text!r}")
+    return values
+
+
+def build_parser() -> argparse.ArgumentParser:
+    cli = argparse.ArgumentParser(
+        prog="python -m flowmaps_jax.search",
+        description="Object search with the predicted posterior: look, fail, update, look again; "
+                    "every prior scored against the Bayes-optimal searcher (docs/search.md).")
+    add = cli.add_argument
+    add("--checkpoint", required=True, help="the model's run/checkpoint directory, or "
+                                            "pretrained:NAME (flowmaps, mlp, mlp-learned)")
+    add("--baseline", nargs="+", action="extend", default=[], metavar="MODEL",
+        help="more models as rows (directories or pretrained:NAME), e.g. the MLP baselines")
+    add("--out", default=None, help="output directory (default: <checkpoint>/search)")
+    add("--num-envs", type=int, default=pr.DEFAULT_NUM_ENVS, help="validation environments")
+    add("--times-per-env", type=int, default=pr.DEFAULT_TIMES_PER_ENV,
+        help="(τ, τ_q) draws per environment; every object is searched for in each")
+    add("--horizons", type=_int_list, default=None,
+        help="instead of random draws: fixed horizons Δτ, e.g. 1,2,4,8 (one row each)")
+    add("--samples", type=int, default=pr.DEFAULT_SAMPLES,
+        help="samples per query for the model rows' table probabilities")
+    add("--policies", nargs="+", default=list(pr.MAIN_POLICIES), choices=pr.MAIN_POLICIES,
+        help="policies every prior is driven by")
+    add("--budget", type=int, default=ep.DEFAULT_BUDGET, help="looks per episode")
+    add("--p-miss", type=float, default=0.0, help="chance a look at the right table misses")
+    add("--start", choices=ep.STARTS, default="centre", help="where the robot starts")
+    add("--seed", type=int, default=0, help="seed of the queries, samples and misses")
+    add("--which", choices=("best", "latest"), default="best", help="checkpoint to load")
+    add("--chunk-rows", type=int, default=50, help="scene rows per model call")
+    add("--no-figures", action="store_true", help="skip the PNG figures")
+    add("--no-progress", action="store_true", help="no progress bars")
+    return cli
+
+
+def write_figures(results: dict, runs: dict, search_set: ep.SearchSet, config,
+                  out: pathlib.Path) -> list[str]:
+    """The report's figures into ``out``; returns their file names."""
+    policy = "optimal" if "optimal" in results["protocol"]["policies"] \
+        else results["protocol"]["policies"][0]
+    drawn = {name: (runs[name, policy if name != pr.NEAREST_ROW else "nearest"].episodes,
+                    runs[name, policy if name != pr.NEAREST_ROW else "nearest"].outcome)
+             for name in results["rows"]}
+    exact, nearest = runs[pr.EXACT_ROW, policy].expected, runs[pr.NEAREST_ROW, "nearest"].expected
+    gain = None if exact is None else nearest["travel"] - exact["travel"]  # what the prior saves
+    picks = fg.pick_episodes(search_set, score=gain)
+    figures = {FIGURES[0]: fg.plot_episodes(search_set, drawn, picks, config, policy),
+               FIGURES[1]: fg.plot_success_vs_looks(results),
+               FIGURES[2]: fg.plot_success_vs_distance(results)}
+    for filename, figure in figures.items():
+        figure.savefig(out / filename, dpi=100)
+    return list(figures)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """CLI entry point; 0 on success, 2 on a bad argument (message on stderr)."""
+    args = build_parser().parse_args(argv)
+    try:
+        for name in ("num_envs", "times_per_env", "samples", "budget", "chunk_rows"):
+            check_int("--" + name.replace("_", "-"), getattr(args, name))
+        ep.check_p_miss(args.p_miss)
+        if args.out is None and args.checkpoint.startswith(PRETRAINED):
+            raise ValueError("--out is required when --checkpoint is pretrained:NAME")
+        out = pathlib.Path(args.out or pathlib.Path(args.checkpoint) / "search")
+        models = [load_model(spec, args.which) for spec in [args.checkpoint, *args.baseline]]
+        config = models[0].flowsim
+        scenes = validation_split(config, num_envs=args.num_envs)
+        print(f"Search with {', '.join(m.name for m in models)} on {args.num_envs} validation "
+              f"environments → {out}", flush=True)
+        results, runs, search_set = pr.run_search(
+            models, scenes, config, seed=args.seed, num_samples=args.samples,
+            times_per_env=args.times_per_env, horizons=args.horizons, policies=args.policies,
+            budget=args.budget, p_miss=args.p_miss, start=args.start,
+            chunk_rows=args.chunk_rows, progress=not args.no_progress)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    if not args.no_figures:
+        results["figures"] = write_figures(results, runs, search_set, config, out)
+    paths = write_report(results, out)
+    print(markdown_table(results).split("\n## By horizon")[0])
+    print(f"wrote {paths['json']}, {paths['markdown']}"
+          + "".join(f", {out / f}" for f in results["figures"])
+          + f" ({results['seconds']:.0f} s of search)")
+    return 0

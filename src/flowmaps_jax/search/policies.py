@@ -1,0 +1,178 @@
+"""Search policies: which table to look at next, given the belief and where the robot stands.
+
+Every function here works on ONE episode (arrays without a batch axis) and is pure and jit-able;
+batches are ``jax.vmap`` of them (:func:`flowmaps_jax.search.episodes.run_episodes` does that).
+K is the (padded) number of candidate tables; ``valid`` (K,) marks the real ones.
+
+Policies (``POLICIES``), each re-planned after every failed look:
+
+* ``"most-probable"``: the table with the highest belief.
+* ``"greedy"``: the highest belief per pixel of travel, b_j / max(d_j, ``MIN_DISTANCE``).
+* ``"optimal"``: the first table of the plan with the least expected travel distance under the
+  current belief, exact by dynamic programming over subsets (:func:`plan_costs`). With a perfect
+  detector (p_miss = 0) this is the Bayes-optimal searcher for travel; with p_miss > 0 the plan
+  assumes each table is looked at once, and re-planning after every look corrects it.
+  Refuses more than ``MAX_OPTIMAL_TABLES`` = 7 tables: its table has 2^K · K entries per look.
+* ``"nearest"``: travel only, no prior: the nearest table among those looked at least often
+  (i.e. not yet looked at, with a perfect detector).
+
+Ties (beliefs within ``BELIEF_ATOL``, plan costs within ``COST_RTOL``) go to the nearest table,
+then to the lowest index. The robot never looks at the table it stands at twice in a row (a
+detector's misses are independent only between visits), unless it is the only table.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+POLICIES = ("most-probable", "greedy", "optimal", "nearest")
+MAX_OPTIMAL_TABLES = 7
+"""The "optimal" policy's dynamic programme has 2^K · K states per look; K ≤ 7 keeps it exact and
+fast (FlowSim has 3 or 4 tables of a kind)."""
+MIN_DISTANCE = 1.0
+"""Pixels: the greedy policy divides by max(distance, MIN_DISTANCE)."""
+BELIEF_ATOL = 1e-6
+"""Beliefs (and greedy ratios) closer than this are tied."""
+COST_RTOL = 1e-5
+"""Plan costs within this relative tolerance are tied (float32 sums of up to 7 terms)."""
+
+
+def check_policy(policy) -> str:
+    """``policy`` if it is one of ``POLICIES``, else ``ValueError`` naming it."""
+    if not isinstance(policy, str) or policy not in POLICIES:
+        raise ValueError(f"policy must be one of {POLICIES}; got {policy!r}")
+    return policy
+
+
+def check_optimal_size(num_tables: int) -> None:
+    """``ValueError`` if the exact dynamic programme cannot take ``num_tables`` tables."""
+    if num_tables > MAX_OPTIMAL_TABLES:
+        raise ValueError(
+            f"policy='optimal' takes at most {MAX_OPTIMAL_TABLES} candidate tables per episode; "
+            f"got {num_tables}. Its exact dynamic programme over subsets holds 2^K · K values "
+            f"and does 2^K · K² work per look and episode (K = {num_tables}: "
+            f"{2 ** num_tables * num_tables ** 2:,}), which no longer fits a vectorised batch; "
+            "use 'greedy' or 'most-probable' for more tables")
+
+
+def distances(position: jnp.ndarray, centres: jnp.ndarray) -> jnp.ndarray:
+    """Euclidean distances (..., K) from ``position`` (..., 2) to ``centres`` (..., K, 2)."""
+    return jnp.sqrt(jnp.sum((centres - position[..., None, :]) ** 2, axis=-1))
+
+
+# --------------------------------------------------------------------------- exact plan
+
+
+@functools.cache
+def _layers(k: int) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
+    """Static tables of the subset DP, one entry per subset size s = k − 1 down to 0: the size-s
+    subsets' membership bits (n_s, k) bool, their "not yet looked at" 0/1 rows (n_s, k) float
+    (for m(S)), and the selection tensor (k, n_s, n_{s+1}) with [j, a, b] = 1 iff subset a plus
+    table j is subset b of the next layer (j ∉ a)."""
+    masks = np.arange(2 ** k)
+    bits = ((masks[:, None] >> np.arange(k)) & 1).astype(bool)
+    by_size = [masks[bits.sum(-1) == s] for s in range(k + 1)]
+    layers = []
+    for s in range(k - 1, -1, -1):
+        rows, above = by_size[s], by_size[s + 1]
+        position = {int(m): i for i, m in enumerate(above)}
+        select = np.zeros((k, rows.size, above.size), np.float32)
+        for a, m in enumerate(rows):  # static tables, built once per k at trace time
+            for j in range(k):
+                if not m >> j & 1:
+                    select[j, a, position[int(m | 1 << j)]] = 1.0
+        layers.append((bits[rows], (~bits[rows]).astype(np.float32), select))
+    return tuple(layers)
+
+
+def plan_costs(belief: jnp.ndarray, centres: jnp.ndarray, position: jnp.ndarray) -> jnp.ndarray:
+    """Least expected travel (K,) of a plan that looks at table j first, for every j.
+
+    belief: (K,) probabilities (zero on padding); centres: (K, 2) table centres; position: (2,).
+    A plan visits every table once and stops when the object is found (perfect detector); its
+    expected travel is Σ_legs (leg length) · (mass not yet looked at). Exact dynamic programme
+    over subsets S of looked-at tables: V(S, i) = min_{j ∉ S} d(i, j) · m(S) + V(S ∪ {j}, j),
+    m(S) = Σ_{t ∉ S} b_t, V(all, ·) = 0. The K layers (subset sizes) are unrolled (K is static);
+    V(S ∪ {j}, j) is read from the layer above with a static 0/1 selection tensor (a matrix
+    product: fast under ``vmap``). Tables with zero belief (padding, searched tables) are
+    visited last at no cost.
+    """
+    k = belief.shape[-1]
+    layers = _layers(k)
+    legs = distances(centres, centres)  # (K, K)
+    above = jnp.zeros((1, k), belief.dtype)  # V(all tables, ·) = 0
+    for inside, outside, select in layers[:-1]:  # static unroll over subset sizes K−1..1
+        remaining = outside @ belief  # (n,) m(S)
+        after = jnp.einsum("jab,bj->aj", select, above)  # (n, K_j): V(S ∪ {j}, j)
+        cost = legs[None] * remaining[:, None, None] + after[:, None, :]  # (n, K_i, K_j)
+        above = jnp.min(jnp.where(inside[:, None, :], jnp.inf, cost), axis=-1)  # (n, K_i)
+    first = jnp.einsum("jab,bj->aj", layers[-1][2], above)[0]  # V({j}, j)
+    return distances(position, centres) * jnp.sum(belief) + first
+
+
+def optimal_expected_travel(belief: jnp.ndarray, centres: jnp.ndarray, valid: jnp.ndarray,
+                            start: jnp.ndarray) -> jnp.ndarray:
+    """The least expected travel distance () of any visiting order, from ``start`` (2,)."""
+    return jnp.min(jnp.where(valid, plan_costs(jnp.where(valid, belief, 0.0),
+                                               jnp.where(valid[:, None], centres, 0.0), start),
+                             jnp.inf))
+
+
+# --------------------------------------------------------------------------- one decision
+
+
+def _pick(allowed: jnp.ndarray, *criteria: tuple[jnp.ndarray, jnp.ndarray | float]) -> jnp.ndarray:
+    """Index of the allowed entry that maximises the criteria lexicographically; each criterion
+    is (values (K,), tolerance): entries within tolerance of the best stay tied. Then lowest index.
+    """
+    keep = allowed
+    for values, tol in criteria:
+        v = jnp.where(keep, values, -jnp.inf)
+        keep = keep & (v >= jnp.max(v) - tol)
+    return jnp.argmax(keep).astype(jnp.int32)
+
+
+def choose(policy: str, belief: jnp.ndarray, centres: jnp.ndarray, position: jnp.ndarray,
+           allowed: jnp.ndarray, looks_at: jnp.ndarray) -> jnp.ndarray:
+    """The table () int32 the policy looks at next.
+
+    belief: (K,) current belief (zero on padding). centres: (K, 2). position: (2,) robot.
+    allowed: (K,) bool tables it may look at now (real, and not the one it stands at).
+    looks_at: (K,) int looks made at each table so far (the "nearest" policy's sweep).
+    ``policy`` is static (a Python string).
+    """
+    dist = distances(position, centres)
+    nearer = (-dist, 0.0)
+    if policy == "most-probable":
+        return _pick(allowed, (belief, BELIEF_ATOL), nearer)
+    if policy == "greedy":
+        return _pick(allowed, (belief / jnp.maximum(dist, MIN_DISTANCE), BELIEF_ATOL), nearer)
+    if policy == "optimal":
+        cost = plan_costs(belief, centres, position)
+        tol = COST_RTOL * jnp.maximum(1.0, jnp.min(jnp.where(allowed, cost, jnp.inf)))
+        return _pick(allowed, (-cost, tol), (belief, BELIEF_ATOL), nearer)
+    if policy == "nearest":
+        fewest = jnp.min(jnp.where(allowed, looks_at, jnp.iinfo(jnp.int32).max))
+        return _pick(allowed & (looks_at == fewest), nearer)
+    raise ValueError(f"policy must be one of {POLICIES}; got {policy!r}")
+
+
+def choose_indexed(policy_index: jnp.ndarray, belief: jnp.ndarray, centres: jnp.ndarray,
+                   position: jnp.ndarray, allowed: jnp.ndarray,
+                   looks_at: jnp.ndarray) -> jnp.ndarray:
+    """:func:`choose` with the policy as a traced index into ``POLICIES`` (``lax.switch``): one
+    compiled program serves every policy; under ``vmap`` with one index for the whole batch it
+    stays a branch, so only the chosen policy runs."""
+    branches = [functools.partial(choose, p) for p in POLICIES]
+    return jax.lax.switch(policy_index, branches, belief, centres, position, allowed, looks_at)
+
+
+@functools.partial(jax.jit, static_argnames="policy")
+def choose_batch(policy: str, belief, centres, position, allowed, looks_at) -> jnp.ndarray:
+    """:func:`choose` over a batch: (N, K), (N, K, 2), (N, 2), (N, K), (N, K) → (N,) int32."""
+    return jax.vmap(functools.partial(choose, policy))(belief, centres, position, allowed,
+                                                       looks_at)

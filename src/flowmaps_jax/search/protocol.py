@@ -1,0 +1,217 @@
+"""The search protocol: every prior (row) driven by every policy on the same FlowSim episodes.
+
+Rows, in report order: the exact posterior (the Bayes-optimal searcher), the models (FlowMaps,
+the MLP baselines: their table probabilities from samples), uniform over the kind, last-seen
+first (all mass on the table the object was seen on; after that fails, uniform over the rest),
+and nearest table first (no prior, travel only: the "nearest" policy, the same under every
+policy column). Each row × policy is scored per episode (``scores.episode_scores``), summarised
+overall, by category and by horizon Δτ, and divided by the exact-posterior row under the same
+policy. With a perfect detector, every row is also scored in exact expectation over the true
+table (``episodes.expected_outcomes`` weighted by the exact posterior: no rollout noise).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from flowmaps_jax.flowsim import FlowSimConfig, Scenes
+from flowmaps_jax.search import episodes as ep
+from flowmaps_jax.search import scores as sc
+from flowmaps_jax.search.policies import POLICIES, check_policy
+from flowmaps_jax.search.probabilities import ASSIGN_TOLERANCE
+from flowmaps_jax.validation import check_int
+
+MAIN_POLICIES = ("most-probable", "greedy", "optimal")
+"""The policies every prior is driven by (``"nearest"`` is the prior-free row)."""
+EXACT_ROW = "exact posterior"
+UNIFORM_ROW = "uniform over the kind"
+LAST_SEEN_ROW = "last-seen first"
+NEAREST_ROW = "nearest table first"
+DEFAULT_NUM_ENVS = 200
+DEFAULT_TIMES_PER_ENV = 2
+DEFAULT_SAMPLES = 100
+DISTANCE_POINTS = 61
+_SALT_DETECTOR, _SALT_MODELS = 21, 22
+
+
+@dataclasses.dataclass
+class RowRun:
+    """One row driven by one policy: its episodes (N,), Outcome (with beliefs), per-episode scores,
+    exact-expectation scores (None with p_miss > 0) and kind_mass (N,) (the prior's mass on the
+    tables of the object's kind before renormalising)."""
+
+    name: str
+    policy: str
+    episodes: ep.Episodes
+    outcome: ep.Outcome
+    scores: dict[str, np.ndarray]
+    expected: dict[str, np.ndarray] | None
+    kind_mass: np.ndarray
+
+
+def reference_priors(search_set: ep.SearchSet) -> dict[str, Any]:
+    """Table probabilities (R, M, S + 1) of the reference rows that need no model."""
+    return {EXACT_ROW: ep.exact_tables(search_set), UNIFORM_ROW: ep.uniform_tables(search_set),
+            LAST_SEEN_ROW: ep.last_seen_tables(search_set)}
+
+
+def episode_groups(search_set: ep.SearchSet, config: FlowSimConfig) -> dict[str, np.ndarray]:
+    """Per-episode labels (N,): "category" (name) and "horizon" (Δτ)."""
+    names = np.asarray([c.name for c in config.categories])
+    return {"category": names[np.asarray(search_set.obj).reshape(-1)],
+            "horizon": np.asarray(search_set.horizon).reshape(-1)}
+
+
+def _check_policies(policies: Sequence[str]) -> tuple[str, ...]:
+    policies = tuple(policies)
+    if not policies or len(set(policies)) != len(policies):
+        raise ValueError(f"policies must be distinct names from {POLICIES}; got {policies}")
+    for p in policies:
+        if check_policy(p) == "nearest":
+            raise ValueError("policies: 'nearest' is its own row (nearest table first), not a "
+                             "policy to drive the priors with")
+    return policies
+
+
+def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowSimConfig, *,
+                 policies: Sequence[str] = MAIN_POLICIES, budget: int = ep.DEFAULT_BUDGET,
+                 p_miss: float = 0.0, start: str = "centre", key: jax.Array | None = None,
+                 progress: bool = True) -> tuple[dict, dict[tuple[str, str], RowRun]]:
+    """Drive every prior in ``priors`` ({row name: table probabilities (R, M, S + 1)}; must
+    include ``EXACT_ROW``) by every policy, plus the nearest-table-first row.
+
+    Returns (rows: {row: {"kind_mass": stat, "policies": {policy: {"summary", "ratio",
+    "expected", "expected_ratio", "curves"}}}}, runs: {(row, policy): RowRun}).
+    """
+    policies = _check_policies(policies)
+    budget = check_int("budget", budget)
+    p_miss = ep.check_p_miss(p_miss)
+    if EXACT_ROW not in priors:
+        raise ValueError(f"priors must include the {EXACT_ROW!r} row (the reference)")
+    key = jax.random.key(0) if key is None else key
+    groups = episode_groups(search_set, config)
+    truth = ep.truth_probs(search_set)
+    uniform_episodes, _ = ep.make_episodes(search_set, ep.uniform_tables(search_set), start)
+    jobs = [(name, policy) for name in priors for policy in policies] + [(NEAREST_ROW, "nearest")]
+    runs: dict[tuple[str, str], RowRun] = {}
+    for name, policy in tqdm(jobs, desc="search episodes", unit="run", disable=not progress,
+                             leave=False):
+        if name == NEAREST_ROW:
+            episodes, mass = uniform_episodes, np.ones(uniform_episodes.num_episodes)
+        else:
+            episodes, mass = ep.make_episodes(search_set, priors[name], start)
+        if p_miss == 0.0:  # one run per hiding place: exact expectations, and the rollout's
+            every, weights = ep.expected_outcomes(episodes, truth, policy, budget)
+            outcome = ep.at_targets(every, episodes.target)
+            expected = sc.expected_scores(every, weights)
+        else:  # the same misses for every row
+            detector = jax.random.fold_in(key, _SALT_DETECTOR)
+            outcome = ep.run_episodes(episodes, policy, detector, budget, p_miss)
+            expected = None
+        runs[name, policy] = RowRun(name, policy, episodes, outcome, sc.episode_scores(outcome),
+                                    expected, np.asarray(mass))
+    return _summarise(runs, list(priors), policies, groups), runs
+
+
+def _summarise(runs, names, policies, groups) -> dict:
+    longest = max(float(r.scores["travel"].max()) for r in runs.values())
+    grid = np.linspace(0.0, max(longest, 1.0), DISTANCE_POINTS)
+    table: dict = {}
+    for name in [*names, NEAREST_ROW]:
+        entry: dict = {"policies": {}}
+        for policy in policies:
+            run = runs[name, "nearest" if name == NEAREST_ROW else policy]
+            exact = runs[EXACT_ROW, policy]
+            summary = sc.summarise_scores(run.scores, groups)
+            part = {"summary": summary,
+                    "ratio": sc.ratios(summary, sc.summarise_scores(exact.scores, groups)),
+                    "curves": sc.success_curves(run.scores, grid)}
+            if run.expected is not None:
+                expected = sc.summarise_scores(run.expected, groups)
+                part["expected"] = expected
+                part["expected_ratio"] = sc.ratios(
+                    expected, sc.summarise_scores(exact.expected, groups))
+            entry["policies"][policy] = part
+        entry["kind_mass"] = sc.mean_stat(runs[name, policies[0] if name != NEAREST_ROW
+                                               else "nearest"].kind_mass)
+        table[name] = entry
+    return table
+
+
+# --------------------------------------------------------------------------- the whole run
+
+
+def unique_names(names: Sequence[str]) -> list[str]:
+    """Row labels made unique by a " #2", " #3" suffix on repeats."""
+    seen: dict[str, int] = {}
+    out = []
+    for name in names:
+        seen[name] = seen.get(name, 0) + 1
+        out.append(name if seen[name] == 1 else f"{name} #{seen[name]}")
+    return out
+
+
+def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig, *,
+               seed: int = 0, num_samples: int = DEFAULT_SAMPLES,
+               times_per_env: int = DEFAULT_TIMES_PER_ENV, horizons: Sequence[int] | None = None,
+               policies: Sequence[str] = MAIN_POLICIES, budget: int = ep.DEFAULT_BUDGET,
+               p_miss: float = 0.0, start: str = "centre", chunk_rows: int = 50,
+               progress: bool = True, **sample_kwargs
+               ) -> tuple[dict, dict[tuple[str, str], RowRun], ep.SearchSet]:
+    """The protocol on every environment of ``scenes``: queries, priors (the reference rows and
+    one row per predictor, in the order given), every row × policy → (results, runs, search set).
+
+    ``results`` is what ``report.write_report`` writes as search.json (without figures).
+    """
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed must be an int; got {seed!r}")
+    num_samples = check_int("num_samples", num_samples)
+    for p in predictors:
+        flowsim = getattr(p, "flowsim", None)
+        if flowsim is not None and (flowsim.map_size != config.map_size
+                                    or flowsim.categories != config.categories):
+            raise ValueError(f"predictors: {getattr(p, 'name', p)} was trained on another FlowSim "
+                             "config (map size or categories) than the search scenes")
+    started = time.perf_counter()
+    key = jax.random.key(int(seed))
+    search_set = ep.build_search_set(scenes, config, key, times_per_env, horizons)
+    reference = reference_priors(search_set)
+    priors = {EXACT_ROW: reference.pop(EXACT_ROW)}
+    seconds = {}
+    names = unique_names([getattr(p, "name", type(p).__name__) for p in predictors])
+    for predictor, name in zip(predictors, names, strict=True):
+        t0 = time.perf_counter()
+        priors[name] = ep.predictor_tables(predictor, search_set, num_samples,
+                                           jax.random.fold_in(key, _SALT_MODELS), chunk_rows,
+                                           progress, desc=f"sampling {name}", **sample_kwargs)
+        seconds[name] = round(time.perf_counter() - t0, 1)
+    priors.update(reference)
+    rows, runs = score_priors(search_set, priors, config, policies=policies, budget=budget,
+                              p_miss=p_miss, start=start, key=key, progress=progress)
+    for predictor, name in zip(predictors, names, strict=True):
+        rows[name]["info"] = {"kind": getattr(predictor, "kind", None),
+                              "source": getattr(predictor, "source", None),
+                              "step": getattr(predictor, "step", None),
+                              "sampling_seconds": seconds[name]}
+    results = {
+        "protocol": {
+            "num_envs": int(scenes.num_envs), "scene_rows": search_set.num_rows,
+            "episodes": int(np.prod(search_set.obj.shape)),
+            "times_per_env": None if horizons is not None else int(times_per_env),
+            "horizons": None if horizons is None else [int(h) for h in horizons],
+            "num_samples": num_samples, "policies": list(_check_policies(policies)),
+            "budget": int(budget), "p_miss": float(p_miss), "start": start, "seed": int(seed),
+            "assign_tolerance": ASSIGN_TOLERANCE, "dynamics": config.dynamics,
+            "map_size": config.map_size, "max_tables": search_set.num_tables},
+        "rows": rows,
+        "figures": [],
+        "seconds": round(time.perf_counter() - started, 1),
+    }
+    return results, runs, search_set

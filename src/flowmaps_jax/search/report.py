@@ -1,0 +1,128 @@
+"""The search report: ``search.json`` and ``search.md`` from :func:`protocol.run_search` results.
+
+``search.md`` holds one table per policy (SR@1/2/3, mean looks, mean travel, SPL, each row's
+ratios to the exact-posterior searcher under the same policy), then by horizon Δτ and by
+category: the travel ratio (in exact expectation over the true table when the detector is
+perfect, which removes the rollout's noise) and SR@1.
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import re
+
+POLICY_LABELS = {"most-probable": "most-probable first",
+                 "greedy": "greedy probability per pixel",
+                 "optimal": "optimal expected travel (exact DP)",
+                 "nearest": "nearest table first"}
+_MAIN = (("sr@1", "SR@1", 3), ("sr@2", "SR@2", 3), ("sr@3", "SR@3", 3), ("looks", "looks", 2),
+         ("travel", "travel [px]", 1), ("spl", "SPL", 3))
+_RATIOS = (("looks", "looks ÷ exact"), ("travel", "travel ÷ exact"), ("spl", "SPL ÷ exact"))
+
+
+def _mean_se(stat: dict | None, digits: int) -> str:
+    if not stat or stat.get("mean") is None:
+        return "–"
+    if stat.get("stderr") is None:
+        return f"{stat['mean']:.{digits}f}"
+    return f"{stat['mean']:.{digits}f} ± {stat['stderr']:.{digits}f}"
+
+
+def _number(value: float | None, digits: int = 3) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def protocol_line(p: dict) -> str:
+    """One sentence describing the protocol of a results dict."""
+    times = (f"Δτ in {p['horizons']}" if p.get("horizons")
+             else f"{p['times_per_env']} (τ, τ_q) draws per environment, τ ~ U{{0..T−2}}, "
+                  "τ_q ~ U{τ+1..T−1}")
+    return (f"{p['num_envs']} validation environments, {times}, every object queried: "
+            f"{p['episodes']} episodes per row. Start: {p['start']}; look budget {p['budget']}; "
+            f"p_miss {p['p_miss']}; model rows from {p['num_samples']} samples per query "
+            f"(assignment tolerance {p['assign_tolerance']}); seed {p['seed']}.")
+
+
+def _row_line(name: str, part: dict) -> str:
+    o = part["summary"]["overall"]
+    cells = [name] + [_mean_se(o[key], d) for key, _, d in _MAIN]
+    cells += [_number(part["ratio"]["overall"][key]) for key, _ in _RATIOS]
+    if "expected_ratio" in part:
+        cells.append(_number(part["expected_ratio"]["overall"]["travel"]))
+    return "| " + " | ".join(cells) + " |"
+
+
+def _group_table(rows: dict, policy: str, group: str, title: str, pick) -> list[str]:
+    keys = []
+    for entry in rows.values():
+        for k in entry["policies"][policy]["summary"][f"by_{group}"]:
+            if k not in keys:
+                keys.append(k)
+    if group == "horizon":
+        keys.sort(key=int)
+    lines = [f"\n### {POLICY_LABELS[policy]}: {title}\n", "| row | " + " | ".join(keys) + " |",
+             "|---|" + "---|" * len(keys)]
+    for name, entry in rows.items():
+        part = entry["policies"][policy]
+        lines.append(f"| {name} | " + " | ".join(pick(part, group, k) for k in keys) + " |")
+    return lines
+
+
+def _travel_ratio(part: dict, group: str, key: str) -> str:
+    source = part.get("expected_ratio", part["ratio"])
+    return _number(source[f"by_{group}"].get(key, {}).get("travel"))
+
+
+def _sr1(part: dict, group: str, key: str) -> str:
+    return _number((part["summary"][f"by_{group}"].get(key) or {}).get("sr@1", {}).get("mean"), 2)
+
+
+def markdown_table(results: dict) -> str:
+    """The results as Markdown (see the module doc)."""
+    rows = results["rows"]
+    policies = results["protocol"]["policies"]
+    expected = "expected_ratio" in next(iter(rows.values()))["policies"][policies[0]]
+    lines = ["# Object search with the predicted posterior\n", protocol_line(results["protocol"]),
+             "\nMean ± standard error over episodes; ratios are a row's mean over the exact-"
+             "posterior searcher's mean under the same policy (looks and travel: lower is better; "
+             "SPL: higher)."
+             + (" E[travel] ÷ exact averages over the exact posterior of where the object is "
+                "instead of the rollout's draw." if expected else "")]
+    header = ["row"] + [label for _, label, _ in _MAIN] + [label for _, label in _RATIOS]
+    header += ["E[travel] ÷ exact"] if expected else []
+    for policy in policies:
+        lines += [f"\n## {POLICY_LABELS[policy]}\n", "| " + " | ".join(header) + " |",
+                  "|" + "---|" * len(header)]
+        lines += [_row_line(name, entry["policies"][policy]) for name, entry in rows.items()]
+    what = "E[travel] ÷ exact" if expected else "travel ÷ exact"
+    lines.append("\n## By horizon Δτ and by category")
+    for policy in policies:
+        lines += _group_table(rows, policy, "horizon", f"{what} by horizon Δτ", _travel_ratio)
+        lines += _group_table(rows, policy, "horizon", "SR@1 by horizon Δτ", _sr1)
+        lines += _group_table(rows, policy, "category", f"{what} by category", _travel_ratio)
+        lines += _group_table(rows, policy, "category", "SR@1 by category", _sr1)
+    lines += ["\n## Prior mass on the tables of the object's kind\n", "| row | mass |", "|---|---|"]
+    lines += [f"| {name} | {_mean_se(entry['kind_mass'], 3)} |" for name, entry in rows.items()]
+    figures = results.get("figures") or []
+    lines += ["\n## Figures\n", *(f"![{name}]({name})" for name in figures)] if figures else []
+    return "\n".join(lines) + "\n"
+
+
+def compact_json(results: dict) -> str:
+    """Indented JSON with every {mean, stderr} pair and every list of numbers on one line."""
+    text = json.dumps(results, indent=1, allow_nan=False)
+    text = re.sub(r'\{\n\s*"mean": ([^,\n]+),\n\s*"stderr": ([^\n]+)\n\s*\}',
+                  r'{"mean": \1, "stderr": \2}', text)
+    return re.sub(r"\[\n\s*([-+0-9.e,\s]+?)\n\s*\]",
+                  lambda m: "[" + ", ".join(v.strip() for v in m.group(1).split(",")) + "]", text)
+
+
+def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathlib.Path]:
+    """Write ``search.json`` and ``search.md`` into out_dir (created); returns their paths."""
+    out = pathlib.Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"json": out / "search.json", "markdown": out / "search.md"}
+    paths["json"].write_text(compact_json(results) + "\n")
+    paths["markdown"].write_text(markdown_table(results))
+    return paths

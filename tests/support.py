@@ -1,0 +1,86 @@
+"""Shared test helpers (importable from every test module; fixtures live in conftest.py).
+
+One tiny model config (``TINY``) for every test that only needs *a* model: sharing the static
+config means sharing compiled functions across test modules, which is most of the suite's time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax
+import numpy as np
+
+from flowmaps_jax.model import ModelConfig
+from flowmaps_jax.tokens import Queries, SceneTokens
+
+# A low max_frequency keeps a random velocity field smooth (Lipschitz ~ 10, not ~ 1000), so float
+# rounding is not amplified chaotically along the ODE and comparisons can stay tight.
+TINY = ModelConfig(dim=16, encoder_layers=1, cdit_blocks=1, heads=2, mlp_ratio=2, dropout=0.0,
+                   freq_bands=4, max_frequency=8.0, baseline_hidden=16)
+SLOTS, FURNITURE = 20, 10  # FlowSim's token slots and tables
+
+
+@jax.jit
+def perturb(params, key: jax.Array, scale=0.3):
+    """Noise of std ``scale`` on every parameter, so zero-initialised layers (AdaLN-Zero gates,
+    final projections) become active and the model's output is non-trivial. One compile."""
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    keys = jax.random.split(key, len(leaves))
+    return treedef.unflatten([x + scale * jax.random.normal(k, x.shape, x.dtype)
+                              for x, k in zip(leaves, keys, strict=True)])
+
+
+def synthetic_tokens(seed: int, num_real: Sequence[int] = (13, 13), slots: int = SLOTS,
+                     tau: Sequence[int] | None = None, max_box: float = 0.7) -> SceneTokens:
+    """Valid scenes (numpy): scene b has ``num_real[b]`` real tokens, the first ``FURNITURE`` of
+    them tables and the rest objects, random boxes in [0, max_box] and descriptors in 0..5,
+    padded to ``slots``; tau defaults to 2, 3, ..."""
+    rng = np.random.default_rng(seed)
+    b = len(num_real)
+    real = np.arange(slots)[None] < np.asarray(num_real)[:, None]
+    boxes = np.where(real[..., None], rng.uniform(0.0, max_box, (b, slots, 4)), 0.0)
+    return SceneTokens(
+        boxes=boxes.astype(np.float32),
+        descriptor=np.where(real, rng.integers(0, 6, (b, slots)), 0).astype(np.int32),
+        kind=((np.arange(slots) >= FURNITURE)[None] & real).astype(np.int32),
+        mask=real,
+        tau=np.asarray(np.arange(b) + 2 if tau is None else tau, np.int32))
+
+
+def synthetic_queries(tokens: SceneTokens, q: int, tau_max: int = 20) -> Queries:
+    """Q queries per scene of ``tokens``: object categories 0, 1, 2, 0, ... at τ + 1, τ + 2, ...
+    (capped at τ_max − 1)."""
+    b = len(tokens.tau)
+    tau_q = np.minimum(np.asarray(tokens.tau)[:, None] + 1 + np.arange(q)[None], tau_max - 1)
+    return Queries(descriptor=np.broadcast_to(np.arange(q) % 3, (b, q)).astype(np.int32),
+                   tau_q=tau_q.astype(np.int32))
+
+
+# --------------------------------------------------------------------------- a toy KL problem
+
+# Two real slots of a 3-slot padded problem: boxes (y, x, h, w), square objects like FlowSim's.
+BOXES = np.array([[0.20, 0.30, 0.10, 0.10],
+                  [0.60, 0.50, 0.10, 0.10],
+                  [0.00, 0.00, 0.00, 0.00]], np.float32)
+MASK = np.array([True, True, False])
+Q = np.array([0.3, 0.7, 0.0], np.float32)
+SHEAR = np.array([[1, 0, -0.5, 0], [0, 1, 0, -0.5], [0, 0, 1, 0], [0, 0, 0, 1]], np.float64)
+"""(cy, cx, h, w) → (y, x, h, w): a component's covariance in box coordinates is S Σ Sᵀ."""
+
+
+def protocol_sd(box) -> np.ndarray:
+    return np.array([0.35 * box[2], 0.35 * box[3], 0.02 * box[2], 0.02 * box[3]], np.float64)
+
+
+def mixture_log_density(x, weights, boxes) -> np.ndarray:
+    """log Σ_k w_k N(c(x); c(b_k), diag σ_k²) in float64, written out by hand. x (..., 4)."""
+    x = np.asarray(x, np.float64)
+    cx = np.stack([x[..., 0] + x[..., 2] / 2, x[..., 1] + x[..., 3] / 2, x[..., 2], x[..., 3]], -1)
+    terms = []
+    for w, b in zip(weights, np.asarray(boxes, np.float64), strict=True):
+        if w > 0:
+            mu, sd = np.array([b[0] + b[2] / 2, b[1] + b[3] / 2, b[2], b[3]]), protocol_sd(b)
+            terms.append(np.log(w) + np.sum(-0.5 * ((cx - mu) / sd) ** 2
+                                            - np.log(sd * np.sqrt(2 * np.pi)), axis=-1))
+    return np.logaddexp.reduce(terms, axis=0)
