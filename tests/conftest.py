@@ -5,13 +5,19 @@ should use this size to reuse the compiled function."""
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 
-# One persistent XLA compilation cache per test session, shared with the subprocesses and notebook
-# kernels the tests start (they inherit the environment): the same smoke-model functions compiled
-# by several processes are compiled once. Set before JAX is imported; a user's own setting wins.
-os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", tempfile.mkdtemp(prefix="flowmaps-jax-xla-"))
+# One persistent XLA compilation cache per test session, shared by the xdist workers and by the
+# subprocesses and notebook kernels the tests start (they inherit the environment): a function
+# compiled by one process is loaded by the others. Set before JAX is imported, by the first
+# process (removed when it exits); a user's own setting wins.
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    _cache = tempfile.mkdtemp(prefix="flowmaps-jax-xla-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
+    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 
 import jax

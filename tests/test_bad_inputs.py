@@ -31,7 +31,6 @@ from flowmaps_jax.flowsim import (
     make_train_batch,
     normalise_boxes,
     render,
-    sample_queries,
     save_scenes,
     scene_tokens,
     slot_boxes,
@@ -182,14 +181,11 @@ def test_generate(which, data):
 
 
 @FAST
-@given(which=st.sampled_from(["key", "n", "batch", "short_frac", "seed"]), data=st.data())
+@given(which=st.sampled_from(["key", "batch", "short_frac", "seed"]), data=st.data())
 def test_queries_batches_splits(small_scenes, which, data):
     key = jax.random.key(0)
     if which == "key":
-        raises_value_error(sample_queries, data.draw(bad_key), small_scenes, 8, CONFIG)
-    elif which == "n":
-        n = data.draw(st.one_of(not_an_int, st.integers(max_value=0), st.just(10**13)))
-        raises_value_error(sample_queries, key, small_scenes, n, CONFIG)
+        raises_value_error(make_train_batch, data.draw(bad_key), small_scenes, 8, 2, CONFIG)
     elif which == "batch":
         b = data.draw(st.one_of(not_an_int, st.integers(max_value=0), st.just(10**12)))
         raises_value_error(make_train_batch, key, small_scenes, b, 2, CONFIG)
@@ -352,6 +348,55 @@ def test_tokens_and_queries(tokens_queries, data, field):
         raises_value_error(tok.validate_tokens, data.draw(st.one_of(junk, st.just(q))), 6)
         raises_value_error(tok.validate_queries, data.draw(st.one_of(junk, st.just(t))), t.tau,
                            6, 20)
+
+
+# ------------------------------------------------------------------------------ the predictor
+
+
+@pytest.fixture(scope="module")
+def predictor():
+    from support import TINY
+
+    from flowmaps_jax.model import init_params
+    from flowmaps_jax.sample import Predictor
+
+    return Predictor.from_params(init_params(jax.random.key(0), TINY), TINY)
+
+
+@FAST
+@given(data=st.data(), what=st.sampled_from(["tokens", "queries", "num_samples", "key",
+                                             "num_steps", "method", "pixels", "x", "field"]))
+def test_predictor_sample_and_log_prob(predictor, tokens_queries, data, what):
+    """Predictor.sample / log_prob, the planner's entry points: only ValueError comes out."""
+    t, q = tokens_queries
+    good = {"tokens": t, "queries": q, "num_samples": 4, "key": jax.random.key(0),
+            "num_steps": 3, "method": "euler", "pixels": False}
+    bad = dict(good)
+    if what in ("tokens", "queries"):
+        bad[what] = data.draw(st.one_of(junk, st.just(q if what == "tokens" else t)))
+    elif what == "num_samples":
+        bad[what] = data.draw(st.one_of(not_an_int, st.integers(max_value=0),
+                                        st.just(10**9)))  # 10**9 boxes: more than memory
+    elif what == "key":
+        bad[what] = data.draw(bad_key)
+    elif what == "num_steps":
+        bad[what] = data.draw(st.one_of(not_an_int, st.integers(max_value=1)))
+    elif what == "method":
+        bad[what] = data.draw(st.one_of(junk, st.just("rk4")))
+    elif what == "pixels":
+        bad[what] = data.draw(st.one_of(st.just("yes"), st.just(1), st.none()))
+    elif what == "field":  # one field of the tokens or queries broken
+        name = data.draw(st.sampled_from(["boxes", "descriptor", "tau"]))
+        low, high = _TOKEN_BOUNDS[name]
+        bad["tokens"] = t.replace(**{name: data.draw(st.one_of(
+            junk, st.just(getattr(t, name).tolist()), broken_array(getattr(t, name), low, high)))})
+    else:
+        x = data.draw(st.one_of(junk, st.just(np.full((3, 2, 4, 4), np.nan, np.float32)),
+                                st.just(np.zeros((3, 2, 4), np.float32)),
+                                st.just(np.zeros((3, 2, 4, 4), np.complex64))))
+        raises_value_error(predictor.log_prob, t, q, x, num_steps=3, method="euler")
+        return
+    raises_value_error(predictor.sample, **bad)
 
 
 # ------------------------------------------------------------------------------ boxes, render

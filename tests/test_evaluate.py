@@ -318,24 +318,19 @@ def test_cli_evaluates_the_shipped_models(tmp_path, capsys):
     assert data["rows"]["FlowMaps"]["info"]["source"] == "pretrained:flowmaps"
 
 
-@pytest.mark.slow
-def test_train_then_evaluate_through_the_clis(tmp_path, capsys):
-    """The smoke preset trained for a few steps by ``python -m flowmaps_jax.train``, an MLP
-    baseline checkpoint, then ``python -m flowmaps_jax.evaluate`` on both."""
+def test_evaluate_cli_on_saved_checkpoints(tmp_path, capsys):
+    """``python -m flowmaps_jax.evaluate`` on a FlowMaps and an MLP checkpoint as training saves
+    them (training through the CLI is tests/test_training.py's; here the states are fresh)."""
     from flowmaps_jax.training import checkpoint
-    from flowmaps_jax.training import loop as train
     from flowmaps_jax.training import state as train_state
     from flowmaps_jax.training.config import get_preset
 
     run = tmp_path / "flow"
-    same_model = [f"model.{f.name}={getattr(CFG, f.name)}" for f in dataclasses.fields(CFG)]
-    sizes = [*same_model, f"train_envs={NUM_ENVS}", f"val_envs={NUM_ENVS}", "batch_size=4",
-             "val_every=2"]  # shapes shared with the fixtures above: compiled code is reused
-    assert train.main(["--preset", "smoke", "--steps", "4", "--run-dir", str(run),
-                       "--no-progress", *[a for kv in sizes for a in ("--set", kv)]]) == 0
-    mlp_cfg = dataclasses.replace(get_preset("smoke"), model=CFG, model_kind="mlp")
-    with checkpoint.CheckpointStore(tmp_path / "mlp", keep_last=1) as store:
-        store.save(train_state.init_state(mlp_cfg), mlp_cfg.to_dict())
+    for kind, where, step in (("flowmaps", run / "checkpoints", 4), ("mlp", tmp_path / "mlp", 0)):
+        cfg = dataclasses.replace(get_preset("smoke"), model=CFG, model_kind=kind)
+        state = train_state.init_state(cfg).replace(step=jnp.asarray(step, jnp.int32))
+        with checkpoint.CheckpointStore(where, keep_last=1) as store:
+            store.save(state, cfg.to_dict())
     out = tmp_path / "eval"
     code = main(["--checkpoint", str(run), "--baseline", str(tmp_path / "mlp"),
                     "--out", str(out), "--num-envs", str(NUM_ENVS), "--samples", "4,8",

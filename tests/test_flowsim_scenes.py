@@ -13,11 +13,10 @@ from conftest import SMALL_NUM_ENVS
 from flowmaps_jax import tokens as tok
 from flowmaps_jax.flowsim import (
     denormalise_boxes,
-    endless_batches,
+    draw_query_times,
     load_scenes,
     make_train_batch,
     normalise_boxes,
-    sample_queries,
     save_scenes,
     scene_tokens,
     slot_boxes,
@@ -80,22 +79,19 @@ def test_slot_boxes_match_object_boxes(small_scenes, flowsim_config):
     assert np.all(boxes[beyond] == 0) and np.all(boxes[~beyond][:, 2:] > 0)
 
 
-def test_sample_queries_ranges(small_scenes, flowsim_config):
-    q = sample_queries(jax.random.key(0), small_scenes, 20_000, flowsim_config)
-    env, tau, tau_q, obj = (np.asarray(x) for x in (q.env, q.tau, q.tau_q, q.obj))
-    assert env.min() == 0 and env.max() == SMALL_NUM_ENVS - 1
+def test_query_times_follow_the_papers_law(flowsim_config):
+    tau, tau_q = jax.jit(lambda k: draw_query_times(k, (20_000,), (20_000,), flowsim_config))(
+        jax.random.key(0))
+    tau, tau_q = np.asarray(tau), np.asarray(tau_q)
     assert tau.min() == 0 and tau.max() == 18
     assert (tau_q > tau).all() and tau_q.max() == 19
-    assert set(np.unique(obj)) == {0, 1, 2}
     # tau is uniform over 0..18 and tau_q uniform over tau+1..19 (spot checks).
     assert abs(np.mean(tau == 0) - 1 / 19) < 0.01
     assert abs(np.mean(tau_q[tau == 17] == 18) - 0.5) < 0.1
-    same = sample_queries(jax.random.key(0), SMALL_NUM_ENVS, 20_000, flowsim_config)
-    np.testing.assert_array_equal(same.tau_q, q.tau_q)
-    legacy = sample_queries(jax.random.PRNGKey(0), SMALL_NUM_ENVS, 20_000, flowsim_config)
-    np.testing.assert_array_equal(legacy.tau_q, q.tau_q)  # raw keys become the same typed key
-    with pytest.raises(ValueError, match="n"):
-        sample_queries(jax.random.key(0), small_scenes, 0, flowsim_config)
+    # one τ per scene shared by its queries; short horizons when asked
+    tau, tau_q = draw_query_times(jax.random.key(1), (500,), (500, 4), flowsim_config, 1.0, 1)
+    expected = np.broadcast_to(np.minimum(np.asarray(tau)[:, None] + 1, 19), (500, 4))
+    np.testing.assert_array_equal(np.asarray(tau_q), expected)
 
 
 def test_make_train_batch(small_scenes, flowsim_config):
@@ -146,19 +142,6 @@ def test_splits_are_fixed_and_disjoint(flowsim_config):
     rows = {name: {r.tobytes() for r in arr} for name, arr in flat.items()}
     assert not rows["train"] & rows["valid"]
     assert not rows["train"] & rows["same_seed"]
-
-
-def test_endless_batches_are_fresh(flowsim_config):
-    stream = endless_batches(jax.random.key(5), 64, 2, flowsim_config,
-                             envs_per_chunk=SMALL_NUM_ENVS)
-    batches = [next(stream) for _ in range(6)]  # crosses a chunk boundary (4 per chunk)
-    for batch in batches:
-        tok.assert_batch_shapes(batch)
-        tok.validate_queries(batch.queries, batch.tokens.tau, flowsim_config.num_descriptors, 20)
-    first, fifth = batches[0].tokens.boxes, batches[4].tokens.boxes
-    assert not np.array_equal(first, fifth)
-    with pytest.raises(ValueError, match="envs_per_chunk"):
-        next(endless_batches(jax.random.key(0), 64, 2, flowsim_config, envs_per_chunk=32))
 
 
 def test_npz_round_trip(tmp_path, small_scenes, flowsim_config):

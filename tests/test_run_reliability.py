@@ -35,6 +35,8 @@ pytestmark = pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptio
 
 CFG = dataclasses.replace(get_preset("smoke"), routine_envs=0)
 QUIET = ["--preset", "smoke", "--set", "routine_envs=0", "--no-progress"]
+# The environment without the suite's persistent XLA cache (tests/conftest.py).
+_UNCACHED = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
 TIMING = ("steps_per_sec", "samples_per_sec")
 
 
@@ -274,7 +276,8 @@ def test_ctrl_c_during_data_generation_exits_cleanly(tmp_path):
     """The real command in a subprocess: 130 and a short message, not SIGSEGV."""
     proc = subprocess.Popen(
         [sys.executable, "-u", "-m", "flowmaps_jax.train", *QUIET, "--run-dir",
-         str(tmp_path / "run")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+         str(tmp_path / "run")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=_UNCACHED)  # compiling for real, so the signal lands mid-compilation, not after
     out = io.StringIO()
     for line in proc.stdout:
         out.write(line)

@@ -230,6 +230,7 @@ def _leaves(state):
 def straight_run(tmp_path_factory):
     """``python -m flowmaps_jax.train --preset smoke`` in-process: 20 steps straight."""
     run_dir = tmp_path_factory.mktemp("straight")
+    data._SPLIT_CACHE.clear()  # generate the splits here, whatever ran before (it is printed)
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         code = train_cli.main(["--preset", "smoke", "--run-dir", str(run_dir), "--no-progress"])

@@ -42,7 +42,6 @@ from flowmaps_jax.model.sampling import DEFAULT_NUM_STEPS
 from flowmaps_jax.tokens import Queries, SceneTokens, check_query_roles, trim_padding
 from flowmaps_jax.training.objectives import model_kind
 from flowmaps_jax.validation import (
-    check_array,
     check_flag,
     check_instance,
     check_int,
@@ -105,7 +104,7 @@ class Predictor:
     source: where the params came from (checkpoint path) and step, for reports.
     """
 
-    params: Any
+    params: Any = dataclasses.field(repr=False)  # a pytree of arrays: too long to print
     model: ModelConfig
     kind: str = "flowmaps"
     flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig)
@@ -141,16 +140,14 @@ class Predictor:
         descriptors, a query that names a table instead of an object category, more token slots
         than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
-        check_instance("tokens", tokens, SceneTokens)
         check_instance("queries", queries, Queries)
-        check_real_array("tokens.boxes", tokens.boxes, (None, None, 4))
-        b, q = check_array("queries.descriptor", queries.descriptor, (None, None)).shape
+        check_inputs(self.model, tokens, queries)  # every field: type, dtype, shape, range
+        b, q = np.shape(queries.descriptor)
         slots = np.shape(tokens.boxes)[1]
         if slots > self.flowsim.max_tokens:
             raise ValueError(f"tokens has {slots} token slots, more than the "
                              f"max_tokens={self.flowsim.max_tokens} of the maps the model was "
                              "trained on (flowsim.max_tokens)")
-        check_inputs(self.model, tokens, queries)
         check_query_roles(queries, self.flowsim.object_descriptors)
         if b < 1 or q < 1:
             raise ValueError(f"tokens/queries must hold at least one scene and one query; got "

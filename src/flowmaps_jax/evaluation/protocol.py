@@ -120,7 +120,12 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     Environment e's times and draws depend only on ``key`` and e. ``horizon``: instead a fixed
     Δτ (τ ~ U{0..T−1−Δτ}, τ_q = τ + Δτ), e.g. 1 for the routine diagnostic.
     """
-    from flowmaps_jax.flowsim.scenes import normalise_boxes, scene_tokens, slot_boxes
+    from flowmaps_jax.flowsim.scenes import (
+        draw_query_times,
+        normalise_boxes,
+        scene_tokens,
+        slot_boxes,
+    )
 
     if not isinstance(config, FlowSimConfig):
         raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
@@ -137,12 +142,10 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
         env)
 
     def times(k):
-        k_tau, k_q = jax.random.split(k)
-        if horizon is not None:
-            tau = jax.random.randint(k_tau, (), 0, t_max - horizon)
-            return tau, tau + horizon
-        tau = jax.random.randint(k_tau, (), 0, t_max - 1)
-        return tau, jax.random.randint(k_q, (), tau + 1, t_max)
+        if horizon is None:  # the paper's law, as the training batches draw it
+            return draw_query_times(k, (), (), config)
+        tau = jax.random.randint(jax.random.split(k)[0], (), 0, t_max - horizon)
+        return tau, tau + horizon
 
     tau, tau_q = jax.vmap(times)(env_keys)
     tau, tau_q = tau.astype(jnp.int32), tau_q.astype(jnp.int32)

@@ -31,8 +31,8 @@ Entry points
 ------------
 ``generate(key, num_envs, config) -> Scenes`` (jit-compiled, vectorised over environments,
 rollouts in ``lax.scan``); ``exact_posterior``, ``transition_matrix``; model-facing views in
-``flowsim.scenes`` (normalised boxes, ``scene_tokens``, ``slot_boxes``, ``sample_queries``,
-``make_train_batch``, ``train_split`` / ``validation_split`` / ``endless_batches``,
+``flowsim.scenes`` (normalised boxes, ``scene_tokens``, ``slot_boxes``, ``draw_query_times``,
+``make_train_batch``, ``train_split`` / ``validation_split``,
 ``save_scenes`` / ``load_scenes``); ``validate_scenes`` checks a ``Scenes`` (every public function
 here checks its arguments with :mod:`flowmaps_jax.validation` before anything is jitted, and
 raises ``ValueError`` naming the argument).
@@ -49,13 +49,11 @@ from flowmaps_jax.flowsim.config import (
 from flowmaps_jax.flowsim.dynamics import exact_posterior, transition_matrix
 from flowmaps_jax.flowsim.generate import Scenes, generate, validate_scenes
 from flowmaps_jax.flowsim.scenes import (
-    QuerySet,
     denormalise_boxes,
-    endless_batches,
+    draw_query_times,
     load_scenes,
     make_train_batch,
     normalise_boxes,
-    sample_queries,
     save_scenes,
     scene_tokens,
     slot_boxes,
@@ -70,16 +68,14 @@ __all__ = [
     "FlowSimConfig",
     "FurnitureKind",
     "ObjectCategory",
-    "QuerySet",
     "Scenes",
     "denormalise_boxes",
-    "endless_batches",
+    "draw_query_times",
     "exact_posterior",
     "generate",
     "load_scenes",
     "make_train_batch",
     "normalise_boxes",
-    "sample_queries",
     "save_scenes",
     "scene_tokens",
     "slot_boxes",

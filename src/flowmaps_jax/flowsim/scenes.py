@@ -7,7 +7,7 @@
   object uniform over the M categories.
 * Splits: ``train_split`` (2500 environments, seed ``TRAIN_SEED`` = 0) and ``validation_split``
   (200, seed ``VALIDATION_SEED`` = 1). Each split also folds its own tag into the key
-  (``fold_in(key(seed), tag)``, tags 0 train / 1 validation / 2 endless stream), so the splits
+  (``fold_in(key(seed), tag)``, tags 0 train / 1 validation), so the splits
   are disjoint streams even if the same seed is passed to both.
 * ``save_scenes`` / ``load_scenes``: one ``.npz`` with ``FORMAT_VERSION`` and the config as JSON.
 """
@@ -17,12 +17,10 @@ from __future__ import annotations
 import functools
 import json
 import os
-from collections.abc import Iterator
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from flowmaps_jax import boxes as box_geometry
 from flowmaps_jax import tokens as tok
@@ -51,21 +49,7 @@ from flowmaps_jax.validation import (
 FORMAT_VERSION = 1
 TRAIN_SEED = 0
 VALIDATION_SEED = 1
-_TRAIN_TAG, _VALIDATION_TAG, _STREAM_TAG = 0, 1, 2
-
-
-@struct.dataclass
-class QuerySet:
-    """n queries into a Scenes batch; all (n,) int32.
-
-    env: environment index. tau: state time (0..T-2). tau_q: query time (tau+1..T-1).
-    obj: object index (category order of the config, 0..M-1).
-    """
-
-    env: jnp.ndarray
-    tau: jnp.ndarray
-    tau_q: jnp.ndarray
-    obj: jnp.ndarray
+_TRAIN_TAG, _VALIDATION_TAG = 0, 1
 
 
 # ------------------------------------------------------------------------------ validation
@@ -171,9 +155,11 @@ def _slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig):
 # ------------------------------------------------------------------------------ queries
 
 
-def _draw_times(key, shape_tau, shape_q, config: FlowSimConfig, short_frac: float = 0.0,
-                short_max: int = 3):
-    """τ uniform in 0..T−2 with shape ``shape_tau``; τ_q uniform in τ+1..T−1 with ``shape_q``.
+def draw_query_times(key, shape_tau, shape_q, config: FlowSimConfig, short_frac: float = 0.0,
+                     short_max: int = 3):
+    """The paper's query times, traceable: τ uniform in 0..T−2 with shape ``shape_tau``; τ_q
+    uniform in τ+1..T−1 with ``shape_q`` (shape_tau a prefix of it). Used by the training batches
+    and the evaluation protocol alike. Unvalidated (call it inside jit).
 
     With ``short_frac`` > 0, that fraction of the queries instead gets τ_q = min(τ + d, T − 1)
     with d uniform in 1..short_max (more of the sharp, short-horizon posteriors).
@@ -190,30 +176,6 @@ def _draw_times(key, shape_tau, shape_q, config: FlowSimConfig, short_frac: floa
     return tau, tau_q
 
 
-@functools.partial(jax.jit, static_argnames=("num_envs", "n", "config"))
-def _sample_queries(key, num_envs: int, n: int, config: FlowSimConfig) -> QuerySet:
-    key_env, key_time, key_obj = jax.random.split(key, 3)
-    env = jax.random.randint(key_env, (n,), 0, num_envs)
-    tau, tau_q = _draw_times(key_time, (n,), (n,), config)
-    obj = jax.random.randint(key_obj, (n,), 0, config.num_objects)
-    return QuerySet(env=env, tau=tau, tau_q=tau_q, obj=obj)
-
-
-def sample_queries(key, num_envs_or_scenes, n: int,
-                   config: FlowSimConfig = DEFAULT_CONFIG) -> QuerySet:
-    """Draw n queries: env uniform, τ uniform in 0..T−2, τ_q uniform in τ+1..T−1, object
-    uniform over M. ``num_envs_or_scenes``: an int or a Scenes (its number of environments)."""
-    _check_inputs(config)
-    if isinstance(num_envs_or_scenes, Scenes):
-        validate_scenes(num_envs_or_scenes, config, values=False, name="num_envs_or_scenes")
-        num_envs = num_envs_or_scenes.num_envs
-    else:
-        num_envs = check_int("num_envs_or_scenes", num_envs_or_scenes)
-    n = check_int("n", n)
-    check_request_size(f"sample_queries(n={n})", array_bytes((4, n), np.int32))
-    return _sample_queries(check_key(key), num_envs, n, config)
-
-
 @functools.partial(jax.jit, static_argnames=("batch_size", "queries_per_scene", "config",
                                              "short_frac", "short_max"))
 def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
@@ -222,7 +184,7 @@ def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
     b, q = batch_size, queries_per_scene
     key_env, key_time, key_obj = jax.random.split(key, 3)
     env = jax.random.randint(key_env, (b,), 0, scenes.furniture_boxes.shape[0])
-    tau, tau_q = _draw_times(key_time, (b,), (b, q), config, short_frac, short_max)
+    tau, tau_q = draw_query_times(key_time, (b,), (b, q), config, short_frac, short_max)
     obj = jax.random.randint(key_obj, (b, q), 0, config.num_objects)
     env_q = jnp.broadcast_to(env[:, None], (b, q))
     target = box_geometry.normalise(scenes.object_boxes[env_q, tau_q, obj], config.map_size)
@@ -276,37 +238,6 @@ def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200
     a different seed and tag from ``train_split``."""
     _check_inputs(config)
     return generate(_split_key(seed, _VALIDATION_TAG), num_envs, config)
-
-
-def endless_batches(key, batch_size: int, queries_per_scene: int,
-                    config: FlowSimConfig = DEFAULT_CONFIG,
-                    envs_per_chunk: int = 4096) -> Iterator[tok.TrainBatch]:
-    """Endless TrainBatches from freshly generated scenes.
-
-    Every chunk generates ``envs_per_chunk`` new environments (key: ``fold_in(key, 2)`` then the
-    chunk number) and yields ``envs_per_chunk // batch_size`` batches drawn from them, so each
-    scene is used about once. Arguments are checked at the call, before the first batch.
-    """
-    _check_inputs(config)
-    batch_size, queries_per_scene = _check_batch_size(batch_size, queries_per_scene, config)
-    envs_per_chunk = check_int("envs_per_chunk", envs_per_chunk)
-    if envs_per_chunk < batch_size:
-        raise ValueError(f"envs_per_chunk ({envs_per_chunk}) must be >= batch_size "
-                         f"({batch_size})")
-    return _endless_batches(jax.random.fold_in(check_key(key), _STREAM_TAG), batch_size,
-                            queries_per_scene, config, envs_per_chunk)
-
-
-def _endless_batches(stream: jax.Array, batch_size: int, queries_per_scene: int,
-                     config: FlowSimConfig, envs_per_chunk: int) -> Iterator[tok.TrainBatch]:
-    chunk = 0
-    while True:
-        key_scenes, key_batches = jax.random.split(jax.random.fold_in(stream, chunk))
-        scenes = generate(key_scenes, envs_per_chunk, config)
-        for i in range(envs_per_chunk // batch_size):
-            yield _train_batch(jax.random.fold_in(key_batches, i), scenes, batch_size,
-                               queries_per_scene, config)
-        chunk += 1
 
 
 # ------------------------------------------------------------------------------ .npz I/O
