@@ -277,7 +277,10 @@ def test_ctrl_c_during_data_generation_exits_cleanly(tmp_path):
     proc = subprocess.Popen(
         [sys.executable, "-u", "-m", "flowmaps_jax.train", *QUIET, "--run-dir",
          str(tmp_path / "run")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        env=_UNCACHED)  # compiling for real, so the signal lands mid-compilation, not after
+        env=_UNCACHED,  # compiling for real, so the signal lands mid-compilation, not after
+        # A pytest-xdist worker ignores SIGINT, and a child would inherit that: give the command
+        # the default disposition a terminal gives it.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     out = io.StringIO()
     for line in proc.stdout:
         out.write(line)
