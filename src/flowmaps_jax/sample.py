@@ -42,6 +42,7 @@ from flowmaps_jax.model.sampling import DEFAULT_NUM_STEPS
 from flowmaps_jax.tokens import Queries, SceneTokens, check_query_roles, trim_padding
 from flowmaps_jax.training.objectives import model_kind
 from flowmaps_jax.validation import (
+    check_choice,
     check_flag,
     check_instance,
     check_int,
@@ -246,7 +247,6 @@ def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
     """
     from flowmaps_jax.training import checkpoint
     from flowmaps_jax.training.state import abstract_state
-    from flowmaps_jax.validation import check_choice
 
     which = check_choice("which", which, checkpoint.WHICH)
     use_ema = check_flag("use_ema", use_ema)

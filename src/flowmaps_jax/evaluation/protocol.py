@@ -45,7 +45,7 @@ from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.dynamics import exact_posterior
 from flowmaps_jax.sample import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tokens import Queries, SceneTokens
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_instance, check_int
 
 DEFAULT_NUM_ENVS = 200
 DEFAULT_SAMPLES = (25, 100)
@@ -127,8 +127,7 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
         slot_boxes,
     )
 
-    if not isinstance(config, FlowSimConfig):
-        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
+    check_instance("config", config, FlowSimConfig)
     kl_draws = check_int("kl_draws", kl_draws, 2)
     num_envs = scenes.num_envs
     t_max = config.num_timesteps
@@ -141,13 +140,9 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     env_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_QUERIES), e))(
         env)
 
-    def times(k):
-        if horizon is None:  # the paper's law, as the training batches draw it
-            return draw_query_times(k, (), (), config)
-        tau = jax.random.randint(jax.random.split(k)[0], (), 0, t_max - horizon)
-        return tau, tau + horizon
-
-    tau, tau_q = jax.vmap(times)(env_keys)
+    # the paper's law, as the training batches draw it (or the fixed Δτ)
+    tau, tau_q = jax.vmap(lambda k: draw_query_times(k, (), (), config, horizon=horizon))(
+        env_keys)
     tau, tau_q = tau.astype(jnp.int32), tau_q.astype(jnp.int32)
     tokens = scene_tokens(scenes, env, tau, config)
     obj = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32), (num_envs, m))

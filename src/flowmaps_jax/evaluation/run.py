@@ -59,7 +59,7 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     key = jax.random.key(seed)
     evalset = build_eval_queries(scenes, config, key, kl_draws)
     rows = _reference_rows(evalset, counts, key)
-    names = _unique_names([p.name for p in predictors])
+    names = unique_names([p.name for p in predictors])
     for predictor, name in zip(predictors, names, strict=True):
         rows.append(_evaluate_predictor(predictor, evalset, key, counts, chunk_envs, ode,
                                         progress, name))
@@ -92,7 +92,8 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     return results, rows, evalset
 
 
-def _unique_names(names: Sequence[str]) -> list[str]:
+def unique_names(names: Sequence[str]) -> list[str]:
+    """Row labels made unique by a " #2", " #3" suffix on repeats."""
     seen: dict[str, int] = {}
     out = []
     for n in names:

@@ -156,16 +156,21 @@ def _slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig):
 
 
 def draw_query_times(key, shape_tau, shape_q, config: FlowSimConfig, short_frac: float = 0.0,
-                     short_max: int = 3):
+                     short_max: int = 3, horizon=None):
     """The paper's query times, traceable: τ uniform in 0..T−2 with shape ``shape_tau``; τ_q
-    uniform in τ+1..T−1 with ``shape_q`` (shape_tau a prefix of it). Used by the training batches
-    and the evaluation protocol alike. Unvalidated (call it inside jit).
+    uniform in τ+1..T−1 with ``shape_q`` (shape_tau a prefix of it). Used by the training
+    batches, the evaluation protocol and the search alike. Unvalidated (call it inside jit).
 
     With ``short_frac`` > 0, that fraction of the queries instead gets τ_q = min(τ + d, T − 1)
     with d uniform in 1..short_max (more of the sharp, short-horizon posteriors).
+    With ``horizon`` (an int, or an int array of shape ``shape_tau``), a fixed Δτ instead:
+    τ uniform in 0..T−1−Δτ and τ_q = τ + Δτ (shape ``shape_tau``).
     """
     t = config.num_timesteps
     key_tau, key_q = jax.random.split(key)
+    if horizon is not None:
+        tau = jax.random.randint(key_tau, shape_tau, 0, t - horizon)
+        return tau, tau + horizon
     tau = jax.random.randint(key_tau, shape_tau, 0, t - 1)
     tau_b = tau.reshape(shape_tau + (1,) * (len(shape_q) - len(shape_tau)))
     tau_q = jax.random.randint(key_q, shape_q, tau_b + 1, t)

@@ -38,7 +38,13 @@ from flax import struct
 from tqdm import tqdm
 
 from flowmaps_jax.evaluation import slots as slot_metrics
-from flowmaps_jax.flowsim import FlowSimConfig, Scenes, exact_posterior, scene_tokens
+from flowmaps_jax.flowsim import (
+    FlowSimConfig,
+    Scenes,
+    draw_query_times,
+    exact_posterior,
+    scene_tokens,
+)
 from flowmaps_jax.search.policies import (
     POLICIES,
     check_optimal_size,
@@ -48,7 +54,7 @@ from flowmaps_jax.search.policies import (
 )
 from flowmaps_jax.search.probabilities import slots_to_tables, table_probabilities
 from flowmaps_jax.tokens import Queries, SceneTokens
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_instance, check_int, check_key, check_real
 
 DEFAULT_BUDGET = 10
 """Looks per episode (FlowSim has at most 4 tables of a kind: every policy finds the object
@@ -112,25 +118,11 @@ class Outcome:
 # --------------------------------------------------------------------------- validation
 
 
-def _check_key(key) -> jax.Array:
-    if isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
-        if key.shape != ():
-            raise ValueError(f"key must be a single PRNG key; got shape {key.shape}")
-        return key
-    arr = np.asarray(key) if isinstance(key, (np.ndarray, jax.Array)) else None
-    if arr is None or arr.shape != (2,) or arr.dtype != np.uint32:
-        raise ValueError(f"key must be a JAX PRNG key (jax.random.key(seed)); got "
-                         f"{type(key).__name__}")
-    return jax.random.wrap_key_data(jnp.asarray(arr))
-
-
 def check_p_miss(p_miss) -> float:
-    """``p_miss`` as a float in [0, 1), else ``ValueError`` naming it."""
-    if isinstance(p_miss, bool) or not isinstance(p_miss, (int, float, np.floating)) \
-            or not 0.0 <= float(p_miss) < 1.0:
-        raise ValueError(f"p_miss must be a number in [0, 1) (the chance a look at the right "
-                         f"table misses the object); got {p_miss!r}")
-    return float(p_miss)
+    """``p_miss`` (the chance a look at the right table misses the object) as a float in
+    [0, 1), else ``ValueError`` naming it."""
+    return check_real("p_miss (the chance a look at the right table misses the object)", p_miss,
+                      0.0, 1.0, high_open=True)
 
 
 def check_belief(name: str, belief, valid) -> None:
@@ -280,7 +272,7 @@ def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
     budget = check_int("budget", budget)
     p_miss = check_p_miss(p_miss)
     episodes = check_episodes(episodes, policy)
-    key = jax.random.key(0) if key is None else _check_key(key)
+    key = jax.random.key(0) if key is None else check_key(key)
     return simulate(episodes, key, jnp.float32(p_miss), jnp.int32(POLICIES.index(policy)),
                      budget)
 
@@ -359,21 +351,6 @@ class SearchSet:
         return int(np.max(np.asarray(self.num_slots)))
 
 
-def _times(keys: jax.Array, num_timesteps: int, horizon) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(τ, τ_q) per key: the protocol's draws, or τ ~ U{0..T−1−Δτ} and τ_q = τ + Δτ."""
-    def one(key, h):
-        k_tau, k_ahead = jax.random.split(key)
-        if horizon is None:  # τ ~ U{0..T−2}, then τ_q ~ U{τ+1..T−1}
-            tau = jax.random.randint(k_tau, (), 0, num_timesteps - 1)
-            return tau, tau + 1 + jax.random.randint(k_ahead, (), 0, num_timesteps - 1 - tau)
-        tau = jax.random.randint(k_tau, (), 0, num_timesteps - h)
-        return tau, tau + h
-
-    h = jnp.zeros(keys.shape, jnp.int32) if horizon is None else jnp.asarray(horizon, jnp.int32)
-    tau, tau_q = jax.vmap(one)(keys, h)
-    return tau.astype(jnp.int32), tau_q.astype(jnp.int32)
-
-
 def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
                      times_per_env: int = 1,
                      horizons: Sequence[int] | None = None) -> SearchSet:
@@ -383,11 +360,9 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
     U{τ+1..T−1} (the evaluation protocol's draws). ``horizons``: instead one row per environment
     and fixed Δτ in ``horizons`` (τ ~ U{0..T−1−Δτ}). Row r's times depend on ``key`` and r only.
     """
-    if not isinstance(scenes, Scenes):
-        raise ValueError(f"scenes must be a flowsim Scenes; got {type(scenes).__name__}")
-    if not isinstance(config, FlowSimConfig):
-        raise ValueError(f"config must be a FlowSimConfig; got {type(config).__name__}")
-    key = _check_key(key)
+    check_instance("scenes", scenes, Scenes)
+    check_instance("config", config, FlowSimConfig)
+    key = check_key(key)
     t_max = config.num_timesteps
     if horizons is None:
         per_env, fixed = check_int("times_per_env", times_per_env), None
@@ -401,7 +376,12 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
     env = jnp.arange(rows, dtype=jnp.int32) // per_env
     keys = jax.vmap(lambda r: jax.random.fold_in(jax.random.fold_in(key, _SALT_TIMES), r))(
         jnp.arange(rows))
-    tau, tau_q = _times(keys, t_max, None if fixed is None else np.tile(fixed, scenes.num_envs))
+    if fixed is None:  # the protocol's law: τ ~ U{0..T−2}, τ_q ~ U{τ+1..T−1}
+        tau, tau_q = jax.vmap(lambda k: draw_query_times(k, (), (), config))(keys)
+    else:
+        tau, tau_q = jax.vmap(lambda k, h: draw_query_times(k, (), (), config, horizon=h))(
+            keys, jnp.asarray(np.tile(fixed, scenes.num_envs), jnp.int32))
+    tau, tau_q = tau.astype(jnp.int32), tau_q.astype(jnp.int32)
     m = config.num_objects
     obj = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32), (rows, m))
     horizon = jnp.broadcast_to((tau_q - tau)[:, None], (rows, m))
@@ -426,9 +406,7 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
 
 
 def _check_set(search_set) -> SearchSet:
-    if not isinstance(search_set, SearchSet):
-        raise ValueError(f"search_set must be a SearchSet; got {type(search_set).__name__}")
-    return search_set
+    return check_instance("search_set", search_set, SearchSet)
 
 
 def exact_tables(search_set: SearchSet) -> jnp.ndarray:
@@ -461,7 +439,7 @@ def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, ke
     ``fold_in(key, r)``, so the result does not depend on the chunk size.
     """
     s = _check_set(search_set)
-    key = _check_key(key)
+    key = check_key(key)
     chunk = min(check_int("chunk_rows", chunk_rows), s.num_rows)
     row_keys = jax.vmap(lambda r: jax.random.fold_in(jax.random.fold_in(key, _SALT_SAMPLES), r))(
         jnp.arange(s.num_rows))

@@ -37,7 +37,7 @@ import numpy as np
 
 from flowmaps_jax.evaluation import slots as slot_metrics
 from flowmaps_jax.tokens import FURNITURE, OBJECT, Queries, SceneTokens
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_instance, check_int
 
 ASSIGN_TOLERANCE = slot_metrics.ASSIGN_RADIUS
 """A sample counts for a table if its (y, x, h, w) is within this L2 distance of the object's box
@@ -51,9 +51,8 @@ OFF = "off"
 
 def _check_pair(tokens: Any, queries: Any) -> tuple[int, int, int]:
     """(B, S, Q) of SceneTokens (B, S) and Queries (B, Q), or ValueError naming the argument."""
-    for name, value, kind in (("tokens", tokens, SceneTokens), ("queries", queries, Queries)):
-        if not isinstance(value, kind):
-            raise ValueError(f"{name} must be a {kind.__name__}; got {type(value).__name__}")
+    check_instance("tokens", tokens, SceneTokens)
+    check_instance("queries", queries, Queries)
     box_shape = np.shape(tokens.boxes)
     if len(box_shape) != 3 or box_shape[-1] != 4:
         raise ValueError(f"tokens.boxes must have shape (B, S, 4); got {box_shape}")

@@ -21,6 +21,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from flowmaps_jax.evaluation.run import unique_names
 from flowmaps_jax.flowsim import FlowSimConfig, Scenes
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
@@ -148,16 +149,6 @@ def _summarise(runs, names, policies, groups) -> dict:
 # --------------------------------------------------------------------------- the whole run
 
 
-def unique_names(names: Sequence[str]) -> list[str]:
-    """Row labels made unique by a " #2", " #3" suffix on repeats."""
-    seen: dict[str, int] = {}
-    out = []
-    for name in names:
-        seen[name] = seen.get(name, 0) + 1
-        out.append(name if seen[name] == 1 else f"{name} #{seen[name]}")
-    return out
-
-
 def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig, *,
                seed: int = 0, num_samples: int = DEFAULT_SAMPLES,
                times_per_env: int = DEFAULT_TIMES_PER_ENV, horizons: Sequence[int] | None = None,
@@ -170,8 +161,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
 
     ``results`` is what ``report.write_report`` writes as search.json (without figures).
     """
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise ValueError(f"seed must be an int; got {seed!r}")
+    check_int("seed", seed, minimum=None)
     num_samples = check_int("num_samples", num_samples)
     for p in predictors:
         flowsim = getattr(p, "flowsim", None)

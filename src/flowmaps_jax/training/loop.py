@@ -57,7 +57,7 @@ from flowmaps_jax.training.config import (
     get_preset,
 )
 from flowmaps_jax.training.objectives import MODEL_KINDS
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_instance, check_int
 
 EXIT_OK, EXIT_NAN, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 1, 74, 130
 
@@ -237,8 +237,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     keeps other processes out while the run lasts (see :mod:`flowmaps_jax.training.rundir`).
     A failed checkpoint write (e.g. a full disk) raises ``checkpoint.CheckpointSaveError``.
     """
-    if not isinstance(cfg, TrainConfig):
-        raise ValueError(f"cfg must be a TrainConfig; got {type(cfg).__name__}")
+    check_instance("cfg", cfg, TrainConfig)
     run_dir = rundir.check_run_dir(run_dir)
     if stop_at is not None and not check_int("stop_at", stop_at) <= cfg.steps:
         raise ValueError(f"stop_at must lie in 1..steps={cfg.steps}; got {stop_at}")
