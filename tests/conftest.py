@@ -38,3 +38,9 @@ def flowsim_config() -> FlowSimConfig:
 def small_scenes(flowsim_config) -> Scenes:
     """SMALL_NUM_ENVS environments from the default config, key 0."""
     return generate(jax.random.key(0), SMALL_NUM_ENVS, flowsim_config)
+
+
+# tests/multidevice needs several JAX devices, fixed when JAX starts: tests/test_distributed.py
+# runs it in a subprocess with XLA_FLAGS=--xla_force_host_platform_device_count=2 and
+# FLOWMAPS_MULTIDEVICE=1. A plain `pytest` does not collect it directly.
+collect_ignore_glob = [] if os.environ.get("FLOWMAPS_MULTIDEVICE") else ["multidevice/*"]

@@ -245,7 +245,8 @@ def test_a_non_finite_state_is_not_saved_and_stops_the_run(tmp_path, monkeypatch
         return state, metrics
 
     monkeypatch.setattr(train_cli, "compiled_functions",
-                        lambda cfg: (objective, blows_up_at_10, eval_fn))
+                        lambda cfg, mesh=None: train_cli.Compiled(objective, blows_up_at_10,
+                                                                   eval_fn))
     said = []
     cfg = dataclasses.replace(CFG, ckpt_every=5)
     result = train_cli.run(cfg, tmp_path, progress=False, log=said.append)

@@ -303,7 +303,8 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch
         return state, metrics
 
     monkeypatch.setattr(train_cli, "compiled_functions",
-                        lambda cfg: (objective, poisoned_step, eval_fn))
+                        lambda cfg, mesh=None: train_cli.Compiled(objective, poisoned_step,
+                                                                   eval_fn))
     result = train_cli.run(SMOKE, tmp_path, progress=False)
     assert result.status == "nan" and result.step == 12 and result.state is None
     assert "Loss is nan at step 13" in capsys.readouterr().out

@@ -22,6 +22,10 @@ How it runs. Inputs are validated on the host (clear ``ValueError`` naming the a
 Random numbers: the samples of scene b come from ``split(key, B)[b]`` (or from ``key[b]`` when a
 batch of B keys is passed), so a scene's samples do not depend on which other scenes share the
 batch when per-scene keys are given.
+
+Several devices: ``predictor.sharded()`` splits the scenes of every call over all devices
+(:mod:`flowmaps_jax.distributed`; params replicated). Per-scene keys make the results the same
+as on one device.
 """
 
 from __future__ import annotations
@@ -33,8 +37,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 
-from flowmaps_jax import flow
+from flowmaps_jax import distributed, flow
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
 from flowmaps_jax.model import ModelConfig, baseline_predict, check_inputs
@@ -103,6 +108,9 @@ class Predictor:
         ``model.baseline_variance``).
     flowsim: the simulator config the model was trained on (map size for pixel boxes).
     source: where the params came from (checkpoint path) and step, for reports.
+    mesh: a 1-D device mesh (:mod:`flowmaps_jax.distributed`) to split the scenes of every call
+        over, params replicated; None (default) runs on one device. Results do not depend on
+        it: scene b's samples come from its own key. See :meth:`sharded`.
     """
 
     params: Any = dataclasses.field(repr=False)  # a pytree of arrays: too long to print
@@ -111,11 +119,36 @@ class Predictor:
     flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig)
     source: str | None = None
     step: int | None = None
+    mesh: Mesh | None = dataclasses.field(default=None, repr=False)
 
     def __post_init__(self):
         model_kind(self.kind)  # ValueError listing the kinds
         check_instance("model", self.model, ModelConfig)
         check_instance("flowsim", self.flowsim, FlowSimConfig)
+        if self.mesh is not None:
+            check_instance("mesh", self.mesh, Mesh)
+            # Replicate once, not at every call (a frozen dataclass: set the field directly).
+            object.__setattr__(self, "params", distributed.replicate(self.params, self.mesh))
+
+    def sharded(self, devices: int | None = None) -> Predictor:
+        """This predictor with every call split over ``devices`` devices (None: all JAX sees)
+        by scenes; with one device, itself. Same results, faster on several accelerators."""
+        mesh = distributed.training_mesh(devices)
+        return self if mesh is None else dataclasses.replace(self, mesh=mesh)
+
+    def with_precision(self, precision: str) -> Predictor:
+        """This predictor computing in ``precision`` ("float32" or "bf16" matmuls; the params
+        stay float32). A model keeps the precision it was trained with unless changed here."""
+        return dataclasses.replace(self, model=dataclasses.replace(self.model,
+                                                                   precision=precision))
+
+    def _on_mesh(self, *trees):
+        """The per-scene arguments split over the mesh (padded to a multiple of its size)."""
+        return tuple(distributed.shard_rows(tree, self.mesh) for tree in trees)
+
+    def _rows(self, out, b: int):
+        """Drop the padding scenes :meth:`_on_mesh` added."""
+        return out if self.mesh is None else jax.tree.map(lambda x: x[:b], out)
 
     @classmethod
     def from_params(cls, params, model: ModelConfig, kind: str = "flowmaps",
@@ -184,11 +217,11 @@ class Predictor:
         check_flag("return_log_prob", return_log_prob)
         self._check_request("sample", b, q, num_samples, return_log_prob)
         keys = _scene_keys(key, b)
-        tokens, queries = _as_arrays(tokens, queries)
+        tokens, queries, keys = self._on_mesh(*_as_arrays(tokens, queries), keys)
         kind = model_kind(self.kind)
         draw = kind.sample_with_log_prob if return_log_prob else kind.sample
-        out = draw(self.params, self.model, tokens, queries, keys, num_samples,
-                   num_steps=num_steps, method=method)
+        out = self._rows(draw(self.params, self.model, tokens, queries, keys, num_samples,
+                              num_steps=num_steps, method=method), b)
         boxes, log_p = out if return_log_prob else (out, None)
         if pixels:
             boxes = denormalise_boxes(boxes, self.flowsim)
@@ -217,17 +250,17 @@ class Predictor:
         if x.shape[2] < 1:
             raise ValueError("x must hold at least one box per query (N >= 1)")
         self._check_request("log_prob", b, q, x.shape[2], True)
-        tokens, queries = _as_arrays(tokens, queries)
-        return model_kind(self.kind).log_prob(self.params, self.model, tokens, queries, x,
-                                              num_steps=num_steps, method=method)
+        tokens, queries, x = self._on_mesh(*_as_arrays(tokens, queries), x)
+        return self._rows(model_kind(self.kind).log_prob(
+            self.params, self.model, tokens, queries, x, num_steps=num_steps, method=method), b)
 
     def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
         """MLP baseline only: (mean, log_var), each (B, Q, 4), of the predicted Gaussian."""
         if self.kind != "mlp":
             raise ValueError("gaussian() is only defined for the MLP baseline (kind='mlp')")
-        self.validate(tokens, queries)
-        tokens, queries = _as_arrays(tokens, queries)
-        return baseline_predict(self.params, self.model, tokens, queries)
+        b, _ = self.validate(tokens, queries)
+        tokens, queries = self._on_mesh(*_as_arrays(tokens, queries))
+        return self._rows(baseline_predict(self.params, self.model, tokens, queries), b)
 
 
 # --------------------------------------------------------------------------- loading
@@ -270,3 +303,18 @@ def load_pretrained(name: str) -> Predictor:
     from flowmaps_jax.pretrained import load_pretrained as _load
 
     return _load(name)
+
+
+PRETRAINED_PREFIX = "pretrained:"
+"""A model spec starting with this names shipped weights (``pretrained:flowmaps``)."""
+
+
+def load_model(spec: str, which: str = "best", devices: int | None = None) -> Predictor:
+    """What the CLIs' ``--checkpoint``/``--baseline`` name: a run or checkpoint directory
+    (:func:`load`), or ``pretrained:NAME`` (:func:`load_pretrained`), split over ``devices``
+    devices (None: every device JAX sees; see :meth:`Predictor.sharded`)."""
+    if spec.startswith(PRETRAINED_PREFIX):
+        predictor = load_pretrained(spec[len(PRETRAINED_PREFIX):])
+    else:
+        predictor = load(spec, which=which)
+    return predictor.sharded(devices)

@@ -19,6 +19,7 @@ from collections.abc import Sequence
 
 import jax
 
+from flowmaps_jax import distributed
 from flowmaps_jax.evaluation.protocol import (
     DEFAULT_CHUNK_ENVS,
     DEFAULT_KL_DRAWS,
@@ -27,10 +28,8 @@ from flowmaps_jax.evaluation.protocol import (
 )
 from flowmaps_jax.evaluation.report import markdown_table
 from flowmaps_jax.evaluation.run import run_evaluation
-from flowmaps_jax.sample import DEFAULT_NUM_STEPS, SOLVERS, Predictor, load, load_pretrained
+from flowmaps_jax.sample import DEFAULT_NUM_STEPS, PRETRAINED_PREFIX, SOLVERS, load_model
 from flowmaps_jax.validation import check_int, check_output_dir
-
-PRETRAINED_PREFIX = "pretrained:"
 
 
 def _parse_counts(text: str) -> tuple[int, ...]:
@@ -75,16 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--scenes", default=None,
                         help="evaluate on scenes from an .npz (flowsim.scenes.save_scenes) instead "
                              "of the validation split")
+    parser.add_argument("--devices", type=int, default=None, metavar="N",
+                        help="split the environments over N devices (default: every device "
+                             "JAX sees); results do not depend on it")
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
-
-
-def _load_model(spec: str, which: str) -> Predictor:
-    """A checkpoint directory, or ``pretrained:NAME`` for a model shipped with the package."""
-    if spec.startswith(PRETRAINED_PREFIX):
-        return load_pretrained(spec[len(PRETRAINED_PREFIX):])
-    return load(spec, which=which)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -92,6 +87,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        distributed.initialize()  # a multi-host job: connect the processes first
         check_int("--num-envs", args.num_envs, 1)
         check_int("--kl-draws", args.kl_draws, 2)
         check_int("--num-steps", args.num_steps, 2)
@@ -105,8 +101,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             out = pathlib.Path(args.checkpoint) / "eval"
         out = pathlib.Path(check_output_dir("--out", out))  # before the evaluation runs
-        model = _load_model(args.checkpoint, args.which)
-        baselines = [_load_model(path, args.which) for path in args.baseline]
+        mesh = distributed.training_mesh(args.devices)
+        model = load_model(args.checkpoint, args.which, args.devices)
+        baselines = [load_model(path, args.which, args.devices) for path in args.baseline]
         config = model.flowsim
         if args.scenes is not None:
             from flowmaps_jax.flowsim.scenes import load_scenes
@@ -117,10 +114,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             from flowmaps_jax.flowsim.scenes import validation_split
 
-            scenes = validation_split(config, num_envs=args.num_envs)
+            scenes = validation_split(config, num_envs=args.num_envs, mesh=mesh)
         print(f"Evaluating {model.name} ({model.source}, step {model.step})"
               + "".join(f" vs {b.name} ({b.source}, step {b.step})" for b in baselines)
-              + f" on {scenes.num_envs} environments → {out}", flush=True)
+              + f" on {scenes.num_envs} environments, {distributed.describe(mesh)} → {out}",
+              flush=True)
         results, _, _ = run_evaluation(
             [*baselines, model], scenes, config, out, seed=args.seed, sample_counts=args.samples,
             kl_draws=args.kl_draws, chunk_envs=args.chunk_envs, num_steps=args.num_steps,

@@ -235,10 +235,15 @@ def scenes_from_env_keys(env_keys, params, shape: SimShape):
     return scenes, ok
 
 
-def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG) -> Scenes:
+def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh=None,
+             part: slice | None = None) -> Scenes:
     """Generate ``num_envs`` FlowSim environments (layouts, visiting orders, T-step rollouts).
 
     key: a JAX PRNG key; the same key, num_envs and config give the same Scenes.
+    mesh: a 1-D device mesh (:func:`flowmaps_jax.distributed.data_mesh`) to split the
+        environments over; the result is the same, element for element, as without one.
+    part: generate only these environments of the ``num_envs`` (a slice, e.g. this host's
+        :func:`flowmaps_jax.distributed.host_part`); they equal the same rows of the full set.
     Raises ``ValueError`` on bad arguments (also when ``num_envs`` environments would not fit in
     memory, see ``validation.check_request_size``) and ``RuntimeError`` if some layout could not be
     placed within ``config.layout_budget`` redraws (the config is too crowded). Not for use
@@ -246,11 +251,17 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG) -> Scen
     """
     check_instance("config", config, FlowSimConfig)
     num_envs = check_int("num_envs", num_envs, 1)
-    check_request_size(f"generate({num_envs} environments)",
-                       num_envs * scenes_bytes_per_env(config))
     key = check_key(key)
     env_keys = jax.random.split(key, num_envs)
-    scenes, ok = scenes_from_env_keys(env_keys, sim_params(config), sim_shape(config))
+    if part is not None:
+        check_instance("part", part, slice)
+        env_keys = env_keys[part]
+        if env_keys.shape[0] == 0:
+            raise ValueError(f"part={part} selects no environment of {num_envs}")
+        num_envs = env_keys.shape[0]
+    check_request_size(f"generate({num_envs} environments)",
+                       num_envs * scenes_bytes_per_env(config))
+    scenes, ok = _generate_on(env_keys, config, mesh)
     failed = int(np.sum(~np.asarray(ok)))
     if failed:
         raise RuntimeError(
@@ -260,3 +271,35 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG) -> Scen
             f"map_size={config.map_size} (raise map_size/layout_budget/layout_candidates or "
             "lower num_furniture/table_max_frac)")
     return scenes
+
+
+def _generate_on(env_keys, config: FlowSimConfig, mesh):
+    """``scenes_from_env_keys`` on one device, or split over ``mesh``: each device generates its
+    block of keys (``shard_map``), which gives the same environments because environment e
+    depends only on its key. Padding keys (to a multiple of the mesh size) are dropped."""
+    params, shape = sim_params(config), sim_shape(config)
+    if mesh is not None:
+        from jax.sharding import Mesh
+
+        check_instance("mesh", mesh, Mesh)
+    if mesh is None or mesh.size == 1:
+        return scenes_from_env_keys(env_keys, params, shape)
+    from flowmaps_jax import distributed
+
+    num_envs = env_keys.shape[0]
+    scenes, ok = _sharded_generator(mesh, shape)(distributed.shard_rows(env_keys, mesh), params)
+    return jax.tree.map(lambda x: x[:num_envs], (scenes, ok))
+
+
+@functools.lru_cache(maxsize=8)
+def _sharded_generator(mesh, shape: SimShape):
+    from jax.sharding import PartitionSpec
+
+    from flowmaps_jax.distributed import DATA_AXIS
+
+    def local(keys, params):  # one device's block of environments, a plain local program
+        return scenes_from_env_keys(keys, params, shape)
+
+    rows = PartitionSpec(DATA_AXIS)
+    return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(rows, PartitionSpec()),
+                                 out_specs=rows, check_vma=False))

@@ -231,18 +231,21 @@ def _split_key(seed: int, tag: int) -> jax.Array:
 
 
 def train_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 2500,
-                seed: int = TRAIN_SEED) -> Scenes:
-    """The fixed training environments: ``generate(fold_in(key(seed), 0), num_envs, config)``."""
+                seed: int = TRAIN_SEED, *, mesh=None, part: slice | None = None) -> Scenes:
+    """The fixed training environments: ``generate(fold_in(key(seed), 0), num_envs, config)``.
+
+    mesh / part: as in :func:`~flowmaps_jax.flowsim.generate.generate` (split the work over
+    devices; generate only this host's share). Neither changes an environment."""
     _check_inputs(config)
-    return generate(_split_key(seed, _TRAIN_TAG), num_envs, config)
+    return generate(_split_key(seed, _TRAIN_TAG), num_envs, config, mesh=mesh, part=part)
 
 
 def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200,
-                     seed: int = VALIDATION_SEED) -> Scenes:
+                     seed: int = VALIDATION_SEED, *, mesh=None) -> Scenes:
     """The held-out environments: ``generate(fold_in(key(seed), 1), num_envs, config)``;
-    a different seed and tag from ``train_split``."""
+    a different seed and tag from ``train_split``. mesh: split the work over devices."""
     _check_inputs(config)
-    return generate(_split_key(seed, _VALIDATION_TAG), num_envs, config)
+    return generate(_split_key(seed, _VALIDATION_TAG), num_envs, config, mesh=mesh)
 
 
 # ------------------------------------------------------------------------------ .npz I/O

@@ -43,12 +43,14 @@ class BaselineMLP(nn.Module):
         ], axis=-1)
         h = features
         for i in range(2):
-            h = nn.gelu(FlatDense(cfg.baseline_hidden, name=f"hidden_{i}")(h))
+            h = nn.gelu(FlatDense(cfg.baseline_hidden, precision=cfg.precision,
+                                  name=f"hidden_{i}")(h))
             h = nn.Dropout(cfg.dropout)(h, deterministic=deterministic)
-        mean = FlatDense(4, name="mean")(h)
+        mean = FlatDense(4, precision=cfg.precision, name="mean")(h)
         if cfg.baseline_variance == "mean":
             return mean, jnp.zeros_like(mean)
-        log_var = FlatDense(4, kernel_init=nn.initializers.zeros_init(), name="log_var")(h)
+        log_var = FlatDense(4, kernel_init=nn.initializers.zeros_init(), precision=cfg.precision,
+                            name="log_var")(h)
         return mean, jnp.clip(log_var, *LOG_VAR_RANGE)
 
 

@@ -18,6 +18,8 @@ Cross-attention is computed by :func:`cross_attention`: with one row per query (
 docstring); with several rows per query (sampling) by :func:`shared_kv_cross_attention`, which
 projects m once per query and shares it across the rows. :func:`plain_cross_attention` is the
 textbook version with the same weights, kept as the reference that tests compare against.
+Each form's optional ``dtype`` is the matmul operand dtype (None: float32; bfloat16 for
+``precision="bf16"``, see :mod:`flowmaps_jax.model.precision`); results are float32 either way.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import jax.numpy as jnp
 
 from flowmaps_jax.model.embeddings import FlatDense
 from flowmaps_jax.model.encoder import FeedForward
+from flowmaps_jax.model.precision import compute_dtype, dot, einsum
 
 
 def _layer_norm(x: jnp.ndarray, eps: float = 1e-6) -> jnp.ndarray:
@@ -50,7 +53,7 @@ def _masked_softmax(scores: jnp.ndarray, key_mask: jnp.ndarray) -> jnp.ndarray:
     return jax.nn.softmax(scores, axis=-1)
 
 
-def absorbed_cross_attention(x, context_norm, mask, shift, scale, weights):
+def absorbed_cross_attention(x, context_norm, mask, shift, scale, weights, dtype=None):
     """Cross-attention to a per-query modulated context, without materialising it.
 
     Shapes: x (B, Q, N, D) query rows; context_norm n = LN(context) (B, S, D); mask (B, S) bool;
@@ -73,22 +76,23 @@ def absorbed_cross_attention(x, context_norm, mask, shift, scale, weights):
     heads, head_dim = weights["wq"].shape[1:]
     gain = (1.0 + scale)[:, :, None, None, :]  # (B, Q, 1, 1, D), shared by the N rows
     # Row-wise products are written on flat (rows, ...) arrays: one GEMM each, fast backward on CPU.
-    query = (x.reshape(-1, d) @ weights["wq"].reshape(d, heads * head_dim)
+    query = (dot(x.reshape(-1, d), weights["wq"].reshape(d, heads * head_dim), dtype)
              + weights["bq"].reshape(-1)).reshape(-1, heads, head_dim)  # (B·Q·N, H, Dh)
-    u = jnp.einsum("rhk,dhk->rhd", query, weights["wk"]).reshape(b, q, n, heads, d)
+    u = einsum("rhk,dhk->rhd", query, weights["wk"], dtype).reshape(b, q, n, heads, d)
     u = u * (gain / math.sqrt(head_dim))
     # One batched matmul per scene over all its (query, row, head) triples: (B, QNH, D)·(B, S, D)ᵀ
     u = u.reshape(b, q * n * heads, d)
-    scores = jnp.einsum("bxd,bsd->bxs", u, context_norm)
+    scores = einsum("bxd,bsd->bxs", u, context_norm, dtype)
     attn = _masked_softmax(scores, mask[:, None, :])
-    pooled = jnp.einsum("bxs,bsd->bxd", attn, context_norm).reshape(b, q, n, heads, d)
+    pooled = einsum("bxs,bsd->bxd", attn, context_norm, dtype).reshape(b, q, n, heads, d)
     pooled = (pooled * gain + shift[:, :, None, None, :]).reshape(-1, heads, d)
-    values = jnp.einsum("rhd,dhk->rhk", pooled, weights["wv"]) + weights["bv"]
-    out = values.reshape(-1, heads * head_dim) @ weights["wo"].reshape(heads * head_dim, d)
+    values = einsum("rhd,dhk->rhk", pooled, weights["wv"], dtype) + weights["bv"]
+    out = dot(values.reshape(-1, heads * head_dim), weights["wo"].reshape(heads * head_dim, d),
+              dtype)
     return (out + weights["bo"]).reshape(b, q, n, d)
 
 
-def shared_kv_cross_attention(x, context_norm, mask, shift, scale, weights):
+def shared_kv_cross_attention(x, context_norm, mask, shift, scale, weights, dtype=None):
     """Cross-attention that projects the modulated context once per query, shared by its N rows.
 
     Same arguments and result as :func:`absorbed_cross_attention`. Cost per query: 2·S·D² for the
@@ -103,18 +107,18 @@ def shared_kv_cross_attention(x, context_norm, mask, shift, scale, weights):
     m = modulate(context_norm[:, None], shift[:, :, None, :], scale[:, :, None, :])  # (B,Q,S,D)
     w_kv = jnp.concatenate([weights["wk"].reshape(d, -1), weights["wv"].reshape(d, -1)], axis=1)
     b_kv = jnp.concatenate([weights["bk"].reshape(-1), weights["bv"].reshape(-1)])
-    kv = (m.reshape(-1, d) @ w_kv + b_kv).reshape(b * q, s, 2, heads, head_dim)
-    query = (x.reshape(-1, d) @ weights["wq"].reshape(d, -1) + weights["bq"].reshape(-1))
+    kv = (dot(m.reshape(-1, d), w_kv, dtype) + b_kv).reshape(b * q, s, 2, heads, head_dim)
+    query = (dot(x.reshape(-1, d), weights["wq"].reshape(d, -1), dtype) + weights["bq"].reshape(-1))
     query = query.reshape(b * q, n, heads, head_dim) / math.sqrt(head_dim)
-    scores = jnp.einsum("xnhk,xshk->xhns", query, kv[:, :, 0])  # (B·Q, H, N, S)
+    scores = einsum("xnhk,xshk->xhns", query, kv[:, :, 0], dtype)  # (B·Q, H, N, S)
     key_mask = jnp.broadcast_to(mask[:, None], (b, q, s)).reshape(b * q, 1, 1, s)
     attn = _masked_softmax(scores, key_mask)
-    values = jnp.einsum("xhns,xshk->xnhk", attn, kv[:, :, 1]).reshape(-1, heads * head_dim)
-    out = values @ weights["wo"].reshape(heads * head_dim, d) + weights["bo"]
+    values = einsum("xhns,xshk->xnhk", attn, kv[:, :, 1], dtype).reshape(-1, heads * head_dim)
+    out = dot(values, weights["wo"].reshape(heads * head_dim, d), dtype) + weights["bo"]
     return out.reshape(b, q, n, d)
 
 
-def cross_attention(x, context_norm, mask, shift, scale, weights):
+def cross_attention(x, context_norm, mask, shift, scale, weights, dtype=None):
     """Modulated cross-attention, picking the faster exact form from the (static) row count N.
 
     One row per query (training): :func:`absorbed_cross_attention` (no S·D² per query). Several
@@ -124,23 +128,23 @@ def cross_attention(x, context_norm, mask, shift, scale, weights):
     """
     rows = x.shape[2]
     form = absorbed_cross_attention if rows == 1 else shared_kv_cross_attention
-    return form(x, context_norm, mask, shift, scale, weights)
+    return form(x, context_norm, mask, shift, scale, weights, dtype)
 
 
-def plain_cross_attention(x, context_norm, mask, shift, scale, weights):
+def plain_cross_attention(x, context_norm, mask, shift, scale, weights, dtype=None):
     """Reference cross-attention that forms the modulated context per query (O(S·D²) per query).
 
     Same arguments and result as :func:`absorbed_cross_attention`; used only to test it.
     """
     head_dim = weights["wq"].shape[-1]
     m = modulate(context_norm[:, None], shift[:, :, None, :], scale[:, :, None, :])  # (B,Q,S,D)
-    q = jnp.einsum("bqnd,dhk->bqnhk", x, weights["wq"]) + weights["bq"]
-    k = jnp.einsum("bqsd,dhk->bqshk", m, weights["wk"]) + weights["bk"]
-    v = jnp.einsum("bqsd,dhk->bqshk", m, weights["wv"]) + weights["bv"]
-    scores = jnp.einsum("bqnhk,bqshk->bqnhs", q, k) / math.sqrt(head_dim)
+    q = einsum("bqnd,dhk->bqnhk", x, weights["wq"], dtype) + weights["bq"]
+    k = einsum("bqsd,dhk->bqshk", m, weights["wk"], dtype) + weights["bk"]
+    v = einsum("bqsd,dhk->bqshk", m, weights["wv"], dtype) + weights["bv"]
+    scores = einsum("bqnhk,bqshk->bqnhs", q, k, dtype) / math.sqrt(head_dim)
     attn = _masked_softmax(scores, mask[:, None, None, None, :])
-    values = jnp.einsum("bqnhs,bqshk->bqnhk", attn, v)
-    return jnp.einsum("bqnhk,hkd->bqnd", values, weights["wo"]) + weights["bo"]
+    values = einsum("bqnhs,bqshk->bqnhk", attn, v, dtype)
+    return einsum("bqnhk,hkd->bqnd", values, weights["wo"], dtype) + weights["bo"]
 
 
 class ModulatedCrossAttention(nn.Module):
@@ -148,6 +152,7 @@ class ModulatedCrossAttention(nn.Module):
 
     dim: int
     heads: int
+    precision: str = "float32"
 
     @nn.compact
     def __call__(self, x, context_norm, mask, shift, scale):
@@ -163,7 +168,8 @@ class ModulatedCrossAttention(nn.Module):
             "wo": self.param("wo", out_init, (self.heads, head_dim, self.dim)),
             "bo": self.param("bo", zeros, (self.dim,)),
         }
-        return cross_attention(x, context_norm, mask, shift, scale, weights)
+        return cross_attention(x, context_norm, mask, shift, scale, weights,
+                               compute_dtype(self.precision))
 
 
 class CDiTBlock(nn.Module):
@@ -173,20 +179,22 @@ class CDiTBlock(nn.Module):
     heads: int
     mlp_ratio: int
     dropout: float
+    precision: str = "float32"
 
     @nn.compact
     def __call__(self, x, c, context, mask, deterministic: bool):
-        mod = FlatDense(8 * self.dim, kernel_init=nn.initializers.zeros_init(),
-                       name="adaln_modulation")(nn.silu(c))  # once per query, not per row
+        mod = FlatDense(8 * self.dim, kernel_init=nn.initializers.zeros_init(),  # once per query
+                        precision=self.precision, name="adaln_modulation")(nn.silu(c))
         (shift_ctx, scale_ctx, shift_ca, scale_ca, gate_ca,
          shift_mlp, scale_mlp, gate_mlp) = jnp.split(mod, 8, axis=-1)
         rows = lambda a: a[:, :, None, :]  # noqa: E731  (B, Q, D) → (B, Q, 1, D)
         h = modulate(_layer_norm(x), rows(shift_ca), rows(scale_ca))
-        h = ModulatedCrossAttention(self.dim, self.heads, name="cross_attn")(
+        h = ModulatedCrossAttention(self.dim, self.heads, self.precision, name="cross_attn")(
             h, _layer_norm(context), mask, shift_ctx, scale_ctx)
         x = x + rows(gate_ca) * nn.Dropout(self.dropout)(h, deterministic=deterministic)
         h = modulate(_layer_norm(x), rows(shift_mlp), rows(scale_mlp))
-        h = FeedForward(self.dim, self.mlp_ratio, self.dropout, name="mlp")(h, deterministic)
+        h = FeedForward(self.dim, self.mlp_ratio, self.dropout, self.precision, name="mlp")(
+            h, deterministic)
         return x + rows(gate_mlp) * nn.Dropout(self.dropout)(h, deterministic=deterministic)
 
 
@@ -196,13 +204,15 @@ class FinalLayer(nn.Module):
 
     dim: int
     out_dim: int | None = 4
+    precision: str = "float32"
 
     @nn.compact
     def __call__(self, x, c):
         mod = FlatDense(2 * self.dim, kernel_init=nn.initializers.zeros_init(),
-                       name="adaln_modulation")(nn.silu(c))
+                        precision=self.precision, name="adaln_modulation")(nn.silu(c))
         shift, scale = jnp.split(mod, 2, axis=-1)
         h = modulate(_layer_norm(x), shift[:, :, None, :], scale[:, :, None, :])
         if self.out_dim is None:
             return h
-        return FlatDense(self.out_dim, kernel_init=nn.initializers.zeros_init(), name="proj")(h)
+        return FlatDense(self.out_dim, kernel_init=nn.initializers.zeros_init(),
+                         precision=self.precision, name="proj")(h)

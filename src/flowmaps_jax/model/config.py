@@ -13,6 +13,7 @@ from flowmaps_jax.validation import check_choice, check_flag, check_int, check_r
 
 BASELINE_VARIANCES = ("mean", "learned")
 HEADS = ("velocity", "pointer")
+PRECISIONS = ("float32", "bf16")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +39,10 @@ class ModelConfig:
         Centring and scaling up raises the data's signal-to-noise ratio against X_0 ~ N(0, I);
         measured on the cpu preset it sharpened h, w but scattered y, x (docs/results.md,
         "Sharper boxes"). (0, 1), the default, is the paper's identity map.
+    precision: compute precision of matmuls and attention, ``"float32"`` or ``"bf16"`` (bfloat16
+        operands, float32 accumulation; :mod:`flowmaps_jax.model.precision`); params, optimiser
+        state, LayerNorm, softmax and the loss stay float32. bf16 is for accelerators (on CPU it
+        is slower).
     """
 
     dim: int = 256
@@ -57,6 +62,7 @@ class ModelConfig:
     head: str = "velocity"
     pointer_width_scale: float = 1.0
     condition_on_dtau: bool = False
+    precision: str = "float32"
 
     def __post_init__(self):
         for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
@@ -76,6 +82,7 @@ class ModelConfig:
                    low_open=True)
         check_flag("ModelConfig.condition_on_dtau", self.condition_on_dtau)
         check_choice("ModelConfig.baseline_variance", self.baseline_variance, BASELINE_VARIANCES)
+        check_choice("ModelConfig.precision", self.precision, PRECISIONS)
 
     @property
     def head_dim(self) -> int:

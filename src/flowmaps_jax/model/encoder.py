@@ -15,6 +15,7 @@ import jax.numpy as jnp
 
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.embeddings import FlatDense, SinusoidalMLP
+from flowmaps_jax.model.precision import compute_dtype
 from flowmaps_jax.tokens import Queries, SceneTokens
 
 
@@ -24,30 +25,39 @@ class FeedForward(nn.Module):
     dim: int
     mlp_ratio: int
     dropout: float
+    precision: str = "float32"
 
     @nn.compact
     def __call__(self, x: jnp.ndarray, deterministic: bool) -> jnp.ndarray:
-        h = nn.gelu(FlatDense(self.dim * self.mlp_ratio, name="fc1")(x))
+        h = nn.gelu(FlatDense(self.dim * self.mlp_ratio, name="fc1", precision=self.precision)(x))
         h = nn.Dropout(self.dropout)(h, deterministic=deterministic)
-        return FlatDense(self.dim, name="fc2")(h)
+        return FlatDense(self.dim, name="fc2", precision=self.precision)(h)
 
 
 class SelfAttention(nn.Module):
     """Multi-head self-attention over tokens with a key-padding mask. x (B, S, D), mask (B, S).
 
-    Fused QKV projection as one flat GEMM, then ``jax.nn.dot_product_attention``.
+    Fused QKV projection as one flat GEMM, then ``jax.nn.dot_product_attention``. In bf16 it gets
+    bf16 q, k, v (it takes the logits and softmax in float32) and its output goes back to float32.
     """
 
     dim: int
     heads: int
+    precision: str = "float32"
 
     @nn.compact
     def __call__(self, x: jnp.ndarray, mask: jnp.ndarray) -> jnp.ndarray:
         b, s, d = x.shape
-        qkv = FlatDense(3 * self.dim, name="qkv")(x).reshape(b, s, 3, self.heads, -1)
+        dtype = compute_dtype(self.precision)
+        qkv = FlatDense(3 * self.dim, name="qkv", precision=self.precision)(x)
+        qkv = qkv.reshape(b, s, 3, self.heads, -1)
+        if dtype is not None:
+            qkv = qkv.astype(dtype)
         out = jax.nn.dot_product_attention(qkv[:, :, 0], qkv[:, :, 1], qkv[:, :, 2],
                                            mask=mask[:, None, None, :])  # (B, S, H, Dh)
-        return FlatDense(self.dim, name="out")(out.reshape(b, s, d))
+        if dtype is not None:
+            out = out.astype(jnp.float32)
+        return FlatDense(self.dim, name="out", precision=self.precision)(out.reshape(b, s, d))
 
 
 class EncoderLayer(nn.Module):
@@ -57,12 +67,14 @@ class EncoderLayer(nn.Module):
     heads: int
     mlp_ratio: int
     dropout: float
+    precision: str = "float32"
 
     @nn.compact
     def __call__(self, x: jnp.ndarray, mask: jnp.ndarray, deterministic: bool) -> jnp.ndarray:
-        h = SelfAttention(self.dim, self.heads, name="attn")(nn.LayerNorm(name="norm1")(x), mask)
+        h = SelfAttention(self.dim, self.heads, self.precision, name="attn")(
+            nn.LayerNorm(name="norm1")(x), mask)
         x = x + nn.Dropout(self.dropout)(h, deterministic=deterministic)
-        h = FeedForward(self.dim, self.mlp_ratio, self.dropout, name="mlp")(
+        h = FeedForward(self.dim, self.mlp_ratio, self.dropout, self.precision, name="mlp")(
             nn.LayerNorm(name="norm2")(x), deterministic)
         return x + nn.Dropout(self.dropout)(h, deterministic=deterministic)
 
@@ -75,15 +87,15 @@ class MapEncoder(nn.Module):
     @nn.compact
     def __call__(self, tokens: SceneTokens, deterministic: bool) -> jnp.ndarray:
         cfg = self.config
-        x = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency, name="box_embed")(
-            tokens.boxes)
+        x = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency, cfg.precision,
+                          name="box_embed")(tokens.boxes)
         x = x + nn.Embed(cfg.num_descriptors, cfg.dim, name="descriptor_embed")(tokens.descriptor)
         x = x + nn.Embed(2, cfg.dim, name="kind_embed")(tokens.kind)
         x = x + nn.Embed(cfg.tau_max, cfg.dim, name="tau_embed")(tokens.tau)[:, None, :]
         mask = tokens.mask.astype(bool)
         for i in range(cfg.encoder_layers):
-            x = EncoderLayer(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout, name=f"layer_{i}")(
-                x, mask, deterministic)
+            x = EncoderLayer(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout, cfg.precision,
+                             name=f"layer_{i}")(x, mask, deterministic)
         x = nn.LayerNorm(name="final_norm")(x)
         return jnp.where(mask[..., None], x, 0.0)
 

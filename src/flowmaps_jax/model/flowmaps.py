@@ -43,28 +43,34 @@ class Context:
 
 
 class FlowMaps(nn.Module):
-    """The flax module behind the pure functions; use ``encode``/``velocity`` methods via apply."""
+    """The flax module behind the pure functions; use ``encode``/``velocity`` methods via apply.
+
+    ``config.precision`` is passed to every submodule that multiplies (see
+    :mod:`flowmaps_jax.model.precision`); parameter names and shapes do not depend on it.
+    """
 
     config: ModelConfig
 
     def setup(self):
         cfg = self.config
         self.encoder = MapEncoder(cfg)
-        self.query_embed = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency)
+        self.query_embed = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency,
+                                         cfg.precision)
         self.query_pos = self.param("query_pos", nn.initializers.normal(0.02), (cfg.dim,))
-        self.time_embed = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency)
+        self.time_embed = SinusoidalMLP(cfg.dim, cfg.freq_bands, cfg.max_frequency,
+                                        cfg.precision)
         self.tau_q_embed = nn.Embed(cfg.tau_max, cfg.dim)
         self.descriptor_embed = nn.Embed(cfg.num_descriptors, cfg.dim)
         if cfg.condition_on_dtau:
             self.dtau_embed = nn.Embed(cfg.tau_max, cfg.dim)
-        self.blocks = [CDiTBlock(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout)
+        self.blocks = [CDiTBlock(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout, cfg.precision)
                        for _ in range(cfg.cdit_blocks)]
         if cfg.head == "pointer":
-            self.final_norm = FinalLayer(cfg.dim, out_dim=None)
+            self.final_norm = FinalLayer(cfg.dim, out_dim=None, precision=cfg.precision)
             self.readout = PointerReadout(cfg.dim, cfg.box_scale, cfg.box_offset,
-                                          cfg.pointer_width_scale)
+                                          cfg.pointer_width_scale, cfg.precision)
         else:
-            self.final = FinalLayer(cfg.dim)
+            self.final = FinalLayer(cfg.dim, precision=cfg.precision)
 
     def encode(self, tokens: SceneTokens, deterministic: bool = True) -> Context:
         mask = tokens.mask.astype(bool)

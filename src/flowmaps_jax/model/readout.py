@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 
 from flowmaps_jax.model.embeddings import FlatDense
+from flowmaps_jax.model.precision import compute_dtype, einsum
 from flowmaps_jax.tokens import from_centre, to_centre
 
 _INIT_LOG_VAR = 2.0 * math.log(0.02)  # a component's initial std in flow units
@@ -50,13 +51,13 @@ def _diag(*values):
     return lambda key, shape, dtype=jnp.float32: jnp.diag(jnp.asarray(values, dtype))
 
 
-def _pointer_logits(h, context, name: str, dim: int):
-    """Bilinear scores <W h_row, K ctx_s> / √dim.
+def _pointer_logits(h, context, name: str, dim: int, precision: str = "float32"):
+    """Bilinear scores <W h_row, K ctx_s> / √dim, products at ``precision``.
 
     h (B, Q, N, D), context (B, S, D) → (B, Q, N, S)."""
-    query = FlatDense(dim, name=f"{name}_query")(h)
-    key = FlatDense(dim, name=f"{name}_key")(context)
-    return jnp.einsum("bqnd,bsd->bqns", query, key) / math.sqrt(dim)
+    query = FlatDense(dim, name=f"{name}_query", precision=precision)(h)
+    key = FlatDense(dim, name=f"{name}_key", precision=precision)(context)
+    return einsum("bqnd,bsd->bqns", query, key, compute_dtype(precision)) / math.sqrt(dim)
 
 
 def mixture_velocity(logits, means, log_var, x_t, t):
@@ -78,20 +79,27 @@ def mixture_velocity(logits, means, log_var, x_t, t):
 
 
 class PointerReadout(nn.Module):
-    """The pointer head. See the module docstring for the maths and the shapes."""
+    """The pointer head. See the module docstring for the maths and the shapes.
+
+    ``precision`` applies to the D-wide products (pointer logits, Dense layers); the box-space
+    arithmetic (4-wide maps, pointer-weighted boxes, the mixture) stays float32 at any precision:
+    it costs O(S) per row, and bf16 would round the copied boxes by up to ~2⁻⁹ (half a pixel).
+    """
 
     dim: int
     box_scale: float = 1.0
     box_offset: float = 0.0
     width_scale: float = 1.0  # log σ² = width_scale · θ: Adam moves the widths this much faster
+    precision: str = "float32"
 
     @nn.compact
     def __call__(self, h, c, context, mask, boxes, x_t, t):
         big_negative = jnp.finfo(h.dtype).min / 4
         keep = mask[:, None, None, :]  # (B, 1, 1, S)
-        anchor = jnp.where(keep, _pointer_logits(h, context, "anchor", self.dim), big_negative)
+        logits = lambda name: _pointer_logits(h, context, name, self.dim, self.precision)  # noqa: E731
+        anchor = jnp.where(keep, logits("anchor"), big_negative)
         self.sow("intermediates", "anchor_logits", anchor)  # for the optional pointer loss
-        source = jnp.where(keep, _pointer_logits(h, context, "source", self.dim), big_negative)
+        source = jnp.where(keep, logits("source"), big_negative)
         source = jax.nn.softmax(source, axis=-1)
         a_map = self.param("anchor_map", _diag(1.0, 1.0, 0.0, 0.0), (4, 4))
         b_map = self.param("source_map", _diag(0.0, 0.0, 1.0, 1.0), (4, 4))
@@ -102,7 +110,8 @@ class PointerReadout(nn.Module):
         means = self.box_scale * (from_centre(means) - self.box_offset)  # the flow's space
         theta = self.param("log_var", nn.initializers.constant(_INIT_LOG_VAR / self.width_scale),
                            (4,))
-        log_var = self.width_scale * theta + FlatDense(4, kernel_init=nn.initializers.zeros_init(),
-                                      name="log_var_shift")(nn.silu(c))
+        zeros = nn.initializers.zeros_init()
+        log_var = self.width_scale * theta + FlatDense(
+            4, kernel_init=zeros, precision=self.precision, name="log_var_shift")(nn.silu(c))
         v = mixture_velocity(anchor, means, log_var[:, :, None, None, :], x_t, t)
-        return v + FlatDense(4, kernel_init=nn.initializers.zeros_init(), name="residual")(h)
+        return v + FlatDense(4, kernel_init=zeros, precision=self.precision, name="residual")(h)

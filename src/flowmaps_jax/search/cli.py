@@ -17,23 +17,16 @@ import pathlib
 import sys
 from collections.abc import Sequence
 
+from flowmaps_jax import distributed
 from flowmaps_jax.flowsim import validation_split
-from flowmaps_jax.sample import load, load_pretrained
+from flowmaps_jax.sample import PRETRAINED_PREFIX, load_model
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import figures as fg
 from flowmaps_jax.search import protocol as pr
 from flowmaps_jax.search.report import markdown_table, write_report
 from flowmaps_jax.validation import check_int
 
-PRETRAINED = "pretrained:"
 FIGURES = ("episodes.png", "success_vs_looks.png", "success_vs_distance.png")
-
-
-def load_model(spec: str, which: str = "best"):
-    """A Predictor from a run/checkpoint directory, or ``pretrained:NAME`` (shipped weights)."""
-    if spec.startswith(PRETRAINED):
-        return load_pretrained(spec.removeprefix(PRETRAINED))
-    return load(spec, which=which)
 
 
 def _int_list(text: str) -> list[int]:
@@ -73,6 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("--seed", type=int, default=0, help="seed of the queries, samples and misses")
     add("--which", choices=("best", "latest"), default="best", help="checkpoint to load")
     add("--chunk-rows", type=int, default=50, help="scene rows per model call")
+    add("--devices", type=int, default=None, metavar="N",
+        help="split the model calls over N devices (default: every device JAX sees)")
     add("--no-figures", action="store_true", help="skip the PNG figures")
     add("--no-progress", action="store_true", help="no progress bars")
     return cli
@@ -101,15 +96,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; 0 on success, 2 on a bad argument (message on stderr)."""
     args = build_parser().parse_args(argv)
     try:
+        distributed.initialize()  # a multi-host job: connect the processes first
         for name in ("num_envs", "times_per_env", "samples", "budget", "chunk_rows"):
             check_int("--" + name.replace("_", "-"), getattr(args, name))
         ep.check_p_miss(args.p_miss)
-        if args.out is None and args.checkpoint.startswith(PRETRAINED):
+        if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         out = pathlib.Path(args.out or pathlib.Path(args.checkpoint) / "search")
-        models = [load_model(spec, args.which) for spec in [args.checkpoint, *args.baseline]]
+        models = [load_model(spec, args.which, args.devices)
+                  for spec in [args.checkpoint, *args.baseline]]
         config = models[0].flowsim
-        scenes = validation_split(config, num_envs=args.num_envs)
+        scenes = validation_split(config, num_envs=args.num_envs,
+                                  mesh=distributed.training_mesh(args.devices))
         print(f"Search with {', '.join(m.name for m in models)} on {args.num_envs} validation "
               f"environments → {out}", flush=True)
         results, runs, search_set = pr.run_search(

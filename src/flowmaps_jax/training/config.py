@@ -68,6 +68,10 @@ class TrainConfig:
         query; 0 environments = off.
     seed: the single seed from which params, dropout and data keys are derived.
     log_every, val_every, ckpt_every: intervals in steps; keep_last: recent checkpoints kept.
+    devices: train data-parallel over this many devices (None = every device JAX sees; see
+        :mod:`flowmaps_jax.distributed`). ``batch_size`` must divide by it. The global batch,
+        and so the numbers, do not depend on it (up to float summation order), and a checkpoint
+        continues on any device count.
     preset: name of the preset this config started from (informational, used in run names).
     """
 
@@ -100,6 +104,7 @@ class TrainConfig:
     val_every: int = 500
     ckpt_every: int = 500
     keep_last: int = 2
+    devices: int | None = None
     preset: str = "cpu"
 
     def __post_init__(self):
@@ -112,6 +117,13 @@ class TrainConfig:
             check_int(name, getattr(self, name), maximum=INT32_MAX)
         check_int("routine_envs", self.routine_envs, minimum=0, maximum=INT32_MAX)
         check_seed("seed", self.seed)
+        if self.devices is not None:
+            check_int("devices", self.devices, maximum=INT32_MAX)
+            if self.batch_size % self.devices:
+                raise ValueError(
+                    f"batch_size={self.batch_size} does not divide evenly over devices="
+                    f"{self.devices} (each device takes batch_size / devices scenes): use a "
+                    f"multiple of {self.devices}, or devices dividing {self.batch_size}")
         if check_int("warmup_steps", self.warmup_steps, minimum=0) >= self.steps:
             raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
                              f"got {self.warmup_steps!r}")
@@ -214,6 +226,9 @@ def get_preset(name: str = DEFAULT_PRESET) -> TrainConfig:
 # --------------------------------------------------------------------------------------------
 # Overrides from strings
 
+SHORTHANDS = {"precision": "model.precision"}
+"""Top-level override keys that stand for a nested field (``--set precision=bf16``)."""
+
 
 def apply_overrides(cfg: TrainConfig, overrides: typing.Iterable[str] | dict[str, Any]
                     ) -> TrainConfig:
@@ -224,6 +239,8 @@ def apply_overrides(cfg: TrainConfig, overrides: typing.Iterable[str] | dict[str
     may also carry already-typed values. All overrides are applied before the result is validated,
     so coupled fields (``flowsim.num_timesteps`` and ``model.tau_max``) can change together.
     Unknown keys, unconvertible values and invalid results raise ``ValueError`` naming the key.
+    Keys in :data:`SHORTHANDS` are short for a nested path: ``precision=bf16`` sets
+    ``model.precision``.
     """
     if isinstance(overrides, dict):
         items = list(overrides.items())
@@ -238,7 +255,7 @@ def apply_overrides(cfg: TrainConfig, overrides: typing.Iterable[str] | dict[str
         return cfg
     data = cfg.to_dict()
     for key, value in items:
-        path = key.split(".")
+        path = SHORTHANDS.get(key, key).split(".")
         _set_path(TrainConfig, data, path, value, key)
     try:
         return TrainConfig.from_dict(data)

@@ -29,29 +29,49 @@ BatchFn = Callable[[jax.Array, Any], TrainBatch]
 EVAL_KEY_SALT = 0x5EED
 
 
-def load_splits(cfg: TrainConfig, log: Callable[[str], None] = print):
+def load_splits(cfg: TrainConfig, log: Callable[[str], None] = print, mesh=None):
     """(train scenes or None for endless data, validation scenes), generated in-process.
 
     The splits are fixed datasets (their seeds live in ``flowsim.scenes``), so they are cached
-    per (simulator config, sizes) for later runs in the same process.
+    per (simulator config, sizes) for later runs in the same process. ``mesh`` splits the
+    generation over devices (same environments). On a multi-host job each host generates only
+    its share of the training environments (:func:`host_train_part`); no data crosses hosts.
     """
     train_envs = cfg.train_envs if cfg.data == "train" else None
-    key = (cfg.flowsim, train_envs, cfg.val_envs)
+    part = host_train_part(cfg) if train_envs is not None else None
+    key = (cfg.flowsim, train_envs, cfg.val_envs, None if part is None else (part.start, part.stop))
     if key not in _SPLIT_CACHE:
         from flowmaps_jax.flowsim.scenes import train_split, validation_split
 
         start = time.perf_counter()
         train = None
         if train_envs is not None:
-            log(f"Generating the FlowSim training split ({train_envs} environments) ...")
-            train = train_split(cfg.flowsim, num_envs=train_envs)
+            share = "" if part is None else f", this host's {part.start}..{part.stop - 1}"
+            log(f"Generating the FlowSim training split ({train_envs} environments{share}) ...")
+            train = train_split(cfg.flowsim, num_envs=train_envs, mesh=mesh, part=part)
         log(f"Generating the FlowSim validation split ({cfg.val_envs} environments) ...")
-        val = validation_split(cfg.flowsim, num_envs=cfg.val_envs)
+        val = validation_split(cfg.flowsim, num_envs=cfg.val_envs, mesh=mesh)
         jax.block_until_ready((train, val))
         log(f"  data ready in {time.perf_counter() - start:.1f} s")
         _SPLIT_CACHE.clear()  # keep at most one dataset in memory
         _SPLIT_CACHE[key] = (train, val)
     return _SPLIT_CACHE[key]
+
+
+def host_train_part(cfg: TrainConfig) -> slice | None:
+    """This host's share of the ``train_envs`` environments on a multi-host job (None on one
+    host). ValueError if ``train_envs`` or ``batch_size`` does not divide over the hosts."""
+    hosts = jax.process_count()
+    if hosts == 1:
+        return None
+    for name in ("train_envs", "batch_size"):
+        if getattr(cfg, name) % hosts:
+            raise ValueError(f"{name}={getattr(cfg, name)} does not divide over the {hosts} "
+                             f"hosts of this job (each host draws its share); use a multiple "
+                             f"of {hosts}")
+    from flowmaps_jax.distributed import host_part
+
+    return host_part(cfg.train_envs)
 
 
 _SPLIT_CACHE: dict = {}
@@ -90,20 +110,21 @@ def endless_chunk_steps(cfg: TrainConfig) -> int:
     return max(1, cfg.train_envs // cfg.batch_size)
 
 
-def endless_scenes(cfg: TrainConfig, data_key: jax.Array, step: int):
+def endless_scenes(cfg: TrainConfig, data_key: jax.Array, step: int, mesh=None):
     """Fresh FlowSim environments (``cfg.train_envs`` of them) for the chunk holding ``step``.
 
     Chunk c = step // endless_chunk_steps(cfg) is generated from a key derived from
-    (data_key, c) only, so a resumed run regenerates exactly the same environments.
+    (data_key, c) only, so a resumed run regenerates exactly the same environments. ``mesh``
+    splits the work over devices; a multi-host job generates this host's share only.
     """
     from flowmaps_jax.flowsim.generate import generate
 
     chunk = int(step) // endless_chunk_steps(cfg)
-    raw = jax.random.fold_in(jax.random.fold_in(data_key, _CHUNK_SALT), chunk)
+    raw = jax.random.fold_in(jax.random.fold_in(np.asarray(data_key), _CHUNK_SALT), chunk)
     # An uncommitted typed key, as the fixed splits use, so that generation and the train step
     # (which specialise on key type and device commitment) reuse their compiled code.
     key = jax.random.wrap_key_data(jnp.asarray(np.asarray(raw)))
-    return generate(key, cfg.train_envs, cfg.flowsim)
+    return generate(key, cfg.train_envs, cfg.flowsim, mesh=mesh, part=host_train_part(cfg))
 
 
 def make_val_batches(cfg: TrainConfig, scenes, batch_fn: BatchFn | None = None) -> TrainBatch:

@@ -45,6 +45,7 @@ import jax
 import numpy as np
 from tqdm import tqdm
 
+from flowmaps_jax import distributed
 from flowmaps_jax.training import checkpoint, data, objectives, rundir
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import (
@@ -114,18 +115,21 @@ class Compiled(typing.NamedTuple):
     eval_loss: Callable
 
 
-def compiled_functions(cfg: TrainConfig) -> Compiled:
-    """:class:`Compiled` for ``cfg``; cached so that several runs with the same computation in
-    one process (tests, resume) compile once."""
-    return _compiled_functions(_computational(cfg))
+def compiled_functions(cfg: TrainConfig, mesh=None) -> Compiled:
+    """:class:`Compiled` for ``cfg`` on ``mesh`` (None: one device); cached so that several runs
+    with the same computation in one process (tests, resume) compile once. On a multi-host job
+    the train step takes a batch assembled from every host's share
+    (:func:`~flowmaps_jax.training.state.make_train_step`); otherwise it draws the batch itself
+    (:func:`~flowmaps_jax.training.state.make_fused_train_step`)."""
+    return _compiled_functions(_computational(cfg), mesh, jax.process_count() > 1)
 
 
 @functools.lru_cache(maxsize=2)
-def _compiled_functions(cfg: TrainConfig) -> Compiled:
+def _compiled_functions(cfg: TrainConfig, mesh, multi_host: bool) -> Compiled:
     objective = objectives.objective_for(cfg)
-    return Compiled(objective=objective,
-                    train_step=train_state.make_fused_train_step(cfg, objective),
-                    eval_loss=train_state.make_eval_loss(cfg, objective))
+    step = (train_state.make_train_step if multi_host else train_state.make_fused_train_step)
+    return Compiled(objective=objective, train_step=step(cfg, objective, mesh=mesh),
+                    eval_loss=train_state.make_eval_loss(cfg, objective, mesh=mesh))
 
 
 def _computational(cfg: TrainConfig) -> TrainConfig:
@@ -166,26 +170,29 @@ def _clip(text: str, limit: int = 60) -> str:
 
 class _MetricsLog:
     """Appends JSON records to ``metrics.jsonl``; on resume first rewrites it (atomically) with
-    ``kept`` (the lines up to the restored step, from :func:`_read_records`)."""
+    ``kept`` (the lines up to the restored step, from :func:`_read_records`). ``path=None``
+    writes nothing (the other processes of a multi-host job)."""
 
-    def __init__(self, path: pathlib.Path, kept: list[str] | None = None):
+    def __init__(self, path: pathlib.Path | None, kept: list[str] | None = None):
         self.path = path
-        if kept is not None:
+        if path is not None and kept is not None:
             rundir.write_atomic(path, "".join(line + "\n" for line in kept))
-        self._file = path.open("a")
+        self._file = path.open("a") if path is not None else None
 
     def write(self, record: dict) -> None:
-        self._file.write(json.dumps(record) + "\n")
-        self._file.flush()
+        if self._file is not None:
+            self._file.write(json.dumps(record) + "\n")
+            self._file.flush()
 
     def close(self) -> None:
-        self._file.close()
+        if self._file is not None:
+            self._file.close()
 
 
 # Fields that --resume may change; every other field would change the model, its parameters,
 # its optimiser or its data, i.e. mix two runs in one directory.
 RESUMABLE_FIELDS = ("steps", "log_every", "val_every", "ckpt_every", "keep_last",
-                    "routine_envs", "routine_samples", "preset")
+                    "routine_envs", "routine_samples", "devices", "preset")
 
 
 def check_resumable(saved: TrainConfig, cfg: TrainConfig) -> None:
@@ -206,12 +213,14 @@ def _checkpoint_root(run_dir: pathlib.Path) -> pathlib.Path:
     return checkpoint.resolve_checkpoint_dir(ckpt_dir if ckpt_dir.exists() else run_dir)
 
 
-def _restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path,
-                        from_step: int | None) -> checkpoint.Restored:
-    """The verified checkpoint to continue from, after checking that ``cfg`` may resume it."""
+def _restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int | None,
+                        mesh) -> checkpoint.Restored:
+    """The verified checkpoint to continue from (onto ``mesh``, whatever device count it was
+    saved from), after checking that ``cfg`` may resume it."""
     root = _checkpoint_root(run_dir)
     check_resumable(checkpoint.load_config(root, step=from_step), cfg)
-    restored = checkpoint.restore(root, train_state.abstract_state(cfg), step=from_step)
+    restored = checkpoint.restore(root, train_state.abstract_state(cfg, mesh=mesh),
+                                  step=from_step)
     if int(restored.state.step) > cfg.steps:
         raise ValueError(f"the checkpoint is at step {int(restored.state.step)}, past "
                          f"steps={cfg.steps}; pass --steps with at least that many")
@@ -243,35 +252,87 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         raise ValueError(f"stop_at must lie in 1..steps={cfg.steps}; got {stop_at}")
     if from_step is not None and not resume:
         raise ValueError("from_step (--from-step) needs resume (--resume)")
-    with rundir.claim(run_dir, resume=resume, overwrite=overwrite, log=log):
-        resumed = _restore_for_resume(cfg, run_dir, from_step) if resume else None
+    mesh = distributed.training_mesh(cfg.devices)
+    distributed.check_divides("batch_size", cfg.batch_size, mesh, "the scenes of a batch")
+    data.host_train_part(cfg)  # a multi-host job: the data must divide over the hosts
+    # On a multi-host job the first process owns the run directory (lock, config, metrics);
+    # every process takes part in the checkpoint saves, which orbax coordinates.
+    primary = jax.process_index() == 0
+    claim = rundir.claim(run_dir, resume=resume, overwrite=overwrite, log=log) if primary \
+        else contextlib.nullcontext()
+    with claim:
+        resumed = _restore_for_resume(cfg, run_dir, from_step, mesh) if resume else None
         metrics_path, kept = run_dir / "metrics.jsonl", None
-        if resumed is not None and metrics_path.exists():
+        if resumed is not None and metrics_path.exists() and primary:
             kept = _read_records(metrics_path, int(resumed.state.step), log)
         log("Config:\n" + format_config(cfg))
-        objective, step_fn, eval_fn = compiled_functions(cfg)
-        train_scenes, val_scenes = data.load_splits(cfg, log)
-        val_batches = data.make_val_batches(cfg, val_scenes)
+        log(f"Devices: {distributed.describe(mesh)}")
+        compiled = compiled_functions(cfg, mesh)
+        train_scenes, val_scenes = data.load_splits(cfg, log, mesh=_generation_mesh(mesh))
+        train_scenes = _place_scenes(train_scenes, mesh)
+        val_batches = distributed.replicate(data.make_val_batches(cfg, val_scenes), mesh)
         # Every check has passed: from here on the run directory is written.
         if resumed is not None:
             state = resumed.state
             log(f"Resumed from {resumed.path} at step {int(state.step)}")
-            if from_step is not None:
+            if from_step is not None and primary:
                 moved_to, moved = checkpoint.set_aside(_checkpoint_root(run_dir), from_step)
                 if moved:
                     log(f"Moved the later checkpoints (steps {moved}) aside to {moved_to}")
         else:
-            state = train_state.init_state(cfg, objective=objective)
-        cfg_dict = cfg.to_dict()
-        rundir.write_atomic(run_dir / "config.json", json.dumps(cfg_dict, indent=2) + "\n")
+            state = train_state.init_state(cfg, objective=compiled.objective, mesh=mesh)
+        if primary:
+            rundir.write_atomic(run_dir / "config.json",
+                                json.dumps(cfg.to_dict(), indent=2) + "\n")
         window = (resumed.meta or {}).get("log_window") if resumed is not None else None
-        return _train(cfg, run_dir, state, window or {}, _MetricsLog(metrics_path, kept),
-                      step_fn, eval_fn, train_scenes, val_scenes, val_batches,
-                      stop_at=stop_at, progress=progress, on_step=on_step, log=log)
+        metrics_log = _MetricsLog(metrics_path if primary else None, kept)
+        return _train(cfg, run_dir, state, window or {}, metrics_log,
+                      _step_taker(cfg, compiled.train_step, mesh), compiled.eval_loss,
+                      train_scenes, val_scenes, val_batches,
+                      mesh, stop_at=stop_at, progress=progress, on_step=on_step, log=log)
 
 
-def _train(cfg, run_dir, state, window_state, metrics_log, step_fn, eval_fn, train_scenes,
-           val_scenes, val_batches, *, stop_at, progress, on_step, log) -> RunResult:
+def _generation_mesh(mesh):
+    """Where FlowSim data is generated: over the training mesh on one host; over this host's
+    own devices on a multi-host job (each host generates its own share)."""
+    return mesh if jax.process_count() == 1 else distributed.local_mesh()
+
+
+def _place_scenes(scenes, mesh):
+    """Training scenes where the train step reads them: on one host, replicated over the mesh
+    (the fused step draws any scene on every device); on a multi-host job, where they are."""
+    if scenes is None or jax.process_count() > 1:
+        return scenes
+    return distributed.replicate(scenes, mesh)
+
+
+def _step_taker(cfg: TrainConfig, step_fn: Callable, mesh) -> Callable:
+    """``take(state, train_scenes, step) -> (state, metrics)`` for this job's layout.
+
+    One host: the fused step draws the batch itself from the (replicated) scenes. Several hosts:
+    each host draws its share of the global batch from its own scenes, with the step's batch
+    key folded with its process index, and the shares form one global batch split over the
+    mesh (:func:`flowmaps_jax.distributed.from_hosts`); no data crosses hosts.
+    """
+    if jax.process_count() == 1:
+        return lambda state, scenes, step: step_fn(state, scenes)
+    hosts, index = jax.process_count(), jax.process_index()
+    local_batch = jax.jit(data.default_batch_fn(
+        dataclasses.replace(cfg, batch_size=cfg.batch_size // hosts, devices=None)))
+
+    def take(state, scenes, step):
+        # The keys are replicated: every host reads the same values from its own copy.
+        batch_key = jax.random.fold_in(np.asarray(state.data_key), step)
+        noise_key = jax.random.fold_in(np.asarray(state.rng), step)
+        batch = local_batch(jax.random.fold_in(batch_key, index), scenes)
+        return step_fn(state, distributed.from_hosts(batch, mesh),
+                       distributed.replicate(noise_key, mesh))
+
+    return take
+
+
+def _train(cfg, run_dir, state, window_state, metrics_log, take_step, eval_fn, train_scenes,
+           val_scenes, val_batches, mesh, *, stop_at, progress, on_step, log) -> RunResult:
     """The step loop of :func:`run`, once the run directory is held and validated."""
     ckpt_dir = run_dir / "checkpoints"
     cfg_dict = cfg.to_dict()
@@ -314,8 +375,9 @@ def _train(cfg, run_dir, state, window_state, metrics_log, step_fn, eval_fn, tra
         metrics_log.write({"kind": "val", "step": step, "val_loss": val_loss,
                            "best": bool(improved)})
         if probe is not None:
-            predictor = Predictor.from_params(state.ema_params, cfg.model, cfg.model_kind,
-                                              cfg.flowsim)
+            params, on = _inference_params(state, mesh)
+            predictor = Predictor.from_params(params, cfg.model, cfg.model_kind, cfg.flowsim,
+                                              mesh=on)
             last_routine = routine.routine_metrics(predictor, probe,
                                                    num_samples=cfg.routine_samples)
             metrics_log.write({"kind": "routine", "step": step, **last_routine})
@@ -336,9 +398,10 @@ def _train(cfg, run_dir, state, window_state, metrics_log, step_fn, eval_fn, tra
                     break
                 if cfg.data == "endless" and (
                         train_scenes is None or step % data.endless_chunk_steps(cfg) == 0):
-                    train_scenes = data.endless_scenes(cfg, state.data_key, step)
+                    train_scenes = _place_scenes(data.endless_scenes(
+                        cfg, state.data_key, step, mesh=_generation_mesh(mesh)), mesh)
                 step_start = time.perf_counter()
-                state, metrics = step_fn(state, train_scenes)
+                state, metrics = take_step(state, train_scenes, step)
                 metrics = {k: float(v) for k, v in jax.device_get(metrics).items()}
                 step_time = time.perf_counter() - step_start
                 if not math.isfinite(metrics["loss"]):
@@ -395,11 +458,19 @@ def _train(cfg, run_dir, state, window_state, metrics_log, step_fn, eval_fn, tra
         latest = store.latest_step()
         store.close()
 
-    if probe is not None:
+    if probe is not None and jax.process_index() == 0:
         _write_routine_curve(run_dir, log)
     _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best)
     return RunResult(status=status, step=step, state=None if status == "nan" else state,
                      run_dir=run_dir, checkpoint_dir=ckpt_dir, best_val_loss=best)
+
+
+def _inference_params(state, mesh) -> tuple:
+    """(EMA params, mesh) for the routine diagnostic's Predictor: sampled over the training mesh
+    on one host; on a multi-host job each host samples its own copy (the probe is small)."""
+    if jax.process_count() > 1:
+        return jax.device_get(state.ema_params), None
+    return state.ema_params, mesh
 
 
 def _write_routine_curve(run_dir: pathlib.Path, log: Callable[[str], None]) -> None:
@@ -522,6 +593,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        distributed.initialize()  # a multi-host job: connect the processes first
         cfg, run_dir = resolve_config(args)
         result = run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite,
                      from_step=args.from_step, stop_at=args.stop_at,

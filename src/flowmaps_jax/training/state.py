@@ -15,6 +15,12 @@ Everything here is a pure function of explicit pytrees:
 * :func:`make_eval_loss` scores EMA params on fixed validation batches with a fixed key and no
   dropout, so values are comparable across evaluations.
 
+Data parallelism: given a ``mesh`` (:mod:`flowmaps_jax.distributed`), the state is replicated on
+every device, each step's batch is split over the devices along its scene axis, and ``jax.jit``
+gets these shardings explicitly; XLA partitions the step and all-reduces the gradients. The
+batch is still drawn whole from the same key, so the numbers do not depend on the device count
+(up to the summation order of the loss and gradients). Without a mesh nothing is sharded.
+
 The model kind (FlowMaps flow matching or the MLP Gaussian baseline) is hidden behind an
 :class:`~flowmaps_jax.training.objectives.Objective` (``init`` + ``loss``); tests may pass a
 stand-in objective.
@@ -28,7 +34,9 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+from jax.sharding import Mesh
 
+from flowmaps_jax import distributed
 from flowmaps_jax.tokens import TrainBatch, assert_batch_shapes
 from flowmaps_jax.training.config import TrainConfig
 from flowmaps_jax.training.data import EVAL_KEY_SALT, BatchFn, default_batch_fn
@@ -91,8 +99,10 @@ def ema_update(ema_params: Params, params: Params, decay: float) -> Params:
 
 
 def init_state(cfg: TrainConfig, key: jax.Array | None = None,
-               objective: Objective | None = None) -> TrainState:
-    """Fresh state at step 0: params from ``key`` (default ``PRNGKey(cfg.seed)``), EMA = params."""
+               objective: Objective | None = None, mesh: Mesh | None = None) -> TrainState:
+    """Fresh state at step 0: params from ``key`` (default ``PRNGKey(cfg.seed)``), EMA = params.
+
+    The arrays are committed to the first device, or replicated over ``mesh``."""
     check_instance("cfg", cfg, TrainConfig)
     objective = objective or objective_for(cfg)
     if key is None:
@@ -105,12 +115,28 @@ def init_state(cfg: TrainConfig, key: jax.Array | None = None,
                        rng=rng, data_key=data_key)
     # Commit the arrays to the device, as a restored checkpoint's are: jit specialises on
     # committed-ness, so a fresh and a resumed run then share one compiled train step.
-    return jax.device_put(state, jax.devices()[0])
+    if mesh is None:
+        return jax.device_put(state, state_sharding(None))
+    return distributed.replicate(state, mesh)
 
 
-def abstract_state(cfg: TrainConfig, objective: Objective | None = None) -> TrainState:
-    """Shapes/dtypes of :func:`init_state` without computing anything (a restore target)."""
-    return jax.eval_shape(lambda: init_state(cfg, objective=objective))
+def state_sharding(mesh: Mesh | None) -> jax.sharding.Sharding:
+    """Where a TrainState lives: replicated over ``mesh``, or on the first device."""
+    if mesh is None:
+        return jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    return distributed.replicated(mesh)
+
+
+def abstract_state(cfg: TrainConfig, objective: Objective | None = None,
+                   mesh: Mesh | None = None) -> TrainState:
+    """Shapes, dtypes and shardings of :func:`init_state` without computing anything: the
+    restore target of a checkpoint. The sharding is that of this process (``mesh`` or the first
+    device), not the one the checkpoint was saved with, so a state saved on N devices restores
+    on any other number."""
+    shapes = jax.eval_shape(lambda: init_state(cfg, objective=objective))
+    sharding = state_sharding(mesh)
+    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
+                        shapes)
 
 
 def step_keys(state: TrainState) -> tuple[jax.Array, jax.Array]:
@@ -154,42 +180,59 @@ def _check_step_inputs(state, batch) -> None:
         raise ValueError(f"batch has inconsistent shapes: {err}") from None
 
 
-def make_train_step(cfg: TrainConfig, objective: Objective | None = None):
+def make_train_step(cfg: TrainConfig, objective: Objective | None = None,
+                    mesh: Mesh | None = None):
     """Jitted ``(state, batch, key) -> (state, metrics)``; ``state`` is donated.
 
     metrics: dict of scalars ``loss``, ``grad_norm``, ``lr`` (of the step taken) plus the
-    objective's diagnostics.
+    objective's diagnostics. With ``mesh``, ``batch`` is a global array split over the mesh by
+    scenes (multi-host runs assemble it from each host's share) and the state is replicated.
     """
-    return jax.jit(_update_fn(cfg, objective or objective_for(cfg)), donate_argnums=0)
+    update = _update_fn(cfg, objective or objective_for(cfg))
+    if mesh is None:
+        return jax.jit(update, donate_argnums=0)
+    rep, rows = distributed.replicated(mesh), distributed.batch_sharding(mesh)
+    return jax.jit(update, donate_argnums=0, in_shardings=(rep, rows, rep),
+                   out_shardings=(rep, rep))
 
 
 def make_fused_train_step(cfg: TrainConfig, objective: Objective | None = None,
-                          batch_fn: BatchFn | None = None):
+                          batch_fn: BatchFn | None = None, mesh: Mesh | None = None):
     """Jitted ``(state, scenes) -> (state, metrics)``: draws the step's batch and takes the step.
 
     The batch of step i is ``batch_fn(fold_in(data_key, i), scenes)`` and the noise key
     ``fold_in(rng, i)``, all inside one compiled function (no host round trip); ``state`` is
     donated. ``scenes`` is an argument (not a constant) so it is not baked into the program.
+    With ``mesh``, state and scenes are replicated and the drawn batch is split over the
+    devices by scenes (one host; multi-host runs use :func:`make_train_step`).
     """
     update = _update_fn(cfg, objective or objective_for(cfg))
     batch_fn = batch_fn or default_batch_fn(cfg)
 
     def fused(state: TrainState, scenes):
         batch_key, noise_key = step_keys(state)
-        return update(state, batch_fn(batch_key, scenes), noise_key)
+        batch = batch_fn(batch_key, scenes)
+        if mesh is not None:
+            batch = jax.lax.with_sharding_constraint(batch, distributed.batch_sharding(mesh))
+        return update(state, batch, noise_key)
 
-    return jax.jit(fused, donate_argnums=0)
+    if mesh is None:
+        return jax.jit(fused, donate_argnums=0)
+    rep = distributed.replicated(mesh)
+    return jax.jit(fused, donate_argnums=0, in_shardings=(rep, rep), out_shardings=(rep, rep))
 
 
 # --------------------------------------------------------------------------------------------
 # Validation
 
 
-def make_eval_loss(cfg: TrainConfig, objective: Objective | None = None):
+def make_eval_loss(cfg: TrainConfig, objective: Objective | None = None,
+                   mesh: Mesh | None = None):
     """Jitted ``(params, val_batches) -> mean loss`` over stacked batches (leading axis).
 
     Deterministic: no dropout, and the flow noise of batch j is always ``fold_in(eval_key, j)``,
     so calls at different training steps differ only through ``params`` (pass the EMA params).
+    With ``mesh``, params are replicated and each batch is split over the devices by scenes.
     """
     objective = objective or objective_for(cfg)
     eval_key = jax.random.PRNGKey(cfg.seed + EVAL_KEY_SALT + 1)
@@ -200,8 +243,14 @@ def make_eval_loss(cfg: TrainConfig, objective: Objective | None = None):
 
         def one(args):
             batch, key = args
+            if mesh is not None:
+                batch = jax.lax.with_sharding_constraint(batch,
+                                                         distributed.batch_sharding(mesh))
             return objective.loss(params, batch, key, False)[0]
 
         return jnp.mean(jax.lax.map(one, (batches, keys)))
 
-    return jax.jit(eval_loss)
+    if mesh is None:
+        return jax.jit(eval_loss)
+    rep = distributed.replicated(mesh)
+    return jax.jit(eval_loss, in_shardings=(rep, rep), out_shardings=rep)

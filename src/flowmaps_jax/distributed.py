@@ -1,0 +1,236 @@
+"""Devices and hosts: one 1-D data-parallel mesh, the shardings on it, and multi-host start-up.
+
+Everything that scales out goes through JAX's own SPMD partitioner (``jax.sharding``): a
+:class:`jax.sharding.Mesh` with one axis, ``"data"``, over the devices; batches (scenes,
+environments, scenes × queries) are split along their leading axis over it
+(:func:`batch_sharding`), and parameters, EMA and optimiser state are replicated
+(:func:`replicated`). ``jax.jit`` with these shardings then compiles one program that XLA
+partitions, adding the gradient all-reduce itself. There is no hand-written parallel scheme.
+
+* :func:`data_mesh` builds the mesh (all devices, or the first ``num_devices``).
+* :func:`check_divides` is the one ``ValueError`` for a size that does not split evenly.
+* :func:`shard_rows` pads a batch to a multiple of the mesh size and places it on the mesh (the
+  inference paths: results are per row, so padding rows are dropped afterwards).
+* :func:`initialize` starts ``jax.distributed`` when a cluster environment is present, and
+  :func:`host_part` says which share of a dataset this host generates.
+
+On one device all of this is the identity: one-device meshes are never built by the training
+loop (:func:`training_mesh` returns None), so a single-device run compiles what it always did.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from flowmaps_jax.validation import check_int
+
+DATA_AXIS = "data"
+"""Name of the mesh's only axis: every batch is split along its leading dimension over it."""
+
+# Environment variables that mean "this process is one of several in a cluster job", each with
+# the variable holding the process count.
+_CLUSTER_MARKERS = {
+    "JAX_COORDINATOR_ADDRESS": "JAX_NUM_PROCESSES",  # any launcher (see initialize)
+    "SLURM_JOB_ID": "SLURM_NTASKS",  # Slurm srun
+    "OMPI_COMM_WORLD_SIZE": "OMPI_COMM_WORLD_SIZE",  # Open MPI mpirun
+}
+
+
+def cluster_environment(env: Mapping[str, str] | None = None) -> str | None:
+    """The variable that marks this process as one of several in a job, or None (one host).
+
+    A Slurm or Open MPI job with a single task, and a coordinator address with
+    ``JAX_NUM_PROCESSES`` unset or 1, are single-host runs. A Cloud TPU pod slice lists its
+    workers in ``TPU_WORKER_HOSTNAMES``.
+    """
+    env = os.environ if env is None else env
+    for name, count in _CLUSTER_MARKERS.items():
+        if name in env and _int_or(env.get(count, "1"), 1) > 1:
+            return name
+    if len([h for h in env.get("TPU_WORKER_HOSTNAMES", "").split(",") if h.strip()]) > 1:
+        return "TPU_WORKER_HOSTNAMES"
+    return None
+
+
+def _int_or(text: str, default: int) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        return default
+
+
+def initialize(env: Mapping[str, str] | None = None) -> bool:
+    """Start ``jax.distributed`` (multi-host) when a cluster environment is present.
+
+    Call it before anything touches a device (the CLIs do). Returns True when this call
+    connected the processes, False on a single host or when already connected.
+
+    * Any launcher: set ``JAX_COORDINATOR_ADDRESS=host:port`` (process 0's host),
+      ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID`` on every process.
+    * Slurm (``srun``), Open MPI (``mpirun``) and Cloud TPU pod slices: JAX reads its own
+      variables; nothing to set.
+
+    A job JAX cannot connect raises ``ValueError`` saying what to set.
+    """
+    env = os.environ if env is None else env
+    marker = cluster_environment(env)
+    if marker is None or jax.distributed.is_initialized():
+        return False
+    kwargs: dict[str, Any] = {}
+    if marker == "JAX_COORDINATOR_ADDRESS":
+        if "JAX_PROCESS_ID" not in env:
+            raise ValueError("JAX_COORDINATOR_ADDRESS and JAX_NUM_PROCESSES are set but "
+                             "JAX_PROCESS_ID is not: set it to this process's index "
+                             f"(0..{env['JAX_NUM_PROCESSES']} - 1)")
+        kwargs = {"coordinator_address": env["JAX_COORDINATOR_ADDRESS"],
+                  "num_processes": _int_or(env["JAX_NUM_PROCESSES"], 1),
+                  "process_id": _int_or(env["JAX_PROCESS_ID"], -1)}
+    try:
+        jax.distributed.initialize(**kwargs)
+    except (ValueError, RuntimeError) as err:
+        raise ValueError(
+            f"{marker} is set, so this looks like a multi-host job, but jax.distributed could "
+            f"not start ({err}). Set JAX_COORDINATOR_ADDRESS=host:port, JAX_NUM_PROCESSES and "
+            "JAX_PROCESS_ID on every process, or unset the variable for a one-host run") from err
+    return True
+
+
+# --------------------------------------------------------------------------- the mesh
+
+
+def data_mesh(num_devices: int | None = None) -> Mesh:
+    """A 1-D mesh (axis :data:`DATA_AXIS`) over ``jax.devices()`` — every device of every host —
+    or over the first ``num_devices`` of them (one host only). ValueError if there are fewer."""
+    devices = jax.devices()
+    if num_devices is not None:
+        num_devices = check_int("devices", num_devices, 1)
+        if num_devices > len(devices):
+            raise ValueError(
+                f"devices={num_devices} but JAX sees {len(devices)} device(s) "
+                f"({devices[0].platform}); use devices <= {len(devices)} or none (all)")
+        if num_devices < len(devices) and jax.process_count() > 1:
+            raise ValueError(f"devices={num_devices} on a {jax.process_count()}-host job: a "
+                             "multi-host run uses every device (devices=none)")
+        devices = devices[:num_devices]
+    return Mesh(np.asarray(devices), (DATA_AXIS,))
+
+
+def training_mesh(num_devices: int | None = None) -> Mesh | None:
+    """:func:`data_mesh`, or None when it would hold a single device (then nothing is sharded
+    and a run compiles exactly the single-device program)."""
+    mesh = data_mesh(num_devices)
+    return mesh if mesh.size > 1 else None
+
+
+def local_mesh() -> Mesh | None:
+    """A mesh over this host's own devices (None if it has one): for work each host does on its
+    own data, such as generating its share of environments on a multi-host job."""
+    devices = jax.local_devices()
+    return Mesh(np.asarray(devices), (DATA_AXIS,)) if len(devices) > 1 else None
+
+
+def replicated(mesh: Mesh) -> NamedSharding:
+    """Every device holds the whole array (params, EMA, optimiser state, metrics)."""
+    return NamedSharding(mesh, PartitionSpec())
+
+
+def batch_sharding(mesh: Mesh) -> NamedSharding:
+    """The leading axis split evenly over the mesh, the rest whole (a batch of scenes)."""
+    return NamedSharding(mesh, PartitionSpec(DATA_AXIS))
+
+
+def check_divides(name: str, size: int, mesh: Mesh | None, what: str = "rows") -> None:
+    """ValueError unless ``size`` splits evenly over the mesh's devices (None: one device)."""
+    if mesh is None or size % mesh.size == 0:
+        return
+    n = mesh.size
+    low, high = (size // n) * n, (size // n + 1) * n
+    options = f"{low} or {high}" if low > 0 else f"{high}"
+    raise ValueError(
+        f"{name}={size} does not divide evenly over the {n} devices of the mesh ({what} are "
+        f"split over devices): use a multiple of {n} (e.g. {options}), or fewer devices "
+        f"(--set devices=K with K dividing {size})")
+
+
+def num_padded(size: int, mesh: Mesh | None) -> int:
+    """``size`` rounded up to a multiple of the mesh size (unchanged without a mesh)."""
+    if mesh is None:
+        return size
+    return -(-size // mesh.size) * mesh.size
+
+
+def shard_rows(tree: Any, mesh: Mesh | None) -> Any:
+    """Place a pytree of arrays with a common leading axis (rows) on the mesh, split by rows.
+
+    Rows are padded up to a multiple of the mesh size by repeating the last row; callers whose
+    results are per row (sampling, log-densities, generation) drop the padding afterwards with
+    ``[:size]``. Without a mesh the tree is returned unchanged.
+    """
+    if mesh is None:
+        return tree
+    leaves = jax.tree.leaves(tree)
+    size = leaves[0].shape[0]
+    extra = num_padded(size, mesh) - size
+
+    def pad(x):
+        if extra:
+            x = jnp.concatenate([x, jnp.repeat(x[-1:], extra, axis=0)])
+        return x
+
+    return jax.device_put(jax.tree.map(pad, tree), batch_sharding(mesh))
+
+
+def replicate(tree: Any, mesh: Mesh | None) -> Any:
+    """Place a pytree on every device of the mesh (unchanged without a mesh). On a multi-host
+    mesh every host must pass the same values (each fills its own devices from its copy)."""
+    if mesh is None:
+        return tree
+    sharding = replicated(mesh)
+    if sharding.is_fully_addressable:
+        return jax.device_put(tree, sharding)
+
+    def put(x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+    return jax.tree.map(put, tree)
+
+
+def from_hosts(tree: Any, mesh: Mesh) -> Any:
+    """One global batch from each host's rows: host p's ``tree`` (rows (B/P, ...)) becomes rows
+    p·B/P .. (p+1)·B/P of a global (B, ...) array split over the mesh. No data crosses hosts."""
+    sharding = batch_sharding(mesh)
+    return jax.tree.map(
+        lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), tree)
+
+
+# --------------------------------------------------------------------------- hosts
+
+
+def host_part(size: int, index: int | None = None, count: int | None = None) -> slice:
+    """The slice of ``size`` items (environments, batch rows) this host owns: host p of P owns
+    ``[p·size/P, (p+1)·size/P)``. ``size`` must divide by P (ValueError otherwise)."""
+    index = jax.process_index() if index is None else index
+    count = jax.process_count() if count is None else count
+    if size % count:
+        raise ValueError(f"{size} does not divide over {count} hosts; use a multiple of {count}")
+    per_host = size // count
+    return slice(index * per_host, (index + 1) * per_host)
+
+
+def describe(mesh: Mesh | None) -> str:
+    """One line for logs: devices, their kind and hosts."""
+    if mesh is None:
+        device = jax.devices()[0]
+        return f"1 device ({device.platform}: {device.device_kind})"
+    device = mesh.devices.flat[0]
+    hosts = jax.process_count()
+    return (f"{mesh.size} devices ({device.platform}: {device.device_kind}), data-parallel over "
+            f"mesh axis '{DATA_AXIS}'" + (f", {hosts} hosts" if hosts > 1 else ""))
