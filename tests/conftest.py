@@ -44,3 +44,4 @@ def small_scenes(flowsim_config) -> Scenes:
 # runs it in a subprocess with XLA_FLAGS=--xla_force_host_platform_device_count=2 and
 # FLOWMAPS_MULTIDEVICE=1. A plain `pytest` does not collect it directly.
 collect_ignore_glob = [] if os.environ.get("FLOWMAPS_MULTIDEVICE") else ["multidevice/*"]
+

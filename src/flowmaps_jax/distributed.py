@@ -108,18 +108,11 @@ def initialize(env: Mapping[str, str] | None = None) -> bool:
 def data_mesh(num_devices: int | None = None) -> Mesh:
     """A 1-D mesh (axis :data:`DATA_AXIS`) over ``jax.devices()`` — every device of every host —
     or over the first ``num_devices`` of them (one host only). ValueError if there are fewer."""
-    devices = jax.devices()
-    if num_devices is not None:
-        num_devices = check_int("devices", num_devices, 1)
-        if num_devices > len(devices):
-            raise ValueError(
-                f"devices={num_devices} but JAX sees {len(devices)} device(s) "
-                f"({devices[0].platform}); use devices <= {len(devices)} or none (all)")
-        if num_devices < len(devices) and jax.process_count() > 1:
-            raise ValueError(f"devices={num_devices} on a {jax.process_count()}-host job: a "
-                             "multi-host run uses every device (devices=none)")
-        devices = devices[:num_devices]
-    return Mesh(np.asarray(devices), (DATA_AXIS,))
+    if num_devices is not None and num_devices != jax.device_count() \
+            and jax.process_count() > 1:
+        raise ValueError(f"devices={num_devices} on a {jax.process_count()}-host job: a "
+                         "multi-host run uses every device (devices=none)")
+    return Mesh(np.asarray(_first(jax.devices(), num_devices)), (DATA_AXIS,))
 
 
 def training_mesh(num_devices: int | None = None) -> Mesh | None:
@@ -129,11 +122,24 @@ def training_mesh(num_devices: int | None = None) -> Mesh | None:
     return mesh if mesh.size > 1 else None
 
 
-def local_mesh() -> Mesh | None:
-    """A mesh over this host's own devices (None if it has one): for work each host does on its
-    own data, such as generating its share of environments on a multi-host job."""
-    devices = jax.local_devices()
+def local_mesh(num_devices: int | None = None) -> Mesh | None:
+    """A mesh over this host's own devices (all, or the first ``num_devices``), or None if that
+    is one device: for work each host does on its own, such as generating its share of
+    environments or sampling (:meth:`flowmaps_jax.sample.Predictor.sharded`). On one host it is
+    :func:`training_mesh`."""
+    devices = _first(jax.local_devices(), num_devices)
     return Mesh(np.asarray(devices), (DATA_AXIS,)) if len(devices) > 1 else None
+
+
+def _first(devices: list, num_devices: int | None) -> list:
+    """The first ``num_devices`` of ``devices`` (all for None); ValueError if there are fewer."""
+    if num_devices is None:
+        return devices
+    num_devices = check_int("devices", num_devices, 1)
+    if num_devices > len(devices):
+        raise ValueError(f"devices={num_devices} but JAX sees {len(devices)} device(s) "
+                         f"({devices[0].platform}); use devices <= {len(devices)} or none (all)")
+    return devices[:num_devices]
 
 
 def replicated(mesh: Mesh) -> NamedSharding:

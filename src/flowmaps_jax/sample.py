@@ -131,9 +131,10 @@ class Predictor:
             object.__setattr__(self, "params", distributed.replicate(self.params, self.mesh))
 
     def sharded(self, devices: int | None = None) -> Predictor:
-        """This predictor with every call split over ``devices`` devices (None: all JAX sees)
-        by scenes; with one device, itself. Same results, faster on several accelerators."""
-        mesh = distributed.training_mesh(devices)
+        """This predictor with every call split over ``devices`` of this host's devices (None:
+        all of them) by scenes; with one device, itself. Same results, faster on several
+        accelerators. (On a multi-host job each host samples on its own devices.)"""
+        mesh = distributed.local_mesh(devices)
         return self if mesh is None else dataclasses.replace(self, mesh=mesh)
 
     def with_precision(self, precision: str) -> Predictor:

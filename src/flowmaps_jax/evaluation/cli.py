@@ -87,7 +87,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        distributed.initialize()  # a multi-host job: connect the processes first
         check_int("--num-envs", args.num_envs, 1)
         check_int("--kl-draws", args.kl_draws, 2)
         check_int("--num-steps", args.num_steps, 2)
@@ -101,7 +100,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             out = pathlib.Path(args.checkpoint) / "eval"
         out = pathlib.Path(check_output_dir("--out", out))  # before the evaluation runs
-        mesh = distributed.training_mesh(args.devices)
+        mesh = distributed.local_mesh(args.devices)
         model = load_model(args.checkpoint, args.which, args.devices)
         baselines = [load_model(path, args.which, args.devices) for path in args.baseline]
         config = model.flowsim

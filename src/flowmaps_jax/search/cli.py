@@ -96,7 +96,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; 0 on success, 2 on a bad argument (message on stderr)."""
     args = build_parser().parse_args(argv)
     try:
-        distributed.initialize()  # a multi-host job: connect the processes first
         for name in ("num_envs", "times_per_env", "samples", "budget", "chunk_rows"):
             check_int("--" + name.replace("_", "-"), getattr(args, name))
         ep.check_p_miss(args.p_miss)
@@ -107,7 +106,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                   for spec in [args.checkpoint, *args.baseline]]
         config = models[0].flowsim
         scenes = validation_split(config, num_envs=args.num_envs,
-                                  mesh=distributed.training_mesh(args.devices))
+                                  mesh=distributed.local_mesh(args.devices))
         print(f"Search with {', '.join(m.name for m in models)} on {args.num_envs} validation "
               f"environments → {out}", flush=True)
         results, runs, search_set = pr.run_search(
