@@ -9,6 +9,8 @@ What it checks (exit 1 with the reason otherwise):
   over 2 hosts, and each generates only its half of the training environments;
 * only process 0 writes ``config.json`` and ``metrics.jsonl``; both report the same best
   validation loss (the replicated state agrees);
+* starting them again on the now non-empty run directory (without ``--resume``) is refused by
+  process 0, and process 1 stops with it at once (exit code 2 on both);
 * the checkpoint they saved together resumes in a single process (1 device) and trains on.
 
 On 2 cores this takes about 2 minutes (two JAX processes compile side by side).
@@ -24,6 +26,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
 
 
 def _free_port() -> int:
@@ -47,17 +50,23 @@ def _env(**extra: str) -> dict[str, str]:
     return env
 
 
-def check(work: pathlib.Path, steps: int = 6) -> list[str]:
-    """Run the two-host training and the one-process resume in ``work``; returns the problems
-    found (empty: all good)."""
-    run_dir = work / "run"
+def _two_processes(args: list[str]) -> tuple[list[int], list[str]]:
+    """Run ``args`` as processes 0 and 1 of a two-process jax.distributed job: exit codes, logs."""
     address = f"127.0.0.1:{_free_port()}"
-    procs = [subprocess.Popen(_train_args(run_dir, steps), stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True,
+    procs = [subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                               env=_env(JAX_COORDINATOR_ADDRESS=address, JAX_NUM_PROCESSES="2",
                                        JAX_PROCESS_ID=str(i)))
              for i in range(2)]
     logs = [p.communicate(timeout=900)[0] for p in procs]
+    return [p.returncode for p in procs], logs
+
+
+def check(work: pathlib.Path, steps: int = 6) -> list[str]:
+    """Run the two-host training, a refused second start and the one-process resume in
+    ``work``; returns the problems found (empty: all good)."""
+    run_dir = work / "run"
+    codes, logs = _two_processes(_train_args(run_dir, steps))
+    procs = [subprocess.CompletedProcess([], code) for code in codes]
     problems = []
     for i, (proc, log) in enumerate(zip(procs, logs, strict=True)):
         if proc.returncode != 0:
@@ -77,6 +86,13 @@ def check(work: pathlib.Path, steps: int = 6) -> list[str]:
     for name in ("config.json", "metrics.jsonl"):
         if not (run_dir / name).is_file():
             problems.append(f"{name} was not written")
+    # A new run in the same (non-empty) directory: process 0 refuses, and both stop at once.
+    start = time.perf_counter()
+    codes, logs = _two_processes(_train_args(run_dir, steps))
+    refused = time.perf_counter() - start
+    if codes != [2, 2] or not all("--resume" in log for log in logs):
+        problems.append(f"a second two-process start in a used run directory was not refused "
+                        f"by both processes (exit codes {codes}):\n{logs[1][-1500:]}")
     resumed = subprocess.run([sys.executable, "-m", "flowmaps_jax.train", "--resume", "--run-dir",
                               str(run_dir), "--steps", str(steps + 2), "--no-progress"],
                              capture_output=True, text=True, env=_env(), timeout=900)
@@ -85,7 +101,8 @@ def check(work: pathlib.Path, steps: int = 6) -> list[str]:
                         f"{resumed.stdout[-2000:]}{resumed.stderr[-2000:]}")
     print(f"two hosts: {best[0].group(1) if best[0] else '?'} best validation loss after "
           f"{steps} steps; resumed on one process to {steps + 2}: "
-          f"{'ok' if resumed.returncode == 0 else 'FAILED'}")
+          f"{'ok' if resumed.returncode == 0 else 'FAILED'}; a second start in the same "
+          f"directory refused by both processes (exit codes {codes}) in {refused:.1f} s")
     return problems
 
 

@@ -220,6 +220,15 @@ def from_hosts(tree: Any, mesh: Mesh) -> Any:
 # --------------------------------------------------------------------------- hosts
 
 
+def agree(ok: bool) -> bool:
+    """Process 0's ``ok``, on every process (all must call it). One process: ``ok``."""
+    if jax.process_count() == 1:
+        return bool(ok)
+    from jax.experimental import multihost_utils
+
+    return bool(multihost_utils.broadcast_one_to_all(np.int32(bool(ok))))
+
+
 def host_part(size: int, index: int | None = None, count: int | None = None) -> slice:
     """The slice of ``size`` items (environments, batch rows) this host owns: host p of P owns
     ``[p·size/P, (p+1)·size/P)``. ``size`` must divide by P (ValueError otherwise)."""

@@ -255,12 +255,8 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     mesh = distributed.training_mesh(cfg.devices)
     distributed.check_divides("batch_size", cfg.batch_size, mesh, "the scenes of a batch")
     data.host_train_part(cfg)  # a multi-host job: the data must divide over the hosts
-    # On a multi-host job the first process owns the run directory (lock, config, metrics);
-    # every process takes part in the checkpoint saves, which orbax coordinates.
     primary = jax.process_index() == 0
-    claim = rundir.claim(run_dir, resume=resume, overwrite=overwrite, log=log) if primary \
-        else contextlib.nullcontext()
-    with claim:
+    with _claim(run_dir, resume=resume, overwrite=overwrite, log=log):
         resumed = _restore_for_resume(cfg, run_dir, from_step, mesh) if resume else None
         metrics_path, kept = run_dir / "metrics.jsonl", None
         if resumed is not None and metrics_path.exists() and primary:
@@ -290,6 +286,33 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
                       _step_taker(cfg, compiled.train_step, mesh), compiled.eval_loss,
                       train_scenes, val_scenes, val_batches,
                       mesh, stop_at=stop_at, progress=progress, on_step=on_step, log=log)
+
+
+@contextlib.contextmanager
+def _claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool, log: Callable[[str], None]):
+    """Hold ``run_dir`` for this run (:func:`flowmaps_jax.training.rundir.claim`).
+
+    On a multi-host job the first process owns the run directory (lock, config, metrics; every
+    process takes part in the checkpoint saves, which orbax coordinates). The others learn
+    whether it could claim it, so a refused run stops every process at once with the reason.
+    """
+    if jax.process_count() == 1:
+        with rundir.claim(run_dir, resume=resume, overwrite=overwrite, log=log):
+            yield
+        return
+    with contextlib.ExitStack() as held:
+        error = ""
+        if jax.process_index() == 0:
+            try:
+                held.enter_context(rundir.claim(run_dir, resume=resume, overwrite=overwrite,
+                                                log=log))
+            except ValueError as err:
+                error = str(err)
+        if distributed.agree(not error):
+            yield
+            return
+        raise ValueError(error or f"process 0 could not claim the run directory {run_dir} "
+                                  "(its log says why)")
 
 
 def _generation_mesh(mesh):
