@@ -11,7 +11,9 @@ What it checks (exit 1 with the reason otherwise):
   validation loss (the replicated state agrees);
 * starting them again on the now non-empty run directory (without ``--resume``) is refused by
   process 0, and process 1 stops with it at once (exit code 2 on both);
-* the checkpoint they saved together resumes in a single process (1 device) and trains on.
+* the checkpoint they saved together resumes in a single process (1 device) and trains on;
+* two processes resume from an older saved step (``--from-step``): process 0 sets the later
+  steps aside while the other waits, and both finish.
 
 On 2 cores this takes about 2 minutes (two JAX processes compile side by side).
 """
@@ -99,10 +101,20 @@ def check(work: pathlib.Path, steps: int = 6) -> list[str]:
     if resumed.returncode != 0 or f"Finished {steps + 2} steps" not in resumed.stdout:
         problems.append(f"one process could not continue the two-host run:\n"
                         f"{resumed.stdout[-2000:]}{resumed.stderr[-2000:]}")
+    # Back to two processes: continue from step `steps` (step steps + 2 is set aside).
+    codes2, logs2 = _two_processes([sys.executable, "-m", "flowmaps_jax.train", "--resume",
+                                    "--run-dir", str(run_dir), "--steps", str(steps + 4),
+                                    "--from-step", str(steps), "--no-progress"])
+    if codes2 != [0, 0] or not all(f"Finished {steps + 4} steps" in log for log in logs2):
+        problems.append(f"two processes could not resume from step {steps} (exit codes "
+                        f"{codes2}):\n{logs2[0][-1500:]}\n{logs2[1][-1500:]}")
+    elif "Moved the later checkpoints" not in logs2[0]:
+        problems.append("process 0 did not set the later steps aside")
     print(f"two hosts: {best[0].group(1) if best[0] else '?'} best validation loss after "
           f"{steps} steps; resumed on one process to {steps + 2}: "
           f"{'ok' if resumed.returncode == 0 else 'FAILED'}; a second start in the same "
-          f"directory refused by both processes (exit codes {codes}) in {refused:.1f} s")
+          f"directory refused by both processes (exit codes {codes}) in {refused:.1f} s; two "
+          f"processes resumed from step {steps} to {steps + 4}: exit codes {codes2}")
     return problems
 
 

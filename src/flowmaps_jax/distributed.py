@@ -229,6 +229,14 @@ def agree(ok: bool) -> bool:
     return bool(multihost_utils.broadcast_one_to_all(np.int32(bool(ok))))
 
 
+def barrier(name: str) -> None:
+    """Wait until every process of the job reaches this point (no-op on one host)."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices(name)
+
+
 def host_part(size: int, index: int | None = None, count: int | None = None) -> slice:
     """The slice of ``size`` items (environments, batch rows) this host owns: host p of P owns
     ``[p·size/P, (p+1)·size/P)``. ``size`` must divide by P (ValueError otherwise)."""

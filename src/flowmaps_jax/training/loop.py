@@ -280,6 +280,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         if primary:
             rundir.write_atomic(run_dir / "config.json",
                                 json.dumps(cfg.to_dict(), indent=2) + "\n")
+        distributed.barrier("run directory ready")  # process 0 has set later steps aside
         window = (resumed.meta or {}).get("log_window") if resumed is not None else None
         metrics_log = _MetricsLog(metrics_path if primary else None, kept)
         return _train(cfg, run_dir, state, window or {}, metrics_log,

@@ -121,9 +121,9 @@ def init_state(cfg: TrainConfig, key: jax.Array | None = None,
 
 
 def state_sharding(mesh: Mesh | None) -> jax.sharding.Sharding:
-    """Where a TrainState lives: replicated over ``mesh``, or on the first device."""
+    """Where a TrainState lives: replicated over ``mesh``, or on this process's first device."""
     if mesh is None:
-        return jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        return jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     return distributed.replicated(mesh)
 
 
