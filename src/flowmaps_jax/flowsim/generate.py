@@ -251,21 +251,19 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh
     """
     check_instance("config", config, FlowSimConfig)
     num_envs = check_int("num_envs", num_envs, 1)
-    key = check_key(key)
-    env_keys = jax.random.split(key, num_envs)
+    count = num_envs
     if part is not None:
         check_instance("part", part, slice)
-        env_keys = env_keys[part]
-        if env_keys.shape[0] == 0:
+        count = len(range(num_envs)[part])
+        if count == 0:
             raise ValueError(f"part={part} selects no environment of {num_envs}")
-        num_envs = env_keys.shape[0]
-    check_request_size(f"generate({num_envs} environments)",
-                       num_envs * scenes_bytes_per_env(config))
-    scenes, ok = _generate_on(env_keys, config, mesh)
+    check_request_size(f"generate({count} environments)", count * scenes_bytes_per_env(config))
+    env_keys = jax.random.split(check_key(key), num_envs)
+    scenes, ok = _generate_on(env_keys if part is None else env_keys[part], config, mesh)
     failed = int(np.sum(~np.asarray(ok)))
     if failed:
         raise RuntimeError(
-            f"generate: {failed} of {num_envs} layouts could not be placed within "
+            f"generate: {failed} of {count} layouts could not be placed within "
             f"layout_budget={config.layout_budget} redraws; the map is too crowded for "
             f"num_furniture={config.num_furniture} tables of up to {config.table_max_frac} of "
             f"map_size={config.map_size} (raise map_size/layout_budget/layout_candidates or "
