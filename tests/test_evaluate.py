@@ -108,14 +108,15 @@ def test_slot_boxes_are_where_the_object_really_is(scenes, evalset):
 
 
 def test_reference_rows_have_their_known_values(evalset):
-    oracle, sampled, last_seen, uniform = ev.reference_rows(evalset, COUNTS)
+    oracle, sampled, smoothed, last_seen, uniform = ev.reference_rows(evalset, COUNTS)
     q = np.asarray(evalset.slot_probs)
-    assert (oracle.name, sampled.name, last_seen.name, uniform.name) == ev.REFERENCE_ROWS
+    assert tuple(r.name for r in (oracle, sampled, smoothed, last_seen, uniform)) == \
+        ev.REFERENCE_ROWS
     # KL on the shared draws, a slot row's density being the mixture with the row's weights:
     # recomputed in float64 from the draws (q itself for the oracle and oracle samples)
     points, boxes = np.asarray(evalset.kl_points), np.asarray(evalset.slot_boxes)
-    for row in (oracle, sampled, last_seen, uniform):
-        weights = q if row is sampled else row.slots[COUNTS[0]]["p_hat"][..., :-1]
+    for row in (oracle, sampled, smoothed, last_seen, uniform):
+        weights = q if row in (sampled, smoothed) else row.slots[COUNTS[0]]["p_hat"][..., :-1]
         for i, j in np.ndindex(q.shape[:2]):
             x, b = points[i, j], boxes[i, j]
             want = np.mean(mixture_log_density(x, q[i, j], b)
@@ -173,7 +174,7 @@ def test_samples_and_likelihoods_reach_the_right_metrics(evalset):
     row = ev.evaluate_predictor(_LastSeenSampler(evalset), evalset, jax.random.PRNGKey(0),
                                 sample_counts=COUNTS, chunk_envs=NUM_ENVS, progress=False)
     np.testing.assert_allclose(row.kl, 0.0, atol=1e-5)
-    last_seen = ev.reference_rows(evalset, COUNTS)[2]
+    last_seen = ev.reference_rows(evalset, COUNTS)[3]
     for n in COUNTS:
         for metric in ("p_hat", *ev.SLOT_METRICS):
             np.testing.assert_allclose(row.slots[n][metric], last_seen.slots[n][metric],
@@ -197,8 +198,8 @@ def test_model_rows_do_not_depend_on_the_chunking(evalset, predictors, report):
 
 def test_report_files_and_contents(report):
     out, _, rows, evalset = report
-    assert [r.name for r in rows] == ["oracle", "oracle samples", "last-seen", "uniform",
-                                      "MLP (mean)", "FlowMaps"]
+    assert [r.name for r in rows] == ["oracle", "oracle samples", "smoothed-q samples",
+                                      "last-seen", "uniform", "MLP (mean)", "FlowMaps"]
     data = json.loads((out / "results.json").read_text())
     assert data["protocol"]["num_queries"] == NUM_ENVS * SIM.num_objects
     assert data["protocol"]["samples"] == list(COUNTS)
@@ -338,8 +339,8 @@ def test_evaluate_cli_on_saved_checkpoints(tmp_path, capsys):
                     "--no-figures"])
     assert code == 0, capsys.readouterr().err
     data = json.loads((out / "results.json").read_text())
-    assert list(data["rows"]) == ["oracle", "oracle samples", "last-seen", "uniform", "MLP (mean)",
-                                  "FlowMaps"]
+    assert list(data["rows"]) == ["oracle", "oracle samples", "smoothed-q samples", "last-seen",
+                                  "uniform", "MLP (mean)", "FlowMaps"]
     assert data["rows"]["FlowMaps"]["info"]["step"] == 4
     assert data["protocol"]["num_queries"] == NUM_ENVS * SIM.num_objects
     assert "FlowMaps" in capsys.readouterr().out

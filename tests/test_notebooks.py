@@ -134,7 +134,8 @@ def test_kl_plots_shows_the_results_table(executed):
     tables = [o["data"]["text/markdown"] for o in _outputs(nb)
               if "text/markdown" in o.get("data", {})]
     assert len(tables) == 1
-    for row in ("oracle", "oracle samples", "last-seen", "uniform", "MLP (mean)", "FlowMaps"):
+    for row in ("oracle", "oracle samples", "smoothed-q samples", "last-seen", "uniform",
+                "MLP (mean)", "FlowMaps"):
         assert f"| {row} |" in tables[0]
     assert "TV @25" in tables[0]
 
@@ -154,8 +155,8 @@ def test_kl_plots_trains_both_models_and_writes_the_report(executed, workdirs):
         assert (runs / f"{kind}-smoke-notebook" / "checkpoints").is_dir()
     out = runs / "eval-smoke"
     results = json.loads((out / "results.json").read_text())
-    assert list(results["rows"]) == ["oracle", "oracle samples", "last-seen", "uniform",
-                                    "MLP (mean)", "FlowMaps"]
+    assert list(results["rows"]) == ["oracle", "oracle samples", "smoothed-q samples",
+                                     "last-seen", "uniform", "MLP (mean)", "FlowMaps"]
     assert results["protocol"]["num_queries"] == 32 * 3
     assert results["protocol"]["samples"] == [25]
     oracle = results["rows"]["oracle"]

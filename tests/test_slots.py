@@ -40,26 +40,46 @@ def brute_force_cost(order, q):
 # --------------------------------------------------------------------------- assignment
 
 
-def test_assignment_radius_and_off_bin():
+def test_assignment_v2_nearest_centre_within_three_centre_sigmas():
+    # BOXES are 0.1-sided objects: the v2 radius is max(0.05, 3 · 0.35 · 0.1) = 0.105.
+    np.testing.assert_allclose(S.assign_radius(BOXES[:2]), [0.105, 0.105], rtol=1e-6)
     samples = np.array([
         BOXES[1],                                   # exactly on slot 1
-        BOXES[0] + [0.049, 0.0, 0.0, 0.0],          # inside the radius of slot 0
-        BOXES[0] + [0.0, 0.051, 0.0, 0.0],          # just outside → off
+        BOXES[0] + [0.1, 0.0, 0.0, 0.0],            # centre 0.1 away: inside slot 0's radius
+        BOXES[0] + [0.0, 0.11, 0.0, 0.0],           # centre 0.11 away: off
         [0.0, 0.0, 0.0, 0.01],                      # next to the padded slot only → off
         (BOXES[0] + BOXES[1]) / 2,                  # far from both → off
+        [0.15, 0.25, 0.2, 0.2],                     # slot 0's centre, another size: slot 0
     ], np.float32)
-    one_each = S.empirical_slots(samples[:, None], np.broadcast_to(BOXES, (5, 3, 4)),
-                                 np.broadcast_to(MASK, (5, 3)))  # one sample per query
-    np.testing.assert_array_equal(np.argmax(one_each, -1), [1, 0, 3, 3, 3])
-    np.testing.assert_allclose(S.empirical_slots(samples, BOXES, MASK), [0.2, 0.2, 0.0, 0.6])
-    # Nearest wins when two slots are within the radius.
+    one_each = S.empirical_slots(samples[:, None], np.broadcast_to(BOXES, (6, 3, 4)),
+                                 np.broadcast_to(MASK, (6, 3)))  # one sample per query
+    np.testing.assert_array_equal(np.argmax(one_each, -1), [1, 0, 3, 3, 3, 0])
+    np.testing.assert_allclose(S.empirical_slots(samples, BOXES, MASK), [2 / 6, 1 / 6, 0, 3 / 6],
+                               rtol=1e-6)
+    # Nearest centre wins when two slots are within their radius.
     close = np.array([[0.2, 0.3, 0.1, 0.1], [0.2, 0.33, 0.1, 0.1]], np.float32)
     np.testing.assert_allclose(
         S.empirical_slots(np.array([[0.2, 0.32, 0.1, 0.1]], np.float32), close, np.ones(2, bool)),
         [0.0, 1.0, 0.0])
-    # A wider radius captures the far sample.
-    np.testing.assert_allclose(S.empirical_slots(samples[2:3], BOXES, MASK, radius=0.06),
+    # A larger least radius captures the far sample; small objects keep the 0.05 floor.
+    np.testing.assert_allclose(S.empirical_slots(samples[2:3], BOXES, MASK, radius=0.12),
                                [1.0, 0.0, 0.0, 0.0])
+    tiny = np.array([[0.2, 0.3, 0.02, 0.02]], np.float32)
+    np.testing.assert_allclose(S.assign_radius(tiny), [0.05])
+    moved = tiny + np.float32([0.049, 0, 0, 0])
+    np.testing.assert_allclose(S.empirical_slots(moved, tiny, np.ones(1, bool)), [1.0, 0.0])
+
+
+def test_assignment_v1_kept_for_comparison():
+    samples = np.array([
+        BOXES[0] + [0.049, 0.0, 0.0, 0.0],          # inside the 0.05 L2 radius of slot 0
+        BOXES[0] + [0.0, 0.051, 0.0, 0.0],          # just outside → off
+        [0.15, 0.25, 0.2, 0.2],                     # slot 0's centre, another size: off in v1
+    ], np.float32)
+    np.testing.assert_allclose(S.empirical_slots(samples, BOXES, MASK, rule="v1"),
+                               [1 / 3, 0.0, 0.0, 2 / 3], rtol=1e-6)
+    with pytest.raises(ValueError, match="rule"):
+        S.empirical_slots(samples, BOXES, MASK, rule="v3")
 
 
 def test_histogram_counts_over_n():

@@ -62,6 +62,9 @@ SOLVERS = flow.SOLVERS
 _ROW_BYTES = {"flowmaps": lambda cfg: 4 * cfg.dim * (cfg.mlp_ratio + 4),
               "mlp": lambda cfg: 64}
 _DENSITY_FACTOR = 5
+FAR_LIMIT = 1e3
+"""Boxes with a number beyond ±this (normalised units; the map is [0, 1]) have log-density −inf:
+the noise prior alone puts exp(−5·10⁵) there, and the ODE would overflow to NaN."""
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -229,13 +232,16 @@ class Predictor:
         return (boxes, log_p) if return_log_prob else boxes
 
     def table_probabilities(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
-                            **sample_kwargs) -> jnp.ndarray:
+                            method: str = "samples", **sample_kwargs) -> jnp.ndarray:
         """Mass (B, Q, S + 1) on each table of the map (furniture tokens; zero on other tokens)
-        plus an "off" mass in the last entry, from ``num_samples`` samples per query: the prior
-        a search planner calls. See :func:`flowmaps_jax.search.table_probabilities`."""
+        plus an "off" mass in the last entry: the prior a search planner calls. ``method``
+        "samples" counts ``num_samples`` samples per query; "weights" reads the route head's
+        mixture weights (:meth:`table_weights`, no sampling noise). See
+        :func:`flowmaps_jax.search.table_probabilities`."""
         from flowmaps_jax.search.probabilities import table_probabilities
 
-        return table_probabilities(self, tokens, queries, num_samples, key, **sample_kwargs)
+        return table_probabilities(self, tokens, queries, num_samples, key, method=method,
+                                   **sample_kwargs)
 
     def log_prob(self, tokens: SceneTokens, queries: Queries, x,
                  num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
@@ -251,9 +257,33 @@ class Predictor:
         if x.shape[2] < 1:
             raise ValueError("x must hold at least one box per query (N >= 1)")
         self._check_request("log_prob", b, q, x.shape[2], True)
+        far = jnp.any(jnp.abs(x) > FAR_LIMIT, axis=-1)  # (B, Q, N): density 0, not NaN
+        x = jnp.where(far[..., None], 0.5, x)
         tokens, queries, x = self._on_mesh(*_as_arrays(tokens, queries), x)
-        return self._rows(model_kind(self.kind).log_prob(
+        log_p = self._rows(model_kind(self.kind).log_prob(
             self.params, self.model, tokens, queries, x, num_steps=num_steps, method=method), b)
+        return jnp.where(far, -jnp.inf, log_p)
+
+    def table_weights(self, tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
+        """Route head only (``model.head="route"``): the mass (B, Q, S + 1) its mixture puts on
+        each token of the map (zero on non-tables), off mass (last entry) 0, read from the model
+        without sampling (:func:`flowmaps_jax.model.route_mixture`). Its samples follow these
+        weights exactly while the head's residual is zero; a trained residual can move a little
+        mass, which ``table_probabilities(..., method="samples")`` would see."""
+        if self.kind != "flowmaps" or self.model.head != "route":
+            raise ValueError("table_weights needs a FlowMaps model with model.head='route' (its "
+                             f"mixture weights are explicit); this one is {self.name} with "
+                             f"head={self.model.head!r}: use table_probabilities with samples")
+        from flowmaps_jax.model.flowmaps import encode, route_mixture
+
+        b, _ = self.validate(tokens, queries)
+        s = np.shape(tokens.boxes)[1]
+        tokens, queries = self._on_mesh(*_as_arrays(tokens, queries))
+        log_w, _, _ = route_mixture(self.params, self.model, encode(self.params, self.model,
+                                                                    tokens), queries)
+        w = self._rows(jnp.exp(log_w), b)  # (B, Q, S') with trailing padding trimmed
+        w = jnp.pad(w, ((0, 0), (0, 0), (0, s - w.shape[-1])))
+        return jnp.concatenate([w, jnp.zeros_like(w[..., :1])], axis=-1)
 
     def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
         """MLP baseline only: (mean, log_var), each (B, Q, 4), of the predicted Gaussian."""

@@ -23,13 +23,23 @@ from flowmaps_jax import distributed
 from flowmaps_jax.evaluation.protocol import (
     DEFAULT_CHUNK_ENVS,
     DEFAULT_KL_DRAWS,
+    DEFAULT_LIKELIHOOD_STEPS,
     DEFAULT_NUM_ENVS,
     DEFAULT_SAMPLES,
 )
 from flowmaps_jax.evaluation.report import markdown_table
 from flowmaps_jax.evaluation.run import run_evaluation
 from flowmaps_jax.sample import DEFAULT_NUM_STEPS, PRETRAINED_PREFIX, SOLVERS, load_model
-from flowmaps_jax.validation import check_int, check_output_dir
+from flowmaps_jax.validation import (
+    check_int,
+    check_output_dir,
+    check_resources,
+    check_seed,
+    network_flops,
+    solver_evaluations,
+)
+
+EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
 
 def _parse_counts(text: str) -> tuple[int, ...]:
@@ -41,6 +51,34 @@ def _parse_counts(text: str) -> tuple[int, ...]:
     if not counts or any(n < 1 for n in counts):
         raise argparse.ArgumentTypeError(f"--samples must be positive integers; got {text!r}")
     return counts
+
+
+def check_size(models, num_envs: int, config, args: argparse.Namespace) -> None:
+    """The evaluation's memory and work, estimated before anything runs (the shared budget,
+    :func:`flowmaps_jax.validation.check_resources`): ValueError naming the arguments."""
+    from flowmaps_jax.sample import _DENSITY_FACTOR, _ROW_BYTES
+
+    e, m, f, d = num_envs, config.num_objects, config.num_furniture, args.kl_draws
+    n, chunk = max(args.samples), min(args.chunk_envs, num_envs)
+    queries = f"on {e} environments x {m} objects"
+    check_resources(f"--kl-draws {d} {queries}", num_bytes=4 * e * m * d * (6 + 4 * f))
+    row = max(_ROW_BYTES[p.kind](p.model) for p in models)
+    check_resources(f"--samples {n} {queries} ({len(models)} models)",
+                    num_bytes=4 * e * m * n * (4 * len(models) + 2 * f + 4) + chunk * m * n * row)
+    check_resources(f"--kl-draws {d} x --chunk-envs {chunk}",
+                    num_bytes=chunk * m * d * row * _DENSITY_FACTOR)
+    logp_steps = args.num_steps if args.logp_steps is None else args.logp_steps
+    flops = 0
+    for p in models:
+        per_query, per_map = network_flops(p.model, p.kind, config.max_tokens)
+        sampled = solver_evaluations(args.num_steps, args.method) if p.kind == "flowmaps" else 1
+        density = solver_evaluations(logp_steps, args.method) if p.kind == "flowmaps" else 1
+        accurate = getattr(args, "likelihood_steps", 0) or 0  # RK4 on N and 2N intervals
+        density += 12 * accurate if p.kind == "flowmaps" else 0
+        flops += e * m * (n * sampled + d * density * _DENSITY_FACTOR) * per_query + e * per_map
+    check_resources(f"--num-steps {args.num_steps} / --logp-steps {logp_steps} / "
+                    f"--likelihood-steps {getattr(args, 'likelihood_steps', 0)} with --samples "
+                    f"{n} and --kl-draws {d} {queries} ({len(models)} models)", flops=flops)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,7 +106,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="ODE grid points for sampling (10 = 18 midpoint evaluations)")
     parser.add_argument("--logp-steps", type=int, default=None,
                         help="ODE grid points for the likelihood (default: --num-steps)")
-    parser.add_argument("--method", choices=SOLVERS, default="midpoint", help="ODE solver")
+    parser.add_argument("--likelihood-steps", type=int, default=DEFAULT_LIKELIHOOD_STEPS,
+                        help="grid points of the accurate likelihood (RK4 on a grid concentrated "
+                             "near t = 1) that FlowMaps' KL uses, with its integration error "
+                             "against twice the intervals; 0: only the paper's grid")
+    parser.add_argument("--method", choices=SOLVERS, default="midpoint",
+                        help="ODE solver for sampling and the paper's likelihood grid "
+                             "(accurate: RK4 on the stiff grid)")
     parser.add_argument("--chunk-envs", type=int, default=DEFAULT_CHUNK_ENVS,
                         help="environments per compiled batch")
     parser.add_argument("--scenes", default=None,
@@ -76,7 +120,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "of the validation split")
     parser.add_argument("--devices", type=int, default=None, metavar="N",
                         help="split the environments over N devices (default: every device "
-                             "JAX sees); results do not depend on it")
+                             "JAX sees); results do not depend on it beyond float "
+                             "summation order (about 1e-6 relative in the KL)")
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
@@ -91,8 +136,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_int("--kl-draws", args.kl_draws, 2)
         check_int("--num-steps", args.num_steps, 2)
         check_int("--chunk-envs", args.chunk_envs, 1)
+        check_seed("--seed", args.seed)
         if args.logp_steps is not None:
             check_int("--logp-steps", args.logp_steps, 2)
+        likelihood_steps = check_int("--likelihood-steps", args.likelihood_steps, 0) or None
+        if likelihood_steps is not None:
+            check_int("--likelihood-steps", likelihood_steps, 3)
         if args.out:
             out = pathlib.Path(args.out)
         elif args.checkpoint.startswith(PRETRAINED_PREFIX):
@@ -110,7 +159,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             scenes, config = load_scenes(args.scenes)
             if args.num_envs < scenes.num_envs:
                 scenes = jax.tree_util.tree_map(lambda a: a[: args.num_envs], scenes)
+            check_size([*baselines, model], scenes.num_envs, config, args)
         else:
+            check_size([*baselines, model], args.num_envs, config, args)
             from flowmaps_jax.flowsim.scenes import validation_split
 
             scenes = validation_split(config, num_envs=args.num_envs, mesh=mesh)
@@ -121,11 +172,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         results, _, _ = run_evaluation(
             [*baselines, model], scenes, config, out, seed=args.seed, sample_counts=args.samples,
             kl_draws=args.kl_draws, chunk_envs=args.chunk_envs, num_steps=args.num_steps,
-            method=args.method, logp_steps=args.logp_steps, figures=not args.no_figures,
+            method=args.method, logp_steps=args.logp_steps, likelihood_steps=likelihood_steps,
+            figures=not args.no_figures,
             progress=not args.no_progress)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
+    except OSError as err:  # a full disk while writing the report: one line, not a traceback
+        print(f"error: could not write the results into {out}: {err.strerror or err}",
+              file=sys.stderr)
+        return EXIT_WRITE_FAILED
     print(markdown_table(results).split("\n## KL")[0])
     print(f"wrote {out / 'results.json'}, {out / 'results.md'}"
           + "".join(f", {out / f}" for f in results["figures"])

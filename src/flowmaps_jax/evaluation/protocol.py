@@ -51,9 +51,12 @@ DEFAULT_NUM_ENVS = 200
 DEFAULT_SAMPLES = (25, 100)
 DEFAULT_KL_DRAWS = 100
 DEFAULT_CHUNK_ENVS = 50
-REFERENCE_ROWS = ("oracle", "oracle samples", "last-seen", "uniform")
+DEFAULT_LIKELIHOOD_STEPS = 48
+"""Grid points of the accurate likelihood (RK4 on the stiff grid of ``flow.time_grid``); its
+integration error is estimated against a grid of twice as many intervals."""
+REFERENCE_ROWS = ("oracle", "oracle samples", "smoothed-q samples", "last-seen", "uniform")
 # fold_in salts of the evaluation seed
-_SALT_QUERIES, _SALT_KL, _SALT_SAMPLES, _SALT_ORACLE = 0, 1, 2, 3
+_SALT_QUERIES, _SALT_KL, _SALT_SAMPLES, _SALT_ORACLE, _SALT_SMOOTHED = 0, 1, 2, 3, 4
 
 
 # --------------------------------------------------------------------------- the query set
@@ -179,7 +182,12 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
 class RowResult:
     """Per-query numbers of one row of the results table (numpy arrays, (E, M) unless noted).
 
-    name: row label. kl, kl_stderr: Monte-Carlo KL(q‖p) and its standard error per query.
+    name: row label. kl, kl_stderr: Monte-Carlo KL(q‖p) and its standard error per query (for a
+        flow, with the accurate likelihood when one was asked for).
+    kl_paper: a flow's per-query KL with the paper's likelihood grid (``logp_steps`` points of
+        the sampling solver; None for closed-form densities or when not computed).
+    kl_error: a flow's integration error of the accurate KL, |KL(n points) − KL(2n − 1 points)|
+        over all queries (0.0 for closed-form densities; None when not computed).
     slots: {n: {"p_hat": (E, M, F + 1), "tv", "top1", "search_cost_ratio"}} for each sample count
         n (reference rows: the same exact slot distribution for every n).
     samples: (E, M, n_max, 4) model samples (None for reference rows).
@@ -192,6 +200,8 @@ class RowResult:
     slots: dict[int, dict[str, np.ndarray]]
     samples: np.ndarray | None = None
     info: dict = dataclasses.field(default_factory=dict)
+    kl_paper: np.ndarray | None = None
+    kl_error: float | None = 0.0
 
 
 def _slot_entry(evalset: EvalSet, p_hat) -> dict[str, np.ndarray]:
@@ -223,12 +233,15 @@ def check_ode(num_steps, method, logp_steps) -> tuple[int, str, int]:
 def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMPLES,
                    key: jax.Array | None = None) -> list[RowResult]:
     """The reference rows: oracle (q itself), oracle samples (n draws from q: the finite-sample
-    ceiling of any sampler's slot metrics), last-seen (stays at its slot), uniform (K slots).
+    ceiling of any sampler's slot metrics), smoothed-q samples (n draws of boxes from the
+    continuous q of the KL, assigned to slots like a model's samples: under the protocol's
+    assignment it matches oracle samples within noise, which is the proof that the assignment
+    does not punish a model that matches q), last-seen (stays at its slot), uniform (K slots).
 
     Their KL uses the ground-truth mixture with the row's slot weights as the density, on the
     shared draws: 0 for the oracle, and the oracle's for oracle samples (a perfect sampler's
-    density is q; only its slot histogram is noisy).
-    ``key``: the draws of "oracle samples" (default ``key(0)``).
+    density is q; only its slot histogram is noisy), as for smoothed-q samples.
+    ``key``: the draws of "oracle samples" and "smoothed-q samples" (default ``key(0)``).
     """
     return _reference_rows(evalset, check_counts(sample_counts), key)
 
@@ -248,6 +261,13 @@ def _reference_rows(evalset: EvalSet, counts: tuple[int, ...], key) -> list[RowR
             slots = {n: _slot_entry(evalset, sampled_oracle_slots(
                          jax.random.fold_in(jax.random.fold_in(key, _SALT_ORACLE), n),
                          evalset.slot_probs, n)) for n in counts}
+        elif name == "smoothed-q samples":  # boxes drawn from the continuous q, then assigned
+            kl = kls["oracle"]
+            draws = _sample_mixture(jax.random.fold_in(key, _SALT_SMOOTHED), evalset.slot_probs,
+                                    evalset.slot_boxes, evalset.slot_mask, counts[-1])
+            slots = {n: _slot_entry(evalset, empirical_slots(
+                         draws[..., :n, :], evalset.slot_boxes, evalset.slot_mask))
+                     for n in counts}
         else:  # exact slot distributions: the same scores for every n
             kl, entry = kls[name], _slot_entry(evalset, exact[name])
             slots = dict.fromkeys(counts, entry)
@@ -260,23 +280,35 @@ def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
                        sample_counts: Sequence[int] = DEFAULT_SAMPLES,
                        chunk_envs: int = DEFAULT_CHUNK_ENVS, num_steps: int = DEFAULT_NUM_STEPS,
                        method: str = "midpoint", logp_steps: int | None = None,
-                       progress: bool = True, name: str | None = None) -> RowResult:
+                       progress: bool = True, name: str | None = None,
+                       likelihood_steps: int | None = DEFAULT_LIKELIHOOD_STEPS) -> RowResult:
     """Score one model on every query of ``evalset``.
 
     Works in chunks of ``chunk_envs`` environments (M queries each, one encoder pass per
     environment; the last chunk is padded so every chunk has one compiled shape). Per chunk:
     max(sample_counts) samples per query (the first n are used for n < max) and log p at the
     shared KL draws. Environment e's samples use ``fold_in(key, e)``, so results do not depend
-    on the chunk size. ``logp_steps``: ODE grid points of the likelihood (default num_steps).
+    on the chunk size. ``logp_steps``: ODE grid points of the paper's likelihood (the sampling
+    ``method``; default num_steps). ``likelihood_steps``: grid points of the accurate likelihood
+    (``flow`` method ``"accurate"``) that ``kl`` uses, with its integration error against
+    2·n − 1 points; None skips it (``kl`` is then the paper grid's).
     """
     return _evaluate_predictor(predictor, evalset, key, check_counts(sample_counts),
                                check_int("chunk_envs", chunk_envs, 1),
-                               check_ode(num_steps, method, logp_steps), progress, name)
+                               check_ode(num_steps, method, logp_steps), progress, name,
+                               check_likelihood_steps(likelihood_steps))
+
+
+def check_likelihood_steps(likelihood_steps) -> int | None:
+    """None, or the accurate likelihood's grid points (an int >= 3)."""
+    if likelihood_steps is None:
+        return None
+    return flow.check_solver(likelihood_steps, "accurate", name="likelihood_steps")[0]
 
 
 def _evaluate_predictor(predictor, evalset: EvalSet, key, counts: tuple[int, ...],
                         chunk_envs: int, ode: tuple[int, str, int], progress: bool,
-                        name: str | None) -> RowResult:
+                        name: str | None, likelihood_steps: int | None = None) -> RowResult:
     num_steps, method, logp_steps = ode
     n_max = counts[-1]
     num_envs = evalset.num_envs
@@ -284,7 +316,14 @@ def _evaluate_predictor(predictor, evalset: EvalSet, key, counts: tuple[int, ...
     num_chunks = math.ceil(num_envs / chunk)
     sample_key = jax.random.fold_in(key, _SALT_SAMPLES)
     env_keys = jax.vmap(lambda e: jax.random.fold_in(sample_key, e))(jnp.asarray(evalset.env))
-    samples, log_p = [], []
+    samples = []
+    flow_density = predictor.kind == "flowmaps"
+    accurate = likelihood_steps is not None and flow_density
+    solves = {"paper": (logp_steps, method)}
+    if accurate:
+        solves.update(accurate=(likelihood_steps, "accurate"),
+                      tight=(2 * likelihood_steps - 1, "accurate"))
+    log_p = {k: [] for k in solves}
     label = name or predictor.name
     start = time.perf_counter()
     for c in tqdm(range(num_chunks), desc=f"evaluating {label}", unit="chunk",
@@ -293,24 +332,32 @@ def _evaluate_predictor(predictor, evalset: EvalSet, key, counts: tuple[int, ...
         part = evalset.take(index)
         s = predictor.sample(part.tokens, part.queries, n_max, env_keys[index],
                              num_steps=num_steps, method=method)
-        lp = predictor.log_prob(part.tokens, part.queries, part.kl_points, num_steps=logp_steps,
-                                method=method)
         keep = min(chunk, num_envs - c * chunk)
-        s, lp = np.asarray(s)[:keep], np.asarray(lp)[:keep]
-        if not (np.all(np.isfinite(s)) and np.all(np.isfinite(lp))):
+        lps = {k: np.asarray(predictor.log_prob(part.tokens, part.queries, part.kl_points,
+                                                num_steps=n, method=m))[:keep]
+               for k, (n, m) in solves.items()}
+        s = np.asarray(s)[:keep]
+        if not (np.all(np.isfinite(s)) and all(np.all(np.isfinite(v)) for v in lps.values())):
             raise ValueError(f"{label} ({predictor.source}) gave non-finite samples or "
                              "log-densities: its parameters are probably diverged (NaN/inf or "
                              "huge); no metric computed from them would mean anything")
         samples.append(s)
-        log_p.append(lp)
+        for k, v in lps.items():
+            log_p[k].append(v)
     seconds = time.perf_counter() - start
     samples_all = np.concatenate(samples)
-    kl = continuous_kl(evalset.kl_log_q, jnp.asarray(np.concatenate(log_p)))
+    kls = {k: continuous_kl(evalset.kl_log_q, jnp.asarray(np.concatenate(v)))
+           for k, v in log_p.items()}
+    kl = kls["accurate"] if accurate else kls["paper"]
+    kl_error = (abs(float(np.mean(kls["accurate"].mean)) - float(np.mean(kls["tight"].mean)))
+                if accurate else (0.0 if not flow_density else None))
     slots = {n: _slot_entry(evalset, empirical_slots(samples_all[:, :, :n], evalset.slot_boxes,
                                                      evalset.slot_mask))
              for n in counts}
     info = {"kind": predictor.kind, "source": predictor.source, "step": predictor.step,
             "seconds": round(seconds, 2), "num_steps": num_steps, "logp_steps": logp_steps,
-            "method": method}
+            "method": method, "likelihood_steps": likelihood_steps if accurate else None}
     return RowResult(name=label, kl=np.asarray(kl.mean), kl_stderr=np.asarray(kl.stderr),
-                     slots=slots, samples=samples_all, info=info)
+                     slots=slots, samples=samples_all, info=info,
+                     kl_paper=np.asarray(kls["paper"].mean) if accurate else None,
+                     kl_error=kl_error)

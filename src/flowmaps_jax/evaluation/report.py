@@ -78,8 +78,11 @@ def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimC
 
     A breakdown is {"overall": {mean, stderr, count}, "by_category": {name: ...},
     "by_horizon": {Δτ: ...}}. The KL stderr is over queries (it includes the Monte-Carlo error);
-    "kl_mc_stderr" is the mean per-query Monte-Carlo standard error. "route_offsets_one_step":
-    the mean route-offset mass over the Δτ = 1 queries (largest sample count).
+    "kl_mc_stderr" is the mean per-query Monte-Carlo standard error; "kl_integration_error" the
+    accurate likelihood's integration error (0 for closed-form densities, null if unknown);
+    "kl_paper_grid" a flow's KL with the paper's likelihood grid (null otherwise).
+    "route_offsets_one_step": the mean route-offset mass over the Δτ = 1 queries (largest sample
+    count).
     """
     out = {}
     one_step = np.asarray(evalset.horizon) == 1
@@ -93,6 +96,10 @@ def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimC
                                else np.full(len(ROUTE_OFFSET_LABELS), np.nan))]},
                  "kl": _breakdown(row.kl, evalset, config),
                  "kl_mc_stderr": _json_number(float(np.mean(row.kl_stderr))),
+                 "kl_integration_error": (None if row.kl_error is None
+                                          else _json_number(float(row.kl_error))),
+                 "kl_paper_grid": (None if row.kl_paper is None
+                                   else _breakdown(row.kl_paper, evalset, config)),
                  "slots": {str(n): {m: _breakdown(s[m], evalset, config) for m in SLOT_METRICS}
                            for n, s in row.slots.items()},
                  "info": row.info}
@@ -118,13 +125,16 @@ def markdown_table(results: dict) -> str:
     lines = ["# Evaluation against the exact posterior\n",
              _protocol_line(results["protocol"]) + "\n",
              "## Overall (mean ± standard error over queries)\n"]
-    header = ["row", "KL(q‖p) [nats]"]
+    header = ["row", "KL(q‖p) [nats]", "integration error", "KL, paper grid"]
     for n in counts:
-        header += [f"TV @{n}", f"top-1 @{n}", f"search cost ratio @{n}"]
+        header += [f"TV @{n}", f"top-1 @{n}", f"rank cost @{n}"]
     lines.append("| " + " | ".join(header) + " |")
     lines.append("|" + "---|" * len(header))
     for name, row in rows.items():
-        cells = [name, _fmt(row["kl"]["overall"], 2)]
+        err = row.get("kl_integration_error")
+        paper = row.get("kl_paper_grid")
+        cells = [name, _fmt(row["kl"]["overall"], 2), "–" if err is None else f"{err:.3f}",
+                 "–" if paper is None else _fmt(paper["overall"], 2)]
         for n in counts:
             slot = row["slots"][str(n)]
             cells += [_fmt(slot[m]["overall"]) for m in SLOT_METRICS]
@@ -144,7 +154,7 @@ def markdown_table(results: dict) -> str:
     for group, title in (("by_category", "category"), ("by_horizon", "horizon Δτ")):
         keys = list(next(iter(rows.values()))["kl"][group])
         for metric, label in (("kl", "KL(q‖p)"), ("tv", f"slot TV @{n_big}"),
-                              ("search_cost_ratio", f"search cost ratio @{n_big}")):
+                              ("search_cost_ratio", f"rank cost @{n_big}")):
             lines.append(f"\n## {label} by {title}\n")
             lines.append("| row | " + " | ".join(keys) + " |")
             lines.append("|---|" + "---|" * len(keys))
@@ -164,7 +174,11 @@ def _protocol_line(p: dict) -> str:
             f"{p['num_queries']} queries; τ ~ U{{0..T−2}}, τ_q ~ U{{τ+1..T−1}}; KL from "
             f"{p['kl_draws']} draws of q per query; slot metrics from "
             f"{', '.join(str(n) for n in p['samples'])} samples; ODE: {p['method']} on "
-            f"{p['num_steps']} grid points (likelihood: {p['logp_steps']}); seed {p['seed']}.")
+            f"{p['num_steps']} grid points (paper likelihood grid: {p['logp_steps']}; accurate "
+            f"likelihood: {p.get('likelihood_steps') or 'off'} points, RK4 on the stiff grid); "
+            f"slot assignment {p.get('assignment', 'v1')}; seed {p['seed']}. Rank cost: Σ_k "
+            "rank_k q_k visiting slots by decreasing p̂, over the same by decreasing q "
+            "(docs/protocol.md).")
 
 
 def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathlib.Path]:

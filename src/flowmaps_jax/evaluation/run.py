@@ -15,6 +15,7 @@ from flowmaps_jax.evaluation.figures import plot_by_horizon, plot_kl, plot_sampl
 from flowmaps_jax.evaluation.protocol import (
     DEFAULT_CHUNK_ENVS,
     DEFAULT_KL_DRAWS,
+    DEFAULT_LIKELIHOOD_STEPS,
     DEFAULT_SAMPLES,
     EvalSet,
     RowResult,
@@ -22,6 +23,7 @@ from flowmaps_jax.evaluation.protocol import (
     _reference_rows,
     build_eval_queries,
     check_counts,
+    check_likelihood_steps,
     check_ode,
 )
 from flowmaps_jax.evaluation.report import summarise_rows, write_report
@@ -36,10 +38,13 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
                    sample_counts: Sequence[int] = DEFAULT_SAMPLES,
                    kl_draws: int = DEFAULT_KL_DRAWS, chunk_envs: int = DEFAULT_CHUNK_ENVS,
                    num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
-                   logp_steps: int | None = None, figures: bool = True,
+                   logp_steps: int | None = None,
+                   likelihood_steps: int | None = DEFAULT_LIKELIHOOD_STEPS, figures: bool = True,
                    progress: bool = True) -> tuple[dict, list[RowResult], EvalSet]:
     """Evaluate ``predictors`` (baselines first, FlowMaps last, as they should appear) on every
     environment of ``scenes``; write the report and figures into out_dir if given.
+    A flow's KL uses the accurate likelihood on ``likelihood_steps`` grid points (with its
+    integration error; None: the paper's grid only), and the paper's grid is reported beside it.
 
     Arguments are checked before any model runs. Returns (results dict as written to
     results.json, the RowResults, the EvalSet).
@@ -49,6 +54,7 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         raise ValueError("predictors must hold at least one Predictor")
     chunk_envs = check_int("chunk_envs", chunk_envs, 1)
     num_steps, method, logp_steps = ode = check_ode(num_steps, method, logp_steps)
+    likelihood_steps = check_likelihood_steps(likelihood_steps)
     for p in predictors:
         if not isinstance(p, Predictor):
             raise ValueError(f"predictors must be Predictor objects; got {type(p).__name__}")
@@ -62,13 +68,13 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     names = unique_names([p.name for p in predictors])
     for predictor, name in zip(predictors, names, strict=True):
         rows.append(_evaluate_predictor(predictor, evalset, key, counts, chunk_envs, ode,
-                                        progress, name))
+                                        progress, name, likelihood_steps))
     results = {
         "protocol": {"num_envs": evalset.num_envs, "objects_per_env": config.num_objects,
                      "num_queries": evalset.num_queries, "samples": list(counts),
                      "kl_draws": kl_draws, "num_steps": num_steps, "method": method,
-                     "logp_steps": logp_steps,
-                     "seed": seed, "assign_radius": ASSIGN_RADIUS,
+                     "logp_steps": logp_steps, "likelihood_steps": likelihood_steps,
+                     "seed": seed, "assignment": "v2", "assign_radius": ASSIGN_RADIUS,
                      "dynamics": config.dynamics},
         "rows": summarise_rows(rows, evalset, config),
         "figures": [],

@@ -12,8 +12,9 @@ import dataclasses
 from flowmaps_jax.validation import check_choice, check_flag, check_int, check_real
 
 BASELINE_VARIANCES = ("mean", "learned")
-HEADS = ("velocity", "pointer")
+HEADS = ("velocity", "pointer", "route")
 PRECISIONS = ("float32", "bf16")
+POINTER_WIDTHS = ("absolute", "relative")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,6 +40,15 @@ class ModelConfig:
         Centring and scaling up raises the data's signal-to-noise ratio against X_0 ~ N(0, I);
         measured on the cpu preset it sharpened h, w but scattered y, x (docs/results.md,
         "Sharper boxes"). (0, 1), the default, is the paper's identity map.
+    head: the velocity read-out: ``"velocity"`` (the paper's linear head), ``"pointer"`` (a
+        Gaussian mixture over the map's tokens, :mod:`flowmaps_jax.model.readout`) or ``"route"``
+        (the pointer with a one-step transition raised to Δτ, :mod:`flowmaps_jax.model.route`).
+    pointer_width_scale: the pointer/route widths' log-variance is this × its parameter, so Adam
+        moves it this much faster.
+    pointer_widths: ``"absolute"`` (the pointer's widths in flow units, as first shipped) or
+        ``"relative"`` (fractions of the object's own height and width, as the protocol's q:
+        one number fits objects of every size).
+    condition_on_dtau: add an embedding of Δτ = τ_q − τ to the CDiT conditioning.
     precision: compute precision of matmuls and attention, ``"float32"`` or ``"bf16"`` (bfloat16
         operands, float32 accumulation; :mod:`flowmaps_jax.model.precision`); params, optimiser
         state, LayerNorm, softmax and the loss stay float32. bf16 is for accelerators (on CPU it
@@ -61,6 +71,7 @@ class ModelConfig:
     box_scale: float = 1.0
     head: str = "velocity"
     pointer_width_scale: float = 1.0
+    pointer_widths: str = "absolute"
     condition_on_dtau: bool = False
     precision: str = "float32"
 
@@ -80,6 +91,7 @@ class ModelConfig:
         check_choice("ModelConfig.head", self.head, HEADS)
         check_real("ModelConfig.pointer_width_scale", self.pointer_width_scale, 0.0, 1000.0,
                    low_open=True)
+        check_choice("ModelConfig.pointer_widths", self.pointer_widths, POINTER_WIDTHS)
         check_flag("ModelConfig.condition_on_dtau", self.condition_on_dtau)
         check_choice("ModelConfig.baseline_variance", self.baseline_variance, BASELINE_VARIANCES)
         check_choice("ModelConfig.precision", self.precision, PRECISIONS)

@@ -27,6 +27,7 @@ from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.embeddings import SinusoidalMLP
 from flowmaps_jax.model.encoder import MapEncoder, example_inputs
 from flowmaps_jax.model.readout import PointerReadout
+from flowmaps_jax.model.route import RouteReadout
 from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
 from flowmaps_jax.validation import check_array, check_instance, check_real_array
 
@@ -34,12 +35,15 @@ from flowmaps_jax.validation import check_array, check_instance, check_real_arra
 @struct.dataclass
 class Context:
     """Encoded map: tokens (B, S, D) from the Map Encoder (zero on padding), mask (B, S) bool,
-    and what the heads read besides: the tokens' normalised boxes (B, S, 4) and the map's τ (B,)."""
+    and what the heads read besides: the tokens' normalised boxes (B, S, 4), descriptor and kind
+    (B, S) ints, and the map's τ (B,)."""
 
     tokens: jnp.ndarray
     mask: jnp.ndarray
     boxes: jnp.ndarray
     tau: jnp.ndarray
+    descriptor: jnp.ndarray
+    kind: jnp.ndarray
 
 
 class FlowMaps(nn.Module):
@@ -68,29 +72,47 @@ class FlowMaps(nn.Module):
         if cfg.head == "pointer":
             self.final_norm = FinalLayer(cfg.dim, out_dim=None, precision=cfg.precision)
             self.readout = PointerReadout(cfg.dim, cfg.box_scale, cfg.box_offset,
-                                          cfg.pointer_width_scale, cfg.precision)
+                                          cfg.pointer_width_scale, cfg.precision,
+                                          cfg.pointer_widths)
+        elif cfg.head == "route":
+            self.final_norm = FinalLayer(cfg.dim, out_dim=None, precision=cfg.precision)
+            self.readout = RouteReadout(cfg.dim, cfg.tau_max, cfg.box_scale, cfg.box_offset,
+                                        cfg.pointer_width_scale, cfg.precision)
         else:
             self.final = FinalLayer(cfg.dim, precision=cfg.precision)
 
     def encode(self, tokens: SceneTokens, deterministic: bool = True) -> Context:
         mask = tokens.mask.astype(bool)
         return Context(tokens=self.encoder(tokens, deterministic), mask=mask,
-                       boxes=jnp.asarray(tokens.boxes, jnp.float32), tau=tokens.tau)
+                       boxes=jnp.asarray(tokens.boxes, jnp.float32), tau=tokens.tau,
+                       descriptor=jnp.asarray(tokens.descriptor), kind=jnp.asarray(tokens.kind))
 
     def velocity(self, context: Context, x_t, t, queries: Queries, deterministic: bool = True):
         cfg = self.config
         c = (self.tau_q_embed(queries.tau_q) + self.descriptor_embed(queries.descriptor)
              + self.time_embed(t[..., None]))  # (B, Q, D)
         if cfg.condition_on_dtau:
-            dtau = jnp.clip(queries.tau_q - context.tau[:, None], 0, cfg.tau_max - 1)
-            c = c + self.dtau_embed(dtau)
+            c = c + self.dtau_embed(self._dtau(context, queries))
         x = self.query_embed(x_t) + self.query_pos  # (B, Q, N, D)
         for block in self.blocks:
             x = block(x, c, context.tokens, context.mask, deterministic)
         if cfg.head == "pointer":
             return self.readout(self.final_norm(x, c), c, context.tokens, context.mask,
                                 context.boxes, x_t, t)
+        if cfg.head == "route":
+            return self.readout(self.final_norm(x, c), self.descriptor_embed(queries.descriptor),
+                                context, queries.descriptor, self._dtau(context, queries), x_t, t)
         return self.final(x, c)
+
+    def _dtau(self, context: Context, queries: Queries):
+        return jnp.clip(queries.tau_q - context.tau[:, None], 0, self.config.tau_max - 1)
+
+    def mixture(self, context: Context, queries: Queries):
+        """The route head's mixture (log-weights (B, Q, S), means (B, Q, S, 4), log-variances
+        (B, Q, 4), flow space): what the flow carries noise onto when its residual is zero."""
+        return self.readout(None, self.descriptor_embed(queries.descriptor), context,
+                            queries.descriptor, self._dtau(context, queries), None, None,
+                            mixture_only=True)
 
     def __call__(self, tokens, x_t, t, queries, deterministic: bool = True):
         return self.velocity(self.encode(tokens, deterministic), x_t, t, queries, deterministic)
@@ -128,12 +150,21 @@ def velocity(params, config: ModelConfig, context: Context, x_t, t, queries: Que
 
 
 @functools.partial(jax.jit, static_argnames="config")
+def route_mixture(params, config: ModelConfig, context: Context, queries: Queries):
+    """The route head's mixture over the map's tables (``head="route"`` only): log-weights
+    (B, Q, S) (−inf off the tables), means (B, Q, S, 4) and log-variances (B, Q, 4), in the
+    flow's space. Without the residual the flow's samples follow exactly this mixture."""
+    return FlowMaps(config).apply({"params": params}, context, queries,
+                                  method=FlowMaps.mixture)
+
+
+@functools.partial(jax.jit, static_argnames="config")
 def velocity_and_anchor_logits(params, config: ModelConfig, context: Context, x_t, t,
                                queries: Queries, *, dropout_key=None):
     """:func:`velocity` plus the pointer head's anchor logits (B, Q, N, S) (``head="pointer"``
     only): the mixture's log-weights over the map's tokens before the x_t likelihood."""
-    if config.head != "pointer":
-        raise ValueError("anchor logits exist only for ModelConfig.head='pointer'")
+    if config.head not in ("pointer", "route"):
+        raise ValueError("anchor logits exist only for ModelConfig.head='pointer' or 'route'")
     v, state = FlowMaps(config).apply({"params": params}, context, x_t, t, queries,
                                       dropout_key is None, method=FlowMaps.velocity,
                                       rngs=_rngs(dropout_key), mutable=["intermediates"])

@@ -16,6 +16,8 @@ What. From the CDiT rows h (B, Q, N, D), the context tokens (B, S, D) and their 
                                                          c(y, x, h, w) = (y + h/2, x + w/2, h, w),
                                                          then back to (y, x, h, w) and flow space
     σ²   = exp(log σ²₀ + Dense₀(c))                      per-query, per-number widths
+                                                         (× the object's (h, w, h, w)² with
+                                                         ``widths="relative"``)
     var_s = t² σ² + (1 − t)²                             X_t | component s ~ N(t μ_s, var)
     w_s  ∝ exp(ℓ_s) · N(x_t; t μ_s, var)                 ℓ_s = anchor logit: the mixture weight
     v    = Σ_s w_s [(1 − t) μ_s − ((1 − t) − t σ²) x_t] / var  +  Dense₀(h)
@@ -44,6 +46,7 @@ from flowmaps_jax.model.precision import compute_dtype, einsum
 from flowmaps_jax.tokens import from_centre, to_centre
 
 _INIT_LOG_VAR = 2.0 * math.log(0.02)  # a component's initial std in flow units
+_INIT_REL_STD = (0.25, 0.25, 0.05, 0.05)  # relative widths: fractions of the object's (h, w, h, w)
 
 
 def _diag(*values):
@@ -64,7 +67,8 @@ def mixture_velocity(logits, means, log_var, x_t, t):
     """Velocity of the linear path towards a Gaussian mixture, given its parameters.
 
     logits (B, Q, N, S) mixture log-weights (−inf or very negative on excluded components);
-    means (B, Q, N, S, 4); log_var (B, Q, 1, 1, 4) per-number log σ²; x_t (B, Q, N, 4); t (B, Q).
+    means (B, Q, N, S, 4); log_var (B, Q, 1, 1, 4) or (B, Q, N, 1, 4) per-number log σ²;
+    x_t (B, Q, N, 4); t (B, Q).
     Returns v (B, Q, N, 4) = E[X_1 − X_0 | X_t = x_t].
     """
     tt = t[:, :, None, None, None]
@@ -91,6 +95,7 @@ class PointerReadout(nn.Module):
     box_offset: float = 0.0
     width_scale: float = 1.0  # log σ² = width_scale · θ: Adam moves the widths this much faster
     precision: str = "float32"
+    widths: str = "absolute"  # or "relative": σ = exp(θ/2) × the object's (h, w, h, w)
 
     @nn.compact
     def __call__(self, h, c, context, mask, boxes, x_t, t):
@@ -108,10 +113,20 @@ class PointerReadout(nn.Module):
         shared = jnp.einsum("bqns,bsd->bqnd", source, centres) @ b_map  # (B, Q, N, 4)
         means = (centres @ a_map)[:, None, None] + (shared + bias)[:, :, :, None, :]
         means = self.box_scale * (from_centre(means) - self.box_offset)  # the flow's space
-        theta = self.param("log_var", nn.initializers.constant(_INIT_LOG_VAR / self.width_scale),
-                           (4,))
         zeros = nn.initializers.zeros_init()
-        log_var = self.width_scale * theta + FlatDense(
-            4, kernel_init=zeros, precision=self.precision, name="log_var_shift")(nn.silu(c))
-        v = mixture_velocity(anchor, means, log_var[:, :, None, None, :], x_t, t)
+        shift = FlatDense(4, kernel_init=zeros, precision=self.precision,
+                          name="log_var_shift")(nn.silu(c))[:, :, None, None, :]  # (B, Q, 1, 1, 4)
+        if self.widths == "relative":  # fractions of the object's size (the source's h, w)
+            init = [2.0 * math.log(r) / self.width_scale for r in _INIT_REL_STD]
+            theta = self.param("log_var", lambda key, shape: jnp.asarray(init, jnp.float32),
+                               (4,))
+            hw = jnp.array([2, 3, 2, 3])
+            size = jnp.maximum(shared[..., hw] + bias[hw], 1e-4)  # (B, Q, N, 4)
+            log_var = (self.width_scale * theta + shift
+                       + 2.0 * jnp.log(self.box_scale * size)[:, :, :, None, :])  # (B, Q, N, 1, 4)
+        else:
+            theta = self.param("log_var",
+                               nn.initializers.constant(_INIT_LOG_VAR / self.width_scale), (4,))
+            log_var = self.width_scale * theta + shift
+        v = mixture_velocity(anchor, means, log_var, x_t, t)
         return v + FlatDense(4, kernel_init=zeros, precision=self.precision, name="residual")(h)

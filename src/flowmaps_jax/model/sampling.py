@@ -20,7 +20,8 @@ import jax.numpy as jnp
 from flowmaps_jax import flow
 from flowmaps_jax.model.baseline import baseline_log_prob, baseline_predict
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.flowmaps import encode, make_velocity_fn
+from flowmaps_jax.model.flowmaps import encode, make_velocity_fn, route_mixture
+from flowmaps_jax.model.route import mixture_log_prob
 from flowmaps_jax.tokens import Queries, SceneTokens
 
 DEFAULT_NUM_STEPS = 10
@@ -83,6 +84,17 @@ def flow_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Que
     velocity_fn = make_velocity_fn(params, config, context, queries)
     z = to_flow_space(x, config)
     return flow.log_prob(velocity_fn, z, num_steps, method) + flow_space_log_det(config)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def route_mixture_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
+                           x: jnp.ndarray) -> jnp.ndarray:
+    """Closed-form log-density (B, Q, N) of boxes x (B, Q, N, 4) under the route head's mixture
+    (``head="route"``): FlowMaps' exact log-density while the head's residual is zero, the
+    reference the accurate likelihood is checked against."""
+    log_w, means, log_var = route_mixture(params, config, encode(params, config, tokens), queries)
+    return mixture_log_prob(log_w, means, log_var, to_flow_space(x, config)) + \
+        flow_space_log_det(config)
 
 
 def _gaussian_draw(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,

@@ -9,14 +9,14 @@ Entry ``[b, q, s]`` is the mass on furniture token ``s`` of scene ``b`` for quer
 of object tokens and padding are exactly zero; the last entry is the mass on no table ("off").
 Each row sums to 1.
 
-* **Sampled priors** (FlowMaps, the MLP baseline): ``num_samples`` boxes per query; a sample is
-  assigned to table ``s`` when it lies within :data:`ASSIGN_TOLERANCE` (the evaluation protocol's
-  radius, ``ASSIGN_RADIUS`` = 0.05, L2 over the four normalised numbers y, x, h, w) of the
-  queried object's box *centred on that table*: the object's size is read from its own token at
-  τ (objects keep their size), its centre is the table's centre. That is the protocol's slot
-  assignment (``empirical_slots``) over every table of the map instead of the K tables of the
-  object's kind. On a 256 px map 0.05 is 12.75 px: a sample of the right size counts for a table
-  when its centre is within ~13 px of the table's centre. Otherwise the sample is "off".
+* **Sampled priors** (FlowMaps, the MLP baseline): ``num_samples`` boxes per query, assigned by
+  the evaluation protocol's rule (v2, ``evaluation.slots``) over every table of the map instead of
+  the K tables of the object's kind: a sample counts for the table whose centre is nearest to the
+  sample's centre, unless that distance exceeds max(:data:`ASSIGN_TOLERANCE`, 3 · 0.35 × the
+  object's longer side), when it is "off". The object's size is read from its own token at τ
+  (objects keep their size); on a table it stands at the table's centre. On a 256 px map 0.05 is
+  12.75 px. Models that give their table weights explicitly (the FlowMaps pointer head) can
+  instead be read without sampling: ``method="weights"`` (:func:`table_probabilities`).
 * **Exact priors** (FlowSim's exact posterior, uniform over the kind, last-seen) are slot
   distributions along the object's visiting order; :func:`slots_to_tables` puts slot ``k``'s mass
   on the table ``visit_order[k]`` (furniture tokens come first in ``scene_tokens``, so a furniture
@@ -40,8 +40,8 @@ from flowmaps_jax.tokens import FURNITURE, OBJECT, Queries, SceneTokens
 from flowmaps_jax.validation import check_instance, check_int
 
 ASSIGN_TOLERANCE = slot_metrics.ASSIGN_RADIUS
-"""A sample counts for a table if its (y, x, h, w) is within this L2 distance of the object's box
-centred on the table (normalised units; the evaluation protocol's radius)."""
+"""The least assignment radius (normalised units; the evaluation protocol's): a sample whose centre
+is this close to a table's centre counts for the nearest table."""
 OFF = "off"
 """Key of the off-table mass in :func:`table_dict`."""
 
@@ -105,8 +105,13 @@ def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp
 # --------------------------------------------------------------------------- sampled priors
 
 
+TABLE_METHODS = ("samples", "weights")
+"""How :func:`table_probabilities` reads a model: by counting samples, or from explicit weights."""
+
+
 def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
-                        num_samples: int, key: jax.Array, **sample_kwargs) -> jnp.ndarray:
+                        num_samples: int, key: jax.Array, method: str = "samples",
+                        **sample_kwargs) -> jnp.ndarray:
     """Mass on each table of the map from a sampling model → (B, Q, S + 1) float32.
 
     predictor: anything with :meth:`flowmaps_jax.sample.Predictor.sample` (FlowMaps or the MLP
@@ -114,13 +119,25 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
     key: one typed PRNG key (``jax.random.key``) or one per scene (B,), as ``Predictor.sample``.
     Entry s < S is the fraction of the N samples assigned to furniture token s (see the module
     doc: tolerance :data:`ASSIGN_TOLERANCE`), entry S the fraction on no table. Extra keyword
-    arguments (``num_steps``, ``method``) go to ``predictor.sample``.
+    arguments (``num_steps``, ``solver``) go to ``predictor.sample`` (``solver`` as its
+    ``method``).
+    ``method="weights"``: the route head's explicit mixture weights instead
+    (``predictor.table_weights``; ``num_samples`` and ``key`` unused), no sampling noise.
     """
+    if method not in TABLE_METHODS:
+        raise ValueError(f"method must be one of {TABLE_METHODS}; got {method!r}")
+    if method == "weights":
+        if not callable(getattr(predictor, "table_weights", None)):
+            raise ValueError("method='weights' needs a predictor with table_weights (a FlowMaps "
+                             f"Predictor with the route head); got {type(predictor).__name__}")
+        return predictor.table_weights(tokens, queries)
     if not callable(getattr(predictor, "sample", None)):
         raise ValueError(f"predictor must have a sample(tokens, queries, num_samples, key) method "
                          f"(a flowmaps_jax.sample.Predictor); got {type(predictor).__name__}")
     num_samples = check_int("num_samples", num_samples)
     boxes, mask = table_boxes(tokens, queries)
+    if "solver" in sample_kwargs:
+        sample_kwargs["method"] = sample_kwargs.pop("solver")
     samples = predictor.sample(tokens, queries, num_samples, key, **sample_kwargs)
     return slot_metrics.empirical_slots(samples, boxes, mask, ASSIGN_TOLERANCE)
 

@@ -26,7 +26,7 @@ from flowmaps_jax.flowsim import FlowSimConfig, Scenes
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search.policies import POLICIES, check_policy
-from flowmaps_jax.search.probabilities import ASSIGN_TOLERANCE
+from flowmaps_jax.search.probabilities import ASSIGN_TOLERANCE, TABLE_METHODS
 from flowmaps_jax.validation import check_int
 
 MAIN_POLICIES = ("most-probable", "greedy", "optimal")
@@ -149,18 +149,30 @@ def _summarise(runs, names, policies, groups) -> dict:
 # --------------------------------------------------------------------------- the whole run
 
 
+def _has_weights(predictor) -> bool:
+    """Whether a predictor gives explicit table weights (a FlowMaps model with the route head)."""
+    model = getattr(predictor, "model", None)
+    return (getattr(predictor, "kind", None) == "flowmaps"
+            and getattr(model, "head", None) == "route")
+
+
 def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig, *,
                seed: int = 0, num_samples: int = DEFAULT_SAMPLES,
                times_per_env: int = DEFAULT_TIMES_PER_ENV, horizons: Sequence[int] | None = None,
                policies: Sequence[str] = MAIN_POLICIES, budget: int = ep.DEFAULT_BUDGET,
                p_miss: float = 0.0, start: str = "centre", chunk_rows: int = 50,
-               progress: bool = True, **sample_kwargs
+               progress: bool = True, table_method: str = "samples", **sample_kwargs
                ) -> tuple[dict, dict[tuple[str, str], RowRun], ep.SearchSet]:
     """The protocol on every environment of ``scenes``: queries, priors (the reference rows and
     one row per predictor, in the order given), every row × policy → (results, runs, search set).
 
     ``results`` is what ``report.write_report`` writes as search.json (without figures).
+    ``table_method``: how a model's table probabilities are read, "samples" (``num_samples``
+    per query) or "weights" (the route head's explicit mixture weights; models without them,
+    such as the MLP baseline, are still sampled).
     """
+    if table_method not in TABLE_METHODS:
+        raise ValueError(f"table_method must be one of {TABLE_METHODS}; got {table_method!r}")
     check_int("seed", seed, minimum=None)
     num_samples = check_int("num_samples", num_samples)
     for p in predictors:
@@ -178,9 +190,11 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     names = unique_names([getattr(p, "name", type(p).__name__) for p in predictors])
     for predictor, name in zip(predictors, names, strict=True):
         t0 = time.perf_counter()
+        method = table_method if _has_weights(predictor) else "samples"
         priors[name] = ep.predictor_tables(predictor, search_set, num_samples,
                                            jax.random.fold_in(key, _SALT_MODELS), chunk_rows,
-                                           progress, desc=f"sampling {name}", **sample_kwargs)
+                                           progress, desc=f"{method} of {name}", method=method,
+                                           **sample_kwargs)
         seconds[name] = round(time.perf_counter() - t0, 1)
     priors.update(reference)
     rows, runs = score_priors(search_set, priors, config, policies=policies, budget=budget,
@@ -189,6 +203,8 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
         rows[name]["info"] = {"kind": getattr(predictor, "kind", None),
                               "source": getattr(predictor, "source", None),
                               "step": getattr(predictor, "step", None),
+                              "table_method": (table_method if _has_weights(predictor)
+                                               else "samples"),
                               "sampling_seconds": seconds[name]}
     results = {
         "protocol": {
@@ -196,7 +212,8 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
             "episodes": int(np.prod(search_set.obj.shape)),
             "times_per_env": None if horizons is not None else int(times_per_env),
             "horizons": None if horizons is None else [int(h) for h in horizons],
-            "num_samples": num_samples, "policies": list(_check_policies(policies)),
+            "num_samples": num_samples, "table_method": table_method,
+            "policies": list(_check_policies(policies)),
             "budget": int(budget), "p_miss": float(p_miss), "start": start, "seed": int(seed),
             "assign_tolerance": ASSIGN_TOLERANCE, "dynamics": config.dynamics,
             "map_size": config.map_size, "max_tables": search_set.num_tables},

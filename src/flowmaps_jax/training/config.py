@@ -31,7 +31,16 @@ from flowmaps_jax.flow import T_SAMPLERS
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.training.objectives import MODEL_KINDS
-from flowmaps_jax.validation import INT32_MAX, check_int, check_real, check_seed
+from flowmaps_jax.validation import (
+    INT32_MAX,
+    check_int,
+    check_plain_name,
+    check_real,
+    check_resources,
+    check_seed,
+    network_flops,
+    solver_evaluations,
+)
 
 DATA_SOURCES = ("train", "endless")
 
@@ -117,6 +126,7 @@ class TrainConfig:
             check_int(name, getattr(self, name), maximum=INT32_MAX)
         check_int("routine_envs", self.routine_envs, minimum=0, maximum=INT32_MAX)
         check_seed("seed", self.seed)
+        check_plain_name("preset", self.preset)  # it names the default run directory
         if self.devices is not None:
             check_int("devices", self.devices, maximum=INT32_MAX)
             if self.batch_size % self.devices:
@@ -142,9 +152,9 @@ class TrainConfig:
         if not isinstance(self.flowsim, FlowSimConfig):
             raise ValueError(f"flowsim must be a FlowSimConfig; got {type(self.flowsim).__name__}")
         if self.pointer_loss > 0 and self.model_kind == "flowmaps" and \
-                self.model.head != "pointer":
-            raise ValueError("pointer_loss > 0 needs model.head='pointer' (the MLP baseline "
-                             "ignores it)")
+                self.model.head not in ("pointer", "route"):
+            raise ValueError("pointer_loss > 0 needs model.head='pointer' or 'route' (the MLP "
+                             "baseline ignores it)")
         sim, net = self.flowsim, self.model
         if net.num_descriptors < sim.num_descriptors:
             raise ValueError(f"model.num_descriptors={net.num_descriptors} is smaller than the "
@@ -164,6 +174,72 @@ class TrainConfig:
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=False)
+
+
+# --------------------------------------------------------------------------------------------
+# Resource bounds
+
+
+_ROUTINE_QUERIES = 3 * 2  # the routine probe: 3 objects per environment, at two horizon laws
+
+
+def resource_estimate(cfg: TrainConfig, devices: int = 1) -> list[tuple[str, int, int]]:
+    """What a run of ``cfg`` needs, part by part, on each of ``devices`` data-parallel devices:
+    ``[(what, bytes, FLOPs), ...]`` where ``what`` names the fields that set the part's size.
+    FLOPs are those of one uninterruptible call (a train step, a validation); ``steps`` is not
+    bounded (a run stops and resumes between steps). A rough, generous estimate
+    (:func:`flowmaps_jax.validation.network_flops`)."""
+    net, sim = cfg.model, cfg.flowsim
+    tokens = sim.num_furniture + sim.num_objects
+    b, q = cfg.batch_size, cfg.queries_per_scene
+    per_layer = net.dim * net.dim * (4 + 2 * net.mlp_ratio)
+    params = (net.encoder_layers * per_layer + net.cdit_blocks * (per_layer + 6 * net.dim ** 2)
+              + 2 * net.dim * net.baseline_hidden + net.baseline_hidden ** 2)
+    query_flops, scene_flops = network_flops(net, cfg.model_kind, tokens)
+    # activations kept for the backward pass: per query row and per scene token, every layer
+    row = 4 * net.dim * (net.mlp_ratio + 8) * net.cdit_blocks * 2
+    token = 4 * (net.dim * (net.mlp_ratio + 8) + tokens * net.heads) * net.encoder_layers * 2
+    shard = max(1, int(devices))
+    step_bytes = -(-b // shard) * (q * row + tokens * token)
+    batch_bytes = 4 * (b * sim.max_tokens * 7 + b * q * 6)
+    envs = cfg.train_envs + cfg.val_envs
+    env_bytes = 4 * (sim.num_furniture * 5 + sim.num_objects * (3 + sim.num_furniture)
+                     + sim.num_timesteps * sim.num_objects * 5 + 1)
+    routine_envs = min(cfg.routine_envs, cfg.val_envs)
+    routine_rows = routine_envs * _ROUTINE_QUERIES * cfg.routine_samples
+    from flowmaps_jax.model.sampling import DEFAULT_NUM_STEPS
+
+    evaluations = solver_evaluations(DEFAULT_NUM_STEPS) if cfg.model_kind == "flowmaps" else 1
+    return [
+        (f"the model (model.dim={net.dim}, model.encoder_layers={net.encoder_layers}, "
+         f"model.cdit_blocks={net.cdit_blocks}, model.mlp_ratio={net.mlp_ratio}: about "
+         f"{params:,} parameters, with EMA, optimiser state and gradients)",
+         4 * 5 * params, 0),
+        (f"a train step (batch_size={b} x queries_per_scene={q} at model.dim={net.dim})",
+         step_bytes, 3 * (b * q * query_flops + b * scene_flops)),
+        (f"the validation batches (val_batches={cfg.val_batches} of batch_size={b} x "
+         f"queries_per_scene={q})",
+         cfg.val_batches * batch_bytes + step_bytes // 2,
+         cfg.val_batches * (b * q * query_flops + b * scene_flops)),
+        (f"the data (train_envs={cfg.train_envs} + val_envs={cfg.val_envs} environments)",
+         envs * env_bytes, 0),
+        (f"the routine diagnostic (routine_envs={routine_envs} environments x "
+         f"{_ROUTINE_QUERIES} queries x routine_samples={cfg.routine_samples} samples)",
+         routine_rows * (4 * net.dim * (net.mlp_ratio + 4) + 4 * (4 + sim.num_furniture)),
+         routine_rows * evaluations * query_flops + routine_envs * 2 * scene_flops),
+    ]
+
+
+def check_run_resources(cfg: TrainConfig, devices: int = 1) -> None:
+    """``ValueError`` naming the fields when a part of :func:`resource_estimate`, or all of it
+    together, is over the memory or work budget (:func:`flowmaps_jax.validation.memory_limit`,
+    :func:`~flowmaps_jax.validation.flops_limit`; environment variables FLOWMAPS_MAX_BYTES and
+    FLOWMAPS_MAX_FLOPS raise them)."""
+    parts = resource_estimate(cfg, devices)
+    for what, num_bytes, flops in parts:
+        check_resources(what, num_bytes=num_bytes, flops=flops)
+    check_resources("the run altogether (model, step, validation, data and routine "
+                    "diagnostic)", num_bytes=sum(p[1] for p in parts))
 
 
 def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
@@ -195,7 +271,8 @@ def cpu_preset() -> TrainConfig:
     """
     return TrainConfig(
         model=ModelConfig(dim=128, encoder_layers=4, cdit_blocks=4, heads=4, dropout=0.0,
-                          baseline_hidden=256, head="pointer", condition_on_dtau=True),
+                          baseline_hidden=256, head="pointer", condition_on_dtau=True,
+                          pointer_widths="relative", pointer_width_scale=10.0),
         batch_size=64, queries_per_scene=8, steps=8500, lr=1e-3, warmup_steps=200,
         clip_norm=1.0, ema_decay=0.999, short_horizon_frac=0.5, short_horizon_max=1,
         target_noise=1.0, pointer_loss=1.0, log_every=50, val_every=500,

@@ -1,0 +1,76 @@
+"""Why is the multi-step posterior wrong? Score a model by horizon on training and held-out homes.
+
+For each horizon Δτ (fixed-horizon query sets, every object of each environment) and for two sets
+of environments (the first ``--envs`` of the fixed training split the model saw, and as many
+held-out validation environments), it prints, from ``--samples`` samples per query (protocol v2
+assignment):
+
+* TV to the exact posterior q and the off-table mass;
+* the model's mass at the slot the object actually occupies at τ_q ("p̂(real)") next to the exact
+  posterior's mass there ("q(real)").
+
+A model that learned the posterior has p̂(real) ≈ q(real) on both sets. A model that memorised the
+training split's single rollout per home puts far more mass than q on the realised slot of the
+*training* homes (p̂(real) ≫ q(real)), and is overconfident, so worse than q, on held-out homes.
+
+    python experiments/diagnose_horizons.py --checkpoint pretrained:flowmaps
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+import numpy as np
+
+from flowmaps_jax.evaluation.protocol import build_eval_queries
+from flowmaps_jax.evaluation.slots import empirical_slots, slot_scores
+from flowmaps_jax.flowsim.scenes import train_split, validation_split
+from flowmaps_jax.sample import load_model
+
+
+def score(predictor, scenes, config, horizon: int, samples: int, seed: int,
+          num_steps: int = 10, method: str = "midpoint") -> dict:
+    ev = build_eval_queries(scenes, config, jax.random.key(seed), kl_draws=2, horizon=horizon)
+    boxes = predictor.sample(ev.tokens, ev.queries, samples, jax.random.key(seed + 1),
+                             num_steps=num_steps, method=method)
+    p_hat = np.asarray(empirical_slots(boxes, ev.slot_boxes, ev.slot_mask))
+    q = np.asarray(ev.slot_probs)
+    real = np.asarray(scenes.slot)[np.asarray(ev.env), np.asarray(ev.tau_q)]  # (E, M)
+    pick = lambda p: np.take_along_axis(p, real[..., None], -1)[..., 0]  # noqa: E731
+    tv = slot_scores(p_hat, q, ev.slot_mask)["tv"]
+    return {"tv": tv.mean(), "off": p_hat[..., -1].mean(), "p_real": pick(p_hat).mean(),
+            "q_real": pick(q).mean()}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--checkpoint", default="pretrained:flowmaps")
+    parser.add_argument("--which", default="latest", choices=("best", "latest"))
+    parser.add_argument("--envs", type=int, default=60, help="environments per set and horizon")
+    parser.add_argument("--samples", type=int, default=100)
+    parser.add_argument("--horizons", type=int, nargs="+", default=[1, 2, 3, 4, 6, 10])
+    parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--num-steps", type=int, default=10, help="sampler grid points")
+    parser.add_argument("--method", default="midpoint", help="sampler: midpoint or accurate")
+    parser.add_argument("--sets", nargs="+", default=["train", "held-out"],
+                        choices=["train", "held-out"])
+    args = parser.parse_args(argv)
+    predictor = load_model(args.checkpoint, args.which)
+    config = predictor.flowsim
+    make = {"train": train_split, "held-out": validation_split}
+    sets = {name: make[name](config, num_envs=args.envs) for name in args.sets}
+    print(f"{args.checkpoint}: {args.envs} environments × {config.num_objects} objects per set "
+          f"and horizon, {args.samples} samples per query, sampler {args.method} on "
+          f"{args.num_steps} grid points")
+    print(f"{'Δτ':>3} {'set':>9} {'TV':>6} {'off':>6} {'p̂(real)':>9} {'q(real)':>8}")
+    for h in args.horizons:
+        for name, scenes in sets.items():
+            r = score(predictor, scenes, config, h, args.samples, args.seed, args.num_steps,
+                      args.method)
+            print(f"{h:>3} {name:>9} {r['tv']:6.3f} {r['off']:6.3f} {r['p_real']:9.3f} "
+                  f"{r['q_real']:8.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
