@@ -150,9 +150,14 @@ def test_resume_reads_the_saved_config(tmp_path):
     assert cfg.model.dim == 48 and cfg.steps == 30 and run_dir == tmp_path
     # config.json (the last run's --steps etc.) is read for the fields --resume may change only
     (tmp_path / "config.json").write_text(json.dumps(
-        apply_overrides(saved, ["steps=40", "model.dim=64"]).to_dict()))
+        apply_overrides(saved, ["steps=40"]).to_dict()))
     cfg, _ = resolve_config(build_parser().parse_args(["--resume", "--run-dir", str(tmp_path)]))
     assert cfg.steps == 40 and cfg.model.dim == 48
+    # ... and only when it is the config of the same run (issue 19: not another model's)
+    (tmp_path / "config.json").write_text(json.dumps(
+        apply_overrides(saved, ["steps=40", "model.dim=64"]).to_dict()))
+    with pytest.raises(ValueError, match="is not the config of the run's checkpoints"):
+        resolve_config(build_parser().parse_args(["--resume", "--run-dir", str(tmp_path)]))
     (tmp_path / "config.json").write_text("{half")
     cfg, _ = resolve_config(build_parser().parse_args(["--resume", "--run-dir", str(tmp_path)]))
     assert cfg == saved

@@ -4,6 +4,10 @@ The EMA weights of the `cpu`-preset runs documented in docs/results.md ("Shipped
 ``flowmaps_jax/pretrained/<name>.npz`` (float32 parameter arrays keyed by their path in the params
 pytree) next to ``<name>.json`` (the run's TrainConfig, model kind, step, source, and the SHA-256
 of the .npz, checked on load). A plain ``pip install .`` carries them; nothing is downloaded.
+Loading trusts neither file: the ``.json`` is size-limited and its fields are checked (a name, a
+model kind, a step that is a count), the ``.npz`` is read only after its SHA-256 matches, with
+its members whitelisted (exactly the model's parameters, their declared shapes checked before
+anything is decompressed) and every weight finite.
 
     from flowmaps_jax.sample import load_pretrained
     predictor = load_pretrained("flowmaps")      # or "mlp", "mlp-learned"
@@ -18,7 +22,6 @@ import argparse
 import hashlib
 import io
 import json
-import os
 import pathlib
 import sys
 from collections.abc import Sequence
@@ -29,6 +32,8 @@ from flax import traverse_util
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parent / "pretrained"
 NAMES = ("flowmaps", "mlp", "mlp-learned")
 MAX_BYTES = 10 * 1024 * 1024  # the issue's size budget per model
+MAX_META_BYTES = 1024 * 1024  # a .json larger than this is not one export_pretrained wrote
+EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
 
 def _check_name(name) -> str:
@@ -51,9 +56,27 @@ def _params_bytes(params) -> bytes:
 
 
 def _write_atomic(path: pathlib.Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    from flowmaps_jax.training.rundir import write_atomic
+
+    write_atomic(path, data)  # a temporary file and a rename; no symbolic link followed
+
+
+def _check_meta(name: str, meta, file: str) -> dict:
+    """The fields of a weights ``.json`` that the loader uses or reports, checked."""
+    if not isinstance(meta, dict):
+        raise ValueError(f"pretrained {name!r}: {file} is not a JSON object")
+    step = meta.get("step")
+    if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 0):
+        raise ValueError(f"pretrained {name!r}: {file} has step {str(step)[:40]!r}; expected a "
+                         f"count of training steps")
+    if meta.get("name", name) != name:
+        raise ValueError(f"pretrained {name!r}: {file} is the .json of "
+                         f"{str(meta.get('name'))[:40]!r}")
+    digest = meta.get("sha256")
+    if not (isinstance(digest, str) and len(digest) == 64
+            and all(c in "0123456789abcdef" for c in digest)):
+        raise ValueError(f"pretrained {name!r}: {file} has no valid sha256 field")
+    return meta
 
 
 def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
@@ -67,8 +90,10 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     """
     from flowmaps_jax.sample import load
     from flowmaps_jax.training import checkpoint
+    from flowmaps_jax.validation import check_output_dir
 
     name = _check_name(name)
+    check_output_dir("directory", directory)  # before anything is read or written
     predictor = load(checkpoint_dir, which=which)
     cfg = checkpoint.load_config(checkpoint.resolve_checkpoint_dir(checkpoint_dir))
     expected_kind = "flowmaps" if name == "flowmaps" else "mlp"
@@ -113,23 +138,40 @@ def load_pretrained(name: str, directory: str | pathlib.Path = PRETRAINED_DIR):
     if not (npz.is_file() and meta_path.is_file()):
         raise ValueError(f"pretrained weights {name!r} are not in {root} (present: "
                          f"{available(root) or 'none'})")
-    data = npz.read_bytes()
+    from flowmaps_jax.validation import read_npz
+
+    for path, limit in ((meta_path, MAX_META_BYTES), (npz, 2 * MAX_BYTES)):
+        if path.stat().st_size > limit:
+            raise ValueError(f"pretrained {name!r}: {path.name} holds {path.stat().st_size:,} "
+                             f"bytes, more than the {limit:,} a shipped model may have")
     try:
-        meta = json.loads(meta_path.read_text())
+        meta = _check_meta(name, json.loads(meta_path.read_text()), meta_path.name)
         cfg = TrainConfig.from_dict(meta["config"])
     except (ValueError, KeyError, TypeError) as err:
         raise ValueError(f"pretrained {name!r}: unreadable {meta_path.name}: {err}") from None
-    if hashlib.sha256(data).hexdigest() != meta.get("sha256"):
+    if meta.get("kind", cfg.model_kind) != cfg.model_kind:
+        raise ValueError(f"pretrained {name!r}: {meta_path.name} names kind "
+                         f"{str(meta.get('kind'))[:40]!r} but its config is a "
+                         f"{cfg.model_kind!r} model")
+    data = npz.read_bytes()
+    if hashlib.sha256(data).hexdigest() != meta["sha256"]:
         raise ValueError(f"pretrained {name!r}: {npz.name} is damaged (SHA-256 does not match "
                          f"{meta_path.name}); reinstall the package")
-    with np.load(io.BytesIO(data)) as arrays:
-        params = traverse_util.unflatten_dict({k: jnp.asarray(arrays[k]) for k in arrays.files},
-                                              sep="/")
-    expected = jax.eval_shape(objective_for(cfg).init, jax.random.key(0))
-    got = jax.tree.map(lambda a: (a.shape, a.dtype), params)
-    if jax.tree.map(lambda a: (a.shape, a.dtype), expected) != got:
+    abstract = jax.eval_shape(objective_for(cfg).init, jax.random.key(0))
+    expected = {key: (leaf.shape, leaf.dtype)
+                for key, leaf in traverse_util.flatten_dict(abstract, sep="/").items()}
+    try:  # members whitelisted and their sizes checked before anything is decompressed
+        arrays = read_npz(npz.name, io.BytesIO(data), expected=expected, max_bytes=4 * MAX_BYTES)
+    except ValueError as err:
         raise ValueError(f"pretrained {name!r}: the weights do not match the model config in "
-                         f"{meta_path.name}")
+                         f"{meta_path.name} ({err})") from None
+    bad = sorted(key for key, array in arrays.items() if not np.all(np.isfinite(array)))
+    if bad:
+        raise ValueError(f"pretrained {name!r}: {npz.name} holds NaN or inf in {bad[0]}"
+                         f"{f' and {len(bad) - 1} more' if len(bad) > 1 else ''}; "
+                         f"reinstall the package")
+    params = traverse_util.unflatten_dict({k: jnp.asarray(a) for k, a in arrays.items()},
+                                          sep="/")
     return Predictor(params=params, model=cfg.model, kind=cfg.model_kind, flowsim=cfg.flowsim,
                      source=f"pretrained:{name}", step=meta.get("step"))
 
@@ -145,10 +187,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--note", default="", help="provenance note stored in the .json")
     args = parser.parse_args(argv)
     try:
+        from flowmaps_jax.validation import check_output_dir
+
+        check_output_dir("--out", args.out)
         path = export_pretrained(args.checkpoint, args.name, args.out, args.which, args.note)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
+    except OSError as err:  # a full disk: one line, not a traceback
+        print(f"error: could not write into {args.out}: {err.strerror or err}", file=sys.stderr)
+        return EXIT_WRITE_FAILED
     print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.json')}")
     return 0
 

@@ -13,7 +13,16 @@ Arrays: :func:`check_array`, :func:`check_real_array`, :func:`check_int_array`,
 :func:`check_mask`, :func:`check_probabilities`.
 Files: :func:`check_path`, :func:`check_file`, :func:`check_dir`, :func:`check_output_file`,
 :func:`check_output_dir`.
-Memory: :func:`array_bytes`, :func:`memory_limit`, :func:`check_request_size`.
+Names: :func:`check_plain_name` (a preset or file name, a metadata field: no path, no markup).
+Untrusted files: :func:`read_npz` (member names whitelisted, declared sizes checked before
+anything is decompressed, no pickles).
+Resources: :func:`array_bytes`, :func:`memory_limit`, :func:`flops_limit`,
+:func:`check_request_size`, :func:`check_resources`, :func:`network_flops`,
+:func:`solver_evaluations`. Every size that scales memory or time goes through
+:func:`check_resources` before anything runs: a request above the budget is a ``ValueError``
+naming it, the estimate and the limit. The budgets: memory, :data:`MAX_BYTES_ENV` (default the
+accelerator's memory, else the host's); work, :data:`MAX_FLOPS_ENV` (default
+:data:`DEFAULT_MAX_FLOPS` floating-point operations per uninterruptible call).
 """
 
 from __future__ import annotations
@@ -23,6 +32,8 @@ import math
 import numbers
 import operator
 import os
+import re
+import zipfile
 from collections.abc import Sequence
 from typing import Any
 
@@ -391,7 +402,127 @@ def check_output_dir(name: str, value: Any, *, empty: bool = False) -> str:
     return path
 
 
-# ------------------------------------------------------------------------------ memory
+# ------------------------------------------------------------------------------ names
+
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
+
+
+def check_plain_name(name: str, value: Any) -> str:
+    """``value`` if it is a plain name: 1 to 64 letters, digits, ``_ . + -``, starting with a
+    letter or digit (so no path separator, no ``..`` escape, no markup or control character)."""
+    if not isinstance(value, str) or not _PLAIN_NAME.fullmatch(value) or ".." in value:
+        raise ValueError(f"{name} must be a plain name (letters, digits, '_', '.', '+', '-'; "
+                         f"at most 64, no path); got {_short_repr(value)}")
+    return value
+
+
+def _short_repr(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+# ------------------------------------------------------------------------------ untrusted files
+
+
+def read_npz(name: str, source: Any, *, allowed: Sequence[str] | None = None,
+             required: Sequence[str] = (), max_bytes: int | None = None,
+             expected: dict[str, tuple[tuple[int, ...], Any]] | None = None
+             ) -> dict[str, np.ndarray]:
+    """The arrays of an untrusted ``.npz`` (a path, or its bytes as a file object), read safely.
+
+    Before anything is decompressed: the file must be a zip whose members are ``<key>.npy`` for
+    keys in ``allowed`` (None: any key) with ``required`` present, no member twice, and whose
+    declared sizes (the zip directory's, then each ``.npy`` header's shape and dtype) add up to at
+    most ``max_bytes`` (default :func:`memory_limit`); ``expected`` ({key: (shape, dtype)}) pins
+    members exactly. Objects (pickles) are refused. A member that inflates past its declared
+    size is refused while reading. Any failure is a ``ValueError`` naming ``name``.
+    """
+    limit = memory_limit() if max_bytes is None else int(max_bytes)
+    try:
+        archive = zipfile.ZipFile(source)
+    except (OSError, zipfile.BadZipFile, ValueError) as err:
+        raise ValueError(f"{name} is not a readable .npz file ({err})") from None
+    with archive:
+        infos = archive.infolist()
+        keys = []
+        for info in infos:
+            key = info.filename[:-4] if info.filename.endswith(".npy") else None
+            if key is None or (allowed is not None and key not in allowed) \
+                    or (expected is not None and key not in expected):
+                raise ValueError(f"{name} holds an unexpected member {info.filename!r}")
+            keys.append(key)
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"{name} holds a member twice")
+        missing = [k for k in (*required, *(expected or {})) if k not in keys]
+        if missing:
+            raise ValueError(f"{name} is missing arrays {sorted(set(missing))}")
+        declared = sum(info.file_size for info in infos)
+        if declared > limit:
+            raise ValueError(f"{name} declares {declared / 1e9:.3g} GB of arrays, more than the "
+                             f"{limit / 1e9:.3g} GB allowed; not reading it")
+        arrays = {}
+        for info, key in zip(infos, keys, strict=True):
+            try:
+                with archive.open(info) as member:
+                    arrays[key] = _read_npy(member, info.file_size,
+                                            None if expected is None else expected[key])
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+                raise ValueError(f"{name}: member {info.filename!r} is not a valid array "
+                                 f"({err})") from None
+    return arrays
+
+
+def _read_npy(member, declared: int, expected) -> np.ndarray:
+    """One ``.npy`` member, its header checked against its declared size before the data."""
+    version = np.lib.format.read_magic(member)
+    readers = {(1, 0): np.lib.format.read_array_header_1_0,
+               (2, 0): np.lib.format.read_array_header_2_0}
+    if version not in readers:
+        raise ValueError(f"unsupported .npy format version {version}")
+    shape, fortran, dtype = readers[version](member)
+    if dtype.hasobject:
+        raise ValueError("it holds Python objects")
+    if expected is not None and (tuple(shape) != tuple(expected[0])
+                                 or dtype != np.dtype(expected[1])):
+        raise ValueError(f"expected shape {tuple(expected[0])} and dtype "
+                         f"{np.dtype(expected[1])}; got {tuple(shape)} and {dtype}")
+    size = array_bytes(shape, dtype)
+    if size > declared:
+        raise ValueError(f"its header claims {size} bytes, more than the {declared} declared")
+    data = member.read(size + 1)
+    if len(data) != size:
+        raise ValueError(f"it holds {len(data)} bytes of data where its header says {size}")
+    array = np.frombuffer(data, dtype=dtype, count=math.prod(shape) if shape else 1)
+    return array.reshape(shape, order="F" if fortran else "C").copy()
+
+
+# ------------------------------------------------------------------------------ resources
+
+MAX_BYTES_ENV = "FLOWMAPS_MAX_BYTES"
+"""Environment variable overriding the memory budget of one request (bytes; ``64G`` etc.)."""
+MAX_FLOPS_ENV = "FLOWMAPS_MAX_FLOPS"
+"""Environment variable overriding the work budget of one uninterruptible call (FLOPs)."""
+DEFAULT_MAX_FLOPS = 10**17
+"""Default work budget, by the generous estimates here: about 200 default evaluations of the cpu
+preset's models (2 minutes each on a 2-core CPU) or 30 of a paper-size model; it refuses sizes
+that would run for days (``--num-steps 10**9``). Raise it with :data:`MAX_FLOPS_ENV`."""
+_SUFFIXES = {"": 1, "K": 10**3, "M": 10**6, "G": 10**9, "T": 10**12, "P": 10**15,
+             "KI": 2**10, "MI": 2**20, "GI": 2**30, "TI": 2**40, "PI": 2**50}
+
+
+def _env_budget(variable: str) -> int | None:
+    """The positive number in environment ``variable`` (e.g. ``64G``, ``1e12``), None if unset."""
+    text = os.environ.get(variable, "").strip()
+    if not text:
+        return None
+    match = re.fullmatch(r"([0-9.eE+]+)\s*([KMGTPkmgtp][Ii]?)?[Bb]?", text)
+    try:
+        value = float(match.group(1)) * _SUFFIXES[(match.group(2) or "").upper()]
+    except (AttributeError, ValueError, KeyError):
+        value = math.nan
+    if not (math.isfinite(value) and value >= 1):
+        raise ValueError(f"{variable} must be a positive number like 64G or 1e12; got {text!r}")
+    return int(value)
 
 
 def array_bytes(shape: Sequence[int], dtype: Any = np.float32) -> int:
@@ -400,9 +531,7 @@ def array_bytes(shape: Sequence[int], dtype: Any = np.float32) -> int:
 
 
 @functools.lru_cache(maxsize=1)
-def memory_limit() -> int:
-    """Bytes one request may use: the default device's memory limit when JAX reports one
-    (accelerators), else the host's physical memory."""
+def _device_memory() -> int:
     try:
         stats = jax.devices()[0].memory_stats() or {}
     except Exception:  # backends without memory stats
@@ -415,11 +544,57 @@ def memory_limit() -> int:
         return 16 * 2**30
 
 
+def memory_limit() -> int:
+    """Bytes one request may use: ``$FLOWMAPS_MAX_BYTES`` when set, else the default device's
+    memory limit when JAX reports one (accelerators), else the host's physical memory."""
+    override = _env_budget(MAX_BYTES_ENV)
+    return _device_memory() if override is None else override
+
+
+def flops_limit() -> int:
+    """Floating-point operations one uninterruptible call may take: ``$FLOWMAPS_MAX_FLOPS``
+    when set, else :data:`DEFAULT_MAX_FLOPS`."""
+    override = _env_budget(MAX_FLOPS_ENV)
+    return DEFAULT_MAX_FLOPS if override is None else override
+
+
 def check_request_size(name: str, num_bytes: int, limit: int | None = None) -> int:
     """``num_bytes`` if it is at most ``limit`` (default :func:`memory_limit`), else a
     ``ValueError`` saying how many GB the request ``name`` would need."""
     limit = memory_limit() if limit is None else int(limit)
     if num_bytes > limit:
         raise ValueError(f"{name} would need about {num_bytes / 1e9:.3g} GB, more than the "
-                         f"{limit / 1e9:.3g} GB available; ask for less or split the request")
+                         f"{limit / 1e9:.3g} GB available ({MAX_BYTES_ENV} overrides it); ask "
+                         f"for less or split the request")
     return int(num_bytes)
+
+
+def check_resources(name: str, *, num_bytes: int = 0, flops: int = 0) -> None:
+    """The shared budget check: ``ValueError`` naming ``name`` (the argument and its value)
+    when the estimated memory (bytes) or work (FLOPs) is over :func:`memory_limit` /
+    :func:`flops_limit`."""
+    check_request_size(name, int(num_bytes))
+    limit = flops_limit()
+    if flops > limit:
+        raise ValueError(f"{name} would take about {float(flops):.3g} floating-point operations, "
+                         f"more than the budget of {float(limit):.3g} ({MAX_FLOPS_ENV} overrides "
+                         f"it); ask for less")
+
+
+def network_flops(model: Any, kind: str, num_tokens: int) -> tuple[int, int]:
+    """(FLOPs of one network evaluation of one query-sample, FLOPs of encoding one map of
+    ``num_tokens`` tokens) for a model config (``ModelConfig``; ``kind`` "flowmaps" or "mlp").
+    A rough, generous estimate (2 FLOPs per weight use, attention included)."""
+    dim, ratio = int(model.dim), int(model.mlp_ratio)
+    per_layer = dim * dim * (4 + 2 * ratio)
+    encoder = 2 * int(model.encoder_layers) * num_tokens * (per_layer + 2 * num_tokens * dim)
+    if kind == "mlp":
+        hidden = int(model.baseline_hidden)
+        return 2 * (dim * hidden + hidden * hidden + 8 * hidden + 4 * dim * dim), encoder
+    blocks = int(model.cdit_blocks)
+    return 2 * blocks * (per_layer + 6 * dim * dim + 2 * num_tokens * dim), encoder
+
+
+def solver_evaluations(num_steps: int, method: str = "midpoint") -> int:
+    """Network evaluations of one ODE solve with ``num_steps`` grid points."""
+    return (int(num_steps) - 1) * (2 if method == "midpoint" else 1)

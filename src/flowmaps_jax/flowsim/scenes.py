@@ -44,6 +44,7 @@ from flowmaps_jax.validation import (
     check_real_array,
     check_request_size,
     check_seed,
+    read_npz,
 )
 
 FORMAT_VERSION = 1
@@ -262,7 +263,9 @@ def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) ->
     arrays = {name: np.asarray(getattr(scenes, name)) for name in _FIELDS}
     partial = f"{path}.partial-{os.getpid()}"
     try:
-        with open(partial, "wb") as handle:
+        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
+                     0o644)  # a new file: never through a link planted at that name
+        with os.fdopen(fd, "wb") as handle:
             np.savez_compressed(handle, format_version=np.int64(FORMAT_VERSION),
                                 config_json=np.asarray(json.dumps(config.to_dict())), **arrays)
         os.replace(partial, path)
@@ -275,16 +278,18 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
     """Read a file written by ``save_scenes``. Raises ``ValueError`` naming ``path`` if it is
     missing, a directory, not an ``.npz``, of another format version, lacks arrays or holds
     arrays that ``save_scenes`` could not have written: wrong shapes or dtypes, boxes not finite
-    or off the map, ids, visit orders or slots out of range (see ``validate_scenes``)."""
+    or off the map, ids, visit orders or slots out of range (see ``validate_scenes``). The file
+    is untrusted: a member ``save_scenes`` does not write, Python objects, or arrays declared
+    larger than the memory budget are refused before anything is decompressed
+    (:func:`flowmaps_jax.validation.read_npz`)."""
     try:
         path = check_file("path", path)
     except ValueError as err:
         raise ValueError(f"load_scenes: {err}") from None
     try:
-        with np.load(path, allow_pickle=False) as data:
-            contents = {name: data[name] for name in data.files}
-    except Exception as err:  # zipfile / pickle / OS errors: not a readable .npz
-        raise ValueError(f"load_scenes: {path!r} is not a readable .npz file ({err})") from err
+        contents = read_npz(repr(path), path, allowed=("format_version", "config_json", *_FIELDS))
+    except ValueError as err:
+        raise ValueError(f"load_scenes: {err}") from None
     if "format_version" not in contents:
         raise ValueError(f"load_scenes: {path!r} has no format_version; not a FlowSim file")
     try:

@@ -24,7 +24,9 @@ from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import figures as fg
 from flowmaps_jax.search import protocol as pr
 from flowmaps_jax.search.report import markdown_table, write_report
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_int, check_output_dir, check_seed
+
+EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
 FIGURES = ("episodes.png", "success_vs_looks.png", "success_vs_distance.png")
 
@@ -93,18 +95,27 @@ def write_figures(results: dict, runs: dict, search_set: ep.SearchSet, config,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI entry point; 0 on success, 2 on a bad argument (message on stderr)."""
+    """CLI entry point; 0 on success, 2 on a bad argument, 74 on a failed write (a full disk);
+    one line on stderr. Every argument, ``--out`` and the run's size are checked first."""
     args = build_parser().parse_args(argv)
     try:
         for name in ("num_envs", "times_per_env", "samples", "budget", "chunk_rows"):
             check_int("--" + name.replace("_", "-"), getattr(args, name))
+        check_seed("--seed", args.seed)
         ep.check_p_miss(args.p_miss)
         if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
-        out = pathlib.Path(args.out or pathlib.Path(args.checkpoint) / "search")
+        out = pathlib.Path(check_output_dir(
+            "--out", args.out or pathlib.Path(args.checkpoint) / "search"))
         models = [load_model(spec, args.which, args.devices)
                   for spec in [args.checkpoint, *args.baseline]]
         config = models[0].flowsim
+        per_env = len(args.horizons) if args.horizons else args.times_per_env
+        ep.check_search_size(
+            config, args.num_envs * per_env, budget=args.budget, policies=args.policies,
+            num_samples=args.samples, chunk_rows=args.chunk_rows, predictors=models,
+            what=f"--num-envs {args.num_envs} x " + (f"{per_env} --horizons" if args.horizons
+                                                     else f"--times-per-env {per_env}"))
         scenes = validation_split(config, num_envs=args.num_envs,
                                   mesh=distributed.local_mesh(args.devices))
         print(f"Search with {', '.join(m.name for m in models)} on {args.num_envs} validation "
@@ -116,11 +127,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             chunk_rows=args.chunk_rows, progress=not args.no_progress)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
-        return 2
-    out.mkdir(parents=True, exist_ok=True)
-    if not args.no_figures:
-        results["figures"] = write_figures(results, runs, search_set, config, out)
-    paths = write_report(results, out)
+        return EXIT_USAGE
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        if not args.no_figures:
+            results["figures"] = write_figures(results, runs, search_set, config, out)
+        paths = write_report(results, out)
+    except OSError as err:  # a full disk, a quota: one line, not a traceback
+        print(f"error: could not write the results into {out}: {err.strerror or err}",
+              file=sys.stderr)
+        return EXIT_WRITE_FAILED
     print(markdown_table(results).split("\n## By horizon")[0])
     print(f"wrote {paths['json']}, {paths['markdown']}"
           + "".join(f", {out / f}" for f in results["figures"])

@@ -54,7 +54,15 @@ from flowmaps_jax.search.policies import (
 )
 from flowmaps_jax.search.probabilities import slots_to_tables, table_probabilities
 from flowmaps_jax.tokens import Queries, SceneTokens
-from flowmaps_jax.validation import check_instance, check_int, check_key, check_real
+from flowmaps_jax.validation import (
+    check_instance,
+    check_int,
+    check_key,
+    check_real,
+    check_resources,
+    network_flops,
+    solver_evaluations,
+)
 
 DEFAULT_BUDGET = 10
 """Looks per episode (FlowSim has at most 4 tables of a kind: every policy finds the object
@@ -179,6 +187,85 @@ def check_episodes(episodes: Episodes, policy: str | None = None) -> Episodes:
                     target=jnp.asarray(target, jnp.int32))
 
 
+def check_table_probs(name: str, probs) -> np.ndarray:
+    """Concrete table probabilities (..., S + 1): finite, ≥ 0 and summing to 1 over the tables
+    and the off bin (a prior that is NaN, inf, negative or all zero is not a prior)."""
+    p = np.asarray(probs, np.float64)
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} contains NaN or inf: not a prior (a model with diverged "
+                         f"parameters?)")
+    if np.any(p < -PROB_ATOL):
+        raise ValueError(f"{name} has negative probabilities (min {p.min():.3g})")
+    total = p.sum(-1)
+    if np.any(np.abs(total - 1.0) > PROB_ATOL):
+        worst = total.ravel()[np.argmax(np.abs(total - 1.0).ravel())]
+        raise ValueError(f"{name} must sum to 1 over the tables and the off bin of each query; "
+                         f"found a sum of {worst:.6g}")
+    return p
+
+
+def _outcome_bytes(num_episodes: int, num_tables: int, budget: int) -> int:
+    """Bytes of an Outcome of ``num_episodes`` × ``budget`` looks, with the scan's copy."""
+    return 2 * 4 * num_episodes * budget * (num_tables + 3)
+
+
+def _look_flops(num_tables: int, policy: str) -> int:
+    """Rough work of one look of one episode: the optimal policy's DP, else a few passes."""
+    return 4 * 2 ** num_tables * num_tables ** 2 if policy == "optimal" else 32 * num_tables
+
+
+def check_episodes_size(num_episodes: int, num_tables: int, budget: int, policy: str,
+                        copies: int = 1) -> None:
+    """``ValueError`` naming ``budget`` when ``copies`` × ``num_episodes`` episodes of
+    ``budget`` looks over ``num_tables`` tables would be over the memory or work budget
+    (:func:`flowmaps_jax.validation.check_resources`)."""
+    n = copies * num_episodes
+    check_resources(f"budget={budget} looks for {n} episodes over {num_tables} tables",
+                    num_bytes=_outcome_bytes(n, num_tables, budget),
+                    flops=n * budget * _look_flops(num_tables, policy))
+
+
+def check_search_size(config: FlowSimConfig, num_rows: int, *, budget: int,
+                      policies: Sequence[str], num_samples: int = 0,
+                      chunk_rows: int = 50, predictors: Sequence[Any] = (),
+                      what: str = "") -> None:
+    """The whole search protocol's size, up front: the search set of ``num_rows`` scene rows
+    (environments × times per environment), each prior's table probabilities, every row × policy
+    run of ``budget`` looks, and each predictor's sampling. ``ValueError`` naming the arguments
+    (``what`` says which set the rows) when over the memory or work budget."""
+    m, f, s = config.num_objects, config.num_furniture, config.max_tokens
+    rows = int(num_rows)
+    k = min(f, 8)  # candidate tables of one kind: at most the furniture
+    n = rows * m
+    rows_text = f"{rows} scene rows ({what})" if what else f"{rows} scene rows"
+    set_bytes = 2 * 4 * rows * (7 * s + 4 * f + m * (6 * f + 16))
+    priors = 3 + len(predictors)
+    prior_bytes = 4 * n * (s + 1) * priors
+    check_resources(f"the search set of {rows_text}", num_bytes=set_bytes + prior_bytes)
+    jobs = priors * len(policies) + 1
+    kept = jobs * _outcome_bytes(n, k, budget) // 2
+    every = _outcome_bytes(n * k, k, budget)  # expected_outcomes: every hiding place at once
+    look = max(_look_flops(k, p) for p in policies)
+    check_resources(f"budget={budget} looks x {len(policies)} policies x {priors} priors on "
+                    f"{n} episodes of {rows_text}",
+                    num_bytes=set_bytes + prior_bytes + kept + every,
+                    flops=jobs * k * n * budget * look)
+    for predictor in predictors:
+        model, kind = getattr(predictor, "model", None), getattr(predictor, "kind", None)
+        if model is None or kind not in ("flowmaps", "mlp"):
+            continue
+        from flowmaps_jax.model.sampling import DEFAULT_NUM_STEPS
+
+        per_query, per_map = network_flops(model, kind, s)
+        evaluations = solver_evaluations(DEFAULT_NUM_STEPS) if kind == "flowmaps" else 1
+        check_resources(
+            f"samples={num_samples} per query for {getattr(predictor, 'name', kind)} on "
+            f"{n} queries of {rows_text}",
+            num_bytes=4 * min(chunk_rows, rows) * m * num_samples * (4 * model.dim * (
+                model.mlp_ratio + 4) + 4 * (s + 4)),
+            flops=n * num_samples * evaluations * per_query + rows * per_map)
+
+
 # --------------------------------------------------------------------------- Bayes
 
 
@@ -272,6 +359,7 @@ def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
     budget = check_int("budget", budget)
     p_miss = check_p_miss(p_miss)
     episodes = check_episodes(episodes, policy)
+    check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy)
     key = jax.random.key(0) if key is None else check_key(key)
     return simulate(episodes, key, jnp.float32(p_miss), jnp.int32(POLICIES.index(policy)),
                      budget)
@@ -292,6 +380,7 @@ def expected_outcomes(episodes: Episodes, truth, policy: str,
     episodes = check_episodes(episodes, policy)
     check_belief("truth", truth, episodes.valid)
     k, n = episodes.num_tables, episodes.num_episodes
+    check_episodes_size(n, k, budget, policy, copies=k)
     tiled = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k, *a.shape)).reshape(
         k * n, *a.shape[1:]), episodes)
     tiled = tiled.replace(target=jnp.repeat(jnp.arange(k, dtype=jnp.int32), n))
@@ -373,6 +462,11 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
                              f"got {list(horizons)}")
         per_env = len(fixed)
     rows = scenes.num_envs * per_env
+    m, f, s = config.num_objects, config.num_furniture, config.max_tokens
+    what = (f"{scenes.num_envs} environments x " + (f"times_per_env={per_env}" if fixed is None
+                                                      else f"{per_env} horizons"))
+    check_resources(f"the search set of {rows} scene rows ({what})",
+                    num_bytes=2 * 4 * rows * (7 * s + 4 * f + m * (6 * f + 16)))
     env = jnp.arange(rows, dtype=jnp.int32) // per_env
     keys = jax.vmap(lambda r: jax.random.fold_in(jax.random.fold_in(key, _SALT_TIMES), r))(
         jnp.arange(rows))
@@ -441,6 +535,8 @@ def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, ke
     s = _check_set(search_set)
     key = check_key(key)
     chunk = min(check_int("chunk_rows", chunk_rows), s.num_rows)
+    if callable(getattr(predictor, "sample", None)):
+        predictor = _FiniteSamples(predictor)
     row_keys = jax.vmap(lambda r: jax.random.fold_in(jax.random.fold_in(key, _SALT_SAMPLES), r))(
         jnp.arange(s.num_rows))
     parts = []
@@ -453,6 +549,27 @@ def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, ke
                                     **sample_kwargs)
         parts.append(np.asarray(probs)[: min(chunk, s.num_rows - first)])
     return jnp.asarray(np.concatenate(parts))
+
+
+class _FiniteSamples:
+    """``predictor`` whose samples must be finite: NaN samples are off every table, so a diverged
+    model's table probabilities would silently become "uniform over the kind"."""
+
+    def __init__(self, predictor: Any):
+        self._predictor = predictor
+
+    def sample(self, *args, **kwargs):
+        samples = self._predictor.sample(*args, **kwargs)
+        if not np.all(np.isfinite(np.asarray(samples))):
+            name = getattr(self._predictor, "name", type(self._predictor).__name__)
+            source = getattr(self._predictor, "source", None)
+            raise ValueError(f"predictor {name}{f' ({source})' if source else ''} gave non-finite "
+                             f"samples: its parameters are probably diverged (NaN/inf or huge); "
+                             f"no search number computed from them would mean anything")
+        return samples
+
+    def __getattr__(self, name: str):
+        return getattr(self._predictor, name)
 
 
 # --------------------------------------------------------------------------- episodes
@@ -478,9 +595,11 @@ def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
     """Episodes (N = R · M) over the K tables of each object's kind, from a prior's table
     probabilities (R, M, S + 1).
 
-    The belief is the prior's mass on those tables, renormalised (uniform over them if it puts
-    none there); mass on other tables and off every table is dropped and returned as the second
-    value, ``kind_mass`` (N,) = the fraction of the prior's mass on the right kind's tables.
+    ``table_probs`` must be a prior: finite, non-negative, each query's row summing to 1
+    (``ValueError`` otherwise; see :func:`check_table_probs`). The belief is the prior's mass on
+    those tables, renormalised (uniform over them if it puts none there); mass on other tables
+    and off every table is dropped and returned as the second value, ``kind_mass`` (N,) = the
+    fraction of the prior's mass on the right kind's tables.
     Candidate k is the k-th table of the object's visiting order; ``target`` is its slot at τ_q.
     start: "centre" (the map centre) or "last-seen" (the table the object was on at τ).
     """
@@ -492,6 +611,7 @@ def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
     if probs.shape != expected:
         raise ValueError(f"table_probs must have shape {expected} (R, M, S + 1); got "
                          f"{probs.shape}")
+    check_table_probs("table_probs", table_probs)
     belief, centres, valid, kind_mass, last_seen = _candidates(
         probs, s.visit_order, s.num_slots, s.slot_now, s.furniture_px, s.num_tables)
     n, k = int(np.prod(belief.shape[:2])), belief.shape[-1]

@@ -13,8 +13,10 @@ A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` (
 per log interval: ``"kind": "train"`` with mean loss/grad_norm/lr and steps/s and samples/s over
 the compiled steps only, or ``"kind": "val"`` with the EMA validation loss) and ``checkpoints/``
 (see :mod:`flowmaps_jax.training.checkpoint`). It belongs to one run
-(:mod:`flowmaps_jax.training.rundir`): a new run needs an empty directory (or ``--overwrite``),
-one process writes it at a time, and nothing in it is written before every check has passed.
+(:mod:`flowmaps_jax.training.rundir`): a new run needs an empty directory (or ``--overwrite``,
+or one whose run saved no checkpoint: ``--resume`` also starts that one again from step 0), one
+process writes it at a time, and nothing in it is written before every check has passed,
+resource bounds included (:func:`flowmaps_jax.training.config.check_run_resources`).
 
 The batch and noise of step i depend only on the state's keys and i, so ``--resume`` continues a
 run exactly, and the metrics of the steps since the last train record travel in the checkpoint,
@@ -29,7 +31,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import errno
 import functools
+import io
 import json
 import math
 import os
@@ -54,6 +58,7 @@ from flowmaps_jax.training.config import (
     TrainConfig,
     _flatten,
     apply_overrides,
+    check_run_resources,
     format_config,
     get_preset,
 )
@@ -177,7 +182,7 @@ class _MetricsLog:
         self.path = path
         if path is not None and kept is not None:
             rundir.write_atomic(path, "".join(line + "\n" for line in kept))
-        self._file = path.open("a") if path is not None else None
+        self._file = rundir.open_append(path) if path is not None else None
 
     def write(self, record: dict) -> None:
         if self._file is not None:
@@ -210,13 +215,42 @@ def check_resumable(saved: TrainConfig, cfg: TrainConfig) -> None:
 
 def _checkpoint_root(run_dir: pathlib.Path) -> pathlib.Path:
     ckpt_dir = run_dir / "checkpoints"
+    if not ckpt_dir.exists() and ((run_dir / "last").is_dir() or (run_dir / "best").is_dir()):
+        raise ValueError(f"run_dir {str(run_dir)!r} is a checkpoint directory (it holds last/ or "
+                         f"best/), not a run directory: resume the run that holds it, "
+                         f"--run-dir {run_dir.parent}")
     return checkpoint.resolve_checkpoint_dir(ckpt_dir if ckpt_dir.exists() else run_dir)
 
 
+def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig | None:
+    """The ``config.json`` of a run that saved no checkpoint yet (killed or interrupted before
+    its first save), which ``--resume`` starts again from step 0; None when the run directory
+    holds a checkpoint (or anything else). ValueError if there is nothing to start from."""
+    if not run_dir.is_dir() or rundir.has_checkpoint(run_dir):
+        _checkpoint_root(run_dir)  # a checkpoint directory given as the run: refused
+        return None
+    if from_step is not None:
+        raise ValueError(f"--from-step {from_step}: the run in {run_dir} saved no checkpoint")
+    try:
+        return TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+    except FileNotFoundError:
+        raise ValueError(f"run directory {run_dir} holds no checkpoint and no config.json: "
+                         f"nothing to resume; start a new run there") from None
+    except (OSError, ValueError, TypeError) as err:
+        raise ValueError(f"run directory {run_dir} holds no checkpoint, and its config.json "
+                         f"is unreadable ({err}); start a new run there") from None
+
+
 def _restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int | None,
-                        mesh) -> checkpoint.Restored:
+                        mesh, log: Callable[[str], None] = print) -> checkpoint.Restored | None:
     """The verified checkpoint to continue from (onto ``mesh``, whatever device count it was
-    saved from), after checking that ``cfg`` may resume it."""
+    saved from), after checking that ``cfg`` may resume it; None for a run that saved no
+    checkpoint yet (it starts again from step 0 with its ``config.json``)."""
+    unsaved = _unsaved_config(run_dir, from_step)
+    if unsaved is not None:
+        check_resumable(unsaved, cfg)
+        log(f"No checkpoint was saved in {run_dir} yet: starting the run again from step 0")
+        return None
     root = _checkpoint_root(run_dir)
     check_resumable(checkpoint.load_config(root, step=from_step), cfg)
     restored = checkpoint.restore(root, train_state.abstract_state(cfg, mesh=mesh),
@@ -255,12 +289,15 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     mesh = distributed.training_mesh(cfg.devices)
     distributed.check_divides("batch_size", cfg.batch_size, mesh, "the scenes of a batch")
     data.host_train_part(cfg)  # a multi-host job: the data must divide over the hosts
+    check_run_resources(cfg, devices=1 if mesh is None else mesh.size)  # before anything runs
     primary = jax.process_index() == 0
     with _claim(run_dir, resume=resume, overwrite=overwrite, log=log):
-        resumed = _restore_for_resume(cfg, run_dir, from_step, mesh) if resume else None
+        resumed = _restore_for_resume(cfg, run_dir, from_step, mesh, log) if resume else None
         metrics_path, kept = run_dir / "metrics.jsonl", None
         if resumed is not None and metrics_path.exists() and primary:
             kept = _read_records(metrics_path, int(resumed.state.step), log)
+        elif resume and primary:  # starting again: the old run's records go
+            kept = []
         log("Config:\n" + format_config(cfg))
         log(f"Devices: {distributed.describe(mesh)}")
         compiled = compiled_functions(cfg, mesh)
@@ -469,11 +506,12 @@ def _train(cfg, run_dir, state, window_state, metrics_log, take_step, eval_fn, t
         log(f"\n{err}. Stopping without saving this state.")
     except checkpoint.CheckpointSaveError as err:
         latest = store.latest_step()
-        kept = f"step {latest}" if latest is not None else "none"
+        saved = (f"the saved checkpoints are intact (latest: step {latest})"
+                 if latest is not None else "no checkpoint was saved yet (--resume starts the "
+                 "run again from step 0)")
         raise checkpoint.CheckpointSaveError(
-            err.errno, f"{err}. Training stopped at step {step}; the saved checkpoints are "
-            f"intact (latest: {kept}). Free some space, then continue with python -m "
-            f"flowmaps_jax.train --resume --run-dir {run_dir}") from err
+            err.errno, f"{err}. Training stopped at step {step}; {saved}. Free some space, then "
+            f"continue with python -m flowmaps_jax.train --resume --run-dir {run_dir}") from err
     finally:
         if bar is not None:
             bar.close()
@@ -503,8 +541,10 @@ def _write_routine_curve(run_dir: pathlib.Path, log: Callable[[str], None]) -> N
 
     records = routine.read_routine_records(run_dir / "metrics.jsonl")
     if records:
-        routine.plot_learning_curve(records, title=run_dir.name).savefig(
-            run_dir / "routine_curve.png", dpi=100)
+        image = io.BytesIO()  # rendered first, then written by a rename: no link is followed
+        routine.plot_learning_curve(records, title=run_dir.name).savefig(image, dpi=100,
+                                                                         format="png")
+        rundir.write_atomic(run_dir / "routine_curve.png", image.getvalue())
         last = records[-1]
         log(f"Routines at step {last['step']} (one step ahead, exact 0.2 / 0.7 / 0.1): "
             f"offsets 0 / +1 / +2 = {last['offset_0']:.2f} / {last['offset_+1']:.2f} / "
@@ -565,13 +605,22 @@ def _resume_base(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig:
     """The config a resumed run starts from: the checkpoint's, with the fields --resume may
     change taken from ``config.json`` when that file is readable (it holds the last run's
     --steps etc. even when no checkpoint was saved since)."""
+    unsaved = _unsaved_config(run_dir, from_step)
+    if unsaved is not None:  # no checkpoint yet: the run starts again with its config.json
+        return unsaved
     saved = checkpoint.load_config(_checkpoint_root(run_dir), step=from_step)
     try:
         latest = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
-        return dataclasses.replace(saved, **{name: getattr(latest, name)
-                                             for name in RESUMABLE_FIELDS})
     except (OSError, ValueError, TypeError):  # missing or unreadable: the checkpoint's config
         return saved
+    try:
+        check_resumable(saved, latest)
+    except ValueError:
+        raise ValueError(f"{run_dir / 'config.json'} is not the config of the run's "
+                         f"checkpoints (another model or settings); restore or delete it, then "
+                         f"resume") from None
+    return dataclasses.replace(saved, **{name: getattr(latest, name)
+                                         for name in RESUMABLE_FIELDS})
 
 
 def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]:
@@ -602,6 +651,11 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
     return cfg, run_dir
 
 
+def _one_line(err: OSError) -> str:
+    """A failed write as one line (the message's own line breaks folded)."""
+    return " ".join(str(err).split()) or os.strerror(err.errno or errno.EIO)
+
+
 def _exit_now(code: int) -> typing.NoReturn:
     """Leave the process without interpreter teardown. After Ctrl-C outside the step loop (data
     generation, compilation) XLA may still be working in its own threads, and tearing the
@@ -625,7 +679,9 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         parser.error(str(err))
     except OSError as err:  # a full disk or another failed write: one line, not a traceback
-        print(f"{parser.prog}: error: {err}", file=sys.stderr)
+        print(f"{parser.prog}: error: {_one_line(err)}", file=sys.stderr)
+        if argv is None:  # no teardown: orbax's threads would print tracebacks after the line
+            _exit_now(EXIT_WRITE_FAILED)
         return EXIT_WRITE_FAILED
     except KeyboardInterrupt:  # outside the step loop (data, compilation) or a second Ctrl-C
         print("\nInterrupted; the current state was not saved.", file=sys.stderr)

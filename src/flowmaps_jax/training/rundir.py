@@ -3,20 +3,26 @@
 * :func:`check_run_dir`: the path must be (or become) a writable directory: a file, a path under
   a file or a read-only place is a ``ValueError``.
 * :func:`claim` (a context manager) takes the directory for a run. A new run (no ``resume``)
-  needs an empty or missing directory; ``overwrite`` first moves an old run aside to
-  ``<dir>.old-<timestamp>``. The lock file ``<dir>/.lock`` (created with ``O_EXCL``, holding
-  ``<pid> <host>``) keeps a second process out while the first one runs; a lock left by a
-  process that no longer exists (kill -9, power loss) is taken over with a message. The lock is
-  released on exit, and a directory the claim created is removed again if nothing was written.
+  needs an empty or missing directory, or one whose run never saved a checkpoint (killed or
+  interrupted before its first save: its leftovers are removed, with a message); ``overwrite``
+  first moves an old run aside to ``<dir>.old-<timestamp>``. The files a run writes there must
+  not be symbolic links (:data:`RUN_FILES`), so nothing is written outside the directory. The
+  lock file ``<dir>/.lock`` (created with ``O_EXCL``, holding ``<pid> <host>``) keeps a second
+  process out while the first one runs; a lock left by a process that no longer exists (kill -9,
+  power loss) is taken over with a message. The lock is released on exit, and a directory the
+  claim created is removed again if nothing was written.
 * :func:`write_atomic` writes a file through a temporary file and a rename, so a crash or a full
-  disk never leaves it half-written.
+  disk never leaves it half-written; :func:`open_append` opens a log for appending. Neither
+  follows a symbolic link.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import pathlib
+import shutil
 import socket
 import time
 from collections.abc import Callable, Iterator
@@ -24,6 +30,13 @@ from collections.abc import Callable, Iterator
 from flowmaps_jax.validation import check_output_dir
 
 LOCK_NAME = ".lock"
+RUN_FILES = ("config.json", "metrics.jsonl", "routine_curve.png", "checkpoints")
+"""What a training run writes in its directory (besides the lock)."""
+_TEMPORARY = tuple(f"{name}.tmp" for name in RUN_FILES[:3])  # write_atomic's, if it was killed
+DISK_ERRNOS = frozenset(getattr(errno, name) for name in ("ENOSPC", "EDQUOT", "EFBIG", "EIO")
+                        if hasattr(errno, name))
+"""Failed writes that are the machine's state (a full disk, a quota, a file-size limit, an I/O
+error), not a bad argument: reported with exit code 74."""
 
 
 def check_run_dir(run_dir) -> pathlib.Path:
@@ -31,18 +44,84 @@ def check_run_dir(run_dir) -> pathlib.Path:
     return pathlib.Path(check_output_dir("run_dir", run_dir))
 
 
-def write_atomic(path: pathlib.Path, text: str) -> None:
-    """Write ``text`` to ``path`` via ``<path>.tmp`` and a rename (no half-written file)."""
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+
+
+def write_atomic(path: pathlib.Path, data: str | bytes) -> None:
+    """Write ``data`` to ``path`` via ``<path>.tmp`` and a rename (no half-written file). A
+    symbolic link at ``path`` is replaced, not followed; one at the temporary name is removed."""
+    path = pathlib.Path(path)
     tmp = path.with_name(path.name + ".tmp")
+    raw = data.encode() if isinstance(data, str) else bytes(data)
     try:
-        with open(tmp, "w") as file:
-            file.write(text)
+        tmp.unlink(missing_ok=True)  # a leftover (or a planted link): removed, never followed
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
+        with os.fdopen(fd, "wb") as file:
+            file.write(raw)
             file.flush()
             os.fsync(file.fileno())
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
         raise
+
+
+def open_append(path: pathlib.Path):
+    """``path`` opened for appending text; a symbolic link there is an error, not followed."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | _NOFOLLOW, 0o644)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            raise ValueError(f"{path} is a symbolic link; a run writes only its own "
+                             f"files") from None
+        raise
+    return os.fdopen(fd, "a")
+
+
+def check_no_links(run_dir: pathlib.Path) -> None:
+    """ValueError if a file the run writes (:data:`RUN_FILES`) is a symbolic link: writing
+    through it would change a file outside the run directory."""
+    for name in (*RUN_FILES, *_TEMPORARY):
+        if (run_dir / name).is_symlink():
+            raise ValueError(f"run directory {run_dir} holds a symbolic link {name} -> "
+                             f"{os.readlink(run_dir / name)}; a run writes only its own files "
+                             f"there: remove the link")
+
+
+def _saved_nothing(run_dir: pathlib.Path) -> list[str] | None:
+    """The entries of ``run_dir`` if they are only what a run leaves before its first
+    checkpoint (config, metrics, an empty or unfinished ``checkpoints/``), else None."""
+    held = _entries(run_dir)
+    if not held or not set(held) <= {*RUN_FILES, *_TEMPORARY}:
+        return None
+    ckpt = run_dir / "checkpoints"
+    if ckpt.exists():
+        if ckpt.is_symlink() or not ckpt.is_dir():
+            return None
+        for sub in ckpt.iterdir():
+            if sub.name not in ("last", "best") or sub.is_symlink() or not sub.is_dir():
+                return None
+            # a finished save is a directory named by its step; orbax's unfinished ones are not
+            if any(p.name.isdigit() for p in sub.iterdir()):
+                return None
+    return held
+
+
+def has_checkpoint(run_dir: pathlib.Path) -> bool:
+    """Whether a run directory holds something beyond a run that saved no checkpoint."""
+    return bool(_entries(run_dir)) and _saved_nothing(run_dir) is None
+
+
+def clear_unsaved(run_dir: pathlib.Path, held: list[str]) -> None:
+    """Remove the leftovers ``held`` of a run that saved no checkpoint (links are removed, never
+    followed)."""
+    for name in held:
+        path = run_dir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink(missing_ok=True)
 
 
 def _identity() -> str:
@@ -147,14 +226,30 @@ def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
     run_dir = check_run_dir(run_dir)
     if resume and overwrite:
         raise ValueError("--resume and --overwrite exclude each other")
+    if overwrite:
+        here = pathlib.Path.cwd().resolve()
+        if run_dir.resolve() == here or run_dir.resolve() in here.parents:
+            raise ValueError(f"--overwrite cannot move run_dir {str(run_dir)!r} aside: it is the "
+                             f"current directory or holds it; give the run directory by its "
+                             f"own path, e.g. runs/NAME")
     created = not run_dir.exists()
     if created and resume:
         raise ValueError(f"run directory {run_dir} does not exist; nothing to resume")
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        if err.errno in DISK_ERRNOS:
+            raise
+        raise ValueError(f"run_dir {str(run_dir)!r} cannot be created ({err.strerror})") from None
     lock = RunLock(run_dir, log)
     try:
         held = _entries(run_dir)
-        if held and not resume:
+        unsaved = _saved_nothing(run_dir) if held and not resume and not overwrite else None
+        if unsaved:
+            clear_unsaved(run_dir, unsaved)
+            log(f"Run directory {run_dir} held a run that saved no checkpoint "
+                f"({', '.join(unsaved)}); starting afresh there")
+        elif held and not resume:
             if not overwrite:
                 raise ValueError(
                     f"run directory {run_dir} is not empty (it holds {', '.join(held[:4])}"
@@ -167,6 +262,7 @@ def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
             run_dir.mkdir()
             created = True
             lock = RunLock(run_dir, log)
+        check_no_links(run_dir)
         yield lock
     finally:
         lock.release()
