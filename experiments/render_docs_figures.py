@@ -1,15 +1,21 @@
-"""Regenerate the FlowSim figures committed under docs/figures/ (deterministic: fixed seed).
+"""Regenerate the figures committed under docs/figures/ (deterministic: fixed seeds).
 
     python experiments/render_docs_figures.py [--out docs/figures]
 
 Writes flowsim_scene.png, flowsim_timeline.png, flowsim_orders.png and flowsim_posterior.png.
 The environment shown is the first of a fixed batch whose first three transitions include a
 stay, a one-place advance and a two-place skip, so the timeline shows every kind of move.
+It also writes quickstart_fork.png by running the README's quick-start block itself (the shipped
+FlowMaps), so the README's figure is exactly what its code draws.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import re
+import shutil
+import tempfile
 from pathlib import Path
 
 import jax
@@ -27,6 +33,24 @@ POSTERIOR_OBJECT, POSTERIOR_TAU, POSTERIOR_HORIZON = 0, 3, 3  # fork, seen at τ
 DPI = 130
 # No "Software" key and no timestamp, so re-running the script gives byte-identical files.
 PNG_METADATA = {"Software": None}
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def quickstart_figure(out: Path) -> Path:
+    """Run the README's quick-start block in a scratch directory and copy the figure it saves
+    (fork_next.png) to ``out / "quickstart_fork.png"``."""
+    section = README.read_text().split("## Quick start")[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    target = out.resolve() / "quickstart_fork.png"
+    cwd = os.getcwd()
+    with tempfile.TemporaryDirectory() as scratch:
+        os.chdir(scratch)
+        try:
+            exec(compile(code, "README quick start", "exec"), {})
+        finally:
+            os.chdir(cwd)
+        shutil.copyfile(Path(scratch) / "fork_next.png", target)
+    return target
 
 
 def pick_environment(scenes, config: FlowSimConfig) -> int:
@@ -85,6 +109,7 @@ def main() -> None:
                           f"τ = {tau + POSTERIOR_HORIZON}, given the map at τ = {tau}",
                           fontsize=10)
     save(fig, "flowsim_posterior.png")
+    print(f"wrote {quickstart_figure(args.out)}")
 
 
 if __name__ == "__main__":

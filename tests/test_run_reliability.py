@@ -275,13 +275,17 @@ def test_a_full_disk_stops_with_one_short_message(at12, monkeypatch, capsys):
 
 def test_ctrl_c_during_data_generation_exits_cleanly(tmp_path):
     """The real command in a subprocess: 130 and a short message, not SIGSEGV."""
+    # A pytest-xdist worker ignores SIGINT, and a child would inherit that: the command gets the
+    # handler a terminal gives it from a small launcher, not from a preexec_fn (which makes
+    # subprocess fork() this multithreaded JAX process, which JAX warns about).
+    launch = ("import runpy, signal, sys; "
+              "signal.signal(signal.SIGINT, signal.default_int_handler); "
+              "sys.argv[0] = 'flowmaps_jax.train'; "
+              "runpy.run_module('flowmaps_jax.train', run_name='__main__', alter_sys=True)")
     proc = subprocess.Popen(
-        [sys.executable, "-u", "-m", "flowmaps_jax.train", *QUIET, "--run-dir",
-         str(tmp_path / "run")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        env=_UNCACHED,  # compiling for real, so the signal lands mid-compilation, not after
-        # A pytest-xdist worker ignores SIGINT, and a child would inherit that: give the command
-        # the default disposition a terminal gives it.
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        [sys.executable, "-u", "-c", launch, *QUIET, "--run-dir", str(tmp_path / "run")],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env=_UNCACHED)  # compiling for real, so the signal lands mid-compilation, not after
     out = io.StringIO()
     for line in proc.stdout:
         out.write(line)

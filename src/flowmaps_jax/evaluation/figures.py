@@ -67,7 +67,7 @@ def plot_by_horizon(results: dict, rows: Sequence[str] | None = None) -> Figure:
     axes = fig.subplots(1, 3)
     panels = (("KL(q‖p) [nats]", lambda r: r["kl"]),
               (f"slot TV @{n_big}", lambda r: r["slots"][n_big]["tv"]),
-              (f"search cost ratio @{n_big}", lambda r: r["slots"][n_big]["search_cost_ratio"]))
+              (f"rank cost @{n_big}", lambda r: r["slots"][n_big]["search_cost_ratio"]))
     for ax, (label, pick) in zip(axes, panels, strict=True):
         for i, name in enumerate(rows):
             by_h = pick(table[name])["by_horizon"]
@@ -131,13 +131,14 @@ def plot_samples(scenes, evalset: EvalSet, rows: Sequence[RowResult], config: Fl
             env, tau = int(evalset.env[e]), int(evalset.tau[e])
             draw_posterior(scenes, env, m, tau, np.asarray(evalset.slot_probs[e, m]), config,
                            ax=ax)
-            colour = config.categories[m].colour
-            overlay_boxes(ax, row.samples[e, m, :num_shown], config, edgecolor=colour,
-                          linewidth=1.2, alpha=0.9)
+            # black, so that the samples stand apart from the places shaded in the object's colour
+            overlay_boxes(ax, row.samples[e, m, :num_shown], config, edgecolor="black",
+                          linewidth=1.0, alpha=0.8)
             ax.set_title(f"{row.name}: {config.categories[m].name}, τ = {tau} → "
                          f"τ_q = {int(evalset.tau_q[e])}", fontsize=9)
-    fig.suptitle(f"{num_shown} samples per query (outlines) over the exact posterior "
-                 "(shaded places, labelled with q)", fontsize=10)
+    fig.suptitle(f"{num_shown} samples per query (black outlines) over the exact posterior (the "
+                 "object's places, shaded by q and labelled with it); yellow ring: the object "
+                 "at τ", fontsize=11)
     return fig
 
 
@@ -171,7 +172,7 @@ def plot_slot_bars(evalset: EvalSet, rows: Sequence[RowResult], config: FlowSimC
                      fontsize=10)
         ax.set_ylim(0, 1)
     axes[0].set_ylabel("probability")
-    axes[-1].legend(fontsize=7)
-    fig.suptitle("learned slot distribution vs the exact posterior", fontsize=10)
+    axes[-1].legend(fontsize=8)
+    fig.suptitle("learned slot distribution vs the exact posterior", fontsize=11)
     return fig
 

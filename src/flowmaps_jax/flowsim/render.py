@@ -218,6 +218,17 @@ def _legend_handles(view: _EnvView, kinds: bool = True, objects: bool = True) ->
     return handles
 
 
+def _add_legend_entries(ax: Axes, handles: Sequence[Any]) -> None:
+    """Append ``handles`` to the legend of ``ax`` (made beside the map as in :func:`draw_scene`
+    if there is none yet)."""
+    legend = ax.get_legend()
+    old = list(legend.legend_handles) if legend is not None else []
+    labels = [t.get_text() for t in legend.get_texts()] if legend is not None else []
+    labels += [h.get_label() for h in handles]
+    ax.legend(handles=[*old, *handles], labels=labels, loc="upper left",
+              bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False, borderaxespad=0.0)
+
+
 def _draw_order_arrows(ax: Axes, view: _EnvView, obj: int, numbers: bool = True,
                        curvature: float = 0.2) -> None:
     """Arrows from each piece of ``obj``'s visiting order to the next (cyclic), numbered 1..K."""
@@ -414,19 +425,30 @@ def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, con
                 bbox=dict(boxstyle="round,pad=0.15", facecolor="white", edgecolor="none",
                           alpha=0.8))
     ax.set_title(f"{category.name}: where could it be? (map at τ = {tau})", fontsize=10)
+    if ax.get_legend() is not None:  # own figure: name the marks this figure adds
+        _add_legend_entries(ax, [
+            Line2D([], [], linestyle="none", marker="o", markersize=11, markerfacecolor="none",
+                   markeredgecolor="gold", markeredgewidth=2.5,
+                   label=f"the {category.name} at τ = {tau}"),
+            Patch(facecolor=to_rgba(category.colour, 0.45), edgecolor=category.colour,
+                  label="its possible places\n(shade ∝ probability)")])
+        fig.set_size_inches(_PANEL_SIZE + 2.3, _PANEL_SIZE)
     return fig
 
 
-def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig,
+def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig, label: str | None = None,
                   **style: Any) -> PatchCollection:
     """Draw normalised (y, x, h, w) boxes (e.g. model samples) over a map drawn in ``ax``.
 
     ``boxes_norm``: (N, 4) or (4,), coordinates in [0, 1] of the map (pixels / (map_size − 1));
     values outside are drawn as they are (clipped by the axes). ``style`` overrides the
-    PatchCollection defaults (unfilled black outlines). Returns the added collection.
+    PatchCollection defaults (unfilled black outlines). ``label``: an entry for the boxes in the
+    map's legend (added beside the map if it has none). Returns the added collection.
     """
     check_instance("config", config, FlowSimConfig)
     check_instance("ax", ax, Axes)
+    if label is not None:
+        check_instance("label", label, str)
     boxes = np.asarray(check_real_array("boxes_norm", boxes_norm), dtype=float)
     if boxes.ndim == 1:
         boxes = boxes[None]
@@ -441,4 +463,7 @@ def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig,
     options.update(style)
     collection = PatchCollection(patches, match_original=False, **options)
     ax.add_collection(collection)
+    if label is not None:
+        _add_legend_entries(ax, [Patch(facecolor="none", edgecolor=options["edgecolor"],
+                                       linewidth=options["linewidth"], label=label)])
     return collection

@@ -17,7 +17,9 @@ from flowmaps_jax.flowsim import FlowSimConfig
 from flowmaps_jax.search.episodes import Episodes, Outcome, SearchSet
 from flowmaps_jax.search.report import POLICY_LABELS
 
-_PANEL = 3.3  # inches
+_MAP = 2.6  # inches per map panel of plot_episodes
+_BELIEF = 2.1  # inches per belief panel beside it
+_TEXT = 8.5  # points: table names, look numbers, belief values, ticks
 
 
 def pick_episodes(search_set: SearchSet, count: int = 2, horizons: tuple[int, int] = (2, 4),
@@ -63,7 +65,7 @@ def draw_episode_map(ax: Axes, search_set: SearchSet, episodes: Episodes, outcom
     valid = np.asarray(episodes.valid[n])
     for k in np.flatnonzero(valid):
         ax.annotate(f"T{k + 1}", (centres[k, 1], centres[k, 0]), xytext=(0, 9),
-                    textcoords="offset points", ha="center", fontsize=7, color="0.15")
+                    textcoords="offset points", ha="center", fontsize=_TEXT, color="0.15")
     category = config.categories[obj]
     seen = centres[int(search_set.slot_now[r, obj])]
     truth = centres[int(episodes.target[n])]
@@ -78,7 +80,7 @@ def draw_episode_map(ax: Axes, search_set: SearchSet, episodes: Episodes, outcom
     ax.plot(start[1], start[0], "kx", ms=8, mew=2)
     for look, (y, x) in enumerate(stops[1:], start=1):
         offset = 4.0 * (np.sum(np.all(stops[1:look] == (y, x), axis=1)))  # repeated visits
-        ax.annotate(str(look), (x + offset, y + offset), ha="center", va="center", fontsize=7,
+        ax.annotate(str(look), (x + offset, y + offset), ha="center", va="center", fontsize=_TEXT,
                     color="white", bbox={"boxstyle": "circle,pad=0.2", "fc": colour,
                                          "ec": "none"})
     ax.set_xlim(0, size)
@@ -89,7 +91,7 @@ def draw_episode_map(ax: Axes, search_set: SearchSet, episodes: Episodes, outcom
     looks, travel = int(outcome.looks[n]), float(outcome.travel[n])
     ax.set_title((title + "\n" if title else "")
                  + f"{looks} look{'' if looks == 1 else 's'}, {travel:.0f} px"
-                 + ("" if found else " (not found)"), fontsize=8)
+                 + ("" if found else " (not found)"), fontsize=9.5)
 
 
 def draw_episode_beliefs(ax: Axes, episodes: Episodes, outcome: Outcome, n: int) -> None:
@@ -102,7 +104,7 @@ def draw_episode_beliefs(ax: Axes, episodes: Episodes, outcome: Outcome, n: int)
     belief = np.asarray(outcome.belief[n, :looks, :k])
     ax.imshow(belief, cmap="Blues", vmin=0.0, vmax=1.0, aspect="auto")
     for (row, col), value in np.ndenumerate(belief):
-        ax.text(col, row, f"{value:.2f}", ha="center", va="center", fontsize=6.5,
+        ax.text(col, row, f"{value:.2f}", ha="center", va="center", fontsize=_TEXT,
                 color="white" if value > 0.6 else "0.1")
     path = np.asarray(outcome.path[n, :looks])
     for row, col in enumerate(path):
@@ -111,32 +113,40 @@ def draw_episode_beliefs(ax: Axes, episodes: Episodes, outcome: Outcome, n: int)
                                    edgecolor="tab:orange"))
     target = int(episodes.target[n])
     ax.set_xticks(range(k), [f"T{i + 1}" + ("★" if i == target else "") for i in range(k)],
-                  fontsize=7)
-    ax.set_yticks(range(looks), [f"look {i + 1}" for i in range(looks)], fontsize=7)
+                  fontsize=_TEXT)
+    ax.set_yticks(range(looks), [f"look {i + 1}" for i in range(looks)], fontsize=_TEXT)
 
 
 def plot_episodes(search_set: SearchSet, runs: Mapping[str, tuple[Episodes, Outcome]],
                   picks: Sequence[int], config: FlowSimConfig, policy: str = "optimal") -> Figure:
-    """For each picked episode, one column per row (prior): the episode on the map, and below it
-    the belief before every look. ``runs``: {row name: (Episodes, Outcome with beliefs)}."""
+    """For each picked episode, a column pair with one row per prior (``runs``' rows): the
+    episode on the map, and beside it the belief before every look. ``runs``: {row name:
+    (Episodes, Outcome with beliefs)}. About 5 inches wide per picked episode (500 px at the
+    report's 100 dpi), 2.9 inches tall per row."""
     if not runs or not picks:
         raise ValueError("runs and picks must not be empty")
     names = list(runs)
-    fig = Figure(figsize=(_PANEL * len(names), _PANEL * 1.55 * len(picks)), layout="constrained")
-    grid = fig.add_gridspec(2 * len(picks), len(names), height_ratios=[3, 1.6] * len(picks))
     m = search_set.queries.descriptor.shape[1]
-    for p, n in enumerate(picks):
+    fig = Figure(figsize=(len(picks) * (_MAP + _BELIEF) + 0.3, len(names) * (_MAP + 0.3) + 1.0),
+                 layout="constrained")
+    columns = np.atleast_1d(fig.subfigures(1, len(picks)))
+    for column, n in zip(columns, picks, strict=True):
         r, obj = divmod(int(n), m)
-        for c, name in enumerate(names):
+        grid = column.add_gridspec(len(names), 2, width_ratios=[_MAP, _BELIEF])
+        for row, name in enumerate(names):
             episodes, outcome = runs[name]
-            label = (f"{name}\n{config.categories[obj].name}, τ = {int(search_set.tau[r])} → "
-                     f"τ_q = {int(search_set.tau_q[r])}")
-            draw_episode_map(fig.add_subplot(grid[2 * p, c]), search_set, episodes, outcome, n,
-                             config, label)
-            draw_episode_beliefs(fig.add_subplot(grid[2 * p + 1, c]), episodes, outcome, n)
-    fig.suptitle(f"Search episodes, policy: {POLICY_LABELS.get(policy, policy)} (× start, "
-                 "○ last seen, ★ true table; numbers: looks; below: belief before each look)",
-                 fontsize=9)
+            draw_episode_map(column.add_subplot(grid[row, 0]), search_set, episodes, outcome, n,
+                             config, name)
+            beliefs = column.add_subplot(grid[row, 1])
+            draw_episode_beliefs(beliefs, episodes, outcome, n)
+            if row == 0:
+                beliefs.set_title("belief before each look\n(orange: the table looked at)",
+                                  fontsize=9.5)
+        column.suptitle(f"{config.categories[obj].name}, seen at τ = {int(search_set.tau[r])}, "
+                        f"searched at τ_q = {int(search_set.tau_q[r])}", fontsize=11)
+    fig.suptitle(f"Search episodes, policy: {POLICY_LABELS.get(policy, policy)}\n"
+                 "× start, ○ last seen, ★ true table; numbered circles: the looks in order "
+                 "(green path: found, red: not found within the budget)", fontsize=11)
     return fig
 
 
