@@ -1,12 +1,14 @@
+# ruff: noqa: I001  (the imports are the README block's, as written there)
 """The README quick start, as a script: samples the shipped FlowMaps for the fork one step ahead.
 
-    python experiments/quickstart.py        # writes fork_next.png; docs/figures/quickstart_fork.png
-                                            # is this figure (copied there)
-tests/test_pretrained.py runs the README code block itself.
+    python experiments/quickstart.py        # writes fork_next.png in the current directory
+
+The code below is the README's quick-start block, line for line (tests/test_pretrained.py checks
+that they agree and runs the README block itself). docs/figures/quickstart_fork.png is drawn by
+``python experiments/render_docs_figures.py``, which runs the README block too.
 """
 import jax
 import numpy as np
-
 from flowmaps_jax.flowsim import exact_posterior, render
 from flowmaps_jax.flowsim.scenes import scene_tokens, validation_split
 from flowmaps_jax.sample import load_pretrained
@@ -21,6 +23,6 @@ queries = Queries(descriptor=np.asarray(scenes.object_kind)[:1, :1], tau_q=np.ar
 boxes = predictor.sample(tokens, queries, num_samples=100, key=jax.random.key(0))  # (1, 1, 100, 4)
 
 q = exact_posterior(scenes.num_slots[env, fork], scenes.slot[env, tau, fork], tau_q - tau, config)
-fig = render.draw_posterior(scenes, env, fork, tau, q, config)   # shaded: the exact answer
-render.overlay_boxes(fig.axes[0], boxes[0, 0], config, edgecolor="red")  # outlines: FlowMaps
-fig.savefig("fork_next.png")
+fig = render.draw_posterior(scenes, env, fork, tau, q, config)   # red shading: the exact answer
+render.overlay_boxes(fig.axes[0], boxes[0, 0], config, label="FlowMaps samples")  # black outlines
+fig.savefig("fork_next.png", dpi=130)

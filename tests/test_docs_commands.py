@@ -65,7 +65,6 @@ REPO = pathlib.Path(__file__).resolve().parents[1]
 PAGES = ["README.md", *sorted(str(p.relative_to(REPO)) for p in (REPO / "docs").glob("*.md"))]
 NOT_RUN = {"docs/scaling.md": "needs GPUs or several hosts (CUDA jaxlib, --devices 4, two hosts)"}
 KNOWN_BROKEN = {
-    ("docs/flowsim.md", "model_samples"): "uses `model_samples`, which the page never defines",
     ("docs/results.md", "--steps 6000 --run-dir runs/mlp-cpu"):
         "the pre-issue-8 record trains into runs/flowmaps-cpu again, which a block above made "
         "(a run directory holds one run): it needs its own --run-dir or a skip mark",

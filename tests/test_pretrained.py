@@ -63,3 +63,15 @@ def test_readme_quick_start_runs_and_draws_the_figure(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     exec(compile(code, "README quick start", "exec"), {})
     assert (tmp_path / "fork_next.png").stat().st_size > 10_000
+
+
+def test_quickstart_script_is_the_readme_block():
+    """experiments/quickstart.py is the README's quick-start block, line for line."""
+    import pathlib
+    import re
+
+    root = pathlib.Path(__file__).resolve().parents[1]
+    section = (root / "README.md").read_text().split("## Quick start")[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    script = (root / "experiments" / "quickstart.py").read_text()
+    assert script.split('"""\n', 1)[1] == code

@@ -320,6 +320,74 @@ def test_exported_weights_load_as_the_same_predictor(tmp_path, checkpoints, inpu
                                       loaded.sample(*inputs, N, key))
 
 
+def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
+    """The .json says which checkpoint of the run it holds ("best" or "latest") and why; the
+    CLI exports the last step by default and the best-by-validation one with --which best."""
+    import json
+
+    from flowmaps_jax import pretrained
+    from flowmaps_jax.training import checkpoint
+
+    path, state = checkpoints["flowmaps"]
+    run = tmp_path / "run"
+    best_state = state.replace(ema_params=perturb(state.ema_params, jax.random.key(5), 0.1),
+                               step=jnp.asarray(3, jnp.int32))
+    cfg = checkpoint.load_config(path)
+    with checkpoint.CheckpointStore(run, keep_last=2) as store:
+        assert store.save_if_best(best_state, cfg.to_dict(), 1.5)
+        store.save(state, cfg.to_dict())  # the last step, 7
+    for which, step in (("latest", 7), ("best", 3)):
+        out = tmp_path / which
+        args = ["--checkpoint", str(run), "--name", "flowmaps", "--out", str(out)]
+        assert pretrained.main(args + ([] if which == "latest" else ["--which", "best"])) == 0
+        meta = json.loads((out / "flowmaps.json").read_text())
+        assert (meta["which"], meta["step"]) == (which, step)
+        assert f"step {step}" in meta["why"]
+        assert f"step {step} ({which}: " in capsys.readouterr().out
+        assert pretrained.describe("flowmaps", out)["which"] == which
+        loaded = pretrained.load_pretrained("flowmaps", out)
+        want = load(run, which=which)
+        assert loaded.step == want.step == step
+        same = jax.tree_util.tree_map(np.array_equal, loaded.params, want.params)
+        assert all(jax.tree_util.tree_leaves(same))
+    assert "best validation loss was at step 3" in json.loads(
+        (tmp_path / "latest" / "flowmaps.json").read_text())["why"]
+    # a given reason is stored as given; a run without a best step exports its last, and says so
+    pretrained.export_pretrained(run, "flowmaps", tmp_path / "why", why="the docs use it")
+    assert pretrained.describe("flowmaps", tmp_path / "why")["why"] == "the docs use it"
+    pretrained.export_pretrained(path, "flowmaps", tmp_path / "nobest", which="best")
+    info = pretrained.describe("flowmaps", tmp_path / "nobest")
+    assert info["which"] == "latest" and "no best" in info["why"]
+    with pytest.raises(ValueError, match="which"):
+        pretrained.export_pretrained(run, "flowmaps", tmp_path / "bad", which="first")
+
+
+def test_shipped_json_without_which_still_loads(tmp_path):
+    """The shipped .json files predate "which": they load, and describe() says "unknown"; a
+    .json with another value is refused."""
+    import json
+    import shutil
+
+    from flowmaps_jax import pretrained
+
+    for name in pretrained.available():
+        meta = json.loads((pretrained.PRETRAINED_DIR / f"{name}.json").read_text())
+        info = pretrained.describe(name)
+        assert info["which"] == meta.get("which", "unknown") and info["step"] == meta["step"]
+    for name in ("mlp",):
+        shutil.copy(pretrained.PRETRAINED_DIR / f"{name}.npz", tmp_path)
+        meta = json.loads((pretrained.PRETRAINED_DIR / f"{name}.json").read_text())
+        meta.pop("which", None)
+        (tmp_path / f"{name}.json").write_text(json.dumps(meta))
+        assert pretrained.describe(name, tmp_path)["which"] == "unknown"
+        assert pretrained.load_pretrained(name, tmp_path).step == meta["step"]
+        (tmp_path / f"{name}.json").write_text(json.dumps({**meta, "which": "first"}))
+        with pytest.raises(ValueError, match="which 'first'"):
+            pretrained.load_pretrained(name, tmp_path)
+        with pytest.raises(ValueError, match="which 'first'"):
+            pretrained.describe(name, tmp_path)
+
+
 def test_pretrained_errors_are_value_errors(tmp_path, checkpoints):
     from flowmaps_jax.pretrained import export_pretrained, load_pretrained
     from flowmaps_jax.sample import load_pretrained as public_load

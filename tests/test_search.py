@@ -279,6 +279,10 @@ def test_report_and_figures_are_written(results, flowsim_config, tmp_path):
     for row in table["rows"]:
         assert text.count(f"| {row} |") >= 3 * 5  # 3 policy tables, 4 group tables each + mass
     assert "## optimal expected travel (exact DP)" in text and "SR@1 by horizon Δτ" in text
+    # why flat priors can beat the exact searcher under most-probable first: once, under its table
+    assert text.count(report.FLAT_PRIOR_NOTE) == 1
+    assert text.index("## most-probable first") < text.index(report.FLAT_PRIOR_NOTE) \
+        < text.index("## greedy probability per pixel")
     for name in names:
         assert (tmp_path / name).read_bytes().startswith(b"\x89PNG")
     assert len(figures.pick_episodes(search_set, count=3)) == 3
@@ -333,3 +337,23 @@ def test_cli_rejects_bad_arguments_before_loading_models(capsys):
     assert "--budget" in capsys.readouterr().err
     assert cli.main(["--checkpoint", "pretrained:flowmaps"]) == 2  # --out needed
     assert "--out" in capsys.readouterr().err
+
+
+def test_cli_prints_the_checkpoint_and_step_of_each_model(capsys, monkeypatch, tmp_path):
+    """Before searching, the CLI names every model with where it was loaded from and its step,
+    as evaluate does."""
+    from flowmaps_jax.sample import load_pretrained
+
+    def stop(*args, **kwargs):
+        raise ValueError("stopped after the models were loaded")
+
+    monkeypatch.setattr(cli, "validation_split", lambda *a, **k: None)
+    monkeypatch.setattr(cli.pr, "run_search", stop)
+    code = cli.main(["--checkpoint", "pretrained:flowmaps", "--baseline", "pretrained:mlp",
+                     "--out", str(tmp_path / "search"), "--no-progress"])
+    assert code == 2
+    out = capsys.readouterr().out
+    for name in ("flowmaps", "mlp"):
+        model = load_pretrained(name)
+        assert cli.loaded_from(model) == f"{model.name} (pretrained:{name}, step {model.step})"
+        assert cli.loaded_from(model) in out

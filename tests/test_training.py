@@ -260,6 +260,13 @@ def test_cli_smoke_run_writes_config_metrics_and_checkpoints(straight_run):
     assert int(state.step) == 20 and config == SMOKE.to_dict()
     best, _ = checkpoint.restore_best(run_dir, train_state.abstract_state(SMOKE))
     assert int(best.step) in (10, 20)
+    # the run directory is printed at the start; the summary names the best step and the last
+    start = printed.index(f"Run directory: {run_dir.absolute()}")
+    assert start < printed.index("Compiling")
+    assert f"at step {int(best.step)})" in printed.split("best validation loss")[1].split("\n")[0]
+    assert (f"load the best step, {int(best.step)}, by default; --which latest loads step 20"
+            if int(best.step) != 20 else "the best step is the last, 20") in printed
+    assert "rank cost" in printed and "search cost" not in printed
     predictor = load(run_dir)
     assert predictor.model == SMOKE.model and predictor.step == int(best.step)
     for got, want in zip(_leaves(predictor.params), _leaves(best.ema_params), strict=True):
@@ -272,6 +279,8 @@ def test_resume_continues_exactly(straight_run, tmp_path):
     assert first.status == "stopped" and first.step == 10
     second = train_cli.run(SMOKE, tmp_path, resume=True, progress=False)
     assert second.status == "done" and second.step == 20
+    assert first.best_step == 10 and second.best_step in (10, 20)  # restored with the store
+    assert second.best_step == checkpoint.saved_step(tmp_path / "checkpoints", "best")
     target = train_state.abstract_state(SMOKE)
     split, _ = checkpoint.restore_latest(tmp_path, target)
     straight, _ = checkpoint.restore_latest(straight_dir, target)

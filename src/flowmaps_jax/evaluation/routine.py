@@ -10,8 +10,8 @@ validation interval of a training run:
   horizon mixture.
 * :func:`routine_metrics` — samples a predictor and returns the mass at route offsets
   0 / +1 / +2 / +3 / beyond / off one step ahead (:func:`.slots.route_offset_mass`) and slot TV,
-  top-1 and search-cost ratio on both sets. The training loop logs these into ``metrics.jsonl``
-  (records with ``"kind": "routine"``).
+  top-1 and rank cost (``search_cost_ratio``) on both sets. The training loop logs these into
+  ``metrics.jsonl`` (records with ``"kind": "routine"``).
 * :func:`plot_learning_curve` — the figure of those records against the training step.
 """
 
@@ -104,7 +104,7 @@ def read_routine_records(metrics_path: str | pathlib.Path) -> list[dict]:
 
 
 def plot_learning_curve(records: list[dict], title: str = "") -> Figure:
-    """Route-offset mass one step ahead, and TV / search cost, against the training step."""
+    """Route-offset mass one step ahead, and TV / rank cost, against the training step."""
     if not records:
         raise ValueError("records: no routine records to plot (was the run validated?)")
     steps = [r["step"] for r in records]
@@ -123,7 +123,7 @@ def plot_learning_curve(records: list[dict], title: str = "") -> Figure:
     ax_mass.legend(fontsize=8)
     for key, label, colour in (("tv", "slot TV (mixed Δτ)", "tab:blue"),
                                ("one_step_tv", "slot TV (Δτ = 1)", "tab:cyan"),
-                               ("search_cost_ratio", "search cost ratio − 1", "tab:red")):
+                               ("search_cost_ratio", "rank cost − 1", "tab:red")):
         values = [r[key] - (1.0 if key == "search_cost_ratio" else 0.0) for r in records]
         ax_slot.plot(steps, values, label=label, color=colour, marker=".")
     ax_slot.set(xlabel="training step", ylim=(0, None), title="slot metrics (lower is better)")

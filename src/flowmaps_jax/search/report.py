@@ -1,9 +1,10 @@
 """The search report: ``search.json`` and ``search.md`` from :func:`protocol.run_search` results.
 
 ``search.md`` holds one table per policy (SR@1/2/3, mean looks, mean travel, SPL, each row's
-ratios to the exact-posterior searcher under the same policy), then by horizon Δτ and by
-category: the travel ratio (in exact expectation over the true table when the detector is
-perfect, which removes the rollout's noise) and SR@1.
+ratios to the exact-posterior searcher under the same policy; under most-probable first a note
+on why flat priors can score below the exact searcher there, :data:`FLAT_PRIOR_NOTE`), then by
+horizon Δτ and by category: the travel ratio (in exact expectation over the true table when the
+detector is perfect, which removes the rollout's noise) and SR@1.
 """
 
 from __future__ import annotations
@@ -19,6 +20,13 @@ POLICY_LABELS = {"most-probable": "most-probable first",
 _MAIN = (("sr@1", "SR@1", 3), ("sr@2", "SR@2", 3), ("sr@3", "SR@3", 3), ("looks", "looks", 2),
          ("travel", "travel [px]", 1), ("spl", "SPL", 3))
 _RATIOS = (("looks", "looks ÷ exact"), ("travel", "travel ÷ exact"), ("spl", "SPL ÷ exact"))
+# Under the most-probable-first table (docs/search.md, "Reading it").
+FLAT_PRIOR_NOTE = (
+    "Most-probable first ignores distance: with a flat prior (uniform over the kind, or a model "
+    "that falls back to it) it degenerates to nearest-first, which travels less than the exact "
+    "posterior driven by the same policy. That is why flat priors can score *below* 1 in this "
+    "table's travel ratios: the ratio compares priors under one policy, not policies (see "
+    "the optimal and greedy tables for what a prior is worth).")
 
 
 def _mean_se(stat: dict | None, digits: int) -> str:
@@ -95,6 +103,8 @@ def markdown_table(results: dict) -> str:
         lines += [f"\n## {POLICY_LABELS[policy]}\n", "| " + " | ".join(header) + " |",
                   "|" + "---|" * len(header)]
         lines += [_row_line(name, entry["policies"][policy]) for name, entry in rows.items()]
+        if policy == "most-probable":
+            lines.append("\n" + FLAT_PRIOR_NOTE)
     what = "E[travel] ÷ exact" if expected else "travel ÷ exact"
     lines.append("\n## By horizon Δτ and by category")
     for policy in policies:

@@ -75,7 +75,9 @@ class RunResult:
     status: "done" (reached cfg.steps), "stopped" (reached stop_at), "interrupted" (Ctrl-C) or
         "nan" (non-finite loss or state; nothing saved for that state).
     step: steps completed in the final state; state: that TrainState (None after "nan").
-    run_dir, checkpoint_dir: where outputs went; best_val_loss: best validation loss seen.
+    run_dir, checkpoint_dir: where outputs went; best_val_loss: best validation loss seen, at
+    step best_step (the step ``evaluate`` loads by default); None when no validation after step
+    0 has run.
     """
 
     status: str
@@ -84,6 +86,7 @@ class RunResult:
     run_dir: pathlib.Path
     checkpoint_dir: pathlib.Path
     best_val_loss: float | None
+    best_step: int | None = None
 
 
 class _StopFlag:
@@ -299,6 +302,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         elif resume and primary:  # starting again: the old run's records go
             kept = []
         log("Config:\n" + format_config(cfg))
+        log(f"Run directory: {run_dir.absolute()} (config.json, metrics.jsonl, checkpoints/)")
         log(f"Devices: {distributed.describe(mesh)}")
         compiled = compiled_functions(cfg, mesh)
         train_scenes, val_scenes = data.load_splits(cfg, log, mesh=_generation_mesh(mesh))
@@ -406,7 +410,7 @@ def _train(cfg, run_dir, state, window_state, metrics_log, take_step, eval_fn, t
     except BaseException:
         metrics_log.close()
         raise
-    best = store.best_val_loss
+    best, best_step = store.best_val_loss, store.best_step()
 
     probe = None
     if cfg.routine_envs > 0:
@@ -427,12 +431,12 @@ def _train(cfg, run_dir, state, window_state, metrics_log, take_step, eval_fn, t
         return {"records": window, "timed_steps": timed_steps, "step_seconds": step_seconds}
 
     def validate(step: int) -> float:
-        nonlocal best, last_routine
+        nonlocal best, best_step, last_routine
         val_loss = float(eval_fn(state.ema_params, val_batches))
         improved = step > 0 and store.save_if_best(state, cfg_dict, val_loss,
                                                    log_window=log_window())
         if improved:
-            best = val_loss
+            best, best_step = val_loss, step
         metrics_log.write({"kind": "val", "step": step, "val_loss": val_loss,
                            "best": bool(improved)})
         if probe is not None:
@@ -522,9 +526,10 @@ def _train(cfg, run_dir, state, window_state, metrics_log, take_step, eval_fn, t
 
     if probe is not None and jax.process_index() == 0:
         _write_routine_curve(run_dir, log)
-    _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best)
+    _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best, best_step)
     return RunResult(status=status, step=step, state=None if status == "nan" else state,
-                     run_dir=run_dir, checkpoint_dir=ckpt_dir, best_val_loss=best)
+                     run_dir=run_dir, checkpoint_dir=ckpt_dir, best_val_loss=best,
+                     best_step=best_step)
 
 
 def _inference_params(state, mesh) -> tuple:
@@ -548,11 +553,12 @@ def _write_routine_curve(run_dir: pathlib.Path, log: Callable[[str], None]) -> N
         last = records[-1]
         log(f"Routines at step {last['step']} (one step ahead, exact 0.2 / 0.7 / 0.1): "
             f"offsets 0 / +1 / +2 = {last['offset_0']:.2f} / {last['offset_+1']:.2f} / "
-            f"{last['offset_+2']:.2f}; TV {last['tv']:.3f}, search cost ratio "
+            f"{last['offset_+2']:.2f}; TV {last['tv']:.3f}, rank cost "
             f"{last['search_cost_ratio']:.3f} → {run_dir / 'routine_curve.png'}")
 
 
-def _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best) -> None:
+def _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best,
+                   best_step=None) -> None:
     headline = {"done": f"Finished {step} steps.",
                 "stopped": f"Stopped after step {step} of {cfg.steps}.",
                 "interrupted": f"Interrupted at step {step} of {cfg.steps}; checkpoint saved.",
@@ -561,9 +567,17 @@ def _print_summary(log, status, step, cfg, run_dir, ckpt_dir, latest, best) -> N
     if latest is None:
         log(f"No checkpoint was saved in {ckpt_dir}.")
         return
-    best_text = f"; best validation loss {best:.5f}" if best is not None else ""
+    has_best = best is not None and best_step is not None
+    best_text = f"; best validation loss {best:.5f} at step {best_step}" if has_best else ""
     log(f"Checkpoint: {ckpt_dir.absolute()} (latest step {latest}{best_text})")
     log(f"Evaluate it:  python -m flowmaps_jax.evaluate --checkpoint {ckpt_dir}")
+    if has_best and best_step != latest:
+        log(f"  (evaluate and search load the best step, {best_step}, by default; "
+            f"--which latest loads step {latest}, the last)")
+    elif has_best:
+        log(f"  (the best step is the last, {latest}: evaluate and search load it)")
+    else:  # no validation since step 0: the best falls back to the latest save
+        log(f"  (no best-by-validation step yet: evaluate and search load step {latest})")
     if status != "done":
         log(f"Resume it:    python -m flowmaps_jax.train --resume --run-dir {run_dir}")
 
