@@ -117,9 +117,8 @@ def test_accurate_grid_and_solver():
         flow.check_solver(2, "accurate")
 
 
-def test_table_weights_need_the_route_head(evalset):
-    pointer = dataclasses.replace(TINY, head="pointer")
-    predictor = Predictor.from_params(init_params(jax.random.key(0), pointer), pointer)
+def test_table_weights_need_a_read_out_head(evalset):
+    predictor = Predictor.from_params(init_params(jax.random.key(0), TINY), TINY)
     with pytest.raises(ValueError, match="route"):
         predictor.table_weights(evalset.tokens, evalset.queries)
     with pytest.raises(ValueError, match="method"):

@@ -44,7 +44,7 @@ from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
 from flowmaps_jax.model import ModelConfig, baseline_predict, check_inputs
 from flowmaps_jax.model.sampling import DEFAULT_NUM_STEPS
-from flowmaps_jax.tokens import Queries, SceneTokens, check_query_roles, trim_padding
+from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles, trim_padding
 from flowmaps_jax.training.objectives import model_kind
 from flowmaps_jax.validation import (
     check_choice,
@@ -265,25 +265,26 @@ class Predictor:
         return jnp.where(far, -jnp.inf, log_p)
 
     def table_weights(self, tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
-        """Route head only (``model.head="route"``): the mass (B, Q, S + 1) its mixture puts on
-        each token of the map (zero on non-tables), off mass (last entry) 0, read from the model
-        without sampling (:func:`flowmaps_jax.model.route_mixture`). Its samples follow these
-        weights exactly while the head's residual is zero; a trained residual can move a little
-        mass, which ``table_probabilities(..., method="samples")`` would see."""
-        if self.kind != "flowmaps" or self.model.head != "route":
-            raise ValueError("table_weights needs a FlowMaps model with model.head='route' (its "
-                             f"mixture weights are explicit); this one is {self.name} with "
+        """FlowMaps with a read-out head (``model.head`` "pointer" or "route"): the mass
+        (B, Q, S + 1) its mixture puts on each table of the map, read from the model without
+        sampling (:func:`flowmaps_jax.model.sampling.table_weights`). Weight on tokens that are
+        not tables goes to the "off" entry (last). The route head's samples follow these
+        weights exactly while its residual is zero; the pointer head's are its weights at t = 0.
+        """
+        if self.kind != "flowmaps" or self.model.head not in ("pointer", "route"):
+            raise ValueError("table_weights needs a FlowMaps model with model.head 'pointer' or "
+                             f"'route' (explicit mixture weights); this one is {self.name} with "
                              f"head={self.model.head!r}: use table_probabilities with samples")
-        from flowmaps_jax.model.flowmaps import encode, route_mixture
+        from flowmaps_jax.model.sampling import table_weights
 
         b, _ = self.validate(tokens, queries)
         s = np.shape(tokens.boxes)[1]
+        tables = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == FURNITURE)
         tokens, queries = self._on_mesh(*_as_arrays(tokens, queries))
-        log_w, _, _ = route_mixture(self.params, self.model, encode(self.params, self.model,
-                                                                    tokens), queries)
-        w = self._rows(jnp.exp(log_w), b)  # (B, Q, S') with trailing padding trimmed
-        w = jnp.pad(w, ((0, 0), (0, 0), (0, s - w.shape[-1])))
-        return jnp.concatenate([w, jnp.zeros_like(w[..., :1])], axis=-1)
+        w = self._rows(table_weights(self.params, self.model, tokens, queries), b)
+        w = jnp.pad(w, ((0, 0), (0, 0), (0, s - w.shape[-1])))  # trimmed padding back
+        w = jnp.where(tables[:, None, :], w, 0.0)
+        return jnp.concatenate([w, 1.0 - w.sum(-1, keepdims=True)], axis=-1).clip(0.0, 1.0)
 
     def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
         """MLP baseline only: (mean, log_var), each (B, Q, 4), of the predicted Gaussian."""

@@ -20,7 +20,12 @@ import jax.numpy as jnp
 from flowmaps_jax import flow
 from flowmaps_jax.model.baseline import baseline_log_prob, baseline_predict
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.flowmaps import encode, make_velocity_fn, route_mixture
+from flowmaps_jax.model.flowmaps import (
+    encode,
+    make_velocity_fn,
+    route_mixture,
+    velocity_and_anchor_logits,
+)
 from flowmaps_jax.model.route import mixture_log_prob
 from flowmaps_jax.tokens import Queries, SceneTokens
 
@@ -84,6 +89,28 @@ def flow_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Que
     velocity_fn = make_velocity_fn(params, config, context, queries)
     z = to_flow_space(x, config)
     return flow.log_prob(velocity_fn, z, num_steps, method) + flow_space_log_det(config)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def table_weights(params, config: ModelConfig, tokens: SceneTokens, queries: Queries
+                  ) -> jnp.ndarray:
+    """The mixture weight (B, Q, S) a read-out head puts on each token of the map, no sampling.
+
+    ``head="route"``: the mixture's weights themselves (x- and t-free). ``head="pointer"``: the
+    anchor softmax at t = 0 and x = 0. The pointer's anchor logits are trained (pointer loss) to
+    predict the target's table from (x_t, t); at t = 0 x_t is pure noise and tells nothing, so
+    there they estimate the posterior over tables given the map and the query alone, and the
+    flow starts from exactly that mixture. (Along the path the logits may drift, so the samples'
+    table frequencies can differ a little; tests/test_route.py and docs/results.md compare them.)
+    """
+    context = encode(params, config, tokens)
+    if config.head == "route":
+        log_w, _, _ = route_mixture(params, config, context, queries)
+        return jnp.exp(log_w)
+    b, q = queries.tau_q.shape
+    _, logits = velocity_and_anchor_logits(params, config, context, jnp.zeros((b, q, 1, 4)),
+                                           jnp.zeros((b, q)), queries)
+    return jax.nn.softmax(logits[:, :, 0], axis=-1)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))

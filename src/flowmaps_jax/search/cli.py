@@ -6,8 +6,10 @@ posterior, on FlowSim's validation split.
 
 Writes ``search.json``, ``search.md`` and the figures ``episodes.png``, ``success_vs_looks.png``
 and ``success_vs_distance.png`` into ``--out`` (default ``<checkpoint>/search``). Models are
-run or checkpoint directories, or ``pretrained:NAME`` for a model shipped with the package.
-The protocol is documented in docs/search.md.
+run or checkpoint directories (their best-by-validation step unless ``--which latest``), or
+``pretrained:NAME`` for a model shipped with the package; the checkpoint and step of each are
+printed before the search starts and recorded in ``search.json``. The protocol is documented in
+docs/search.md.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from flowmaps_jax.sample import PRETRAINED_PREFIX, load_model
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import figures as fg
 from flowmaps_jax.search import protocol as pr
+from flowmaps_jax.search.probabilities import TABLE_METHODS
 from flowmaps_jax.search.report import markdown_table, write_report
 from flowmaps_jax.validation import check_int, check_output_dir, check_seed
 
@@ -60,6 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="instead of random draws: fixed horizons Δτ, e.g. 1,2,4,8 (one row each)")
     add("--samples", type=int, default=pr.DEFAULT_SAMPLES,
         help="samples per query for the model rows' table probabilities")
+    add("--table-method", choices=TABLE_METHODS, default="samples",
+        help="how FlowMaps' table probabilities are read: count --samples samples, or read "
+             "the read-out head's mixture weights (no sampling noise; the MLP is sampled)")
     add("--policies", nargs="+", default=list(pr.MAIN_POLICIES), choices=pr.MAIN_POLICIES,
         help="policies every prior is driven by")
     add("--budget", type=int, default=ep.DEFAULT_BUDGET, help="looks per episode")
@@ -94,6 +100,12 @@ def write_figures(results: dict, runs: dict, search_set: ep.SearchSet, config,
     return list(figures)
 
 
+def loaded_from(model) -> str:
+    """``name (source, step N)``: the checkpoint (a checkpoint directory, or
+    ``pretrained:NAME``) and step a model was loaded from, as ``evaluate`` prints it."""
+    return f"{model.name} ({model.source}, step {model.step})"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; 0 on success, 2 on a bad argument, 74 on a failed write (a full disk);
     one line on stderr. Every argument, ``--out`` and the run's size are checked first."""
@@ -118,13 +130,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                                                      else f"--times-per-env {per_env}"))
         scenes = validation_split(config, num_envs=args.num_envs,
                                   mesh=distributed.local_mesh(args.devices))
-        print(f"Search with {', '.join(m.name for m in models)} on {args.num_envs} validation "
-              f"environments → {out}", flush=True)
+        print(f"Search with {', '.join(loaded_from(m) for m in models)} on {args.num_envs} "
+              f"validation environments → {out}", flush=True)
         results, runs, search_set = pr.run_search(
             models, scenes, config, seed=args.seed, num_samples=args.samples,
             times_per_env=args.times_per_env, horizons=args.horizons, policies=args.policies,
             budget=args.budget, p_miss=args.p_miss, start=args.start,
-            chunk_rows=args.chunk_rows, progress=not args.no_progress)
+            chunk_rows=args.chunk_rows, progress=not args.no_progress,
+            table_method=args.table_method)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE

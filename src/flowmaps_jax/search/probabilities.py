@@ -15,8 +15,9 @@ Each row sums to 1.
   sample's centre, unless that distance exceeds max(:data:`ASSIGN_TOLERANCE`, 3 · 0.35 × the
   object's longer side), when it is "off". The object's size is read from its own token at τ
   (objects keep their size); on a table it stands at the table's centre. On a 256 px map 0.05 is
-  12.75 px. Models that give their table weights explicitly (the FlowMaps pointer head) can
-  instead be read without sampling: ``method="weights"`` (:func:`table_probabilities`).
+  12.75 px. Models that give their table weights explicitly (FlowMaps' pointer and route
+  heads, ``Predictor.table_weights``) can instead be read without sampling:
+  ``method="weights"`` (:func:`table_probabilities`).
 * **Exact priors** (FlowSim's exact posterior, uniform over the kind, last-seen) are slot
   distributions along the object's visiting order; :func:`slots_to_tables` puts slot ``k``'s mass
   on the table ``visit_order[k]`` (furniture tokens come first in ``scene_tokens``, so a furniture
@@ -121,7 +122,7 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
     doc: tolerance :data:`ASSIGN_TOLERANCE`), entry S the fraction on no table. Extra keyword
     arguments (``num_steps``, ``solver``) go to ``predictor.sample`` (``solver`` as its
     ``method``).
-    ``method="weights"``: the route head's explicit mixture weights instead
+    ``method="weights"``: a read-out head's explicit mixture weights instead
     (``predictor.table_weights``; ``num_samples`` and ``key`` unused), no sampling noise.
     """
     if method not in TABLE_METHODS:
@@ -129,7 +130,7 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
     if method == "weights":
         if not callable(getattr(predictor, "table_weights", None)):
             raise ValueError("method='weights' needs a predictor with table_weights (a FlowMaps "
-                             f"Predictor with the route head); got {type(predictor).__name__}")
+                             f"Predictor with a read-out head); got {type(predictor).__name__}")
         return predictor.table_weights(tokens, queries)
     if not callable(getattr(predictor, "sample", None)):
         raise ValueError(f"predictor must have a sample(tokens, queries, num_samples, key) method "

@@ -150,10 +150,10 @@ def _summarise(runs, names, policies, groups) -> dict:
 
 
 def _has_weights(predictor) -> bool:
-    """Whether a predictor gives explicit table weights (a FlowMaps model with the route head)."""
+    """Whether a predictor gives explicit table weights (FlowMaps with a pointer or route head)."""
     model = getattr(predictor, "model", None)
     return (getattr(predictor, "kind", None) == "flowmaps"
-            and getattr(model, "head", None) == "route")
+            and getattr(model, "head", None) in ("pointer", "route"))
 
 
 def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig, *,
@@ -168,8 +168,8 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
 
     ``results`` is what ``report.write_report`` writes as search.json (without figures).
     ``table_method``: how a model's table probabilities are read, "samples" (``num_samples``
-    per query) or "weights" (the route head's explicit mixture weights; models without them,
-    such as the MLP baseline, are still sampled).
+    per query) or "weights" (a read-out head's explicit mixture weights,
+    ``Predictor.table_weights``; models without them, such as the MLP baseline, are sampled).
     """
     if table_method not in TABLE_METHODS:
         raise ValueError(f"table_method must be one of {TABLE_METHODS}; got {table_method!r}")
