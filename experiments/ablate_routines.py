@@ -12,6 +12,13 @@ routine diagnostic (route-offset mass one step ahead).
 
 Writes ``<out>/ablation.json`` and prints a Markdown table (docs/results.md keeps it). A variant
 whose run directory already holds a checkpoint at ``--stop-at`` is not retrained.
+
+``--smoke`` shrinks every size so that the script can be checked in seconds per variant (its
+numbers mean nothing): the ``smoke`` preset's model and data instead of ``cpu``'s, stopped at step
+4, scored on 4 environments (one has a Δτ = 1 query), written to ``runs/ablation-smoke`` unless
+``--out`` says otherwise; combine it with ``--only`` to run fewer variants
+(tests/test_experiments.py). Every variant's config is built (and so checked) before the first
+training, with or without ``--only``.
 """
 
 from __future__ import annotations
@@ -32,7 +39,7 @@ from flowmaps_jax.training.config import apply_overrides, get_preset
 # the cpu preset before issue 8 (paper recipe at cpu size); every variant starts from it
 OLD_CPU = ["model.head=velocity", "model.condition_on_dtau=false", "short_horizon_frac=0",
            "short_horizon_max=3", "target_noise=0", "pointer_loss=0", "lr=5e-4",
-           "model.dropout=0.1"]
+           "model.dropout=0.1", "model.pointer_widths=absolute", "model.pointer_width_scale=1"]
 RECIPE = ["model.condition_on_dtau=true", "short_horizon_frac=0.5", "short_horizon_max=1",
           "target_noise=1", "lr=1e-3", "model.dropout=0"]
 VARIANTS = {
@@ -49,6 +56,12 @@ VARIANTS = {
     "… with fast log-widths (×10)": [*RECIPE, "model.head=pointer", "pointer_loss=1",
                                      "model.pointer_width_scale=10"],
     "… with pointer loss ×3": [*RECIPE, "model.head=pointer", "pointer_loss=3"],
+    # issue 21: widths relative to the object's size (the cpu preset since), and the route head
+    "… with relative widths (×10)": [*RECIPE, "model.head=pointer", "pointer_loss=1",
+                                     "model.pointer_widths=relative",
+                                     "model.pointer_width_scale=10"],
+    "route head (transition^Δτ), relative widths": [*RECIPE, "model.head=route", "pointer_loss=1",
+                                                    "model.pointer_width_scale=10"],
 }
 
 
@@ -58,19 +71,38 @@ def slug(name: str) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--stop-at", type=int, default=2000)
-    parser.add_argument("--num-envs", type=int, default=100)
-    parser.add_argument("--out", default="runs/ablation")
+    parser.add_argument("--stop-at", type=int, default=None,
+                        help="train each variant to this step (default 2000; 4 with --smoke)")
+    parser.add_argument("--num-envs", type=int, default=None,
+                        help="validation environments scored (default 100; 4 with --smoke)")
+    parser.add_argument("--out", default=None,
+                        help="output directory (default runs/ablation; runs/ablation-smoke "
+                             "with --smoke)")
     parser.add_argument("--only", nargs="*", default=None, help="variant names to run")
+    parser.add_argument("--smoke", action="store_true",
+                        help="tiny sizes to check that the script runs: the smoke preset, "
+                             "stop at step 4, 4 environments")
     args = parser.parse_args()
+    unknown = sorted(set(args.only or ()) - set(VARIANTS))
+    if unknown:
+        parser.error(f"--only: no variant named {', '.join(map(repr, unknown))}; the variants are "
+                     + ", ".join(map(repr, VARIANTS)))
+    preset = "smoke" if args.smoke else "cpu"
+    for name, full, smoke in (("stop_at", 2000, 4), ("num_envs", 100, 4),
+                              ("out", "runs/ablation", "runs/ablation-smoke")):
+        if getattr(args, name) is None:
+            setattr(args, name, smoke if args.smoke else full)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / "ablation.json"
     results = json.loads(results_path.read_text()) if results_path.exists() else {}
+    # every variant's config first: a bad override fails now, not after hours of training
+    configs = {name: apply_overrides(get_preset(preset), [*OLD_CPU, *overrides])
+               for name, overrides in VARIANTS.items()}
     for name, overrides in VARIANTS.items():
         if args.only and name not in args.only:
             continue
-        cfg = apply_overrides(get_preset("cpu"), [*OLD_CPU, *overrides])
+        cfg = configs[name]
         run_dir = out / slug(name)
         ckpt = run_dir / "checkpoints" / "last" / str(args.stop_at)
         start = time.perf_counter()
@@ -110,12 +142,17 @@ def table(results: dict) -> str:
     lines = ["| variant | step s | KL | TV@100 | top-1@100 | search cost@100 | "
              "Δτ=1 mass at offsets 0 / +1 / +2 (off) |", "|---|---|---|---|---|---|---|"]
     for name, r in results.items():
-        m = r["offsets_one_step"]
-        step_s = "–" if r["step_s"] is None else f"{r['step_s']:.3f}"
-        lines.append(f"| {name} | {step_s} | {r['kl']:.2f} | {r['tv']:.3f} | {r['top1']:.2f} | "
-                     f"{r['search_cost_ratio']:.3f} | {m[0]:.2f} / {m[1]:.2f} / {m[2]:.2f} "
-                     f"({m[5]:.2f}) |")
+        m = [_cell(v, ".2f") for v in r["offsets_one_step"]]  # null: no Δτ = 1 query was scored
+        lines.append(f"| {name} | {_cell(r['step_s'], '.3f')} | {_cell(r['kl'], '.2f')} | "
+                     f"{_cell(r['tv'], '.3f')} | {_cell(r['top1'], '.2f')} | "
+                     f"{_cell(r['search_cost_ratio'], '.3f')} | {m[0]} / {m[1]} / {m[2]} "
+                     f"({m[5]}) |")
     return "\n".join(lines)
+
+
+def _cell(value, fmt: str) -> str:
+    """A table cell: the number, or "–" where the JSON holds null (nothing to measure)."""
+    return "–" if value is None else format(value, fmt)
 
 
 if __name__ == "__main__":

@@ -24,16 +24,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.flow import cfm_loss, integrate
+from flowmaps_jax.flow import integrate
+from flowmaps_jax.flowsim import FlowSimConfig
 from flowmaps_jax.model import ModelConfig, encode, init_params, make_velocity_fn
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
+from flowmaps_jax.training.objectives import cfm_loss
 
 
 def synthetic_batch(key, batch: int, queries: int, config: ModelConfig,
                     slots: int | None = None) -> TrainBatch:
-    """Random but valid batch: 13 real tokens in ``slots`` (default max_tokens) slots, τ in
-    [0, 18], τ_q in (τ, 19]."""
-    s = config.max_tokens if slots is None else slots
+    """Random but valid batch: 13 real tokens in ``slots`` (default FlowSim's max_tokens) slots,
+    τ in [0, 18], τ_q in (τ, 19]."""
+    s = FlowSimConfig().max_tokens if slots is None else slots
     k_box, k_desc, k_tau, k_tq, k_tgt = jax.random.split(key, 5)
     tau = jax.random.randint(k_tau, (batch,), 0, config.tau_max - 1)
     tau_q = jax.random.randint(k_tq, (batch, queries), tau[:, None] + 1, config.tau_max)

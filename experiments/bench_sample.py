@@ -83,15 +83,17 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
 
-    cfg = get_preset(args.preset).model
-    predictor = Predictor.from_params(init_params(jax.random.key(0), cfg), cfg)
+    preset = get_preset(args.preset)
+    cfg, max_tokens = preset.model, preset.flowsim.max_tokens  # S: token slots per scene
+    predictor = Predictor.from_params(init_params(jax.random.key(0), cfg), cfg,
+                                      flowsim=preset.flowsim)
     n_params = sum(x.size for x in jax.tree_util.tree_leaves(predictor.params))
     print(f"{args.preset} model: {cfg}\n{n_params:,} parameters; devices {jax.devices()}")
 
     qps = args.queries_per_scene
     if args.queries % qps:
         raise SystemExit("--queries must be a multiple of --queries-per-scene")
-    tokens, queries = synthetic_inputs(args.queries // qps, qps, cfg.max_tokens)
+    tokens, queries = synthetic_inputs(args.queries // qps, qps, max_tokens)
     evals = 2 * (args.num_steps - 1)
 
     def sample(i):
@@ -111,7 +113,7 @@ def main() -> None:
     chunk = min(args.chunk_scenes, scenes)
     if scenes % chunk:
         raise SystemExit("--logp-queries / 3 must be a multiple of --chunk-scenes")
-    tokens, queries = synthetic_inputs(chunk, 3, cfg.max_tokens, seed=1)
+    tokens, queries = synthetic_inputs(chunk, 3, max_tokens, seed=1)
     x = jax.random.uniform(jax.random.key(2), (chunk, 3, args.logp_draws, 4)) * 0.5
 
     def log_prob(i):

@@ -91,6 +91,7 @@ def main(argv=None) -> None:
               f"{'compile s':>9} {'step s':>7} {'samples/s':>10} {'peak MB':>8}")
     print(header)
     print("-" * len(header))
+    failed = []
     for preset in args.presets:
         for q in args.queries:
             cmd = [sys.executable, __file__, "--one", preset, str(q), "--envs", str(args.envs)]
@@ -103,12 +104,15 @@ def main(argv=None) -> None:
             out = subprocess.run(cmd, capture_output=True, text=True, check=False)
             if out.returncode != 0:
                 print(f"{preset:<6} Q={q}: failed\n{out.stderr[-2000:]}")
+                failed.append(f"{preset} Q={q}")
                 continue
             r = json.loads(out.stdout.strip().splitlines()[-1])
             label = r["preset"] + ("*" if args.extra else "")
             print(f"{label:<6} {r['dim']:>4} {r['layers']:>6} {r['batch']:>4} {r['Q']:>3} "
                   f"{r['params']:>9,} {r['compile_s']:>9.1f} {r['step_s']:>7.3f} "
                   f"{r['samples_per_s']:>10.0f} {r['peak_rss_mb']:>8.0f}", flush=True)
+    if failed:  # the other rows are printed; the exit code still says that some failed
+        raise SystemExit(f"failed: {', '.join(failed)}")
 
 
 if __name__ == "__main__":

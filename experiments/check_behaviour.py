@@ -11,6 +11,11 @@ fingerprints with ``--compare``::
 
 exits 1 and prints the first differences if anything moved by more than ``--atol`` (default 0:
 bit-identical on the same machine). The reference was written before the issue-9 restructure.
+
+``--smoke`` runs the same three trainings and the evaluation at a tiny size (4 steps each, 2
+environments, 4 samples, 4 KL draws; about a minute instead of several): a check that the script
+and the CLIs it drives still run (tests/test_experiments.py). Its fingerprint compares only with
+another ``--smoke`` fingerprint, never with docs/behaviour_reference.json.
 """
 
 from __future__ import annotations
@@ -29,6 +34,9 @@ RUNS = {
                 "--set", "target_noise=1.0", "--set", "pointer_loss=1.0"],
     "mlp": ["--preset", "smoke", "--steps", "30", "--model", "mlp"],
 }
+SMOKE_STEPS = "4"  # --smoke: training steps per run (instead of 30; the smoke preset warms up 2)
+EVALUATE = ["--num-envs", "12", "--samples", "8,16", "--kl-draws", "16"]
+SMOKE_EVALUATE = ["--num-envs", "2", "--samples", "4", "--kl-draws", "4"]
 # Wall-clock rates and temp-dir paths differ from run to run; everything else must not.
 VOLATILE_KEYS = {"seconds", "sec_per_step", "steps_per_sec", "samples_per_sec", "elapsed",
                  "time", "wall_s", "source"}
@@ -48,16 +56,19 @@ def _run(args: list[str]) -> None:
         raise SystemExit(f"{' '.join(args)} failed:\n{proc.stdout}\n{proc.stderr}")
 
 
-def fingerprint(work: pathlib.Path) -> dict:
+def fingerprint(work: pathlib.Path, smoke: bool = False) -> dict:
     out: dict = {}
     for name, args in RUNS.items():
+        if smoke:
+            args = [SMOKE_STEPS if prev == "--steps" else a
+                    for prev, a in zip(["", *args[:-1]], args, strict=True)]
         run_dir = work / name
         _run(["flowmaps_jax.train", *args, "--run-dir", str(run_dir), "--no-progress"])
         lines = (run_dir / "metrics.jsonl").read_text().splitlines()
         out[f"train/{name}"] = [_strip(json.loads(line)) for line in lines]
     _run(["flowmaps_jax.evaluate", "--checkpoint", str(work / "flowmaps"),
-          "--baseline", str(work / "pointer"), str(work / "mlp"), "--num-envs", "12",
-          "--samples", "8,16", "--kl-draws", "16", "--no-figures", "--no-progress",
+          "--baseline", str(work / "pointer"), str(work / "mlp"),
+          *(SMOKE_EVALUATE if smoke else EVALUATE), "--no-figures", "--no-progress",
           "--out", str(work / "eval")])
     results = json.loads((work / "eval" / "results.json").read_text())
     out["evaluate"] = _strip({"protocol": results["protocol"], "rows": results["rows"]})
@@ -84,9 +95,13 @@ def main() -> int:
     parser.add_argument("--out", default=None, help="write the fingerprint JSON here")
     parser.add_argument("--compare", default=None, help="reference fingerprint to compare with")
     parser.add_argument("--atol", type=float, default=0.0, help="tolerance on float values")
+    parser.add_argument("--smoke", action="store_true",
+                        help=f"tiny size ({SMOKE_STEPS} steps per training, 2 environments): "
+                             "checks that everything runs; compare only with another --smoke "
+                             "fingerprint")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        fp = fingerprint(pathlib.Path(tmp))
+        fp = fingerprint(pathlib.Path(tmp), smoke=args.smoke)
     text = json.dumps(fp, indent=1, sort_keys=True)
     if args.out:
         pathlib.Path(args.out).write_text(text + "\n")

@@ -21,12 +21,13 @@ import numpy as np
 
 from flowmaps_jax import evaluation
 from flowmaps_jax.flowsim.scenes import validation_split
-from flowmaps_jax.sample import load
+from flowmaps_jax.sample import load_model
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", required=True)
+    parser.add_argument("--checkpoint", required=True,
+                        help="a run or checkpoint directory, or pretrained:NAME")
     parser.add_argument("--num-envs", type=int, default=20, help="environments for (1)")
     parser.add_argument("--ranking-envs", type=int, default=200,
                         help="environments searched for Δτ = 1 queries for (2)")
@@ -35,7 +36,7 @@ def main(argv=None) -> None:
     parser.add_argument("--method", default="midpoint", choices=("midpoint", "euler"))
     args = parser.parse_args(argv)
 
-    predictor = load(args.checkpoint)
+    predictor = load_model(args.checkpoint)  # a directory's best save, or pretrained:NAME
     config = predictor.flowsim
     n_envs = max(args.num_envs, args.ranking_envs)
     evalset = evaluation.build_eval_queries(validation_split(config, n_envs), config,

@@ -1,0 +1,171 @@
+"""Every script in experiments/ runs (issue 17, item 6), at a tiny size, so that a refactor of the
+package cannot leave a benchmark, sweep, diagnosis or figure script broken.
+
+One test per script: ``python experiments/<script> <tiny arguments>`` in a subprocess, in a fresh
+temporary working directory (every output directory the script takes is given inside it, so
+nothing is written into the repository), with ``MPLBACKEND=Agg``. It must exit 0 and print what
+the script exists to print (a table row with numbers, a "wrote" line, ...): a regular expression
+per script, so that a script that runs but prints nothing useful fails too. The tiny sizes are
+the scripts' own options (one size, one repeat, a few steps, the smoke preset, a few
+environments); ``check_behaviour.py`` and ``ablate_routines.py`` have ``--smoke`` for this.
+The numbers are not checked: at these sizes they mean nothing.
+
+The subprocesses run with ``JAX_DISABLE_MOST_OPTIMIZATIONS=true``: compilation dominates these
+runs and skipping most of XLA's optimisation passes halves it (the programs are the same, they
+only run slower, which does not matter at these sizes). They share the suite's persistent XLA
+cache (tests/conftest.py).
+
+``check_multihost.py`` is not run here: it starts two JAX processes joined by
+``jax.distributed`` (about 2 minutes on 2 cores); tests/test_distributed.py runs it when
+``FLOWMAPS_TEST_MULTIHOST=1``. The notebooks (``*.ipynb``) run in tests/test_notebooks.py.
+
+A new script needs an entry in :data:`TINY` (or :data:`NOT_RUN`, with the reason):
+:func:`test_every_script_is_covered` fails until it has one.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import re
+import subprocess
+import sys
+import time
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+REPO = pathlib.Path(__file__).resolve().parents[1]
+EXPERIMENTS = REPO / "experiments"
+TIMEOUT = 900  # seconds per script; a cold start on a loaded 2-core machine compiles slowly
+NUM = r"-?[\d,]+(?:\.\d+)?"  # a printed number: 12, 1,234, 0.125, -8.8
+
+# script -> (tiny arguments, what its output must contain (regex, multiline), files it must
+# write, relative to the working directory). Seconds: measured on the 2-core machine with a
+# training running beside it, cold XLA cache.
+TINY: dict[str, tuple[list[str], str, list[str]]] = {
+    # ~65 s: one variant of the smoke preset to step 4, scored on 4 environments (all variants'
+    # configs are still built, so a bad override in any of them fails)
+    "ablate_routines.py": (
+        ["--smoke", "--out", "ablation", "--only", "recipe, pointer head + pointer loss"],
+        rf"^\| recipe, pointer head \+ pointer loss \| {NUM} \| {NUM} \| {NUM} \|",
+        ["ablation/ablation.json"]),
+    # ~8 s: 4 environments, 1 repeat
+    "bench_flowsim.py": (
+        ["--sizes", "4", "--repeats", "1"],
+        rf"^\s+4\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}$", []),
+    # ~45 s: a D=16 one-layer model, B=2 × Q=2, 1 timed step, and the sampling benchmark
+    "bench_model.py": (
+        ["--queries", "2", "--batch", "2", "--steps", "1", "--dim", "16", "--encoder-layers", "1",
+         "--cdit-blocks", "1", "--heads", "2", "--sampling"],
+        rf"^B=2 Q=2: .*{NUM} query-samples/s wall.*\n^sampling .* {NUM} samples/s wall", []),
+    # ~20 s: smoke-size model, 2 queries × 2 samples, 3 grid points, 1 repeat
+    "bench_sample.py": (
+        ["--preset", "smoke", "--queries", "2", "--samples", "2", "--num-steps", "3",
+         "--logp-queries", "3", "--logp-draws", "2", "--repeats", "1"],
+        rf"^sample: 2 queries .* {NUM} samples/s.*\n^log_prob: 3 queries .* {NUM} boxes/s", []),
+    # ~30 s: the smoke preset on 1 device (one child process), 1 timed step
+    "bench_scale.py": (
+        ["--devices", "1", "--preset", "smoke", "--steps", "1", "--sample-scenes", "2",
+         "--samples", "2"],
+        rf"^\| 1 \| float32 \| 8 × 2 \| {NUM} \| {NUM} \| {NUM} \(1\.00×\) \|", []),
+    # ~6 s: 16 episodes, budget 3, 1 repeat, every policy
+    "bench_search.py": (
+        ["--episodes", "16", "--budget", "3", "--repeats", "1"],
+        rf"^\s+optimal:\s+{NUM} episodes/s", []),
+    # ~25 s: the smoke preset, Q=1, B=2, 1 timed step (one child process)
+    "bench_train.py": (
+        ["--presets", "smoke", "--queries", "1", "--steps", "1", "--envs", "4", "--batch", "2"],
+        rf"^smoke\s+32\s+1\+1\s+2\s+1\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}$", []),
+    # ~125 s: the three smoke trainings (4 steps each) and a 2-environment evaluation; compared
+    # with itself, so the comparison runs too
+    "check_behaviour.py": (
+        ["--smoke", "--out", "fingerprint.json", "--compare", "fingerprint.json"],
+        r"^identical to fingerprint\.json \(atol 0\.0\)$", ["fingerprint.json"]),
+    # ~60 s: 1 environment, 2 draws, one grid size per solver, both models
+    "check_likelihood.py": (
+        ["--envs", "1", "--draws", "2", "--midpoint", "3", "--accurate", "3"],
+        rf"^pretrained:flowmaps \(step \d+\)\n.*\n^\s+midpoint\s+3\s+{NUM}.*\n^\s+accurate\s+3\s+"
+        rf"{NUM}", []),
+    # ~15 s: 2 environments, 4 samples
+    "compare_assignment.py": (
+        ["--num-envs", "2", "--samples", "4"],
+        rf"^\| v2 \| FlowMaps \(pretrained:flowmaps, step \d+\) \| {NUM} \|", []),
+    # ~30 s: 1 environment per set, 4 samples, horizon 1
+    "diagnose_horizons.py": (
+        ["--envs", "1", "--samples", "4", "--horizons", "1"],
+        rf"^\s+1\s+held-out\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}$", []),
+    # ~40 s: 2 + 8 environments (two of the 8 have Δτ = 1 queries, so part (2) runs), 4 samples
+    "diagnose_precision.py": (
+        ["--checkpoint", "pretrained:flowmaps", "--num-envs", "2", "--ranking-envs", "8",
+         "--samples", "4"],
+        rf"^distance to nearest slot box: median {NUM}.*\n(?:.*\n)*^model \S+:(?:\s+{NUM}){{6}}$",
+        []),
+    # ~25 s: the README quick start; it prints nothing and writes fork_next.png
+    "quickstart.py": ([], "", ["fork_next.png"]),
+    # ~35 s: the docs figures and the quick-start figure, into figures/
+    "render_docs_figures.py": (
+        ["--out", "figures"],
+        r"^wrote figures/flowsim_posterior\.png$(?:.*\n)*^wrote .*quickstart_fork\.png$",
+        ["figures/flowsim_scene.png", "figures/flowsim_timeline.png",
+         "figures/flowsim_orders.png", "figures/flowsim_posterior.png",
+         "figures/quickstart_fork.png"]),
+    # ~25 s: the smoke preset, Q=1, 2 steps
+    "sweep_queries.py": (
+        ["--queries", "1", "--steps", "2", "--preset", "smoke", "--out", "sweep_q"],
+        rf"^Q=  1: val loss {NUM} after 2 steps", ["sweep_q/q1/metrics.jsonl"]),
+    # ~50 s: one variant with an override, the smoke preset, 2 steps, 2 environments scored
+    "sweep_settings.py": (
+        ["tiny:lr=1e-3", "--preset", "smoke", "--steps", "2", "--eval-envs", "2", "--out",
+         "sweep_settings"],
+        rf'^\{{"name": "tiny", "overrides": \["lr=1e-3"\], "steps": 2, .*"kl": {NUM}',
+        ["sweep_settings/tiny/metrics.jsonl"]),
+}
+NOT_RUN = {
+    "check_multihost.py": "two JAX processes joined by jax.distributed, about 2 minutes on 2 "
+                          "cores: tests/test_distributed.py::test_two_hosts runs it with "
+                          "FLOWMAPS_TEST_MULTIHOST=1",
+}
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["MPLBACKEND"] = "Agg"
+    env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "true"  # compile time dominates; see the docstring
+    return env
+
+
+def test_every_script_is_covered():
+    """Each experiments/*.py has a tiny run here or a reason not to, and no entry is stale."""
+    scripts = {p.name for p in EXPERIMENTS.glob("*.py")}
+    assert not scripts - set(TINY) - set(NOT_RUN), (
+        f"give {sorted(scripts - set(TINY) - set(NOT_RUN))} tiny arguments in TINY")
+    assert not (set(TINY) | set(NOT_RUN)) - scripts, (
+        f"{sorted((set(TINY) | set(NOT_RUN)) - scripts)} no longer exist: remove them")
+    assert not set(TINY) & set(NOT_RUN)
+
+
+@pytest.mark.parametrize("script", sorted(TINY.keys() | NOT_RUN.keys()))
+def test_script_runs_at_a_tiny_size(script, tmp_path):
+    if script in NOT_RUN:
+        pytest.skip(f"{script}: {NOT_RUN[script]}")
+    if not (EXPERIMENTS / script).exists():
+        pytest.fail(f"experiments/{script} is gone: remove its entry from TINY")
+    args, expected, files = TINY[script]
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, str(EXPERIMENTS / script), *args], cwd=tmp_path,
+                          env=_env(), text=True, stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, timeout=TIMEOUT)
+    seconds = time.perf_counter() - start
+    print(f"{script} {' '.join(args)}: exit {proc.returncode} in {seconds:.1f} s")
+    command = f"$ python experiments/{script} {' '.join(args)}"
+    assert proc.returncode == 0, f"{command}\nexit code {proc.returncode}\n{proc.stdout[-6000:]}"
+    assert re.search(expected, proc.stdout, re.MULTILINE), (
+        f"{command}\nthe output lacks /{expected}/:\n{proc.stdout[-6000:]}")
+    for name in files:
+        path = tmp_path / name
+        assert path.is_file() and path.stat().st_size > 0, f"{command}\ndid not write {name}"
+        if name.endswith(".png"):
+            assert path.read_bytes()[:8] == PNG_MAGIC, f"{name} is not a PNG"
