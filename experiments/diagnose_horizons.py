@@ -7,7 +7,10 @@ assignment):
 
 * TV to the exact posterior q and the off-table mass;
 * the model's mass at the slot the object actually occupies at τ_q ("p̂(real)") next to the exact
-  posterior's mass there ("q(real)").
+  posterior's mass there ("q(real)");
+* for a read-out head, "KL(weights)": the continuous KL(q‖p) of a mixture with q's own components
+  and the model's table weights (``Predictor.table_weights``). It is the part of the model's KL
+  due to *where* it puts mass; the rest of its KL is the shape of its components.
 
 A model that learned the posterior has p̂(real) ≈ q(real) on both sets. A model that memorised the
 training split's single rollout per home puts far more mass than q on the realised slot of the
@@ -23,6 +26,7 @@ import argparse
 import jax
 import numpy as np
 
+from flowmaps_jax.evaluation.kl import gt_mixture_log_prob
 from flowmaps_jax.evaluation.protocol import build_eval_queries
 from flowmaps_jax.evaluation.slots import empirical_slots, slot_scores
 from flowmaps_jax.flowsim.scenes import train_split, validation_split
@@ -31,7 +35,7 @@ from flowmaps_jax.sample import load_model
 
 def score(predictor, scenes, config, horizon: int, samples: int, seed: int,
           num_steps: int = 10, method: str = "midpoint") -> dict:
-    ev = build_eval_queries(scenes, config, jax.random.key(seed), kl_draws=2, horizon=horizon)
+    ev = build_eval_queries(scenes, config, jax.random.key(seed), kl_draws=32, horizon=horizon)
     boxes = predictor.sample(ev.tokens, ev.queries, samples, jax.random.key(seed + 1),
                              num_steps=num_steps, method=method)
     p_hat = np.asarray(empirical_slots(boxes, ev.slot_boxes, ev.slot_mask))
@@ -39,8 +43,17 @@ def score(predictor, scenes, config, horizon: int, samples: int, seed: int,
     real = np.asarray(scenes.slot)[np.asarray(ev.env), np.asarray(ev.tau_q)]  # (E, M)
     pick = lambda p: np.take_along_axis(p, real[..., None], -1)[..., 0]  # noqa: E731
     tv = slot_scores(p_hat, q, ev.slot_mask)["tv"]
-    return {"tv": tv.mean(), "off": p_hat[..., -1].mean(), "p_real": pick(p_hat).mean(),
-            "q_real": pick(q).mean()}
+    out = {"tv": tv.mean(), "off": p_hat[..., -1].mean(), "p_real": pick(p_hat).mean(),
+           "q_real": pick(q).mean(), "kl_weights": float("nan")}
+    if predictor.kind == "flowmaps" and predictor.model.head in ("pointer", "route"):
+        w = np.asarray(predictor.table_weights(ev.tokens, ev.queries))[..., :-1]  # (E, M, S)
+        order = np.asarray(scenes.visit_order)[np.asarray(ev.env)]  # (E, M, F) token per slot
+        w_slot = np.where(order >= 0, np.take_along_axis(w, np.maximum(order, 0), -1), 0.0)
+        w_slot = np.maximum(w_slot, 1e-12) * np.asarray(ev.slot_mask)
+        w_slot = w_slot / w_slot.sum(-1, keepdims=True)
+        log_p = gt_mixture_log_prob(ev.kl_points, w_slot, ev.slot_boxes, ev.slot_mask)
+        out["kl_weights"] = float(np.mean(np.asarray(ev.kl_log_q) - np.asarray(log_p)))
+    return out
 
 
 def main(argv=None) -> None:
@@ -63,13 +76,14 @@ def main(argv=None) -> None:
     print(f"{args.checkpoint}: {args.envs} environments × {config.num_objects} objects per set "
           f"and horizon, {args.samples} samples per query, sampler {args.method} on "
           f"{args.num_steps} grid points")
-    print(f"{'Δτ':>3} {'set':>9} {'TV':>6} {'off':>6} {'p̂(real)':>9} {'q(real)':>8}")
+    print(f"{'Δτ':>3} {'set':>9} {'TV':>6} {'off':>6} {'p̂(real)':>9} {'q(real)':>8} "
+          f"{'KL(weights)':>12}")
     for h in args.horizons:
         for name, scenes in sets.items():
             r = score(predictor, scenes, config, h, args.samples, args.seed, args.num_steps,
                       args.method)
             print(f"{h:>3} {name:>9} {r['tv']:6.3f} {r['off']:6.3f} {r['p_real']:9.3f} "
-                  f"{r['q_real']:8.3f}", flush=True)
+                  f"{r['q_real']:8.3f} {r['kl_weights']:12.3f}", flush=True)
 
 
 if __name__ == "__main__":

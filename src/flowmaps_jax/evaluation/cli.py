@@ -23,6 +23,7 @@ from flowmaps_jax import distributed
 from flowmaps_jax.evaluation.protocol import (
     DEFAULT_CHUNK_ENVS,
     DEFAULT_KL_DRAWS,
+    DEFAULT_LIKELIHOOD_DRAWS,
     DEFAULT_LIKELIHOOD_STEPS,
     DEFAULT_NUM_ENVS,
     DEFAULT_SAMPLES,
@@ -110,6 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="grid points of the accurate likelihood (RK4 on a grid concentrated "
                              "near t = 1) that FlowMaps' KL uses, with its integration error "
                              "against twice the intervals; 0: only the paper's grid")
+    parser.add_argument("--likelihood-draws", type=int, default=DEFAULT_LIKELIHOOD_DRAWS,
+                        help="the accurate likelihood uses the first N of each query's KL draws "
+                             "(it costs ~10x the paper grid per point)")
     parser.add_argument("--method", choices=SOLVERS, default="midpoint",
                         help="ODE solver for sampling and the paper's likelihood grid "
                              "(accurate: RK4 on the stiff grid)")
@@ -173,6 +177,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             [*baselines, model], scenes, config, out, seed=args.seed, sample_counts=args.samples,
             kl_draws=args.kl_draws, chunk_envs=args.chunk_envs, num_steps=args.num_steps,
             method=args.method, logp_steps=args.logp_steps, likelihood_steps=likelihood_steps,
+            likelihood_draws=check_int("--likelihood-draws", args.likelihood_draws, 2),
             figures=not args.no_figures,
             progress=not args.no_progress)
     except ValueError as err:

@@ -175,7 +175,10 @@ def _protocol_line(p: dict) -> str:
             f"{p['kl_draws']} draws of q per query; slot metrics from "
             f"{', '.join(str(n) for n in p['samples'])} samples; ODE: {p['method']} on "
             f"{p['num_steps']} grid points (paper likelihood grid: {p['logp_steps']}; accurate "
-            f"likelihood: {p.get('likelihood_steps') or 'off'} points, RK4 on the stiff grid); "
+            f"likelihood: {p.get('likelihood_steps') or 'off'} points, RK4 on the stiff grid, on "
+            f"the first {p.get('likelihood_draws')} draws per query; its integration error "
+            f"against twice the intervals on the first {p.get('integration_error_envs')} "
+            "environments); "
             f"slot assignment {p.get('assignment', 'v1')}; seed {p['seed']}. Rank cost: Σ_k "
             "rank_k q_k visiting slots by decreasing p̂, over the same by decreasing q "
             "(docs/protocol.md).")

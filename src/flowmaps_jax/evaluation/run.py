@@ -15,8 +15,10 @@ from flowmaps_jax.evaluation.figures import plot_by_horizon, plot_kl, plot_sampl
 from flowmaps_jax.evaluation.protocol import (
     DEFAULT_CHUNK_ENVS,
     DEFAULT_KL_DRAWS,
+    DEFAULT_LIKELIHOOD_DRAWS,
     DEFAULT_LIKELIHOOD_STEPS,
     DEFAULT_SAMPLES,
+    ERROR_ENVS,
     EvalSet,
     RowResult,
     _evaluate_predictor,
@@ -39,7 +41,8 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
                    kl_draws: int = DEFAULT_KL_DRAWS, chunk_envs: int = DEFAULT_CHUNK_ENVS,
                    num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
                    logp_steps: int | None = None,
-                   likelihood_steps: int | None = DEFAULT_LIKELIHOOD_STEPS, figures: bool = True,
+                   likelihood_steps: int | None = DEFAULT_LIKELIHOOD_STEPS,
+                   likelihood_draws: int = DEFAULT_LIKELIHOOD_DRAWS, figures: bool = True,
                    progress: bool = True) -> tuple[dict, list[RowResult], EvalSet]:
     """Evaluate ``predictors`` (baselines first, FlowMaps last, as they should appear) on every
     environment of ``scenes``; write the report and figures into out_dir if given.
@@ -55,6 +58,7 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     chunk_envs = check_int("chunk_envs", chunk_envs, 1)
     num_steps, method, logp_steps = ode = check_ode(num_steps, method, logp_steps)
     likelihood_steps = check_likelihood_steps(likelihood_steps)
+    likelihood_draws = check_int("likelihood_draws", likelihood_draws, 2)
     for p in predictors:
         if not isinstance(p, Predictor):
             raise ValueError(f"predictors must be Predictor objects; got {type(p).__name__}")
@@ -68,12 +72,14 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     names = unique_names([p.name for p in predictors])
     for predictor, name in zip(predictors, names, strict=True):
         rows.append(_evaluate_predictor(predictor, evalset, key, counts, chunk_envs, ode,
-                                        progress, name, likelihood_steps))
+                                        progress, name, likelihood_steps, likelihood_draws))
     results = {
         "protocol": {"num_envs": evalset.num_envs, "objects_per_env": config.num_objects,
                      "num_queries": evalset.num_queries, "samples": list(counts),
                      "kl_draws": kl_draws, "num_steps": num_steps, "method": method,
                      "logp_steps": logp_steps, "likelihood_steps": likelihood_steps,
+                     "likelihood_draws": min(likelihood_draws, kl_draws),
+                     "integration_error_envs": ERROR_ENVS,
                      "seed": seed, "assignment": "v2", "assign_radius": ASSIGN_RADIUS,
                      "dynamics": config.dynamics},
         "rows": summarise_rows(rows, evalset, config),

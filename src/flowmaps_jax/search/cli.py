@@ -63,9 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="instead of random draws: fixed horizons Δτ, e.g. 1,2,4,8 (one row each)")
     add("--samples", type=int, default=pr.DEFAULT_SAMPLES,
         help="samples per query for the model rows' table probabilities")
-    add("--table-method", choices=TABLE_METHODS, default="samples",
-        help="how FlowMaps' table probabilities are read: count --samples samples, or read "
-             "the read-out head's mixture weights (no sampling noise; the MLP is sampled)")
+    add("--table-method", choices=TABLE_METHODS, default="weights",
+        help="how FlowMaps' table probabilities are read: the read-out head's mixture weights "
+             "(default: no sampling noise, and the shorter searches, docs/results.md), or "
+             "counts of --samples samples (the MLP baselines are always sampled)")
     add("--policies", nargs="+", default=list(pr.MAIN_POLICIES), choices=pr.MAIN_POLICIES,
         help="policies every prior is driven by")
     add("--budget", type=int, default=ep.DEFAULT_BUDGET, help="looks per episode")

@@ -161,15 +161,16 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
                times_per_env: int = DEFAULT_TIMES_PER_ENV, horizons: Sequence[int] | None = None,
                policies: Sequence[str] = MAIN_POLICIES, budget: int = ep.DEFAULT_BUDGET,
                p_miss: float = 0.0, start: str = "centre", chunk_rows: int = 50,
-               progress: bool = True, table_method: str = "samples", **sample_kwargs
+               progress: bool = True, table_method: str = "weights", **sample_kwargs
                ) -> tuple[dict, dict[tuple[str, str], RowRun], ep.SearchSet]:
     """The protocol on every environment of ``scenes``: queries, priors (the reference rows and
     one row per predictor, in the order given), every row × policy → (results, runs, search set).
 
     ``results`` is what ``report.write_report`` writes as search.json (without figures).
-    ``table_method``: how a model's table probabilities are read, "samples" (``num_samples``
-    per query) or "weights" (a read-out head's explicit mixture weights,
-    ``Predictor.table_weights``; models without them, such as the MLP baseline, are sampled).
+    ``table_method``: how a model's table probabilities are read, "weights" (the default: a
+    read-out head's explicit mixture weights,
+    ``Predictor.table_weights``; models without them, such as the MLP baseline, are sampled) or
+    "samples" (``num_samples`` per query).
     """
     if table_method not in TABLE_METHODS:
         raise ValueError(f"table_method must be one of {TABLE_METHODS}; got {table_method!r}")

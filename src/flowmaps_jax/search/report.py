@@ -48,8 +48,11 @@ def protocol_line(p: dict) -> str:
                   "τ_q ~ U{τ+1..T−1}")
     return (f"{p['num_envs']} validation environments, {times}, every object queried: "
             f"{p['episodes']} episodes per row. Start: {p['start']}; look budget {p['budget']}; "
-            f"p_miss {p['p_miss']}; model rows from {p['num_samples']} samples per query "
-            f"(assignment tolerance {p['assign_tolerance']}); seed {p['seed']}.")
+            f"p_miss {p['p_miss']}; FlowMaps' table probabilities "
+            + ("read from its mixture weights (no sampling), the MLP rows' from "
+               if p.get("table_method") == "weights" else "and the MLP rows' from ")
+            + f"{p['num_samples']} samples per query (protocol-v2 assignment, least radius "
+            f"{p['assign_tolerance']}); seed {p['seed']}.")
 
 
 def _row_line(name: str, part: dict) -> str:
