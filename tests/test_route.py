@@ -111,8 +111,6 @@ def test_accurate_grid_and_solver():
     eps = 1e-3
     x1 = flow.integrate(lambda x, t: -x / (1.0 - t + eps), jnp.ones(3), 48, "accurate")
     np.testing.assert_allclose(x1, eps / (1 + eps), rtol=1e-3)
-    coarse = flow.integrate(lambda x, t: -x / (1.0 - t + eps), jnp.ones(3), 48, "midpoint")
-    assert abs(float(coarse[0]) - eps / (1 + eps)) > 1e-2
     with pytest.raises(ValueError, match="num_steps"):
         flow.check_solver(2, "accurate")
 
