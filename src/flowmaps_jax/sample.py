@@ -264,6 +264,11 @@ class Predictor:
             self.params, self.model, tokens, queries, x, num_steps=num_steps, method=method), b)
         return jnp.where(far, -jnp.inf, log_p)
 
+    @property
+    def has_table_weights(self) -> bool:
+        """Whether :meth:`table_weights` applies: FlowMaps with a pointer or route read-out."""
+        return self.kind == "flowmaps" and self.model.head in ("pointer", "route")
+
     def table_weights(self, tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
         """FlowMaps with a read-out head (``model.head`` "pointer" or "route"): the mass
         (B, Q, S + 1) its mixture puts on each table of the map, read from the model without
@@ -271,7 +276,7 @@ class Predictor:
         not tables goes to the "off" entry (last). The route head's samples follow these
         weights exactly while its residual is zero; the pointer head's are its weights at t = 0.
         """
-        if self.kind != "flowmaps" or self.model.head not in ("pointer", "route"):
+        if not self.has_table_weights:
             raise ValueError("table_weights needs a FlowMaps model with model.head 'pointer' or "
                              f"'route' (explicit mixture weights); this one is {self.name} with "
                              f"head={self.model.head!r}: use table_probabilities with samples")

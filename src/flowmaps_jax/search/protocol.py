@@ -150,10 +150,8 @@ def _summarise(runs, names, policies, groups) -> dict:
 
 
 def _has_weights(predictor) -> bool:
-    """Whether a predictor gives explicit table weights (FlowMaps with a pointer or route head)."""
-    model = getattr(predictor, "model", None)
-    return (getattr(predictor, "kind", None) == "flowmaps"
-            and getattr(model, "head", None) in ("pointer", "route"))
+    """Whether a predictor gives explicit table weights (``Predictor.has_table_weights``)."""
+    return bool(getattr(predictor, "has_table_weights", False))
 
 
 def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig, *,
