@@ -6,6 +6,11 @@ which stays meaningful when other processes share the machine: on an otherwise i
 n cores, wall time is at best CPU time / n.
 
     python experiments/bench_flowsim.py [--sizes 1000 10000 100000] [--repeats 5]
+        [--world routine preferences dynamic mixed]
+
+``--world`` generates a habit world (``flowsim.worlds``); with ``--history 8`` each timing also
+reads every object's last 8 observations at every timestep out of the scenes (the model's and
+the exact posterior's input), so the number is "environments with habits and histories / s".
 """
 
 from __future__ import annotations
@@ -16,9 +21,10 @@ import platform
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.flowsim import FlowSimConfig, generate
+from flowmaps_jax.flowsim import WORLDS, FlowSimConfig, generate, world_config
 
 
 def _timed(fn):
@@ -27,14 +33,33 @@ def _timed(fn):
     return out, time.perf_counter() - wall, time.process_time() - cpu
 
 
-def main() -> None:
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--dynamics", default="markov", choices=["markov", "schedule_jitter"])
-    args = parser.parse_args()
+    parser.add_argument("--world", nargs="+", default=["routine"], choices=list(WORLDS))
+    parser.add_argument("--history", type=int, default=1,
+                        help="also gather each object's last H observations at every timestep")
+    args = parser.parse_args(argv)
+    for world in args.world:
+        config = world_config(world, FlowSimConfig(dynamics=args.dynamics))
+        print(f"\nworld: {world} (habits {config.habits}), history H={args.history}")
+        bench(config, args)
 
-    config = FlowSimConfig(dynamics=args.dynamics)
+
+def _histories(scenes, h: int):
+    """(E, T, M, H) slots seen at t − H + 1 … t for every t (−1 before the start)."""
+    slot = jnp.pad(scenes.slot, ((0, 0), (h - 1, 0), (0, 0)), constant_values=-1)
+    t = scenes.slot.shape[1]
+    return jnp.stack([slot[:, i:i + t] for i in range(h)], axis=-1)
+
+
+def bench(config: FlowSimConfig, args) -> None:
+    def make(key, size):
+        scenes = generate(key, size, config)
+        return scenes, (_histories(scenes, args.history) if args.history > 1 else None)
+
     print(f"jax {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPU cores, "
           f"{platform.processor() or platform.machine()}, load average "
           f"{os.getloadavg()[0]:.1f}")
@@ -45,11 +70,11 @@ def main() -> None:
           f"{'cpu s':>8} {'env/cpu-s':>10} {'redraw rate':>12}")
     for size in args.sizes:
         key = jax.random.key(0)
-        _, compile_wall, _ = _timed(lambda key=key, size=size: generate(key, size, config))
+        _, compile_wall, _ = _timed(lambda key=key, size=size: make(key, size))
         best_wall, best_cpu, redraws = np.inf, np.inf, []
         for repeat in range(args.repeats):
             key = jax.random.key(repeat + 1)
-            scenes, wall, cpu = _timed(lambda key=key, size=size: generate(key, size, config))
+            (scenes, _), wall, cpu = _timed(lambda key=key, size=size: make(key, size))
             best_wall, best_cpu = min(best_wall, wall), min(best_cpu, cpu)
             redraws.append(np.asarray(scenes.layout_redraws))
         redraws = np.concatenate(redraws)

@@ -51,10 +51,12 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         ["--smoke", "--out", "ablation", "--only", "recipe, pointer head + pointer loss"],
         rf"^\| recipe, pointer head \+ pointer loss \| {NUM} \| {NUM} \| {NUM} \|",
         ["ablation/ablation.json"]),
-    # ~8 s: 4 environments, 1 repeat
+    # ~15 s: 4 environments, 1 repeat, the paper's world and the mixed habits world with
+    # histories of 2
     "bench_flowsim.py": (
-        ["--sizes", "4", "--repeats", "1"],
-        rf"^\s+4\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}$", []),
+        ["--sizes", "4", "--repeats", "1", "--world", "routine", "mixed", "--history", "2"],
+        rf"^world: mixed .*\n(?:.*\n)*^\s+4\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}$",
+        []),
     # ~45 s: a D=16 one-layer model, B=2 × Q=2, 1 timed step, and the sampling benchmark
     "bench_model.py": (
         ["--queries", "2", "--batch", "2", "--steps", "1", "--dim", "16", "--encoder-layers", "1",
@@ -102,6 +104,10 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
          "--samples", "4"],
         rf"^distance to nearest slot box: median {NUM}.*\n(?:.*\n)*^model \S+:(?:\s+{NUM}){{6}}$",
         []),
+    # ~20 s: the preferences world, 2 environments
+    "habits_exact.py": (
+        ["--worlds", "preferences", "--num-envs", "8"],
+        rf"^\| exact, H = 1 \| {NUM} \| {NUM} \| {NUM} \| {NUM} ± {NUM} \|$", []),
     # ~25 s: the README quick start; it prints nothing and writes fork_next.png
     "quickstart.py": ([], "", ["fork_next.png"]),
     # ~35 s: the docs figures and the quick-start figure, into figures/

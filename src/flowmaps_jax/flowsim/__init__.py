@@ -22,6 +22,12 @@ The model (defaults are the paper's; see ``FlowSimConfig``)
   advance one place with 0.7, advance two with 0.1, cyclically over the K tables of its kind;
   T = 20 timesteps. ``"schedule_jitter"`` (the reference code's variant): position
   (t + o_t) mod K with an independent offset o_t ∈ {−1, 0, +1} drawn with 0.1 / 0.7 / 0.2.
+* **Habits** (``FlowSimConfig.habits``, named mixtures in ``WORLDS``): each object may instead
+  follow its own habit, drawn once per environment — the routine above, *preferences* (returns
+  to one or two favourite places) or *dynamic* (moves almost every step, to nearer places more
+  often). ``history_posterior`` is the exact posterior given the last H observations, the
+  hidden habit marginalised over a finite hypothesis set (:mod:`flowmaps_jax.flowsim.habits`).
+  The default (routine only) generates exactly as before habits existed.
 * **Exact posterior.** Knowing the slot now, the Markov slot Δτ steps ahead is the Δτ-fold
   convolution of (0.2, 0.7, 0.1) shifted by the current slot and folded modulo K — equivalently
   ``onehot(slot) @ P^Δτ`` with the K × K ``transition_matrix`` P. ``exact_posterior`` returns it
@@ -40,6 +46,7 @@ raises ``ValueError`` naming the argument).
 
 from flowmaps_jax.flowsim.config import (
     DYNAMICS,
+    HABITS,
     ORDERINGS,
     SHAPES,
     FlowSimConfig,
@@ -48,6 +55,7 @@ from flowmaps_jax.flowsim.config import (
 )
 from flowmaps_jax.flowsim.dynamics import exact_posterior, transition_matrix
 from flowmaps_jax.flowsim.generate import Scenes, generate, validate_scenes
+from flowmaps_jax.flowsim.habits import empirical_frequency, history_posterior
 from flowmaps_jax.flowsim.scenes import (
     denormalise_boxes,
     draw_query_times,
@@ -60,19 +68,24 @@ from flowmaps_jax.flowsim.scenes import (
     train_split,
     validation_split,
 )
+from flowmaps_jax.flowsim.worlds import WORLDS, world_config, world_of
 
 __all__ = [
     "DYNAMICS",
+    "HABITS",
     "ORDERINGS",
     "SHAPES",
+    "WORLDS",
     "FlowSimConfig",
     "FurnitureKind",
     "ObjectCategory",
     "Scenes",
     "denormalise_boxes",
     "draw_query_times",
+    "empirical_frequency",
     "exact_posterior",
     "generate",
+    "history_posterior",
     "load_scenes",
     "make_train_batch",
     "normalise_boxes",
@@ -83,4 +96,6 @@ __all__ = [
     "transition_matrix",
     "validate_scenes",
     "validation_split",
+    "world_config",
+    "world_of",
 ]

@@ -39,6 +39,14 @@ DYNAMICS = ("markov", "schedule_jitter")
 """``markov``: the paper's chain (stay / advance one / advance two). ``schedule_jitter``: the
 reference code's variant, slot = (t + offset) mod K with an independent offset in {-1, 0, +1}."""
 
+HABITS = ("routine", "preferences", "dynamic")
+"""Habit families an object may follow (see :mod:`flowmaps_jax.flowsim.habits`): ``routine``
+(the paper's cyclic chain), ``preferences`` (returns to one or two favourite places),
+``dynamic`` (moves almost every step, to nearby places more often)."""
+
+PAPER_HABITS = (("routine", 1.0),)
+"""The paper's world: every object follows the routine."""
+
 
 @dataclasses.dataclass(frozen=True)
 class FurnitureKind:
@@ -98,6 +106,13 @@ class FlowSimConfig:
         attempt (piece i of F gets ceil(layout_candidates * i / (F - 1)), at least 1); if none
         fits next to the pieces already placed, the whole layout is redrawn.
     dynamics: one of ``DYNAMICS``.
+    habits: the mixture each object's habit is drawn from, once per environment: pairs
+        (name in ``HABITS``, probability) summing to 1. Default: routine only (the paper's
+        world, generated exactly as before habits existed).
+    preference_move, preference_mass: the preferences habit moves with probability ρ per step,
+        to a place drawn from π with this mass on its one or two favourites.
+    dynamic_stay, dynamic_length: the dynamic habit stays with this probability, else moves to
+        another place with weight exp(−distance / dynamic_length), distance in map sides.
     furniture_kinds, categories: the category table.
 
     Numpy numbers are stored as Python ``int``/``float`` (the config stays JSON-able). Configs
@@ -121,6 +136,11 @@ class FlowSimConfig:
     layout_budget: int = 64
     layout_candidates: int = 32
     dynamics: str = "markov"
+    habits: tuple[tuple[str, float], ...] = PAPER_HABITS
+    preference_move: float = 0.7
+    preference_mass: float = 0.8
+    dynamic_stay: float = 0.05
+    dynamic_length: float = 0.3
     furniture_kinds: tuple[FurnitureKind, ...] = PAPER_FURNITURE_KINDS
     categories: tuple[ObjectCategory, ...] = PAPER_CATEGORIES
 
@@ -144,6 +164,7 @@ class FlowSimConfig:
                 raise ValueError(f"{name} must be a tuple of 3 probabilities; got {probs!r}")
             self._store(name, tuple(float(p) for p in check_probabilities(name, probs)))
         check_choice("dynamics", self.dynamics, DYNAMICS)
+        self._check_habits()
         self._check_table()
         self._check_sizes()
 
@@ -201,6 +222,29 @@ class FlowSimConfig:
         side = np.floor(np.float32(self.object_frac) * np.float32(start))
         return max(self.min_object_px, int(side)), start
 
+    def _check_habits(self) -> None:
+        habits = self.habits
+        if (not isinstance(habits, (tuple, list)) or not habits
+                or not all(isinstance(h, (tuple, list)) and len(h) == 2 for h in habits)):
+            raise ValueError(f"habits must be (name, probability) pairs, e.g. "
+                             f"(('preferences', 1.0),); got {habits!r}")
+        names = [h[0] for h in habits]
+        for name in names:
+            check_choice("habits: habit name", name, HABITS)
+        if len(set(names)) != len(names):
+            raise ValueError(f"habits: a habit is named twice; got {habits!r}")
+        probs = check_probabilities("habits probabilities", [h[1] for h in habits])
+        self._store("habits", tuple((str(n), float(p)) for n, p in zip(names, probs, strict=True)))
+        for name in ("preference_move", "preference_mass", "dynamic_length"):
+            self._store(name, check_real(name, getattr(self, name), 0.0, 1.0, low_open=True))
+        self._store("dynamic_stay", check_real("dynamic_stay", self.dynamic_stay, 0.0, 1.0))
+        if self.dynamic_stay >= 1.0:
+            raise ValueError(f"dynamic_stay must be < 1 (a dynamic object moves); got "
+                             f"{self.dynamic_stay}")
+        if self.has_habits and self.dynamics != "markov":
+            raise ValueError(f"habits other than the routine need dynamics='markov'; got "
+                             f"dynamics={self.dynamics!r} with habits={self.habits!r}")
+
     def _check_table(self) -> None:
         for field, entries, cls in (("furniture_kinds", self.furniture_kinds, FurnitureKind),
                                     ("categories", self.categories, ObjectCategory)):
@@ -240,6 +284,18 @@ class FlowSimConfig:
     def num_objects(self) -> int:
         """M, one object per category."""
         return len(self.categories)
+
+    @property
+    def habit_probs(self) -> tuple[float, float, float]:
+        """Probability of each family in ``HABITS`` order."""
+        weights = dict(self.habits)
+        return tuple(float(weights.get(name, 0.0)) for name in HABITS)
+
+    @property
+    def has_habits(self) -> bool:
+        """Whether any object may follow a habit other than the routine (then ``generate``
+        draws habits; otherwise it runs the paper's rollout, bit for bit)."""
+        return self.habit_probs != (1.0, 0.0, 0.0)
 
     @property
     def num_kinds(self) -> int:
@@ -295,6 +351,9 @@ class FlowSimConfig:
         for name in ("transition_probs", "jitter_probs"):
             if name in kwargs and isinstance(kwargs[name], list):
                 kwargs[name] = tuple(kwargs[name])
+        if isinstance(kwargs.get("habits"), list):
+            kwargs["habits"] = tuple(tuple(h) if isinstance(h, list) else h
+                                     for h in kwargs["habits"])
         return cls(**kwargs)
 
 
@@ -315,6 +374,7 @@ class SimShape:
     num_timesteps: int
     layout_candidates: int
     dynamics: str
+    habits: bool
     orderings: tuple[str, ...]
     category_kind: tuple[int, ...]
 
@@ -331,6 +391,7 @@ def sim_shape(config: FlowSimConfig) -> SimShape:
         num_timesteps=config.num_timesteps,
         layout_candidates=config.layout_candidates,
         dynamics=config.dynamics,
+        habits=config.has_habits,
         orderings=tuple(c.ordering for c in config.categories),
         category_kind=config.category_kind_index,
     )
@@ -349,6 +410,11 @@ def sim_params(config: FlowSimConfig) -> dict[str, Any]:
         "min_object_px": np.int32(config.min_object_px),
         "transition_probs": np.asarray(config.transition_probs, np.float32),
         "jitter_probs": np.asarray(config.jitter_probs, np.float32),
+        "habit_probs": np.asarray(config.habit_probs, np.float32),
+        "preference_move": np.float32(config.preference_move),
+        "preference_mass": np.float32(config.preference_mass),
+        "dynamic_stay": np.float32(config.dynamic_stay),
+        "dynamic_length": np.float32(config.dynamic_length),
         "kind_descriptor": np.asarray([k.descriptor for k in config.furniture_kinds], np.int32),
         "category_descriptor": np.asarray([c.descriptor for c in config.categories], np.int32),
     }

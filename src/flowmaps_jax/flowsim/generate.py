@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from flowmaps_jax.flowsim import dynamics, layout
+from flowmaps_jax.flowsim import dynamics, habits, layout
 from flowmaps_jax.flowsim.config import (
     DEFAULT_CONFIG,
     FlowSimConfig,
@@ -53,6 +53,8 @@ class Scenes:
     slot: (E, T, M) int32 position along visit_order at each timestep (0 at t = 0).
     object_boxes: (E, T, M, 4) float32 pixels (y0, x0, y1, x1), centred on the current table.
     layout_redraws: (E,) int32 how many times each environment's layout was redrawn.
+    habit: (E, M) int32 each object's habit hypothesis (an index into
+        ``habits.hypothesis_table(F)``; 0, the routine, in the paper's world).
     """
 
     furniture_boxes: jnp.ndarray
@@ -64,6 +66,7 @@ class Scenes:
     slot: jnp.ndarray
     object_boxes: jnp.ndarray
     layout_redraws: jnp.ndarray
+    habit: jnp.ndarray
 
     @property
     def num_envs(self) -> int:
@@ -77,7 +80,8 @@ _FLOAT_FIELDS = ("furniture_boxes", "object_size", "object_boxes")
 def _field_shapes(e: int, f: int, m: int, t: int) -> dict[str, tuple[int, ...]]:
     return {"furniture_boxes": (e, f, 4), "furniture_kind": (e, f), "object_kind": (e, m),
             "object_size": (e, m), "visit_order": (e, m, f), "num_slots": (e, m),
-            "slot": (e, t, m), "object_boxes": (e, t, m, 4), "layout_redraws": (e,)}
+            "slot": (e, t, m), "object_boxes": (e, t, m, 4), "layout_redraws": (e,),
+            "habit": (e, m)}
 
 
 def scenes_bytes_per_env(config: FlowSimConfig) -> int:
@@ -148,6 +152,7 @@ def _check_scene_values(name: str, a: dict[str, np.ndarray], config: FlowSimConf
     check_int_array(f"{name}.slot", a["slot"], 0, num_slots[:, None, :] - 1,
                     high_name="num_slots - 1")
     check_int_array(f"{name}.layout_redraws", a["layout_redraws"], 0)
+    check_int_array(f"{name}.habit", a["habit"], 0, habits.num_hypotheses(f) - 1)
 
 
 BLOCK = 512
@@ -215,8 +220,12 @@ def scenes_from_env_keys(env_keys, params, shape: SimShape):
 
     order, num_slots = layout.visit_orders(boxes, kind, params, shape)
     size = layout.object_sizes(boxes, order, params)
-    words = layout.random_words(dynamics_keys, dynamics.rollout_num_words(shape))
-    slot = dynamics.rollout(words, num_slots, params, shape)
+    if shape.habits:
+        slot, habit = _habit_rollouts(env_keys, boxes, order, num_slots, params, shape)
+    else:  # the paper's world, bit for bit as before habits existed
+        words = layout.random_words(dynamics_keys, dynamics.rollout_num_words(shape))
+        slot = dynamics.rollout(words, num_slots, params, shape)
+        habit = jnp.zeros((shape.num_objects, num_envs), jnp.int32)
     # From here on environment-first (the public layout); object boxes are a gather.
     boxes, order, slot, size = (jnp.transpose(boxes, (2, 0, 1)), jnp.transpose(order, (2, 0, 1)),
                                 jnp.transpose(slot, (2, 0, 1)), size.T)
@@ -231,8 +240,27 @@ def scenes_from_env_keys(env_keys, params, shape: SimShape):
         slot=slot,
         object_boxes=jax.vmap(layout.object_boxes)(boxes, order, slot, size),
         layout_redraws=redraws,
+        habit=habit.T,
     )
     return scenes, ok
+
+
+def _habit_rollouts(env_keys, boxes, order, num_slots, params, shape: SimShape):
+    """Habits and slots of every object (environment axis last, like ``dynamics.rollout``).
+
+    Uses its own stream (``fold_in(env_key, 2)``). Returns (slot (T, M, E), habit (M, E))."""
+    num_words = habits.rollout_num_words(shape.num_timesteps)
+    keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(env_keys, 2)
+    words = jax.vmap(lambda k: jax.random.bits(k, (shape.num_objects, num_words),
+                                               jnp.uint32))(keys)  # (E, M, W)
+    centre = layout.box_centres(boxes, axis=1) / params["map_size"].astype(jnp.float32)
+    table = jnp.maximum(order, 0)  # (M, F, E)
+    slot_centres = jnp.take_along_axis(centre[None], table[:, :, None, :], axis=1)  # (M,F,2,E)
+    slot_centres = jnp.transpose(slot_centres, (3, 0, 1, 2))  # (E, M, F, 2)
+    one = functools.partial(habits.habit_rollout, params=params,
+                            num_timesteps=shape.num_timesteps)
+    slot, habit = jax.vmap(jax.vmap(one))(words, num_slots.T, slot_centres)  # (E, M, T), (E, M)
+    return jnp.transpose(slot, (2, 1, 0)), habit.T
 
 
 def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh=None,

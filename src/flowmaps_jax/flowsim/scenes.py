@@ -47,7 +47,7 @@ from flowmaps_jax.validation import (
     read_npz,
 )
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 TRAIN_SEED = 0
 VALIDATION_SEED = 1
 _TRAIN_TAG, _VALIDATION_TAG = 0, 1
@@ -296,9 +296,12 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
         version = check_int("format_version", contents["format_version"], None)
     except ValueError as err:
         raise ValueError(f"load_scenes: {path!r}: {err}") from None
-    if version != FORMAT_VERSION:
+    if version not in (1, FORMAT_VERSION):
         raise ValueError(f"load_scenes: {path!r} has format version {version}; this code reads "
-                         f"version {FORMAT_VERSION} only")
+                         f"versions 1 and {FORMAT_VERSION}")
+    if version == 1 and "habit" not in contents and "slot" in contents:  # before habits: routine
+        contents["habit"] = np.zeros((contents["slot"].shape[0], contents["slot"].shape[2]),
+                                     np.int32)
     missing = [n for n in ("config_json", *_FIELDS) if n not in contents]
     if missing:
         raise ValueError(f"load_scenes: {path!r} is missing arrays {missing}")

@@ -1,0 +1,338 @@
+"""Habits: each object's own transition law over its places, and the exact posterior given what
+was seen of it.
+
+A *habit* is a transition matrix over an object's slots (the positions along its visiting
+order, i.e. the K tables of its kind). Every object of an environment gets one habit, drawn
+once from the mixture ``FlowSimConfig.habits`` names. Three families (``HABITS``):
+
+* **routine** — the paper's cyclic chain: stay / advance one / advance two with
+  ``transition_probs`` (0.2 / 0.7 / 0.1).
+* **preferences** — stay with 1 − ρ (``preference_move`` = ρ); otherwise move to a place drawn
+  from π. π puts ``preference_mass`` on one or two *favourite* places (split evenly) and the rest
+  evenly on the others. Which places are favourites is one of a finite, uniform set of
+  hypotheses: every single slot and every pair of slots.
+* **dynamic** — stay with ``dynamic_stay``; otherwise move to another place j with probability
+  ∝ exp(−d(i, j) / ``dynamic_length``), d the distance between table centres in map sides.
+
+**Hypotheses** are fixed by F alone (static): index 0 is the routine; 1 … F the single
+favourites 0 … F−1; then the pairs (i < j) in lexicographic order; the last is the dynamic
+habit. A hypothesis with a favourite at slot ≥ K does not exist for an object with K places.
+The prior of a hypothesis is its family's weight in ``habits``, split evenly over the family's
+hypotheses that exist for that object. Routine and dynamic have one hypothesis each: the map
+shows the visiting order and the table positions, so only the favourites are hidden.
+
+**The exact posterior given a history** (``history_posterior``): an object seen at slots
+s_{τ−n+1} … s_τ (n ≤ H observations, one per timestep, the object starting at slot 0 at t = 0)
+has hypothesis weights ∝ prior(h) · [e₀ P_h^{τ−n+1}](s_{τ−n+1}) · Π P_h(s_i, s_{i+1}); the place
+at τ + Δτ is Σ_h w_h · onehot(s_τ) P_h^{Δτ}. With one observation and the routine habit this is
+``dynamics.exact_posterior``.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig, sim_params
+from flowmaps_jax.validation import check_instance, check_int_array
+
+ROUTINE, PREFERENCES, DYNAMIC = range(3)
+
+
+def num_hypotheses(num_furniture: int) -> int:
+    """Number of habit hypotheses for F places: routine, F singles, F(F−1)/2 pairs, dynamic."""
+    f = num_furniture
+    return 2 + f + f * (f - 1) // 2
+
+
+@functools.lru_cache(maxsize=16)
+def hypothesis_table(num_furniture: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The static hypothesis table for F places.
+
+    Returns (family (NH,) int32 index into ``HABITS``, favourites (NH, F) bool, needs (NH,)
+    int32: the fewest places K for which the hypothesis exists).
+    """
+    f = num_furniture
+    sets = [()] + [(i,) for i in range(f)] + [(i, j) for i in range(f) for j in range(i + 1, f)]
+    family = np.array([ROUTINE] + [PREFERENCES] * (len(sets) - 1) + [DYNAMIC], np.int32)
+    favourites = np.zeros((len(sets) + 1, f), bool)
+    for h, places in enumerate(sets):
+        favourites[h, list(places)] = True
+    needs = np.array([1] + [max(s) + 1 for s in sets[1:]] + [1], np.int32)
+    return family, favourites, needs
+
+
+def hypothesis_names(num_furniture: int) -> list[str]:
+    """Readable name of every hypothesis, e.g. 'routine', 'preferences {0, 2}', 'dynamic'."""
+    family, favourites, _ = hypothesis_table(num_furniture)
+    return [HABITS[fam] if fam != PREFERENCES else
+            "preferences {" + ", ".join(str(i) for i in np.flatnonzero(fav)) + "}"
+            for fam, fav in zip(family, favourites, strict=True)]
+
+
+def habit_prior(num_slots, habit_probs, num_furniture: int) -> jnp.ndarray:
+    """Prior (..., NH) float32 over the hypotheses of objects with ``num_slots`` (...) places.
+
+    habit_probs: (3,) weights of the families in ``HABITS`` order (summing to 1).
+    """
+    family, _, needs = (jnp.asarray(a) for a in hypothesis_table(num_furniture))
+    k = jnp.asarray(num_slots, jnp.int32)[..., None]
+    exists = needs <= k  # (..., NH)
+    per_family = jax.nn.one_hot(family, 3, dtype=jnp.float32)  # (NH, 3)
+    count = jnp.einsum("...h,hc->...c", exists.astype(jnp.float32), per_family)  # (..., 3)
+    share = jnp.asarray(habit_probs, jnp.float32) / jnp.maximum(count, 1.0)
+    return jnp.where(exists, jnp.take_along_axis(
+        share, jnp.broadcast_to(family, exists.shape), axis=-1), 0.0)
+
+
+def _routine_matrix(k, f: int, probs) -> jnp.ndarray:
+    row = jnp.arange(f)
+    matrix = sum(p * jax.nn.one_hot(jnp.mod(row + a, k), f, dtype=jnp.float32)
+                 for a, p in enumerate(jnp.asarray(probs, jnp.float32)))
+    return matrix
+
+
+def _preference_matrix(k, favourites, move, mass) -> jnp.ndarray:
+    f = favourites.shape[-1]
+    place = jnp.arange(f) < k
+    fav = favourites & place
+    others = place & ~fav
+    n_fav = jnp.maximum(jnp.sum(fav), 1)
+    n_others = jnp.sum(others)
+    fav_mass = jnp.where(n_others > 0, mass, 1.0)
+    pi = jnp.where(fav, fav_mass / n_fav,
+                   jnp.where(others, (1.0 - fav_mass) / jnp.maximum(n_others, 1), 0.0))
+    return (1.0 - move) * jnp.eye(f, dtype=jnp.float32) + move * pi[None, :]
+
+
+def _dynamic_matrix(k, centres, stay, length) -> jnp.ndarray:
+    f = centres.shape[0]
+    place = jnp.arange(f) < k
+    distance = jnp.linalg.norm(centres[:, None, :] - centres[None, :, :], axis=-1)
+    others = place[None, :] & ~jnp.eye(f, dtype=bool)
+    weight = jnp.where(others, jnp.exp(-distance / length), 0.0)
+    total = jnp.sum(weight, axis=-1, keepdims=True)
+    move = jnp.where(total > 0, (1.0 - stay) * weight / jnp.where(total > 0, total, 1.0), 0.0)
+    stay_here = jnp.where(total[:, 0] > 0, stay, 1.0)
+    return move + stay_here[:, None] * jnp.eye(f, dtype=jnp.float32)
+
+
+def hypothesis_matrix(hypothesis, num_slots, slot_centres, params) -> jnp.ndarray:
+    """Transition matrix (F, F) float32 of one hypothesis for one object.
+
+    hypothesis: () int index into the hypothesis table (may be traced).
+    num_slots: () int K. slot_centres: (F, 2) table centres along the visiting order, in map
+    sides (padding rows are ignored). params: ``sim_params`` of the config.
+    Entry [i, j] = P(slot j next | slot i now); rows and columns ≥ K are zero.
+    """
+    f = slot_centres.shape[0]
+    family, favourites, _ = (jnp.asarray(a) for a in hypothesis_table(f))
+    fam = family[hypothesis]
+    k = jnp.asarray(num_slots, jnp.int32)
+    matrix = jnp.where(
+        fam == ROUTINE, _routine_matrix(k, f, params["transition_probs"]),
+        jnp.where(fam == PREFERENCES,
+                  _preference_matrix(k, favourites[hypothesis], params["preference_move"],
+                                     params["preference_mass"]),
+                  _dynamic_matrix(k, slot_centres, params["dynamic_stay"],
+                                  params["dynamic_length"])))
+    place = jnp.arange(f) < k
+    return jnp.where(place[:, None] & place[None, :], matrix, 0.0)
+
+
+def transition_matrices(num_slots, slot_centres, params) -> jnp.ndarray:
+    """Every hypothesis's transition matrix: (..., NH, F, F) float32.
+
+    num_slots: (...) int K; slot_centres: (..., F, 2) table centres along the visiting order, in
+    map sides.
+    """
+    f = slot_centres.shape[-2]
+    lead = jnp.shape(num_slots)
+    flat_k = jnp.reshape(num_slots, (-1,))
+    flat_c = jnp.reshape(slot_centres, (-1, f, 2))
+    per_object = jax.vmap(  # over objects, then hypotheses
+        lambda k, c: jax.vmap(lambda h: hypothesis_matrix(h, k, c, params))(
+            jnp.arange(num_hypotheses(f))))
+    return per_object(flat_k, flat_c).reshape(*lead, num_hypotheses(f), f, f)
+
+
+# ------------------------------------------------------------------------------ rollout
+
+
+def _uniform24(words: jnp.ndarray) -> jnp.ndarray:
+    """uint32 words -> float32 uniforms on a 2**-24 grid in [0, 1)."""
+    return (words >> 8).astype(jnp.float32) * (1.0 / 16777216.0)
+
+
+def rollout_num_words(num_timesteps: int) -> int:
+    """Random 32-bit words one object's habit rollout consumes."""
+    return 2 + num_timesteps - 1
+
+
+def draw_hypothesis(u_family, u_member, num_slots, habit_probs, num_furniture: int):
+    """One object's hypothesis index from two uniforms: the family by ``habit_probs``, then one
+    of that family's hypotheses that exist for K = ``num_slots`` places, uniformly."""
+    family, _, needs = (jnp.asarray(a) for a in hypothesis_table(num_furniture))
+    cdf = jnp.cumsum(jnp.asarray(habit_probs, jnp.float32))
+    fam = jnp.minimum(jnp.sum(u_family >= cdf[:-1]), 2)
+    fam = jnp.where(jnp.asarray(habit_probs)[fam] > 0, fam, jnp.argmax(habit_probs > 0))
+    member = (family == fam) & (needs <= num_slots)
+    count = jnp.sum(member)
+    pick = jnp.minimum(jnp.floor(u_member * count).astype(jnp.int32), count - 1)
+    return jnp.argmax(member & (jnp.cumsum(member) == pick + 1)).astype(jnp.int32)
+
+
+def habit_rollout(words, num_slots, slot_centres, params, num_timesteps: int):
+    """One object's habit and slots over T timesteps (vmap it over objects and environments).
+
+    words: (rollout_num_words(T),) uint32. num_slots: () int K. slot_centres: (F, 2) in map
+    sides. Returns (slots (T,) int32 starting at 0, hypothesis () int32).
+    """
+    f = slot_centres.shape[0]
+    u = _uniform24(words)
+    h = draw_hypothesis(u[0], u[1], num_slots, params["habit_probs"], f)
+    cdf = jnp.cumsum(hypothesis_matrix(h, num_slots, slot_centres, params), axis=-1)
+    last = jnp.maximum(num_slots - 1, 0)
+
+    def step(slot, u_t):
+        nxt = jnp.minimum(jnp.sum(cdf[slot] <= u_t), last).astype(jnp.int32)
+        return nxt, nxt
+
+    _, later = jax.lax.scan(step, jnp.int32(0), u[2:2 + num_timesteps - 1])
+    return jnp.concatenate([jnp.zeros((1,), jnp.int32), later]), h
+
+
+# --------------------------------------------------------------------- history posterior
+
+
+def _matrix_power_apply(vectors, matrices, power, max_power: int):
+    """vectors (NH, F) @ matrices (NH, F, F) ** power, power () int in 0..max_power."""
+    def step(v, i):
+        return jnp.where(i < power, jnp.einsum("hf,hfg->hg", v, matrices), v), None
+
+    out, _ = jax.lax.scan(step, vectors, jnp.arange(max_power))
+    return out
+
+
+def history_posterior_one(transitions, prior, history, valid, tau, horizon, num_timesteps: int):
+    """Exact posterior (F,) of one object's slot at τ + Δτ given its observed history.
+
+    transitions: (NH, F, F) every hypothesis's matrix; prior: (NH,).
+    history: (H,) int32 slots seen at τ − H + 1 … τ (last entry at τ); valid: (H,) bool, True
+    on the observed entries (a suffix: padding comes first). tau, horizon: () int.
+    Also returns the hypothesis weights (NH,).
+    """
+    nh, f, _ = transitions.shape
+    n = jnp.sum(valid)
+    first = jnp.argmax(valid)
+    start = jnp.broadcast_to(jax.nn.one_hot(0, f, dtype=jnp.float32), (nh, f))
+    marginal = _matrix_power_apply(start, transitions, tau - n + 1, num_timesteps - 1)
+    log_lik = jnp.log(marginal[:, history[first]])
+    pair = valid[:-1] & valid[1:]  # (H - 1,)
+    step_p = transitions[:, history[:-1], history[1:]]  # (NH, H - 1)
+    log_lik = log_lik + jnp.sum(jnp.where(pair[None], jnp.log(jnp.where(pair[None], step_p, 1.0)),
+                                          0.0), axis=-1)
+    log_w = jnp.where(prior > 0, jnp.log(jnp.where(prior > 0, prior, 1.0)) + log_lik, -jnp.inf)
+    weights = jax.nn.softmax(log_w)
+    now = jnp.broadcast_to(jax.nn.one_hot(history[-1], f, dtype=jnp.float32), (nh, f))
+    ahead = _matrix_power_apply(now, transitions, horizon, num_timesteps - 1)
+    return weights @ ahead, weights
+
+
+@functools.partial(jax.jit, static_argnames=("num_timesteps",))
+def history_posterior_batch(transitions, prior, history, valid, tau, horizon, num_timesteps: int):
+    """``history_posterior_one`` over a leading query axis Q: returns ((Q, F), (Q, NH))."""
+    return jax.vmap(functools.partial(history_posterior_one, num_timesteps=num_timesteps))(
+        transitions, prior, history, valid, tau, horizon)
+
+
+def empirical_frequency(history, valid, num_furniture: int) -> jnp.ndarray:
+    """(..., F) fraction of the observed history spent at each slot: the simplest habit learner
+    (a scene-graph memory's visit counts). history (..., H) int; valid (..., H) bool."""
+    counts = jnp.sum(jax.nn.one_hot(history, num_furniture, dtype=jnp.float32)
+                     * valid[..., None], axis=-2)
+    return counts / jnp.maximum(jnp.sum(counts, axis=-1, keepdims=True), 1.0)
+
+
+# ----------------------------------------------------------------------- on FlowSim scenes
+
+
+def slot_centres(scenes, config) -> jnp.ndarray:
+    """(E, M, F, 2) table centres along each object's visiting order, in map sides (padding
+    places repeat the first table; they are never visited)."""
+    boxes = jnp.asarray(scenes.furniture_boxes, jnp.float32)
+    centre = 0.5 * (boxes[..., :2] + boxes[..., 2:]) / config.map_size  # (E, F, 2)
+    table = jnp.maximum(jnp.asarray(scenes.visit_order), 0)  # (E, M, F)
+    return jax.vmap(lambda c, t: c[t])(centre, table)
+
+
+def scene_hypotheses(scenes, config, env, obj) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(transitions (Q, NH, F, F), prior (Q, NH)) of objects ``obj`` (Q,) in environments
+    ``env`` (Q,): every habit hypothesis's matrix for that object's places, and the prior of
+    ``config.habits``."""
+    env, obj = jnp.asarray(env, jnp.int32), jnp.asarray(obj, jnp.int32)
+    params = sim_params(config)
+    k = jnp.asarray(scenes.num_slots)[env, obj]
+    centres = slot_centres(scenes, config)[env, obj]
+    return (transition_matrices(k, centres, params),
+            habit_prior(k, params["habit_probs"], config.num_furniture))
+
+
+def observed_history(scenes, env, obj, tau, history_len, max_history: int | None = None):
+    """The slots an observer saw of objects ``obj`` in ``env`` at τ − H + 1 … τ.
+
+    env, obj, tau, history_len: (Q,) ints (history_len may be one int for all).
+    Returns (history (Q, H_max) int32, valid (Q, H_max) bool): the last entry is the slot at τ;
+    entries before the first observation are padding (valid False, slot 0).
+    """
+    tau = jnp.asarray(tau, jnp.int32)
+    h = jnp.broadcast_to(jnp.asarray(history_len, jnp.int32), tau.shape)
+    width = int(np.max(np.asarray(history_len))) if max_history is None else max_history
+    lag = jnp.arange(width - 1, -1, -1)  # H_max - 1 … 0
+    time = tau[:, None] - lag[None, :]
+    valid = (lag[None, :] < h[:, None]) & (time >= 0)
+    slots = jnp.asarray(scenes.slot)[jnp.asarray(env)[:, None], jnp.maximum(time, 0),
+                                     jnp.asarray(obj)[:, None]]
+    return jnp.where(valid, slots, 0), valid
+
+
+def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
+    """Exact posterior (Q, F) over the slot of object ``obj`` in ``env`` at τ + Δτ, given its
+    slots at τ − H + 1 … τ (H = ``history_len``), under the habit mixture of ``config``.
+
+    env, obj, tau, horizon: (Q,) ints; history_len: an int or (Q,) ints in 1 … τ + 1.
+    The history is read from ``scenes.slot``; the hidden habit is marginalised exactly over
+    the finite hypothesis set. With history_len = 1 and the paper's world it equals
+    ``dynamics.exact_posterior``. Raises ``ValueError`` naming the argument on bad input.
+    """
+    check_instance("config", config, FlowSimConfig)
+    t = config.num_timesteps
+    env = check_int_array("env", env, 0, scenes.num_envs - 1)
+    obj = check_int_array("obj", obj, 0, config.num_objects - 1)
+    tau = check_int_array("tau", tau, 0, t - 1)
+    horizon = check_int_array("horizon", horizon, 0, t - 1)
+    check_int_array("tau + horizon", tau + horizon, 0, t - 1)
+    history_len = check_history_len(history_len, tau, t)
+    if not (env.shape == obj.shape == tau.shape == horizon.shape) or env.ndim != 1:
+        raise ValueError(f"env, obj, tau and horizon must be 1-D arrays of one length; got "
+                         f"shapes {env.shape}, {obj.shape}, {tau.shape}, {horizon.shape}")
+    transitions, prior = scene_hypotheses(scenes, config, env, obj)
+    history, valid = observed_history(scenes, env, obj, tau, history_len)
+    posterior, _ = history_posterior_batch(transitions, prior, history, valid,
+                                           jnp.asarray(tau), jnp.asarray(horizon), t)
+    return posterior
+
+
+def check_history_len(history_len, tau, num_timesteps: int) -> np.ndarray:
+    """history_len (an int or (Q,) ints) in 1 … T and at most τ + 1 (the query's past)."""
+    h = check_int_array("history_len", history_len, 1, num_timesteps,
+                        high_name=f"T={num_timesteps}")
+    too_long = np.broadcast_to(h, np.shape(tau)) > np.asarray(tau) + 1
+    if np.any(too_long):
+        raise ValueError(f"history_len={int(np.max(h))} is longer than the query's past: an "
+                         f"object seen up to tau={int(np.asarray(tau)[np.argmax(too_long)])} has "
+                         f"at most tau + 1 observations")
+    return h
