@@ -32,7 +32,7 @@ import numpy as np
 
 from flowmaps_jax import evaluation
 from flowmaps_jax.flowsim.scenes import validation_split
-from flowmaps_jax.sample import load
+from flowmaps_jax.predictor import load
 from flowmaps_jax.training import loop as train
 from flowmaps_jax.training.config import apply_overrides, get_preset
 

@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 from flowmaps_jax.model import init_params
-from flowmaps_jax.sample import Predictor
+from flowmaps_jax.predictor import Predictor
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.training.config import get_preset
 

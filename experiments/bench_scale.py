@@ -42,7 +42,7 @@ def measure(devices: int, precision: str, params_out: str, preset: str, extra: l
 
     from flowmaps_jax import distributed
     from flowmaps_jax.flowsim.scenes import scene_tokens, train_split
-    from flowmaps_jax.sample import Predictor
+    from flowmaps_jax.predictor import Predictor
     from flowmaps_jax.tokens import Queries
     from flowmaps_jax.training import loop
     from flowmaps_jax.training import state as train_state

@@ -23,14 +23,15 @@ import numpy as np
 from flowmaps_jax.evaluation.protocol import build_eval_queries
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.model import init_params
-from flowmaps_jax.model.sampling import route_mixture_log_prob
-from flowmaps_jax.sample import Predictor, _as_arrays, load_model
+from flowmaps_jax.model.family import canonical_inputs
+from flowmaps_jax.model.inference import route_mixture_log_prob
+from flowmaps_jax.predictor import Predictor, load_model
 from flowmaps_jax.training.config import get_preset
 
 
 def closed_form(predictor: Predictor, ev) -> float:
     """Mean log p of the KL points under the route head's mixture (exact when residual = 0)."""
-    tokens, queries = _as_arrays(ev.tokens, ev.queries)
+    tokens, queries = canonical_inputs(ev.tokens, ev.queries)
     return float(np.mean(route_mixture_log_prob(predictor.params, predictor.model, tokens,
                                                 queries, ev.kl_points)))
 

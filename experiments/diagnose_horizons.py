@@ -30,7 +30,7 @@ from flowmaps_jax.evaluation.kl import gt_mixture_log_prob
 from flowmaps_jax.evaluation.protocol import build_eval_queries
 from flowmaps_jax.evaluation.slots import empirical_slots, slot_scores
 from flowmaps_jax.flowsim.scenes import train_split, validation_split
-from flowmaps_jax.sample import load_model
+from flowmaps_jax.predictor import load_model
 
 
 def score(predictor, scenes, config, horizon: int, samples: int, seed: int,

@@ -21,7 +21,7 @@ import numpy as np
 
 from flowmaps_jax import evaluation
 from flowmaps_jax.flowsim.scenes import validation_split
-from flowmaps_jax.sample import load_model
+from flowmaps_jax.predictor import load_model
 
 
 def main(argv=None) -> None:

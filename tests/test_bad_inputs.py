@@ -358,7 +358,7 @@ def predictor():
     from support import TINY
 
     from flowmaps_jax.model import init_params
-    from flowmaps_jax.sample import Predictor
+    from flowmaps_jax.predictor import Predictor
 
     return Predictor.from_params(init_params(jax.random.key(0), TINY), TINY)
 

@@ -15,6 +15,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
+from flowmaps_jax import checkpoint_reader
 from flowmaps_jax.training import checkpoint, objectives
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import get_preset
@@ -63,7 +64,7 @@ def saved(tmp_path):
 
 
 def test_round_trip_restores_every_field(saved):
-    state, config = checkpoint.restore_latest(saved, _target())
+    state, config = checkpoint.restore(saved, _target())[:2]
     assert isinstance(state, train_state.TrainState)
     _assert_same(state, _state_at(4))
     assert config == CFG.to_dict()
@@ -72,7 +73,7 @@ def test_round_trip_restores_every_field(saved):
 
 def test_keeps_last_k_and_the_best_even_when_it_falls_out(saved):
     assert sorted(int(p.name) for p in (saved / "last").iterdir()) == [3, 4]
-    best, _ = checkpoint.restore_best(saved, _target())
+    best = checkpoint.restore(saved, _target(), which="best").state
     assert int(best.step) == 2  # step 3 had a worse validation loss and step 2 left last-k
     _assert_same(best, _state_at(2))
 
@@ -95,7 +96,7 @@ def test_saving_the_same_step_twice_is_harmless(tmp_path):
 
 
 def test_run_directory_resolves_to_its_checkpoints(saved):
-    state, _ = checkpoint.restore_latest(saved.parent, _target())
+    state = checkpoint.restore(saved.parent, _target()).state
     assert int(state.step) == 4
 
 
@@ -109,24 +110,24 @@ def test_unfinished_temporary_save_is_ignored(saved):
     partial = saved / "last" / "9.orbax-checkpoint-tmp-1234"
     (partial / "state").mkdir(parents=True)
     (partial / "state" / "junk").write_text("half written")
-    state, _ = checkpoint.restore_latest(saved, _target())
+    state = checkpoint.restore(saved, _target()).state
     assert int(state.step) == 4
 
 
 def test_missing_directory(tmp_path):
     with pytest.raises(ValueError, match=str(tmp_path / "nope")):
-        checkpoint.restore_latest(tmp_path / "nope", _target())
+        checkpoint.restore(tmp_path / "nope", _target())
 
 
 def test_directory_without_checkpoints(tmp_path):
     (tmp_path / "somefile").write_text("x")
     with pytest.raises(ValueError, match="not a checkpoint directory"):
-        checkpoint.restore_latest(tmp_path, _target())
+        checkpoint.restore(tmp_path, _target())
     (tmp_path / "last").mkdir()
     with pytest.raises(ValueError, match="no finished save"):
-        checkpoint.restore_latest(tmp_path, _target())
+        checkpoint.restore(tmp_path, _target())
     with pytest.raises(ValueError, match="best"):
-        checkpoint.restore_best(tmp_path, _target())
+        checkpoint.restore(tmp_path, _target(), which="best")
 
 
 def _truncate_data_files(step_dir):
@@ -146,7 +147,7 @@ def test_damaged_checkpoint_gives_value_error_naming_the_path(saved, damage, fra
     step_dir = saved / "last" / "4"
     damage(step_dir)
     with pytest.raises(ValueError, match=fragment) as err:
-        checkpoint.restore_latest(saved, _target())
+        checkpoint.restore(saved, _target())
     assert str(step_dir) in str(err.value)
     gc.collect()  # orbax's leftover coroutines (see pytestmark) are collected here
 
@@ -155,7 +156,7 @@ def test_mismatched_model_gives_value_error(saved):
     wrong = objectives.Objective(init=lambda key: {"dense": {"w": jnp.zeros((5, 4)),
                                                            "b": jnp.zeros(4)}}, loss=None)
     with pytest.raises(ValueError, match="does not match"):
-        checkpoint.restore_latest(saved, train_state.abstract_state(CFG, wrong))
+        checkpoint.restore(saved, train_state.abstract_state(CFG, wrong))
     gc.collect()
 
 
@@ -170,7 +171,7 @@ def test_keep_last_must_be_positive(tmp_path):
 
 def test_every_save_carries_checksums_of_every_array_and_the_config(saved):
     restored = checkpoint.restore(saved, _target())
-    names = {checkpoint._leaf_name(path) for path, _ in
+    names = {checkpoint_reader.leaf_name(path) for path, _ in
              jax.tree_util.tree_flatten_with_path(_state_at(4))[0]}
     assert set(restored.meta["checksums"]) == names and "params/dense/w" in names
     assert restored.meta["config_sha256"] and restored.step == 4
@@ -196,7 +197,7 @@ def _edit_json(path, edit):
 def test_damaged_newest_step_names_the_newest_intact_one(saved, damage, fragment):
     damage(saved / "last" / "4")
     with pytest.raises(ValueError, match="The newest intact checkpoint is step 3") as err:
-        checkpoint.restore_latest(saved, _target())
+        checkpoint.restore(saved, _target())
     assert fragment in str(err.value) and str(saved / "last" / "4") in str(err.value)
     assert f"load({str(saved)!r}, step=3)" in str(err.value)
     assert "--from-step 3" in str(err.value)  # saved lives in a run directory's checkpoints/
@@ -235,11 +236,12 @@ def test_non_finite_state_is_never_saved(tmp_path, part):
 
 def test_non_finite_state_on_disk_is_never_loaded(tmp_path, monkeypatch):
     with monkeypatch.context() as patch:  # write one as an older version could have
-        patch.setattr(checkpoint, "_non_finite", lambda leaves: [])
+        patch.setattr(checkpoint, "state_checksums",  # the writer's check finds nothing
+                      lambda state: (checkpoint_reader.state_checksums(state)[0], []))
         with checkpoint.CheckpointStore(tmp_path, keep_last=2) as store:
             store.save(_poisoned("opt_state"), CFG.to_dict())
     with pytest.raises(ValueError, match=r"NaN or inf values in opt_state/1/0/mu/dense/b"):
-        checkpoint.restore_latest(tmp_path, _target())
+        checkpoint.restore(tmp_path, _target())
     with pytest.raises(ValueError, match="No other saved step is intact"):
         checkpoint.restore(tmp_path)
 
@@ -312,4 +314,4 @@ def test_output_of_a_successful_save_is_not_swallowed(tmp_path, monkeypatch, cap
 @pytest.mark.parametrize("bad", [None, 123, b"/tmp"])
 def test_checkpoint_dir_must_be_a_path(bad):
     with pytest.raises(ValueError, match="checkpoint_dir must be a path"):
-        checkpoint.restore_latest(bad)
+        checkpoint.restore(bad)

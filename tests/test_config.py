@@ -5,14 +5,17 @@ import json
 
 import pytest
 
+from flowmaps_jax.training.cli import build_parser, main, resolve_config
 from flowmaps_jax.training.config import (
     PRESETS,
+    RESUMABLE_FIELDS,
+    ROLES,
     TrainConfig,
     apply_overrides,
+    compile_key,
     format_config,
     get_preset,
 )
-from flowmaps_jax.training.loop import build_parser, main, resolve_config
 
 
 def test_paper_preset_matches_the_paper():
@@ -56,6 +59,28 @@ def test_json_round_trip(name):
     back = TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
     assert back == cfg
     assert "model.dim" in format_config(cfg)
+
+
+def test_every_field_declares_its_role_and_both_field_lists_derive_from_it():
+    """One declaration per field says whether the compiled functions depend on it and whether
+    --resume may change it: the compile-cache key and RESUMABLE_FIELDS cannot disagree."""
+    fields = dataclasses.fields(TrainConfig)
+    undeclared = [f.name for f in fields if f.metadata.get("role") not in ROLES]
+    assert undeclared == []
+    assert RESUMABLE_FIELDS == tuple(f.name for f in fields
+                                     if ROLES[f.metadata["role"]].resumable)
+    assert set(RESUMABLE_FIELDS) == {"steps", "log_every", "val_every", "ckpt_every",
+                                     "keep_last", "routine_envs", "routine_samples", "devices",
+                                     "preset"}
+    smoke, base = get_preset("smoke"), TrainConfig()
+    uncompiled = {f.name for f in fields if not ROLES[f.metadata["role"]].compiled}
+    assert uncompiled == {"log_every", "val_every", "ckpt_every", "keep_last", "preset", "data",
+                          "routine_envs", "routine_samples"}
+    key = compile_key(smoke)
+    for f in fields:
+        assert getattr(key, f.name) == getattr(base if f.name in uncompiled else smoke, f.name)
+    assert compile_key(apply_overrides(smoke, ["log_every=7", "data=endless"])) == key
+    assert compile_key(apply_overrides(smoke, ["steps=30"])) != key
 
 
 def test_from_dict_rejects_unknown_keys():

@@ -21,7 +21,7 @@ from flowmaps_jax import evaluation as ev
 from flowmaps_jax import model
 from flowmaps_jax.evaluation.cli import main
 from flowmaps_jax.flowsim import FlowSimConfig, normalise_boxes, validation_split
-from flowmaps_jax.sample import Predictor
+from flowmaps_jax.predictor import Predictor
 
 SIM = FlowSimConfig()
 CFG = TINY  # shared with test_sample: compiled sampling code is reused

@@ -1,6 +1,6 @@
 """The trained default models shipped inside the package (issue 8): they load through
-``sample.load_pretrained``, have the cpu preset's shapes, and put samples on tables of the queried
-object's kind."""
+``predictor.load_pretrained``, have the cpu preset's shapes, and put samples on tables of the
+queried object's kind."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from flowmaps_jax.flowsim.scenes import scene_tokens, slot_boxes, validation_split
-from flowmaps_jax.pretrained import available
-from flowmaps_jax.sample import load_pretrained
+from flowmaps_jax.predictor import load_pretrained
+from flowmaps_jax.shipped import available
 from flowmaps_jax.tokens import Queries
 from flowmaps_jax.training.config import get_preset
 

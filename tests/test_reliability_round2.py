@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from flowmaps_jax import validation as v
-from flowmaps_jax.training import loop as train_cli
+from flowmaps_jax.training import cli as train_cli
 from flowmaps_jax.training import rundir
 from flowmaps_jax.training.config import apply_overrides, check_run_resources, get_preset
 
@@ -226,7 +226,7 @@ def test_disk_full_is_one_line_and_exit_74(tmp_path, capsys, monkeypatch):
 
 # ------------------------------------------------------------------ evaluate and search CLIs
 
-from flowmaps_jax import pretrained  # noqa: E402
+from flowmaps_jax import export, predictor, shipped  # noqa: E402
 from flowmaps_jax.evaluation import cli as eval_cli  # noqa: E402
 from flowmaps_jax.search import cli as search_cli  # noqa: E402
 from flowmaps_jax.search import episodes as E  # noqa: E402
@@ -292,8 +292,8 @@ def test_disk_full_in_evaluate_search_and_export(tmp_path, capsys, monkeypatch):
                                           "--no-figures"], capsys)
     assert code == 74 and "No space left on device" in _one_line(err)
 
-    monkeypatch.setattr(pretrained, "export_pretrained", _enospc)
-    code, _, err = _cli(pretrained.main, ["--checkpoint", "x", "--name", "mlp", "--out",
+    monkeypatch.setattr(export, "export_pretrained", _enospc)
+    code, _, err = _cli(export.main, ["--checkpoint", "x", "--name", "mlp", "--out",
                                           str(tmp_path / "p")], capsys)
     assert code == 74 and "No space left on device" in _one_line(err)
 
@@ -305,7 +305,7 @@ class _Envs:
 def test_pretrained_out_that_is_a_file(tmp_path, capsys):
     afile = tmp_path / "file"
     afile.write_text("x")
-    code, _, err = _cli(pretrained.main, ["--checkpoint", str(tmp_path), "--name", "mlp",
+    code, _, err = _cli(export.main, ["--checkpoint", str(tmp_path), "--name", "mlp",
                                           "--out", str(afile)], capsys)
     assert code == 2 and "--out" in _one_line(err) and afile.read_text() == "x"
 
@@ -360,7 +360,7 @@ def test_run_episodes_budget_is_bounded(search_set):
 def _copy_weights(tmp_path, name="mlp", edit=None, meta_edit=None):
     """A copy of the shipped weights ``name`` in tmp_path, its arrays changed by ``edit`` and
     its .json by ``meta_edit``, resealed (the SHA-256 updated) as an attacker would."""
-    src = pretrained.PRETRAINED_DIR
+    src = shipped.PRETRAINED_DIR
     with np.load(src / f"{name}.npz") as data:
         arrays = {k: data[k] for k in data.files}
     if edit:
@@ -385,7 +385,7 @@ def test_weights_loader_refuses_nan_extra_members_and_bad_metadata(tmp_path):
     ok = tmp_path / "ok"
     ok.mkdir()
     _copy_weights(ok)
-    assert pretrained.load_pretrained("mlp", ok).step >= 0
+    assert predictor.load_pretrained("mlp", ok).step >= 0
 
     def nan(arrays):
         arrays[_first_key(arrays)].flat[0] = np.nan
@@ -412,7 +412,7 @@ def test_weights_loader_refuses_nan_extra_members_and_bad_metadata(tmp_path):
         folder.mkdir()
         _copy_weights(folder, edit=edit, meta_edit=meta_edit)
         with pytest.raises(ValueError, match=match):
-            pretrained.load_pretrained("mlp", folder)
+            predictor.load_pretrained("mlp", folder)
 
 
 # ------------------------------------------------------------------ class 4: untrusted .npz

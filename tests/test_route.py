@@ -23,9 +23,10 @@ from flowmaps_jax.evaluation import protocol as ev
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.model import init_params
+from flowmaps_jax.model.family import canonical_inputs
+from flowmaps_jax.model.inference import route_mixture_log_prob
 from flowmaps_jax.model.route import propagate, start_table
-from flowmaps_jax.model.sampling import route_mixture_log_prob
-from flowmaps_jax.sample import Predictor, _as_arrays
+from flowmaps_jax.predictor import Predictor
 from flowmaps_jax.search.probabilities import table_probabilities
 from flowmaps_jax.tokens import FURNITURE
 
@@ -90,7 +91,7 @@ def test_samples_follow_the_explicit_table_weights(evalset, fresh):
 
 def test_accurate_likelihood_reaches_the_closed_form(evalset, fresh):
     part = evalset.take(np.arange(4))
-    tokens, queries = _as_arrays(part.tokens, part.queries)
+    tokens, queries = canonical_inputs(part.tokens, part.queries)
     exact = np.asarray(route_mixture_log_prob(fresh.params, ROUTE, tokens, queries,
                                               part.kl_points))
     accurate = np.asarray(fresh.log_prob(part.tokens, part.queries, part.kl_points,

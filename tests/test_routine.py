@@ -18,7 +18,7 @@ from flowmaps_jax.evaluation.slots import ROUTE_OFFSET_LABELS, oracle_slots, rou
 from flowmaps_jax.flowsim.scenes import make_train_batch
 from flowmaps_jax.model import ModelConfig, encode, init_params, velocity
 from flowmaps_jax.model.readout import mixture_velocity
-from flowmaps_jax.sample import Predictor
+from flowmaps_jax.predictor import Predictor
 from flowmaps_jax.tokens import Queries
 from flowmaps_jax.training import objectives
 from flowmaps_jax.training.config import get_preset

@@ -25,9 +25,8 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from flowmaps_jax.sample import load
-from flowmaps_jax.training import checkpoint, rundir
-from flowmaps_jax.training import loop as train_cli
+from flowmaps_jax.predictor import load
+from flowmaps_jax.training import checkpoint, cli, loop, rundir
 from flowmaps_jax.training.config import get_preset
 
 # A damaged checkpoint makes orbax leave un-awaited coroutines behind ("unraisable" warnings).
@@ -54,7 +53,7 @@ def _snapshot(run_dir):
 def _cli(argv, capsys):
     """``main(argv)``: (exit code, stdout, stderr); argparse errors exit with 2."""
     try:
-        code = train_cli.main(argv)
+        code = cli.main(argv)
     except SystemExit as exit_info:
         code = exit_info.code
     out = capsys.readouterr()
@@ -67,15 +66,15 @@ def runs(tmp_path_factory):
     of log_every=5; last/ holds 10 and 12, best/ 10), "resumed": a copy of at12 resumed to 20}."""
     root = tmp_path_factory.mktemp("runs")
     silent = dict(progress=False, log=lambda _: None)
-    train_cli.run(CFG, root / "straight", **silent)
+    loop.run(CFG, root / "straight", **silent)
 
     def ctrl_c(step, metrics):
         if step == 12:
             os.kill(os.getpid(), signal.SIGINT)
 
-    assert train_cli.run(CFG, root / "at12", on_step=ctrl_c, **silent).status == "interrupted"
+    assert loop.run(CFG, root / "at12", on_step=ctrl_c, **silent).status == "interrupted"
     shutil.copytree(root / "at12", root / "resumed")
-    assert train_cli.run(CFG, root / "resumed", resume=True, **silent).status == "done"
+    assert loop.run(CFG, root / "resumed", resume=True, **silent).status == "done"
     return {name: root / name for name in ("straight", "at12", "resumed")}
 
 
@@ -134,7 +133,7 @@ def test_resume_refuses_changes_to_the_model_without_touching_the_run(at12, caps
         assert code == 2 and f"--resume cannot change {field}" in err, err
     assert _snapshot(at12) == before
     with pytest.raises(ValueError, match="model_kind"):
-        train_cli.run(dataclasses.replace(CFG, model_kind="mlp"), at12, resume=True)
+        loop.run(dataclasses.replace(CFG, model_kind="mlp"), at12, resume=True)
     assert _snapshot(at12) == before
 
 
@@ -175,10 +174,10 @@ def test_a_run_dir_that_cannot_hold_a_run_is_a_value_error(tmp_path, monkeypatch
         code, _, err = _cli([*QUIET, "--run-dir", str(path)], capsys)
         assert code == 2 and fragment in err
         with pytest.raises(ValueError, match=fragment):
-            train_cli.run(CFG, path)
+            loop.run(CFG, path)
     monkeypatch.setattr(os, "access", lambda *args, **kwargs: False)  # as for a non-root user
     with pytest.raises(ValueError, match="not writable"):
-        train_cli.run(CFG, tmp_path)
+        loop.run(CFG, tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
 
 
@@ -187,7 +186,7 @@ def test_a_half_written_metrics_line_does_not_block_resume(at12):
     with metrics.open("a") as file:
         file.write('{"kind": "train", "step": 13, "lo')
     said = []
-    result = train_cli.run(CFG, at12, resume=True, stop_at=13, progress=False, log=said.append)
+    result = loop.run(CFG, at12, resume=True, stop_at=13, progress=False, log=said.append)
     assert result.status == "stopped"
     assert any(f"Dropped the half-written last line of {metrics}" in line for line in said)
     assert [r["step"] for r in _records(at12)][-1] == 13
@@ -199,7 +198,7 @@ def test_a_bad_metrics_line_inside_the_file_is_named_before_anything_is_written(
     (at12 / "metrics.jsonl").write_text("\n".join(lines) + "\n")
     before = _snapshot(at12)
     with pytest.raises(ValueError, match=f"{at12 / 'metrics.jsonl'} line 2"):
-        train_cli.run(CFG, at12, resume=True)
+        loop.run(CFG, at12, resume=True)
     assert _snapshot(at12) == before
 
 
@@ -236,7 +235,7 @@ def test_a_damaged_newest_step_names_the_intact_one_and_from_step_resumes_it(at1
 
 
 def test_a_non_finite_state_is_not_saved_and_stops_the_run(tmp_path, monkeypatch):
-    objective, step_fn, eval_fn = train_cli.compiled_functions(CFG)
+    objective, step_fn, eval_fn = loop.compiled_functions(CFG)
 
     def blows_up_at_10(state, scenes):  # finite loss, but the new params hold NaN (lr=1e30)
         state, metrics = step_fn(state, scenes)
@@ -244,12 +243,12 @@ def test_a_non_finite_state_is_not_saved_and_stops_the_run(tmp_path, monkeypatch
             state = state.replace(params=jax.tree.map(lambda x: x * jnp.nan, state.params))
         return state, metrics
 
-    monkeypatch.setattr(train_cli, "compiled_functions",
-                        lambda cfg, mesh=None: train_cli.Compiled(objective, blows_up_at_10,
-                                                                   eval_fn))
+    monkeypatch.setattr(loop, "compiled_functions",
+                        lambda cfg, mesh=None: loop.Compiled(objective, blows_up_at_10,
+                                                              eval_fn))
     said = []
     cfg = dataclasses.replace(CFG, ckpt_every=5)
-    result = train_cli.run(cfg, tmp_path, progress=False, log=said.append)
+    result = loop.run(cfg, tmp_path, progress=False, log=said.append)
     assert result.status == "nan" and result.step == 10 and result.state is None
     assert any("refusing to save step 10" in line and "params/" in line for line in said)
     assert checkpoint.saved_steps(tmp_path) == [5]
@@ -266,7 +265,7 @@ def test_a_full_disk_stops_with_one_short_message(at12, monkeypatch, capsys):
     monkeypatch.setattr(ocp.CheckpointManager, "save", full_disk)
     code, _, err = _cli(["--resume", "--run-dir", str(at12), "--stop-at", "13",
                          "--no-progress"], capsys)
-    assert code == train_cli.EXIT_WRITE_FAILED
+    assert code == cli.EXIT_WRITE_FAILED
     assert err.count("\n") == 1 and "No space left on device" in err
     assert "Event loop" not in err and f"--resume --run-dir {at12}" in err
     assert checkpoint.saved_steps(at12) == [10, 12]
@@ -295,6 +294,6 @@ def test_ctrl_c_during_data_generation_exits_cleanly(tmp_path):
             proc.send_signal(signal.SIGINT)
             break
     out.write(proc.stdout.read())
-    assert proc.wait(timeout=120) == train_cli.EXIT_INTERRUPTED, out.getvalue()
+    assert proc.wait(timeout=120) == cli.EXIT_INTERRUPTED, out.getvalue()
     assert "Interrupted" in out.getvalue()
     assert not (tmp_path / "run" / rundir.LOCK_NAME).exists()

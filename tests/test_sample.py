@@ -1,4 +1,4 @@
-"""Tests for flowmaps_jax.sample: shapes, keys, validation, exact likelihood, checkpoint loading.
+"""Tests for flowmaps_jax.predictor: shapes, keys, validation, exact likelihood, checkpoint loading.
 
 One tiny model config is shared by every test (module fixtures), so each jitted function compiles
 once per input shape.
@@ -16,7 +16,7 @@ import pytest
 from support import TINY, perturb, synthetic_queries, synthetic_tokens
 
 from flowmaps_jax import flow, model
-from flowmaps_jax.sample import Predictor, load
+from flowmaps_jax.predictor import Predictor, load, load_pretrained
 from flowmaps_jax.tokens import SceneTokens
 
 CFG = TINY
@@ -84,11 +84,11 @@ def test_sample_is_deterministic_by_key(flowmaps, inputs):
 
 def test_trailing_padding_is_dropped_without_changing_results(flowmaps, inputs):
     """The predictor trims empty token slots before the jitted model; results must not change."""
-    from flowmaps_jax.model.sampling import flow_sample
-    from flowmaps_jax.sample import _scene_keys
+    from flowmaps_jax.model.inference import flow_sample
+    from flowmaps_jax.predictor import scene_keys
 
     tokens, queries = inputs
-    keys = _scene_keys(jax.random.key(4), B)
+    keys = scene_keys(jax.random.key(4), B)
     untrimmed = flow_sample(flowmaps.params, CFG, jax.tree.map(jnp.asarray, tokens),
                             jax.tree.map(jnp.asarray, queries), keys, 8)
     trimmed = flowmaps.sample(tokens, queries, 8, keys)
@@ -304,7 +304,7 @@ def test_load_errors_are_value_errors(tmp_path, checkpoints):
 
 
 def test_exported_weights_load_as_the_same_predictor(tmp_path, checkpoints, inputs):
-    from flowmaps_jax.pretrained import export_pretrained, load_pretrained
+    from flowmaps_jax.export import export_pretrained
 
     path, _ = checkpoints["flowmaps"]
     export_pretrained(path, "flowmaps", tmp_path)
@@ -325,7 +325,7 @@ def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
     CLI exports the last step by default and the best-by-validation one with --which best."""
     import json
 
-    from flowmaps_jax import pretrained
+    from flowmaps_jax import export, shipped
     from flowmaps_jax.training import checkpoint
 
     path, state = checkpoints["flowmaps"]
@@ -339,13 +339,13 @@ def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
     for which, step in (("latest", 7), ("best", 3)):
         out = tmp_path / which
         args = ["--checkpoint", str(run), "--name", "flowmaps", "--out", str(out)]
-        assert pretrained.main(args + ([] if which == "latest" else ["--which", "best"])) == 0
+        assert export.main(args + ([] if which == "latest" else ["--which", "best"])) == 0
         meta = json.loads((out / "flowmaps.json").read_text())
         assert (meta["which"], meta["step"]) == (which, step)
         assert f"step {step}" in meta["why"]
         assert f"step {step} ({which}: " in capsys.readouterr().out
-        assert pretrained.describe("flowmaps", out)["which"] == which
-        loaded = pretrained.load_pretrained("flowmaps", out)
+        assert shipped.describe("flowmaps", out)["which"] == which
+        loaded = load_pretrained("flowmaps", out)
         want = load(run, which=which)
         assert loaded.step == want.step == step
         same = jax.tree_util.tree_map(np.array_equal, loaded.params, want.params)
@@ -353,13 +353,13 @@ def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
     assert "best validation loss was at step 3" in json.loads(
         (tmp_path / "latest" / "flowmaps.json").read_text())["why"]
     # a given reason is stored as given; a run without a best step exports its last, and says so
-    pretrained.export_pretrained(run, "flowmaps", tmp_path / "why", why="the docs use it")
-    assert pretrained.describe("flowmaps", tmp_path / "why")["why"] == "the docs use it"
-    pretrained.export_pretrained(path, "flowmaps", tmp_path / "nobest", which="best")
-    info = pretrained.describe("flowmaps", tmp_path / "nobest")
+    export.export_pretrained(run, "flowmaps", tmp_path / "why", why="the docs use it")
+    assert shipped.describe("flowmaps", tmp_path / "why")["why"] == "the docs use it"
+    export.export_pretrained(path, "flowmaps", tmp_path / "nobest", which="best")
+    info = shipped.describe("flowmaps", tmp_path / "nobest")
     assert info["which"] == "latest" and "no best" in info["why"]
     with pytest.raises(ValueError, match="which"):
-        pretrained.export_pretrained(run, "flowmaps", tmp_path / "bad", which="first")
+        export.export_pretrained(run, "flowmaps", tmp_path / "bad", which="first")
 
 
 def test_shipped_json_without_which_still_loads(tmp_path):
@@ -368,29 +368,29 @@ def test_shipped_json_without_which_still_loads(tmp_path):
     import json
     import shutil
 
-    from flowmaps_jax import pretrained
+    from flowmaps_jax import shipped
 
-    for name in pretrained.available():
-        meta = json.loads((pretrained.PRETRAINED_DIR / f"{name}.json").read_text())
-        info = pretrained.describe(name)
+    for name in shipped.available():
+        meta = json.loads((shipped.PRETRAINED_DIR / f"{name}.json").read_text())
+        info = shipped.describe(name)
         assert info["which"] == meta.get("which", "unknown") and info["step"] == meta["step"]
     for name in ("mlp",):
-        shutil.copy(pretrained.PRETRAINED_DIR / f"{name}.npz", tmp_path)
-        meta = json.loads((pretrained.PRETRAINED_DIR / f"{name}.json").read_text())
+        shutil.copy(shipped.PRETRAINED_DIR / f"{name}.npz", tmp_path)
+        meta = json.loads((shipped.PRETRAINED_DIR / f"{name}.json").read_text())
         meta.pop("which", None)
         (tmp_path / f"{name}.json").write_text(json.dumps(meta))
-        assert pretrained.describe(name, tmp_path)["which"] == "unknown"
-        assert pretrained.load_pretrained(name, tmp_path).step == meta["step"]
+        assert shipped.describe(name, tmp_path)["which"] == "unknown"
+        assert load_pretrained(name, tmp_path).step == meta["step"]
         (tmp_path / f"{name}.json").write_text(json.dumps({**meta, "which": "first"}))
         with pytest.raises(ValueError, match="which 'first'"):
-            pretrained.load_pretrained(name, tmp_path)
+            load_pretrained(name, tmp_path)
         with pytest.raises(ValueError, match="which 'first'"):
-            pretrained.describe(name, tmp_path)
+            shipped.describe(name, tmp_path)
 
 
 def test_pretrained_errors_are_value_errors(tmp_path, checkpoints):
-    from flowmaps_jax.pretrained import export_pretrained, load_pretrained
-    from flowmaps_jax.sample import load_pretrained as public_load
+    from flowmaps_jax.export import export_pretrained
+    from flowmaps_jax.sample import load_pretrained as public_load  # the deprecated alias
 
     with pytest.raises(ValueError, match=r"flowmaps.*mlp.*mlp-learned"):
         public_load("flowmap")

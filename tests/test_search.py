@@ -342,7 +342,7 @@ def test_cli_rejects_bad_arguments_before_loading_models(capsys):
 def test_cli_prints_the_checkpoint_and_step_of_each_model(capsys, monkeypatch, tmp_path):
     """Before searching, the CLI names every model with where it was loaded from and its step,
     as evaluate does."""
-    from flowmaps_jax.sample import load_pretrained
+    from flowmaps_jax.predictor import load_pretrained
 
     def stop(*args, **kwargs):
         raise ValueError("stopped after the models were loaded")

@@ -16,10 +16,9 @@ import numpy as np
 import optax
 import pytest
 
-from flowmaps_jax.sample import load
+from flowmaps_jax.predictor import load
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
-from flowmaps_jax.training import checkpoint, data, objectives
-from flowmaps_jax.training import loop as train_cli
+from flowmaps_jax.training import checkpoint, cli, data, loop, objectives
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import apply_overrides, get_preset
 
@@ -124,7 +123,7 @@ def flow_setup():
     """The smoke FlowMaps model with a compiled (unfused) train step, shared. The objective and
     eval loss are the CLI's cached ones for SMOKE, so their compilation is shared too."""
     cfg = apply_overrides(SMOKE, {"lr": 3e-3, "steps": 200, "warmup_steps": 0})
-    objective, _, eval_fn = train_cli.compiled_functions(SMOKE)
+    objective, _, eval_fn = loop.compiled_functions(SMOKE)
     return {"cfg": cfg, "objective": objective,
             "step_fn": train_state.make_train_step(cfg, objective),
             "eval_fn": eval_fn,
@@ -233,7 +232,7 @@ def straight_run(tmp_path_factory):
     data._SPLIT_CACHE.clear()  # generate the splits here, whatever ran before (it is printed)
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        code = train_cli.main(["--preset", "smoke", "--run-dir", str(run_dir), "--no-progress"])
+        code = cli.main(["--preset", "smoke", "--run-dir", str(run_dir), "--no-progress"])
     return code, run_dir, out.getvalue()
 
 
@@ -256,9 +255,9 @@ def test_cli_smoke_run_writes_config_metrics_and_checkpoints(straight_run):
     assert all(0.0 <= r["offset_+1"] <= 1.0 and r["search_cost_ratio"] >= 1.0 for r in routine)
     assert "Routines at step 20" in printed
     assert (run_dir / "routine_curve.png").stat().st_size > 10_000
-    state, config = checkpoint.restore_latest(run_dir, train_state.abstract_state(SMOKE))
+    state, config = checkpoint.restore(run_dir, train_state.abstract_state(SMOKE))[:2]
     assert int(state.step) == 20 and config == SMOKE.to_dict()
-    best, _ = checkpoint.restore_best(run_dir, train_state.abstract_state(SMOKE))
+    best = checkpoint.restore(run_dir, train_state.abstract_state(SMOKE), which="best").state
     assert int(best.step) in (10, 20)
     # the run directory is printed at the start; the summary names the best step and the last
     start = printed.index(f"Run directory: {run_dir.absolute()}")
@@ -275,15 +274,15 @@ def test_cli_smoke_run_writes_config_metrics_and_checkpoints(straight_run):
 
 def test_resume_continues_exactly(straight_run, tmp_path):
     straight_dir = straight_run[1]
-    first = train_cli.run(SMOKE, tmp_path, stop_at=10, progress=False)
+    first = loop.run(SMOKE, tmp_path, stop_at=10, progress=False)
     assert first.status == "stopped" and first.step == 10
-    second = train_cli.run(SMOKE, tmp_path, resume=True, progress=False)
+    second = loop.run(SMOKE, tmp_path, resume=True, progress=False)
     assert second.status == "done" and second.step == 20
     assert first.best_step == 10 and second.best_step in (10, 20)  # restored with the store
-    assert second.best_step == checkpoint.saved_step(tmp_path / "checkpoints", "best")
+    assert [second.best_step] == checkpoint.saved_steps(tmp_path / "checkpoints", "best")
     target = train_state.abstract_state(SMOKE)
-    split, _ = checkpoint.restore_latest(tmp_path, target)
-    straight, _ = checkpoint.restore_latest(straight_dir, target)
+    split = checkpoint.restore(tmp_path, target).state
+    straight = checkpoint.restore(straight_dir, target).state
     for a, b in zip(_leaves(split), _leaves(straight), strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
     records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
@@ -295,14 +294,14 @@ def test_ctrl_c_saves_a_checkpoint_and_stops(tmp_path):
         if step == 7:
             os.kill(os.getpid(), signal.SIGINT)
 
-    result = train_cli.run(SMOKE, tmp_path, on_step=press_ctrl_c, progress=False)
+    result = loop.run(SMOKE, tmp_path, on_step=press_ctrl_c, progress=False)
     assert result.status == "interrupted" and result.step == 7
-    state, _ = checkpoint.restore_latest(tmp_path, train_state.abstract_state(SMOKE))
+    state = checkpoint.restore(tmp_path, train_state.abstract_state(SMOKE)).state
     assert int(state.step) == 7
 
 
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch, capsys):
-    objective, step_fn, eval_fn = train_cli.compiled_functions(SMOKE)
+    objective, step_fn, eval_fn = loop.compiled_functions(SMOKE)
 
     def poisoned_step(state, scenes):
         step = int(state.step)
@@ -311,25 +310,25 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch
             metrics = {**metrics, "loss": jnp.float32(jnp.nan)}
         return state, metrics
 
-    monkeypatch.setattr(train_cli, "compiled_functions",
-                        lambda cfg, mesh=None: train_cli.Compiled(objective, poisoned_step,
-                                                                   eval_fn))
-    result = train_cli.run(SMOKE, tmp_path, progress=False)
+    monkeypatch.setattr(loop, "compiled_functions",
+                        lambda cfg, mesh=None: loop.Compiled(objective, poisoned_step,
+                                                              eval_fn))
+    result = loop.run(SMOKE, tmp_path, progress=False)
     assert result.status == "nan" and result.step == 12 and result.state is None
     assert "Loss is nan at step 13" in capsys.readouterr().out
-    state, _ = checkpoint.restore_latest(tmp_path, train_state.abstract_state(SMOKE))
+    state = checkpoint.restore(tmp_path, train_state.abstract_state(SMOKE)).state
     assert int(state.step) == 10  # the last good checkpoint; nothing saved after the NaN
     assert sorted(int(p.name) for p in (tmp_path / "checkpoints" / "last").iterdir()) == [10]
 
 
 def test_endless_data_is_fresh_and_resumes_exactly(straight_run, tmp_path):
     cfg = apply_overrides(SMOKE, {"data": "endless"})  # chunks of 64 new envs every 8 steps
-    straight = train_cli.run(cfg, tmp_path / "straight", progress=False)
-    train_cli.run(cfg, tmp_path / "split", stop_at=10, progress=False)  # stops mid-chunk
-    resumed = train_cli.run(cfg, tmp_path / "split", resume=True, progress=False)
+    straight = loop.run(cfg, tmp_path / "straight", progress=False)
+    loop.run(cfg, tmp_path / "split", stop_at=10, progress=False)  # stops mid-chunk
+    resumed = loop.run(cfg, tmp_path / "split", resume=True, progress=False)
     assert straight.status == resumed.status == "done"
     for a, b in zip(_leaves(straight.state), _leaves(resumed.state), strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
-    fixed_split, _ = checkpoint.restore_latest(straight_run[1], train_state.abstract_state(SMOKE))
+    fixed_split = checkpoint.restore(straight_run[1], train_state.abstract_state(SMOKE)).state
     pairs = zip(_leaves(straight.state.params), _leaves(fixed_split.params), strict=True)
     assert any(not np.allclose(a, b) for a, b in pairs)  # other data, other weights

@@ -18,7 +18,7 @@ from support import TINY, perturb
 from flowmaps_jax import distributed
 from flowmaps_jax.flowsim import generate
 from flowmaps_jax.model import init_params
-from flowmaps_jax.sample import Predictor
+from flowmaps_jax.predictor import Predictor
 from flowmaps_jax.training import checkpoint, loop, state
 from flowmaps_jax.training.config import apply_overrides, get_preset
 

@@ -30,7 +30,9 @@ from flowmaps_jax.evaluation.protocol import (
 )
 from flowmaps_jax.evaluation.report import markdown_table
 from flowmaps_jax.evaluation.run import run_evaluation
-from flowmaps_jax.sample import DEFAULT_NUM_STEPS, PRETRAINED_PREFIX, SOLVERS, load_model
+from flowmaps_jax.model.families import model_family
+from flowmaps_jax.model.family import DENSITY_FACTOR
+from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, PRETRAINED_PREFIX, SOLVERS, load_model
 from flowmaps_jax.validation import (
     check_int,
     check_output_dir,
@@ -57,26 +59,27 @@ def _parse_counts(text: str) -> tuple[int, ...]:
 def check_size(models, num_envs: int, config, args: argparse.Namespace) -> None:
     """The evaluation's memory and work, estimated before anything runs (the shared budget,
     :func:`flowmaps_jax.validation.check_resources`): ValueError naming the arguments."""
-    from flowmaps_jax.sample import _DENSITY_FACTOR, _ROW_BYTES
-
     e, m, f, d = num_envs, config.num_objects, config.num_furniture, args.kl_draws
     n, chunk = max(args.samples), min(args.chunk_envs, num_envs)
     queries = f"on {e} environments x {m} objects"
     check_resources(f"--kl-draws {d} {queries}", num_bytes=4 * e * m * d * (6 + 4 * f))
-    row = max(_ROW_BYTES[p.kind](p.model) for p in models)
+    families = [model_family(p.kind) for p in models]
+    sampling = max(fam.request_bytes(p.model, chunk * m * n, False)
+                   for fam, p in zip(families, models, strict=True))
     check_resources(f"--samples {n} {queries} ({len(models)} models)",
-                    num_bytes=4 * e * m * n * (4 * len(models) + 2 * f + 4) + chunk * m * n * row)
+                    num_bytes=4 * e * m * n * (4 * len(models) + 2 * f + 4) + sampling)
     check_resources(f"--kl-draws {d} x --chunk-envs {chunk}",
-                    num_bytes=chunk * m * d * row * _DENSITY_FACTOR)
+                    num_bytes=max(fam.request_bytes(p.model, chunk * m * d, True)
+                                  for fam, p in zip(families, models, strict=True)))
     logp_steps = args.num_steps if args.logp_steps is None else args.logp_steps
     flops = 0
-    for p in models:
+    for fam, p in zip(families, models, strict=True):
         per_query, per_map = network_flops(p.model, p.kind, config.max_tokens)
-        sampled = solver_evaluations(args.num_steps, args.method) if p.kind == "flowmaps" else 1
-        density = solver_evaluations(logp_steps, args.method) if p.kind == "flowmaps" else 1
+        sampled = solver_evaluations(args.num_steps, args.method) if fam.uses_solver else 1
+        density = solver_evaluations(logp_steps, args.method) if fam.uses_solver else 1
         accurate = getattr(args, "likelihood_steps", 0) or 0  # RK4 on N and 2N intervals
-        density += 12 * accurate if p.kind == "flowmaps" else 0
-        flops += e * m * (n * sampled + d * density * _DENSITY_FACTOR) * per_query + e * per_map
+        density += 12 * accurate if fam.uses_solver else 0
+        flops += e * m * (n * sampled + d * density * DENSITY_FACTOR) * per_query + e * per_map
     check_resources(f"--num-steps {args.num_steps} / --logp-steps {logp_steps} / "
                     f"--likelihood-steps {getattr(args, 'likelihood_steps', 0)} with --samples "
                     f"{n} and --kl-draws {d} {queries} ({len(models)} models)", flops=flops)

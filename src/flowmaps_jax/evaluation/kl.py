@@ -9,8 +9,9 @@ the other way round. KL(q‖p) = E_{x~q}[log q(x) − log p(x)] is estimated fro
 
 Shapes: ``...`` are free leading batch dims (one per query); ``K`` slots per query, padded to a
 common size, ``slot_mask`` (..., K) True on real slots (padded slots carry q_k = 0). Public
-functions validate their inputs once (shapes always, values on concrete arrays) and call a jitted
-core that does not.
+functions validate their inputs once (shapes always, values on concrete arrays) and call their
+core, the same name with ``_core`` appended, which checks nothing: the evaluation's own modules
+call the cores on arrays they built (:mod:`.protocol`).
 """
 
 from __future__ import annotations
@@ -24,8 +25,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.boxes import from_centre, to_centre
-from flowmaps_jax.evaluation._checks import check_boxes_values, check_distribution, check_same
-from flowmaps_jax.validation import check_array, check_int, check_mask, is_concrete
+from flowmaps_jax.validation import (
+    PROB_ATOL,
+    check_array,
+    check_int,
+    check_mask,
+    check_probabilities,
+    check_shape,
+    is_concrete,
+)
 
 CENTRE_SIGMA_SCALE = 0.35
 """Centre std of a mixture component as a fraction of the box side (h for cy, w for cx)."""
@@ -47,15 +55,21 @@ def _check_mixture(slot_probs, slot_boxes, slot_mask) -> tuple[int, ...]:
     """Shapes and values of (q, b, mask); returns the shape (..., K) of q."""
     q_shape = check_array("slot_probs", slot_probs, (..., None)).shape
     b_shape = check_array("slot_boxes", slot_boxes, (..., None, 4)).shape
-    check_same("slot_boxes", b_shape, (*q_shape, 4), "slot_probs.shape + (4,)")
+    check_shape("slot_boxes", b_shape, (*q_shape, 4), "slot_probs.shape + (4,)")
     if slot_mask is not None:
         check_mask("slot_mask", slot_mask, q_shape)
-    check_distribution("slot_probs", slot_probs, slot_mask)
-    if is_concrete(slot_probs, slot_mask):
+    check_probabilities("slot_probs", slot_probs, atol=PROB_ATOL, min_value=-PROB_ATOL,
+                        support=slot_mask, support_name="slot_mask")
+    if is_concrete(slot_probs, slot_boxes, slot_mask):
         active = np.asarray(slot_probs) > 0
         if slot_mask is not None:
             active &= np.asarray(slot_mask, bool)
-        check_boxes_values("slot_boxes", slot_boxes, active)
+        boxes = np.asarray(slot_boxes, dtype=np.float64)[active]
+        if not np.all(np.isfinite(boxes)):
+            raise ValueError("slot_boxes contains NaN or inf on real slots")
+        if np.any(boxes[:, 2:] <= 0.0):
+            raise ValueError("slot_boxes must have positive h and w on real slots (boxes are "
+                             "y, x, h, w)")
     return q_shape
 
 
@@ -91,8 +105,9 @@ def _active_components(slot_probs, slot_boxes, slot_mask):
 
 
 @jax.jit
-def _mixture_log_prob(x, slot_probs, slot_boxes, slot_mask):
-    """The mixture's log-density; the evaluation's only Gaussian density (components inline)."""
+def gt_mixture_log_prob_core(x, slot_probs, slot_boxes, slot_mask):
+    """Core of :func:`gt_mixture_log_prob` (no checks; ``x`` float32, ``slot_mask`` required):
+    the mixture's log-density, the evaluation's only Gaussian density (components inline)."""
     log_w, mu, sigma = _active_components(slot_probs, slot_boxes, slot_mask)
     z = (to_centre(x)[..., :, None, :] - mu[..., None, :, :]) / sigma[..., None, :, :]
     log_comp = (-0.5 * jnp.sum(z**2, axis=-1) - jnp.sum(jnp.log(sigma), axis=-1)[..., None, :]
@@ -111,13 +126,14 @@ def gt_mixture_log_prob(x: jnp.ndarray, slot_probs: jnp.ndarray, slot_boxes: jnp
     """
     q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
     x_shape = check_array("x", x, (..., None, 4)).shape
-    check_same("x.shape[:-2]", x_shape[:-2], q_shape[:-1], "the leading dims of slot_probs")
-    return _mixture_log_prob(jnp.asarray(x, jnp.float32), slot_probs, slot_boxes,
-                             _full_mask(q_shape, slot_mask))
+    check_shape("x.shape[:-2]", x_shape[:-2], q_shape[:-1], "the leading dims of slot_probs")
+    return gt_mixture_log_prob_core(jnp.asarray(x, jnp.float32), slot_probs, slot_boxes,
+                                    _full_mask(q_shape, slot_mask))
 
 
 @partial(jax.jit, static_argnames="n")
-def _sample_mixture(key, slot_probs, slot_boxes, slot_mask, n):
+def sample_gt_mixture_core(key, slot_probs, slot_boxes, slot_mask, n):
+    """Core of :func:`sample_gt_mixture` (no checks; ``slot_mask`` required)."""
     log_w, mu, sigma = _active_components(slot_probs, slot_boxes, slot_mask)
     k_slot, k_noise = jax.random.split(key)
     logits = jnp.broadcast_to(log_w[..., None, :], (*log_w.shape[:-1], n, log_w.shape[-1]))
@@ -136,7 +152,7 @@ def sample_gt_mixture(key: jax.Array, slot_probs: jnp.ndarray, slot_boxes: jnp.n
     """
     q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
     n = check_int("n", n)
-    return _sample_mixture(key, slot_probs, slot_boxes, _full_mask(q_shape, slot_mask), n)
+    return sample_gt_mixture_core(key, slot_probs, slot_boxes, _full_mask(q_shape, slot_mask), n)
 
 
 @jax.jit
@@ -152,7 +168,12 @@ def continuous_kl(log_q: jnp.ndarray, log_p: jnp.ndarray) -> Estimate:
     :func:`sample_gt_mixture`; log p exact for the model). Returns Estimate (...).
     """
     shape = check_array("log_q", log_q, (..., None)).shape
-    check_same("log_p", np.shape(log_p), shape, "same as log_q")
+    check_shape("log_p", np.shape(log_p), shape, "same as log_q")
     if shape[-1] < 2:
         raise ValueError(f"log_q needs at least 2 draws for a standard error; got {shape[-1]}")
+    return continuous_kl_core(log_q, log_p)
+
+
+def continuous_kl_core(log_q, log_p) -> Estimate:
+    """Core of :func:`continuous_kl` (no checks)."""
     return _mean_and_stderr(jnp.asarray(log_q, jnp.float32) - jnp.asarray(log_p, jnp.float32))

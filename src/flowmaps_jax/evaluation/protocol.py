@@ -15,7 +15,10 @@
   has TV 0.
 
 :func:`build_eval_queries` makes the :class:`EvalSet`; :func:`reference_rows` and
-:func:`evaluate_predictor` score it into :class:`RowResult` rows.
+:func:`evaluate_predictor` score it into :class:`RowResult` rows. Each checks its arguments once
+and calls its core (``_core`` appended), which checks nothing; :func:`.run.run_evaluation` checks
+everything up front and calls the cores. An EvalSet's arrays are built here from checked inputs,
+so the rows score it with the cores of :mod:`.kl` and :mod:`.slots`, not their public checks.
 """
 
 from __future__ import annotations
@@ -32,18 +35,22 @@ from flax import struct
 from tqdm import tqdm
 
 from flowmaps_jax import flow
-from flowmaps_jax.evaluation.kl import _mixture_log_prob, _sample_mixture, continuous_kl
+from flowmaps_jax.evaluation.kl import (
+    continuous_kl_core,
+    gt_mixture_log_prob_core,
+    sample_gt_mixture_core,
+)
 from flowmaps_jax.evaluation.slots import (
-    empirical_slots,
-    last_seen_slots,
-    oracle_slots,
-    sampled_oracle_slots,
-    slot_scores,
-    uniform_slots,
+    empirical_slots_core,
+    last_seen_slots_core,
+    oracle_slots_core,
+    sampled_oracle_slots_core,
+    slot_scores_core,
+    uniform_slots_core,
 )
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.dynamics import exact_posterior
-from flowmaps_jax.sample import DEFAULT_NUM_STEPS, Predictor
+from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import check_instance, check_int
 
@@ -170,9 +177,9 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
 
     # the ground truth is made here from validated inputs: the mixture's jitted cores directly
     kl_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_KL), e))(env)
-    points = jax.vmap(lambda k, p, b, bm: _sample_mixture(k, p, b, bm, kl_draws))(
+    points = jax.vmap(lambda k, p, b, bm: sample_gt_mixture_core(k, p, b, bm, kl_draws))(
         kl_keys, probs, boxes, mask)  # (E, M, kl_draws, 4), environment e from kl_keys[e]
-    log_q = _mixture_log_prob(points, probs, boxes, mask)
+    log_q = gt_mixture_log_prob_core(points, probs, boxes, mask)
     return EvalSet(env=env, tau=tau, tau_q=tau_q, tokens=tokens, queries=queries, obj=obj,
                    horizon=horizon.astype(jnp.int32), slot_now=slot_now.astype(jnp.int32),
                    num_slots=num_slots.astype(jnp.int32), slot_probs=probs, slot_boxes=boxes,
@@ -213,7 +220,7 @@ class RowResult:
 def _slot_entry(evalset: EvalSet, p_hat) -> dict[str, np.ndarray]:
     """One sample count's entry of RowResult.slots: p̂ and its slot scores against q."""
     return {"p_hat": np.asarray(p_hat),
-            **slot_scores(p_hat, evalset.slot_probs, evalset.slot_mask)}
+            **slot_scores_core(p_hat, evalset.slot_probs, evalset.slot_mask)}
 
 
 def check_counts(sample_counts: Sequence[int]) -> tuple[int, ...]:
@@ -249,29 +256,31 @@ def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMP
     density is q; only its slot histogram is noisy), as for smoothed-q samples.
     ``key``: the draws of "oracle samples" and "smoothed-q samples" (default ``key(0)``).
     """
-    return _reference_rows(evalset, check_counts(sample_counts), key)
+    return reference_rows_core(evalset, check_counts(sample_counts), key)
 
 
-def _reference_rows(evalset: EvalSet, counts: tuple[int, ...], key) -> list[RowResult]:
+def reference_rows_core(evalset: EvalSet, counts: tuple[int, ...], key) -> list[RowResult]:
+    """Core of :func:`reference_rows` (no checks; ``counts`` from :func:`check_counts`)."""
     key = jax.random.key(0) if key is None else key
-    exact = {"oracle": oracle_slots(evalset.slot_probs),
-             "last-seen": last_seen_slots(evalset.slot_now, evalset.num_slots_padded),
-             "uniform": uniform_slots(evalset.num_slots, evalset.num_slots_padded)}
-    kls = {name: continuous_kl(evalset.kl_log_q, _mixture_log_prob(
+    exact = {"oracle": oracle_slots_core(evalset.slot_probs),
+             "last-seen": last_seen_slots_core(evalset.slot_now, evalset.num_slots_padded),
+             "uniform": uniform_slots_core(evalset.num_slots, evalset.num_slots_padded)}
+    kls = {name: continuous_kl_core(evalset.kl_log_q, gt_mixture_log_prob_core(
                evalset.kl_points, p_exact[..., :-1], evalset.slot_boxes, evalset.slot_mask))
            for name, p_exact in exact.items()}
     rows = []
     for name in REFERENCE_ROWS:
         if name == "oracle samples":  # q's density, a fresh histogram of n draws per count
             kl = kls["oracle"]
-            slots = {n: _slot_entry(evalset, sampled_oracle_slots(
+            slots = {n: _slot_entry(evalset, sampled_oracle_slots_core(
                          jax.random.fold_in(jax.random.fold_in(key, _SALT_ORACLE), n),
-                         evalset.slot_probs, n)) for n in counts}
+                         jnp.asarray(evalset.slot_probs, jnp.float32), n)) for n in counts}
         elif name == "smoothed-q samples":  # boxes drawn from the continuous q, then assigned
             kl = kls["oracle"]
-            draws = _sample_mixture(jax.random.fold_in(key, _SALT_SMOOTHED), evalset.slot_probs,
-                                    evalset.slot_boxes, evalset.slot_mask, counts[-1])
-            slots = {n: _slot_entry(evalset, empirical_slots(
+            draws = sample_gt_mixture_core(jax.random.fold_in(key, _SALT_SMOOTHED),
+                                           evalset.slot_probs, evalset.slot_boxes,
+                                           evalset.slot_mask, counts[-1])
+            slots = {n: _slot_entry(evalset, empirical_slots_core(
                          draws[..., :n, :], evalset.slot_boxes, evalset.slot_mask))
                      for n in counts}
         else:  # exact slot distributions: the same scores for every n
@@ -301,11 +310,11 @@ def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
     2·n − 1 points; None skips it (``kl`` is then the paper grid's). ``likelihood_draws``: the
     accurate likelihood uses the first this-many KL draws of each query (all when fewer).
     """
-    return _evaluate_predictor(predictor, evalset, key, check_counts(sample_counts),
-                               check_int("chunk_envs", chunk_envs, 1),
-                               check_ode(num_steps, method, logp_steps), progress, name,
-                               check_likelihood_steps(likelihood_steps),
-                               check_int("likelihood_draws", likelihood_draws, 2))
+    return evaluate_predictor_core(predictor, evalset, key, check_counts(sample_counts),
+                                   check_int("chunk_envs", chunk_envs, 1),
+                                   check_ode(num_steps, method, logp_steps), progress, name,
+                                   check_likelihood_steps(likelihood_steps),
+                                   check_int("likelihood_draws", likelihood_draws, 2))
 
 
 def check_likelihood_steps(likelihood_steps) -> int | None:
@@ -315,10 +324,12 @@ def check_likelihood_steps(likelihood_steps) -> int | None:
     return flow.check_solver(likelihood_steps, "accurate", name="likelihood_steps")[0]
 
 
-def _evaluate_predictor(predictor, evalset: EvalSet, key, counts: tuple[int, ...],
-                        chunk_envs: int, ode: tuple[int, str, int], progress: bool,
-                        name: str | None, likelihood_steps: int | None = None,
-                        likelihood_draws: int = DEFAULT_LIKELIHOOD_DRAWS) -> RowResult:
+def evaluate_predictor_core(predictor, evalset: EvalSet, key, counts: tuple[int, ...],
+                            chunk_envs: int, ode: tuple[int, str, int], progress: bool,
+                            name: str | None, likelihood_steps: int | None = None,
+                            likelihood_draws: int = DEFAULT_LIKELIHOOD_DRAWS) -> RowResult:
+    """Core of :func:`evaluate_predictor` (no checks): ``counts`` from :func:`check_counts`,
+    ``ode`` from :func:`check_ode`, ``likelihood_steps`` from :func:`check_likelihood_steps`."""
     num_steps, method, logp_steps = ode
     n_max = counts[-1]
     num_envs = evalset.num_envs
@@ -359,16 +370,16 @@ def _evaluate_predictor(predictor, evalset: EvalSet, key, counts: tuple[int, ...
             log_p[k].append(v)
     seconds = time.perf_counter() - start
     samples_all = np.concatenate(samples)
-    kls = {k: continuous_kl(evalset.kl_log_q[:, :, :draws] if k == "accurate"
-                            else evalset.kl_log_q, jnp.asarray(np.concatenate(v)))
+    kls = {k: continuous_kl_core(evalset.kl_log_q[:, :, :draws] if k == "accurate"
+                                 else evalset.kl_log_q, jnp.asarray(np.concatenate(v)))
            for k, v in log_p.items() if k != "tight"}
     kl = kls["accurate"] if accurate else kls["paper"]
     kl_error = 0.0 if not flow_density else None
     if accurate:  # on the environments the tighter grid ran on: the same draws, so log p differs
         tight = np.concatenate(log_p["tight"])
         kl_error = abs(float(np.mean(np.concatenate(log_p["accurate"])[:len(tight)] - tight)))
-    slots = {n: _slot_entry(evalset, empirical_slots(samples_all[:, :, :n], evalset.slot_boxes,
-                                                     evalset.slot_mask))
+    slots = {n: _slot_entry(evalset, empirical_slots_core(
+                 samples_all[:, :, :n], evalset.slot_boxes, evalset.slot_mask))
              for n in counts}
     info = {"kind": predictor.kind, "source": predictor.source, "step": predictor.step,
             "seconds": round(seconds, 2), "num_steps": num_steps, "logp_steps": logp_steps,

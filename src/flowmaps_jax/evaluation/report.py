@@ -15,7 +15,11 @@ from collections.abc import Hashable, Sequence
 import numpy as np
 
 from flowmaps_jax.evaluation.protocol import EvalSet, RowResult
-from flowmaps_jax.evaluation.slots import ROUTE_OFFSET_LABELS, SLOT_METRICS, route_offset_mass
+from flowmaps_jax.evaluation.slots import (
+    ROUTE_OFFSET_LABELS,
+    SLOT_METRICS,
+    route_offset_mass_core,
+)
 from flowmaps_jax.flowsim.config import FlowSimConfig
 
 # --------------------------------------------------------------------------- aggregation
@@ -88,7 +92,7 @@ def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimC
     one_step = np.asarray(evalset.horizon) == 1
     for row in rows:
         p_hat = row.slots[max(row.slots)]["p_hat"]
-        mass = np.asarray(route_offset_mass(p_hat, evalset.slot_now, evalset.num_slots))
+        mass = np.asarray(route_offset_mass_core(p_hat, evalset.slot_now, evalset.num_slots))
         entry = {"route_offsets_one_step": {
                      "labels": list(ROUTE_OFFSET_LABELS), "count": int(one_step.sum()),
                      "mean": [_json_number(float(v)) for v in

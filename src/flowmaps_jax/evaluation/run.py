@@ -21,17 +21,17 @@ from flowmaps_jax.evaluation.protocol import (
     ERROR_ENVS,
     EvalSet,
     RowResult,
-    _evaluate_predictor,
-    _reference_rows,
     build_eval_queries,
     check_counts,
     check_likelihood_steps,
     check_ode,
+    evaluate_predictor_core,
+    reference_rows_core,
 )
 from flowmaps_jax.evaluation.report import summarise_rows, write_report
 from flowmaps_jax.evaluation.slots import ASSIGN_RADIUS
 from flowmaps_jax.flowsim.config import FlowSimConfig
-from flowmaps_jax.sample import DEFAULT_NUM_STEPS, Predictor
+from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.validation import check_int
 
 
@@ -49,7 +49,8 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     A flow's KL uses the accurate likelihood on ``likelihood_steps`` grid points (with its
     integration error; None: the paper's grid only), and the paper's grid is reported beside it.
 
-    Arguments are checked before any model runs. Returns (results dict as written to
+    Arguments are checked here, once, before any model runs (the rows are scored by the
+    protocol's cores, which check nothing). Returns (results dict as written to
     results.json, the RowResults, the EvalSet).
     """
     counts = check_counts(sample_counts)
@@ -68,11 +69,11 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     start = time.perf_counter()
     key = jax.random.key(seed)
     evalset = build_eval_queries(scenes, config, key, kl_draws)
-    rows = _reference_rows(evalset, counts, key)
+    rows = reference_rows_core(evalset, counts, key)
     names = unique_names([p.name for p in predictors])
     for predictor, name in zip(predictors, names, strict=True):
-        rows.append(_evaluate_predictor(predictor, evalset, key, counts, chunk_envs, ode,
-                                        progress, name, likelihood_steps, likelihood_draws))
+        rows.append(evaluate_predictor_core(predictor, evalset, key, counts, chunk_envs, ode,
+                                            progress, name, likelihood_steps, likelihood_draws))
     results = {
         "protocol": {"num_envs": evalset.num_envs, "objects_per_env": config.num_objects,
                      "num_queries": evalset.num_queries, "samples": list(counts),

@@ -13,7 +13,9 @@ predictors (oracle, oracle samples, last-seen, uniform) and the route-offset mas
 diagnostic are slot distributions too.
 
 Shapes: ``...`` are free leading batch dims (one per query); ``K`` slots padded to a common size,
-``slot_mask`` (..., K) True on real slots. Public functions validate once and call jitted cores.
+``slot_mask`` (..., K) True on real slots. Public functions validate once and call their core,
+the same name with ``_core`` appended, which checks nothing: the evaluation's own modules (and
+the search) call the cores on arrays they built.
 
 Ties: top-1 and the search cost break ties between slots with equal p̂ uniformly at random and
 report the expectation: deterministic, and independent of how slots happen to be numbered. Scores
@@ -28,9 +30,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.evaluation._checks import check_distribution, check_same
 from flowmaps_jax.evaluation.kl import CENTRE_SIGMA_SCALE
-from flowmaps_jax.validation import check_array, check_int, check_int_array, check_mask, is_concrete
+from flowmaps_jax.validation import (
+    PROB_ATOL,
+    check_array,
+    check_int,
+    check_int_array,
+    check_mask,
+    check_probabilities,
+    check_shape,
+    is_concrete,
+)
 
 ASSIGN_RADIUS = 0.05
 """The least assignment radius (normalised units): a sample whose centre lies this close to a slot's
@@ -47,6 +57,13 @@ SLOT_METRICS = ("tv", "top1", "search_cost_ratio")
 ROUTE_OFFSET_LABELS = ("0", "+1", "+2", "+3", "beyond", "off")
 """The entries of :func:`route_offset_mass`: route offsets 0 (stays) to +3, larger ones, off."""
 _ROUTE_OFFSETS = 4  # offsets reported one by one: 0, +1, +2, +3
+
+
+def _check_distribution(name: str, probs, slot_mask=None) -> None:
+    """Values of a slot distribution over the last axis (float32 round-off allowed), no mass
+    where ``slot_mask`` is False (an off bin beyond the mask is free)."""
+    check_probabilities(name, probs, atol=PROB_ATOL, min_value=-PROB_ATOL, support=slot_mask,
+                        support_name="slot_mask")
 
 
 # --------------------------------------------------------------------------- empirical p̂
@@ -95,13 +112,19 @@ def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jn
         raise ValueError(f"rule must be one of {ASSIGN_RULES}; got {rule!r}")
     s_shape = check_array("samples", samples, (..., None, 4)).shape
     b_shape = check_array("slot_boxes", slot_boxes, (..., None, 4)).shape
-    check_same("samples.shape[:-2]", s_shape[:-2], b_shape[:-2], "the leading dims of slot_boxes")
+    check_shape("samples.shape[:-2]", s_shape[:-2], b_shape[:-2], "the leading dims of slot_boxes")
     check_mask("slot_mask", slot_mask, b_shape[:-1])
     if is_concrete(radius) and not float(radius) > 0:
         raise ValueError(f"radius must be positive; got {radius}")
+    return empirical_slots_core(samples, slot_boxes, slot_mask, radius, rule)
+
+
+def empirical_slots_core(samples, slot_boxes, slot_mask, radius=ASSIGN_RADIUS,
+                         rule: str = "v2") -> jnp.ndarray:
+    """Core of :func:`empirical_slots` (no checks; ``slot_boxes`` an array)."""
     assignment = _assign(jnp.asarray(samples, jnp.float32), jnp.asarray(slot_boxes, jnp.float32),
                          jnp.asarray(slot_mask, bool), radius, rule)
-    return _histogram(assignment, b_shape[-2])
+    return _histogram(assignment, slot_boxes.shape[-2])
 
 
 # --------------------------------------------------------------------------- scores against q
@@ -159,10 +182,15 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
     """
     q_shape = check_array("q", q, (..., None)).shape
     p_shape = check_array("p_hat", p_hat, (..., None)).shape
-    check_same("p_hat", p_shape, (*q_shape[:-1], q_shape[-1] + 1), "q's K slots plus the off bin")
+    check_shape("p_hat", p_shape, (*q_shape[:-1], q_shape[-1] + 1), "q's K slots plus the off bin")
     check_mask("slot_mask", slot_mask, q_shape)
-    check_distribution("q", q, slot_mask)
-    check_distribution("p_hat", p_hat, slot_mask)
+    _check_distribution("q", q, slot_mask)
+    _check_distribution("p_hat", p_hat, slot_mask)
+    return slot_scores_core(p_hat, q, slot_mask)
+
+
+def slot_scores_core(p_hat, q, slot_mask) -> dict[str, np.ndarray]:
+    """Core of :func:`slot_scores` (no checks)."""
     p_hat, q = jnp.asarray(p_hat, jnp.float32), jnp.asarray(q, jnp.float32)
     mask = jnp.asarray(slot_mask, bool)
     ratio = _search_cost(p_hat[..., :-1], q, mask) / _search_cost(q, q, mask)
@@ -176,13 +204,19 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
 def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
     """The oracle predictor: q itself. (..., K) → (..., K + 1) with an empty off bin."""
     check_array("q", q, (..., None))
-    check_distribution("q", q)
+    _check_distribution("q", q)
+    return oracle_slots_core(q)
+
+
+def oracle_slots_core(q) -> jnp.ndarray:
+    """Core of :func:`oracle_slots` (no checks)."""
     q = jnp.asarray(q, jnp.float32)
     return jnp.concatenate([q, jnp.zeros_like(q[..., :1])], axis=-1)
 
 
 @partial(jax.jit, static_argnames="n")
-def _sampled_slots(key, q, n):
+def sampled_oracle_slots_core(key, q, n):
+    """Core of :func:`sampled_oracle_slots` (no checks; ``q`` float32)."""
     draws = jax.random.categorical(key, jnp.log(q)[..., None, :], shape=(*q.shape[:-1], n))
     return _histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
 
@@ -194,9 +228,9 @@ def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:
     from n samples: the gap to the exact oracle is pure finite-sample noise.
     """
     check_array("q", q, (..., None))
-    check_distribution("q", q)
+    _check_distribution("q", q)
     n = check_int("n", n, 1)
-    return _sampled_slots(key, jnp.asarray(q, jnp.float32), n)
+    return sampled_oracle_slots_core(key, jnp.asarray(q, jnp.float32), n)
 
 
 @partial(jax.jit, static_argnames="num_slots")
@@ -211,6 +245,11 @@ def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     """
     num_slots = check_int("num_slots", num_slots)
     check_int_array("slot_now", slot_now, 0, num_slots - 1)
+    return last_seen_slots_core(slot_now, num_slots)
+
+
+def last_seen_slots_core(slot_now, num_slots: int) -> jnp.ndarray:
+    """Core of :func:`last_seen_slots` (no checks; ``num_slots`` an int)."""
     return _one_hot_slots(jnp.asarray(slot_now), num_slots)
 
 
@@ -228,6 +267,11 @@ def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     """
     num_slots = check_int("num_slots", num_slots)
     check_int_array("count", count, 1, num_slots)
+    return uniform_slots_core(count, num_slots)
+
+
+def uniform_slots_core(count, num_slots: int) -> jnp.ndarray:
+    """Core of :func:`uniform_slots` (no checks; ``num_slots`` an int)."""
     return _uniform_slots(jnp.asarray(count), num_slots)
 
 
@@ -261,5 +305,10 @@ def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
     k = shape[-1] - 1
     check_int_array("slot_now", slot_now, 0, k - 1, shape=shape[:-1])
     check_int_array("num_slots", num_slots, 1, k, shape=shape[:-1])
+    return route_offset_mass_core(p_hat, slot_now, num_slots)
+
+
+def route_offset_mass_core(p_hat, slot_now, num_slots) -> jnp.ndarray:
+    """Core of :func:`route_offset_mass` (no checks)."""
     return _route_offset_mass(jnp.asarray(p_hat, jnp.float32), jnp.asarray(slot_now, jnp.int32),
                               jnp.asarray(num_slots, jnp.int32))

@@ -1,6 +1,8 @@
 """FlowMaps model (Map Encoder + CDiT velocity network) and the MLP-Gaussian baseline.
 
-Pure functions over explicit params pytrees; see ``docs/design.md`` for the shapes.
+Pure functions over explicit params pytrees; see ``docs/design.md`` for the shapes. Each model
+family (:class:`ModelFamily`: init, jitted inference cores, memory estimate, label) is registered
+by name in :data:`MODEL_FAMILIES` (:mod:`flowmaps_jax.model.families`).
 """
 
 from flowmaps_jax.model.baseline import (
@@ -10,6 +12,8 @@ from flowmaps_jax.model.baseline import (
     init_baseline,
 )
 from flowmaps_jax.model.config import ModelConfig
+from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
+from flowmaps_jax.model.family import ModelFamily
 from flowmaps_jax.model.flowmaps import (
     Context,
     check_inputs,
@@ -21,8 +25,10 @@ from flowmaps_jax.model.flowmaps import (
 )
 
 __all__ = [
+    "MODEL_FAMILIES",
     "Context",
     "ModelConfig",
+    "ModelFamily",
     "baseline_log_prob",
     "baseline_loss",
     "baseline_predict",
@@ -32,5 +38,6 @@ __all__ = [
     "init_baseline",
     "init_params",
     "make_velocity_fn",
+    "model_family",
     "velocity",
 ]

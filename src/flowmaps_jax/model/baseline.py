@@ -3,6 +3,11 @@
 Head input per query: [pooled map (D), Embed(query descriptor), Embed(τ), Embed(τ_q)] → MLP →
 mean (4) (+ log-variance (4) for the ``"learned"`` variant; the ``"mean"`` variant has unit
 variance, as the paper's reference). ``config.baseline_variance`` picks the variant.
+
+This file is the whole family (the worked example of docs/design.md, "Adding a model family"):
+the network, its loss, its jitted inference cores (:func:`gaussian_sample`,
+:func:`gaussian_log_prob`, :func:`gaussian_sample_with_log_prob`) and :data:`FAMILY`, registered
+in :mod:`flowmaps_jax.model.families`.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ import jax.numpy as jnp
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.embeddings import FlatDense
 from flowmaps_jax.model.encoder import MapEncoder, example_inputs
+from flowmaps_jax.model.family import ModelFamily, scene_noise, without_solver
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
 
 LOG_VAR_RANGE = (-12.0, 4.0)  # keeps the learned variance away from 0 and from blowing up
@@ -85,3 +91,49 @@ def baseline_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array
     loss = -jnp.mean(baseline_log_prob(mean, log_var, batch.target))
     mse = jnp.mean(jnp.square(mean - batch.target))
     return loss, {"loss": loss, "mse": mse}
+
+
+# --------------------------------------------------------------------------- inference cores
+
+
+def _gaussian_draw(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
+                   keys: jax.Array, num_samples: int, with_log_prob: bool = False):
+    """mean + exp(log_var / 2) · ε per query, ε from keys (B,); with its log-density if asked."""
+    mean, log_var = baseline_predict(params, config, tokens, queries)
+    eps = scene_noise(keys, (mean.shape[1], num_samples, 4))
+    x = mean[:, :, None] + jnp.exp(0.5 * log_var)[:, :, None] * eps
+    if not with_log_prob:
+        return x
+    return x, baseline_log_prob(mean[:, :, None], log_var[:, :, None], x)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "num_samples"))
+def gaussian_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
+                    keys: jax.Array, num_samples: int) -> jnp.ndarray:
+    """MLP-baseline samples (B, Q, N, 4): mean + exp(log_var / 2) · ε, ε from keys (B,)."""
+    return _gaussian_draw(params, config, tokens, queries, keys, num_samples)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def gaussian_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
+                      x: jnp.ndarray) -> jnp.ndarray:
+    """Closed-form diagonal-Gaussian log-density (B, Q, N) of x (B, Q, N, 4) under the baseline."""
+    mean, log_var = baseline_predict(params, config, tokens, queries)
+    return baseline_log_prob(mean[:, :, None], log_var[:, :, None], x)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "num_samples"))
+def gaussian_sample_with_log_prob(params, config: ModelConfig, tokens: SceneTokens,
+                                  queries: Queries, keys: jax.Array, num_samples: int
+                                  ) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """MLP-baseline samples (B, Q, N, 4) and their closed-form log-density (B, Q, N)."""
+    return _gaussian_draw(params, config, tokens, queries, keys, num_samples, with_log_prob=True)
+
+
+FAMILY = ModelFamily(
+    name="mlp", init=init_baseline, sample=without_solver(gaussian_sample),
+    sample_with_log_prob=without_solver(gaussian_sample_with_log_prob),
+    log_prob=without_solver(gaussian_log_prob),
+    label=lambda config: f"MLP ({config.baseline_variance})",
+    row_bytes=lambda config: 64, uses_solver=False, gaussian=baseline_predict)
+"""The MLP-Gaussian baseline: one closed-form Gaussian per query, no ODE."""

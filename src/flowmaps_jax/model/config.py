@@ -2,7 +2,8 @@
 
 Frozen so it is hashable and can be a static argument of ``jax.jit``. The defaults are the paper's
 size (D = 256, 8 encoder layers, 8 CDiT blocks, 8 heads, dropout 0.1); training presets live in
-:mod:`flowmaps_jax.config`.
+:mod:`flowmaps_jax.training.config`. :meth:`ModelConfig.from_dict` reads the ``model`` section of a
+stored run config (a checkpoint's or a shipped model's).
 """
 
 from __future__ import annotations
@@ -15,6 +16,9 @@ BASELINE_VARIANCES = ("mean", "learned")
 HEADS = ("velocity", "pointer", "route")
 PRECISIONS = ("float32", "bf16")
 POINTER_WIDTHS = ("absolute", "relative")
+REMOVED_FIELDS = ("max_tokens",)
+"""Fields that older configs carry and that configured nothing: :meth:`ModelConfig.from_dict`
+drops them, so configs saved with them still load."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,3 +104,17 @@ class ModelConfig:
     def head_dim(self) -> int:
         """Width of one attention head, ``dim // heads``."""
         return self.dim // self.heads
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ModelConfig:
+        """The config a ``dataclasses.asdict`` / JSON dict describes (a stored run config's
+        ``model`` section). Unknown keys raise ``ValueError`` naming them; the fields in
+        :data:`REMOVED_FIELDS` are dropped."""
+        if not isinstance(data, dict):
+            raise ValueError(f"the model config must be a dict; got {type(data).__name__}")
+        known = {field.name for field in dataclasses.fields(cls)}
+        data = {k: v for k, v in data.items() if k not in REMOVED_FIELDS}
+        unknown = sorted(set(data) - known, key=str)
+        if unknown:
+            raise ValueError(f"the model config has unknown keys {unknown} for ModelConfig")
+        return cls(**data)

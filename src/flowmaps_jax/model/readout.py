@@ -41,15 +41,15 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from flowmaps_jax.boxes import from_centre, to_centre
 from flowmaps_jax.model.embeddings import FlatDense
 from flowmaps_jax.model.precision import compute_dtype, einsum
-from flowmaps_jax.tokens import from_centre, to_centre
 
 _INIT_LOG_VAR = 2.0 * math.log(0.02)  # a component's initial std in flow units
-_INIT_REL_STD = (0.25, 0.25, 0.05, 0.05)  # relative widths: fractions of the object's (h, w, h, w)
+INIT_REL_STD = (0.25, 0.25, 0.05, 0.05)  # relative widths: fractions of the object's (h, w, h, w)
 
 
-def _diag(*values):
+def diagonal_init(*values):
     """A flax initialiser returning diag(values) (ignores the key)."""
     return lambda key, shape, dtype=jnp.float32: jnp.diag(jnp.asarray(values, dtype))
 
@@ -106,8 +106,8 @@ class PointerReadout(nn.Module):
         self.sow("intermediates", "anchor_logits", anchor)  # for the optional pointer loss
         source = jnp.where(keep, logits("source"), big_negative)
         source = jax.nn.softmax(source, axis=-1)
-        a_map = self.param("anchor_map", _diag(1.0, 1.0, 0.0, 0.0), (4, 4))
-        b_map = self.param("source_map", _diag(0.0, 0.0, 1.0, 1.0), (4, 4))
+        a_map = self.param("anchor_map", diagonal_init(1.0, 1.0, 0.0, 0.0), (4, 4))
+        b_map = self.param("source_map", diagonal_init(0.0, 0.0, 1.0, 1.0), (4, 4))
         bias = self.param("mean_bias", nn.initializers.zeros_init(), (4,))
         centres = to_centre(boxes)  # (B, S, 4)
         shared = jnp.einsum("bqns,bsd->bqnd", source, centres) @ b_map  # (B, Q, N, 4)
@@ -117,7 +117,7 @@ class PointerReadout(nn.Module):
         shift = FlatDense(4, kernel_init=zeros, precision=self.precision,
                           name="log_var_shift")(nn.silu(c))[:, :, None, None, :]  # (B, Q, 1, 1, 4)
         if self.widths == "relative":  # fractions of the object's size (the source's h, w)
-            init = [2.0 * math.log(r) / self.width_scale for r in _INIT_REL_STD]
+            init = [2.0 * math.log(r) / self.width_scale for r in INIT_REL_STD]
             theta = self.param("log_var", lambda key, shape: jnp.asarray(init, jnp.float32),
                                (4,))
             hw = jnp.array([2, 3, 2, 3])

@@ -39,10 +39,11 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from flowmaps_jax.boxes import from_centre, to_centre
 from flowmaps_jax.model.embeddings import FlatDense
 from flowmaps_jax.model.precision import compute_dtype, einsum
-from flowmaps_jax.model.readout import _INIT_REL_STD, _diag, mixture_velocity
-from flowmaps_jax.tokens import FURNITURE, OBJECT, from_centre, to_centre
+from flowmaps_jax.model.readout import INIT_REL_STD, diagonal_init, mixture_velocity
+from flowmaps_jax.tokens import FURNITURE, OBJECT
 
 _TINY = 1e-30
 
@@ -119,13 +120,13 @@ class RouteReadout(nn.Module):
         anchor = jnp.where(tables[:, None, :], jnp.log(jnp.maximum(weights, _TINY)),
                            big_negative)[:, :, None, :]  # (B, Q, 1, S)
         self.sow("intermediates", "anchor_logits", anchor)  # for the optional pointer loss
-        a_map = self.param("anchor_map", _diag(1.0, 1.0, 0.0, 0.0), (4, 4))
-        b_map = self.param("source_map", _diag(0.0, 0.0, 1.0, 1.0), (4, 4))
+        a_map = self.param("anchor_map", diagonal_init(1.0, 1.0, 0.0, 0.0), (4, 4))
+        b_map = self.param("source_map", diagonal_init(0.0, 0.0, 1.0, 1.0), (4, 4))
         bias = self.param("mean_bias", nn.initializers.zeros_init(), (4,))
         means = (to_centre(context.boxes) @ a_map)[:, None] + (
             to_centre(obj) @ b_map + bias)[:, :, None, :]  # (B, Q, S, 4) centre form
         means = self.box_scale * (from_centre(means) - self.box_offset)  # the flow's space
-        init = [2.0 * math.log(r) / self.width_scale for r in _INIT_REL_STD]
+        init = [2.0 * math.log(r) / self.width_scale for r in INIT_REL_STD]
         theta = self.param("log_rel_var", lambda key, shape: jnp.asarray(init, jnp.float32), (4,))
         side = self.box_scale * jnp.maximum(obj[..., (2, 3, 2, 3)], 1e-4)  # (B, Q, 4)
         log_var = self.width_scale * theta + 2.0 * jnp.log(side)

@@ -1,171 +1,18 @@
-"""Inference cores of both model kinds: jitted, unvalidated ``sample`` and ``log_prob``.
+"""Deprecated alias of flowmaps_jax.model.inference (and model.baseline), removed next release."""
 
-FlowMaps integrates its velocity field with :mod:`flowmaps_jax.flow` in the flow's data space
-z = box_scale · (box − box_offset); the MLP baseline is a closed-form diagonal Gaussian. The
-validated, user-facing wrapper is :class:`flowmaps_jax.sample.Predictor`, which picks the pair of
-a model kind from :data:`flowmaps_jax.training.objectives.MODEL_KINDS`.
-
-Shapes: tokens (B, S), queries (B, Q), keys (B,) one PRNG key per scene, boxes (B, Q, N, 4)
-normalised (y, x, h, w), log-densities (B, Q, N).
-"""
-
-from __future__ import annotations
-
-import functools
-import math
-
-import jax
-import jax.numpy as jnp
-
-from flowmaps_jax import flow
-from flowmaps_jax.model.baseline import baseline_log_prob, baseline_predict
-from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.flowmaps import (
-    encode,
-    make_velocity_fn,
-    route_mixture,
-    velocity_and_anchor_logits,
+from flowmaps_jax.model.baseline import (  # noqa: F401
+    gaussian_log_prob,
+    gaussian_sample,
+    gaussian_sample_with_log_prob,
 )
-from flowmaps_jax.model.route import mixture_log_prob
-from flowmaps_jax.tokens import Queries, SceneTokens
-
-DEFAULT_NUM_STEPS = 10
-"""ODE grid points (the reference's ``linspace(0, 1, 10)``): 18 midpoint evaluations."""
-
-
-def to_flow_space(box: jnp.ndarray, config: ModelConfig) -> jnp.ndarray:
-    """Normalised boxes (..., 4) → the flow's data space z = box_scale · (box − box_offset)."""
-    return config.box_scale * (box - config.box_offset)
-
-
-def from_flow_space(z: jnp.ndarray, config: ModelConfig) -> jnp.ndarray:
-    """Inverse of :func:`to_flow_space`: z (..., 4) → normalised boxes (..., 4)."""
-    return z / config.box_scale + config.box_offset
-
-
-def flow_space_log_det(config: ModelConfig) -> float:
-    """log |det ∂z/∂box| = 4 · log(box_scale): add to log p(z) to get log p(box)."""
-    return 4 * math.log(config.box_scale)
-
-
-
-def _noise(keys: jax.Array, shape: tuple[int, ...]) -> jnp.ndarray:
-    """Standard normal (B, *shape) with scene b drawn from keys[b]."""
-    return jax.vmap(lambda k: jax.random.normal(k, shape, jnp.float32))(keys)
-
-
-def _field_and_noise(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                     keys: jax.Array, num_samples: int):
-    """FlowMaps' velocity field for B scenes (maps encoded once) and its start noise
-    X_0 (B, Q, N, 4), scene b's noise from keys[b]."""
-    context = encode(params, config, tokens)
-    x0 = _noise(keys, (queries.tau_q.shape[1], num_samples, 4))
-    return make_velocity_fn(params, config, context, queries), x0
-
-
-@functools.partial(jax.jit, static_argnames=("config", "num_samples", "num_steps", "method"))
-def flow_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                keys: jax.Array, num_samples: int, num_steps: int = DEFAULT_NUM_STEPS,
-                method: str = "midpoint") -> jnp.ndarray:
-    """FlowMaps samples (B, Q, N, 4) normalised (y, x, h, w); keys (B,) one PRNG key per scene.
-
-    Encodes the B maps once, then integrates all B·Q·N noise rows together (``lax.scan`` over the
-    num_steps − 1 intervals). No validation: use :meth:`flowmaps_jax.sample.Predictor.sample`.
-    """
-    velocity_fn, x0 = _field_and_noise(params, config, tokens, queries, keys, num_samples)
-    return from_flow_space(flow.integrate(velocity_fn, x0, num_steps, method), config)
-
-
-@functools.partial(jax.jit, static_argnames=("config", "num_steps", "method"))
-def flow_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                  x: jnp.ndarray, num_steps: int = DEFAULT_NUM_STEPS,
-                  method: str = "midpoint") -> jnp.ndarray:
-    """Exact log-density (B, Q, N) of boxes x (B, Q, N, 4) under FlowMaps (change of variables).
-
-    Encodes the maps once; the backward ODE for all rows runs in one ``lax.scan`` in the flow's
-    space (``ModelConfig.box_scale``/``box_offset``), plus that map's constant log-Jacobian.
-    """
-    context = encode(params, config, tokens)
-    velocity_fn = make_velocity_fn(params, config, context, queries)
-    z = to_flow_space(x, config)
-    return flow.log_prob(velocity_fn, z, num_steps, method) + flow_space_log_det(config)
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def table_weights(params, config: ModelConfig, tokens: SceneTokens, queries: Queries
-                  ) -> jnp.ndarray:
-    """The mixture weight (B, Q, S) a read-out head puts on each token of the map, no sampling.
-
-    ``head="route"``: the mixture's weights themselves (x- and t-free). ``head="pointer"``: the
-    anchor softmax at t = 0 and x = 0. The pointer's anchor logits are trained (pointer loss) to
-    predict the target's table from (x_t, t); at t = 0 x_t is pure noise and tells nothing, so
-    there they estimate the posterior over tables given the map and the query alone, and the
-    flow starts from exactly that mixture. (Along the path the logits may drift, so the samples'
-    table frequencies can differ a little; tests/test_route.py and docs/results.md compare them.)
-    """
-    context = encode(params, config, tokens)
-    if config.head == "route":
-        log_w, _, _ = route_mixture(params, config, context, queries)
-        return jnp.exp(log_w)
-    b, q = queries.tau_q.shape
-    _, logits = velocity_and_anchor_logits(params, config, context, jnp.zeros((b, q, 1, 4)),
-                                           jnp.zeros((b, q)), queries)
-    return jax.nn.softmax(logits[:, :, 0], axis=-1)
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def route_mixture_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                           x: jnp.ndarray) -> jnp.ndarray:
-    """Closed-form log-density (B, Q, N) of boxes x (B, Q, N, 4) under the route head's mixture
-    (``head="route"``): FlowMaps' exact log-density while the head's residual is zero, the
-    reference the accurate likelihood is checked against."""
-    log_w, means, log_var = route_mixture(params, config, encode(params, config, tokens), queries)
-    return mixture_log_prob(log_w, means, log_var, to_flow_space(x, config)) + \
-        flow_space_log_det(config)
-
-
-def _gaussian_draw(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                   keys: jax.Array, num_samples: int, with_log_prob: bool = False):
-    """mean + exp(log_var / 2) · ε per query, ε from keys (B,); with its log-density if asked."""
-    mean, log_var = baseline_predict(params, config, tokens, queries)
-    eps = _noise(keys, (mean.shape[1], num_samples, 4))
-    x = mean[:, :, None] + jnp.exp(0.5 * log_var)[:, :, None] * eps
-    if not with_log_prob:
-        return x
-    return x, baseline_log_prob(mean[:, :, None], log_var[:, :, None], x)
-
-
-@functools.partial(jax.jit, static_argnames=("config", "num_samples"))
-def gaussian_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                    keys: jax.Array, num_samples: int) -> jnp.ndarray:
-    """MLP-baseline samples (B, Q, N, 4): mean + exp(log_var / 2) · ε, ε from keys (B,)."""
-    return _gaussian_draw(params, config, tokens, queries, keys, num_samples)
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def gaussian_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                      x: jnp.ndarray) -> jnp.ndarray:
-    """Closed-form diagonal-Gaussian log-density (B, Q, N) of x (B, Q, N, 4) under the baseline."""
-    mean, log_var = baseline_predict(params, config, tokens, queries)
-    return baseline_log_prob(mean[:, :, None], log_var[:, :, None], x)
-
-
-@functools.partial(jax.jit, static_argnames=("config", "num_samples", "num_steps", "method"))
-def flow_sample_with_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
-                              keys: jax.Array, num_samples: int,
-                              num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint"
-                              ) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """FlowMaps samples (B, Q, N, 4) with their exact log-density (B, Q, N) from one forward
-    solve of the augmented ODE (:func:`flowmaps_jax.flow.sample_with_log_prob`). The samples
-    equal :func:`flow_sample`'s for the same keys (to float rounding)."""
-    velocity_fn, x0 = _field_and_noise(params, config, tokens, queries, keys, num_samples)
-    z, log_p = flow.sample_with_log_prob(velocity_fn, x0, num_steps, method)
-    return from_flow_space(z, config), log_p + flow_space_log_det(config)
-
-
-@functools.partial(jax.jit, static_argnames=("config", "num_samples"))
-def gaussian_sample_with_log_prob(params, config: ModelConfig, tokens: SceneTokens,
-                                  queries: Queries, keys: jax.Array, num_samples: int
-                                  ) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """MLP-baseline samples (B, Q, N, 4) and their closed-form log-density (B, Q, N)."""
-    return _gaussian_draw(params, config, tokens, queries, keys, num_samples, with_log_prob=True)
+from flowmaps_jax.model.inference import (  # noqa: F401
+    DEFAULT_NUM_STEPS,
+    flow_log_prob,
+    flow_sample,
+    flow_sample_with_log_prob,
+    flow_space_log_det,
+    from_flow_space,
+    route_mixture_log_prob,
+    table_weights,
+    to_flow_space,
+)

@@ -16,27 +16,21 @@ The protocol is documented in docs/search.md.
     scores = search.episode_scores(outcome)            # sr@1..3, looks, travel, spl per episode
 
 Modules: ``probabilities`` (table probabilities of any prior, plain-dict form), ``policies``
-(most-probable, greedy, exact optimal DP, nearest), ``episodes`` (episodes, Bayes update, runs,
-FlowSim queries and priors), ``scores`` (SR@k, looks, travel, SPL, ratios), ``report`` (JSON,
-Markdown, figures) and ``cli`` (``python -m flowmaps_jax.search``).
+(most-probable, greedy, exact optimal DP, nearest), ``simulator`` (episodes, Bayes update, the
+jitted episode loop: no FlowSim), ``episodes`` (the FlowSim search set, its priors and the
+episodes they make), ``scores`` (SR@k, looks, travel, SPL, ratios), ``protocol`` (every prior
+by every policy), ``report`` and ``figures`` (JSON, Markdown, figures) and ``cli``
+(``python -m flowmaps_jax.search``).
 """
 
 from flowmaps_jax.search.episodes import (
-    DEFAULT_BUDGET,
     STARTS,
-    Episodes,
-    Outcome,
     SearchSet,
-    at_targets,
-    bayes_update,
     build_search_set,
     exact_tables,
-    expected_outcomes,
     last_seen_tables,
     make_episodes,
     predictor_tables,
-    run_episodes,
-    simulate,
     truth_probs,
     uniform_tables,
 )
@@ -62,6 +56,16 @@ from flowmaps_jax.search.scores import (
     spl,
     success_curves,
     summarise_scores,
+)
+from flowmaps_jax.search.simulator import (
+    DEFAULT_BUDGET,
+    Episodes,
+    Outcome,
+    at_targets,
+    bayes_update,
+    expected_outcomes,
+    run_episodes,
+    simulate,
 )
 
 __all__ = [

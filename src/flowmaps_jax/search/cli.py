@@ -21,10 +21,11 @@ from collections.abc import Sequence
 
 from flowmaps_jax import distributed
 from flowmaps_jax.flowsim import validation_split
-from flowmaps_jax.sample import PRETRAINED_PREFIX, load_model
+from flowmaps_jax.predictor import PRETRAINED_PREFIX, load_model
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import figures as fg
 from flowmaps_jax.search import protocol as pr
+from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.search.probabilities import TABLE_METHODS
 from flowmaps_jax.search.report import markdown_table, write_report
 from flowmaps_jax.validation import check_int, check_output_dir, check_seed
@@ -69,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
              "counts of --samples samples (the MLP baselines are always sampled)")
     add("--policies", nargs="+", default=list(pr.MAIN_POLICIES), choices=pr.MAIN_POLICIES,
         help="policies every prior is driven by")
-    add("--budget", type=int, default=ep.DEFAULT_BUDGET, help="looks per episode")
+    add("--budget", type=int, default=sim.DEFAULT_BUDGET, help="looks per episode")
     add("--p-miss", type=float, default=0.0, help="chance a look at the right table misses")
     add("--start", choices=ep.STARTS, default="centre", help="where the robot starts")
     add("--seed", type=int, default=0, help="seed of the queries, samples and misses")
@@ -115,7 +116,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name in ("num_envs", "times_per_env", "samples", "budget", "chunk_rows"):
             check_int("--" + name.replace("_", "-"), getattr(args, name))
         check_seed("--seed", args.seed)
-        ep.check_p_miss(args.p_miss)
+        sim.check_p_miss(args.p_miss)
         if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         out = pathlib.Path(check_output_dir(

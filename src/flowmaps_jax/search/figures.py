@@ -14,8 +14,9 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from flowmaps_jax.flowsim import FlowSimConfig
-from flowmaps_jax.search.episodes import Episodes, Outcome, SearchSet
+from flowmaps_jax.search.episodes import SearchSet
 from flowmaps_jax.search.report import POLICY_LABELS
+from flowmaps_jax.search.simulator import Episodes, Outcome
 
 _MAP = 2.6  # inches per map panel of plot_episodes
 _BELIEF = 2.1  # inches per belief panel beside it

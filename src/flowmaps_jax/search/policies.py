@@ -1,7 +1,8 @@
 """Search policies: which table to look at next, given the belief and where the robot stands.
 
 Every function here works on ONE episode (arrays without a batch axis) and is pure and jit-able;
-batches are ``jax.vmap`` of them (:func:`flowmaps_jax.search.episodes.run_episodes` does that).
+batches are ``jax.vmap`` of them (:func:`flowmaps_jax.search.simulator.run_episodes` does
+that).
 K is the (padded) number of candidate tables; ``valid`` (K,) marks the real ones.
 
 Policies (``POLICIES``), each re-planned after every failed look:

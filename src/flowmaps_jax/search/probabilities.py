@@ -25,6 +25,10 @@ Each row sums to 1.
 
 :func:`table_dict` gives the same numbers as plain Python dicts keyed by table (token) index,
 for planners outside JAX.
+
+Public functions check their arguments once; :func:`table_probabilities_core` and
+:func:`slots_to_tables_core` are their unchecked cores, which the search set
+(:mod:`.episodes`) calls on the FlowSim arrays it built.
 """
 
 from __future__ import annotations
@@ -115,7 +119,7 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
                         **sample_kwargs) -> jnp.ndarray:
     """Mass on each table of the map from a sampling model → (B, Q, S + 1) float32.
 
-    predictor: anything with :meth:`flowmaps_jax.sample.Predictor.sample` (FlowMaps or the MLP
+    predictor: anything with :meth:`flowmaps_jax.predictor.Predictor.sample` (FlowMaps or the MLP
     baseline). tokens: SceneTokens (B, S). queries: Queries (B, Q). num_samples: N boxes per query.
     key: one typed PRNG key (``jax.random.key``) or one per scene (B,), as ``Predictor.sample``.
     Entry s < S is the fraction of the N samples assigned to furniture token s (see the module
@@ -125,18 +129,38 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
     ``method="weights"``: a read-out head's explicit mixture weights instead
     (``predictor.table_weights``; ``num_samples`` and ``key`` unused), no sampling noise.
     """
+    num_samples = check_table_method(predictor, method, num_samples)
+    if method == "samples":
+        table_boxes(tokens, queries)  # checks the pair: every queried object is on its map
+    return table_probabilities_core(predictor, tokens, queries, num_samples, key, method,
+                                    **sample_kwargs)
+
+
+def check_table_method(predictor: Any, method: str, num_samples: int) -> int:
+    """``ValueError`` unless ``predictor`` can give table probabilities by ``method``
+    (:data:`TABLE_METHODS`); returns ``num_samples`` checked (≥ 1; unused by "weights")."""
     if method not in TABLE_METHODS:
         raise ValueError(f"method must be one of {TABLE_METHODS}; got {method!r}")
     if method == "weights":
         if not callable(getattr(predictor, "table_weights", None)):
             raise ValueError("method='weights' needs a predictor with table_weights (a FlowMaps "
                              f"Predictor with a read-out head); got {type(predictor).__name__}")
-        return predictor.table_weights(tokens, queries)
+        return num_samples
     if not callable(getattr(predictor, "sample", None)):
         raise ValueError(f"predictor must have a sample(tokens, queries, num_samples, key) method "
-                         f"(a flowmaps_jax.sample.Predictor); got {type(predictor).__name__}")
-    num_samples = check_int("num_samples", num_samples)
-    boxes, mask = table_boxes(tokens, queries)
+                         f"(a flowmaps_jax.predictor.Predictor); got {type(predictor).__name__}")
+    return check_int("num_samples", num_samples)
+
+
+def table_probabilities_core(predictor: Any, tokens: SceneTokens, queries: Queries,
+                             num_samples: int, key: jax.Array, method: str = "samples",
+                             **sample_kwargs) -> jnp.ndarray:
+    """Core of :func:`table_probabilities`: no checks of the arguments (see
+    :func:`check_table_method`) nor of the (tokens, queries) pair; the predictor's samples, its
+    own output, are checked as they are assigned (:func:`.slots.empirical_slots`)."""
+    if method == "weights":
+        return predictor.table_weights(tokens, queries)
+    boxes, mask = _table_boxes(tokens, queries)
     if "solver" in sample_kwargs:
         sample_kwargs["method"] = sample_kwargs.pop("solver")
     samples = predictor.sample(tokens, queries, num_samples, key, **sample_kwargs)
@@ -168,15 +192,21 @@ def slots_to_tables(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
     if probs.shape[:-1] != order[:-1] or probs.shape[-1] not in (order[-1], order[-1] + 1):
         raise ValueError(f"slot_probs must have shape {order} or {(*order[:-1], order[-1] + 1)} "
                          f"to match visit_order; got {probs.shape}")
-    if probs.shape[-1] == order[-1] + 1:
-        if not bool(jnp.all(probs[..., -1] == 0)):
-            raise ValueError("slot_probs has off mass; an exact prior puts all mass on slots")
-        probs = probs[..., :-1]
+    if probs.shape[-1] == order[-1] + 1 and not bool(jnp.all(probs[..., -1] == 0)):
+        raise ValueError("slot_probs has off mass; an exact prior puts all mass on slots")
     order_np = np.asarray(visit_order)
     if not np.issubdtype(order_np.dtype, np.integer) or np.any(order_np >= num_tokens):
         raise ValueError(f"visit_order must hold integer token indices < num_tokens={num_tokens} "
                          "(−1 for padding)")
-    return _slots_to_tables(probs, jnp.asarray(order_np, jnp.int32), num_tokens)
+    return slots_to_tables_core(probs, order_np, num_tokens)
+
+
+def slots_to_tables_core(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
+    """Core of :func:`slots_to_tables` (no checks; an off bin, if any, is dropped)."""
+    probs = jnp.asarray(slot_probs, jnp.float32)
+    if probs.shape[-1] == np.shape(visit_order)[-1] + 1:
+        probs = probs[..., :-1]
+    return _slots_to_tables(probs, jnp.asarray(visit_order, jnp.int32), num_tokens)
 
 
 # --------------------------------------------------------------------------- plain dicts

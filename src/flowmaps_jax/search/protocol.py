@@ -7,7 +7,9 @@ and nearest table first (no prior, travel only: the "nearest" policy, the same u
 policy column). Each row × policy is scored per episode (``scores.episode_scores``), summarised
 overall, by category and by horizon Δτ, and divided by the exact-posterior row under the same
 policy. With a perfect detector, every row is also scored in exact expectation over the true
-table (``episodes.expected_outcomes`` weighted by the exact posterior: no rollout noise).
+table (``simulator.expected_outcomes`` weighted by the exact posterior: no rollout noise).
+Each prior is checked once (``episodes.make_episodes``) and the policies, budget and sizes once
+(:func:`score_priors`), before any episode runs; the runs are the simulator's cores.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ from flowmaps_jax.evaluation.run import unique_names
 from flowmaps_jax.flowsim import FlowSimConfig, Scenes
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
-from flowmaps_jax.search.policies import POLICIES, check_policy
+from flowmaps_jax.search import simulator as sim
+from flowmaps_jax.search.policies import POLICIES, check_optimal_size, check_policy
 from flowmaps_jax.search.probabilities import ASSIGN_TOLERANCE, TABLE_METHODS
 from flowmaps_jax.validation import check_int
 
@@ -50,8 +53,8 @@ class RowRun:
 
     name: str
     policy: str
-    episodes: ep.Episodes
-    outcome: ep.Outcome
+    episodes: sim.Episodes
+    outcome: sim.Outcome
     scores: dict[str, np.ndarray]
     expected: dict[str, np.ndarray] | None
     kind_mass: np.ndarray
@@ -82,7 +85,7 @@ def _check_policies(policies: Sequence[str]) -> tuple[str, ...]:
 
 
 def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowSimConfig, *,
-                 policies: Sequence[str] = MAIN_POLICIES, budget: int = ep.DEFAULT_BUDGET,
+                 policies: Sequence[str] = MAIN_POLICIES, budget: int = sim.DEFAULT_BUDGET,
                  p_miss: float = 0.0, start: str = "centre", key: jax.Array | None = None,
                  progress: bool = True) -> tuple[dict, dict[tuple[str, str], RowRun]]:
     """Drive every prior in ``priors`` ({row name: table probabilities (R, M, S + 1)}; must
@@ -93,28 +96,34 @@ def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowS
     """
     policies = _check_policies(policies)
     budget = check_int("budget", budget)
-    p_miss = ep.check_p_miss(p_miss)
+    p_miss = sim.check_p_miss(p_miss)
     if EXACT_ROW not in priors:
         raise ValueError(f"priors must include the {EXACT_ROW!r} row (the reference)")
     key = jax.random.key(0) if key is None else key
     groups = episode_groups(search_set, config)
     truth = ep.truth_probs(search_set)
     uniform_episodes, _ = ep.make_episodes(search_set, ep.uniform_tables(search_set), start)
+    # each prior checked once, as it becomes episodes (the same for every policy)
+    made = {name: ep.make_episodes(search_set, table_probs, start)
+            for name, table_probs in priors.items()}
+    made[NEAREST_ROW] = uniform_episodes, np.ones(uniform_episodes.num_episodes)
+    n, k = uniform_episodes.num_episodes, uniform_episodes.num_tables
+    for policy in (*policies, "nearest"):  # the sizes, before any episode runs
+        if policy == "optimal":
+            check_optimal_size(int(np.asarray(uniform_episodes.valid).sum(-1).max()))
+        sim.check_episodes_size(n, k, budget, policy, copies=k if p_miss == 0.0 else 1)
     jobs = [(name, policy) for name in priors for policy in policies] + [(NEAREST_ROW, "nearest")]
     runs: dict[tuple[str, str], RowRun] = {}
     for name, policy in tqdm(jobs, desc="search episodes", unit="run", disable=not progress,
                              leave=False):
-        if name == NEAREST_ROW:
-            episodes, mass = uniform_episodes, np.ones(uniform_episodes.num_episodes)
-        else:
-            episodes, mass = ep.make_episodes(search_set, priors[name], start)
+        episodes, mass = made[name]
         if p_miss == 0.0:  # one run per hiding place: exact expectations, and the rollout's
-            every, weights = ep.expected_outcomes(episodes, truth, policy, budget)
-            outcome = ep.at_targets(every, episodes.target)
+            every, weights = sim.expected_outcomes_core(episodes, truth, policy, budget)
+            outcome = sim.at_targets(every, episodes.target)
             expected = sc.expected_scores(every, weights)
         else:  # the same misses for every row
             detector = jax.random.fold_in(key, _SALT_DETECTOR)
-            outcome = ep.run_episodes(episodes, policy, detector, budget, p_miss)
+            outcome = sim.run_episodes_core(episodes, policy, detector, budget, p_miss)
             expected = None
         runs[name, policy] = RowRun(name, policy, episodes, outcome, sc.episode_scores(outcome),
                                     expected, np.asarray(mass))
@@ -157,7 +166,7 @@ def _has_weights(predictor) -> bool:
 def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig, *,
                seed: int = 0, num_samples: int = DEFAULT_SAMPLES,
                times_per_env: int = DEFAULT_TIMES_PER_ENV, horizons: Sequence[int] | None = None,
-               policies: Sequence[str] = MAIN_POLICIES, budget: int = ep.DEFAULT_BUDGET,
+               policies: Sequence[str] = MAIN_POLICIES, budget: int = sim.DEFAULT_BUDGET,
                p_miss: float = 0.0, start: str = "centre", chunk_rows: int = 50,
                progress: bool = True, table_method: str = "weights", **sample_kwargs
                ) -> tuple[dict, dict[tuple[str, str], RowRun], ep.SearchSet]:

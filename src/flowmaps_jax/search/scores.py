@@ -55,7 +55,7 @@ def episode_scores(outcome) -> dict[str, np.ndarray]:
 
 def expected_scores(outcome, weights) -> dict[str, np.ndarray]:
     """Scores averaged over where the object hides: ``outcome`` with a leading (K, N) axis and
-    ``weights`` (K, N) (from ``episodes.expected_outcomes``) → each score (N,) (or (N, L))."""
+    ``weights`` (K, N) (from ``simulator.expected_outcomes``) → each score (N,) (or (N, L))."""
     scores = episode_scores(outcome)
     w = np.asarray(weights, np.float64)
     return {name: np.einsum("kn,kn...->n...", w, value) for name, value in scores.items()}

@@ -2,16 +2,24 @@
 
 Modules, in the order data flows through them:
 
-* :mod:`~flowmaps_jax.training.config`: ``TrainConfig``, the ``paper`` / ``cpu`` / ``smoke``
-  presets and ``--set key=value`` overrides.
+* :mod:`~flowmaps_jax.training.config`: ``TrainConfig`` (each field declaring its role: compiled
+  in, resumable), the ``paper`` / ``cpu`` / ``smoke`` presets.
+* :mod:`~flowmaps_jax.training.overrides`: ``--set key=value`` overrides and the config's JSON
+  round trip.
 * :mod:`~flowmaps_jax.training.data`: the FlowSim splits and the traceable batch sampler.
 * :mod:`~flowmaps_jax.training.objectives`: the CFM loss and one registry entry per model kind
   (init, loss, sample, log_prob).
 * :mod:`~flowmaps_jax.training.state`: ``TrainState``, optax optimiser and EMA, the jitted train
-  step and validation loss.
+  step and the val loss.
 * :mod:`~flowmaps_jax.training.checkpoint`: orbax checkpoints (last k + best), each step with
   SHA-256 checksums of its arrays (a ``meta`` item), non-finite state refused both ways.
 * :mod:`~flowmaps_jax.training.rundir`: one run per directory (refuse / ``--overwrite``, a lock
   file, atomic writes).
-* :mod:`~flowmaps_jax.training.loop`: ``run`` and the ``python -m flowmaps_jax.train`` CLI.
+* :mod:`~flowmaps_jax.training.runlog`: a run's bookkeeping: the claim on its directory,
+  ``metrics.jsonl``, the resume policy, the best val step, the summary.
+* :mod:`~flowmaps_jax.training.loop`: ``run``, the training loop (prelude, step loop, summary).
+* :mod:`~flowmaps_jax.training.cli`: the ``python -m flowmaps_jax.train`` command.
+
+"val" in training is the EMA loss on the fixed validation batches (``val_every``,
+``metrics.jsonl``'s ``"kind": "val"``); checking arguments is :mod:`flowmaps_jax.validation`.
 """

@@ -13,24 +13,35 @@ Presets (``get_preset(name)``):
   2-core CPU, with the recipe that learns the routines (pointer head; see :func:`cpu_preset`).
 * ``smoke`` — a tiny model on a tiny dataset that trains in seconds; used by the tests.
 
+Every field declares its role in a run (:data:`ROLES`): whether the compiled train step depends
+on it (:func:`compile_key`, the compile cache's key) and whether ``--resume`` may change it
+(:data:`RESUMABLE_FIELDS`). Both are derived from that one declaration.
+
 Any field, including nested ones (``model.dim``, ``flowsim.num_timesteps``), can be overridden from
-strings ``key=value`` (see :func:`apply_overrides`); values are converted to the field's type and
-unknown keys or bad values raise ``ValueError`` naming the key.
+strings ``key=value`` (:func:`apply_overrides`, in :mod:`flowmaps_jax.training.overrides`); values
+are converted to the field's type and unknown keys or bad values raise ``ValueError`` naming the
+key.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
+import functools
 import json
-import types
 import typing
-from typing import Any, Literal
+from typing import Any
 
 from flowmaps_jax.flow import T_SAMPLERS
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.training.objectives import MODEL_KINDS
+from flowmaps_jax.model.families import MODEL_FAMILIES as MODEL_KINDS
+from flowmaps_jax.training.overrides import (
+    SHORTHANDS,
+    apply_overrides,
+    config_from_dict,
+    config_to_dict,
+    flatten,
+)
 from flowmaps_jax.validation import (
     INT32_MAX,
     check_int,
@@ -43,6 +54,51 @@ from flowmaps_jax.validation import (
 )
 
 DATA_SOURCES = ("train", "endless")
+
+__all__ = ["DATA_SOURCES", "DEFAULT_PRESET", "PRESETS", "RESUMABLE_FIELDS", "ROLES", "SHORTHANDS",
+           "Role", "TrainConfig", "apply_overrides", "check_run_resources", "compile_key",
+           "cpu_preset", "format_config", "get_preset", "paper_preset", "resource_estimate",
+           "smoke_preset"]
+
+
+# --------------------------------------------------------------------------------------------
+# Field roles
+
+
+class Role(typing.NamedTuple):
+    """What a :class:`TrainConfig` field is to a run."""
+
+    compiled: bool
+    """The compiled functions depend on it: it is part of :func:`compile_key`."""
+    resumable: bool
+    """``--resume`` may change it (:data:`RESUMABLE_FIELDS`)."""
+
+
+ROLES = {
+    # the model, objective, optimiser, data sizes and seed: what the run computes
+    "recipe": Role(compiled=True, resumable=False),
+    # how long the schedule runs (steps) and over how many devices: compiled in, yet a resumed
+    # run may extend or move it
+    "extent": Role(compiled=True, resumable=True),
+    # where the training scenes come from: the step takes them as an argument, but a resumed
+    # run keeps its data
+    "source": Role(compiled=False, resumable=False),
+    # logging, val and checkpoint intervals, the routine diagnostic, the preset's name
+    "bookkeeping": Role(compiled=False, resumable=True),
+}
+"""The role each :class:`TrainConfig` field declares (``metadata["role"]``)."""
+
+
+def _field(role: str, default: Any) -> Any:
+    """A dataclass field declaring its role in a run (a key of :data:`ROLES`)."""
+    return dataclasses.field(default=default, metadata={"role": role})
+
+
+_AS_RECIPE = {"role": "recipe"}  # for the nested configs, built by a default_factory
+_recipe = functools.partial(_field, "recipe")
+_extent = functools.partial(_field, "extent")
+_source = functools.partial(_field, "source")
+_bookkeeping = functools.partial(_field, "bookkeeping")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,14 +121,14 @@ class TrainConfig:
         ground-truth std (centre 0.35 × side, size 0.02 × side), i.e. on samples of the protocol's
         smoothed q rather than on its delta peaks (0 = paper).
     pointer_loss: weight of an auxiliary cross-entropy on the pointer head's anchor logits
-        against the table the target stands on (``flow.cfm_loss``; FlowMaps with
+        against the table the target stands on (``training.objectives.cfm_loss``; FlowMaps with
         ``model.head="pointer"`` only; the MLP baseline ignores it. Departs from the paper;
         0 = off).
     data: "train" (fixed FlowSim split of ``train_envs`` environments) or "endless" (a fresh
         chunk of ``train_envs`` environments every ``train_envs // batch_size`` steps).
-    train_envs, val_envs: split sizes; val_batches: fixed validation batches per evaluation.
-    routine_envs, routine_samples: the routine diagnostic (:mod:`flowmaps_jax.routine`) run at
-        every validation on this many validation environments (at most ``val_envs``; × 3
+    train_envs, val_envs: split sizes; val_batches: fixed validation batches per val pass.
+    routine_envs, routine_samples: the routine diagnostic (:mod:`flowmaps_jax.evaluation.routine`)
+        run at every val pass on this many validation environments (at most ``val_envs``; × 3
         objects, once one step ahead and once at mixed horizons) with this many samples per
         query; 0 environments = off.
     seed: the single seed from which params, dropout and data keys are derived.
@@ -82,39 +138,42 @@ class TrainConfig:
         and so the numbers, do not depend on it (up to float summation order), and a checkpoint
         continues on any device count.
     preset: name of the preset this config started from (informational, used in run names).
+
+    Each field declares its role (:data:`ROLES`): ``recipe``, ``extent``, ``source`` or
+    ``bookkeeping``.
     """
 
-    model: ModelConfig = dataclasses.field(default_factory=ModelConfig)
-    model_kind: str = "flowmaps"
-    flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig)
-    batch_size: int = 64
-    queries_per_scene: int = 4
-    steps: int = 3000
-    lr: float = 3e-4
-    warmup_steps: int = 100
-    b1: float = 0.95
-    b2: float = 0.999
-    weight_decay: float = 0.01
-    clip_norm: float | None = 1.0
-    ema_decay: float = 0.999
-    t_sampler: str = "beta"
-    short_horizon_frac: float = 0.0
-    short_horizon_max: int = 3
-    target_noise: float = 0.0
-    pointer_loss: float = 0.0
-    data: str = "train"
-    train_envs: int = 2500
-    val_envs: int = 200
-    val_batches: int = 4
-    routine_envs: int = 20
-    routine_samples: int = 32
-    seed: int = 0
-    log_every: int = 50
-    val_every: int = 500
-    ckpt_every: int = 500
-    keep_last: int = 2
-    devices: int | None = None
-    preset: str = "cpu"
+    model: ModelConfig = dataclasses.field(default_factory=ModelConfig, metadata=_AS_RECIPE)
+    model_kind: str = _recipe("flowmaps")
+    flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig, metadata=_AS_RECIPE)
+    batch_size: int = _recipe(64)
+    queries_per_scene: int = _recipe(4)
+    steps: int = _extent(3000)
+    lr: float = _recipe(3e-4)
+    warmup_steps: int = _recipe(100)
+    b1: float = _recipe(0.95)
+    b2: float = _recipe(0.999)
+    weight_decay: float = _recipe(0.01)
+    clip_norm: float | None = _recipe(1.0)
+    ema_decay: float = _recipe(0.999)
+    t_sampler: str = _recipe("beta")
+    short_horizon_frac: float = _recipe(0.0)
+    short_horizon_max: int = _recipe(3)
+    target_noise: float = _recipe(0.0)
+    pointer_loss: float = _recipe(0.0)
+    data: str = _source("train")
+    train_envs: int = _recipe(2500)
+    val_envs: int = _recipe(200)
+    val_batches: int = _recipe(4)
+    routine_envs: int = _bookkeeping(20)
+    routine_samples: int = _bookkeeping(32)
+    seed: int = _recipe(0)
+    log_every: int = _bookkeeping(50)
+    val_every: int = _bookkeeping(500)
+    ckpt_every: int = _bookkeeping(500)
+    keep_last: int = _bookkeeping(2)
+    devices: int | None = _extent(None)
+    preset: str = _bookkeeping("cpu")
 
     def __post_init__(self):
         _check_choice("model_kind", self.model_kind, tuple(MODEL_KINDS))
@@ -165,15 +224,40 @@ class TrainConfig:
 
     def to_dict(self) -> dict:
         """A JSON-able dict (nested configs become nested dicts)."""
-        return _to_jsonable(self)
+        return config_to_dict(self)
 
     @classmethod
     def from_dict(cls, data: dict) -> TrainConfig:
         """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
-        return _from_dict(cls, data, "config")
+        return config_from_dict(cls, data, "config")
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=False)
+
+
+def _fields_whose_role(prop: str, value: bool) -> tuple[str, ...]:
+    """The :class:`TrainConfig` fields whose role has ``prop`` equal to ``value``."""
+    names = []
+    for field in dataclasses.fields(TrainConfig):
+        role = field.metadata.get("role")
+        if role not in ROLES:
+            raise TypeError(f"TrainConfig.{field.name} declares no role (one of {list(ROLES)})")
+        if getattr(ROLES[role], prop) == value:
+            names.append(field.name)
+    return tuple(names)
+
+
+RESUMABLE_FIELDS = _fields_whose_role("resumable", True)
+"""Fields that ``--resume`` may change; every other field would change the model, its
+parameters, its optimiser or its data, i.e. mix two runs in one directory."""
+_NOT_COMPILED = _fields_whose_role("compiled", False)
+
+
+def compile_key(cfg: TrainConfig) -> TrainConfig:
+    """``cfg`` with the fields that the compiled functions do not depend on reset to their
+    defaults: the key of the compile cache, so that runs differing only there compile once."""
+    base = TrainConfig()
+    return dataclasses.replace(cfg, **{name: getattr(base, name) for name in _NOT_COMPILED})
 
 
 # --------------------------------------------------------------------------------------------
@@ -186,7 +270,7 @@ _ROUTINE_QUERIES = 3 * 2  # the routine probe: 3 objects per environment, at two
 def resource_estimate(cfg: TrainConfig, devices: int = 1) -> list[tuple[str, int, int]]:
     """What a run of ``cfg`` needs, part by part, on each of ``devices`` data-parallel devices:
     ``[(what, bytes, FLOPs), ...]`` where ``what`` names the fields that set the part's size.
-    FLOPs are those of one uninterruptible call (a train step, a validation); ``steps`` is not
+    FLOPs are those of one uninterruptible call (a train step, a val pass); ``steps`` is not
     bounded (a run stops and resumes between steps). A rough, generous estimate
     (:func:`flowmaps_jax.validation.network_flops`)."""
     net, sim = cfg.model, cfg.flowsim
@@ -252,7 +336,8 @@ def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
 
 
 def paper_preset() -> TrainConfig:
-    """The paper's hyper-parameters (PAPER.md, "FlowMaps (model)")."""
+    """The paper's hyper-parameters (Argenziano et al. 2025, the FlowMaps model; README.md,
+    "Citing")."""
     return TrainConfig(
         model=ModelConfig(dim=256, encoder_layers=8, cdit_blocks=8, heads=8, dropout=0.1),
         batch_size=256, queries_per_scene=1, steps=30_000, lr=1e-4, warmup_steps=0,
@@ -300,185 +385,9 @@ def get_preset(name: str = DEFAULT_PRESET) -> TrainConfig:
     return PRESETS[name]()
 
 
-# --------------------------------------------------------------------------------------------
-# Overrides from strings
-
-SHORTHANDS = {"precision": "model.precision"}
-"""Top-level override keys that stand for a nested field (``--set precision=bf16``)."""
-
-
-def apply_overrides(cfg: TrainConfig, overrides: typing.Iterable[str] | dict[str, Any]
-                    ) -> TrainConfig:
-    """Return ``cfg`` with fields replaced, e.g. ``["model.dim=64", "lr=1e-3", "clip_norm=none"]``.
-
-    Keys are dotted paths into nested dataclasses. String values are converted to the field's
-    annotated type (int, float, bool, str, ``X | None`` where "none"/"null" gives None); a dict
-    may also carry already-typed values. All overrides are applied before the result is validated,
-    so coupled fields (``flowsim.num_timesteps`` and ``model.tau_max``) can change together.
-    Unknown keys, unconvertible values and invalid results raise ``ValueError`` naming the key.
-    Keys in :data:`SHORTHANDS` are short for a nested path: ``precision=bf16`` sets
-    ``model.precision``.
-    """
-    if isinstance(overrides, dict):
-        items = list(overrides.items())
-    else:
-        items = []
-        for text in overrides:
-            if "=" not in text:
-                raise ValueError(f"override {text!r} must look like key=value")
-            key, value = text.split("=", 1)
-            items.append((key.strip(), value.strip()))
-    if not items:
-        return cfg
-    data = cfg.to_dict()
-    for key, value in items:
-        path = SHORTHANDS.get(key, key).split(".")
-        _set_path(TrainConfig, data, path, value, key)
-    try:
-        return TrainConfig.from_dict(data)
-    except (ValueError, TypeError) as err:
-        keys = ", ".join(k for k, _ in items)
-        raise ValueError(f"bad override ({keys}): {err}") from err
-
-
-def _set_path(cls: type, data: dict, path: list[str], value: Any, full_key: str) -> None:
-    """Set ``data[path]`` (a to_dict() view of dataclass ``cls``), converting ``value``."""
-    names = [f.name for f in dataclasses.fields(cls)]
-    head = path[0]
-    if head not in names:
-        raise ValueError(f"unknown config key {full_key!r} ({cls.__name__} has no field "
-                         f"{head!r}; known: {sorted(names)})")
-    hint = typing.get_type_hints(cls)[head]
-    is_section = isinstance(hint, type) and dataclasses.is_dataclass(hint)
-    if len(path) > 1:
-        if not is_section:
-            raise ValueError(f"unknown config key {full_key!r} ({head!r} has no sub-fields)")
-        _set_path(hint, data[head], path[1:], value, full_key)
-    elif is_section:
-        raise ValueError(f"config key {full_key!r} is a section; set one of its fields, "
-                         f"e.g. {full_key}.{_field_names(hint)[0]}=...")
-    else:
-        data[head] = _convert(value, hint, full_key) if isinstance(value, str) else value
-
-
-def _field_names(cls: type) -> list[str]:
-    """Field names of dataclass ``cls`` in declaration order."""
-    return [f.name for f in dataclasses.fields(cls)]
-
-
-_NONE_WORDS = ("none", "null")
-_TRUE_WORDS = ("true", "1", "yes", "on")
-_FALSE_WORDS = ("false", "0", "no", "off")
-
-
-def _convert(text: str, hint: Any, key: str) -> Any:
-    """Convert a command-line string to the annotated type ``hint``."""
-    origin = typing.get_origin(hint)
-    if origin in (typing.Union, types.UnionType):
-        args = typing.get_args(hint)
-        if type(None) in args and text.lower() in _NONE_WORDS:
-            return None
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _convert(text, arg, key)
-            except ValueError as err:
-                errors.append(str(err))
-        raise ValueError(f"bad value {text!r} for {key!r}: " + "; ".join(errors))
-    if origin is Literal:
-        choices = typing.get_args(hint)
-        for choice in choices:
-            if str(choice) == text:
-                return choice
-        raise ValueError(f"bad value {text!r} for {key!r}: must be one of {list(choices)}")
-    if hint is bool:
-        if text.lower() in _TRUE_WORDS:
-            return True
-        if text.lower() in _FALSE_WORDS:
-            return False
-        raise ValueError(f"bad value {text!r} for {key!r}: expected a boolean (true/false)")
-    if hint is int:
-        with contextlib.suppress(ValueError):
-            return int(text)
-        try:
-            as_float = float(text)
-        except ValueError:
-            raise ValueError(f"bad value {text!r} for {key!r}: expected an integer") from None
-        if not as_float.is_integer():
-            raise ValueError(f"bad value {text!r} for {key!r}: expected an integer")
-        return int(as_float)
-    if hint is float:
-        try:
-            return float(text)
-        except ValueError:
-            raise ValueError(f"bad value {text!r} for {key!r}: expected a number") from None
-    if hint is str:
-        return text
-    raise ValueError(f"config key {key!r} (type {hint}) cannot be set from the command line")
-
-
-# --------------------------------------------------------------------------------------------
-# JSON round trip
-
-
-def _to_jsonable(obj: Any) -> Any:
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        to_dict = getattr(obj, "to_dict", None)
-        if to_dict is not None and not isinstance(obj, TrainConfig):
-            return _to_jsonable(to_dict())
-        return {f.name: _to_jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if isinstance(obj, dict):
-        return {str(k): _to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_to_jsonable(v) for v in obj]
-    return obj
-
-
-# Fields that older versions wrote and that no longer exist (they configured nothing): configs
-# saved with them still load.
-_REMOVED_KEYS = {"TrainConfig": ("run_dir",), "ModelConfig": ("max_tokens",)}
-
-
-def _from_dict(cls: type, data: Any, where: str) -> Any:
-    """Build dataclass ``cls`` from a dict, using ``cls.from_dict`` for nested configs."""
-    if not isinstance(data, dict):
-        raise ValueError(
-            f"{where} must be a dict to build {cls.__name__}; got {type(data).__name__}")
-    if cls is not TrainConfig and hasattr(cls, "from_dict"):
-        return cls.from_dict(data)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    data = {k: v for k, v in data.items() if k not in _REMOVED_KEYS.get(cls.__name__, ())}
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ValueError(f"{where} has unknown keys {unknown} for {cls.__name__}")
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    for name, value in data.items():
-        hint = hints[name]
-        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
-            value = _from_dict(hint, value, f"{where}.{name}")
-        elif isinstance(value, list):
-            value = tuple(value)
-        kwargs[name] = value
-    return cls(**kwargs)
-
-
 def format_config(cfg: TrainConfig) -> str:
     """Human-readable multi-line dump of the resolved config (printed at the start of a run)."""
-    flat = _flatten(cfg.to_dict())
+    flat = flatten(cfg.to_dict())
     width = max(len(k) for k in flat)
     return "\n".join(f"  {k:<{width}} = {v}" for k, v in flat.items()
                      if not k.startswith(("flowsim.furniture_kinds", "flowsim.categories")))
-
-
-def _flatten(data: dict, prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for key, value in data.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            out.update(_flatten(value, name + "."))
-        else:
-            out[name] = value
-    return out

@@ -5,7 +5,7 @@
   inside the jitted train step (no host round trip).
 * With ``data="endless"``, :func:`endless_scenes` regenerates a chunk of fresh environments every
   :func:`endless_chunk_steps` steps, from a key that depends only on (data key, chunk).
-* :func:`make_val_batches` fixes the validation batches of a run.
+* :func:`make_val_batches` fixes the validation batches of a run (its val passes use them).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from flowmaps_jax.training.objectives import jitter_targets
 # batch_fn(key, scenes) -> TrainBatch, traceable
 BatchFn = Callable[[jax.Array, Any], TrainBatch]
 
-# Fixed seed offset of the validation key: evaluations at different steps use the same noise.
+# Fixed seed offset of the val batches' key: val passes at different steps use the same noise.
 EVAL_KEY_SALT = 0x5EED
 
 

@@ -1,10 +1,10 @@
-"""Training objectives, and one registry entry per model kind.
+"""Training objectives: one loss per model family, registered in :data:`LOSSES`.
 
-A model kind bundles what every part of the pipeline needs to know about one family of models:
-``init`` (fresh params), ``loss`` (the training objective), and the jitted inference cores
-``sample``, ``sample_with_log_prob`` and ``log_prob`` (:mod:`flowmaps_jax.model.sampling`).
-Training (:func:`objective_for`) and inference (:class:`flowmaps_jax.sample.Predictor`) look a kind
-up in :data:`MODEL_KINDS`; adding a model is adding an entry, not an ``if kind ==`` branch.
+The model families themselves (init, inference cores, label) live in the model layer
+(:data:`flowmaps_jax.model.MODEL_FAMILIES`); training adds only how each one is trained, under
+the same name. :func:`objective_for` binds a run config's family and loss into an
+:class:`Objective`; adding a model is a family module plus a loss entry here, not an
+``if kind ==`` branch.
 
 * ``"flowmaps"``: conditional flow matching on the linear path (:func:`cfm_loss`), with the
   optional pointer loss on the table the target stands on (:func:`supporting_token`).
@@ -24,18 +24,15 @@ import jax
 import jax.numpy as jnp
 
 from flowmaps_jax import flow
-from flowmaps_jax.model import baseline, sampling
+from flowmaps_jax.boxes import from_centre, to_centre
+from flowmaps_jax.model import baseline
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.flowmaps import (
-    encode,
-    init_params,
-    velocity,
-    velocity_and_anchor_logits,
-)
-from flowmaps_jax.model.sampling import to_flow_space
-from flowmaps_jax.tokens import FURNITURE, SceneTokens, TrainBatch, from_centre, to_centre
+from flowmaps_jax.model.families import model_family
+from flowmaps_jax.model.flowmaps import encode, velocity, velocity_and_anchor_logits
+from flowmaps_jax.model.inference import to_flow_space
+from flowmaps_jax.tokens import FURNITURE, SceneTokens, TrainBatch
 
-if TYPE_CHECKING:  # config.py imports this module's registry
+if TYPE_CHECKING:  # annotations only
     from flowmaps_jax.training.config import TrainConfig
 
 Params = Any
@@ -109,58 +106,17 @@ def _mlp_loss(params, cfg: TrainConfig, batch: TrainBatch, key: jax.Array, train
     return baseline.baseline_loss(params, cfg.model, batch, key if train else None)
 
 
-def _without_solver(fn):
-    """A Gaussian core called with the flow's solver arguments, which it has no use for."""
-    def call(params, config, tokens, queries, *args, num_steps=None, method=None):
-        return fn(params, config, tokens, queries, *args)
-    return call
-
-
-@dataclasses.dataclass(frozen=True)
-class ModelKind:
-    """Everything the pipeline needs about one family of models (all pure functions).
-
-    init(key, model_cfg) -> params.
-    loss(params, train_cfg, batch, key, train) -> (scalar loss, aux dict).
-    sample(params, model_cfg, tokens, queries, keys (B,), num_samples, *, num_steps, method)
-        -> boxes (B, Q, N, 4); sample_with_log_prob the same plus log p (B, Q, N).
-    log_prob(params, model_cfg, tokens, queries, x (B, Q, N, 4), *, num_steps, method)
-        -> (B, Q, N).
-    label(model_cfg) -> the row name in reports.
-    """
-
-    init: Callable
-    loss: Callable
-    sample: Callable
-    sample_with_log_prob: Callable
-    log_prob: Callable
-    label: Callable[[ModelConfig], str]
-
-
-MODEL_KINDS: dict[str, ModelKind] = {
-    "flowmaps": ModelKind(
-        init=init_params, loss=_flowmaps_loss, sample=sampling.flow_sample,
-        sample_with_log_prob=sampling.flow_sample_with_log_prob,
-        log_prob=sampling.flow_log_prob, label=lambda cfg: "FlowMaps"),
-    "mlp": ModelKind(
-        init=baseline.init_baseline, loss=_mlp_loss,
-        sample=_without_solver(sampling.gaussian_sample),
-        sample_with_log_prob=_without_solver(sampling.gaussian_sample_with_log_prob),
-        log_prob=_without_solver(sampling.gaussian_log_prob),
-        label=lambda cfg: f"MLP ({cfg.baseline_variance})"),
+LOSSES: dict[str, Callable] = {
+    "flowmaps": _flowmaps_loss,
+    "mlp": _mlp_loss,
 }
-
-
-def model_kind(name: str) -> ModelKind:
-    """The registry entry of a model kind, or ``ValueError`` listing the kinds."""
-    if name not in MODEL_KINDS:
-        raise ValueError(f"model kind must be one of {tuple(MODEL_KINDS)}; got {name!r}")
-    return MODEL_KINDS[name]
+"""The training loss of each model family (:data:`flowmaps_jax.model.MODEL_FAMILIES`), by the
+same name: ``loss(params, train_cfg, batch, key, train) -> (scalar loss, aux dict)``."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Objective:
-    """How to initialise and score one model kind.
+    """How to initialise and score one model family.
 
     init(key) -> params.
     loss(params, batch, key, train) -> (loss, aux): scalar training loss and a dict of scalar
@@ -172,15 +128,17 @@ class Objective:
 
 
 def objective_for(cfg: TrainConfig) -> Objective:
-    """The training objective of ``cfg.model_kind`` (its :data:`MODEL_KINDS` entry) bound to
-    ``cfg``: FlowMaps' :func:`cfm_loss` or the MLP baseline's Gaussian negative log-likelihood."""
-    kind = model_kind(cfg.model_kind)
+    """The training objective of the model family ``cfg.model_kind`` bound to ``cfg``: the
+    family's init and its :data:`LOSSES` entry (FlowMaps' :func:`cfm_loss` or the MLP baseline's
+    Gaussian negative log-likelihood)."""
+    family = model_family(cfg.model_kind)
+    family_loss = LOSSES[family.name]
 
     def init(key):
-        return kind.init(key, cfg.model)
+        return family.init(key, cfg.model)
 
     def loss(params, batch, key, train):
-        value, aux = kind.loss(params, cfg, batch, key, train)
+        value, aux = family_loss(params, cfg, batch, key, train)
         return value, _scalars(aux)
 
     return Objective(init=init, loss=loss)

@@ -1,0 +1,102 @@
+"""What a model family gives the pipeline (:class:`ModelFamily`), and helpers its cores share.
+
+A *model family* (FlowMaps, the MLP baseline) is one model's init, its jitted inference cores, its
+working-memory estimate and its report label, bundled in one :class:`ModelFamily` object that the
+family's own module defines (:data:`flowmaps_jax.model.inference.FAMILY`,
+:data:`flowmaps_jax.model.baseline.FAMILY`) and :mod:`flowmaps_jax.model.families` registers by
+name. :class:`flowmaps_jax.predictor.Predictor` calls the cores after validating its inputs;
+training registers each family's loss under the same name
+(:data:`flowmaps_jax.training.objectives.LOSSES`).
+
+The cores are unvalidated, ``jax.jit``-compiled pure functions of canonical inputs
+(:func:`canonical_inputs`). Shapes: tokens (B, S), queries (B, Q), keys (B,) one PRNG key per
+scene, boxes (B, Q, N, 4) normalised (y, x, h, w), log-densities (B, Q, N).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.model.config import ModelConfig
+from flowmaps_jax.tokens import Queries, SceneTokens, trim_padding
+
+DENSITY_FACTOR = 5
+"""A log-density (the exact divergence: 4 JVPs) needs about this many times a sample's memory."""
+
+
+def _never(config: ModelConfig) -> bool:
+    return False
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelFamily:
+    """One family of models, as the pipeline sees it (all pure functions).
+
+    name: the registry key, also ``TrainConfig.model_kind`` and ``Predictor.kind``.
+    init(key, model_cfg) -> params.
+    sample(params, model_cfg, tokens, queries, keys (B,), num_samples, *, num_steps, method)
+        -> boxes (B, Q, N, 4); sample_with_log_prob the same plus log p (B, Q, N).
+    log_prob(params, model_cfg, tokens, queries, x (B, Q, N, 4), *, num_steps, method)
+        -> (B, Q, N).
+    label(model_cfg) -> the row name in reports.
+    row_bytes(model_cfg) -> working memory of one sampled box (float32 activations of one
+        network call, kept for the solver step); see :meth:`request_bytes`.
+    uses_solver: whether ``num_steps`` / ``method`` matter (an ODE is integrated); a family
+        without one takes and ignores them (:func:`without_solver`).
+    table_weights(params, model_cfg, tokens, queries) -> (B, Q, S) mixture weight per token,
+        read without sampling, for the configs where ``has_table_weights(model_cfg)``.
+    gaussian(params, model_cfg, tokens, queries) -> (mean, log_var) (B, Q, 4) each, for a
+        family whose prediction is one Gaussian per query (None otherwise).
+    """
+
+    name: str
+    init: Callable
+    sample: Callable
+    sample_with_log_prob: Callable
+    log_prob: Callable
+    label: Callable[[ModelConfig], str]
+    row_bytes: Callable[[ModelConfig], int]
+    uses_solver: bool = True
+    table_weights: Callable | None = None
+    has_table_weights: Callable[[ModelConfig], bool] = _never
+    gaussian: Callable | None = None
+
+    def request_bytes(self, config: ModelConfig, boxes: int, with_density: bool) -> int:
+        """Working memory of sampling (or, ``with_density``, scoring) ``boxes`` boxes at once."""
+        return boxes * self.row_bytes(config) * (DENSITY_FACTOR if with_density else 1)
+
+
+def without_solver(core: Callable) -> Callable:
+    """A core without an ODE (closed form), callable with the solver's keyword arguments
+    ``num_steps`` and ``method``, which it ignores: the signature :class:`ModelFamily` asks."""
+    def call(params, config, tokens, queries, *args, num_steps=None, method=None):
+        return core(params, config, tokens, queries, *args)
+    return call
+
+
+def scene_noise(keys: jax.Array, shape: tuple[int, ...]) -> jnp.ndarray:
+    """Standard normal (B, *shape) float32, scene b's draws from keys[b]."""
+    return jax.vmap(lambda k: jax.random.normal(k, shape, jnp.float32))(keys)
+
+
+def canonical_inputs(tokens: SceneTokens, queries: Queries) -> tuple[SceneTokens, Queries]:
+    """Tokens and queries as the cores take them: canonical dtypes (so every call with the same
+    shapes hits one compiled function) and without the token slots after the last real token of
+    every scene (``tokens.trim_padding``). Padding is masked anyway, so results are identical,
+    and the encoder and cross-attention skip empty slots (FlowSim maps have 13 real tokens of
+    the 20 slots). Host-side: the inputs must be concrete."""
+    used = np.flatnonzero(np.asarray(tokens.mask).reshape(-1, np.shape(tokens.mask)[-1]).any(0))
+    tokens = trim_padding(tokens, int(used[-1]) + 1)
+    tokens = SceneTokens(boxes=jnp.asarray(tokens.boxes, jnp.float32),
+                         descriptor=jnp.asarray(tokens.descriptor, jnp.int32),
+                         kind=jnp.asarray(tokens.kind, jnp.int32),
+                         mask=jnp.asarray(tokens.mask, bool),
+                         tau=jnp.asarray(tokens.tau, jnp.int32))
+    queries = Queries(descriptor=jnp.asarray(queries.descriptor, jnp.int32),
+                      tau_q=jnp.asarray(queries.tau_q, jnp.int32))
+    return tokens, queries

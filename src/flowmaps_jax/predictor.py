@@ -1,0 +1,350 @@
+"""Inference API: load a trained model and draw box samples or exact log-likelihoods.
+
+    predictor = load("runs/flowmaps-cpu-.../checkpoints")          # FlowMaps or MLP baseline
+    predictor = load_pretrained("flowmaps")                        # or a shipped model
+    boxes = predictor.sample(tokens, queries, num_samples=25, key=jax.random.key(0))
+    log_p = predictor.log_prob(tokens, queries, boxes)               # (B, Q, 25)
+
+Shapes: ``tokens`` is a :class:`~flowmaps_jax.tokens.SceneTokens` with leading dim (B,), ``queries``
+a :class:`~flowmaps_jax.tokens.Queries` with dims (B, Q). Boxes are normalised ``(y, x, h, w)``;
+``pixels=True`` returns pixel corners ``(y0, x0, y1, x1)`` instead.
+
+How it runs. Inputs are validated on the host (clear ``ValueError`` naming the argument), then one
+``jax.jit``-compiled core of the model's family (:mod:`flowmaps_jax.model.families`) does the work:
+
+* FlowMaps: the map of every scene is encoded **once**; X_0 ~ N(0, I_4) of shape (B, Q, N, 4) is
+  integrated from t = 0 to 1 by :func:`flowmaps_jax.flow.integrate` (a ``lax.scan`` over the time
+  grid). The N samples of a query are N rows of one velocity call, so they share the query's
+  context and, at every step, its conditioning. ``log_prob`` integrates the augmented ODE backwards
+  with the exact 4-D divergence (:func:`flowmaps_jax.flow.log_prob`).
+* MLP baseline: one forward pass gives a diagonal Gaussian per query; samples are
+  ``mean + std · ε`` and the log-density is closed form.
+
+Random numbers: the samples of scene b come from ``split(key, B)[b]`` (or from ``key[b]`` when a
+batch of B keys is passed), so a scene's samples do not depend on which other scenes share the
+batch when per-scene keys are given.
+
+Several devices: ``predictor.sharded()`` splits the scenes of every call over all devices
+(:mod:`flowmaps_jax.distributed`; params replicated). Per-scene keys make the results the same
+as on one device.
+
+Loading needs neither optax nor the training code: :func:`load` reads checkpoints through
+:mod:`flowmaps_jax.checkpoint_reader`, :func:`load_pretrained` the shipped weights through
+:mod:`flowmaps_jax.shipped`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
+
+from flowmaps_jax import checkpoint_reader, distributed, flow, shipped
+from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.flowsim.scenes import denormalise_boxes
+from flowmaps_jax.model.config import ModelConfig
+from flowmaps_jax.model.families import model_family
+from flowmaps_jax.model.family import ModelFamily, canonical_inputs
+from flowmaps_jax.model.flowmaps import check_inputs
+from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
+from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles
+from flowmaps_jax.validation import (
+    check_choice,
+    check_flag,
+    check_instance,
+    check_int,
+    check_key,
+    check_real_array,
+    check_request_size,
+)
+
+SOLVERS = flow.SOLVERS
+FAR_LIMIT = 1e3
+"""Boxes with a number beyond ±this (normalised units; the map is [0, 1]) have log-density −inf:
+the noise prior alone puts exp(−5·10⁵) there, and the ODE would overflow to NaN."""
+
+
+# --------------------------------------------------------------------------- validation helpers
+
+
+def scene_keys(key: Any, num_scenes: int) -> jax.Array:
+    """One typed PRNG key per scene from a single key (split) or a batch of B keys (as given):
+    the keys the family cores take. ``ValueError`` for anything else.
+
+    Raw uint32 keys (``jax.random.PRNGKey``) are wrapped, so both kinds share compiled code.
+    """
+    key = check_key(key, shapes=((), (num_scenes,)))
+    return jax.random.split(key, num_scenes) if key.shape == () else key
+
+
+# --------------------------------------------------------------------------- the predictor
+
+
+@dataclasses.dataclass(frozen=True)
+class Predictor:
+    """A trained (or freshly initialised) FlowMaps or MLP-baseline model, ready for inference.
+
+    params: the model's parameter pytree (EMA weights when loaded with ``use_ema=True``).
+    model: its :class:`~flowmaps_jax.model.ModelConfig` (static: defines the compiled functions).
+    kind: the name of its model family (:data:`flowmaps_jax.model.MODEL_FAMILIES`, as
+        ``TrainConfig.model_kind``): "flowmaps" (flow matching) or "mlp" (Gaussian baseline;
+        variant in ``model.baseline_variance``). :attr:`family` is the family itself.
+    flowsim: the simulator config the model was trained on (map size for pixel boxes).
+    source: where the params came from (checkpoint path) and step, for reports.
+    mesh: a 1-D device mesh (:mod:`flowmaps_jax.distributed`) to split the scenes of every call
+        over, params replicated; None (default) runs on one device. Results do not depend on
+        it: scene b's samples come from its own key. See :meth:`sharded`.
+    """
+
+    params: Any = dataclasses.field(repr=False)  # a pytree of arrays: too long to print
+    model: ModelConfig
+    kind: str = "flowmaps"
+    flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig)
+    source: str | None = None
+    step: int | None = None
+    mesh: Mesh | None = dataclasses.field(default=None, repr=False)
+
+    def __post_init__(self):
+        model_family(self.kind)  # ValueError listing the families
+        check_instance("model", self.model, ModelConfig)
+        check_instance("flowsim", self.flowsim, FlowSimConfig)
+        if self.mesh is not None:
+            check_instance("mesh", self.mesh, Mesh)
+            # Replicate once, not at every call (a frozen dataclass: set the field directly).
+            object.__setattr__(self, "params", distributed.replicate(self.params, self.mesh))
+
+    def sharded(self, devices: int | None = None) -> Predictor:
+        """This predictor with every call split over ``devices`` of this host's devices (None:
+        all of them) by scenes; with one device, itself. Same results, faster on several
+        accelerators. (On a multi-host job each host samples on its own devices.)"""
+        mesh = distributed.local_mesh(devices)
+        return self if mesh is None else dataclasses.replace(self, mesh=mesh)
+
+    def with_precision(self, precision: str) -> Predictor:
+        """This predictor computing in ``precision`` ("float32" or "bf16" matmuls; the params
+        stay float32). A model keeps the precision it was trained with unless changed here."""
+        return dataclasses.replace(self, model=dataclasses.replace(self.model,
+                                                                   precision=precision))
+
+    def _on_mesh(self, *trees):
+        """The per-scene arguments split over the mesh (padded to a multiple of its size)."""
+        return tuple(distributed.shard_rows(tree, self.mesh) for tree in trees)
+
+    def _rows(self, out, b: int):
+        """Drop the padding scenes :meth:`_on_mesh` added."""
+        return out if self.mesh is None else jax.tree.map(lambda x: x[:b], out)
+
+    @classmethod
+    def from_params(cls, params, model: ModelConfig, kind: str = "flowmaps",
+                    flowsim: FlowSimConfig | None = None, **info) -> Predictor:
+        """Wrap params you already have (tests, notebooks, a training loop) without a checkpoint.
+
+        Example: ``Predictor.from_params(model.init_params(key, cfg), cfg)``.
+        """
+        return cls(params=params, model=model, kind=kind,
+                   flowsim=FlowSimConfig() if flowsim is None else flowsim, **info)
+
+    @property
+    def family(self) -> ModelFamily:
+        """The model family: init, the jitted cores, the memory estimate, the label."""
+        return model_family(self.kind)
+
+    @property
+    def name(self) -> str:
+        """Row label for reports: "FlowMaps", "MLP (mean)" or "MLP (learned)"."""
+        return self.family.label(self.model)
+
+    # ----------------------------------------------------------------------- validation
+
+    def validate(self, tokens: SceneTokens, queries: Queries) -> tuple[int, int]:
+        """Check tokens (B, S) and queries (B, Q) for this model; returns (B, Q).
+
+        Raises ``ValueError`` for wrong shapes or dtypes, boxes outside [0, 1], unknown
+        descriptors, a query that names a table instead of an object category, more token slots
+        than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
+        """
+        check_instance("queries", queries, Queries)
+        check_inputs(self.model, tokens, queries)  # every field: type, dtype, shape, range
+        b, q = np.shape(queries.descriptor)
+        slots = np.shape(tokens.boxes)[1]
+        if slots > self.flowsim.max_tokens:
+            raise ValueError(f"tokens has {slots} token slots, more than the "
+                             f"max_tokens={self.flowsim.max_tokens} of the maps the model was "
+                             "trained on (flowsim.max_tokens)")
+        check_query_roles(queries, self.flowsim.object_descriptors)
+        if b < 1 or q < 1:
+            raise ValueError(f"tokens/queries must hold at least one scene and one query; got "
+                             f"B={b}, Q={q}")
+        return b, q
+
+    def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool) -> None:
+        """Refuse (ValueError) a request whose working memory would not fit, before XLA tries."""
+        check_request_size(f"{what} of {b} scenes x {q} queries x {n} boxes",
+                           self.family.request_bytes(self.model, b * q * n, with_density))
+
+    # ----------------------------------------------------------------------- inference
+
+    def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
+               num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
+               pixels: bool = False, return_log_prob: bool = False):
+        """Draw num_samples boxes per query → (B, Q, num_samples, 4).
+
+        Normalised (y, x, h, w) by default; ``pixels=True`` gives pixel corners (y0, x0, y1, x1).
+        key: one PRNG key (split over the B scenes) or one key per scene (B,). The solver
+        (``num_steps`` grid points, ``method`` "midpoint" or "euler") is ignored by the MLP.
+        Same key and inputs → the same samples.
+
+        ``return_log_prob=True`` returns ``(boxes, log_p)`` with log_p (B, Q, num_samples) the
+        exact log-density of each normalised box, from the same forward solve (FlowMaps
+        integrates the augmented ODE with the exact divergence: no second, backward solve;
+        the boxes equal those without it, to float rounding). Planners weigh samples with it.
+        """
+        b, q = self.validate(tokens, queries)
+        num_samples = check_int("num_samples", num_samples)
+        num_steps, method = flow.check_solver(num_steps, method)
+        check_flag("pixels", pixels)
+        check_flag("return_log_prob", return_log_prob)
+        self._check_request("sample", b, q, num_samples, return_log_prob)
+        keys = scene_keys(key, b)
+        tokens, queries, keys = self._on_mesh(*canonical_inputs(tokens, queries), keys)
+        family = self.family
+        draw = family.sample_with_log_prob if return_log_prob else family.sample
+        out = self._rows(draw(self.params, self.model, tokens, queries, keys, num_samples,
+                              num_steps=num_steps, method=method), b)
+        boxes, log_p = out if return_log_prob else (out, None)
+        if pixels:
+            boxes = denormalise_boxes(boxes, self.flowsim)
+        return (boxes, log_p) if return_log_prob else boxes
+
+    def table_probabilities(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
+                            method: str = "samples", **sample_kwargs) -> jnp.ndarray:
+        """Mass (B, Q, S + 1) on each table of the map (furniture tokens; zero on other tokens)
+        plus an "off" mass in the last entry: the prior a search planner calls. ``method``
+        "samples" counts ``num_samples`` samples per query; "weights" reads the route head's
+        mixture weights (:meth:`table_weights`, no sampling noise). See
+        :func:`flowmaps_jax.search.table_probabilities`."""
+        from flowmaps_jax.search.probabilities import table_probabilities
+
+        return table_probabilities(self, tokens, queries, num_samples, key, method=method,
+                                   **sample_kwargs)
+
+    def log_prob(self, tokens: SceneTokens, queries: Queries, x,
+                 num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
+        """Exact log-density (B, Q, N) of normalised boxes x (B, Q, N, 4) (y, x, h, w).
+
+        FlowMaps: instantaneous change of variables with the exact divergence, integrated back
+        from t = 1 to 0 on ``num_steps`` grid points (the only error is the ODE discretisation).
+        MLP: the closed-form diagonal Gaussian.
+        """
+        b, q = self.validate(tokens, queries)
+        num_steps, method = flow.check_solver(num_steps, method)
+        x = jnp.asarray(check_real_array("x", x, (b, q, None, 4)), jnp.float32)
+        if x.shape[2] < 1:
+            raise ValueError("x must hold at least one box per query (N >= 1)")
+        self._check_request("log_prob", b, q, x.shape[2], True)
+        far = jnp.any(jnp.abs(x) > FAR_LIMIT, axis=-1)  # (B, Q, N): density 0, not NaN
+        x = jnp.where(far[..., None], 0.5, x)
+        tokens, queries, x = self._on_mesh(*canonical_inputs(tokens, queries), x)
+        log_p = self._rows(self.family.log_prob(
+            self.params, self.model, tokens, queries, x, num_steps=num_steps, method=method), b)
+        return jnp.where(far, -jnp.inf, log_p)
+
+    @property
+    def has_table_weights(self) -> bool:
+        """Whether :meth:`table_weights` applies: FlowMaps with a pointer or route read-out."""
+        return self.family.has_table_weights(self.model)
+
+    def table_weights(self, tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
+        """FlowMaps with a read-out head (``model.head`` "pointer" or "route"): the mass
+        (B, Q, S + 1) its mixture puts on each table of the map, read from the model without
+        sampling (:func:`flowmaps_jax.model.inference.table_weights`). Weight on tokens that are
+        not tables goes to the "off" entry (last). The route head's samples follow these
+        weights exactly while its residual is zero; the pointer head's are its weights at t = 0.
+        """
+        if not self.has_table_weights:
+            raise ValueError("table_weights needs a FlowMaps model with model.head 'pointer' or "
+                             f"'route' (explicit mixture weights); this one is {self.name} with "
+                             f"head={self.model.head!r}: use table_probabilities with samples")
+        b, _ = self.validate(tokens, queries)
+        s = np.shape(tokens.boxes)[1]
+        tables = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == FURNITURE)
+        tokens, queries = self._on_mesh(*canonical_inputs(tokens, queries))
+        w = self._rows(self.family.table_weights(self.params, self.model, tokens, queries), b)
+        w = jnp.pad(w, ((0, 0), (0, 0), (0, s - w.shape[-1])))  # trimmed padding back
+        w = jnp.where(tables[:, None, :], w, 0.0)
+        return jnp.concatenate([w, 1.0 - w.sum(-1, keepdims=True)], axis=-1).clip(0.0, 1.0)
+
+    def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """MLP baseline only: (mean, log_var), each (B, Q, 4), of the predicted Gaussian."""
+        if self.family.gaussian is None:
+            raise ValueError("gaussian() is only defined for the MLP baseline (kind='mlp')")
+        b, _ = self.validate(tokens, queries)
+        tokens, queries = self._on_mesh(*canonical_inputs(tokens, queries))
+        return self._rows(self.family.gaussian(self.params, self.model, tokens, queries), b)
+
+
+# --------------------------------------------------------------------------- loading
+
+
+def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
+         use_ema: bool = True, step: int | None = None) -> Predictor:
+    """Load a trained model from a checkpoint directory (or a run directory holding one).
+
+    which: "best" (lowest validation loss; falls back to the latest save when no validation
+    has run yet) or "latest". step: load this saved step instead (from last/ or best/), e.g.
+    the older intact step that the error about a damaged newest step names. use_ema: the EMA
+    weights (default) or the raw training weights. The model family (FlowMaps or MLP baseline)
+    and sizes come from the config saved with the checkpoint. Every array is checked against
+    the checksums saved with it and for NaN/inf. Raises ``ValueError`` for a missing, empty,
+    damaged or non-finite checkpoint (naming the newest intact step when there is one).
+    """
+    which = check_choice("which", which, checkpoint_reader.WHICH)
+    use_ema = check_flag("use_ema", use_ema)
+    root = checkpoint_reader.resolve_checkpoint_dir(checkpoint_dir)
+    if step is not None:
+        step = check_int("step", step, minimum=0)
+    elif which == checkpoint_reader.BEST and not checkpoint_reader.saved_steps(root, which):
+        which = checkpoint_reader.LATEST
+    restored = checkpoint_reader.restore(root, which=which, step=step)
+    try:
+        spec = checkpoint_reader.model_spec(restored.config)
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"checkpoint {restored.path}: cannot read the config: {err}") from None
+    params = restored.state["ema_params" if use_ema else "params"]
+    checkpoint_reader.check_params(params, spec, f"checkpoint {restored.path}")
+    return Predictor(params=params, model=spec.model, kind=spec.kind, flowsim=spec.flowsim,
+                     source=str(root), step=int(restored.state["step"]))
+
+
+def load_pretrained(name: str, directory: str | pathlib.Path = shipped.PRETRAINED_DIR
+                    ) -> Predictor:
+    """A trained default model shipped inside the package: ``"flowmaps"``, ``"mlp"`` or
+    ``"mlp-learned"`` (the EMA weights of the `cpu`-preset runs in docs/results.md), the same
+    :class:`Predictor` as :func:`load` of that run. ``directory``: where the weights are (the
+    package's ``pretrained/`` folder by default). Raises ``ValueError`` for an unknown name
+    (listing the names), or weights that are missing, damaged (SHA-256 mismatch) or do not fit
+    their config. See :mod:`flowmaps_jax.shipped`."""
+    weights = shipped.read_weights(name, directory)
+    return Predictor(params=weights.params, model=weights.spec.model, kind=weights.spec.kind,
+                     flowsim=weights.spec.flowsim, source=f"pretrained:{weights.name}",
+                     step=weights.step)
+
+
+PRETRAINED_PREFIX = "pretrained:"
+"""A model spec starting with this names shipped weights (``pretrained:flowmaps``)."""
+
+
+def load_model(spec: str, which: str = "best", devices: int | None = None) -> Predictor:
+    """What the CLIs' ``--checkpoint``/``--baseline`` name: a run or checkpoint directory
+    (:func:`load`), or ``pretrained:NAME`` (:func:`load_pretrained`), split over ``devices``
+    devices (None: every device JAX sees; see :meth:`Predictor.sharded`)."""
+    if spec.startswith(PRETRAINED_PREFIX):
+        predictor = load_pretrained(spec[len(PRETRAINED_PREFIX):])
+    else:
+        predictor = load(spec, which=which)
+    return predictor.sharded(devices)

@@ -1,0 +1,326 @@
+"""The episode simulator: a robot looks at tables one by one until it finds the object.
+
+One episode, all arrays of :class:`Episodes` without the batch axis:
+
+* the object hides on table ``target`` (in FlowSim: its table at τ_q in the rollout);
+* the robot starts at ``start`` (pixels; the map centre or the object's last-seen table);
+* each look drives in a straight line to a table's centre (Euclidean travel, pixels) and finds the
+  object if it is there, except with probability ``p_miss`` (an imperfect detector);
+* after a failed look at table j the belief is updated by Bayes' rule:
+  b_j ← p_miss · b_j, then renormalised (p_miss = 0: zero it and renormalise). If nothing is left
+  (a prior that ruled the true table out), the belief becomes uniform over the tables looked at
+  least often (with a perfect detector: the tables not searched yet);
+* the episode ends when the object is found or after ``budget`` looks.
+
+:func:`run_episodes` runs a batch: ``jax.vmap`` over episodes of one ``lax.scan`` over the
+``budget`` looks, jit-compiled once per (N, K, budget) for all policies (the policy is a traced
+index). :func:`expected_outcomes` runs every possible hiding place at once (the K · N episodes
+in one batch) for exact expectations under a truth distribution.
+
+Nothing here knows FlowSim: :mod:`.episodes` builds :class:`Episodes` from FlowSim scenes.
+The public functions check their arguments once and call their core (``_core`` appended;
+:func:`simulate` for :func:`run_episodes`), which checks nothing: the search protocol calls the
+cores on episodes it built.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from flowmaps_jax.search.policies import (
+    POLICIES,
+    check_optimal_size,
+    check_policy,
+    choose_indexed,
+    distances,
+)
+from flowmaps_jax.validation import (
+    PROB_ATOL,
+    check_int,
+    check_key,
+    check_probabilities,
+    check_real,
+    check_resources,
+)
+
+DEFAULT_BUDGET = 10
+"""Looks per episode (FlowSim has at most 4 tables of a kind: every policy finds the object
+within K looks with a perfect detector)."""
+_TINY = 1e-30
+
+
+# --------------------------------------------------------------------------- pytrees
+
+
+@struct.dataclass
+class Episodes:
+    """N search episodes over (padded) K candidate tables.
+
+    belief: (N, K) prior probabilities of the object's table (sum 1 over the real tables, 0 on
+        padding). centres: (N, K, 2) table centres (y, x) in pixels (0 on padding).
+        valid: (N, K) bool, real tables. start: (N, 2) the robot's start (y, x) in pixels.
+        target: (N,) int32 the table the object is on.
+    """
+
+    belief: jnp.ndarray
+    centres: jnp.ndarray
+    valid: jnp.ndarray
+    start: jnp.ndarray
+    target: jnp.ndarray
+
+    @property
+    def num_episodes(self) -> int:
+        return int(self.belief.shape[0])
+
+    @property
+    def num_tables(self) -> int:
+        """K, the padded candidate axis."""
+        return int(self.belief.shape[-1])
+
+
+@struct.dataclass
+class Outcome:
+    """What happened in N episodes of ``budget`` = L looks.
+
+    found: (N,) bool found within the budget. looks: (N,) int32 looks made (until found, or L).
+    travel: (N,) float32 pixels driven (until found, or in all L looks). shortest: (N,) pixels
+    from the start straight to the true table. path: (N, L) int32 table of each look, −1 after
+    the episode ended. travel_at: (N, L) pixels driven after each look. belief: (N, L, K) the
+    belief each look was decided on (the prior, then after each failure; repeated after the end).
+    """
+
+    found: jnp.ndarray
+    looks: jnp.ndarray
+    travel: jnp.ndarray
+    shortest: jnp.ndarray
+    path: jnp.ndarray
+    travel_at: jnp.ndarray
+    belief: jnp.ndarray
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def check_p_miss(p_miss) -> float:
+    """``p_miss`` (the chance a look at the right table misses the object) as a float in
+    [0, 1), else ``ValueError`` naming it."""
+    return check_real("p_miss (the chance a look at the right table misses the object)", p_miss,
+                      0.0, 1.0, high_open=True)
+
+
+def check_belief(name: str, belief, valid, valid_name: str = "valid") -> None:
+    """Concrete belief (..., K) of the shape of ``valid``: finite, ≥ 0, summing to 1 over the
+    ``valid`` tables and 0 elsewhere (float32 round-off allowed,
+    :data:`flowmaps_jax.validation.PROB_ATOL`)."""
+    v = np.asarray(valid, bool)
+    check_probabilities(name, belief, v.shape, atol=PROB_ATOL, min_value=-PROB_ATOL, support=v,
+                        support_name=valid_name)
+
+
+def check_episodes(episodes: Episodes, policy: str | None = None) -> Episodes:
+    """Validate shapes and values (``ValueError`` naming the field); canonical dtypes, and 0 for
+    the centres of padded tables (the form :func:`run_episodes` computes on)."""
+    if not isinstance(episodes, Episodes):
+        raise ValueError(f"episodes must be an Episodes; got {type(episodes).__name__}")
+    shape = np.shape(episodes.valid)
+    if len(shape) != 2 or shape[0] < 1 or shape[1] < 1:
+        raise ValueError(f"episodes.valid must have shape (N, K) with N, K ≥ 1; got {shape}")
+    n, k = shape
+    for field, expected in (("belief", (n, k)), ("centres", (n, k, 2)), ("start", (n, 2)),
+                            ("target", (n,))):
+        got = np.shape(getattr(episodes, field))
+        if got != expected:
+            raise ValueError(f"episodes.{field} must have shape {expected}; got {got}")
+    valid = np.asarray(episodes.valid)
+    if valid.dtype != np.bool_:
+        raise ValueError(f"episodes.valid must be boolean; got {valid.dtype}")
+    if not np.all(valid.any(-1)):
+        raise ValueError("episodes.valid: every episode needs at least one real table")
+    check_belief("episodes.belief", episodes.belief, valid, "episodes.valid")
+    centres, start = np.asarray(episodes.centres), np.asarray(episodes.start)
+    if not np.all(np.isfinite(centres[valid])) or not np.all(np.isfinite(start)):
+        raise ValueError("episodes.centres / episodes.start contain NaN or inf")
+    target = np.asarray(episodes.target)
+    if not np.issubdtype(target.dtype, np.integer) or np.any((target < 0) | (target >= k)) \
+            or not np.all(valid[np.arange(n), np.clip(target, 0, k - 1)]):
+        raise ValueError(f"episodes.target must index a real table (0..{k - 1}, valid)")
+    if policy == "optimal":
+        check_optimal_size(int(valid.sum(-1).max()))
+    return Episodes(belief=jnp.asarray(episodes.belief, jnp.float32),
+                    centres=jnp.asarray(np.where(valid[..., None], centres, 0.0), jnp.float32),
+                    valid=jnp.asarray(valid), start=jnp.asarray(start, jnp.float32),
+                    target=jnp.asarray(target, jnp.int32))
+
+
+def outcome_bytes(num_episodes: int, num_tables: int, budget: int) -> int:
+    """Bytes of an Outcome of ``num_episodes`` × ``budget`` looks, with the scan's copy."""
+    return 2 * 4 * num_episodes * budget * (num_tables + 3)
+
+
+def look_flops(num_tables: int, policy: str) -> int:
+    """Rough work of one look of one episode: the optimal policy's DP, else a few passes."""
+    return 4 * 2 ** num_tables * num_tables ** 2 if policy == "optimal" else 32 * num_tables
+
+
+def check_episodes_size(num_episodes: int, num_tables: int, budget: int, policy: str,
+                        copies: int = 1) -> None:
+    """``ValueError`` naming ``budget`` when ``copies`` × ``num_episodes`` episodes of
+    ``budget`` looks over ``num_tables`` tables would be over the memory or work budget
+    (:func:`flowmaps_jax.validation.check_resources`)."""
+    n = copies * num_episodes
+    check_resources(f"budget={budget} looks for {n} episodes over {num_tables} tables",
+                    num_bytes=outcome_bytes(n, num_tables, budget),
+                    flops=n * budget * look_flops(num_tables, policy))
+
+
+# --------------------------------------------------------------------------- Bayes
+
+
+def _update(belief, looked, p_miss, valid, looks_at):
+    """Bayes after a failed look at ``looked``; uniform over the least-looked tables if empty."""
+    hit = jnp.arange(belief.shape[-1]) == jnp.asarray(looked)[..., None]
+    b = jnp.where(hit, belief * p_miss, belief)
+    total = jnp.sum(b, axis=-1, keepdims=True)
+    fewest = jnp.min(jnp.where(valid, looks_at, jnp.iinfo(jnp.int32).max), -1, keepdims=True)
+    least = valid & (looks_at == fewest)
+    fallback = least / jnp.sum(least, axis=-1, keepdims=True)
+    return jnp.where(total > _TINY, b / jnp.where(total > _TINY, total, 1.0), fallback)
+
+
+def bayes_update(belief, looked, p_miss: float = 0.0, valid=None, looks_at=None) -> jnp.ndarray:
+    """The belief (..., K) after a failed look at table ``looked`` (...) int.
+
+    P(table j | not found at ``looked``) ∝ b_j · (p_miss if j = looked else 1). With p_miss = 0
+    the looked-at table gets 0. If no mass is left, the result is uniform over the ``valid``
+    tables (default all) looked at least often, counting this look (``looks_at`` (..., K) int:
+    looks so far *including* this one; default: only this one).
+    """
+    p_miss = check_p_miss(p_miss)
+    b = np.asarray(belief)
+    valid = np.ones(b.shape, bool) if valid is None else np.asarray(valid, bool)
+    check_belief("belief", b, valid)
+    looked = np.asarray(looked)
+    if looked.shape != b.shape[:-1] or not np.issubdtype(looked.dtype, np.integer) \
+            or np.any((looked < 0) | (looked >= b.shape[-1])):
+        raise ValueError(f"looked must be integer table indices of shape {b.shape[:-1]} in "
+                         f"0..{b.shape[-1] - 1}")
+    if looks_at is None:
+        looks_at = (np.arange(b.shape[-1]) == looked[..., None]).astype(np.int32)
+    return _update(jnp.asarray(b, jnp.float32), jnp.asarray(looked), p_miss, jnp.asarray(valid),
+                   jnp.asarray(looks_at, jnp.int32))
+
+
+# --------------------------------------------------------------------------- running
+
+
+def _episode(belief, centres, valid, start, target, key, p_miss, policy_index, *, budget: int):
+    """One episode (no batch axis): a ``lax.scan`` over the budget's looks."""
+    k = belief.shape[-1]
+    index = jnp.arange(k)
+
+    def look(state, u):
+        b, position, here, looks_at, found, travel, looks = state
+        allowed = valid & (index != here)
+        allowed = jnp.where(jnp.any(allowed), allowed, valid)
+        j = choose_indexed(policy_index, b, centres, position, allowed, looks_at)
+        go = ~found
+        leg = distances(position, centres[j][None])[0]
+        seen = looks_at + (go & (index == j)).astype(jnp.int32)
+        after = _update(b, j, p_miss, valid, seen)
+        state = (jnp.where(go, after, b), jnp.where(go, centres[j], position),
+                 jnp.where(go, j, here), seen, found | (go & (j == target) & (u >= p_miss)),
+                 travel + jnp.where(go, leg, 0.0), looks + go.astype(jnp.int32))
+        return state, (jnp.where(go, j, -1), state[5], b)
+
+    init = (belief, start, jnp.int32(-1), jnp.zeros(k, jnp.int32), jnp.bool_(False),
+            jnp.float32(0.0), jnp.int32(0))
+    final, (path, travel_at, beliefs) = jax.lax.scan(
+        look, init, jax.random.uniform(key, (budget,)))
+    shortest = distances(start, centres[target][None])[0]
+    return Outcome(found=final[4], looks=final[6], travel=final[5], shortest=shortest, path=path,
+                   travel_at=travel_at, belief=beliefs)
+
+
+@functools.partial(jax.jit, static_argnames="budget")
+def simulate(episodes: Episodes, key, p_miss, policy_index, budget: int) -> Outcome:
+    """Every episode of the batch (vmap) → Outcome (N, ...); one compiled program per
+    (N, K, budget) for all policies. policy_index: int32 index into ``POLICIES`` (traced).
+    No validation (usable inside a planner's own ``jit``): :func:`run_episodes` checks first."""
+    keys = jax.random.split(key, episodes.num_episodes)
+    one = functools.partial(_episode, budget=budget)
+    return jax.vmap(one, in_axes=(0, 0, 0, 0, 0, 0, None, None))(
+        episodes.belief, episodes.centres, episodes.valid, episodes.start, episodes.target,
+        keys, p_miss, policy_index)
+
+
+def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
+                 budget: int = DEFAULT_BUDGET, p_miss: float = 0.0) -> Outcome:
+    """Run N episodes with ``policy`` (see :mod:`flowmaps_jax.search.policies`) → Outcome (N, ...).
+
+    key: typed PRNG key for the detector's misses (only matters when p_miss > 0; default
+    key(0)). budget: looks per episode (≥ 1). p_miss: in [0, 1). Raises ``ValueError`` for bad
+    episodes, an unknown policy, p_miss outside [0, 1), a budget < 1, or "optimal" with more than
+    7 tables. Compiled once per (N, K, budget), shared by all policies.
+    """
+    policy = check_policy(policy)
+    budget = check_int("budget", budget)
+    p_miss = check_p_miss(p_miss)
+    episodes = check_episodes(episodes, policy)
+    check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy)
+    key = jax.random.key(0) if key is None else check_key(key)
+    return run_episodes_core(episodes, policy, key, budget, p_miss)
+
+
+def run_episodes_core(episodes: Episodes, policy: str, key: jax.Array, budget: int,
+                      p_miss: float) -> Outcome:
+    """Core of :func:`run_episodes` (no checks: canonical episodes, as :func:`check_episodes`
+    returns them, and checked arguments)."""
+    return simulate(episodes, key, jnp.float32(p_miss), jnp.int32(POLICIES.index(policy)),
+                    budget)
+
+
+def expected_outcomes(episodes: Episodes, truth, policy: str,
+                      budget: int = DEFAULT_BUDGET) -> tuple[Outcome, jnp.ndarray]:
+    """Exact expectations over where the object hides, with a perfect detector.
+
+    Runs every episode once per possible hiding table t (the K · N episodes in one batch;
+    ``episodes.target`` is ignored) → (Outcome with leading axes (K, N, ...), weights (K, N) =
+    ``truth`` transposed). truth: (N, K) the distribution of the object's table (e.g. the exact
+    posterior). ``search.scores.expected_scores`` averages any score with these weights;
+    :func:`at_targets` picks each episode's own target (its ``run_episodes`` outcome).
+    """
+    policy = check_policy(policy)
+    budget = check_int("budget", budget)
+    episodes = check_episodes(episodes, policy)
+    check_belief("truth", truth, episodes.valid, "episodes.valid")
+    check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy,
+                        copies=episodes.num_tables)
+    return expected_outcomes_core(episodes, truth, policy, budget)
+
+
+def expected_outcomes_core(episodes: Episodes, truth, policy: str,
+                           budget: int) -> tuple[Outcome, jnp.ndarray]:
+    """Core of :func:`expected_outcomes` (no checks: canonical episodes, as
+    :func:`check_episodes` returns them, and checked arguments)."""
+    k, n = episodes.num_tables, episodes.num_episodes
+    tiled = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k, *a.shape)).reshape(
+        k * n, *a.shape[1:]), episodes)
+    tiled = tiled.replace(target=jnp.repeat(jnp.arange(k, dtype=jnp.int32), n))
+    every = simulate(tiled, jax.random.key(0), jnp.float32(0.0),
+                     jnp.int32(POLICIES.index(policy)), budget)
+    every = jax.tree_util.tree_map(lambda a: a.reshape(k, n, *a.shape[1:]), every)
+    return every, jnp.asarray(truth, jnp.float32).T
+
+
+def at_targets(every: Outcome, target) -> Outcome:
+    """From an every-target Outcome (K, N, ...) (:func:`expected_outcomes`), episode n's outcome
+    with the object on ``target[n]`` → Outcome (N, ...): with a perfect detector, exactly what
+    :func:`run_episodes` returns for those targets."""
+    index = jnp.asarray(target, jnp.int32)
+    n = jnp.arange(index.shape[0])
+    return jax.tree_util.tree_map(lambda a: a[index, n], every)

@@ -1,0 +1,157 @@
+"""``python -m flowmaps_jax.train``: train FlowMaps (or the MLP baseline) on FlowSim.
+
+Examples::
+
+    python -m flowmaps_jax.train                          # cpu preset, FlowMaps
+    python -m flowmaps_jax.train --preset smoke --model mlp --set model.baseline_variance=learned
+    python -m flowmaps_jax.train --steps 5000 --set model.dim=96 --set lr=5e-4
+    python -m flowmaps_jax.train --resume --run-dir runs/flowmaps-cpu-20250101-120000
+    python -m flowmaps_jax.train --resume --run-dir runs/X --from-step 500   # an older save
+    python -m flowmaps_jax.train --overwrite --run-dir runs/X   # old run moved to X.old-<time>
+
+A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` (one JSON record
+per log interval: ``"kind": "train"`` with mean loss/grad_norm/lr and steps/s and samples/s over
+the compiled steps only, or ``"kind": "val"`` with the EMA validation loss) and ``checkpoints/``
+(see :mod:`flowmaps_jax.training.checkpoint`). It belongs to one run
+(:mod:`flowmaps_jax.training.rundir`): a new run needs an empty directory (or ``--overwrite``,
+or one whose run saved no checkpoint: ``--resume`` also starts that one again from step 0), one
+process writes it at a time, and nothing in it is written before every check has passed,
+resource bounds included (:func:`flowmaps_jax.training.config.check_run_resources`).
+
+``--resume`` continues a run exactly (:func:`flowmaps_jax.training.loop.run`) and may change
+only the fields in :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`. Ctrl-C saves a
+checkpoint and exits; a NaN/inf loss, or a state with NaN/inf that a save refuses, stops the
+run without saving the bad state (the last good checkpoint stays). A failed write (a full disk)
+stops with one line naming it. Exit codes: 0 ok, 1 non-finite loss or state, 2 bad arguments,
+74 a failed write, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import os
+import pathlib
+import sys
+import time
+import typing
+
+from flowmaps_jax import distributed
+from flowmaps_jax.training import rundir, runlog
+from flowmaps_jax.training.config import (
+    DEFAULT_PRESET,
+    MODEL_KINDS,  # the model kinds' names, as TrainConfig checks them
+    PRESETS,
+    TrainConfig,
+    apply_overrides,
+    get_preset,
+)
+from flowmaps_jax.training.loop import run
+
+EXIT_OK, EXIT_NAN, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 1, 74, 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m flowmaps_jax.train",
+        description="Train FlowMaps (flow matching) or the MLP baseline on FlowSim.")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
+                        help=f"named configuration (default {DEFAULT_PRESET})")
+    parser.add_argument("--model", choices=tuple(MODEL_KINDS), default=None,
+                        help="flowmaps (default) or mlp (Gaussian baseline)")
+    parser.add_argument("--run-dir", default=None,
+                        help="output directory (default runs/<model>-<preset>-<timestamp>); "
+                             "a new run needs an empty or missing one")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --run-dir from its latest checkpoint")
+    parser.add_argument("--from-step", type=int, default=None, metavar="N",
+                        help="with --resume: continue from the saved step N instead (e.g. when "
+                             "the newest step is damaged); later steps are moved aside")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="start a new run in a non-empty --run-dir after moving the old run "
+                             "to <run-dir>.old-<timestamp>")
+    parser.add_argument("--steps", type=int, default=None, help="total training steps")
+    parser.add_argument("--stop-at", type=int, default=None,
+                        help="stop (with a checkpoint) after this step; resume later")
+    parser.add_argument("--set", dest="overrides", action="append", default=[],
+                        metavar="KEY=VALUE",
+                        help="override any config field, e.g. --set model.dim=64 --set lr=1e-3")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def default_run_dir(cfg: TrainConfig) -> pathlib.Path:
+    """``runs/<model_kind>-<preset>-<YYYYmmdd-HHMMSS>`` under the current directory."""
+    return pathlib.Path("runs") / f"{cfg.model_kind}-{cfg.preset}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]:
+    """The run's config and directory from parsed arguments (ValueError on bad input)."""
+    if args.from_step is not None and not args.resume:
+        raise ValueError("--from-step needs --resume")
+    if args.resume:
+        if args.run_dir is None:
+            raise ValueError("--resume needs --run-dir (the run to continue)")
+        if args.preset is not None or args.model is not None:
+            raise ValueError("--resume uses the run's saved config; change fields with --set, "
+                             "not --preset/--model")
+        if args.overwrite:
+            raise ValueError("--resume and --overwrite exclude each other")
+        run_dir = rundir.check_run_dir(args.run_dir)
+        cfg = runlog.resume_config(run_dir, args.from_step)
+    else:
+        cfg = get_preset(args.preset or DEFAULT_PRESET)
+        run_dir = None
+    overrides = list(args.overrides)
+    if args.model is not None:
+        overrides.append(f"model_kind={args.model}")
+    if args.steps is not None:
+        overrides.append(f"steps={args.steps}")
+    cfg = apply_overrides(cfg, overrides)
+    if run_dir is None:
+        run_dir = rundir.check_run_dir(args.run_dir if args.run_dir else default_run_dir(cfg))
+    return cfg, run_dir
+
+
+def _one_line(err: OSError) -> str:
+    """A failed write as one line (the message's own line breaks folded)."""
+    return " ".join(str(err).split()) or os.strerror(err.errno or errno.EIO)
+
+
+def _exit_now(code: int) -> typing.NoReturn:
+    """Leave the process without interpreter teardown. After Ctrl-C outside the step loop (data
+    generation, compilation) XLA may still be working in its own threads, and tearing the
+    interpreter down under them ends in SIGSEGV; the run's lock is already released."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit code (0 ok, 1 non-finite loss or state, 74 a write
+    failed, e.g. a full disk, 130 interrupted)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        distributed.initialize()  # a multi-host job: connect the processes first
+        cfg, run_dir = resolve_config(args)
+        result = run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite,
+                     from_step=args.from_step, stop_at=args.stop_at,
+                     progress=not args.no_progress)
+    except ValueError as err:
+        parser.error(str(err))
+    except OSError as err:  # a full disk or another failed write: one line, not a traceback
+        print(f"{parser.prog}: error: {_one_line(err)}", file=sys.stderr)
+        if argv is None:  # no teardown: orbax's threads would print tracebacks after the line
+            _exit_now(EXIT_WRITE_FAILED)
+        return EXIT_WRITE_FAILED
+    except KeyboardInterrupt:  # outside the step loop (data, compilation) or a second Ctrl-C
+        print("\nInterrupted; the current state was not saved.", file=sys.stderr)
+        if argv is None:  # the real command: see _exit_now
+            _exit_now(EXIT_INTERRUPTED)
+        return EXIT_INTERRUPTED
+    return {"nan": EXIT_NAN, "interrupted": EXIT_INTERRUPTED}.get(result.status, EXIT_OK)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

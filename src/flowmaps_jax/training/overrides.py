@@ -1,0 +1,206 @@
+"""Config dataclasses from text: ``key=value`` overrides and the JSON round trip.
+
+* :func:`apply_overrides` replaces fields of a config dataclass (``TrainConfig``) from strings
+  such as ``model.dim=64`` (the command line's ``--set``), converting each to its field's type.
+* :func:`config_to_dict` / :func:`config_from_dict` turn a config into nested JSON dicts and
+  back (``TrainConfig.to_dict`` / ``from_dict``, a run directory's ``config.json``); nested
+  configs with a ``to_dict`` / ``from_dict`` of their own (``FlowSimConfig``) use it.
+* :func:`flatten`: a nested dict as ``{"model.dim": 64, ...}``.
+
+Nothing here knows ``TrainConfig`` itself: every function works on the dataclass it is given.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import types
+import typing
+from typing import Any, Literal
+
+SHORTHANDS = {"precision": "model.precision"}
+"""Top-level override keys that stand for a nested field (``--set precision=bf16``)."""
+
+
+def apply_overrides(cfg, overrides: typing.Iterable[str] | dict[str, Any]):
+    """Return ``cfg`` with fields replaced, e.g. ``["model.dim=64", "lr=1e-3", "clip_norm=none"]``.
+
+    Keys are dotted paths into nested dataclasses. String values are converted to the field's
+    annotated type (int, float, bool, str, ``X | None`` where "none"/"null" gives None); a dict
+    may also carry already-typed values. All overrides are applied before the result is checked,
+    so coupled fields (``flowsim.num_timesteps`` and ``model.tau_max``) can change together.
+    Unknown keys, unconvertible values and invalid results raise ``ValueError`` naming the key.
+    Keys in :data:`SHORTHANDS` are short for a nested path: ``precision=bf16`` sets
+    ``model.precision``.
+    """
+    if isinstance(overrides, dict):
+        items = list(overrides.items())
+    else:
+        items = []
+        for text in overrides:
+            if "=" not in text:
+                raise ValueError(f"override {text!r} must look like key=value")
+            key, value = text.split("=", 1)
+            items.append((key.strip(), value.strip()))
+    if not items:
+        return cfg
+    cls = type(cfg)
+    data = cfg.to_dict()
+    for key, value in items:
+        path = SHORTHANDS.get(key, key).split(".")
+        _set_path(cls, data, path, value, key)
+    try:
+        return cls.from_dict(data)
+    except (ValueError, TypeError) as err:
+        keys = ", ".join(k for k, _ in items)
+        raise ValueError(f"bad override ({keys}): {err}") from err
+
+
+def _set_path(cls: type, data: dict, path: list[str], value: Any, full_key: str) -> None:
+    """Set ``data[path]`` (a to_dict() view of dataclass ``cls``), converting ``value``."""
+    names = _field_names(cls)
+    head = path[0]
+    if head not in names:
+        raise ValueError(f"unknown config key {full_key!r} ({cls.__name__} has no field "
+                         f"{head!r}; known: {sorted(names)})")
+    hint = typing.get_type_hints(cls)[head]
+    is_section = isinstance(hint, type) and dataclasses.is_dataclass(hint)
+    if len(path) > 1:
+        if not is_section:
+            raise ValueError(f"unknown config key {full_key!r} ({head!r} has no sub-fields)")
+        _set_path(hint, data[head], path[1:], value, full_key)
+    elif is_section:
+        raise ValueError(f"config key {full_key!r} is a section; set one of its fields, "
+                         f"e.g. {full_key}.{_field_names(hint)[0]}=...")
+    else:
+        data[head] = _convert(value, hint, full_key) if isinstance(value, str) else value
+
+
+def _field_names(cls: type) -> list[str]:
+    """Field names of dataclass ``cls`` in declaration order."""
+    return [f.name for f in dataclasses.fields(cls)]
+
+
+_NONE_WORDS = ("none", "null")
+_TRUE_WORDS = ("true", "1", "yes", "on")
+_FALSE_WORDS = ("false", "0", "no", "off")
+
+
+def _convert(text: str, hint: Any, key: str) -> Any:
+    """Convert a command-line string to the annotated type ``hint``."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        if type(None) in args and text.lower() in _NONE_WORDS:
+            return None
+        errors = []
+        for arg in args:
+            if arg is type(None):
+                continue
+            try:
+                return _convert(text, arg, key)
+            except ValueError as err:
+                errors.append(str(err))
+        raise ValueError(f"bad value {text!r} for {key!r}: " + "; ".join(errors))
+    if origin is Literal:
+        choices = typing.get_args(hint)
+        for choice in choices:
+            if str(choice) == text:
+                return choice
+        raise ValueError(f"bad value {text!r} for {key!r}: must be one of {list(choices)}")
+    if hint is bool:
+        if text.lower() in _TRUE_WORDS:
+            return True
+        if text.lower() in _FALSE_WORDS:
+            return False
+        raise ValueError(f"bad value {text!r} for {key!r}: expected a boolean (true/false)")
+    if hint is int:
+        with contextlib.suppress(ValueError):
+            return int(text)
+        try:
+            as_float = float(text)
+        except ValueError:
+            raise ValueError(f"bad value {text!r} for {key!r}: expected an integer") from None
+        if not as_float.is_integer():
+            raise ValueError(f"bad value {text!r} for {key!r}: expected an integer")
+        return int(as_float)
+    if hint is float:
+        try:
+            return float(text)
+        except ValueError:
+            raise ValueError(f"bad value {text!r} for {key!r}: expected a number") from None
+    if hint is str:
+        return text
+    raise ValueError(f"config key {key!r} (type {hint}) cannot be set from the command line")
+
+
+# --------------------------------------------------------------------------------------------
+# JSON round trip
+
+
+def config_to_dict(cfg) -> dict:
+    """The fields of dataclass ``cfg`` as a JSON-able dict: nested configs become nested dicts
+    (through their own ``to_dict`` when they have one), tuples become lists."""
+    return {f.name: _to_jsonable(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+
+
+def _to_jsonable(obj: Any) -> Any:
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        to_dict = getattr(obj, "to_dict", None)
+        return _to_jsonable(to_dict()) if to_dict is not None else config_to_dict(obj)
+    if isinstance(obj, dict):
+        return {str(k): _to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_to_jsonable(v) for v in obj]
+    return obj
+
+
+# Fields that older versions wrote and that no longer exist (they configured nothing): configs
+# saved with them still load.
+_REMOVED_KEYS = {"TrainConfig": ("run_dir",), "ModelConfig": ("max_tokens",)}
+
+
+def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:
+    """Inverse of :func:`config_to_dict`: dataclass ``cls`` from a dict. Nested configs are
+    built with their own ``from_dict`` when they have one; lists become tuples. Unknown keys
+    (other than the removed fields that old configs still carry) raise ``ValueError`` naming
+    ``where``."""
+    _check_dict(cls, data, where)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    data = {k: v for k, v in data.items() if k not in _REMOVED_KEYS.get(cls.__name__, ())}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ValueError(f"{where} has unknown keys {unknown} for {cls.__name__}")
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for name, value in data.items():
+        hint = hints[name]
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+            if hasattr(hint, "from_dict"):
+                _check_dict(hint, value, f"{where}.{name}")
+                value = hint.from_dict(value)
+            else:
+                value = config_from_dict(hint, value, f"{where}.{name}")
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def _check_dict(cls: type, data: Any, where: str) -> None:
+    if not isinstance(data, dict):
+        raise ValueError(
+            f"{where} must be a dict to build {cls.__name__}; got {type(data).__name__}")
+
+
+def flatten(data: dict, prefix: str = "") -> dict[str, Any]:
+    """A nested dict as one level with dotted keys: ``{"model": {"dim": 64}}`` →
+    ``{"model.dim": 64}``."""
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(flatten(value, name + "."))
+        else:
+            out[name] = value
+    return out

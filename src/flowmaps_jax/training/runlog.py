@@ -1,0 +1,360 @@
+"""A run's bookkeeping: the claim on its directory, ``metrics.jsonl``, the resume policy, the
+best val step and the closing summary. :mod:`flowmaps_jax.training.loop` calls these; none of
+them trains.
+
+* :func:`claim` holds the run directory for one job (:func:`flowmaps_jax.training.rundir.claim`
+  on process 0 of a multi-host job; every process learns whether it could).
+* :class:`RunBook` keeps ``metrics.jsonl``, one JSON record per interval: ``"kind": "train"``
+  (mean loss / grad_norm / lr over the steps since the last record, and steps/s and samples/s
+  over the compiled steps only), ``"kind": "val"`` (the EMA loss on the fixed validation
+  batches, and whether it is the best so far) and ``"kind": "routine"`` (the routine
+  diagnostic). It also writes the checkpoints (last k, and ``best`` by val loss), each carrying
+  the unlogged steps since the last train record, so that a resumed run writes the records of
+  a run never stopped.
+* Resume policy: :func:`restore_for_resume` (the checkpoint ``--resume`` continues),
+  :func:`resume_config` (the config a resumed run starts from), :func:`check_resumable` (only
+  :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS` may change), :func:`kept_records`
+  (the metrics a resumed run keeps).
+* :class:`RunResult`, :func:`print_summary` and :func:`write_routine_curve`: the end of a run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import io
+import json
+import pathlib
+from collections.abc import Callable
+
+import jax
+import numpy as np
+
+from flowmaps_jax import distributed
+from flowmaps_jax.training import checkpoint, rundir
+from flowmaps_jax.training import state as train_state
+from flowmaps_jax.training.config import RESUMABLE_FIELDS, TrainConfig
+from flowmaps_jax.training.overrides import flatten
+
+METRICS = "metrics.jsonl"
+
+
+@contextlib.contextmanager
+def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool, log: Callable[[str], None]):
+    """Hold ``run_dir`` for this run (:func:`flowmaps_jax.training.rundir.claim`).
+
+    On a multi-host job the first process owns the run directory (lock, config, metrics; every
+    process takes part in the checkpoint saves, which orbax coordinates). The others learn
+    whether it could claim it, so a refused run stops every process at once with the reason.
+    """
+    if jax.process_count() == 1:
+        with rundir.claim(run_dir, resume=resume, overwrite=overwrite, log=log):
+            yield
+        return
+    with contextlib.ExitStack() as held:
+        error = ""
+        if jax.process_index() == 0:
+            try:
+                held.enter_context(rundir.claim(run_dir, resume=resume, overwrite=overwrite,
+                                                log=log))
+            except ValueError as err:
+                error = str(err)
+        if distributed.agree(not error):
+            yield
+            return
+        raise ValueError(error or f"process 0 could not claim the run directory {run_dir} "
+                                  "(its log says why)")
+
+
+# --------------------------------------------------------------------------------------------
+# metrics.jsonl and the checkpoints
+
+
+class RunBook:
+    """``metrics.jsonl`` and the checkpoint store of a run, with the metrics of the steps since
+    the last train record (the window) and the best val loss and its step.
+
+    kept: on resume, the lines ``metrics.jsonl`` is first rewritten with (atomically; see
+    :func:`kept_records`); None appends to it as it is. window: the window a resumed run's
+    checkpoint carried. primary: False on the other processes of a multi-host job, which write
+    no metrics (they take part in the checkpoint saves).
+    """
+
+    def __init__(self, run_dir: pathlib.Path, cfg: TrainConfig, *, kept: list[str] | None,
+                 window: dict | None, primary: bool = True):
+        self.run_dir, self.config = run_dir, cfg.to_dict()
+        path = run_dir / METRICS
+        if primary and kept is not None:
+            rundir.write_atomic(path, "".join(line + "\n" for line in kept))
+        self._file = rundir.open_append(path) if primary else None
+        try:
+            self.store = checkpoint.CheckpointStore(run_dir / "checkpoints", cfg.keep_last)
+        except BaseException:
+            self._close_file()
+            raise
+        self.best_loss, self.best_step = self.store.best_val_loss, self.store.best_step()
+        window = window or {}
+        self.window: list[dict] = list(window.get("records", []))
+        self.timed_steps = int(window.get("timed_steps", 0))  # compiled steps in the window
+        self.step_seconds = float(window.get("step_seconds", 0.0))  # and their time only
+
+    def add_step(self, metrics: dict, seconds: float | None) -> None:
+        """One step's metrics; ``seconds`` None for a step that also compiled (not timed)."""
+        self.window.append(metrics)
+        if seconds is not None:
+            self.timed_steps, self.step_seconds = self.timed_steps + 1, self.step_seconds + seconds
+
+    def write_train(self, step: int, samples_per_step: int) -> None:
+        """The train record of the window (its mean metrics and speed); the window restarts."""
+        rate = self.timed_steps / self.step_seconds if self.step_seconds > 0 else 0.0
+        record = {k: float(np.mean([m[k] for m in self.window])) for k in self.window[0]}
+        record.update(kind="train", step=step, steps_per_sec=rate,
+                      samples_per_sec=rate * samples_per_step)
+        self._write(record)
+        self.window, self.timed_steps, self.step_seconds = [], 0, 0.0
+
+    def write_val(self, state, step: int, val_loss: float) -> None:
+        """The val record of ``state``; a val loss that beats the best (after step 0) saves
+        ``state`` as the ``best`` checkpoint."""
+        improved = step > 0 and self.store.save_if_best(state, self.config, val_loss,
+                                                        log_window=self.window_state())
+        if improved:
+            self.best_loss, self.best_step = val_loss, step
+        self._write({"kind": "val", "step": step, "val_loss": val_loss, "best": bool(improved)})
+
+    def write_routine(self, step: int, metrics: dict) -> None:
+        self._write({"kind": "routine", "step": step, **metrics})
+
+    def save(self, state) -> None:
+        """A checkpoint of ``state`` in ``last`` (a step already saved is not saved again)."""
+        self.store.save(state, self.config, log_window=self.window_state())
+
+    def window_state(self) -> dict:
+        """The window as JSON data, carried by every checkpoint."""
+        return {"records": self.window, "timed_steps": self.timed_steps,
+                "step_seconds": self.step_seconds}
+
+    def latest_step(self) -> int | None:
+        return self.store.latest_step()
+
+    def save_failed(self, err: checkpoint.CheckpointSaveError,
+                    step: int) -> checkpoint.CheckpointSaveError:
+        """``err`` (a failed checkpoint write) completed with what is saved and how to go on."""
+        latest = self.store.latest_step()
+        saved = (f"the saved checkpoints are intact (latest: step {latest})"
+                 if latest is not None else "no checkpoint was saved yet (--resume starts the "
+                 "run again from step 0)")
+        return checkpoint.CheckpointSaveError(
+            err.errno, f"{err}. Training stopped at step {step}; {saved}. Free some space, then "
+            f"continue with python -m flowmaps_jax.train --resume --run-dir {self.run_dir}")
+
+    def _write(self, record: dict) -> None:
+        if self._file is not None:
+            self._file.write(json.dumps(record) + "\n")
+            self._file.flush()
+
+    def _close_file(self) -> None:
+        if self._file is not None:
+            with contextlib.suppress(OSError):  # a full disk: the error in flight says so
+                self._file.close()
+
+    def close(self) -> None:
+        self._close_file()
+        self.store.close()
+
+    def __enter__(self) -> RunBook:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def kept_records(run_dir: pathlib.Path, resumed_step: int | None,
+                 log: Callable[[str], None]) -> list[str]:
+    """The lines of ``metrics.jsonl`` that a resumed run keeps: those up to the restored step
+    ``resumed_step`` (none for a run that starts again from step 0). A half-written last line (a
+    crash mid-write) is dropped with a message; a bad line elsewhere is a ValueError naming it."""
+    path = run_dir / METRICS
+    if resumed_step is None or not path.exists():
+        return []
+    lines = path.read_bytes().decode("utf-8", errors="replace").split("\n")
+    numbered = [(n, line) for n, line in enumerate(lines, 1) if line.strip()]
+    kept = []
+    for n, line in numbered:
+        try:
+            record = json.loads(line)
+            if not isinstance(record, dict) or not isinstance(record.get("step", 0), int):
+                raise ValueError("not a JSON object with an integer step")
+        except ValueError as err:
+            if n != numbered[-1][0]:
+                raise ValueError(f"{path} line {n} is not a metrics record ({err}); repair or "
+                                 f"delete that line, then resume again") from None
+            log(f"Dropped the half-written last line of {path} (line {n}: {_clip(line)})")
+            continue
+        if record.get("step", 0) <= resumed_step:
+            kept.append(line)
+    return kept
+
+
+def _clip(text: str, limit: int = 60) -> str:
+    return repr(text if len(text) <= limit else text[:limit] + "...")
+
+
+# --------------------------------------------------------------------------------------------
+# Resume policy
+
+
+def check_resumable(saved: TrainConfig, cfg: TrainConfig) -> None:
+    """ValueError naming the first field where ``cfg`` differs from the checkpoint's ``saved``
+    config outside :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`."""
+    old, new = flatten(saved.to_dict()), flatten(cfg.to_dict())
+    for key in sorted(set(old) | set(new)):
+        if key.split(".")[0] not in RESUMABLE_FIELDS and old.get(key) != new.get(key):
+            raise ValueError(
+                f"--resume cannot change {key} (the checkpoint has {old.get(key)!r}, this run "
+                f"asks for {new.get(key)!r}): it would change the model, its parameters, its "
+                f"optimiser or its data. Only {', '.join(RESUMABLE_FIELDS)} may change on "
+                f"resume; train with other settings in a new --run-dir")
+
+
+def checkpoint_root(run_dir: pathlib.Path) -> pathlib.Path:
+    """The checkpoint directory of the run in ``run_dir`` (ValueError for a checkpoint
+    directory given as the run)."""
+    ckpt_dir = run_dir / "checkpoints"
+    if not ckpt_dir.exists() and ((run_dir / "last").is_dir() or (run_dir / "best").is_dir()):
+        raise ValueError(f"run_dir {str(run_dir)!r} is a checkpoint directory (it holds last/ or "
+                         f"best/), not a run directory: resume the run that holds it, "
+                         f"--run-dir {run_dir.parent}")
+    return checkpoint.resolve_checkpoint_dir(ckpt_dir if ckpt_dir.exists() else run_dir)
+
+
+def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig | None:
+    """The ``config.json`` of a run that saved no checkpoint yet (killed or interrupted before
+    its first save), which ``--resume`` starts again from step 0; None when the run directory
+    holds a checkpoint (or anything else). ValueError if there is nothing to start from."""
+    if not run_dir.is_dir() or rundir.has_checkpoint(run_dir):
+        checkpoint_root(run_dir)  # a checkpoint directory given as the run: refused
+        return None
+    if from_step is not None:
+        raise ValueError(f"--from-step {from_step}: the run in {run_dir} saved no checkpoint")
+    try:
+        return TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+    except FileNotFoundError:
+        raise ValueError(f"run directory {run_dir} holds no checkpoint and no config.json: "
+                         f"nothing to resume; start a new run there") from None
+    except (OSError, ValueError, TypeError) as err:
+        raise ValueError(f"run directory {run_dir} holds no checkpoint, and its config.json "
+                         f"is unreadable ({err}); start a new run there") from None
+
+
+def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int | None,
+                       mesh, log: Callable[[str], None] = print) -> checkpoint.Restored | None:
+    """The verified checkpoint to continue from (onto ``mesh``, whatever device count it was
+    saved from), after checking that ``cfg`` may resume it; None for a run that saved no
+    checkpoint yet (it starts again from step 0 with its ``config.json``)."""
+    unsaved = _unsaved_config(run_dir, from_step)
+    if unsaved is not None:
+        check_resumable(unsaved, cfg)
+        log(f"No checkpoint was saved in {run_dir} yet: starting the run again from step 0")
+        return None
+    root = checkpoint_root(run_dir)
+    check_resumable(checkpoint.load_config(root, step=from_step), cfg)
+    restored = checkpoint.restore(root, train_state.abstract_state(cfg, mesh=mesh),
+                                  step=from_step)
+    if int(restored.state.step) > cfg.steps:
+        raise ValueError(f"the checkpoint is at step {int(restored.state.step)}, past "
+                         f"steps={cfg.steps}; pass --steps with at least that many")
+    return restored
+
+
+def resume_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig:
+    """The config a resumed run starts from: the checkpoint's, with the fields --resume may
+    change taken from ``config.json`` when that file is readable (it holds the last run's
+    --steps etc. even when no checkpoint was saved since)."""
+    unsaved = _unsaved_config(run_dir, from_step)
+    if unsaved is not None:  # no checkpoint yet: the run starts again with its config.json
+        return unsaved
+    saved = checkpoint.load_config(checkpoint_root(run_dir), step=from_step)
+    try:
+        latest = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+    except (OSError, ValueError, TypeError):  # missing or unreadable: the checkpoint's config
+        return saved
+    try:
+        check_resumable(saved, latest)
+    except ValueError:
+        raise ValueError(f"{run_dir / 'config.json'} is not the config of the run's "
+                         f"checkpoints (another model or settings); restore or delete it, then "
+                         f"resume") from None
+    return dataclasses.replace(saved, **{name: getattr(latest, name)
+                                         for name in RESUMABLE_FIELDS})
+
+
+# --------------------------------------------------------------------------------------------
+# The end of a run
+
+
+@dataclasses.dataclass
+class RunResult:
+    """Outcome of :func:`flowmaps_jax.training.loop.run`.
+
+    status: "done" (reached cfg.steps), "stopped" (reached stop_at), "interrupted" (Ctrl-C) or
+        "nan" (non-finite loss or state; nothing saved for that state).
+    step: steps completed in the final state; state: that TrainState (None after "nan").
+    run_dir, checkpoint_dir: where outputs went; best_val_loss: best val loss seen, at step
+    best_step (the step ``evaluate`` loads by default); None when no val pass after step 0 has
+    run.
+    """
+
+    status: str
+    step: int
+    state: train_state.TrainState | None
+    run_dir: pathlib.Path
+    checkpoint_dir: pathlib.Path
+    best_val_loss: float | None
+    best_step: int | None = None
+
+
+def print_summary(result: RunResult, total_steps: int, latest: int | None,
+                  log: Callable[[str], None]) -> None:
+    """How the run ended, where its checkpoints are (``latest``: the last saved step) and the
+    commands that evaluate or resume it."""
+    status, step, ckpt_dir = result.status, result.step, result.checkpoint_dir
+    best, best_step = result.best_val_loss, result.best_step
+    headline = {"done": f"Finished {step} steps.",
+                "stopped": f"Stopped after step {step} of {total_steps}.",
+                "interrupted": f"Interrupted at step {step} of {total_steps}; checkpoint saved.",
+                "nan": "Training diverged (non-finite loss or state)."}[status]
+    log(headline)
+    if latest is None:
+        log(f"No checkpoint was saved in {ckpt_dir}.")
+        return
+    has_best = best is not None and best_step is not None
+    best_text = f"; best validation loss {best:.5f} at step {best_step}" if has_best else ""
+    log(f"Checkpoint: {ckpt_dir.absolute()} (latest step {latest}{best_text})")
+    log(f"Evaluate it:  python -m flowmaps_jax.evaluate --checkpoint {ckpt_dir}")
+    if has_best and best_step != latest:
+        log(f"  (evaluate and search load the best step, {best_step}, by default; "
+            f"--which latest loads step {latest}, the last)")
+    elif has_best:
+        log(f"  (the best step is the last, {latest}: evaluate and search load it)")
+    else:  # no val pass since step 0: the best falls back to the latest save
+        log(f"  (no best-by-validation step yet: evaluate and search load step {latest})")
+    if status != "done":
+        log(f"Resume it:    python -m flowmaps_jax.train --resume --run-dir {result.run_dir}")
+
+
+def write_routine_curve(run_dir: pathlib.Path, log: Callable[[str], None]) -> None:
+    """routine_curve.png from the run's routine records (skipped when there are none)."""
+    from flowmaps_jax.evaluation import routine
+
+    records = routine.read_routine_records(run_dir / METRICS)
+    if records:
+        image = io.BytesIO()  # rendered first, then written by a rename: no link is followed
+        routine.plot_learning_curve(records, title=run_dir.name).savefig(image, dpi=100,
+                                                                         format="png")
+        rundir.write_atomic(run_dir / "routine_curve.png", image.getvalue())
+        last = records[-1]
+        log(f"Routines at step {last['step']} (one step ahead, exact 0.2 / 0.7 / 0.1): "
+            f"offsets 0 / +1 / +2 = {last['offset_0']:.2f} / {last['offset_+1']:.2f} / "
+            f"{last['offset_+2']:.2f}; TV {last['tv']:.3f}, rank cost "
+            f"{last['search_cost_ratio']:.3f} → {run_dir / 'routine_curve.png'}")

@@ -1,0 +1,111 @@
+"""Argument checks shared by the public APIs: run on the host, before anything is jitted.
+
+One function per concept. Each raises ``ValueError`` whose message starts with the argument's
+name and says what was expected and what was given; each returns the value in the form the
+caller should go on with (a Python ``int``/``float``/``bool``, a numpy array, a typed key, a path
+string). Array checks read only ``shape`` and ``dtype`` of tracers (values are checked when the
+array is concrete), so a public function may run them and still be traced by ``jax.jit``; the
+jitted cores behind the public functions do not check again.
+
+Modules (everything is importable from ``flowmaps_jax.validation``):
+
+* :mod:`.scalars`: :func:`check_int`, :func:`check_real`, :func:`check_flag`,
+  :func:`check_choice`, :func:`check_instance`, :func:`check_seed`, :func:`check_key`;
+  :func:`is_real_dtype`.
+* :mod:`.arrays`: :func:`check_array`, :func:`check_shape`, :func:`check_real_array`,
+  :func:`check_int_array`, :func:`check_mask`, :func:`check_probabilities` (with
+  :data:`PROB_ATOL` for computed float32 distributions), :func:`is_concrete`.
+* :mod:`.files`: :func:`check_path`, :func:`check_file`, :func:`check_dir`,
+  :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
+  name, a metadata field: no path, no markup); :func:`read_npz` (an untrusted ``.npz``: member
+  names whitelisted, declared sizes checked before anything is decompressed, no pickles).
+* :mod:`.resources`: :func:`array_bytes`, :func:`memory_limit`, :func:`flops_limit`,
+  :func:`check_request_size`, :func:`check_resources`, :func:`network_flops`,
+  :func:`solver_evaluations`. Every size that scales memory or time goes through
+  :func:`check_resources` before anything runs: a request above the budget is a ``ValueError``
+  naming it, the estimate and the limit. The budgets: memory, :data:`MAX_BYTES_ENV` (default the
+  accelerator's memory, else the host's); work, :data:`MAX_FLOPS_ENV` (default
+  :data:`DEFAULT_MAX_FLOPS` floating-point operations per uninterruptible call).
+"""
+
+from flowmaps_jax.validation.arrays import (
+    PROB_ATOL,
+    check_array,
+    check_int_array,
+    check_mask,
+    check_probabilities,
+    check_real_array,
+    check_shape,
+    is_concrete,
+)
+from flowmaps_jax.validation.files import (
+    check_dir,
+    check_file,
+    check_output_dir,
+    check_output_file,
+    check_path,
+    check_plain_name,
+    read_npz,
+)
+from flowmaps_jax.validation.resources import (
+    DEFAULT_MAX_FLOPS,
+    MAX_BYTES_ENV,
+    MAX_FLOPS_ENV,
+    array_bytes,
+    check_request_size,
+    check_resources,
+    flops_limit,
+    memory_limit,
+    network_flops,
+    solver_evaluations,
+)
+from flowmaps_jax.validation.scalars import (
+    INT32_MAX,
+    SEED_MAX,
+    check_choice,
+    check_flag,
+    check_instance,
+    check_int,
+    check_key,
+    check_real,
+    check_seed,
+    is_real_dtype,
+)
+
+__all__ = [
+    "DEFAULT_MAX_FLOPS",
+    "INT32_MAX",
+    "MAX_BYTES_ENV",
+    "MAX_FLOPS_ENV",
+    "PROB_ATOL",
+    "SEED_MAX",
+    "array_bytes",
+    "check_array",
+    "check_choice",
+    "check_dir",
+    "check_file",
+    "check_flag",
+    "check_instance",
+    "check_int",
+    "check_int_array",
+    "check_key",
+    "check_mask",
+    "check_output_dir",
+    "check_output_file",
+    "check_path",
+    "check_plain_name",
+    "check_probabilities",
+    "check_real",
+    "check_real_array",
+    "check_request_size",
+    "check_resources",
+    "check_seed",
+    "check_shape",
+    "flops_limit",
+    "is_concrete",
+    "is_real_dtype",
+    "memory_limit",
+    "network_flops",
+    "read_npz",
+    "solver_evaluations",
+]

@@ -1,0 +1,188 @@
+"""Array argument checks: arrays, shapes, real and integer arrays, masks and probabilities.
+
+Shapes and dtypes are read from tracers too, so a public function may run these checks and still
+be traced by ``jax.jit``; values are checked only when the array is concrete (:func:`is_concrete`).
+Each raises ``ValueError`` whose message starts with the argument's name.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.validation.scalars import is_real_dtype
+
+PROB_ATOL = 1e-4
+"""Tolerance for probabilities computed in float32 (a slot distribution, a search belief, a
+prior's table probabilities): their sum may miss 1, and masked-out entries or round-off negatives
+may reach, this much (``check_probabilities(..., atol=PROB_ATOL, min_value=-PROB_ATOL)``)."""
+
+
+def is_concrete(*arrays) -> bool:
+    """True when none of ``arrays`` is a tracer, i.e. their values can be checked on the host."""
+    return not any(isinstance(a, jax.core.Tracer) for a in arrays)
+
+
+def _dtype_words(dtype) -> str:
+    """What an array of ``dtype`` holds, in words, for error messages."""
+    if dtype == np.bool_:
+        return "booleans"
+    kind = np.dtype(dtype).kind if not jnp.issubdtype(dtype, jax.dtypes.prng_key) else "key"
+    return {"c": "complex numbers", "U": "strings", "S": "bytes", "O": "Python objects",
+            "key": "PRNG keys"}.get(kind, f"dtype {dtype}")
+
+
+def _shape_text(shape: tuple) -> str:
+    parts = ["..." if s is Ellipsis else "*" if s is None else str(s) for s in shape]
+    return "(" + ", ".join(parts) + ("," if len(parts) == 1 else "") + ")"
+
+
+def check_shape(name: str, actual: tuple[int, ...], expected: tuple | None,
+                reason: str = "") -> None:
+    """``actual`` (a shape) must match ``expected``: sizes, ``None`` for any size, a leading
+    ``...`` for any leading dims (``expected`` None: anything). ``reason`` says why, for the
+    message (e.g. "the leading dims of slot_boxes")."""
+    if expected is None:
+        return
+    lead = bool(expected) and expected[0] is Ellipsis
+    tail = expected[1:] if lead else expected
+    fits = len(actual) >= len(tail) if lead else len(actual) == len(tail)
+    if fits:
+        fits = all(e is None or a == e for a, e in zip(actual[len(actual) - len(tail):], tail,
+                                                       strict=True))
+    if not fits:
+        why = f" ({reason})" if reason else ""
+        raise ValueError(f"{name} must have shape {_shape_text(expected)}{why}; got "
+                         f"{tuple(actual)}")
+
+
+def _as_array(name: str, value: Any):
+    """``value`` itself if it has ``shape`` and ``dtype`` (numpy, jax, tracer), else numpy."""
+    if hasattr(value, "shape") and hasattr(value, "dtype"):
+        return value
+    if isinstance(value, (str, bytes)) or value is None:
+        raise ValueError(f"{name} must be a numeric array; got {type(value).__name__} {value!r}")
+    try:
+        return np.asarray(value)
+    except (TypeError, ValueError) as err:  # ragged nesting, unconvertible objects
+        raise ValueError(f"{name} must be a numeric array; could not convert "
+                         f"{type(value).__name__}: {err}") from None
+
+
+def check_array(name: str, value: Any, shape: tuple | None = None):
+    """``value`` if it is an array (numpy, jax or a tracer), not a list or a scalar; the
+    optional ``shape`` is matched (``None``: any size; a leading ``...``: any leading dims)."""
+    if not (isinstance(value, (np.ndarray, np.generic, jax.Array))
+            or isinstance(value, jax.core.Tracer)):
+        raise ValueError(f"{name} must be an array (numpy or jax); got {type(value).__name__}")
+    check_shape(name, tuple(value.shape), shape)
+    return value
+
+
+def check_real_array(name: str, value: Any, shape: tuple | None = None, *, finite: bool = True):
+    """A real-valued (integer or float) array: booleans, complex numbers, strings and objects
+    are refused, as are NaN and ±inf when ``finite`` (values of concrete arrays only).
+
+    Returns a numpy array for concrete inputs with values checked, else the input itself.
+    """
+    arr = _as_array(name, value)
+    if not is_real_dtype(arr.dtype):
+        raise ValueError(f"{name} must hold real numbers; got {_dtype_words(arr.dtype)}")
+    check_shape(name, tuple(arr.shape), shape)
+    if not finite or not is_concrete(arr):
+        return arr
+    arr = np.asarray(arr)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return arr
+
+
+def check_int_array(name: str, value: Any, low: int | None = None, high=None, *,
+                    shape: tuple | None = None, high_name: str | None = None):
+    """An integer array with every value in ``low..high`` (inclusive; None: unbounded).
+
+    ``high`` may be an array broadcasting against ``value`` (each value below its own bound);
+    name it with ``high_name`` for the message. Floats (even 3.0) and booleans are refused.
+    Values are checked on concrete arrays only; returns numpy for those, else the input.
+    """
+    arr = _as_array(name, value)
+    if arr.dtype == np.bool_ or not jnp.issubdtype(arr.dtype, jnp.integer):
+        raise ValueError(f"{name} must hold integers; got {_dtype_words(arr.dtype)}")
+    check_shape(name, tuple(arr.shape), shape)
+    if (low is None and high is None) or not is_concrete(arr, high):
+        return arr
+    arr = np.asarray(arr)
+    if arr.size == 0:
+        return arr
+    bad = np.zeros(arr.shape, bool) if low is None else arr < low
+    if high is not None:
+        try:
+            bad = bad | (arr > np.asarray(high))
+        except ValueError:
+            raise ValueError(f"{name} {arr.shape} does not broadcast against "
+                             f"{high_name or 'its bound'} {np.shape(high)}") from None
+    if np.any(bad):
+        top = high_name if high_name is not None else ("" if high is None else high)
+        range_text = (f">= {low}" if high is None else f"<= {top}" if low is None
+                      else f"in {low}..{top}")
+        raise ValueError(f"{name} must lie {range_text}; got values in "
+                         f"{arr.min()}..{arr.max()}")
+    return arr
+
+
+def check_mask(name: str, value: Any, shape: tuple | None = None):
+    """A 0/1 mask as booleans: bool arrays pass; integer or float arrays only if every value is
+    0 or 1 (0.5 or 2 is refused). Returns a bool numpy array when concrete."""
+    arr = _as_array(name, value)
+    if not (arr.dtype == np.bool_ or is_real_dtype(arr.dtype)):
+        raise ValueError(f"{name} must be a mask of booleans (or 0/1); got "
+                         f"{_dtype_words(arr.dtype)}")
+    check_shape(name, tuple(arr.shape), shape)
+    if not is_concrete(arr):
+        return arr
+    arr = np.asarray(arr)
+    if arr.dtype != np.bool_:
+        odd = arr[(arr != 0) & (arr != 1)]
+        if odd.size:
+            raise ValueError(f"{name} must hold only 0/1 (or booleans); got {odd.flat[0].item()!r}")
+    return arr.astype(bool)
+
+
+def check_probabilities(name: str, value: Any, shape: tuple | None = None, *,
+                        normalised: bool = True, atol: float = 1e-6, min_value: float = 0.0,
+                        support: Any = None, support_name: str = "support") -> np.ndarray:
+    """Probabilities over the last axis as float64: real numbers (a float32 array passes; strings
+    and booleans are refused as such), finite, at least ``min_value`` (default 0; a computed
+    distribution may allow round-off, ``-PROB_ATOL``) and, if ``normalised``, summing to 1 within
+    ``atol``. ``support``: optional bool (..., K') marking where mass may lie among the first K'
+    entries of the last axis (entries beyond K', such as an off bin, are free); mass above
+    ``atol`` elsewhere is refused, naming ``support_name``. ``value`` may be a sequence of numbers
+    or an array; shapes are checked on tracers too, values only on concrete arrays (a tracer is
+    returned as it is)."""
+    if isinstance(value, (list, tuple)) and any(
+            isinstance(v, (str, bytes, bool, np.bool_, complex)) for v in value):
+        raise ValueError(f"{name} must be real numbers; got {value!r}")
+    arr = check_real_array(name, value, shape, finite=False)
+    if not is_concrete(arr, support):
+        return arr
+    p = np.asarray(arr, np.float64)
+    got = f"; got {value!r}" if isinstance(value, (list, tuple)) or p.size <= 16 else ""
+    if not np.all(np.isfinite(p)):
+        raise ValueError(f"{name} contains NaN or inf{got}")
+    if np.any(p < min_value):
+        raise ValueError(f"{name} has negative probabilities (min {p.min():.3g}); they must be "
+                         f"non-negative{got}")
+    if normalised and p.ndim:
+        total = p.sum(axis=-1)
+        if np.any(np.abs(total - 1.0) > atol):
+            worst = total.ravel()[np.argmax(np.abs(total - 1.0).ravel())]
+            over = " over its last axis" if p.ndim > 1 else ""
+            raise ValueError(f"{name} must sum to 1{over}; found a sum of {worst:.6g}{got}")
+    if support is not None:
+        inside = np.asarray(support, bool)
+        if np.any(np.abs(np.where(inside, 0.0, p[..., :inside.shape[-1]])) > atol):
+            raise ValueError(f"{name} puts probability where {support_name} is False")
+    return p

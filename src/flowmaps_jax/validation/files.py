@@ -1,0 +1,199 @@
+"""File, name and untrusted-file checks: paths, readable files and folders, writable outputs,
+plain names, and :func:`read_npz` (an untrusted ``.npz`` read without trusting its sizes).
+
+Each raises ``ValueError`` whose message starts with the argument's name.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import zipfile
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from flowmaps_jax.validation.resources import array_bytes, memory_limit
+
+# ------------------------------------------------------------------------------ files
+
+
+def check_path(name: str, value: Any) -> str:
+    """``value`` (a str or os.PathLike, not None, a number or bytes) as a non-empty path string."""
+    if not isinstance(value, (str, os.PathLike)):
+        raise ValueError(f"{name} must be a path (str or os.PathLike); got "
+                         f"{type(value).__name__} {value!r}")
+    path = os.fspath(value)
+    if not isinstance(path, str) or not path:
+        raise ValueError(f"{name} must be a non-empty path; got {value!r}")
+    return path
+
+
+def check_file(name: str, value: Any) -> str:
+    """An existing, readable regular file; a directory is named as such."""
+    path = check_path(name, value)
+    if os.path.isdir(path):
+        raise ValueError(f"{name} {path!r} is a directory, not a file")
+    if not os.path.exists(path):
+        raise ValueError(f"{name} {path!r} does not exist")
+    if not os.path.isfile(path):
+        raise ValueError(f"{name} {path!r} is not a regular file")
+    if not os.access(path, os.R_OK):
+        raise ValueError(f"{name} {path!r} is not readable")
+    return path
+
+
+def check_dir(name: str, value: Any) -> str:
+    """An existing, readable directory; a file where a directory is expected is named as such."""
+    path = check_path(name, value)
+    if not os.path.exists(path):
+        raise ValueError(f"{name} {path!r} does not exist")
+    if not os.path.isdir(path):
+        raise ValueError(f"{name} {path!r} is a file, not a directory")
+    if not os.access(path, os.R_OK | os.X_OK):
+        raise ValueError(f"{name} {path!r} is not readable")
+    return path
+
+
+def _existing_parent(path: str) -> str:
+    parent = os.path.dirname(os.path.abspath(path))
+    while not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    return parent
+
+
+def check_output_file(name: str, value: Any, *, overwrite: bool = True) -> str:
+    """A file path that can be written now: its folder exists and is writable, the path is not a
+    directory, and (unless ``overwrite``) no file is there yet."""
+    path = check_path(name, value)
+    if os.path.isdir(path):
+        raise ValueError(f"{name} {path!r} is a directory; give a file path")
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        what = "is not a directory" if os.path.exists(folder) else "does not exist"
+        raise ValueError(f"{name} {path!r}: its folder {folder!r} {what}")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"{name} {path!r}: its folder {folder!r} is not writable")
+    if os.path.exists(path):
+        if not overwrite:
+            raise ValueError(f"{name} {path!r} already exists")
+        if not os.access(path, os.W_OK):
+            raise ValueError(f"{name} {path!r} exists and is not writable")
+    return path
+
+
+def check_output_dir(name: str, value: Any, *, empty: bool = False) -> str:
+    """A directory that exists (or can be created) and is writable; with ``empty``, one that
+    holds nothing yet. A path that is a file, or lies under a file, is refused."""
+    path = check_path(name, value)
+    if os.path.exists(path):
+        if not os.path.isdir(path):
+            raise ValueError(f"{name} {path!r} is a file, not a directory")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise ValueError(f"{name} {path!r} is not writable")
+        if empty and os.listdir(path):
+            raise ValueError(f"{name} {path!r} is not empty (it holds "
+                             f"{', '.join(sorted(os.listdir(path))[:5])}...)")
+        return path
+    parent = _existing_parent(path)
+    if not os.path.isdir(parent):
+        raise ValueError(f"{name} {path!r} lies under {parent!r}, which is a file")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"{name} {path!r} cannot be created: {parent!r} is not writable")
+    return path
+
+
+# ------------------------------------------------------------------------------ names
+
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
+
+
+def check_plain_name(name: str, value: Any) -> str:
+    """``value`` if it is a plain name: 1 to 64 letters, digits, ``_ . + -``, starting with a
+    letter or digit (so no path separator, no ``..`` escape, no markup or control character)."""
+    if not isinstance(value, str) or not _PLAIN_NAME.fullmatch(value) or ".." in value:
+        raise ValueError(f"{name} must be a plain name (letters, digits, '_', '.', '+', '-'; "
+                         f"at most 64, no path); got {_short_repr(value)}")
+    return value
+
+
+def _short_repr(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit] + "..."
+
+
+# ------------------------------------------------------------------------------ untrusted files
+
+
+def read_npz(name: str, source: Any, *, allowed: Sequence[str] | None = None,
+             required: Sequence[str] = (), max_bytes: int | None = None,
+             expected: dict[str, tuple[tuple[int, ...], Any]] | None = None
+             ) -> dict[str, np.ndarray]:
+    """The arrays of an untrusted ``.npz`` (a path, or its bytes as a file object), read safely.
+
+    Before anything is decompressed: the file must be a zip whose members are ``<key>.npy`` for
+    keys in ``allowed`` (None: any key) with ``required`` present, no member twice, and whose
+    declared sizes (the zip directory's, then each ``.npy`` header's shape and dtype) add up to at
+    most ``max_bytes`` (default :func:`memory_limit`); ``expected`` ({key: (shape, dtype)}) pins
+    members exactly. Objects (pickles) are refused. A member that inflates past its declared
+    size is refused while reading. Any failure is a ``ValueError`` naming ``name``.
+    """
+    limit = memory_limit() if max_bytes is None else int(max_bytes)
+    try:
+        archive = zipfile.ZipFile(source)
+    except (OSError, zipfile.BadZipFile, ValueError) as err:
+        raise ValueError(f"{name} is not a readable .npz file ({err})") from None
+    with archive:
+        infos = archive.infolist()
+        keys = []
+        for info in infos:
+            key = info.filename[:-4] if info.filename.endswith(".npy") else None
+            if key is None or (allowed is not None and key not in allowed) \
+                    or (expected is not None and key not in expected):
+                raise ValueError(f"{name} holds an unexpected member {info.filename!r}")
+            keys.append(key)
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"{name} holds a member twice")
+        missing = [k for k in (*required, *(expected or {})) if k not in keys]
+        if missing:
+            raise ValueError(f"{name} is missing arrays {sorted(set(missing))}")
+        declared = sum(info.file_size for info in infos)
+        if declared > limit:
+            raise ValueError(f"{name} declares {declared / 1e9:.3g} GB of arrays, more than the "
+                             f"{limit / 1e9:.3g} GB allowed; not reading it")
+        arrays = {}
+        for info, key in zip(infos, keys, strict=True):
+            try:
+                with archive.open(info) as member:
+                    arrays[key] = _read_npy(member, info.file_size,
+                                            None if expected is None else expected[key])
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+                raise ValueError(f"{name}: member {info.filename!r} is not a valid array "
+                                 f"({err})") from None
+    return arrays
+
+
+def _read_npy(member, declared: int, expected) -> np.ndarray:
+    """One ``.npy`` member, its header checked against its declared size before the data."""
+    version = np.lib.format.read_magic(member)
+    readers = {(1, 0): np.lib.format.read_array_header_1_0,
+               (2, 0): np.lib.format.read_array_header_2_0}
+    if version not in readers:
+        raise ValueError(f"unsupported .npy format version {version}")
+    shape, fortran, dtype = readers[version](member)
+    if dtype.hasobject:
+        raise ValueError("it holds Python objects")
+    if expected is not None and (tuple(shape) != tuple(expected[0])
+                                 or dtype != np.dtype(expected[1])):
+        raise ValueError(f"expected shape {tuple(expected[0])} and dtype "
+                         f"{np.dtype(expected[1])}; got {tuple(shape)} and {dtype}")
+    size = array_bytes(shape, dtype)
+    if size > declared:
+        raise ValueError(f"its header claims {size} bytes, more than the {declared} declared")
+    data = member.read(size + 1)
+    if len(data) != size:
+        raise ValueError(f"it holds {len(data)} bytes of data where its header says {size}")
+    array = np.frombuffer(data, dtype=dtype, count=math.prod(shape) if shape else 1)
+    return array.reshape(shape, order="F" if fortran else "C").copy()

@@ -1,0 +1,122 @@
+"""Resource budgets: every size that scales memory or time is checked against them up front.
+
+A request above the budget is a ``ValueError`` naming it, the estimate and the limit
+(:func:`check_resources`). The budgets: memory, :data:`MAX_BYTES_ENV` (default the accelerator's
+memory, else the host's); work, :data:`MAX_FLOPS_ENV` (default :data:`DEFAULT_MAX_FLOPS`
+floating-point operations per uninterruptible call).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import re
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import numpy as np
+
+# ------------------------------------------------------------------------------ resources
+
+MAX_BYTES_ENV = "FLOWMAPS_MAX_BYTES"
+"""Environment variable overriding the memory budget of one request (bytes; ``64G`` etc.)."""
+MAX_FLOPS_ENV = "FLOWMAPS_MAX_FLOPS"
+"""Environment variable overriding the work budget of one uninterruptible call (FLOPs)."""
+DEFAULT_MAX_FLOPS = 10**17
+"""Default work budget, by the generous estimates here: about 200 default evaluations of the cpu
+preset's models (2 minutes each on a 2-core CPU) or 30 of a paper-size model; it refuses sizes
+that would run for days (``--num-steps 10**9``). Raise it with :data:`MAX_FLOPS_ENV`."""
+_SUFFIXES = {"": 1, "K": 10**3, "M": 10**6, "G": 10**9, "T": 10**12, "P": 10**15,
+             "KI": 2**10, "MI": 2**20, "GI": 2**30, "TI": 2**40, "PI": 2**50}
+
+
+def _env_budget(variable: str) -> int | None:
+    """The positive number in environment ``variable`` (e.g. ``64G``, ``1e12``), None if unset."""
+    text = os.environ.get(variable, "").strip()
+    if not text:
+        return None
+    match = re.fullmatch(r"([0-9.eE+]+)\s*([KMGTPkmgtp][Ii]?)?[Bb]?", text)
+    try:
+        value = float(match.group(1)) * _SUFFIXES[(match.group(2) or "").upper()]
+    except (AttributeError, ValueError, KeyError):
+        value = math.nan
+    if not (math.isfinite(value) and value >= 1):
+        raise ValueError(f"{variable} must be a positive number like 64G or 1e12; got {text!r}")
+    return int(value)
+
+
+def array_bytes(shape: Sequence[int], dtype: Any = np.float32) -> int:
+    """Bytes of an array of ``shape`` and ``dtype`` (exact Python int, no overflow)."""
+    return math.prod(int(s) for s in shape) * np.dtype(dtype).itemsize
+
+
+@functools.lru_cache(maxsize=1)
+def _device_memory() -> int:
+    try:
+        stats = jax.devices()[0].memory_stats() or {}
+    except Exception:  # backends without memory stats
+        stats = {}
+    if stats.get("bytes_limit"):
+        return int(stats["bytes_limit"])
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, OSError, ValueError):
+        return 16 * 2**30
+
+
+def memory_limit() -> int:
+    """Bytes one request may use: ``$FLOWMAPS_MAX_BYTES`` when set, else the default device's
+    memory limit when JAX reports one (accelerators), else the host's physical memory."""
+    override = _env_budget(MAX_BYTES_ENV)
+    return _device_memory() if override is None else override
+
+
+def flops_limit() -> int:
+    """Floating-point operations one uninterruptible call may take: ``$FLOWMAPS_MAX_FLOPS``
+    when set, else :data:`DEFAULT_MAX_FLOPS`."""
+    override = _env_budget(MAX_FLOPS_ENV)
+    return DEFAULT_MAX_FLOPS if override is None else override
+
+
+def check_request_size(name: str, num_bytes: int, limit: int | None = None) -> int:
+    """``num_bytes`` if it is at most ``limit`` (default :func:`memory_limit`), else a
+    ``ValueError`` saying how many GB the request ``name`` would need."""
+    limit = memory_limit() if limit is None else int(limit)
+    if num_bytes > limit:
+        raise ValueError(f"{name} would need about {num_bytes / 1e9:.3g} GB, more than the "
+                         f"{limit / 1e9:.3g} GB available ({MAX_BYTES_ENV} overrides it); ask "
+                         f"for less or split the request")
+    return int(num_bytes)
+
+
+def check_resources(name: str, *, num_bytes: int = 0, flops: int = 0) -> None:
+    """The shared budget check: ``ValueError`` naming ``name`` (the argument and its value)
+    when the estimated memory (bytes) or work (FLOPs) is over :func:`memory_limit` /
+    :func:`flops_limit`."""
+    check_request_size(name, int(num_bytes))
+    limit = flops_limit()
+    if flops > limit:
+        raise ValueError(f"{name} would take about {float(flops):.3g} floating-point operations, "
+                         f"more than the budget of {float(limit):.3g} ({MAX_FLOPS_ENV} overrides "
+                         f"it); ask for less")
+
+
+def network_flops(model: Any, kind: str, num_tokens: int) -> tuple[int, int]:
+    """(FLOPs of one network evaluation of one query-sample, FLOPs of encoding one map of
+    ``num_tokens`` tokens) for a model config (``ModelConfig``; ``kind`` "flowmaps" or "mlp").
+    A rough, generous estimate (2 FLOPs per weight use, attention included)."""
+    dim, ratio = int(model.dim), int(model.mlp_ratio)
+    per_layer = dim * dim * (4 + 2 * ratio)
+    encoder = 2 * int(model.encoder_layers) * num_tokens * (per_layer + 2 * num_tokens * dim)
+    if kind == "mlp":
+        hidden = int(model.baseline_hidden)
+        return 2 * (dim * hidden + hidden * hidden + 8 * hidden + 4 * dim * dim), encoder
+    blocks = int(model.cdit_blocks)
+    return 2 * blocks * (per_layer + 6 * dim * dim + 2 * num_tokens * dim), encoder
+
+
+def solver_evaluations(num_steps: int, method: str = "midpoint") -> int:
+    """Network evaluations of one ODE solve with ``num_steps`` grid points."""
+    return (int(num_steps) - 1) * (2 if method == "midpoint" else 1)

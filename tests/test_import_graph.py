@@ -1,0 +1,164 @@
+"""The import graph of ``src/flowmaps_jax``: no circles, and inference never reaches training.
+
+Every module is parsed with ``ast``; an edge is any ``import`` of a ``flowmaps_jax`` module
+anywhere in it: at the top, inside a function (a lazy import) or under ``TYPE_CHECKING``.
+Importing ``a.b.c`` also runs ``a/__init__.py`` and ``a/b/__init__.py``: the reach of a module
+follows those too, while circles are looked for along the written edges only (a package's
+``__init__`` importing its own modules is not a circle).
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+SRC = pathlib.Path(__file__).resolve().parents[1] / "src"
+PACKAGE = "flowmaps_jax"
+
+
+def _name(path: pathlib.Path) -> str:
+    parts = path.relative_to(SRC).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {_name(path): path for path in sorted((SRC / PACKAGE).rglob("*.py"))}
+
+# The modules that load and run a trained model: none may import flowmaps_jax.training, not even
+# lazily, so that sampling a shipped model needs neither optax nor the training loop. (The
+# deprecated alias flowmaps_jax.pretrained is not one: it re-exports the exporter, lazily.)
+INFERENCE = sorted(
+    name for name in MODULES
+    if name in (f"{PACKAGE}.{m}" for m in ("predictor", "sample", "shipped", "checkpoint_reader",
+                                            "flow", "tokens", "boxes", "validation",
+                                            "distributed"))
+    or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim")))
+ALIASES = {f"{PACKAGE}.sample": f"{PACKAGE}.predictor", f"{PACKAGE}.model.sampling":
+           f"{PACKAGE}.model.inference"}
+
+
+def _known(target: str) -> str | None:
+    """The module an import of ``target`` loads (``a.b.name`` of a non-module: ``a.b``)."""
+    while target and target not in MODULES:
+        target = target.rpartition(".")[0]
+    return target or None
+
+
+def _targets(name: str, node: ast.AST) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [alias.name for alias in node.names]
+    if not isinstance(node, ast.ImportFrom):
+        return []
+    base = node.module or ""
+    if node.level:  # relative: from the module's package (a package is its own __init__)
+        package = name if MODULES[name].name == "__init__.py" else name.rpartition(".")[0]
+        for _ in range(node.level - 1):
+            package = package.rpartition(".")[0]
+        base = f"{package}.{base}" if base else package
+    # "from pkg import mod" imports the module pkg.mod; "from mod import attr" the module mod
+    return [f"{base}.{alias.name}" if f"{base}.{alias.name}" in MODULES else base
+            for alias in node.names]
+
+
+@functools.cache
+def edges(name: str) -> frozenset[str]:
+    """The flowmaps_jax modules ``name`` imports anywhere in its source."""
+    tree = ast.parse(MODULES[name].read_text(), filename=str(MODULES[name]))
+    found = set()
+    for node in ast.walk(tree):
+        for target in _targets(name, node):
+            if target == PACKAGE or target.startswith(PACKAGE + "."):
+                module = _known(target)
+                if module is not None and module != name:
+                    found.add(module)
+    return frozenset(found)
+
+
+def _parents(name: str) -> list[str]:
+    parts = name.split(".")
+    return [".".join(parts[:i]) for i in range(1, len(parts))]
+
+
+def reach(name: str) -> dict[str, str]:
+    """Every module importing ``name`` may load, each with the chain that loads it."""
+    chains = {name: name}
+    todo = [name]
+    while todo:
+        current = todo.pop()
+        for nxt in [*edges(current), *_parents(current)]:
+            if nxt not in chains:
+                chains[nxt] = f"{chains[current]} -> {nxt}"
+                todo.append(nxt)
+    return chains
+
+
+def _cycles() -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on_stack, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in edges(v):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(MODULES):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_graph_is_read():
+    assert len(MODULES) > 40
+    assert f"{PACKAGE}.model.inference" in edges(f"{PACKAGE}.predictor")
+    # a lazy import is an edge too
+    assert f"{PACKAGE}.export" in edges(f"{PACKAGE}.pretrained")
+    for alias, home in ALIASES.items():
+        assert home in edges(alias)
+
+
+def test_no_import_circles():
+    assert _cycles() == []
+
+
+@pytest.mark.parametrize("module", INFERENCE)
+def test_inference_never_imports_training(module):
+    chains = reach(module)
+    training = sorted(m for m in chains if m.startswith(f"{PACKAGE}.training"))
+    assert not training, f"{module} imports training: {chains[training[0]]}"
+
+
+def test_importing_the_predictor_loads_neither_optax_nor_training():
+    code = ("import sys, flowmaps_jax.predictor, flowmaps_jax.sample, flowmaps_jax.shipped, "
+            "flowmaps_jax.pretrained; print(sorted(m for m in sys.modules if m == 'optax' or "
+            "m.startswith(('optax.', 'flowmaps_jax.training'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_every_family_is_registered_once_with_its_loss():
+    from flowmaps_jax.model import MODEL_FAMILIES
+    from flowmaps_jax.training.objectives import LOSSES
+
+    assert all(family.name == name for name, family in MODEL_FAMILIES.items())
+    assert set(LOSSES) == set(MODEL_FAMILIES)
