@@ -11,7 +11,7 @@ import jax
 import numpy as np
 from flowmaps_jax.flowsim import exact_posterior, render
 from flowmaps_jax.flowsim.scenes import scene_tokens, validation_split
-from flowmaps_jax.sample import load_pretrained
+from flowmaps_jax.predictor import load_pretrained
 from flowmaps_jax.tokens import Queries
 
 predictor = load_pretrained("flowmaps")            # shipped inside the package (8.9 MB)

@@ -4,6 +4,7 @@ implementation)."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import itertools
 
@@ -255,3 +256,55 @@ def test_empirical_frequency_counts_the_visible_history():
     valid = np.array([[False, True, True, True], [True, True, True, True]])
     got = np.asarray(empirical_frequency(history, valid, 5))
     np.testing.assert_allclose(got, [[0, 1 / 3, 2 / 3, 0, 0], [0.5, 0, 0, 0.5, 0]], atol=1e-7)
+
+
+# ------------------------------------------------------------- the model's history tokens
+
+
+def test_history_tokens_append_the_past_maps_objects(mixed):
+    from flowmaps_jax.flowsim.scenes import scene_tokens
+
+    cfg, scenes = mixed
+    cfg = dataclasses.replace(cfg, max_tokens=10 + 3 * 4)
+    env, tau = np.array([0, 1, 2]), np.array([0, 2, 9])
+    one = scene_tokens(scenes, env, tau, cfg)
+    four = scene_tokens(scenes, env, tau, cfg, history=4)
+    assert one.age is None and four.boxes.shape == (3, 22, 4)
+    np.testing.assert_array_equal(np.asarray(four.boxes[:, :13]), np.asarray(one.boxes[:, :13]))
+    np.testing.assert_array_equal(np.asarray(four.age[0]), [0] * 13 + [1, 1, 1, 2, 2, 2, 3, 3, 3])
+    # maps before t = 0 do not exist: tau = 0 sees one map, tau = 2 three, tau = 9 four
+    assert np.asarray(four.mask).sum(1).tolist() == [13, 19, 22]
+    px = np.asarray(scenes.object_boxes)[1, 1, 2]  # environment 1, time 1, object 2
+    np.testing.assert_allclose(np.asarray(four.boxes[1, 13 + 2]),
+                               [px[0] / 255, px[1] / 255, (px[2] - px[0]) / 255,
+                                (px[3] - px[1]) / 255], atol=1e-6)
+    with pytest.raises(ValueError, match="history=5 needs 25 tokens"):
+        scene_tokens(scenes, env, tau, cfg, history=5)
+
+
+def test_a_history_model_reads_the_past_maps(mixed):
+    """ModelConfig.history > 1 adds an age embedding, and the velocity depends on where the
+    object was before τ; history 1 has no such parameter (the shipped models load unchanged)."""
+    from flowmaps_jax.flowsim.scenes import scene_tokens
+    from flowmaps_jax.model import ModelConfig
+    from flowmaps_jax.model.families import model_family
+    from flowmaps_jax.model.flowmaps import encode, velocity
+    from flowmaps_jax.tokens import Queries
+
+    cfg, scenes = mixed
+    cfg = dataclasses.replace(cfg, max_tokens=10 + 3 * 3)
+    small = dict(dim=16, encoder_layers=1, cdit_blocks=1, heads=2, freq_bands=4, dropout=0.0)
+    family = model_family("flowmaps")
+    params_1 = family.init(jax.random.key(0), ModelConfig(**small))
+    assert "age_embed" not in str(jax.tree_util.tree_structure(params_1))
+    model = ModelConfig(**small, history=3)
+    params = family.init(jax.random.key(0), model)
+    params = jax.tree.map(lambda p: p + 0.1 * jax.random.normal(jax.random.key(1), p.shape),
+                          params)  # leave AdaLN-Zero's zero start
+    tokens = scene_tokens(scenes, np.array([5]), np.array([9]), cfg, history=3)
+    moved = tokens.replace(boxes=tokens.boxes.at[0, 13:].add(0.05))  # the past objects moved
+    queries = Queries(descriptor=np.array([[0]], np.int32), tau_q=np.array([[12]], np.int32))
+    x, t = np.zeros((1, 1, 1, 4), np.float32), np.full((1, 1), 0.5, np.float32)
+    v = [np.asarray(velocity(params, model, encode(params, model, tk), x, t, queries))
+         for tk in (tokens, moved)]
+    assert np.all(np.isfinite(v[0])) and not np.allclose(v[0], v[1])

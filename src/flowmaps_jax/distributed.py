@@ -125,7 +125,7 @@ def training_mesh(num_devices: int | None = None) -> Mesh | None:
 def local_mesh(num_devices: int | None = None) -> Mesh | None:
     """A mesh over this host's own devices (all, or the first ``num_devices``), or None if that
     is one device: for work each host does on its own, such as generating its share of
-    environments or sampling (:meth:`flowmaps_jax.sample.Predictor.sharded`). On one host it is
+    environments or sampling (:meth:`flowmaps_jax.predictor.Predictor.sharded`). On one host it is
     :func:`training_mesh`."""
     devices = _first(jax.local_devices(), num_devices)
     return Mesh(np.asarray(devices), (DATA_AXIS,)) if len(devices) > 1 else None

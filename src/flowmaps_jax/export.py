@@ -54,7 +54,7 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     without one exports its latest step, and the .json says so). The .json records ``which``
     and ``why``: the given reason, or by default what the step is within its run (its last
     step or its best, and the step of the other). Raises ``ValueError`` if the checkpoint is
-    missing, holds a different model kind than the name implies, or is too big. Returns the
+    missing, holds a different model family than the name implies, or is too big. Returns the
     path of the .npz.
     """
     name = check_name(name)

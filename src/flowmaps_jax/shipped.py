@@ -2,12 +2,12 @@
 
 The EMA weights of the `cpu`-preset runs documented in docs/results.md ("Shipped weights") live in
 the data folder ``flowmaps_jax/pretrained/``: ``<name>.npz`` (float32 parameter arrays keyed by
-their path in the params pytree) next to ``<name>.json`` (the run's config, model kind, step,
+their path in the params pytree) next to ``<name>.json`` (the run's config, model family, step,
 source, which checkpoint of the run it is, ``"which": "best"`` or ``"latest"``, and why, and the
 SHA-256 of the .npz, checked on load). Files written before ``which`` was recorded lack it:
 :func:`describe` reports ``"unknown"`` for them (the shipped files are the runs' last steps,
 docs/results.md). A plain ``pip install .`` carries them; nothing is downloaded. Reading trusts
-neither file: the ``.json`` is size-limited and its fields are checked (a name, a model kind, a
+neither file: the ``.json`` is size-limited and its fields are checked (a name, a model family, a
 step that is a count, ``which`` if present), the ``.npz`` is read only after its SHA-256 matches,
 with its members whitelisted (exactly the model's parameters, their declared shapes checked
 before anything is decompressed) and every weight finite.

@@ -26,8 +26,6 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-# Box geometry lives in flowmaps_jax.boxes; re-exported here for existing imports.
-from flowmaps_jax.boxes import from_centre, to_centre  # noqa: F401
 from flowmaps_jax.validation import (
     check_array,
     check_instance,
@@ -50,6 +48,9 @@ class SceneTokens:
     kind: (..., S) int32 type flag, FURNITURE or OBJECT; 0 on padding.
     mask: (..., S) bool, True for real tokens.
     tau: (...,) int32 state time of the map.
+    age: None (one map, the paper's input), or (..., S) int32 how many steps before τ each
+        token was seen: 0 for the map at τ, a for the object tokens of the map at τ − a (a
+        model with ``ModelConfig.history`` = H reads the last H maps this way).
     """
 
     boxes: jnp.ndarray
@@ -57,6 +58,7 @@ class SceneTokens:
     kind: jnp.ndarray
     mask: jnp.ndarray
     tau: jnp.ndarray
+    age: jnp.ndarray | None = None
 
     @property
     def num_tokens(self) -> int:
@@ -109,6 +111,9 @@ def validate_tokens(tokens: SceneTokens, num_descriptors: int, max_tokens: int |
     kind = np.asarray(check_int_array(f"{name}.kind", fields["kind"], shape=lead))
     real = check_mask(f"{name}.mask", fields["mask"], shape=lead)
     check_int_array(f"{name}.tau", fields["tau"], shape=lead[:-1])
+    if tokens.age is not None:
+        check_int_array(f"{name}.age", check_array(f"{name}.age", tokens.age), 0, None,
+                        shape=lead)
     if max_tokens is not None and lead[-1] != max_tokens:
         raise ValueError(
             f"{name} has {lead[-1]} token slots but the model expects max_tokens={max_tokens}")
@@ -187,4 +192,5 @@ def trim_padding(tokens: SceneTokens, num_tokens: int) -> SceneTokens:
     return tokens.replace(boxes=tokens.boxes[..., :num_tokens, :],
                           descriptor=tokens.descriptor[..., :num_tokens],
                           kind=tokens.kind[..., :num_tokens],
-                          mask=tokens.mask[..., :num_tokens])
+                          mask=tokens.mask[..., :num_tokens],
+                          age=None if tokens.age is None else tokens.age[..., :num_tokens])

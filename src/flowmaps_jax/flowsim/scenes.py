@@ -100,36 +100,63 @@ def denormalise_boxes(boxes, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndar
 # ------------------------------------------------------------------------------ tokens
 
 
-def _tokens(scenes: Scenes, env, tau, config: FlowSimConfig) -> tok.SceneTokens:
+def _tokens(scenes: Scenes, env, tau, config: FlowSimConfig, history: int = 1
+            ) -> tok.SceneTokens:
     """Unchecked, jit-able body of ``scene_tokens``."""
     f, m, s = config.num_furniture, config.num_objects, config.max_tokens
     n = env.shape[0]
-    pad = s - f - m
+    pad = s - f - m * history
+    lag = jnp.arange(history)  # 0 = the map at τ, a = the map at τ − a
+    time = tau[:, None] - lag[None, :]  # (N, H)
+    seen = jnp.repeat(time >= 0, m, axis=1)  # (N, H·M): maps before t = 0 do not exist
+    objects = scenes.object_boxes[env[:, None], jnp.maximum(time, 0)]  # (N, H, M, 4)
     boxes = jnp.concatenate([
         box_geometry.normalise(scenes.furniture_boxes[env], config.map_size),
-        box_geometry.normalise(scenes.object_boxes[env, tau], config.map_size),
+        box_geometry.normalise(objects.reshape(n, history * m, 4), config.map_size)
+        * seen[..., None],
         jnp.zeros((n, pad, 4), jnp.float32)], axis=1)
-    descriptor = jnp.concatenate([scenes.furniture_kind[env], scenes.object_kind[env],
+    descriptor = jnp.concatenate([scenes.furniture_kind[env],
+                                  jnp.tile(scenes.object_kind[env], (1, history)) * seen,
                                   jnp.zeros((n, pad), jnp.int32)], axis=1)
-    kind = jnp.concatenate([jnp.full((f,), tok.FURNITURE), jnp.full((m,), tok.OBJECT),
+    kind = jnp.concatenate([jnp.full((f,), tok.FURNITURE), jnp.full((m * history,), tok.OBJECT),
                             jnp.zeros((pad,))]).astype(jnp.int32)
+    mask = jnp.concatenate([jnp.ones((n, f), bool), seen, jnp.zeros((n, pad), bool)], axis=1)
+    age = None
+    if history > 1:
+        age = jnp.concatenate([jnp.zeros((f,)), jnp.repeat(lag, m), jnp.zeros((pad,))])
+        age = jnp.broadcast_to(age.astype(jnp.int32), (n, s))
     return tok.SceneTokens(boxes=boxes, descriptor=descriptor.astype(jnp.int32),
-                           kind=jnp.broadcast_to(kind, (n, s)),
-                           mask=jnp.broadcast_to(jnp.arange(s) < f + m, (n, s)),
-                           tau=tau.astype(jnp.int32))
+                           kind=jnp.broadcast_to(kind, (n, s)), mask=mask,
+                           tau=tau.astype(jnp.int32), age=age)
 
 
-def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFIG
-                 ) -> tok.SceneTokens:
+def check_history(history, config: FlowSimConfig) -> int:
+    """history (maps read: the one at τ and the H − 1 before it) in 1 … T, and its F + M·H
+    tokens within ``config.max_tokens``."""
+    h = check_int("history", history, 1, config.num_timesteps)
+    needed = config.num_furniture + config.num_objects * h
+    if needed > config.max_tokens:
+        raise ValueError(f"history={h} needs {needed} tokens (F={config.num_furniture} + "
+                         f"M={config.num_objects} × {h}) but max_tokens={config.max_tokens}; "
+                         f"raise FlowSimConfig.max_tokens")
+    return h
+
+
+def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFIG,
+                 history: int = 1) -> tok.SceneTokens:
     """Tokens of environments ``env`` (N,) at state times ``tau`` (N,): SceneTokens (N, S).
 
     F furniture tokens, then M object tokens (object boxes at time tau), padded to
-    S = config.max_tokens. Raises ``ValueError`` if F + M > S. jit-able (a gather).
+    S = config.max_tokens. With ``history`` = H > 1, also the M object tokens of each of the
+    maps at τ − 1 … τ − H + 1 (after the current ones; ``age`` says which map, and maps before
+    t = 0 are masked out): furniture does not move in FlowSim, so the past maps add only their
+    objects. Raises ``ValueError`` if the tokens exceed S. jit-able (a gather).
     """
     _check_inputs(config, scenes)
+    history = check_history(history, config)
     env, tau = _check_indices(env=(env, scenes.num_envs - 1),
                               tau=(tau, config.num_timesteps - 1))
-    return _tokens(scenes, env, tau, config)
+    return _tokens(scenes, env, tau, config, history)
 
 
 def slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
@@ -183,10 +210,10 @@ def draw_query_times(key, shape_tau, shape_q, config: FlowSimConfig, short_frac:
 
 
 @functools.partial(jax.jit, static_argnames=("batch_size", "queries_per_scene", "config",
-                                             "short_frac", "short_max"))
+                                             "short_frac", "short_max", "history"))
 def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                  config: FlowSimConfig, short_frac: float = 0.0,
-                 short_max: int = 3) -> tok.TrainBatch:
+                 short_max: int = 3, history: int = 1) -> tok.TrainBatch:
     b, q = batch_size, queries_per_scene
     key_env, key_time, key_obj = jax.random.split(key, 3)
     env = jax.random.randint(key_env, (b,), 0, scenes.furniture_boxes.shape[0])
@@ -195,24 +222,26 @@ def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
     env_q = jnp.broadcast_to(env[:, None], (b, q))
     target = box_geometry.normalise(scenes.object_boxes[env_q, tau_q, obj], config.map_size)
     queries = tok.Queries(descriptor=scenes.object_kind[env_q, obj], tau_q=tau_q)
-    return tok.TrainBatch(tokens=_tokens(scenes, env, tau, config), queries=queries,
+    return tok.TrainBatch(tokens=_tokens(scenes, env, tau, config, history), queries=queries,
                           target=target)
 
 
 def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                      config: FlowSimConfig = DEFAULT_CONFIG, short_frac: float = 0.0,
-                     short_max: int = 3) -> tok.TrainBatch:
+                     short_max: int = 3, history: int = 1) -> tok.TrainBatch:
     """A TrainBatch: B scenes drawn uniformly, τ uniform in 0..T−2 per scene, then Q queries per
     scene (object uniform over M, τ_q uniform in τ+1..T−1, or with probability ``short_frac``
     τ_q = τ + U{1..short_max} capped at T−1); target = the queried object's normalised
     (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config, short_*).
+    ``history``: tokens of the last H maps (see ``scene_tokens``).
     """
     _check_inputs(config, scenes)
     batch_size, queries_per_scene = _check_batch_size(batch_size, queries_per_scene, config)
     short_frac = check_real("short_frac", short_frac, 0.0, 1.0)
     short_max = check_int("short_max", short_max)
+    history = check_history(history, config)
     return _train_batch(check_key(key), scenes, batch_size, queries_per_scene, config,
-                        short_frac, short_max)
+                        short_frac, short_max, history)
 
 
 def _check_batch_size(batch_size, queries_per_scene, config: FlowSimConfig) -> tuple[int, int]:

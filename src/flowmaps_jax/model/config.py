@@ -57,6 +57,10 @@ class ModelConfig:
         operands, float32 accumulation; :mod:`flowmaps_jax.model.precision`); params, optimiser
         state, LayerNorm, softmax and the loss stay float32. bf16 is for accelerators (on CPU it
         is slower).
+    history: H, the maps the Map Encoder reads: the one at τ and the H − 1 before it (their
+        object tokens carry an embedding of their age τ − t). 1, the default, is the paper's
+        single map and adds no parameter; habits worlds need H > 1 to learn which places an
+        object favours (``flowsim.habits``).
     """
 
     dim: int = 256
@@ -78,10 +82,11 @@ class ModelConfig:
     pointer_widths: str = "absolute"
     condition_on_dtau: bool = False
     precision: str = "float32"
+    history: int = 1
 
     def __post_init__(self):
         for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
-                     "num_descriptors", "tau_max", "freq_bands", "baseline_hidden"):
+                     "num_descriptors", "tau_max", "freq_bands", "baseline_hidden", "history"):
             check_int(f"ModelConfig.{name}", getattr(self, name))
         if self.dim % self.heads:
             raise ValueError(

@@ -1,10 +1,11 @@
 """Map Encoder: scene tokens at state time τ → context tokens (B, S, D).
 
 Token embedding = SinusoidalMLP(box y, x, h, w) + Embed(descriptor) + Embed(type flag)
-+ Embed(τ), then ``encoder_layers`` pre-norm transformer layers (self-attention with a key-padding
-mask, GELU MLP, dropout on the MLP hidden layer and on both residual branches) and a final
-LayerNorm. There is no positional embedding over tokens, so the
-encoder is equivariant to permuting tokens. Padding rows of the output are set to zero.
++ Embed(τ) (+ Embed(age) with ``history`` > 1: how many steps before τ a token was seen), then
+``encoder_layers`` pre-norm transformer layers (self-attention with a key-padding mask, GELU MLP,
+dropout on the MLP hidden layer and on both residual branches) and a final LayerNorm. There is
+no positional embedding over tokens, so the encoder is equivariant to permuting tokens. Padding
+rows of the output are set to zero.
 """
 
 from __future__ import annotations
@@ -92,6 +93,10 @@ class MapEncoder(nn.Module):
         x = x + nn.Embed(cfg.num_descriptors, cfg.dim, name="descriptor_embed")(tokens.descriptor)
         x = x + nn.Embed(2, cfg.dim, name="kind_embed")(tokens.kind)
         x = x + nn.Embed(cfg.tau_max, cfg.dim, name="tau_embed")(tokens.tau)[:, None, :]
+        if cfg.history > 1:  # the paper's single map (history 1) has no such parameter
+            age = jnp.zeros_like(tokens.kind) if tokens.age is None else tokens.age
+            x = x + nn.Embed(cfg.history, cfg.dim, name="age_embed")(
+                jnp.minimum(age, cfg.history - 1))
         mask = tokens.mask.astype(bool)
         for i in range(cfg.encoder_layers):
             x = EncoderLayer(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout, cfg.precision,

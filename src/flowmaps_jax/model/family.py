@@ -96,7 +96,8 @@ def canonical_inputs(tokens: SceneTokens, queries: Queries) -> tuple[SceneTokens
                          descriptor=jnp.asarray(tokens.descriptor, jnp.int32),
                          kind=jnp.asarray(tokens.kind, jnp.int32),
                          mask=jnp.asarray(tokens.mask, bool),
-                         tau=jnp.asarray(tokens.tau, jnp.int32))
+                         tau=jnp.asarray(tokens.tau, jnp.int32),
+                         age=None if tokens.age is None else jnp.asarray(tokens.age, jnp.int32))
     queries = Queries(descriptor=jnp.asarray(queries.descriptor, jnp.int32),
                       tau_q=jnp.asarray(queries.tau_q, jnp.int32))
     return tokens, queries

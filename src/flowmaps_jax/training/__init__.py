@@ -7,8 +7,8 @@ Modules, in the order data flows through them:
 * :mod:`~flowmaps_jax.training.overrides`: ``--set key=value`` overrides and the config's JSON
   round trip.
 * :mod:`~flowmaps_jax.training.data`: the FlowSim splits and the traceable batch sampler.
-* :mod:`~flowmaps_jax.training.objectives`: the CFM loss and one registry entry per model kind
-  (init, loss, sample, log_prob).
+* :mod:`~flowmaps_jax.training.objectives`: the CFM loss and one loss per model family
+  (``LOSSES``; the families themselves are :mod:`flowmaps_jax.model.families`).
 * :mod:`~flowmaps_jax.training.state`: ``TrainState``, optax optimiser and EMA, the jitted train
   step and the val loss.
 * :mod:`~flowmaps_jax.training.checkpoint`: orbax checkpoints (last k + best), each step with

@@ -40,7 +40,7 @@ from flowmaps_jax import distributed
 from flowmaps_jax.training import rundir, runlog
 from flowmaps_jax.training.config import (
     DEFAULT_PRESET,
-    MODEL_KINDS,  # the model kinds' names, as TrainConfig checks them
+    MODEL_KINDS,  # the model families by name, as TrainConfig checks model_kind
     PRESETS,
     TrainConfig,
     apply_overrides,

@@ -35,6 +35,8 @@ from flowmaps_jax.flow import T_SAMPLERS
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import MODEL_FAMILIES as MODEL_KINDS
+from flowmaps_jax.model.families import model_family
+from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
 from flowmaps_jax.training.overrides import (
     SHORTHANDS,
     apply_overrides,
@@ -218,6 +220,11 @@ class TrainConfig:
         if net.num_descriptors < sim.num_descriptors:
             raise ValueError(f"model.num_descriptors={net.num_descriptors} is smaller than the "
                              f"simulator's {sim.num_descriptors} descriptor ids")
+        needed = sim.num_furniture + sim.num_objects * net.history
+        if net.history > 1 and needed > sim.max_tokens:
+            raise ValueError(f"model.history={net.history} reads {needed} tokens (F + M × "
+                             f"history) but flowsim.max_tokens={sim.max_tokens}; raise "
+                             f"flowsim.max_tokens to {needed}")
         if net.tau_max != sim.num_timesteps:
             raise ValueError(f"model.tau_max={net.tau_max} must equal "
                              f"flowsim.num_timesteps={sim.num_timesteps}")
@@ -291,9 +298,8 @@ def resource_estimate(cfg: TrainConfig, devices: int = 1) -> list[tuple[str, int
                      + sim.num_timesteps * sim.num_objects * 5 + 1)
     routine_envs = min(cfg.routine_envs, cfg.val_envs)
     routine_rows = routine_envs * _ROUTINE_QUERIES * cfg.routine_samples
-    from flowmaps_jax.model.sampling import DEFAULT_NUM_STEPS
-
-    evaluations = solver_evaluations(DEFAULT_NUM_STEPS) if cfg.model_kind == "flowmaps" else 1
+    uses_solver = model_family(cfg.model_kind).uses_solver
+    evaluations = solver_evaluations(DEFAULT_NUM_STEPS) if uses_solver else 1
     return [
         (f"the model (model.dim={net.dim}, model.encoder_layers={net.encoder_layers}, "
          f"model.cdit_blocks={net.cdit_blocks}, model.mlp_ratio={net.mlp_ratio}: about "
@@ -374,12 +380,31 @@ def smoke_preset() -> TrainConfig:
         log_every=5, val_every=10, ckpt_every=10, keep_last=2, preset="smoke")
 
 
-PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "smoke": smoke_preset}
+HABITS_HISTORY = 8
+"""Maps the ``habits`` preset's model reads (the one at τ and 7 before it)."""
+
+
+def habits_preset() -> TrainConfig:
+    """The ``cpu`` recipe on the preferences world (``flowsim.worlds``), reading the last
+    ``HABITS_HISTORY`` maps so that it can learn which places each object favours."""
+    from flowmaps_jax.flowsim.worlds import world_config
+
+    base = cpu_preset()
+    sim = world_config("preferences", FlowSimConfig(
+        max_tokens=FlowSimConfig().num_furniture + FlowSimConfig().num_objects * HABITS_HISTORY))
+    return dataclasses.replace(
+        base, flowsim=sim, model=dataclasses.replace(base.model, history=HABITS_HISTORY),
+        steps=4000, short_horizon_frac=0.25, preset="habits")
+
+
+PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "smoke": smoke_preset,
+           "habits": habits_preset}
 DEFAULT_PRESET = "cpu"
 
 
 def get_preset(name: str = DEFAULT_PRESET) -> TrainConfig:
-    """The named preset (``paper``, ``cpu`` or ``smoke``) as a fresh ``TrainConfig``."""
+    """The named preset (``paper``, ``cpu``, ``smoke`` or ``habits``) as a fresh
+    ``TrainConfig``."""
     if name not in PRESETS:
         raise ValueError(f"preset must be one of {sorted(PRESETS)}; got {name!r}")
     return PRESETS[name]()

@@ -84,14 +84,14 @@ def default_batch_fn(cfg: TrainConfig) -> BatchFn:
     """
     from flowmaps_jax.flowsim.scenes import make_train_batch
 
-    b, q, sim = cfg.batch_size, cfg.queries_per_scene, cfg.flowsim
-    real_tokens = sim.num_furniture + sim.num_objects  # the rest of the S slots is padding
+    b, q, sim, history = cfg.batch_size, cfg.queries_per_scene, cfg.flowsim, cfg.model.history
+    real_tokens = sim.num_furniture + sim.num_objects * history  # the rest of S is padding
 
     def batch_fn(key, scenes):
         if cfg.target_noise > 0:
             key, noise_key = jax.random.split(key)
         batch = make_train_batch(key, scenes, b, q, sim, cfg.short_horizon_frac,
-                                 cfg.short_horizon_max)
+                                 cfg.short_horizon_max, history)
         batch = batch.replace(tokens=trim_padding(batch.tokens, real_tokens))
         if cfg.target_noise > 0:
             batch = batch.replace(target=jitter_targets(noise_key, batch.target,

@@ -156,8 +156,9 @@ def _to_jsonable(obj: Any) -> Any:
 
 
 # Fields that older versions wrote and that no longer exist (they configured nothing): configs
-# saved with them still load.
-_REMOVED_KEYS = {"TrainConfig": ("run_dir",), "ModelConfig": ("max_tokens",)}
+# saved with them still load. (A nested config with its own ``from_dict`` drops its own, as
+# ``ModelConfig.from_dict`` does ``model.config.REMOVED_FIELDS``.)
+_REMOVED_KEYS = {"TrainConfig": ("run_dir",)}
 
 
 def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:

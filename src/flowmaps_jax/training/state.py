@@ -21,7 +21,7 @@ gets these shardings explicitly; XLA partitions the step and all-reduces the gra
 batch is still drawn whole from the same key, so the numbers do not depend on the device count
 (up to the summation order of the loss and gradients). Without a mesh nothing is sharded.
 
-The model kind (FlowMaps flow matching or the MLP Gaussian baseline) is hidden behind an
+The model family (FlowMaps flow matching or the MLP Gaussian baseline) is hidden behind an
 :class:`~flowmaps_jax.training.objectives.Objective` (``init`` + ``loss``); tests may pass a
 stand-in objective.
 """
