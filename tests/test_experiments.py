@@ -108,6 +108,11 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
     "habits_exact.py": (
         ["--worlds", "preferences", "--num-envs", "8"],
         rf"^\| exact, H = 1 \| {NUM} \| {NUM} \| {NUM} \| {NUM} ± {NUM} \|$", []),
+    # ~20 s: the shipped (routine-world, H = 1) model on 2 environments
+    "habits_model.py": (
+        ["--checkpoint", "pretrained:flowmaps", "--num-envs", "2"],
+        rf"^\| pretrained:flowmaps \(H = 1, step \d+\) \| {NUM} \| {NUM} \| {NUM} \| {NUM} ± "
+        rf"{NUM} \| {NUM} \|$", []),
     # ~25 s: the README quick start; it prints nothing and writes fork_next.png
     "quickstart.py": ([], "", ["fork_next.png"]),
     # ~35 s: the docs figures and the quick-start figure, into figures/

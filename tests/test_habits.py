@@ -308,3 +308,17 @@ def test_a_history_model_reads_the_past_maps(mixed):
     v = [np.asarray(velocity(params, model, encode(params, model, tk), x, t, queries))
          for tk in (tokens, moved)]
     assert np.all(np.isfinite(v[0])) and not np.allclose(v[0], v[1])
+
+
+def test_the_habits_preset_reads_eight_maps_of_the_preferences_world():
+    from flowmaps_jax.flowsim import world_of
+    from flowmaps_jax.model import ModelConfig
+    from flowmaps_jax.training.config import get_preset
+
+    cfg = get_preset("habits")
+    assert world_of(cfg.flowsim) == "preferences" and cfg.model.history == 8
+    assert cfg.flowsim.max_tokens == 10 + 3 * 8
+    with pytest.raises(ValueError, match="model.history=9 reads 37 tokens"):
+        dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, history=9))
+    with pytest.raises(ValueError, match="history"):
+        ModelConfig(history=0)

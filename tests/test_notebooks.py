@@ -13,6 +13,7 @@ from __future__ import annotations
 import base64
 import json
 import pathlib
+import re
 
 import nbformat
 import pytest
@@ -22,7 +23,8 @@ EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1] / "experiments"
 TOUR = "flowsim_tour.ipynb"
 KL_PLOTS = "kl_plots.ipynb"
 SEARCH = "search_demo.ipynb"
-NOTEBOOKS = (TOUR, KL_PLOTS, SEARCH)
+HABITS = "habits.ipynb"
+NOTEBOOKS = (TOUR, KL_PLOTS, SEARCH, HABITS)
 CELL_TIMEOUT = 900  # seconds; a cold kernel on a loaded 2-core machine compiles slowly
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -189,3 +191,24 @@ def test_search_demo_searches_with_every_prior(executed):
     assert "| nearest table first |" in tables[1]
     images = _images(nb)
     assert len(images) == 1 and images[0].startswith(PNG_MAGIC)
+
+
+# --------------------------------------------------------------------------- habits
+
+
+def test_habits_shows_each_habit_the_sharpening_posterior_and_the_model(executed):
+    nb = _notebook(executed, HABITS)
+    text = _stdout(nb)
+    for habit in ("routine", "preferences", "dynamic"):
+        assert f"{habit:>12}: environment" in text
+    # the exact posterior given more history puts more mass on the truth, on average
+    mean_p = {int(h): float(p) for h, p in
+              re.findall(r"^H = (\d+): mean probability of the true place ([\d.]+)$", text, re.M)}
+    assert list(mean_p) == [1, 2, 4, 8]
+    assert mean_p[8] > mean_p[1]
+    tv = re.search(r"^model pretrained:flowmaps-preferences \(step \d+\); total variation to "
+                   r"exact H = 8: ([\d.]+)$", text, re.M)
+    assert tv and 0.0 <= float(tv.group(1)) <= 1.0
+    images = _images(nb)
+    assert len(images) == 3  # habits over time, posterior bars by H, the model next to it
+    assert all(image.startswith(PNG_MAGIC) for image in images)

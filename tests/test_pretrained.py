@@ -14,7 +14,7 @@ from flowmaps_jax.shipped import available
 from flowmaps_jax.tokens import Queries
 from flowmaps_jax.training.config import get_preset
 
-SHIPPED = ("flowmaps", "mlp", "mlp-learned")
+SHIPPED = ("flowmaps", "mlp", "mlp-learned", "flowmaps-preferences")
 
 
 def test_every_default_model_is_shipped():
@@ -25,7 +25,7 @@ def test_every_default_model_is_shipped():
 def test_shipped_weights_have_the_cpu_preset_shapes(name):
     predictor = load_pretrained(name)
     cpu = get_preset("cpu")
-    assert predictor.kind == ("flowmaps" if name == "flowmaps" else "mlp")
+    assert predictor.kind == ("mlp" if name.startswith("mlp") else "flowmaps")
     assert predictor.model.dim == cpu.model.dim
     assert predictor.model.encoder_layers == cpu.model.encoder_layers
     leaves = jax.tree_util.tree_leaves(predictor.params)

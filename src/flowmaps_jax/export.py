@@ -70,7 +70,7 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
         which = "latest"
     predictor = load(checkpoint_dir, which=which)
     cfg = checkpoint.load_config(ckpt_root, which)
-    expected_kind = "flowmaps" if name == "flowmaps" else "mlp"
+    expected_kind = "mlp" if name.startswith("mlp") else "flowmaps"
     if predictor.kind != expected_kind:
         raise ValueError(f"checkpoint_dir holds a {predictor.kind!r} model; name {name!r} needs "
                          f"a {expected_kind!r} model")

@@ -36,7 +36,10 @@ from flowmaps_jax.checkpoint_reader import ModelSpec, model_spec
 from flowmaps_jax.validation import read_npz
 
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parent / "pretrained"
-NAMES = ("flowmaps", "mlp", "mlp-learned")
+NAMES = ("flowmaps", "mlp", "mlp-learned", "flowmaps-preferences")
+"""The shipped models: FlowMaps, the two MLP baselines (the paper's world), and FlowMaps trained
+on the preferences habits world reading the last 8 maps (``--preset habits``). A name starting
+with ``flowmaps`` holds a FlowMaps model, one starting with ``mlp`` the MLP baseline."""
 MAX_BYTES = 10 * 1024 * 1024  # the issue's size budget per model
 MAX_META_BYTES = 1024 * 1024  # a .json larger than this is not one export_pretrained wrote
 WHICH = ("latest", "best")  # the checkpoint of a run that an export copies
