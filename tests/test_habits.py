@@ -318,7 +318,7 @@ def test_the_habits_preset_reads_eight_maps_of_the_preferences_world():
     cfg = get_preset("habits")
     assert world_of(cfg.flowsim) == "preferences" and cfg.model.history == 8
     assert cfg.flowsim.max_tokens == 10 + 3 * 8
-    with pytest.raises(ValueError, match="model.history=9 reads 37 tokens"):
+    with pytest.raises(ValueError, match=r"model\.history=9 reads 37 tokens"):
         dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, history=9))
     with pytest.raises(ValueError, match="history"):
         ModelConfig(history=0)
