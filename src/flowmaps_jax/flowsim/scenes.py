@@ -105,6 +105,20 @@ def _tokens(scenes: Scenes, env, tau, config: FlowSimConfig, history: int = 1
     """Unchecked, jit-able body of ``scene_tokens``."""
     f, m, s = config.num_furniture, config.num_objects, config.max_tokens
     n = env.shape[0]
+    if history == 1:  # one map: the paper's tokens, the same program as before histories
+        pad = s - f - m
+        boxes = jnp.concatenate([
+            box_geometry.normalise(scenes.furniture_boxes[env], config.map_size),
+            box_geometry.normalise(scenes.object_boxes[env, tau], config.map_size),
+            jnp.zeros((n, pad, 4), jnp.float32)], axis=1)
+        descriptor = jnp.concatenate([scenes.furniture_kind[env], scenes.object_kind[env],
+                                      jnp.zeros((n, pad), jnp.int32)], axis=1)
+        kind = jnp.concatenate([jnp.full((f,), tok.FURNITURE), jnp.full((m,), tok.OBJECT),
+                                jnp.zeros((pad,))]).astype(jnp.int32)
+        return tok.SceneTokens(boxes=boxes, descriptor=descriptor.astype(jnp.int32),
+                               kind=jnp.broadcast_to(kind, (n, s)),
+                               mask=jnp.broadcast_to(jnp.arange(s) < f + m, (n, s)),
+                               tau=tau.astype(jnp.int32))
     pad = s - f - m * history
     lag = jnp.arange(history)  # 0 = the map at τ, a = the map at τ − a
     time = tau[:, None] - lag[None, :]  # (N, H)
