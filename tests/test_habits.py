@@ -322,3 +322,18 @@ def test_the_habits_preset_reads_eight_maps_of_the_preferences_world():
         dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, history=9))
     with pytest.raises(ValueError, match="history"):
         ModelConfig(history=0)
+
+
+def test_a_file_from_before_habits_loads_with_every_object_on_the_routine(small_scenes,
+                                                                         flowsim_config,
+                                                                         tmp_path):
+    from flowmaps_jax.flowsim import load_scenes, save_scenes
+
+    save_scenes(tmp_path / "new.npz", small_scenes, flowsim_config)
+    with np.load(tmp_path / "new.npz") as data:
+        old = {k: data[k] for k in data.files if k != "habit"}
+    old["format_version"] = np.int64(1)
+    np.savez_compressed(tmp_path / "old.npz", **old)
+    loaded, _ = load_scenes(tmp_path / "old.npz")
+    assert np.asarray(loaded.habit).shape == (256, 3) and not np.any(np.asarray(loaded.habit))
+    np.testing.assert_array_equal(np.asarray(loaded.slot), np.asarray(small_scenes.slot))

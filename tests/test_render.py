@@ -62,7 +62,8 @@ def hand_built_scenes(config: FlowSimConfig, num_envs: int = 2) -> Scenes:
                                         (num_envs, 1)), jnp.int32),
         object_size=jnp.asarray(size), visit_order=jnp.asarray(vo), num_slots=jnp.asarray(ns),
         slot=jnp.asarray(slot), object_boxes=jnp.asarray(ob),
-        layout_redraws=jnp.zeros((num_envs,), jnp.int32))
+        layout_redraws=jnp.zeros((num_envs,), jnp.int32),
+        habit=jnp.zeros((num_envs, config.num_objects), jnp.int32))
 
 
 @pytest.fixture(scope="module")
