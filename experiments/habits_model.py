@@ -18,6 +18,7 @@ import argparse
 import jax
 import jax.numpy as jnp
 import numpy as np
+from habits_exact import realised_rank  # experiments/ is on the path when run as a script
 
 from flowmaps_jax.evaluation.slots import slot_scores
 from flowmaps_jax.flowsim import HABITS, empirical_frequency, generate
@@ -46,13 +47,6 @@ def model_slots(predictor, scenes, config, env, obj, tau, tau_q):
         slots = np.where(order >= 0, np.take_along_axis(w, np.maximum(order, 0), axis=1), 0.0)
         out.append(np.concatenate([slots, 1.0 - slots.sum(1, keepdims=True)], axis=1))
     return np.concatenate(out).clip(0.0, 1.0)
-
-
-def realised_rank(p, truth, mask):
-    """Mean rank (1 = first) of the true slot, visiting by decreasing p (ties: mean rank)."""
-    p = np.where(mask, p, -np.inf)
-    mine = np.take_along_axis(p, truth[:, None], 1)
-    return 1.0 + np.sum(p > mine + 1e-6, 1) + 0.5 * (np.sum(np.abs(p - mine) <= 1e-6, 1) - 1)
 
 
 def main(argv=None) -> None:

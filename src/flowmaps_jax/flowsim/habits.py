@@ -260,13 +260,16 @@ def empirical_frequency(history, valid, num_furniture: int) -> jnp.ndarray:
 # ----------------------------------------------------------------------- on FlowSim scenes
 
 
-def slot_centres(scenes, config) -> jnp.ndarray:
+def slot_centres(scenes, config, env=None) -> jnp.ndarray:
     """(E, M, F, 2) table centres along each object's visiting order, in map sides (padding
-    places repeat the first table; they are never visited)."""
+    places repeat the first table; they are never visited); with ``env`` (Q,), only those
+    environments' (Q, M, F, 2)."""
     boxes = jnp.asarray(scenes.furniture_boxes, jnp.float32)
+    order = jnp.asarray(scenes.visit_order)
+    if env is not None:
+        boxes, order = boxes[env], order[env]
     centre = 0.5 * (boxes[..., :2] + boxes[..., 2:]) / config.map_size  # (E, F, 2)
-    table = jnp.maximum(jnp.asarray(scenes.visit_order), 0)  # (E, M, F)
-    return jax.vmap(lambda c, t: c[t])(centre, table)
+    return jax.vmap(lambda c, t: c[t])(centre, jnp.maximum(order, 0))
 
 
 def scene_hypotheses(scenes, config, env, obj) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -276,7 +279,7 @@ def scene_hypotheses(scenes, config, env, obj) -> tuple[jnp.ndarray, jnp.ndarray
     env, obj = jnp.asarray(env, jnp.int32), jnp.asarray(obj, jnp.int32)
     params = sim_params(config)
     k = jnp.asarray(scenes.num_slots)[env, obj]
-    centres = slot_centres(scenes, config)[env, obj]
+    centres = slot_centres(scenes, config, env)[jnp.arange(env.shape[0]), obj]
     return (transition_matrices(k, centres, params),
             habit_prior(k, params["habit_probs"], config.num_furniture))
 
