@@ -329,6 +329,19 @@ def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     return posterior
 
 
+def habit_family(scenes, env, obj) -> np.ndarray:
+    """(...) int32 index into ``HABITS`` of the habit each queried object follows; env, obj
+    broadcastable int arrays (a query's environment and object)."""
+    family = hypothesis_table(int(np.asarray(scenes.visit_order).shape[-1]))[0]
+    return family[np.asarray(scenes.habit)[np.asarray(env), np.asarray(obj)]]
+
+
+def available_history(tau, history_len: int) -> np.ndarray:
+    """min(H, τ + 1) for each τ: the observations a history of ``history_len`` maps holds at a
+    query made at τ (fewer at the start of an episode; the model's masks do the same)."""
+    return np.minimum(int(history_len), np.asarray(tau) + 1).astype(np.int32)
+
+
 def check_history_len(history_len, tau, num_timesteps: int) -> np.ndarray:
     """history_len (an int or (Q,) ints) in 1 … T and at most τ + 1 (the query's past)."""
     h = check_int_array("history_len", history_len, 1, num_timesteps,

@@ -5,6 +5,7 @@ Examples::
     python -m flowmaps_jax.train                          # cpu preset, FlowMaps
     python -m flowmaps_jax.train --preset smoke --model mlp --set model.baseline_variance=learned
     python -m flowmaps_jax.train --steps 5000 --set model.dim=96 --set lr=5e-4
+    python -m flowmaps_jax.train --preset habits --set world=dynamic   # a FlowSim world
     python -m flowmaps_jax.train --resume --run-dir runs/flowmaps-cpu-20250101-120000
     python -m flowmaps_jax.train --resume --run-dir runs/X --from-step 500   # an older save
     python -m flowmaps_jax.train --overwrite --run-dir runs/X   # old run moved to X.old-<time>
@@ -45,6 +46,7 @@ from flowmaps_jax.training.config import (
     TrainConfig,
     apply_overrides,
     get_preset,
+    with_world,
 )
 from flowmaps_jax.training.loop import run
 
@@ -75,7 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="stop (with a checkpoint) after this step; resume later")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE",
-                        help="override any config field, e.g. --set model.dim=64 --set lr=1e-3")
+                        help="override any config field, e.g. --set model.dim=64 --set lr=1e-3; "
+                             "--set world=NAME puts the run on a FlowSim world (routine, "
+                             "preferences, dynamic, mixed)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -83,6 +87,19 @@ def build_parser() -> argparse.ArgumentParser:
 def default_run_dir(cfg: TrainConfig) -> pathlib.Path:
     """``runs/<model_kind>-<preset>-<YYYYmmdd-HHMMSS>`` under the current directory."""
     return pathlib.Path("runs") / f"{cfg.model_kind}-{cfg.preset}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def split_world(overrides: typing.Iterable[str]) -> tuple[list[str], str | None]:
+    """``--set world=NAME`` (a ``flowsim.WORLDS`` name) apart from the field overrides: a world
+    names a whole habit mixture, not one field. The last ``world=`` wins."""
+    rest, world = [], None
+    for text in overrides:
+        key, sep, value = text.partition("=")
+        if sep and key.strip() == "world":
+            world = value.strip()
+        else:
+            rest.append(text)
+    return rest, world
 
 
 def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]:
@@ -102,7 +119,11 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
     else:
         cfg = get_preset(args.preset or DEFAULT_PRESET)
         run_dir = None
-    overrides = list(args.overrides)
+    overrides, world = split_world(args.overrides)
+    if world is not None:
+        if args.resume:
+            raise ValueError("--set world=... changes the data; it cannot change on --resume")
+        cfg = with_world(cfg, world)
     if args.model is not None:
         overrides.append(f"model_kind={args.model}")
     if args.steps is not None:

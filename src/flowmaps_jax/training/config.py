@@ -402,6 +402,14 @@ def habits_preset() -> TrainConfig:
         steps=3000, short_horizon_frac=0.25, data="endless", preset="habits")
 
 
+def with_world(cfg: TrainConfig, world: str) -> TrainConfig:
+    """``cfg`` on the FlowSim world ``world`` (a ``flowsim.WORLDS`` name; ValueError naming
+    ``world`` otherwise): only ``flowsim.habits`` changes (``--set world=dynamic``)."""
+    from flowmaps_jax.flowsim.worlds import world_config
+
+    return dataclasses.replace(cfg, flowsim=world_config(world, cfg.flowsim))
+
+
 PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "smoke": smoke_preset,
            "habits": habits_preset}
 DEFAULT_PRESET = "cpu"
