@@ -375,6 +375,7 @@ class SimShape:
     layout_candidates: int
     dynamics: str
     habits: bool
+    habit_families: tuple[int, ...]
     orderings: tuple[str, ...]
     category_kind: tuple[int, ...]
 
@@ -392,6 +393,7 @@ def sim_shape(config: FlowSimConfig) -> SimShape:
         layout_candidates=config.layout_candidates,
         dynamics=config.dynamics,
         habits=config.has_habits,
+        habit_families=tuple(i for i, p in enumerate(config.habit_probs) if p > 0),
         orderings=tuple(c.ordering for c in config.categories),
         category_kind=config.category_kind_index,
     )

@@ -185,24 +185,57 @@ def draw_hypothesis(u_family, u_member, num_slots, habit_probs, num_furniture: i
     return jnp.argmax(member & (jnp.cumsum(member) == pick + 1)).astype(jnp.int32)
 
 
-def habit_rollout(words, num_slots, slot_centres, params, num_timesteps: int):
+def habit_rollout(words, num_slots, slot_centres, params, num_timesteps: int,
+                  families: tuple[int, ...] = (ROUTINE, PREFERENCES, DYNAMIC)):
     """One object's habit and slots over T timesteps (vmap it over objects and environments).
 
     words: (rollout_num_words(T),) uint32. num_slots: () int K. slot_centres: (F, 2) in map
-    sides. Returns (slots (T,) int32 starting at 0, hypothesis () int32).
+    sides. ``families``: the ``HABITS`` indices the world can draw (static; the others are not
+    computed). Returns (slots (T,) int32 starting at 0, hypothesis () int32).
+
+    Step t uses one uniform u_t. Routine and preferences need no sequential loop: the routine's
+    advance (0 / 1 / 2 places) does not depend on the slot, so its slots are a cumulative sum mod
+    K; the preferences habit moves when u_t ≥ 1 − ρ, to a place drawn from π by the rest of
+    u_t, so its slot is the target of the last move. Only the dynamic habit (whose law depends
+    on where the object is) scans over its transition matrix's CDF.
     """
     f = slot_centres.shape[0]
     u = _uniform24(words)
     h = draw_hypothesis(u[0], u[1], num_slots, params["habit_probs"], f)
-    cdf = jnp.cumsum(hypothesis_matrix(h, num_slots, slot_centres, params), axis=-1)
-    last = jnp.maximum(num_slots - 1, 0)
+    family, favourites, _ = (jnp.asarray(a) for a in hypothesis_table(f))
+    k = jnp.asarray(num_slots, jnp.int32)
+    last = jnp.maximum(k - 1, 0)
+    steps = u[2:2 + num_timesteps - 1]  # (T - 1,)
+    start = jnp.zeros((1,), jnp.int32)
+    paths = {}
+    if ROUTINE in families:
+        cdf = jnp.cumsum(jnp.asarray(params["transition_probs"], jnp.float32))
+        advance = jnp.sum(steps[:, None] >= cdf[None, :-1], axis=1).astype(jnp.int32)
+        paths[ROUTINE] = jnp.mod(jnp.cumsum(advance), jnp.maximum(k, 1))
+    if PREFERENCES in families:
+        move = jnp.asarray(params["preference_move"], jnp.float32)
+        pi = _preference_matrix(k, favourites[h], 1.0, params["preference_mass"])[0]
+        moved = steps >= 1.0 - move
+        v = (steps - (1.0 - move)) / jnp.where(move > 0, move, 1.0)
+        target = jnp.minimum(jnp.sum(jnp.cumsum(pi)[None, :] <= v[:, None], axis=1), last)
+        when = jax.lax.cummax(jnp.where(moved, jnp.arange(steps.shape[0]), -1))
+        paths[PREFERENCES] = jnp.where(when >= 0, target[jnp.maximum(when, 0)], 0)
+    if DYNAMIC in families:
+        place = jnp.arange(f) < k
+        matrix = jnp.where(place[:, None] & place[None, :], _dynamic_matrix(
+            k, slot_centres, params["dynamic_stay"], params["dynamic_length"]), 0.0)
+        cdf = jnp.cumsum(matrix, axis=-1)
 
-    def step(slot, u_t):
-        nxt = jnp.minimum(jnp.sum(cdf[slot] <= u_t), last).astype(jnp.int32)
-        return nxt, nxt
+        def step(slot, u_t):
+            nxt = jnp.minimum(jnp.sum(cdf[slot] <= u_t), last).astype(jnp.int32)
+            return nxt, nxt
 
-    _, later = jax.lax.scan(step, jnp.int32(0), u[2:2 + num_timesteps - 1])
-    return jnp.concatenate([jnp.zeros((1,), jnp.int32), later]), h
+        paths[DYNAMIC] = jax.lax.scan(step, jnp.int32(0), steps)[1]
+    fam = family[h]
+    later = paths[families[-1]]
+    for index in families[:-1]:
+        later = jnp.where(fam == index, paths[index], later)
+    return jnp.concatenate([start, later.astype(jnp.int32)]), h
 
 
 # --------------------------------------------------------------------- history posterior

@@ -20,6 +20,10 @@ WORLDS: dict[str, tuple[tuple[str, float], ...]] = {
 }
 """World name -> the habit mixture ``FlowSimConfig.habits`` of that world."""
 
+HABITS_HISTORY = 8
+"""Maps a habits model reads (the one at τ and 7 before it), and the observations the exact
+reference posterior of the evaluate and search CLIs uses by default in a world with habits."""
+
 
 def world_config(world: str, base: FlowSimConfig = DEFAULT_CONFIG) -> FlowSimConfig:
     """``base`` with the habits of ``world`` (a ``WORLDS`` name; ValueError names it otherwise)."""

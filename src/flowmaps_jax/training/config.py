@@ -33,6 +33,7 @@ from typing import Any
 
 from flowmaps_jax.flow import T_SAMPLERS
 from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.flowsim.worlds import HABITS_HISTORY  # the habits preset's H
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import MODEL_FAMILIES as MODEL_KINDS
 from flowmaps_jax.model.families import model_family
@@ -380,8 +381,6 @@ def smoke_preset() -> TrainConfig:
         log_every=5, val_every=10, ckpt_every=10, keep_last=2, preset="smoke")
 
 
-HABITS_HISTORY = 8
-"""Maps the ``habits`` preset's model reads (the one at τ and 7 before it)."""
 
 
 def habits_preset() -> TrainConfig:
