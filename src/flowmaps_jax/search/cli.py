@@ -10,17 +10,36 @@ run or checkpoint directories (their best-by-validation step unless ``--which la
 ``pretrained:NAME`` for a model shipped with the package; the checkpoint and step of each are
 printed before the search starts and recorded in ``search.json``. The protocol is documented in
 docs/search.md.
+
+``--world NAME`` searches scenes of another FlowSim world (``flowsim.WORLDS``: routine,
+preferences, dynamic, mixed; default: the world of the first model's config). ``--history H``:
+the observations the exact reference posterior is given (default: the largest ``model.history``
+among the models, and at least ``training.config.HABITS_HISTORY`` = 8 in a world with habits
+other than the routine). With habits or H > 1 the report gains the rows "exact, H = 1" and
+"empirical frequency, H = …" and a section per habit; the paper's world with H = 1 is the
+paper's protocol, unchanged.
+
+    python -m flowmaps_jax.search --checkpoint pretrained:flowmaps-preferences \\
+        --baseline runs/habits-pref-h1-endless --world preferences --out /tmp/search-prefs
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pathlib
 import sys
 from collections.abc import Sequence
 
 from flowmaps_jax import distributed
-from flowmaps_jax.flowsim import validation_split
+from flowmaps_jax.flowsim import (
+    WORLDS,
+    FlowSimConfig,
+    validation_split,
+    world_config,
+    world_of,
+)
+from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
 from flowmaps_jax.predictor import PRETRAINED_PREFIX, load_model
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import figures as fg
@@ -28,7 +47,7 @@ from flowmaps_jax.search import protocol as pr
 from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.search.probabilities import TABLE_METHODS
 from flowmaps_jax.search.report import markdown_table, write_report
-from flowmaps_jax.validation import check_int, check_output_dir, check_seed
+from flowmaps_jax.validation import check_choice, check_int, check_output_dir, check_seed
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -62,6 +81,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="(τ, τ_q) draws per environment; every object is searched for in each")
     add("--horizons", type=_int_list, default=None,
         help="instead of random draws: fixed horizons Δτ, e.g. 1,2,4,8 (one row each)")
+    add("--world", default=None, metavar="NAME",
+        help=f"FlowSim world of the searched scenes ({', '.join(WORLDS)}; default: the world "
+             "of the first model's config)")
+    add("--history", type=int, default=None, metavar="H",
+        help="observations the exact reference posterior is given (default: the largest "
+             f"model.history among the models, at least {HABITS_HISTORY} in a world with "
+             "habits other than the routine)")
     add("--samples", type=int, default=pr.DEFAULT_SAMPLES,
         help="samples per query for the model rows' table probabilities")
     add("--table-method", choices=TABLE_METHODS, default="weights",
@@ -108,6 +134,27 @@ def loaded_from(model) -> str:
     return f"{model.name} ({model.source}, step {model.step})"
 
 
+def search_world(models: Sequence, world: str | None = None,
+                 history: int | None = None) -> tuple[FlowSimConfig, int]:
+    """The search's FlowSim config and reference history for ``models``.
+
+    config: the first model's config in ``world`` (``flowsim.world_config``; None: that config
+    as it is), with room for the tokens of the model reading the most maps. history: ``history``
+    if given, else the largest ``model.history`` among the models, and at least
+    ``HABITS_HISTORY`` when the world has habits other than the routine. ``ValueError`` names
+    ``world`` or ``--history``.
+    """
+    config = models[0].flowsim if world is None else world_config(world, models[0].flowsim)
+    reads = max(pr.model_history(m) for m in models)
+    needed = config.num_furniture + config.num_objects * reads
+    if needed > config.max_tokens:  # a model reading H maps needs F + M·H tokens
+        config = dataclasses.replace(config, max_tokens=needed)
+    if history is None:
+        history = max(reads, HABITS_HISTORY if config.has_habits else 1)
+    check_int("--history", history, maximum=config.num_timesteps)
+    return config, int(history)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; 0 on success, 2 on a bad argument, 74 on a failed write (a full disk);
     one line on stderr. Every argument, ``--out`` and the run's size are checked first."""
@@ -117,29 +164,37 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_int("--" + name.replace("_", "-"), getattr(args, name))
         check_seed("--seed", args.seed)
         sim.check_p_miss(args.p_miss)
+        if args.world is not None:
+            check_choice("--world", args.world, tuple(WORLDS))
+        if args.history is not None:
+            check_int("--history", args.history)
         if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         out = pathlib.Path(check_output_dir(
             "--out", args.out or pathlib.Path(args.checkpoint) / "search"))
         models = [load_model(spec, args.which, args.devices)
                   for spec in [args.checkpoint, *args.baseline]]
-        config = models[0].flowsim
+        config, history = search_world(models, args.world, args.history)
+        habits = ep.uses_history(config, history)
         per_env = len(args.horizons) if args.horizons else args.times_per_env
         ep.check_search_size(
             config, args.num_envs * per_env, budget=args.budget, policies=args.policies,
             num_samples=args.samples, chunk_rows=args.chunk_rows, predictors=models,
             what=f"--num-envs {args.num_envs} x " + (f"{per_env} --horizons" if args.horizons
-                                                     else f"--times-per-env {per_env}"))
+                                                     else f"--times-per-env {per_env}"),
+            extra_rows=2 if history > 1 else 0)
         scenes = validation_split(config, num_envs=args.num_envs,
                                   mesh=distributed.local_mesh(args.devices))
+        where = (f" of the {world_of(config) or config.habits} world (exact posterior given "
+                 f"the last {history} observations)" if habits else "")
         print(f"Search with {', '.join(loaded_from(m) for m in models)} on {args.num_envs} "
-              f"validation environments → {out}", flush=True)
+              f"validation environments{where} → {out}", flush=True)
         results, runs, search_set = pr.run_search(
             models, scenes, config, seed=args.seed, num_samples=args.samples,
             times_per_env=args.times_per_env, horizons=args.horizons, policies=args.policies,
             budget=args.budget, p_miss=args.p_miss, start=args.start,
             chunk_rows=args.chunk_rows, progress=not args.no_progress,
-            table_method=args.table_method)
+            table_method=args.table_method, history=history)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
@@ -152,7 +207,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: could not write the results into {out}: {err.strerror or err}",
               file=sys.stderr)
         return EXIT_WRITE_FAILED
-    print(markdown_table(results).split("\n## By horizon")[0])
+    print(markdown_table(results).split("\n## By horizon")[0])  # overall (and by habit)
     print(f"wrote {paths['json']}, {paths['markdown']}"
           + "".join(f", {out / f}" for f in results["figures"])
           + f" ({results['seconds']:.0f} s of search)")

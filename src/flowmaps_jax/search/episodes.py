@@ -3,10 +3,16 @@ and the :class:`Episodes` they make for the simulator (:mod:`.simulator`).
 
 :func:`build_search_set` draws the queries (as the evaluation protocol: every object of an
 environment, τ ~ U{0..T−2}, τ_q ~ U{τ+1..T−1}; or fixed horizons) with their exact posterior
-and true tables; :func:`exact_tables`, :func:`uniform_tables`, :func:`last_seen_tables` and
-:func:`predictor_tables` give each prior's table probabilities; :func:`make_episodes` turns one
-of them into :class:`Episodes` over the K tables of the object's kind (its visiting order:
-candidate k is the k-th table of the route, so ``target`` is the slot at τ_q).
+and true tables; :func:`exact_tables`, :func:`uniform_tables`, :func:`last_seen_tables`,
+:func:`extra_tables` and :func:`predictor_tables` give each prior's table probabilities
+(:func:`history_tokens`: the tokens of a model that reads several maps); :func:`make_episodes`
+turns one of them into :class:`Episodes` over the K tables of the object's kind (its visiting
+order: candidate k is the k-th table of the route, so ``target`` is the slot at τ_q).
+
+In a FlowSim world with habits (``flowsim.worlds``), or with ``history`` H > 1, the exact
+posterior is the one given the object's last H observations (``flowsim.habits``), and the set
+also carries each object's habit family and the extra reference slot distributions
+(:data:`EXACT_H1_ROW` and the empirical frequency of the last H observations).
 
 The simulator's names (``Episodes``, ``run_episodes``, ``bayes_update``, ...) are importable
 from here too, as they were before the simulator had its own module.
@@ -14,6 +20,7 @@ from here too, as they were before the simulator had its own module.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Sequence
 from typing import Any
@@ -29,9 +36,12 @@ from flowmaps_jax.flowsim import (
     FlowSimConfig,
     Scenes,
     draw_query_times,
+    empirical_frequency,
     exact_posterior,
+    history_posterior,
     scene_tokens,
 )
+from flowmaps_jax.flowsim.habits import available_history, habit_family, observed_history
 from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
 from flowmaps_jax.search.probabilities import (
@@ -68,8 +78,17 @@ from flowmaps_jax.validation import (
 )
 
 STARTS = ("centre", "last-seen")
+EXACT_H1_ROW = "exact, H = 1"
+"""The exact posterior given only the last observation (what an H = 1 model can know)."""
 _TINY = 1e-30
 _SALT_TIMES, _SALT_SAMPLES = 11, 12
+_HISTORY_CHUNK = 4096  # queries per history_posterior call (its transitions are NH × F × F each)
+
+
+def empirical_row(history: int) -> str:
+    """Name of the reference row "empirical frequency, H = {history}": the fraction of the last
+    H observations the object spent at each place (a visit-count memory)."""
+    return f"empirical frequency, H = {int(history)}"
 
 
 # --------------------------------------------------------------------------- sizes
@@ -84,18 +103,19 @@ def _set_bytes(config: FlowSimConfig, rows: int) -> int:
 def check_search_size(config: FlowSimConfig, num_rows: int, *, budget: int,
                       policies: Sequence[str], num_samples: int = 0,
                       chunk_rows: int = 50, predictors: Sequence[Any] = (),
-                      what: str = "") -> None:
+                      what: str = "", extra_rows: int = 0) -> None:
     """The whole search protocol's size, up front: the search set of ``num_rows`` scene rows
     (environments × times per environment), each prior's table probabilities, every row × policy
     run of ``budget`` looks, and each predictor's sampling. ``ValueError`` naming the arguments
-    (``what`` says which set the rows) when over the memory or work budget."""
+    (``what`` says which set the rows) when over the memory or work budget. ``extra_rows``:
+    reference rows beyond the exact posterior, uniform and last-seen (the habits path's two)."""
     m, f, s = config.num_objects, config.num_furniture, config.max_tokens
     rows = int(num_rows)
     k = min(f, 8)  # candidate tables of one kind: at most the furniture
     n = rows * m
     rows_text = f"{rows} scene rows ({what})" if what else f"{rows} scene rows"
     set_bytes = _set_bytes(config, rows)
-    priors = 3 + len(predictors)
+    priors = 3 + int(extra_rows) + len(predictors)
     prior_bytes = 4 * n * (s + 1) * priors
     check_resources(f"the search set of {rows_text}", num_bytes=set_bytes + prior_bytes)
     jobs = priors * len(policies) + 1
@@ -133,8 +153,15 @@ class SearchSet:
     obj, horizon, slot_now, true_slot, num_slots: (R, M) int32 category index, Δτ = τ_q − τ,
         slot at τ (last seen), slot at τ_q in the rollout (where the object is), K.
     visit_order: (R, M, F) int32 furniture (token) index of each slot, −1 padded.
-    slot_probs: (R, M, F) exact posterior over the slots (zero beyond K).
+    slot_probs: (R, M, F) exact posterior over the slots (zero beyond K): given the last
+        ``history`` observations in a world with habits or with history > 1, otherwise the
+        paper's one-observation posterior.
     furniture_px: (R, F, 4) pixel boxes (y0, x0, y1, x1) of the furniture; map_size: pixels.
+    habit: (R, M) int32 index into ``flowsim.HABITS`` of the habit each object follows, or None
+        (the paper's world with history 1: every object on the routine).
+    extra_slots: {row name: (R, M, F)} the extra reference slot distributions (``EXACT_H1_ROW``,
+        ``empirical_row(history)``; only with history > 1), or None.
+    history: H, the observations ``slot_probs`` is given (``available_history``: fewer at τ < H−1).
     """
 
     tokens: SceneTokens
@@ -151,6 +178,9 @@ class SearchSet:
     horizon: jnp.ndarray
     furniture_px: jnp.ndarray
     map_size: int = struct.field(pytree_node=False, default=256)
+    habit: jnp.ndarray | None = None
+    extra_slots: dict[str, jnp.ndarray] | None = None
+    history: int = struct.field(pytree_node=False, default=1)
 
     @property
     def num_rows(self) -> int:
@@ -162,19 +192,33 @@ class SearchSet:
         return int(np.max(np.asarray(self.num_slots)))
 
 
+def uses_history(config: FlowSimConfig, history: int = 1) -> bool:
+    """Whether a search set of ``config``'s world with ``history`` takes the habits path: the
+    exact posterior given the last H observations, the habit groups and the extra reference rows
+    (any habit other than the routine, or H > 1). Otherwise the paper's protocol, unchanged."""
+    return bool(config.has_habits or int(history) > 1)
+
+
 def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
                      times_per_env: int = 1,
-                     horizons: Sequence[int] | None = None) -> SearchSet:
+                     horizons: Sequence[int] | None = None, history: int = 1) -> SearchSet:
     """Search queries for every environment of ``scenes``: every object is queried.
 
     Default: ``times_per_env`` rows per environment, each with τ ~ U{0..T−2} and τ_q ~
     U{τ+1..T−1} (the evaluation protocol's draws). ``horizons``: instead one row per environment
-    and fixed Δτ in ``horizons`` (τ ~ U{0..T−1−Δτ}). Row r's times depend on ``key`` and r only.
+    and fixed Δτ in ``horizons`` (τ ~ U{0..T−1−Δτ}). Row r's times depend on ``key`` and r only
+    (not on ``history``).
+
+    ``history`` H (1..T): with H > 1 or a ``config`` with habits (:func:`uses_history`) the exact
+    posterior is ``flowsim.history_posterior`` given the last min(H, τ + 1) observations, and the
+    set carries ``habit`` and ``extra_slots`` (see :class:`SearchSet`); otherwise (the paper's
+    world, H = 1) it is bit for bit the paper's protocol.
     """
     check_instance("scenes", scenes, Scenes)
     check_instance("config", config, FlowSimConfig)
     key = check_key(key)
     t_max = config.num_timesteps
+    history = check_int("history", history, maximum=t_max)
     if horizons is None:
         per_env, fixed = check_int("times_per_env", times_per_env), None
     else:
@@ -203,8 +247,12 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
     slot = jnp.asarray(scenes.slot)
     slot_now, true_slot = slot[env, tau], slot[env, tau_q]
     num_slots = jnp.asarray(scenes.num_slots)[env]
-    probs = exact_posterior(np.asarray(num_slots), np.asarray(slot_now), np.asarray(horizon),
-                            config, tau=np.asarray(jnp.broadcast_to(tau[:, None], (rows, m))))
+    habit = extra = None
+    if uses_history(config, history):
+        probs, habit, extra = _history_references(scenes, config, env, tau, horizon, history)
+    else:  # the paper's world: the one-observation posterior, as always
+        probs = exact_posterior(np.asarray(num_slots), np.asarray(slot_now), np.asarray(horizon),
+                                config, tau=np.asarray(jnp.broadcast_to(tau[:, None], (rows, m))))
     return SearchSet(
         env=env, tau=tau, tau_q=tau_q, tokens=scene_tokens(scenes, env, tau, config),
         queries=Queries(descriptor=jnp.asarray(scenes.object_kind, jnp.int32)[env],
@@ -214,7 +262,43 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
         visit_order=jnp.asarray(scenes.visit_order, jnp.int32)[env],
         slot_probs=jnp.asarray(probs, jnp.float32),
         furniture_px=jnp.asarray(scenes.furniture_boxes, jnp.float32)[env],
-        map_size=config.map_size)
+        map_size=config.map_size, habit=habit, extra_slots=extra,
+        history=history)
+
+
+def _history_references(scenes: Scenes, config: FlowSimConfig, env, tau, horizon, history: int):
+    """The habits path's references for rows (env (R,), tau (R,), horizon (R, M)): (slot_probs
+    (R, M, F) exact given the last min(H, τ + 1) observations, habit (R, M) int32 family index,
+    extra_slots {name: (R, M, F)} or None with H = 1, where they would repeat the exact and
+    last-seen rows)."""
+    rows, m, f = int(env.shape[0]), config.num_objects, config.num_furniture
+    q_env = np.repeat(np.asarray(env), m)
+    q_obj = np.tile(np.arange(m, dtype=np.int32), rows)
+    q_tau = np.repeat(np.asarray(tau), m)
+    q_horizon = np.asarray(horizon).reshape(-1)
+    seen = available_history(q_tau, history)
+
+    def posterior(history_len) -> jnp.ndarray:
+        # chunks of one padded shape, so each history length compiles once
+        lengths = np.broadcast_to(history_len, q_tau.shape)
+        parts = []
+        for first in range(0, q_env.size, _HISTORY_CHUNK):
+            index = np.minimum(np.arange(first, first + _HISTORY_CHUNK), q_env.size - 1) \
+                if q_env.size > _HISTORY_CHUNK else np.arange(q_env.size)
+            part = history_posterior(scenes, config, q_env[index], q_obj[index], q_tau[index],
+                                     q_horizon[index], lengths[index])
+            parts.append(np.asarray(part)[: min(_HISTORY_CHUNK, q_env.size - first)])
+        return jnp.asarray(np.concatenate(parts).reshape(rows, m, f), jnp.float32)
+
+    probs = posterior(seen)
+    habit = jnp.asarray(habit_family(scenes, q_env, q_obj).reshape(rows, m), jnp.int32)
+    if history == 1:
+        return probs, habit, None
+    observed, valid = observed_history(scenes, q_env, q_obj, q_tau, seen, max_history=history)
+    frequency = empirical_frequency(observed, valid, f).reshape(rows, m, f)
+    extra = {EXACT_H1_ROW: posterior(np.ones_like(q_tau)),
+             empirical_row(history): jnp.asarray(frequency, jnp.float32)}
+    return probs, habit, extra
 
 
 # --------------------------------------------------------------------------- priors
@@ -235,6 +319,46 @@ def uniform_tables(search_set: SearchSet) -> jnp.ndarray:
     s = _check_set(search_set)
     slots = slot_metrics.uniform_slots_core(s.num_slots, s.visit_order.shape[-1])
     return slots_to_tables_core(slots, s.visit_order, s.tokens.num_tokens)
+
+
+def extra_tables(search_set: SearchSet) -> dict[str, jnp.ndarray]:
+    """The set's extra reference rows (``SearchSet.extra_slots``: the exact posterior given one
+    observation, the empirical frequency of the last H) as table probabilities {name: (R, M,
+    S + 1)}; empty for a set without them."""
+    s = _check_set(search_set)
+    return {name: slots_to_tables_core(slots, s.visit_order, s.tokens.num_tokens)
+            for name, slots in (s.extra_slots or {}).items()}
+
+
+def history_tokens(search_set: SearchSet, scenes: Scenes, config: FlowSimConfig,
+                   history: int, max_tokens: int | None = None) -> SearchSet:
+    """The set with the tokens a model sees: the map at τ and, for a model reading ``history``
+    H > 1 maps, the objects of the H − 1 maps before it (``flowsim.scene_tokens(...,
+    history=H)``), padded to ``config.max_tokens``, or to the model's own ``max_tokens`` when
+    that is fewer (a one-map model in a search whose tokens have room for a history model's maps;
+    :func:`pad_tables` brings its table probabilities back to the set's S). The same set for
+    H = 1 and no fewer tokens. ``scenes`` and ``config`` are those the set was built from."""
+    s = _check_set(search_set)
+    history = check_int("history", history)
+    if max_tokens is not None and check_int("max_tokens", max_tokens) < s.tokens.num_tokens:
+        config = dataclasses.replace(config, max_tokens=max_tokens)
+    elif history == 1:
+        return s
+    return s.replace(tokens=scene_tokens(scenes, s.env, s.tau, config, history=history))
+
+
+def pad_tables(table_probs, num_tokens: int) -> jnp.ndarray:
+    """Table probabilities (..., S' + 1) over S' ≤ S tokens as (..., S + 1): the first S' tokens
+    are the same tokens (tables first), the rest get no mass, the off bin stays last."""
+    probs = jnp.asarray(table_probs)
+    extra = check_int("num_tokens", num_tokens) + 1 - probs.shape[-1]
+    if extra < 0:
+        raise ValueError(f"table_probs has {probs.shape[-1] - 1} tokens, more than "
+                         f"num_tokens={num_tokens}")
+    if extra == 0:
+        return probs
+    zeros = jnp.zeros((*probs.shape[:-1], extra), probs.dtype)
+    return jnp.concatenate([probs[..., :-1], zeros, probs[..., -1:]], axis=-1)
 
 
 def last_seen_tables(search_set: SearchSet) -> jnp.ndarray:

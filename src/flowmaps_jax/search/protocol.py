@@ -10,6 +10,13 @@ policy. With a perfect detector, every row is also scored in exact expectation o
 table (``simulator.expected_outcomes`` weighted by the exact posterior: no rollout noise).
 Each prior is checked once (``episodes.make_episodes``) and the policies, budget and sizes once
 (:func:`score_priors`), before any episode runs; the runs are the simulator's cores.
+
+In a FlowSim world with habits, or with ``history`` H > 1 (``episodes.uses_history``), the exact
+posterior is the one given the last H observations, two more reference rows follow the models
+("exact, H = 1": what a one-map model can know; "empirical frequency, H = …": a visit-count
+memory), a model reading several maps (``model.history`` > 1) gets the tokens of its maps, each
+model row is labelled with its H, and every summary is also split by the objects' habit family
+(:func:`habit_sections`: search.json's "habits", search.md's "By habit").
 """
 
 from __future__ import annotations
@@ -24,7 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 from flowmaps_jax.evaluation.run import unique_names
-from flowmaps_jax.flowsim import FlowSimConfig, Scenes
+from flowmaps_jax.flowsim import HABITS, FlowSimConfig, Scenes, world_of
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search import simulator as sim
@@ -61,16 +68,41 @@ class RowRun:
 
 
 def reference_priors(search_set: ep.SearchSet) -> dict[str, Any]:
-    """Table probabilities (R, M, S + 1) of the reference rows that need no model."""
-    return {EXACT_ROW: ep.exact_tables(search_set), UNIFORM_ROW: ep.uniform_tables(search_set),
+    """Table probabilities (R, M, S + 1) of the reference rows that need no model, in report
+    order: the exact posterior, the set's extra rows (``episodes.extra_tables``: none on the
+    paper's protocol), uniform over the kind, last-seen first."""
+    return {EXACT_ROW: ep.exact_tables(search_set), **ep.extra_tables(search_set),
+            UNIFORM_ROW: ep.uniform_tables(search_set),
             LAST_SEEN_ROW: ep.last_seen_tables(search_set)}
 
 
 def episode_groups(search_set: ep.SearchSet, config: FlowSimConfig) -> dict[str, np.ndarray]:
-    """Per-episode labels (N,): "category" (name) and "horizon" (Δτ)."""
+    """Per-episode labels (N,): "category" (name), "horizon" (Δτ) and, when the set has habits
+    (``SearchSet.habit``), "habit" (a ``flowsim.HABITS`` name)."""
     names = np.asarray([c.name for c in config.categories])
-    return {"category": names[np.asarray(search_set.obj).reshape(-1)],
-            "horizon": np.asarray(search_set.horizon).reshape(-1)}
+    groups = {"category": names[np.asarray(search_set.obj).reshape(-1)],
+              "horizon": np.asarray(search_set.horizon).reshape(-1)}
+    if search_set.habit is not None:
+        groups["habit"] = np.asarray(HABITS)[np.asarray(search_set.habit).reshape(-1)]
+    return groups
+
+
+def habit_sections(rows: dict) -> dict:
+    """The per-habit sections of ``rows`` (from :func:`score_priors` on a set with habits):
+    {habit: {"episodes": n, "rows": {row: {policy: {"summary", "ratio"[, "expected",
+    "expected_ratio"]}}}}}, each part that habit's episodes only (the ratios to the exact
+    posterior on the same episodes), habits in ``HABITS`` order; {} without habits."""
+    first = next(iter(rows[EXACT_ROW]["policies"].values()))
+    present = first["summary"].get("by_habit")
+    if present is None:
+        return {}
+    parts = ("summary", "ratio", "expected", "expected_ratio")
+    return {habit: {"episodes": int(present[habit]["count"]),
+                    "rows": {name: {policy: {part: value[part]["by_habit"][habit]
+                                             for part in parts if part in value}
+                                    for policy, value in entry["policies"].items()}
+                             for name, entry in rows.items()}}
+            for habit in HABITS if habit in present}
 
 
 def _check_policies(policies: Sequence[str]) -> tuple[str, ...]:
@@ -163,15 +195,26 @@ def _has_weights(predictor) -> bool:
     return bool(getattr(predictor, "has_table_weights", False))
 
 
+def model_history(predictor) -> int:
+    """The maps a predictor reads (``model.history``; 1 for anything without it)."""
+    return int(getattr(getattr(predictor, "model", None), "history", 1) or 1)
+
+
 def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig, *,
                seed: int = 0, num_samples: int = DEFAULT_SAMPLES,
                times_per_env: int = DEFAULT_TIMES_PER_ENV, horizons: Sequence[int] | None = None,
                policies: Sequence[str] = MAIN_POLICIES, budget: int = sim.DEFAULT_BUDGET,
                p_miss: float = 0.0, start: str = "centre", chunk_rows: int = 50,
-               progress: bool = True, table_method: str = "weights", **sample_kwargs
-               ) -> tuple[dict, dict[tuple[str, str], RowRun], ep.SearchSet]:
+               progress: bool = True, table_method: str = "weights", history: int = 1,
+               **sample_kwargs) -> tuple[dict, dict[tuple[str, str], RowRun], ep.SearchSet]:
     """The protocol on every environment of ``scenes``: queries, priors (the reference rows and
     one row per predictor, in the order given), every row × policy → (results, runs, search set).
+
+    ``config`` is the world ``scenes`` come from (``flowsim.world_config``); ``history``: the
+    observations the exact posterior is given (``episodes.build_search_set``). On the habits
+    path (``episodes.uses_history``) each model reads its own ``model.history`` maps, its row
+    is named "NAME (H = h)", and ``results`` gains "habits" (:func:`habit_sections`) and the
+    protocol's "world" and "history".
 
     ``results`` is what ``report.write_report`` writes as search.json (without figures).
     ``table_method``: how a model's table probabilities are read, "weights" (the default: a
@@ -191,18 +234,31 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
                              "config (map size or categories) than the search scenes")
     started = time.perf_counter()
     key = jax.random.key(int(seed))
-    search_set = ep.build_search_set(scenes, config, key, times_per_env, horizons)
+    habits = ep.uses_history(config, history)
+    search_set = ep.build_search_set(scenes, config, key, times_per_env, horizons, history)
     reference = reference_priors(search_set)
     priors = {EXACT_ROW: reference.pop(EXACT_ROW)}
     seconds = {}
-    names = unique_names([getattr(p, "name", type(p).__name__) for p in predictors])
+    labels = [getattr(p, "name", type(p).__name__) for p in predictors]
+    if habits:
+        labels = [f"{label} (H = {model_history(p)})"
+                  for label, p in zip(labels, predictors, strict=True)]
+    names = unique_names(labels)
     for predictor, name in zip(predictors, names, strict=True):
         t0 = time.perf_counter()
         method = table_method if _has_weights(predictor) else "samples"
-        priors[name] = ep.predictor_tables(predictor, search_set, num_samples,
+        flowsim = getattr(predictor, "flowsim", None)
+        try:  # a model reading H maps gets them all, each model no more tokens than it takes
+            its_set = ep.history_tokens(search_set, scenes, config, model_history(predictor),
+                                        None if flowsim is None else flowsim.max_tokens)
+        except ValueError as err:
+            raise ValueError(f"predictors: {name} reads {model_history(predictor)} maps, which "
+                             f"do not fit its tokens: {err}") from None
+        priors[name] = ep.predictor_tables(predictor, its_set, num_samples,
                                            jax.random.fold_in(key, _SALT_MODELS), chunk_rows,
                                            progress, desc=f"{method} of {name}", method=method,
                                            **sample_kwargs)
+        priors[name] = ep.pad_tables(priors[name], search_set.tokens.num_tokens)
         seconds[name] = round(time.perf_counter() - t0, 1)
     priors.update(reference)
     rows, runs = score_priors(search_set, priors, config, policies=policies, budget=budget,
@@ -229,4 +285,8 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
         "figures": [],
         "seconds": round(time.perf_counter() - started, 1),
     }
+    if habits:  # the paper's protocol keeps its report as it was
+        results["protocol"].update(world=world_of(config), habits=[list(h) for h in config.habits],
+                                   history=int(search_set.history))
+        results["habits"] = habit_sections(rows)
     return results, runs, search_set

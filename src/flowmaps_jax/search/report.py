@@ -4,7 +4,9 @@
 ratios to the exact-posterior searcher under the same policy; under most-probable first a note
 on why flat priors can score below the exact searcher there, :data:`FLAT_PRIOR_NOTE`), then by
 horizon Δτ and by category: the travel ratio (in exact expectation over the true table when the
-detector is perfect, which removes the rollout's noise) and SR@1.
+detector is perfect, which removes the rollout's noise) and SR@1. Results with habits
+(``protocol.habit_sections``: a FlowSim world with habits, or a history H > 1) also get "By
+habit": per habit and policy, the policy table's columns on that habit's episodes only.
 """
 
 from __future__ import annotations
@@ -52,16 +54,43 @@ def protocol_line(p: dict) -> str:
             + ("read from its mixture weights (no sampling), the MLP rows' from "
                if p.get("table_method") == "weights" else "and the MLP rows' from ")
             + f"{p['num_samples']} samples per query (protocol-v2 assignment, least radius "
-            f"{p['assign_tolerance']}); seed {p['seed']}.")
+            f"{p['assign_tolerance']}); seed {p['seed']}."
+            + (f" World: {p.get('world') or p.get('habits')}; the exact posterior is given the "
+               f"object's last H = {p['history']} observations (fewer before τ = "
+               f"{p['history'] - 1}), and each model row reads its own H maps."
+               if "history" in p else ""))
 
 
-def _row_line(name: str, part: dict) -> str:
-    o = part["summary"]["overall"]
-    cells = [name] + [_mean_se(o[key], d) for key, _, d in _MAIN]
-    cells += [_number(part["ratio"]["overall"][key]) for key, _ in _RATIOS]
+def _row_line(name: str, part: dict, pick=lambda section: section["overall"]) -> str:
+    """One row of a policy table; ``pick`` chooses the part of each summary (overall, or one
+    group's entry: a habit section's parts are that entry already)."""
+    o = pick(part["summary"])
+    cells = [name] + [_mean_se(o.get(key), d) for key, _, d in _MAIN]
+    cells += [_number(pick(part["ratio"]).get(key)) for key, _ in _RATIOS]
     if "expected_ratio" in part:
-        cells.append(_number(part["expected_ratio"]["overall"]["travel"]))
+        cells.append(_number(pick(part["expected_ratio"]).get("travel")))
     return "| " + " | ".join(cells) + " |"
+
+
+def _habit_tables(results: dict, header: list[str]) -> list[str]:
+    """The "By habit" section: per habit (``results["habits"]``), one table per policy with
+    the policy table's columns on that habit's episodes."""
+    habits = results.get("habits") or {}
+    if not habits:
+        return []
+    total = sum(h["episodes"] for h in habits.values())
+    lines = ["\n## By habit",
+             "\nEach object follows one habit (flowsim.habits); each table is the policy table "
+             "on the episodes of that habit's objects only, ratios to the exact posterior on "
+             "the same episodes."]
+    for habit, section in habits.items():
+        lines.append(f"\n### habit: {habit} ({section['episodes']} of {total} episodes)")
+        for policy in results["protocol"]["policies"]:
+            lines += [f"\n#### {POLICY_LABELS[policy]}\n", "| " + " | ".join(header) + " |",
+                      "|" + "---|" * len(header)]
+            lines += [_row_line(name, parts[policy], pick=lambda part: part)
+                      for name, parts in section["rows"].items()]
+    return lines
 
 
 def _group_table(rows: dict, policy: str, group: str, title: str, pick) -> list[str]:
@@ -108,6 +137,7 @@ def markdown_table(results: dict) -> str:
         lines += [_row_line(name, entry["policies"][policy]) for name, entry in rows.items()]
         if policy == "most-probable":
             lines.append("\n" + FLAT_PRIOR_NOTE)
+    lines += _habit_tables(results, header)
     what = "E[travel] ÷ exact" if expected else "travel ÷ exact"
     lines.append("\n## By horizon Δτ and by category")
     for policy in policies:
