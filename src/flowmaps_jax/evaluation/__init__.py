@@ -5,9 +5,10 @@ Module map, in the order data flows::
     kl.py        the ground-truth Gaussian mixture q (σ, log q, draws) and the KL(q‖p) estimate
     slots.py     slot assignment, p̂, TV / top-1 / search cost, reference slot predictors,
                  route-offset mass
-    protocol.py  the queries (EvalSet, build_eval_queries) and one RowResult per predictor
-                 (reference_rows, evaluate_predictor)
-    report.py    rows → results.json / results.md (summarise_rows, markdown_table, write_report)
+    protocol.py  the queries (EvalSet, build_eval_queries; with a history in worlds with
+                 habits) and one RowResult per predictor (reference_rows, evaluate_predictor)
+    report.py    rows → results.json / results.md (summarise_rows, summarise_habits,
+                 markdown_table, write_report)
     figures.py   the report's figures (plot_kl, plot_by_horizon, plot_samples, plot_slot_bars)
     run.py       run_evaluation: all of the above in one call
     routine.py   the routine diagnostic the training loop logs, and its learning-curve figure
@@ -38,9 +39,16 @@ from flowmaps_jax.evaluation.protocol import (
     RowResult,
     build_eval_queries,
     evaluate_predictor,
+    history_row_names,
     reference_rows,
 )
-from flowmaps_jax.evaluation.report import markdown_table, summarise, summarise_rows, write_report
+from flowmaps_jax.evaluation.report import (
+    markdown_table,
+    summarise,
+    summarise_habits,
+    summarise_rows,
+    write_report,
+)
 from flowmaps_jax.evaluation.routine import (
     RoutineProbe,
     build_probe,
@@ -48,7 +56,7 @@ from flowmaps_jax.evaluation.routine import (
     read_routine_records,
     routine_metrics,
 )
-from flowmaps_jax.evaluation.run import run_evaluation
+from flowmaps_jax.evaluation.run import default_history, run_evaluation
 from flowmaps_jax.evaluation.slots import (
     ASSIGN_RADIUS,
     ROUTE_OFFSET_LABELS,
@@ -78,10 +86,12 @@ __all__ = [
     "build_eval_queries",
     "build_probe",
     "continuous_kl",
+    "default_history",
     "empirical_slots",
     "evaluate_predictor",
     "gt_mixture_log_prob",
     "gt_mixture_sigma",
+    "history_row_names",
     "last_seen_slots",
     "markdown_table",
     "oracle_slots",
@@ -100,6 +110,7 @@ __all__ = [
     "sampled_oracle_slots",
     "slot_scores",
     "summarise",
+    "summarise_habits",
     "summarise_rows",
     "uniform_slots",
     "write_report",

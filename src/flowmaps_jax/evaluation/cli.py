@@ -2,12 +2,19 @@
 
     python -m flowmaps_jax.evaluate --checkpoint runs/flowmaps-cpu-X \\
         --baseline runs/mlp-cpu-Y [--baseline ...] [--out DIR] [--num-envs 200] \\
-        [--samples 25,100] [--kl-draws 100] [--seed 0]
+        [--samples 25,100] [--kl-draws 100] [--seed 0] [--world NAME] [--history H]
 
 Writes into ``--out`` (default ``<checkpoint>/eval``) ``results.json``, ``results.md`` (with the
 route-offset mass one step ahead: the routine diagnostic) and the figures ``kl.png`` (paper
 Fig. 2), ``by_horizon.png``, ``samples.png`` (paper Fig. 3) and ``slots.png``.
 ``--checkpoint``/``--baseline`` take run or checkpoint directories, or ``pretrained:NAME``.
+
+``--world`` (a ``flowsim.WORLDS`` name; default the world of ``--checkpoint``'s config) picks the
+habits the validation scenes are generated with (``flowsim.world_config``), so a model can be
+scored on another world than its own. ``--history`` H: the observations the exact posterior is
+given (default: the most maps any evaluated model reads, and at least 8 in a world with
+non-routine habits). Then the report adds the rows "exact, H = 1" and "empirical frequency,
+H = …" and one table per habit, and each model reads its own last ``model.history`` maps.
 """
 
 from __future__ import annotations
@@ -30,10 +37,12 @@ from flowmaps_jax.evaluation.protocol import (
 )
 from flowmaps_jax.evaluation.report import markdown_table
 from flowmaps_jax.evaluation.run import run_evaluation
+from flowmaps_jax.flowsim.worlds import WORLDS, world_config, world_of
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, PRETRAINED_PREFIX, SOLVERS, load_model
 from flowmaps_jax.validation import (
+    check_choice,
     check_int,
     check_output_dir,
     check_resources,
@@ -129,6 +138,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="split the environments over N devices (default: every device "
                              "JAX sees); results do not depend on it beyond float "
                              "summation order (about 1e-6 relative in the KL)")
+    parser.add_argument("--world", default=None, metavar="NAME",
+                        help="FlowSim world of the scenes: routine, preferences, dynamic or "
+                             "mixed (default: the world of --checkpoint's config)")
+    parser.add_argument("--history", type=int, default=None, metavar="H",
+                        help="observations the exact posterior is given (default: the most maps "
+                             "any evaluated model reads, at least 8 in a world with habits "
+                             "other than the routine)")
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
@@ -147,6 +163,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.logp_steps is not None:
             check_int("--logp-steps", args.logp_steps, 2)
         likelihood_steps = check_int("--likelihood-steps", args.likelihood_steps, 0) or None
+        if args.world is not None:
+            check_choice("--world", args.world, tuple(WORLDS))
+        if args.history is not None:
+            check_int("--history", args.history, 1)
         if likelihood_steps is not None:
             check_int("--likelihood-steps", likelihood_steps, 3)
         if args.out:
@@ -160,10 +180,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         model = load_model(args.checkpoint, args.which, args.devices)
         baselines = [load_model(path, args.which, args.devices) for path in args.baseline]
         config = model.flowsim
+        if args.world is not None:
+            config = world_config(args.world, config)
         if args.scenes is not None:
             from flowmaps_jax.flowsim.scenes import load_scenes
 
             scenes, config = load_scenes(args.scenes)
+            if args.world is not None and world_of(config) != args.world:
+                raise ValueError(f"--world {args.world}: the scenes of --scenes {args.scenes} "
+                                 f"are of the world {world_of(config) or 'custom'}")
             if args.num_envs < scenes.num_envs:
                 scenes = jax.tree_util.tree_map(lambda a: a[: args.num_envs], scenes)
             check_size([*baselines, model], scenes.num_envs, config, args)
@@ -174,7 +199,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             scenes = validation_split(config, num_envs=args.num_envs, mesh=mesh)
         print(f"Evaluating {model.name} ({model.source}, step {model.step})"
               + "".join(f" vs {b.name} ({b.source}, step {b.step})" for b in baselines)
-              + f" on {scenes.num_envs} environments, {distributed.describe(mesh)} → {out}",
+              + f" on {scenes.num_envs} environments"
+              + (f" of the {world_of(config) or 'custom'} world" if config.has_habits
+                 or args.world is not None else "")
+              + f", {distributed.describe(mesh)} → {out}",
               flush=True)
         results, _, _ = run_evaluation(
             [*baselines, model], scenes, config, out, seed=args.seed, sample_counts=args.samples,
@@ -182,7 +210,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             method=args.method, logp_steps=args.logp_steps, likelihood_steps=likelihood_steps,
             likelihood_draws=check_int("--likelihood-draws", args.likelihood_draws, 2),
             figures=not args.no_figures,
-            progress=not args.no_progress)
+            progress=not args.no_progress, history=args.history)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE

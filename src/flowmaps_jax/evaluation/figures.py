@@ -14,12 +14,18 @@ from flowmaps_jax.evaluation.protocol import REFERENCE_ROWS, EvalSet, RowResult
 from flowmaps_jax.flowsim.config import FlowSimConfig
 
 
+def _is_reference(name: str, row: dict) -> bool:
+    """A reference row: one of ``REFERENCE_ROWS``, or a row without a model (no "kind" in its
+    info, e.g. a history's "exact, H = 1")."""
+    return name in REFERENCE_ROWS or "kind" not in row.get("info", {})
+
+
 def plot_kl(results: dict, rows: Sequence[str] | None = None) -> Figure:
     """Paper Fig. 2: KL(q‖p) of the model rows (FlowMaps vs the MLP baselines), overall, by
     category and by horizon, with standard-error bars. rows: which rows (default: all models)."""
     table = results["rows"]
     if rows is None:
-        rows = [n for n in table if n not in REFERENCE_ROWS] or list(table)
+        rows = [n for n in table if not _is_reference(n, table[n])] or list(table)
     fig = Figure(figsize=(13, 3.8), layout="constrained")
     ax_all, ax_cat, ax_h = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1, 2, 3]})
     width = 0.8 / len(rows)
@@ -62,7 +68,7 @@ def plot_by_horizon(results: dict, rows: Sequence[str] | None = None) -> Figure:
     n_big = str(results["protocol"]["samples"][-1])
     if rows is None:
         rows = [n for n in ("oracle samples", "uniform") if n in table]
-        rows += [n for n in table if n not in REFERENCE_ROWS]
+        rows += [n for n in table if not _is_reference(n, table[n])]
     fig = Figure(figsize=(13, 3.8), layout="constrained")
     axes = fig.subplots(1, 3)
     panels = (("KL(q‖p) [nats]", lambda r: r["kl"]),
@@ -75,7 +81,7 @@ def plot_by_horizon(results: dict, rows: Sequence[str] | None = None) -> Figure:
             mean = np.array([np.nan if by_h[h]["mean"] is None else by_h[h]["mean"] for h in hs])
             err = np.array([by_h[h]["stderr"] or 0.0 for h in hs], float)
             x = np.array([int(h) for h in hs])
-            style = "--" if name in REFERENCE_ROWS else "-"
+            style = "--" if _is_reference(name, table[name]) else "-"
             ax.plot(x, mean, style, marker="o", markersize=3, color=f"C{i}", label=name)
             ax.fill_between(x, mean - err, mean + err, color=f"C{i}", alpha=0.15)
         ax.set(xlabel="Δτ = τ_q − τ", ylabel=label, title=label + " by horizon")

@@ -6,6 +6,12 @@
 * Ground truth: the exact posterior q (M objects × F slots, zero beyond the K real slots) of
   ``flowsim.exact_posterior`` and the boxes b_k the object would have at slot k
   (``flowsim.scenes.slot_boxes``).
+* Worlds with habits (``flowsim.worlds``) and histories: with ``history`` H > 1 or a config whose
+  objects may follow a non-routine habit, q is instead ``flowsim.habits.history_posterior``
+  given the last min(H, τ + 1) observations of the object (its hidden habit marginalised
+  exactly), and the EvalSet also holds each query's habit family and two more reference slot
+  distributions ("exact, H = 1" and "empirical frequency, H = H"; only for H > 1). The τ / τ_q
+  draws are the same; the routine world with H = 1 is the paper's protocol bit for bit.
 * Continuous KL(q‖p) with q the Gaussian mixture of :mod:`.kl`, from ``kl_draws`` draws per query.
   The draws are made once and shared by every row (common random numbers, so row differences are
   less noisy). log p is exact: change of variables for FlowMaps, closed form for the MLP, and for
@@ -67,6 +73,8 @@ DEFAULT_LIKELIHOOD_DRAWS = 25
 """The accurate likelihood runs on the first this-many of each query's KL draws (it costs ~10
 times the paper's 10-point grid per point); the paper-grid KL uses all of them."""
 REFERENCE_ROWS = ("oracle", "oracle samples", "smoothed-q samples", "last-seen", "uniform")
+"""The reference rows of every eval set; one with a history (``EvalSet.habit`` set, H > 1) adds
+``history_row_names(H)`` before "last-seen"."""
 # fold_in salts of the evaluation seed
 _SALT_QUERIES, _SALT_KL, _SALT_SAMPLES, _SALT_ORACLE, _SALT_SMOOTHED = 0, 1, 2, 3, 4
 
@@ -89,6 +97,13 @@ class EvalSet:
     target: (E, M, 4) the object's actual normalised box at τ_q (one draw of the truth).
     kl_points: (E, M, D, 4) draws x ~ q shared by every row's KL estimate.
     kl_log_q: (E, M, D) log q at those draws.
+
+    Set only for an eval set with a history (habits worlds or H > 1; None on the paper's):
+    habit: (E, M) int32 index into ``flowsim.HABITS`` of the habit each queried object follows.
+    history: H, the observations q conditions on (a query at τ has min(H, τ + 1) of them); static.
+    exact_h1: (E, M, F) the exact posterior given the map at τ alone (None when H = 1: it is q).
+    empirical: (E, M, F) the fraction of the observed history spent at each slot (None when H = 1:
+        it is last-seen).
     """
 
     env: jnp.ndarray
@@ -106,6 +121,10 @@ class EvalSet:
     target: jnp.ndarray
     kl_points: jnp.ndarray
     kl_log_q: jnp.ndarray
+    habit: jnp.ndarray | None = None
+    history: int | None = struct.field(pytree_node=False, default=None)
+    exact_h1: jnp.ndarray | None = None
+    empirical: jnp.ndarray | None = None
 
     @property
     def num_envs(self) -> int:
@@ -126,14 +145,30 @@ class EvalSet:
         return jax.tree_util.tree_map(lambda a: a[index], self)
 
 
+def uses_history(config: FlowSimConfig, history: int) -> bool:
+    """Whether an eval set of ``config``'s world with ``history`` observations is built with the
+    history posterior (habits, H > 1) rather than the paper's exact posterior."""
+    return history > 1 or config.has_habits
+
+
+def history_row_names(history: int) -> tuple[str, ...]:
+    """The extra reference rows of an eval set with ``history`` = H > 1 observations."""
+    return ("exact, H = 1", f"empirical frequency, H = {history}") if history > 1 else ()
+
+
 def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
-                       kl_draws: int = DEFAULT_KL_DRAWS, horizon: int | None = None) -> EvalSet:
+                       kl_draws: int = DEFAULT_KL_DRAWS, horizon: int | None = None,
+                       history: int = 1) -> EvalSet:
     """The protocol's queries for every environment of ``scenes`` (all E of them).
 
     τ ~ U{0..T−2} and τ_q ~ U{τ+1..T−1} per environment, all M objects queried; exact posterior,
     slot boxes, and ``kl_draws`` draws from the ground-truth mixture q per query (≥ 2).
     Environment e's times and draws depend only on ``key`` and e. ``horizon``: instead a fixed
     Δτ (τ ~ U{0..T−1−Δτ}, τ_q = τ + Δτ), e.g. 1 for the routine diagnostic.
+    ``history``: H, the observations the exact posterior is given. With H > 1 or a world with
+    habits other than the routine (``config.has_habits``), q is ``history_posterior`` given the
+    last min(H, τ + 1) observations and the EvalSet's ``habit``, ``history`` (and for H > 1
+    ``exact_h1``, ``empirical``) are set; the times and draws do not depend on H.
     """
     from flowmaps_jax.flowsim.scenes import (
         draw_query_times,
@@ -146,6 +181,7 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     kl_draws = check_int("kl_draws", kl_draws, 2)
     num_envs = scenes.num_envs
     t_max = config.num_timesteps
+    history = check_int("history", history, 1, t_max)
     if horizon is not None:
         horizon = check_int("horizon", horizon, 1)
         if horizon >= t_max:
@@ -166,8 +202,12 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     horizon = (tau_q - tau)[:, None] + jnp.zeros_like(obj)
     slot_now = jnp.asarray(scenes.slot)[env, tau]  # (E, M)
     num_slots = jnp.asarray(scenes.num_slots)[env]  # (E, M)
-    probs = exact_posterior(np.asarray(num_slots), np.asarray(slot_now), np.asarray(horizon),
-                            config, tau=np.asarray(tau)[:, None] + np.zeros((1, m), np.int32))
+    extra = {}
+    if uses_history(config, history):
+        extra, probs = _history_truth(scenes, config, tau, horizon, history)
+    else:  # the paper's protocol, as before habits existed
+        probs = exact_posterior(np.asarray(num_slots), np.asarray(slot_now), np.asarray(horizon),
+                                config, tau=np.asarray(tau)[:, None] + np.zeros((1, m), np.int32))
     flat_env = jnp.repeat(env, m)
     boxes = slot_boxes(scenes, flat_env, obj.reshape(-1), config)
     boxes = jnp.asarray(boxes, jnp.float32).reshape(num_envs, m, *boxes.shape[1:])
@@ -184,7 +224,40 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
                    horizon=horizon.astype(jnp.int32), slot_now=slot_now.astype(jnp.int32),
                    num_slots=num_slots.astype(jnp.int32), slot_probs=probs, slot_boxes=boxes,
                    slot_mask=mask, target=jnp.asarray(target, jnp.float32), kl_points=points,
-                   kl_log_q=log_q)
+                   kl_log_q=log_q, **extra)
+
+
+def _history_truth(scenes, config: FlowSimConfig, tau, horizon, history: int):
+    """(EvalSet's history fields, q (E, M, F)) of the queries at τ (E,) with Δτ (E, M): q given
+    the last min(H, τ + 1) observations, each query's habit family, and for H > 1 the exact
+    posterior given one observation and the empirical frequency of the observed history."""
+    from flowmaps_jax.flowsim.habits import (
+        available_history,
+        empirical_frequency,
+        habit_family,
+        history_posterior,
+        observed_history,
+    )
+
+    e, m = np.shape(horizon)
+    f = config.num_furniture
+    env = np.repeat(np.arange(e, dtype=np.int32), m)
+    obj = np.tile(np.arange(m, dtype=np.int32), e)
+    tau = np.repeat(np.asarray(tau, np.int32), m)
+    dtau = np.asarray(horizon, np.int32).reshape(-1)
+    seen = available_history(tau, history)  # (E·M,) observations each query has
+
+    def per_query(a):
+        return jnp.asarray(a, jnp.float32).reshape(e, m, f)
+
+    probs = per_query(history_posterior(scenes, config, env, obj, tau, dtau, seen))
+    extra = {"habit": jnp.asarray(habit_family(scenes, env, obj).reshape(e, m), jnp.int32),
+             "history": history}
+    if history > 1:
+        slots, valid = observed_history(scenes, env, obj, tau, seen, max_history=history)
+        extra.update(exact_h1=per_query(history_posterior(scenes, config, env, obj, tau, dtau, 1)),
+                     empirical=per_query(empirical_frequency(slots, valid, f)))
+    return extra, probs
 
 
 # --------------------------------------------------------------------------- rows
@@ -250,6 +323,9 @@ def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMP
     continuous q of the KL, assigned to slots like a model's samples: under the protocol's
     assignment it matches oracle samples within noise, which is the proof that the assignment
     does not punish a model that matches q), last-seen (stays at its slot), uniform (K slots).
+    An eval set with a history of H > 1 observations adds, before last-seen, "exact, H = 1" (the
+    exact posterior given the map at τ alone) and "empirical frequency, H = H" (the fraction of
+    the observed history at each slot); the oracle is then the exact posterior given H.
 
     Their KL uses the ground-truth mixture with the row's slot weights as the density, on the
     shared draws: 0 for the oracle, and the oracle's for oracle samples (a perfect sampler's
@@ -265,11 +341,17 @@ def reference_rows_core(evalset: EvalSet, counts: tuple[int, ...], key) -> list[
     exact = {"oracle": oracle_slots_core(evalset.slot_probs),
              "last-seen": last_seen_slots_core(evalset.slot_now, evalset.num_slots_padded),
              "uniform": uniform_slots_core(evalset.num_slots, evalset.num_slots_padded)}
+    names = list(REFERENCE_ROWS)
+    if evalset.exact_h1 is not None:  # a history: its extra rows, before last-seen
+        extra = history_row_names(evalset.history)
+        exact.update(zip(extra, (oracle_slots_core(evalset.exact_h1),
+                                 oracle_slots_core(evalset.empirical)), strict=True))
+        names[names.index("last-seen"):names.index("last-seen")] = extra
     kls = {name: continuous_kl_core(evalset.kl_log_q, gt_mixture_log_prob_core(
                evalset.kl_points, p_exact[..., :-1], evalset.slot_boxes, evalset.slot_mask))
            for name, p_exact in exact.items()}
     rows = []
-    for name in REFERENCE_ROWS:
+    for name in names:
         if name == "oracle samples":  # q's density, a fresh histogram of n draws per count
             kl = kls["oracle"]
             slots = {n: _slot_entry(evalset, sampled_oracle_slots_core(

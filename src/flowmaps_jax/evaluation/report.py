@@ -1,8 +1,13 @@
 """The results: per-query rows summarised into ``results.json`` and ``results.md``.
 
 Every number is reported overall, by category and by horizon Δτ = τ_q − τ, as mean ± standard
-error over queries; the route-offset mass one step ahead is the routine diagnostic's table.
-JSON holds no NaN: a missing standard error (a group of one) is ``null``.
+error over queries; the route-offset mass one step ahead is the routine diagnostic's table
+(left out of the Markdown when no queried object follows the routine). An eval set with a
+history (a world with habits, or H > 1: ``EvalSet.habit`` set) adds
+``results["by_habit"]`` (:func:`summarise_habits`) and one small Markdown table per habit: the
+same rows on that habit's queries only, since a habit a history reveals (preferences) and one it
+cannot (routine) tell different stories in one average. JSON holds no NaN: a missing standard
+error (a group of one) is ``null``.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from flowmaps_jax.evaluation.slots import (
     SLOT_METRICS,
     route_offset_mass_core,
 )
-from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig
 
 # --------------------------------------------------------------------------- aggregation
 
@@ -111,6 +116,33 @@ def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimC
     return out
 
 
+def summarise_habits(rows: Sequence[RowResult], evalset: EvalSet) -> dict:
+    """Each row's numbers on the queries of each habit present in ``evalset`` (``habit`` set).
+
+    Returns ``{habit: {"count": queries, "rows": {row name: {"kl": stat, "slots": {n: {"tv",
+    "top1", "search_cost_ratio", "off": stat}}}}}}`` with stat {mean, stderr, count} and "off"
+    the mass p̂ puts on no table; habits in ``flowsim.HABITS`` order. The counts add up to the
+    number of queries.
+    """
+    if evalset.habit is None:
+        raise ValueError("evalset has no habits (it was built without a history)")
+    habit = np.asarray(evalset.habit)
+    out = {}
+    for fam in np.unique(habit):
+        sel = habit == fam
+
+        def stat(values, sel=sel):
+            return _clean(summarise(np.asarray(values)[sel])["overall"])
+
+        out[HABITS[int(fam)]] = {"count": int(sel.sum()), "rows": {
+            row.name: {"kl": stat(row.kl),
+                       "slots": {str(n): {**{m: stat(s[m]) for m in SLOT_METRICS},
+                                          "off": stat(s["p_hat"][..., -1])}
+                                 for n, s in row.slots.items()}}
+            for row in rows}}
+    return out
+
+
 # --------------------------------------------------------------------------- Markdown and files
 
 
@@ -145,7 +177,7 @@ def markdown_table(results: dict) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     n_big = str(counts[-1])
     first = next(iter(rows.values())).get("route_offsets_one_step")
-    if first is not None:
+    if first is not None and "routine" in results.get("by_habit", {"routine": None}):
         lines.append(f"\n## Routines: slot mass at route offsets one step ahead (Δτ = 1, "
                      f"{first['count']} queries, @{n_big})\n")
         lines.append("| row | " + " | ".join(f"offset {k}" if k[0] in "0+" else k
@@ -155,6 +187,14 @@ def markdown_table(results: dict) -> str:
             cells = ["–" if v is None else f"{v:.3f}"
                      for v in row["route_offsets_one_step"]["mean"]]
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    for habit, part in results.get("by_habit", {}).items():
+        lines.append(f"\n## Habit: {habit} ({part['count']} queries, @{n_big})\n")
+        lines.append("| row | KL(q‖p) [nats] | TV | top-1 | rank cost | off-table mass |")
+        lines.append("|---|---|---|---|---|---|")
+        for name, row in part["rows"].items():
+            slot = row["slots"][n_big]
+            lines.append(f"| {name} | {_fmt(row['kl'], 2)} | "
+                         + " | ".join(_fmt(slot[m]) for m in (*SLOT_METRICS, "off")) + " |")
     for group, title in (("by_category", "category"), ("by_horizon", "horizon Δτ")):
         keys = list(next(iter(rows.values()))["kl"][group])
         for metric, label in (("kl", "KL(q‖p)"), ("tv", f"slot TV @{n_big}"),
@@ -185,7 +225,17 @@ def _protocol_line(p: dict) -> str:
             "environments); "
             f"slot assignment {p.get('assignment', 'v1')}; seed {p['seed']}. Rank cost: Σ_k "
             "rank_k q_k visiting slots by decreasing p̂, over the same by decreasing q "
-            "(docs/protocol.md).")
+            "(docs/protocol.md)." + _history_sentence(p))
+
+
+def _history_sentence(p: dict) -> str:
+    """The world and history of an eval set with a history ("" for the paper's protocol)."""
+    if "history" not in p:
+        return ""
+    habits = ", ".join(f"{name} {weight:.2f}" for name, weight in p["habits"])
+    return (f" World: {p['world']} (habits {habits}); q is the exact posterior given the last "
+            f"min(H, τ + 1) observations of the object, H = {p['history']}, its habit "
+            "marginalised; each model reads the maps it was trained on (its H).")
 
 
 def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathlib.Path]:

@@ -1,10 +1,16 @@
 """The whole evaluation in one call: queries, reference rows, each predictor, report and figures.
 
 ``python -m flowmaps_jax.evaluate`` (:mod:`.cli`) is this function behind a command line.
+The world is the one of the ``config`` the scenes were generated with; ``history`` H is the
+observations the exact reference posterior is given (default :func:`default_history`). Each
+model reads the maps it was trained on: a model with ``model.history`` = h > 1 is scored on the
+same queries with tokens of the last h maps (``flowsim.scenes.scene_tokens(..., history=h)``),
+so an H = 1 model and an H = 8 model face the same ground truth and differ only in what they see.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 import time
 from collections.abc import Sequence
@@ -28,9 +34,11 @@ from flowmaps_jax.evaluation.protocol import (
     evaluate_predictor_core,
     reference_rows_core,
 )
-from flowmaps_jax.evaluation.report import summarise_rows, write_report
+from flowmaps_jax.evaluation.report import summarise_habits, summarise_rows, write_report
 from flowmaps_jax.evaluation.slots import ASSIGN_RADIUS
 from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.flowsim.scenes import check_history
+from flowmaps_jax.flowsim.worlds import HABITS_HISTORY, world_of
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.validation import check_int
 
@@ -43,11 +51,16 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
                    logp_steps: int | None = None,
                    likelihood_steps: int | None = DEFAULT_LIKELIHOOD_STEPS,
                    likelihood_draws: int = DEFAULT_LIKELIHOOD_DRAWS, figures: bool = True,
-                   progress: bool = True) -> tuple[dict, list[RowResult], EvalSet]:
+                   progress: bool = True, history: int | None = None,
+                   ) -> tuple[dict, list[RowResult], EvalSet]:
     """Evaluate ``predictors`` (baselines first, FlowMaps last, as they should appear) on every
     environment of ``scenes``; write the report and figures into out_dir if given.
     A flow's KL uses the accurate likelihood on ``likelihood_steps`` grid points (with its
     integration error; None: the paper's grid only), and the paper's grid is reported beside it.
+    ``history``: the observations the exact posterior is given (default
+    :func:`default_history`). In a world with habits or with H > 1 the report adds the history's
+    reference rows, one table per habit, and the model rows are labelled with the maps each reads
+    ("FlowMaps (H = 8)"); the routine world with H = 1 is the paper's report, unchanged.
 
     Arguments are checked here, once, before any model runs (the rows are scored by the
     protocol's cores, which check nothing). Returns (results dict as written to
@@ -66,13 +79,21 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         if p.flowsim.map_size != config.map_size or p.flowsim.categories != config.categories:
             raise ValueError(f"predictor {p.name} ({p.source}) was trained on a different FlowSim "
                              "config (map size or categories) than the evaluation scenes")
+    history = (default_history(predictors, config) if history is None
+               else check_int("history", history, 1, config.num_timesteps))
+    for p in predictors:
+        if p.model.history > 1:
+            check_history(p.model.history, model_token_config(config, p))
     start = time.perf_counter()
     key = jax.random.key(seed)
-    evalset = build_eval_queries(scenes, config, key, kl_draws)
+    evalset = build_eval_queries(scenes, config, key, kl_draws, history=history)
     rows = reference_rows_core(evalset, counts, key)
-    names = unique_names([p.name for p in predictors])
+    with_history = evalset.habit is not None
+    names = unique_names([f"{p.name} (H = {p.model.history})" if with_history else p.name
+                          for p in predictors])
     for predictor, name in zip(predictors, names, strict=True):
-        rows.append(evaluate_predictor_core(predictor, evalset, key, counts, chunk_envs, ode,
+        view = model_view(evalset, scenes, config, predictor)
+        rows.append(evaluate_predictor_core(predictor, view, key, counts, chunk_envs, ode,
                                             progress, name, likelihood_steps, likelihood_draws))
     results = {
         "protocol": {"num_envs": evalset.num_envs, "objects_per_env": config.num_objects,
@@ -86,6 +107,10 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         "rows": summarise_rows(rows, evalset, config),
         "figures": [],
     }
+    if with_history:  # only then: the paper's report keeps its exact keys
+        results["protocol"].update(world=world_of(config) or "custom", history=history,
+                                   habits=[list(h) for h in config.habits])
+        results["by_habit"] = summarise_habits(rows, evalset)
     if out_dir is not None:
         out = pathlib.Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -103,6 +128,39 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     else:
         results["seconds"] = round(time.perf_counter() - start, 1)
     return results, rows, evalset
+
+
+def default_history(predictors: Sequence[Predictor], config: FlowSimConfig) -> int:
+    """The observations the exact posterior is given by default: the most maps any of
+    ``predictors`` reads (``model.history``), and at least ``flowsim.worlds.HABITS_HISTORY``
+    (8, what the habits preset's model reads) in a world with non-routine habits, where the
+    history tells the habit apart; 1 in the paper's routine world with one-map models."""
+
+    most = max((p.model.history for p in predictors), default=1)
+    return min(max(most, HABITS_HISTORY if config.has_habits else 1), config.num_timesteps)
+
+
+def model_token_config(config: FlowSimConfig, predictor: Predictor) -> FlowSimConfig:
+    """The evaluation ``config`` with the token count the predictor was trained on."""
+    if predictor.flowsim.max_tokens == config.max_tokens:
+        return config
+    return dataclasses.replace(config, max_tokens=predictor.flowsim.max_tokens)
+
+
+def model_view(evalset: EvalSet, scenes, config: FlowSimConfig,
+               predictor: Predictor) -> EvalSet:
+    """``evalset`` as ``predictor`` reads it: for a model of ``model.history`` = h > 1 the tokens
+    of the last h maps (SceneTokens (E, S) with ``age``, S its ``flowsim.max_tokens``), the
+    queries and ground truth unchanged; the same tokens again for a one-map model (rebuilt only
+    when its token count is smaller than the evaluation config's)."""
+    from flowmaps_jax.flowsim.scenes import scene_tokens
+
+    h = predictor.model.history
+    if h == 1 and predictor.flowsim.max_tokens >= config.max_tokens:
+        return evalset
+    tokens = scene_tokens(scenes, evalset.env, evalset.tau,
+                          model_token_config(config, predictor), history=h)
+    return evalset.replace(tokens=tokens)
 
 
 def unique_names(names: Sequence[str]) -> list[str]:
