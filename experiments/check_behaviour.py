@@ -15,12 +15,16 @@ bit-identical on the same machine). The reference was written before the issue-9
 ``--smoke`` runs the same three trainings and the evaluation at a tiny size (4 steps each, 2
 environments, 4 samples, 4 KL draws; about a minute instead of several): a check that the script
 and the CLIs it drives still run (tests/test_experiments.py). Its fingerprint compares only with
-another ``--smoke`` fingerprint, never with docs/behaviour_reference.json.
+another ``--smoke`` fingerprint, never with docs/behaviour_reference.json. With ``--smoke`` the
+CLIs' ``main(argv)`` run in this process (one JAX start-up) instead of ``python -m`` subprocesses.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib
+import io
 import json
 import pathlib
 import subprocess
@@ -50,7 +54,19 @@ def _strip(obj):
     return obj
 
 
-def _run(args: list[str]) -> None:
+def _run(args: list[str], in_process: bool = False) -> None:
+    """``python -m ARGS`` in a subprocess; with ``in_process`` (``--smoke``), the module's
+    ``main(argv)`` in this process instead (one JAX start-up for the four commands)."""
+    if in_process:
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+            try:
+                code = importlib.import_module(args[0]).main(args[1:])
+            except SystemExit as err:  # argparse errors
+                code = err.code
+        if code:
+            raise SystemExit(f"{' '.join(args)} failed (exit {code}):\n{out.getvalue()}")
+        return
     proc = subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"{' '.join(args)} failed:\n{proc.stdout}\n{proc.stderr}")
@@ -63,13 +79,13 @@ def fingerprint(work: pathlib.Path, smoke: bool = False) -> dict:
             args = [SMOKE_STEPS if prev == "--steps" else a
                     for prev, a in zip(["", *args[:-1]], args, strict=True)]
         run_dir = work / name
-        _run(["flowmaps_jax.train", *args, "--run-dir", str(run_dir), "--no-progress"])
+        _run(["flowmaps_jax.train", *args, "--run-dir", str(run_dir), "--no-progress"], smoke)
         lines = (run_dir / "metrics.jsonl").read_text().splitlines()
         out[f"train/{name}"] = [_strip(json.loads(line)) for line in lines]
     _run(["flowmaps_jax.evaluate", "--checkpoint", str(work / "flowmaps"),
           "--baseline", str(work / "pointer"), str(work / "mlp"),
           *(SMOKE_EVALUATE if smoke else EVALUATE), "--no-figures", "--no-progress",
-          "--out", str(work / "eval")])
+          "--out", str(work / "eval")], smoke)
     results = json.loads((work / "eval" / "results.json").read_text())
     out["evaluate"] = _strip({"protocol": results["protocol"], "rows": results["rows"]})
     return out

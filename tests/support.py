@@ -6,6 +6,7 @@ config means sharing compiled functions across test modules, which is most of th
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 
 import jax
@@ -84,3 +85,74 @@ def mixture_log_density(x, weights, boxes) -> np.ndarray:
             terms.append(np.log(w) + np.sum(-0.5 * ((cx - mu) / sd) ** 2
                                             - np.log(sd * np.sqrt(2 * np.pi)), axis=-1))
     return np.logaddexp.reduce(terms, axis=0)
+
+
+# --------------------------------------------------------------------------- commands in-process
+
+
+def run_python_in_process(args: Sequence[str], cwd) -> tuple[int, str]:
+    """``python ARGS`` (``-m MODULE ...`` or ``SCRIPT.py ...``) run in this process, in ``cwd``:
+    (exit code, stdout and stderr together).
+
+    Much cheaper than a subprocess in a test session: JAX and the package are imported once and
+    every ``jax.jit`` cache is shared. What ``python`` would do is kept: ``-m MODULE`` calls the
+    module's ``main(argv)`` (a package's ``__main__`` module), as its ``__main__`` block does, and
+    a script runs as ``__main__`` (:func:`runpy.run_path`) with ``sys.argv`` set and its folder
+    first on ``sys.path``. The exit code is that of ``sys.exit(main())``: an uncaught exception
+    is 1 (its traceback in the output), ``SystemExit("message")`` is 1 with the message. Use a
+    subprocess where the process itself is under test (signals, a fresh interpreter, the
+    environment JAX starts with)."""
+    import importlib
+    import io
+    import os
+    import runpy
+    import sys
+    import traceback
+
+    args = list(args)
+    out = io.StringIO()
+    saved_argv, saved_path, saved_cwd = sys.argv[:], sys.path[:], os.getcwd()
+    code: object = 0
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+            try:
+                if args[0] == "-m":
+                    module = importlib.import_module(args[1])
+                    if not hasattr(module, "main") and hasattr(module, "__path__"):
+                        module = importlib.import_module(args[1] + ".__main__")
+                    sys.argv = [args[1], *args[2:]]
+                    code = module.main(args[2:])
+                else:
+                    sys.argv = [args[0], *args[1:]]
+                    sys.path.insert(0, os.path.dirname(os.path.abspath(args[0])))
+                    runpy.run_path(args[0], run_name="__main__")
+            except SystemExit as exit_:
+                code = exit_.code
+            except Exception:  # what the interpreter does with an uncaught exception
+                traceback.print_exc()
+                code = 1
+            if code is not None and not isinstance(code, int):  # sys.exit("message")
+                print(code, file=sys.stderr)
+                code = 1
+    finally:
+        sys.argv, sys.path[:] = saved_argv, saved_path
+        os.chdir(saved_cwd)
+    return code or 0, out.getvalue()
+
+
+@contextlib.contextmanager
+def fast_compile():
+    """XLA's ``jax_disable_most_optimizations`` on inside (what ``JAX_DISABLE_MOST_OPTIMIZATIONS``
+    does for a new process): about half the compile time of the tiny end-to-end runs, where
+    compilation dominates; the programs are the same, only their machine code is less optimised.
+    The flag is not part of ``jax.jit``'s cache key, so a test module that uses this clears JAX's
+    caches when it is done (``jax.clear_caches()`` in a module-scoped fixture): later tests in
+    the process compile their own optimised programs."""
+    previous = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", previous)
+

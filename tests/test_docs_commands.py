@@ -42,6 +42,15 @@ The rules (what runs, what is shortened, what is skipped and why):
 
   Every other command runs as written.
 
+* **In this process.** A shell block whose every command (as run) is ``python -m
+  flowmaps_jax.<cli> ...`` or ``python <script>.py ...`` runs in the test's own process, one
+  command after the other (:func:`support.run_python_in_process`: the module's ``main(argv)``,
+  or the script as ``__main__``, in the temporary directory, its exit code and output checked
+  as a subprocess's would be): JAX is imported once and the commands share compiled programs,
+  which is most of this test's time. With XLA's ``jax_disable_most_optimizations``
+  (:func:`support.fast_compile`; the programs are the same, compiled faster). Any other block
+  (``VAR=value`` prefixes, ``python -c``, other programs) runs in ``bash`` as a script.
+
 * **Known broken** blocks (:data:`KNOWN_BROKEN`: a page owner's fix is pending) run and must
   fail; once one passes, the test fails until it is taken off the list.
 
@@ -60,7 +69,9 @@ import shlex
 import subprocess
 import sys
 
+import jax
 import pytest
+from support import fast_compile, run_python_in_process
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 PAGES = ["README.md", *sorted(str(p.relative_to(REPO)) for p in (REPO / "docs").glob("*.md"))]
@@ -248,6 +259,25 @@ def shell_script(block: Block) -> tuple[str, list[str]]:
     return "\n".join(lines), notes
 
 
+def in_process_commands(block: Block) -> list[list[str]] | None:
+    """The commands of a shell block as run, if every one of them is ``python -m
+    flowmaps_jax...`` or ``python <script>.py`` without ``VAR=value`` assignments: these run in
+    the test's process (:func:`support.run_python_in_process`). None: the block runs in bash."""
+    commands = []
+    for line in _logical_lines(block.code):
+        for argv in _split_commands(line):
+            run, _ = rewrite(argv)
+            if run is None:
+                continue
+            env, cmd = _program(run)
+            target = _target(cmd)
+            if env or target is None or not (target.startswith("flowmaps_jax.")
+                                             or target.endswith(".py")):
+                return None
+            commands.append(cmd)
+    return commands
+
+
 def _known_broken(block: Block) -> str | None:
     return next((why for (page, text), why in KNOWN_BROKEN.items()
                  if page == block.page and text in block.code), None)
@@ -284,10 +314,19 @@ def run_page(page: str, text: str, workdir: pathlib.Path, namespace: dict | None
         else:
             script, changed = shell_script(block)
             notes += changed
-            proc = subprocess.run(["bash", "-c", script], cwd=workdir, env=env, text=True,
-                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=900)
-            if proc.returncode != 0:
-                error = f"exit code {proc.returncode}\n$ {script}\n{proc.stdout[-4000:]}"
+            commands = in_process_commands(block)
+            if commands is not None:
+                for command in commands:
+                    code, output = run_python_in_process(command[1:], workdir)
+                    if code != 0:
+                        error = f"exit code {code}\n$ {shlex.join(command)}\n{output[-4000:]}"
+                        break
+            else:
+                proc = subprocess.run(["bash", "-c", script], cwd=workdir, env=env, text=True,
+                                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                      timeout=900)
+                if proc.returncode != 0:
+                    error = f"exit code {proc.returncode}\n$ {script}\n{proc.stdout[-4000:]}"
         if broken:
             assert error is not None, (f"{block.where} runs now: take it off KNOWN_BROKEN "
                                        f"({broken})")
@@ -302,8 +341,16 @@ def run_page(page: str, text: str, workdir: pathlib.Path, namespace: dict | None
 def test_every_command_block_runs_in_order(page, tmp_path):
     if page in NOT_RUN:
         pytest.skip(f"{page}: {NOT_RUN[page]}")
-    notes = run_page(page, (REPO / page).read_text(), tmp_path)
+    with fast_compile():
+        notes = run_page(page, (REPO / page).read_text(), tmp_path)
     print("\n".join(notes))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _optimised_programs_after():
+    """The pages' programs were compiled with fast_compile: dropped when the module is done."""
+    yield
+    jax.clear_caches()
 
 
 def test_no_page_points_outside_the_repository():
@@ -372,6 +419,34 @@ def test_commands_are_shortened_or_dropped_by_the_rules():
         assert rewrite(shlex.split(dropped))[0] is None, dropped
     chain = _split_commands("python -m venv .venv && . .venv/bin/activate && pip install -e .")
     assert [c[0] for c in chain] == ["python", ".", "pip"]
+
+
+def test_cli_and_script_blocks_run_in_this_process():
+    block = Block("page.md", 1, "bash", "pip install -e .\n"
+                  "python -m flowmaps_jax.train --run-dir r && python experiments/quickstart.py")
+    assert in_process_commands(block) == [
+        ["python", "-m", "flowmaps_jax.train", "--run-dir", "r", "--preset", "smoke", "--steps",
+         "4", "--no-progress"], ["python", "experiments/quickstart.py"]]
+    for shell in ("python -c 'print(1)'", "XLA_FLAGS=--x python -m flowmaps_jax.train",
+                  "python -m flowmaps_jax.train\nls runs", "python -m json.tool x.json"):
+        assert in_process_commands(Block("page.md", 1, "bash", shell)) is None, shell
+
+
+def test_a_command_in_this_process_fails_like_a_subprocess(tmp_path):
+    (tmp_path / "fails.py").write_text("import sys\nprint('hello')\nsys.exit(3)\n")
+    (tmp_path / "raises.py").write_text("raise RuntimeError('boom')\n")
+    (tmp_path / "message.py").write_text("raise SystemExit('no way')\n")
+    (tmp_path / "ok.py").write_text("import pathlib, sys\n"
+                                    "pathlib.Path('out.txt').write_text(' '.join(sys.argv))\n")
+    assert run_python_in_process(["fails.py"], tmp_path) == (3, "hello\n")
+    code, output = run_python_in_process(["raises.py"], tmp_path)
+    assert code == 1 and "RuntimeError: boom" in output
+    assert run_python_in_process(["message.py"], tmp_path) == (1, "no way\n")
+    assert run_python_in_process(["ok.py", "--a", "b"], tmp_path) == (0, "")
+    assert (tmp_path / "out.txt").read_text() == "ok.py --a b"  # in its cwd, with its argv
+    code, output = run_python_in_process(["-m", "flowmaps_jax.train", "--preset", "nope"],
+                                         tmp_path)
+    assert code == 2 and "nope" in output  # argparse's usage error
 
 
 def test_a_failing_block_fails_its_page(tmp_path):

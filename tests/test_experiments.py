@@ -1,19 +1,24 @@
 """Every script in experiments/ runs (issue 17, item 6), at a tiny size, so that a refactor of the
 package cannot leave a benchmark, sweep, diagnosis or figure script broken.
 
-One test per script: ``python experiments/<script> <tiny arguments>`` in a subprocess, in a fresh
-temporary working directory (every output directory the script takes is given inside it, so
-nothing is written into the repository), with ``MPLBACKEND=Agg``. It must exit 0 and print what
-the script exists to print (a table row with numbers, a "wrote" line, ...): a regular expression
-per script, so that a script that runs but prints nothing useful fails too. The tiny sizes are
-the scripts' own options (one size, one repeat, a few steps, the smoke preset, a few
-environments); ``check_behaviour.py`` and ``ablate_routines.py`` have ``--smoke`` for this.
-The numbers are not checked: at these sizes they mean nothing.
+One test per script: ``python experiments/<script> <tiny arguments>``, run in the test's own
+process (:func:`support.run_python_in_process`: the script as ``__main__`` with its ``sys.argv``;
+JAX is imported once and the scripts share compiled programs) in a fresh temporary working
+directory (every output directory the script takes is given inside it, so nothing is written
+into the repository), with ``MPLBACKEND=Agg``. It must exit 0 and print what the script exists
+to print (a table row with numbers, a "wrote" line, ...): a regular expression per script, so
+that a script that runs but prints nothing useful fails too. The tiny sizes are the scripts' own
+options (one size, one repeat, a few steps, the smoke preset, a few environments);
+``check_behaviour.py`` and ``ablate_routines.py`` have ``--smoke`` for this. The numbers are not
+checked: at these sizes they mean nothing.
 
-The subprocesses run with ``JAX_DISABLE_MOST_OPTIMIZATIONS=true``: compilation dominates these
-runs and skipping most of XLA's optimisation passes halves it (the programs are the same, they
-only run slower, which does not matter at these sizes). They share the suite's persistent XLA
-cache (tests/conftest.py).
+They run with XLA's ``jax_disable_most_optimizations`` (:func:`support.fast_compile`, and
+``JAX_DISABLE_MOST_OPTIMIZATIONS=true`` for the child processes that ``bench_train.py`` and
+``bench_scale.py`` start; ``check_behaviour.py --smoke`` runs its CLIs in-process): compilation
+dominates these runs and skipping most of XLA's optimisation passes halves it (the programs are
+the same, they only run slower, which does not matter at these sizes). JAX's caches are cleared
+when the module is done, so no later test reuses those programs. Child processes share the
+suite's persistent XLA cache (tests/conftest.py).
 
 ``check_multihost.py`` is not run here: it starts two JAX processes joined by
 ``jax.distributed`` (about 2 minutes on 2 cores); tests/test_distributed.py runs it when
@@ -25,20 +30,18 @@ A new script needs an entry in :data:`TINY` (or :data:`NOT_RUN`, with the reason
 
 from __future__ import annotations
 
-import os
 import pathlib
 import re
-import subprocess
-import sys
 import time
 
+import jax
 import pytest
+from support import fast_compile, run_python_in_process
 
 pytestmark = pytest.mark.slow
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 EXPERIMENTS = REPO / "experiments"
-TIMEOUT = 900  # seconds per script; a cold start on a loaded 2-core machine compiles slowly
 NUM = r"-?[\d,]+(?:\.\d+)?"  # a printed number: 12, 1,234, 0.125, -8.8
 
 # script -> (tiny arguments, what its output must contain (regex, multiline), files it must
@@ -141,11 +144,11 @@ NOT_RUN = {
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["MPLBACKEND"] = "Agg"
-    env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "true"  # compile time dominates; see the docstring
-    return env
+@pytest.fixture(scope="module", autouse=True)
+def _optimised_programs_after():
+    """The scripts' programs were compiled with fast_compile: dropped when the module is done."""
+    yield
+    jax.clear_caches()
 
 
 def test_every_script_is_covered():
@@ -159,22 +162,23 @@ def test_every_script_is_covered():
 
 
 @pytest.mark.parametrize("script", sorted(TINY.keys() | NOT_RUN.keys()))
-def test_script_runs_at_a_tiny_size(script, tmp_path):
+def test_script_runs_at_a_tiny_size(script, tmp_path, monkeypatch):
     if script in NOT_RUN:
         pytest.skip(f"{script}: {NOT_RUN[script]}")
     if not (EXPERIMENTS / script).exists():
         pytest.fail(f"experiments/{script} is gone: remove its entry from TINY")
     args, expected, files = TINY[script]
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "true")  # for child processes
     start = time.perf_counter()
-    proc = subprocess.run([sys.executable, str(EXPERIMENTS / script), *args], cwd=tmp_path,
-                          env=_env(), text=True, stdout=subprocess.PIPE,
-                          stderr=subprocess.STDOUT, timeout=TIMEOUT)
+    with fast_compile():
+        code, output = run_python_in_process([str(EXPERIMENTS / script), *args], tmp_path)
     seconds = time.perf_counter() - start
-    print(f"{script} {' '.join(args)}: exit {proc.returncode} in {seconds:.1f} s")
+    print(f"{script} {' '.join(args)}: exit {code} in {seconds:.1f} s")
     command = f"$ python experiments/{script} {' '.join(args)}"
-    assert proc.returncode == 0, f"{command}\nexit code {proc.returncode}\n{proc.stdout[-6000:]}"
-    assert re.search(expected, proc.stdout, re.MULTILINE), (
-        f"{command}\nthe output lacks /{expected}/:\n{proc.stdout[-6000:]}")
+    assert code == 0, f"{command}\nexit code {code}\n{output[-6000:]}"
+    assert re.search(expected, output, re.MULTILINE), (
+        f"{command}\nthe output lacks /{expected}/:\n{output[-6000:]}")
     for name in files:
         path = tmp_path / name
         assert path.is_file() and path.stat().st_size > 0, f"{command}\ndid not write {name}"

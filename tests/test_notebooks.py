@@ -3,6 +3,9 @@
 Each notebook is executed at most once per module, when the first test that needs it runs (so
 ``-m "not slow"`` does not pay for the slow one), in its own temporary working directory, with
 nbclient and the "python3" kernel of this venv.
+The kernels run with ``JAX_DISABLE_MOST_OPTIMIZATIONS=true``: compilation dominates these small
+runs and skipping most of XLA's optimisation passes about halves it (the programs are the same,
+only their machine code is less optimised); ``kl_plots.ipynb`` turns it on for ``smoke`` anyway.
 ``kl_plots.ipynb`` runs with its default parameters: the ``smoke`` preset (it trains FlowMaps and
 the MLP baseline for 20 steps and evaluates them on a few environments), so its numbers are not
 checked, only that the table, figures and files are there and the oracle row is exact.
@@ -12,6 +15,7 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import pathlib
 import re
 
@@ -36,7 +40,7 @@ def _execute(name: str, workdir: pathlib.Path) -> nbformat.NotebookNode | Except
     client = NotebookClient(notebook, kernel_name="python3", timeout=CELL_TIMEOUT,
                             resources={"metadata": {"path": str(workdir)}})
     try:
-        client.execute()
+        client.execute(env=dict(os.environ, JAX_DISABLE_MOST_OPTIMIZATIONS="true"))
     except Exception as err:
         return err
     return notebook
