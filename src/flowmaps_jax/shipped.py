@@ -36,10 +36,14 @@ from flowmaps_jax.checkpoint_reader import ModelSpec, model_spec
 from flowmaps_jax.validation import read_npz
 
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parent / "pretrained"
-NAMES = ("flowmaps", "mlp", "mlp-learned", "flowmaps-preferences")
-"""The shipped models: FlowMaps, the two MLP baselines (the paper's world), and FlowMaps trained
-on the preferences habits world reading the last 8 maps (``--preset habits``). A name starting
-with ``flowmaps`` holds a FlowMaps model, one starting with ``mlp`` the MLP baseline."""
+NAMES = ("flowmaps", "mlp", "mlp-learned",
+         "flowmaps-preferences", "flowmaps-dynamic", "flowmaps-mixed",
+         "flowmaps-preferences-h1", "flowmaps-dynamic-h1", "flowmaps-mixed-h1")
+"""The shipped models: FlowMaps and the two MLP baselines (the paper's world, ``routine``), and
+one FlowMaps per habits world (``flowsim.WORLDS``), trained with ``--preset habits --set
+world=NAME``: ``flowmaps-<world>`` reads the last 8 maps, ``flowmaps-<world>-h1`` is the same
+recipe reading one map (the "H = 1 model" reference row). A name starting with ``flowmaps``
+holds a FlowMaps model, one starting with ``mlp`` the MLP baseline."""
 MAX_BYTES = 10 * 1024 * 1024  # the issue's size budget per model
 MAX_META_BYTES = 1024 * 1024  # a .json larger than this is not one export_pretrained wrote
 WHICH = ("latest", "best")  # the checkpoint of a run that an export copies
