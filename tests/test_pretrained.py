@@ -9,16 +9,27 @@ import numpy as np
 import pytest
 
 from flowmaps_jax.flowsim.scenes import scene_tokens, slot_boxes, validation_split
+from flowmaps_jax.flowsim.worlds import world_of
 from flowmaps_jax.predictor import load_pretrained
 from flowmaps_jax.shipped import available
 from flowmaps_jax.tokens import Queries
 from flowmaps_jax.training.config import get_preset
 
-SHIPPED = ("flowmaps", "mlp", "mlp-learned", "flowmaps-preferences")
+HABIT_WORLDS = ("preferences", "dynamic", "mixed")
+SHIPPED = ("flowmaps", "mlp", "mlp-learned", *(f"flowmaps-{w}" for w in HABIT_WORLDS),
+           *(f"flowmaps-{w}-h1" for w in HABIT_WORLDS))
 
 
 def test_every_default_model_is_shipped():
     assert available() == list(SHIPPED)
+
+
+@pytest.mark.parametrize("world", HABIT_WORLDS)
+def test_one_model_per_habits_world_and_its_one_map_reference(world):
+    for name, history in ((f"flowmaps-{world}", 8), (f"flowmaps-{world}-h1", 1)):
+        predictor = load_pretrained(name)
+        assert world_of(predictor.flowsim) == world, name
+        assert predictor.model.history == history, name
 
 
 @pytest.mark.parametrize("name", SHIPPED)
