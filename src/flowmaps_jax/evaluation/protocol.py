@@ -56,6 +56,12 @@ from flowmaps_jax.evaluation.slots import (
 )
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.dynamics import exact_posterior
+from flowmaps_jax.flowsim.habits import (
+    EXACT_H1_ROW,
+    empirical_row,
+    history_references,
+    uses_history,
+)
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import check_instance, check_int
@@ -145,15 +151,9 @@ class EvalSet:
         return jax.tree_util.tree_map(lambda a: a[index], self)
 
 
-def uses_history(config: FlowSimConfig, history: int) -> bool:
-    """Whether an eval set of ``config``'s world with ``history`` observations is built with the
-    history posterior (habits, H > 1) rather than the paper's exact posterior."""
-    return history > 1 or config.has_habits
-
-
 def history_row_names(history: int) -> tuple[str, ...]:
     """The extra reference rows of an eval set with ``history`` = H > 1 observations."""
-    return ("exact, H = 1", f"empirical frequency, H = {history}") if history > 1 else ()
+    return (EXACT_H1_ROW, empirical_row(history)) if history > 1 else ()
 
 
 def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
@@ -228,36 +228,16 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
 
 
 def _history_truth(scenes, config: FlowSimConfig, tau, horizon, history: int):
-    """(EvalSet's history fields, q (E, M, F)) of the queries at τ (E,) with Δτ (E, M): q given
-    the last min(H, τ + 1) observations, each query's habit family, and for H > 1 the exact
-    posterior given one observation and the empirical frequency of the observed history."""
-    from flowmaps_jax.flowsim.habits import (
-        available_history,
-        empirical_frequency,
-        habit_family,
-        history_posterior,
-        observed_history,
-    )
-
-    e, m = np.shape(horizon)
-    f = config.num_furniture
-    env = np.repeat(np.arange(e, dtype=np.int32), m)
-    obj = np.tile(np.arange(m, dtype=np.int32), e)
-    tau = np.repeat(np.asarray(tau, np.int32), m)
-    dtau = np.asarray(horizon, np.int32).reshape(-1)
-    seen = available_history(tau, history)  # (E·M,) observations each query has
-
-    def per_query(a):
-        return jnp.asarray(a, jnp.float32).reshape(e, m, f)
-
-    probs = per_query(history_posterior(scenes, config, env, obj, tau, dtau, seen))
-    extra = {"habit": jnp.asarray(habit_family(scenes, env, obj).reshape(e, m), jnp.int32),
-             "history": history}
-    if history > 1:
-        slots, valid = observed_history(scenes, env, obj, tau, seen, max_history=history)
-        extra.update(exact_h1=per_query(history_posterior(scenes, config, env, obj, tau, dtau, 1)),
-                     empirical=per_query(empirical_frequency(slots, valid, f)))
-    return extra, probs
+    """(EvalSet's history fields, q (E, M, F)) of the queries at τ (E,) with Δτ (E, M)
+    (``flowsim.habits.history_references``: q given the last min(H, τ + 1) observations, each
+    query's habit family, and for H > 1 the exact posterior given one observation and the
+    empirical frequency of the observed history)."""
+    env = np.arange(np.shape(horizon)[0], dtype=np.int32)
+    probs, habit, extra = history_references(scenes, config, env, tau, horizon, history)
+    fields = {"habit": habit, "history": history}
+    if extra is not None:
+        fields.update(exact_h1=extra[EXACT_H1_ROW], empirical=extra[empirical_row(history)])
+    return fields, probs
 
 
 # --------------------------------------------------------------------------- rows

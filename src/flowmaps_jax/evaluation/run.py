@@ -36,9 +36,10 @@ from flowmaps_jax.evaluation.protocol import (
 )
 from flowmaps_jax.evaluation.report import summarise_habits, summarise_rows, write_report
 from flowmaps_jax.evaluation.slots import ASSIGN_RADIUS
+from flowmaps_jax.flowsim import habits
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import check_history
-from flowmaps_jax.flowsim.worlds import HABITS_HISTORY, world_of
+from flowmaps_jax.flowsim.worlds import world_of
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.validation import check_int
 
@@ -131,13 +132,9 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
 
 
 def default_history(predictors: Sequence[Predictor], config: FlowSimConfig) -> int:
-    """The observations the exact posterior is given by default: the most maps any of
-    ``predictors`` reads (``model.history``), and at least ``flowsim.worlds.HABITS_HISTORY``
-    (8, what the habits preset's model reads) in a world with non-routine habits, where the
-    history tells the habit apart; 1 in the paper's routine world with one-map models."""
-
-    most = max((p.model.history for p in predictors), default=1)
-    return min(max(most, HABITS_HISTORY if config.has_habits else 1), config.num_timesteps)
+    """The observations the exact posterior is given by default
+    (``flowsim.habits.default_history`` of the most maps any of ``predictors`` reads)."""
+    return habits.default_history(config, max((p.model.history for p in predictors), default=1))
 
 
 def model_token_config(config: FlowSimConfig, predictor: Predictor) -> FlowSimConfig:

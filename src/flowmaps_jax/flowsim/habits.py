@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig, sim_params
+from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
 from flowmaps_jax.validation import check_instance, check_int_array
 
 ROUTINE, PREFERENCES, DYNAMIC = range(3)
@@ -373,6 +374,70 @@ def available_history(tau, history_len: int) -> np.ndarray:
     """min(H, τ + 1) for each τ: the observations a history of ``history_len`` maps holds at a
     query made at τ (fewer at the start of an episode; the model's masks do the same)."""
     return np.minimum(int(history_len), np.asarray(tau) + 1).astype(np.int32)
+
+
+EXACT_H1_ROW = "exact, H = 1"
+"""Reference row: the exact posterior given only the last observation (what a one-map model can
+know)."""
+
+
+def empirical_row(history: int) -> str:
+    """Name of the reference row "empirical frequency, H = {history}": the fraction of the last
+    H observations the object spent at each place (a visit-count memory)."""
+    return f"empirical frequency, H = {int(history)}"
+
+
+def uses_history(config, history: int = 1) -> bool:
+    """Whether queries of ``config``'s world with ``history`` observations are scored against the
+    history posterior (any habit other than the routine, or H > 1) rather than the paper's
+    one-observation ``exact_posterior`` (the evaluation's and the search's protocols alike)."""
+    return bool(config.has_habits or int(history) > 1)
+
+
+def default_history(config, reads: int = 1) -> int:
+    """The observations the exact reference posterior is given by default: ``reads`` (the most
+    maps any scored model reads), at least ``worlds.HABITS_HISTORY`` in a world with habits other
+    than the routine (where the history tells the habit apart), at most T."""
+    return min(max(int(reads), HABITS_HISTORY if config.has_habits else 1),
+               config.num_timesteps)
+
+
+_REFERENCE_CHUNK = 4096  # queries per history_posterior call (each holds NH × F × F matrices)
+
+
+def history_references(scenes, config, env, tau, horizon, history: int):
+    """The history path's ground truth for R query rows, every object queried: env, tau (R,),
+    horizon (R, M). Returns (q (R, M, F) float32, the exact posterior given the last
+    min(H, τ + 1) observations; habit (R, M) int32 ``HABITS`` index; extra {``EXACT_H1_ROW``,
+    ``empirical_row(H)``: (R, M, F) float32}, or None for H = 1, where they would repeat q and
+    last-seen). Posteriors run in chunks of one padded shape, so each length compiles once."""
+    rows, m, f = int(np.shape(env)[0]), config.num_objects, config.num_furniture
+    q_env = np.repeat(np.asarray(env), m)
+    q_obj = np.tile(np.arange(m, dtype=np.int32), rows)
+    q_tau = np.repeat(np.asarray(tau), m)
+    q_horizon = np.asarray(horizon).reshape(-1)
+    seen = available_history(q_tau, history)
+    n = q_env.size
+
+    def posterior(history_len) -> jnp.ndarray:
+        lengths = np.broadcast_to(history_len, q_tau.shape)
+        parts = []
+        for first in range(0, n, _REFERENCE_CHUNK):
+            index = (np.minimum(np.arange(first, first + _REFERENCE_CHUNK), n - 1)
+                     if n > _REFERENCE_CHUNK else np.arange(n))
+            part = history_posterior(scenes, config, q_env[index], q_obj[index], q_tau[index],
+                                     q_horizon[index], lengths[index])
+            parts.append(np.asarray(part)[: min(_REFERENCE_CHUNK, n - first)])
+        return jnp.asarray(np.concatenate(parts).reshape(rows, m, f), jnp.float32)
+
+    probs = posterior(seen)
+    habit = jnp.asarray(habit_family(scenes, q_env, q_obj).reshape(rows, m), jnp.int32)
+    if history == 1:
+        return probs, habit, None
+    observed, valid = observed_history(scenes, q_env, q_obj, q_tau, seen, max_history=history)
+    frequency = empirical_frequency(observed, valid, f).reshape(rows, m, f)
+    return probs, habit, {EXACT_H1_ROW: posterior(np.ones_like(q_tau)),
+                          empirical_row(history): jnp.asarray(frequency, jnp.float32)}
 
 
 def check_history_len(history_len, tau, num_timesteps: int) -> np.ndarray:

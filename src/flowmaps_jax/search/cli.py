@@ -14,7 +14,7 @@ docs/search.md.
 ``--world NAME`` searches scenes of another FlowSim world (``flowsim.WORLDS``: routine,
 preferences, dynamic, mixed; default: the world of the first model's config). ``--history H``:
 the observations the exact reference posterior is given (default: the largest ``model.history``
-among the models, and at least ``training.config.HABITS_HISTORY`` = 8 in a world with habits
+among the models, and at least ``flowsim.worlds.HABITS_HISTORY`` = 8 in a world with habits
 other than the routine). With habits or H > 1 the report gains the rows "exact, H = 1" and
 "empirical frequency, H = …" and a section per habit; the paper's world with H = 1 is the
 paper's protocol, unchanged.
@@ -39,6 +39,7 @@ from flowmaps_jax.flowsim import (
     world_config,
     world_of,
 )
+from flowmaps_jax.flowsim.habits import default_history
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
 from flowmaps_jax.predictor import PRETRAINED_PREFIX, load_model
 from flowmaps_jax.search import episodes as ep
@@ -150,7 +151,7 @@ def search_world(models: Sequence, world: str | None = None,
     if needed > config.max_tokens:  # a model reading H maps needs F + M·H tokens
         config = dataclasses.replace(config, max_tokens=needed)
     if history is None:
-        history = max(reads, HABITS_HISTORY if config.has_habits else 1)
+        history = default_history(config, reads)
     check_int("--history", history, maximum=config.num_timesteps)
     return config, int(history)
 

@@ -36,12 +36,15 @@ from flowmaps_jax.flowsim import (
     FlowSimConfig,
     Scenes,
     draw_query_times,
-    empirical_frequency,
     exact_posterior,
-    history_posterior,
     scene_tokens,
 )
-from flowmaps_jax.flowsim.habits import available_history, habit_family, observed_history
+from flowmaps_jax.flowsim.habits import (  # noqa: F401  (names this module re-exports)
+    EXACT_H1_ROW,
+    empirical_row,
+    history_references,
+    uses_history,
+)
 from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
 from flowmaps_jax.search.probabilities import (
@@ -78,17 +81,8 @@ from flowmaps_jax.validation import (
 )
 
 STARTS = ("centre", "last-seen")
-EXACT_H1_ROW = "exact, H = 1"
-"""The exact posterior given only the last observation (what an H = 1 model can know)."""
 _TINY = 1e-30
 _SALT_TIMES, _SALT_SAMPLES = 11, 12
-_HISTORY_CHUNK = 4096  # queries per history_posterior call (its transitions are NH × F × F each)
-
-
-def empirical_row(history: int) -> str:
-    """Name of the reference row "empirical frequency, H = {history}": the fraction of the last
-    H observations the object spent at each place (a visit-count memory)."""
-    return f"empirical frequency, H = {int(history)}"
 
 
 # --------------------------------------------------------------------------- sizes
@@ -192,13 +186,6 @@ class SearchSet:
         return int(np.max(np.asarray(self.num_slots)))
 
 
-def uses_history(config: FlowSimConfig, history: int = 1) -> bool:
-    """Whether a search set of ``config``'s world with ``history`` takes the habits path: the
-    exact posterior given the last H observations, the habit groups and the extra reference rows
-    (any habit other than the routine, or H > 1). Otherwise the paper's protocol, unchanged."""
-    return bool(config.has_habits or int(history) > 1)
-
-
 def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
                      times_per_env: int = 1,
                      horizons: Sequence[int] | None = None, history: int = 1) -> SearchSet:
@@ -249,7 +236,7 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
     num_slots = jnp.asarray(scenes.num_slots)[env]
     habit = extra = None
     if uses_history(config, history):
-        probs, habit, extra = _history_references(scenes, config, env, tau, horizon, history)
+        probs, habit, extra = history_references(scenes, config, env, tau, horizon, history)
     else:  # the paper's world: the one-observation posterior, as always
         probs = exact_posterior(np.asarray(num_slots), np.asarray(slot_now), np.asarray(horizon),
                                 config, tau=np.asarray(jnp.broadcast_to(tau[:, None], (rows, m))))
@@ -264,41 +251,6 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
         furniture_px=jnp.asarray(scenes.furniture_boxes, jnp.float32)[env],
         map_size=config.map_size, habit=habit, extra_slots=extra,
         history=history)
-
-
-def _history_references(scenes: Scenes, config: FlowSimConfig, env, tau, horizon, history: int):
-    """The habits path's references for rows (env (R,), tau (R,), horizon (R, M)): (slot_probs
-    (R, M, F) exact given the last min(H, τ + 1) observations, habit (R, M) int32 family index,
-    extra_slots {name: (R, M, F)} or None with H = 1, where they would repeat the exact and
-    last-seen rows)."""
-    rows, m, f = int(env.shape[0]), config.num_objects, config.num_furniture
-    q_env = np.repeat(np.asarray(env), m)
-    q_obj = np.tile(np.arange(m, dtype=np.int32), rows)
-    q_tau = np.repeat(np.asarray(tau), m)
-    q_horizon = np.asarray(horizon).reshape(-1)
-    seen = available_history(q_tau, history)
-
-    def posterior(history_len) -> jnp.ndarray:
-        # chunks of one padded shape, so each history length compiles once
-        lengths = np.broadcast_to(history_len, q_tau.shape)
-        parts = []
-        for first in range(0, q_env.size, _HISTORY_CHUNK):
-            index = np.minimum(np.arange(first, first + _HISTORY_CHUNK), q_env.size - 1) \
-                if q_env.size > _HISTORY_CHUNK else np.arange(q_env.size)
-            part = history_posterior(scenes, config, q_env[index], q_obj[index], q_tau[index],
-                                     q_horizon[index], lengths[index])
-            parts.append(np.asarray(part)[: min(_HISTORY_CHUNK, q_env.size - first)])
-        return jnp.asarray(np.concatenate(parts).reshape(rows, m, f), jnp.float32)
-
-    probs = posterior(seen)
-    habit = jnp.asarray(habit_family(scenes, q_env, q_obj).reshape(rows, m), jnp.int32)
-    if history == 1:
-        return probs, habit, None
-    observed, valid = observed_history(scenes, q_env, q_obj, q_tau, seen, max_history=history)
-    frequency = empirical_frequency(observed, valid, f).reshape(rows, m, f)
-    extra = {EXACT_H1_ROW: posterior(np.ones_like(q_tau)),
-             empirical_row(history): jnp.asarray(frequency, jnp.float32)}
-    return probs, habit, extra
 
 
 # --------------------------------------------------------------------------- priors
