@@ -337,3 +337,23 @@ def test_a_file_from_before_habits_loads_with_every_object_on_the_routine(small_
     loaded, _ = load_scenes(tmp_path / "old.npz")
     assert np.asarray(loaded.habit).shape == (256, 3) and not np.any(np.asarray(loaded.habit))
     np.testing.assert_array_equal(np.asarray(loaded.slot), np.asarray(small_scenes.slot))
+
+
+def test_train_set_world_puts_a_preset_on_a_world_and_refuses_an_unknown_one(tmp_path):
+    from flowmaps_jax.flowsim import WORLDS, world_of
+    from flowmaps_jax.training import cli
+
+    args = cli.build_parser().parse_args(
+        ["--preset", "habits", "--set", "world=dynamic", "--set", "lr=1e-3",
+         "--run-dir", str(tmp_path / "run")])
+    cfg, _ = cli.resolve_config(args)
+    assert world_of(cfg.flowsim) == "dynamic" and cfg.flowsim.habits == WORLDS["dynamic"]
+    assert cfg.lr == 1e-3 and cfg.model.history == 8  # the other fields still apply
+    bad = cli.build_parser().parse_args(["--preset", "smoke", "--set", "world=bogus",
+                                         "--run-dir", str(tmp_path / "bad")])
+    with pytest.raises(ValueError, match="world must be one of"):
+        cli.resolve_config(bad)
+    resume = cli.build_parser().parse_args(["--resume", "--set", "world=mixed",
+                                            "--run-dir", str(tmp_path / "run")])
+    with pytest.raises(ValueError, match="cannot change on --resume"):
+        cli.resolve_config(resume)

@@ -104,6 +104,9 @@ def split_world(overrides: typing.Iterable[str]) -> tuple[list[str], str | None]
 
 def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]:
     """The run's config and directory from parsed arguments (ValueError on bad input)."""
+    overrides, world = split_world(args.overrides)
+    if world is not None and args.resume:
+        raise ValueError("--set world=... changes the data; it cannot change on --resume")
     if args.from_step is not None and not args.resume:
         raise ValueError("--from-step needs --resume")
     if args.resume:
@@ -119,10 +122,7 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
     else:
         cfg = get_preset(args.preset or DEFAULT_PRESET)
         run_dir = None
-    overrides, world = split_world(args.overrides)
     if world is not None:
-        if args.resume:
-            raise ValueError("--set world=... changes the data; it cannot change on --resume")
         cfg = with_world(cfg, world)
     if args.model is not None:
         overrides.append(f"model_kind={args.model}")
