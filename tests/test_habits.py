@@ -21,7 +21,7 @@ from flowmaps_jax.flowsim import (
     world_config,
 )
 from flowmaps_jax.flowsim import habits as hb
-from flowmaps_jax.flowsim.config import sim_params
+from flowmaps_jax.flowsim.config import sim_params, sim_shape
 
 # generate(key 0, 256, FlowSimConfig()) before habits existed (commit d98c1fe): the hash of its
 # nine arrays. The paper's world must stay bit-identical.
@@ -203,6 +203,8 @@ def test_rollouts_follow_their_habit_matrices(mixed):
     env, obj, own, family = _own_matrices(cfg, scenes)
     slots = np.asarray(scenes.slot)[env, :, obj]  # (N, T)
     share = np.bincount(family, minlength=3) / family.size
+    # the dynamic habit's matrix is built over SimShape.max_places places: K never exceeds it
+    assert int(np.max(np.asarray(scenes.num_slots))) <= sim_shape(cfg).max_places < f
     np.testing.assert_allclose(share, cfg.habit_probs, atol=5 * np.sqrt(0.25 / family.size))
     for fam in range(3):
         rows = family == fam

@@ -332,3 +332,36 @@ def test_endless_data_is_fresh_and_resumes_exactly(straight_run, tmp_path):
     fixed_split = checkpoint.restore(straight_run[1], train_state.abstract_state(SMOKE)).state
     pairs = zip(_leaves(straight.state.params), _leaves(fixed_split.params), strict=True)
     assert any(not np.allclose(a, b) for a, b in pairs)  # other data, other weights
+
+
+def test_init_from_starts_at_the_given_weights(straight_run, tmp_path):
+    """A warm start (``--init-from``): step 1 starts from the source's EMA weights, not from
+    a random init; a run that cannot use them stops before writing anything."""
+    source = load(straight_run[1])
+    cfg = apply_overrides(SMOKE, {"init_from": str(straight_run[1])})
+    result = loop.run(cfg, tmp_path / "warm", stop_at=1, progress=False)
+    fresh = train_state.init_state(SMOKE).params
+    warm_gap = max(float(np.max(np.abs(a - b))) for a, b in
+                   zip(_leaves(result.state.ema_params), _leaves(source.params), strict=True))
+    fresh_gap = max(float(np.max(np.abs(a - b))) for a, b in
+                    zip(_leaves(fresh), _leaves(source.params), strict=True))
+    assert warm_gap < 0.01 < fresh_gap  # one step (lr 1e-3, EMA 0.9) away from the source
+    with pytest.raises(ValueError, match="init_from"):
+        loop.run(apply_overrides(SMOKE, {"init_from": str(tmp_path / "missing")}),
+                 tmp_path / "bad", progress=False)
+    wider = apply_overrides(cfg, {"model.dim": 48})
+    with pytest.raises(ValueError, match=r"init_from=.*shape"):
+        loop.run(wider, tmp_path / "wider", progress=False)
+    assert not (tmp_path / "bad" / "config.json").exists()
+    assert not (tmp_path / "wider" / "config.json").exists()
+
+
+def test_overlay_params_keeps_new_leaves_and_refuses_other_architectures():
+    fresh = {"params": {"a": jnp.zeros((2,)), "age_embed": jnp.ones((3, 2))}}
+    out = train_state.overlay_params(fresh, {"params": {"a": np.full((2,), 5.0)}})
+    np.testing.assert_array_equal(out["params"]["a"], [5.0, 5.0])
+    np.testing.assert_array_equal(out["params"]["age_embed"], np.ones((3, 2)))
+    with pytest.raises(ValueError, match=r"init_from.*no parameter.*'b'"):
+        train_state.overlay_params(fresh, {"params": {"b": np.zeros(2)}})
+    with pytest.raises(ValueError, match=r"init_from.*shape \(3,\)"):
+        train_state.overlay_params(fresh, {"params": {"a": np.zeros(3)}})

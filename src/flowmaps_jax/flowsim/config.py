@@ -376,6 +376,7 @@ class SimShape:
     dynamics: str
     habits: bool
     habit_families: tuple[int, ...]
+    max_places: int
     orderings: tuple[str, ...]
     category_kind: tuple[int, ...]
 
@@ -394,6 +395,8 @@ def sim_shape(config: FlowSimConfig) -> SimShape:
         dynamics=config.dynamics,
         habits=config.has_habits,
         habit_families=tuple(i for i, p in enumerate(config.habit_probs) if p > 0),
+        # the most tables one kind can get: every other kind has at least min_per_kind
+        max_places=config.num_furniture - (config.num_kinds - 1) * config.min_per_kind,
         orderings=tuple(c.ordering for c in config.categories),
         category_kind=config.category_kind_index,
     )

@@ -258,7 +258,8 @@ def _habit_rollouts(env_keys, boxes, order, num_slots, params, shape: SimShape):
     slot_centres = jnp.take_along_axis(centre[None], table[:, :, None, :], axis=1)  # (M,F,2,E)
     slot_centres = jnp.transpose(slot_centres, (3, 0, 1, 2))  # (E, M, F, 2)
     one = functools.partial(habits.habit_rollout, params=params,
-                            num_timesteps=shape.num_timesteps, families=shape.habit_families)
+                            num_timesteps=shape.num_timesteps, families=shape.habit_families,
+                            max_places=shape.max_places)
     slot, habit = jax.vmap(jax.vmap(one))(words, num_slots.T, slot_centres)  # (E, M, T), (E, M)
     return jnp.transpose(slot, (2, 1, 0)), habit.T
 

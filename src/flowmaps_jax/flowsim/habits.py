@@ -187,12 +187,15 @@ def draw_hypothesis(u_family, u_member, num_slots, habit_probs, num_furniture: i
 
 
 def habit_rollout(words, num_slots, slot_centres, params, num_timesteps: int,
-                  families: tuple[int, ...] = (ROUTINE, PREFERENCES, DYNAMIC)):
+                  families: tuple[int, ...] = (ROUTINE, PREFERENCES, DYNAMIC),
+                  max_places: int | None = None):
     """One object's habit and slots over T timesteps (vmap it over objects and environments).
 
     words: (rollout_num_words(T),) uint32. num_slots: () int K. slot_centres: (F, 2) in map
     sides. ``families``: the ``HABITS`` indices the world can draw (static; the others are not
-    computed). Returns (slots (T,) int32 starting at 0, hypothesis () int32).
+    computed). ``max_places``: a static bound on K (default F); the dynamic habit's matrix is
+    built over that many places only (``SimShape.max_places``: 4 of FlowSim's 10). Returns
+    (slots (T,) int32 starting at 0, hypothesis () int32).
 
     Step t uses one uniform u_t. Routine and preferences need no sequential loop: the routine's
     advance (0 / 1 / 2 places) does not depend on the slot, so its slots are a cumulative sum mod
@@ -222,9 +225,10 @@ def habit_rollout(words, num_slots, slot_centres, params, num_timesteps: int,
         when = jax.lax.cummax(jnp.where(moved, jnp.arange(steps.shape[0]), -1))
         paths[PREFERENCES] = jnp.where(when >= 0, target[jnp.maximum(when, 0)], 0)
     if DYNAMIC in families:
-        place = jnp.arange(f) < k
+        n = f if max_places is None else min(max_places, f)  # slots stay below K <= n
+        place = jnp.arange(n) < k
         matrix = jnp.where(place[:, None] & place[None, :], _dynamic_matrix(
-            k, slot_centres, params["dynamic_stay"], params["dynamic_length"]), 0.0)
+            k, slot_centres[:n], params["dynamic_stay"], params["dynamic_length"]), 0.0)
         cdf = jnp.cumsum(matrix, axis=-1)
 
         def step(slot, u_t):

@@ -6,6 +6,7 @@ Examples::
     python -m flowmaps_jax.train --preset smoke --model mlp --set model.baseline_variance=learned
     python -m flowmaps_jax.train --steps 5000 --set model.dim=96 --set lr=5e-4
     python -m flowmaps_jax.train --preset habits --set world=dynamic   # a FlowSim world
+    python -m flowmaps_jax.train --preset habits --init-from pretrained:flowmaps   # warm start
     python -m flowmaps_jax.train --resume --run-dir runs/flowmaps-cpu-20250101-120000
     python -m flowmaps_jax.train --resume --run-dir runs/X --from-step 500   # an older save
     python -m flowmaps_jax.train --overwrite --run-dir runs/X   # old run moved to X.old-<time>
@@ -80,6 +81,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="override any config field, e.g. --set model.dim=64 --set lr=1e-3; "
                              "--set world=NAME puts the run on a FlowSim world (routine, "
                              "preferences, dynamic, mixed)")
+    parser.add_argument("--init-from", default=None, metavar="MODEL",
+                        help="start from these weights (a run or checkpoint directory, or "
+                             "pretrained:NAME) instead of a random init: e.g. a history model "
+                             "from the one-map pretrained:flowmaps (same as --set init_from=...)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -128,6 +133,8 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
         overrides.append(f"model_kind={args.model}")
     if args.steps is not None:
         overrides.append(f"steps={args.steps}")
+    if args.init_from is not None:
+        overrides.append(f"init_from={args.init_from}")
     cfg = apply_overrides(cfg, overrides)
     if run_dir is None:
         run_dir = rundir.check_run_dir(args.run_dir if args.run_dir else default_run_dir(cfg))

@@ -129,6 +129,11 @@ class TrainConfig:
         0 = off).
     data: "train" (fixed FlowSim split of ``train_envs`` environments) or "endless" (a fresh
         chunk of ``train_envs`` environments every ``train_envs // batch_size`` steps).
+    init_from: start from these weights instead of a random init (a run or checkpoint
+        directory, or ``pretrained:NAME``): every parameter they hold is copied (same name and
+        shape, or ValueError); parameters they lack, such as the age embedding of a model
+        reading ``model.history`` > 1 maps, keep their fresh init. The optimiser starts fresh.
+        None (default): a random init.
     train_envs, val_envs: split sizes; val_batches: fixed validation batches per val pass.
     routine_envs, routine_samples: the routine diagnostic (:mod:`flowmaps_jax.evaluation.routine`)
         run at every val pass on this many validation environments (at most ``val_envs``; × 3
@@ -165,6 +170,7 @@ class TrainConfig:
     target_noise: float = _recipe(0.0)
     pointer_loss: float = _recipe(0.0)
     data: str = _source("train")
+    init_from: str | None = _source(None)
     train_envs: int = _recipe(2500)
     val_envs: int = _recipe(200)
     val_batches: int = _recipe(4)
@@ -189,6 +195,10 @@ class TrainConfig:
         check_int("routine_envs", self.routine_envs, minimum=0, maximum=INT32_MAX)
         check_seed("seed", self.seed)
         check_plain_name("preset", self.preset)  # it names the default run directory
+        if self.init_from is not None and (not isinstance(self.init_from, str)
+                                           or not self.init_from.strip()):
+            raise ValueError(f"init_from must be a checkpoint directory or pretrained:NAME; "
+                             f"got {self.init_from!r}")
         if self.devices is not None:
             check_int("devices", self.devices, maximum=INT32_MAX)
             if self.batch_size % self.devices:

@@ -77,6 +77,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     """
     # ---- Prelude: every check, then the run's pieces; nothing is written before the last one.
     run_dir, mesh = _check_run(cfg, run_dir, resume=resume, from_step=from_step, stop_at=stop_at)
+    start_params = None if resume else _start_params(cfg, log)
     primary = jax.process_index() == 0
     with runlog.claim(run_dir, resume=resume, overwrite=overwrite, log=log):
         resumed = runlog.restore_for_resume(cfg, run_dir, from_step, mesh, log) if resume else None
@@ -95,8 +96,8 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         take_step = _step_taker(cfg, compiled.train_step, mesh)
         # Every check has passed: from here on the run directory is written.
         if resumed is None:
-            state, window = train_state.init_state(cfg, objective=compiled.objective,
-                                                   mesh=mesh), None
+            state, window = train_state.init_state(cfg, objective=compiled.objective, mesh=mesh,
+                                                   start_params=start_params), None
         else:
             state, window = resumed.state, (resumed.meta or {}).get("log_window")
             log(f"Resumed from {resumed.path} at step {int(state.step)}")
@@ -195,6 +196,29 @@ def _check_run(cfg: TrainConfig, run_dir, *, resume: bool, from_step: int | None
     data.host_train_part(cfg)  # a multi-host job: the data must divide over the hosts
     check_run_resources(cfg, devices=1 if mesh is None else mesh.size)
     return run_dir, mesh
+
+
+def _start_params(cfg: TrainConfig, log: Callable[[str], None]):
+    """The weights ``cfg.init_from`` names (their EMA params), checked against the model: None
+    without ``init_from``; ValueError naming ``init_from`` when they cannot be read or belong to
+    another model family or architecture."""
+    if cfg.init_from is None:
+        return None
+    from flowmaps_jax.predictor import load_model
+
+    try:
+        source = load_model(cfg.init_from, devices=1)
+    except ValueError as err:
+        raise ValueError(f"init_from={cfg.init_from!r}: {err}") from None
+    if source.kind != cfg.model_kind:
+        raise ValueError(f"init_from={cfg.init_from!r} is a {source.kind!r} model; this run "
+                         f"trains {cfg.model_kind!r}")
+    objective = objectives.objective_for(cfg)
+    fresh = jax.eval_shape(objective.init, jax.random.PRNGKey(0))
+    train_state.overlay_params(fresh, source.params, f"init_from={cfg.init_from!r}")
+    log(f"Starting from the weights of {source.source} (step {source.step}); parameters they "
+        f"lack keep their fresh init")
+    return source.params
 
 
 def _val_pass(step: int, state, compiled: Compiled, val_batches, probe: Callable | None,

@@ -99,16 +99,21 @@ def ema_update(ema_params: Params, params: Params, decay: float) -> Params:
 
 
 def init_state(cfg: TrainConfig, key: jax.Array | None = None,
-               objective: Objective | None = None, mesh: Mesh | None = None) -> TrainState:
+               objective: Objective | None = None, mesh: Mesh | None = None,
+               start_params: Params | None = None) -> TrainState:
     """Fresh state at step 0: params from ``key`` (default ``PRNGKey(cfg.seed)``), EMA = params.
 
-    The arrays are committed to the first device, or replicated over ``mesh``."""
+    start_params: weights to start from (``cfg.init_from``), laid over the fresh params by
+    :func:`overlay_params`. The arrays are committed to the first device, or replicated over
+    ``mesh``."""
     check_instance("cfg", cfg, TrainConfig)
     objective = objective or objective_for(cfg)
     if key is None:
         key = jax.random.PRNGKey(cfg.seed)
     param_key, rng, data_key = jax.random.split(key, 3)
     params = objective.init(param_key)
+    if start_params is not None:
+        params = overlay_params(params, start_params)
     opt_state = make_optimizer(cfg).init(params)
     state = TrainState(step=jnp.zeros((), jnp.int32), params=params,
                        ema_params=jax.tree.map(jnp.copy, params), opt_state=opt_state,
@@ -118,6 +123,29 @@ def init_state(cfg: TrainConfig, key: jax.Array | None = None,
     if mesh is None:
         return jax.device_put(state, state_sharding(None))
     return distributed.replicate(state, mesh)
+
+
+def overlay_params(fresh: Params, start: Params, where: str = "init_from") -> Params:
+    """``fresh`` with every leaf that ``start`` holds replaced by ``start``'s (a warm start).
+
+    Leaves are matched by their path in the tree. ``start`` may lack leaves of ``fresh`` (they
+    keep their fresh value: e.g. the age embedding a history model adds to a one-map model);
+    a leaf of ``start`` that ``fresh`` lacks, or of another shape, is a ValueError naming
+    ``where``: the weights belong to another architecture."""
+    fresh_leaves = dict(jax.tree_util.tree_flatten_with_path(fresh)[0])
+    start_leaves = dict(jax.tree_util.tree_flatten_with_path(start)[0])
+    name = jax.tree_util.keystr
+    unknown = sorted(name(k) for k in start_leaves if k not in fresh_leaves)
+    if unknown:
+        raise ValueError(f"{where}: the model has no parameter {unknown[0]} "
+                         f"({len(unknown)} unmatched); the weights are another architecture")
+    for path, value in start_leaves.items():
+        if tuple(value.shape) != tuple(fresh_leaves[path].shape):
+            raise ValueError(f"{where}: parameter {name(path)} has shape {tuple(value.shape)}, "
+                             f"the model's is {tuple(fresh_leaves[path].shape)}")
+    return jax.tree_util.tree_map_with_path(
+        lambda path, x: jnp.asarray(start_leaves[path], x.dtype) if path in start_leaves else x,
+        fresh)
 
 
 def state_sharding(mesh: Mesh | None) -> jax.sharding.Sharding:
