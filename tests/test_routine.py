@@ -115,6 +115,19 @@ def test_routine_diagnostic_scores_the_exact_posterior_and_a_fresh_model(small_s
         routine.build_probe(small_scenes, flowsim_config, num_envs=10_000)
 
 
+def test_a_history_model_is_probed_with_its_own_maps(small_scenes, flowsim_config):
+    """For a model reading H = 2 maps the probe's tokens hold the objects of both maps (ages 0
+    and 1, 10 + 3 × 2 real tokens); in the routine world the truth is the same Markov law."""
+    probe = routine.build_probe(small_scenes, flowsim_config, num_envs=6, history=2)
+    tokens = probe.one_step.tokens
+    assert tokens.age is not None and int(np.max(np.asarray(tokens.age))) == 1
+    assert np.all(np.asarray(tokens.mask).sum(-1)[np.asarray(probe.one_step.tau) > 0] == 16)
+    exact = route_offset_mass(oracle_slots(probe.one_step.slot_probs),
+                              probe.one_step.slot_now, probe.one_step.num_slots)
+    np.testing.assert_allclose(np.asarray(exact).mean(axis=(0, 1)), routine.EXACT_ONE_STEP,
+                               atol=1e-5)
+
+
 def test_learning_curve_figure_and_missing_records(tmp_path):
     records = [{"kind": "routine", "step": s, **{f"offset_{k}": 0.1 for k in
                                                  ROUTE_OFFSET_LABELS},

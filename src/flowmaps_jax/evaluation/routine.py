@@ -46,17 +46,32 @@ class RoutineProbe:
     mixed: EvalSet
 
 
-def build_probe(scenes, config, num_envs: int = 20, seed: int = 0) -> RoutineProbe:
-    """The probe from the first ``num_envs`` environments of ``scenes`` (3 queries each)."""
+def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
+                history: int = 1) -> RoutineProbe:
+    """The probe from the first ``num_envs`` environments of ``scenes`` (3 queries each).
+
+    history: H of the model it scores. With H > 1 its tokens are the last H maps
+    (``scene_tokens(..., history=H)``, within ``config.max_tokens``) and, as in the evaluation,
+    the ground truth is the exact posterior given the last min(H, τ + 1) observations."""
+    from flowmaps_jax.flowsim.scenes import scene_tokens
+
     num_envs = check_int("num_envs", num_envs, 1)
     if num_envs > scenes.num_envs:
         raise ValueError(f"num_envs={num_envs} is more than the {scenes.num_envs} environments "
                          "in scenes")
+    history = check_int("history", history, 1, config.num_timesteps)
     part = jax.tree_util.tree_map(lambda a: a[:num_envs], scenes)
     key = jax.random.key(seed)
-    return RoutineProbe(
-        one_step=build_eval_queries(part, config, jax.random.fold_in(key, 1), 2, horizon=1),
-        mixed=build_eval_queries(part, config, jax.random.fold_in(key, 2), 2))
+
+    def query_set(salt: int, horizon: int | None) -> EvalSet:
+        evalset = build_eval_queries(part, config, jax.random.fold_in(key, salt), 2,
+                                     horizon=horizon, history=history)
+        if history == 1:
+            return evalset
+        return evalset.replace(tokens=scene_tokens(part, evalset.env, evalset.tau, config,
+                                                   history=history))
+
+    return RoutineProbe(one_step=query_set(1, 1), mixed=query_set(2, None))
 
 
 def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None,

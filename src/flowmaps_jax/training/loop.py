@@ -316,7 +316,8 @@ def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any],
     from flowmaps_jax.predictor import Predictor
 
     probe = routine.build_probe(val_scenes, cfg.flowsim,
-                                min(cfg.routine_envs, val_scenes.num_envs), cfg.seed)
+                                min(cfg.routine_envs, val_scenes.num_envs), cfg.seed,
+                                history=cfg.model.history)
 
     def run_probe(state) -> dict:
         # Sampled over the training mesh on one host; on a multi-host job each host samples its
