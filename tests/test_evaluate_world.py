@@ -261,3 +261,26 @@ def test_cli_evaluates_a_history_model_on_another_world(tmp_path, capsys):
     assert "of the preferences world" in printed
     assert f"## Habit: preferences ({3 * SIM.num_objects} queries, @4)" in printed
     assert "route offsets" not in printed  # no object on a routine: no routine diagnostic
+
+
+def test_the_size_check_counts_a_history_models_own_tokens(monkeypatch):
+    """The evaluate CLI's work estimate uses each model's token count: 34 for a model reading
+    8 maps, 20 for a one-map model, whatever the evaluation config's own count is."""
+    import argparse
+    import types
+
+    from flowmaps_jax.evaluation import cli
+
+    seen = []
+    real = cli.network_flops
+    monkeypatch.setattr(cli, "network_flops",
+                        lambda net, kind, tokens: seen.append(tokens) or real(net, kind, tokens))
+    sim = FlowSimConfig()
+    wide = dataclasses.replace(sim, max_tokens=34)
+    models = [types.SimpleNamespace(model=dataclasses.replace(TINY, history=8), kind="flowmaps",
+                                    flowsim=wide),
+              types.SimpleNamespace(model=TINY, kind="flowmaps", flowsim=sim)]
+    args = argparse.Namespace(kl_draws=4, samples=[8], chunk_envs=4, num_steps=8,
+                              logp_steps=None, method="euler", likelihood_steps=0)
+    cli.check_size(models, 4, sim, args)
+    assert seen == [34, 20]

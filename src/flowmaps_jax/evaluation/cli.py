@@ -36,7 +36,7 @@ from flowmaps_jax.evaluation.protocol import (
     DEFAULT_SAMPLES,
 )
 from flowmaps_jax.evaluation.report import markdown_table
-from flowmaps_jax.evaluation.run import run_evaluation
+from flowmaps_jax.evaluation.run import model_token_config, run_evaluation
 from flowmaps_jax.flowsim.worlds import WORLDS, world_config, world_of
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR
@@ -83,7 +83,9 @@ def check_size(models, num_envs: int, config, args: argparse.Namespace) -> None:
     logp_steps = args.num_steps if args.logp_steps is None else args.logp_steps
     flops = 0
     for fam, p in zip(families, models, strict=True):
-        per_query, per_map = network_flops(p.model, p.kind, config.max_tokens)
+        # each model reads its own tokens: a history model's last H maps (model_view)
+        per_query, per_map = network_flops(p.model, p.kind,
+                                           model_token_config(config, p).max_tokens)
         sampled = solver_evaluations(args.num_steps, args.method) if fam.uses_solver else 1
         density = solver_evaluations(logp_steps, args.method) if fam.uses_solver else 1
         accurate = getattr(args, "likelihood_steps", 0) or 0  # RK4 on N and 2N intervals
