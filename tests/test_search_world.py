@@ -187,6 +187,9 @@ def test_mixed_report_has_habit_sections_and_the_reference_rows(mixed, tmp_path)
     paths = report.write_report(results, tmp_path)
     written = json.loads(paths["json"].read_text())
     assert written["habits"]["dynamic"]["episodes"] == sections["dynamic"]["episodes"]
+    # a one-habit world says so instead of repeating its tables under "By habit"
+    one = report.markdown_table({**results, "habits": {"dynamic": sections["dynamic"]}})
+    assert "Every object follows the dynamic habit" in one and "### habit:" not in one
 
 
 def test_a_history_model_reads_history_tokens(mixed_scenes, mixed):

@@ -79,6 +79,9 @@ def _habit_tables(results: dict, header: list[str]) -> list[str]:
     if not habits:
         return []
     total = sum(h["episodes"] for h in habits.values())
+    if len(habits) == 1:  # a one-habit world: the section would repeat the tables above
+        return ["\n## By habit", f"\nEvery object follows the {next(iter(habits))} habit: the "
+                "tables above are its tables."]
     lines = ["\n## By habit",
              "\nEach object follows one habit (flowsim.habits); each table is the policy table "
              "on the episodes of that habit's objects only, ratios to the exact posterior on "
