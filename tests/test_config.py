@@ -75,7 +75,7 @@ def test_every_field_declares_its_role_and_both_field_lists_derive_from_it():
     smoke, base = get_preset("smoke"), TrainConfig()
     uncompiled = {f.name for f in fields if not ROLES[f.metadata["role"]].compiled}
     assert uncompiled == {"log_every", "val_every", "ckpt_every", "keep_last", "preset", "data",
-                          "routine_envs", "routine_samples"}
+                          "init_from", "routine_envs", "routine_samples"}
     key = compile_key(smoke)
     for f in fields:
         assert getattr(key, f.name) == getattr(base if f.name in uncompiled else smoke, f.name)

@@ -340,12 +340,13 @@ def test_init_from_starts_at_the_given_weights(straight_run, tmp_path):
     source = load(straight_run[1])
     cfg = apply_overrides(SMOKE, {"init_from": str(straight_run[1])})
     result = loop.run(cfg, tmp_path / "warm", stop_at=1, progress=False)
-    fresh = train_state.init_state(SMOKE).params
+    fresh = train_state.init_state(SMOKE).params  # the source's own init, 20 steps before it
     warm_gap = max(float(np.max(np.abs(a - b))) for a, b in
                    zip(_leaves(result.state.ema_params), _leaves(source.params), strict=True))
     fresh_gap = max(float(np.max(np.abs(a - b))) for a, b in
                     zip(_leaves(fresh), _leaves(source.params), strict=True))
-    assert warm_gap < 0.01 < fresh_gap  # one step (lr 1e-3, EMA 0.9) away from the source
+    # one step (lr 1e-3, EMA 0.9) from the source: far closer than the random init it came from
+    assert warm_gap < fresh_gap / 10
     with pytest.raises(ValueError, match="init_from"):
         loop.run(apply_overrides(SMOKE, {"init_from": str(tmp_path / "missing")}),
                  tmp_path / "bad", progress=False)
