@@ -34,6 +34,17 @@ from flowmaps_jax.flowsim import FlowSimConfig, Scenes, generate
 SMALL_NUM_ENVS = 256
 
 
+@pytest.fixture(scope="module")
+def fast_compiled_module():
+    """For a module that compiles under ``support.fast_compile``: JAX's caches are dropped when
+    it is done, unless the whole suite compiles that way (above), so that later tests do not
+    reuse its less optimised programs (the flag is not part of ``jax.jit``'s cache key)."""
+    flag_was_on = jax.config.read("jax_disable_most_optimizations")
+    yield
+    if not flag_was_on:
+        jax.clear_caches()
+
+
 @pytest.fixture(scope="session")
 def flowsim_config() -> FlowSimConfig:
     """The paper's FlowSim configuration."""

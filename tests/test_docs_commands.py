@@ -69,11 +69,11 @@ import shlex
 import subprocess
 import sys
 
-import jax
 import pytest
 from support import fast_compile, run_python_in_process
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.usefixtures("fast_compiled_module")
 PAGES = ["README.md", *sorted(str(p.relative_to(REPO)) for p in (REPO / "docs").glob("*.md"))]
 NOT_RUN = {"docs/scaling.md": "needs GPUs or several hosts (CUDA jaxlib, --devices 4, two hosts)"}
 KNOWN_BROKEN = {
@@ -344,16 +344,6 @@ def test_every_command_block_runs_in_order(page, tmp_path):
     with fast_compile():
         notes = run_page(page, (REPO / page).read_text(), tmp_path)
     print("\n".join(notes))
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _optimised_programs_after():
-    """The pages' programs were compiled with fast_compile: dropped when the module
-    is done, unless the whole suite compiles that way (tests/conftest.py)."""
-    flag_was_on = jax.config.read("jax_disable_most_optimizations")
-    yield
-    if not flag_was_on:
-        jax.clear_caches()
 
 
 def test_no_page_points_outside_the_repository():

@@ -34,11 +34,10 @@ import pathlib
 import re
 import time
 
-import jax
 import pytest
 from support import fast_compile, run_python_in_process
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.usefixtures("fast_compiled_module")]
 
 REPO = pathlib.Path(__file__).resolve().parents[1]
 EXPERIMENTS = REPO / "experiments"
@@ -142,16 +141,6 @@ NOT_RUN = {
                           "FLOWMAPS_TEST_MULTIHOST=1",
 }
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _optimised_programs_after():
-    """The scripts' programs were compiled with fast_compile: dropped when the module
-    is done, unless the whole suite compiles that way (tests/conftest.py)."""
-    flag_was_on = jax.config.read("jax_disable_most_optimizations")
-    yield
-    if not flag_was_on:
-        jax.clear_caches()
 
 
 def test_every_script_is_covered():
