@@ -215,7 +215,7 @@ def _start_params(cfg: TrainConfig, log: Callable[[str], None]):
                          f"trains {cfg.model_kind!r}")
     objective = objectives.objective_for(cfg)
     fresh = jax.eval_shape(objective.init, jax.random.PRNGKey(0))
-    train_state.overlay_params(fresh, source.params, f"init_from={cfg.init_from!r}")
+    train_state.check_overlay(fresh, source.params, f"init_from={cfg.init_from!r}")
     log(f"Starting from the weights of {source.source} (step {source.step}); parameters they "
         f"lack keep their fresh init")
     return source.params

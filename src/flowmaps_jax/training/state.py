@@ -125,24 +125,32 @@ def init_state(cfg: TrainConfig, key: jax.Array | None = None,
     return distributed.replicate(state, mesh)
 
 
+def check_overlay(fresh: Params, start: Params, where: str = "init_from") -> None:
+    """ValueError naming ``where`` unless every leaf of ``start`` is a leaf of ``fresh`` (same
+    path in the tree, same shape): otherwise the weights belong to another architecture.
+    ``fresh`` may be abstract (``jax.eval_shape``)."""
+    fresh_shapes = {path: tuple(x.shape)
+                    for path, x in jax.tree_util.tree_flatten_with_path(fresh)[0]}
+    name = jax.tree_util.keystr
+    start_leaves = jax.tree_util.tree_flatten_with_path(start)[0]
+    unknown = sorted(name(path) for path, _ in start_leaves if path not in fresh_shapes)
+    if unknown:
+        raise ValueError(f"{where}: the model has no parameter {unknown[0]} "
+                         f"({len(unknown)} unmatched); the weights are another architecture")
+    for path, value in start_leaves:
+        if tuple(value.shape) != fresh_shapes[path]:
+            raise ValueError(f"{where}: parameter {name(path)} has shape {tuple(value.shape)}, "
+                             f"the model's is {fresh_shapes[path]}")
+
+
 def overlay_params(fresh: Params, start: Params, where: str = "init_from") -> Params:
     """``fresh`` with every leaf that ``start`` holds replaced by ``start``'s (a warm start).
 
     Leaves are matched by their path in the tree. ``start`` may lack leaves of ``fresh`` (they
     keep their fresh value: e.g. the age embedding a history model adds to a one-map model);
-    a leaf of ``start`` that ``fresh`` lacks, or of another shape, is a ValueError naming
-    ``where``: the weights belong to another architecture."""
-    fresh_leaves = dict(jax.tree_util.tree_flatten_with_path(fresh)[0])
+    anything else is :func:`check_overlay`'s ValueError naming ``where``."""
+    check_overlay(fresh, start, where)
     start_leaves = dict(jax.tree_util.tree_flatten_with_path(start)[0])
-    name = jax.tree_util.keystr
-    unknown = sorted(name(k) for k in start_leaves if k not in fresh_leaves)
-    if unknown:
-        raise ValueError(f"{where}: the model has no parameter {unknown[0]} "
-                         f"({len(unknown)} unmatched); the weights are another architecture")
-    for path, value in start_leaves.items():
-        if tuple(value.shape) != tuple(fresh_leaves[path].shape):
-            raise ValueError(f"{where}: parameter {name(path)} has shape {tuple(value.shape)}, "
-                             f"the model's is {tuple(fresh_leaves[path].shape)}")
     return jax.tree_util.tree_map_with_path(
         lambda path, x: jnp.asarray(start_leaves[path], x.dtype) if path in start_leaves else x,
         fresh)
