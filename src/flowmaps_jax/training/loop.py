@@ -79,7 +79,8 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     run_dir, mesh = _check_run(cfg, run_dir, resume=resume, from_step=from_step, stop_at=stop_at)
     start_params = None if resume else _start_params(cfg, log)
     primary = jax.process_index() == 0
-    with runlog.claim(run_dir, resume=resume, overwrite=overwrite, log=log):
+    with _StopFlag() as stop, runlog.claim(run_dir, resume=resume, overwrite=overwrite,
+                                           log=log):
         resumed = runlog.restore_for_resume(cfg, run_dir, from_step, mesh, log) if resume else None
         kept = None  # a new run appends to metrics.jsonl; a resumed one first trims it
         if resume and primary:  # starting again from step 0 (resumed None): no record is kept
@@ -116,8 +117,9 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         status = "done" if end == cfg.steps else "stopped"
         val_loss, routine = None, None
 
+        stop.start_steps()
         with (runlog.RunBook(run_dir, cfg, kept=kept, window=window, primary=primary) as book,
-              _StopFlag() as stop, _ProgressBar(cfg.steps, progress) as bar):
+              _ProgressBar(cfg.steps, progress) as bar):
             log(f"Compiling; training steps {start + 1}..{end} of {cfg.steps} "
                 f"({samples_per_step} query-samples per step) ...")
             compile_start = time.perf_counter()
@@ -337,10 +339,19 @@ def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any],
 
 
 class _StopFlag:
-    """First Ctrl-C sets the flag (checked between steps); a second one raises as usual."""
+    """Ctrl-C during a run.
+
+    Before the step loop (data, compilation) it raises ``KeyboardInterrupt`` as usual, and
+    remembers that it did: Python swallows one raised inside a garbage-collection callback (it
+    prints "Exception ignored in ... _xla_gc_callback" and carries on), so :meth:`start_steps`
+    raises it again. From :meth:`start_steps` on, the first Ctrl-C only sets ``requested``
+    (checked between steps, so that the state is saved) and a second one raises.
+    """
 
     def __init__(self):
         self.requested = False
+        self._raised = False
+        self._in_steps = False
         self._previous = None
 
     def __enter__(self):
@@ -349,8 +360,17 @@ class _StopFlag:
         return self
 
     def _handle(self, signum, frame):
-        self.requested = True
-        signal.signal(signal.SIGINT, self._previous or signal.default_int_handler)
+        if self._in_steps and not self.requested:
+            self.requested = True
+            return
+        self._raised = True
+        raise KeyboardInterrupt
+
+    def start_steps(self) -> None:
+        """Before the first step: raise a Ctrl-C that was swallowed; then only flag the next."""
+        if self._raised:
+            raise KeyboardInterrupt
+        self._in_steps = True
 
     def __exit__(self, *exc):
         if self._previous is not None:
