@@ -25,6 +25,12 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
 # stored numbers (the paper world's SHA-256, the shipped models' checks) hold under it too.
 # Workers, subprocesses and notebook kernels inherit it; a user's own setting wins.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "true")
+# XLA:CPU's newer fusion emitters take about twice as long to compile as the classic elemental
+# emitter, with the same programs (experiments/bench_compile.py; docs/results.md, "Test suite
+# time"). Appended unless the user's XLA_FLAGS choose.
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
 
 import jax
 import pytest

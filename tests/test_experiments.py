@@ -53,6 +53,10 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         ["--smoke", "--out", "ablation", "--only", "recipe, pointer head + pointer loss"],
         rf"^\| recipe, pointer head \+ pointer loss \| {NUM} \| {NUM} \| {NUM} \|",
         ["ablation/ablation.json"]),
+    # ~10 s: one child process compiling the smoke model's sampler once
+    "bench_compile.py": (
+        ["--parts", "sample", "--flags", "xla_cpu_use_fusion_emitters=false"],
+        rf"^--xla_cpu_use_fusion_emitters=false\s+sample\s+{NUM}\s+{NUM}$", []),
     # ~15 s: 4 environments, 1 repeat, the paper's world and the mixed habits world with
     # histories of 2
     "bench_flowsim.py": (
