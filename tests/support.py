@@ -10,7 +10,6 @@ import contextlib
 from collections.abc import Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.model import ModelConfig
@@ -23,15 +22,14 @@ TINY = ModelConfig(dim=16, encoder_layers=1, cdit_blocks=1, heads=2, mlp_ratio=2
 SLOTS, FURNITURE = 20, 10  # FlowSim's token slots and tables
 
 
+@jax.jit
 def perturb(params, key: jax.Array, scale=0.3):
     """Noise of std ``scale`` on every parameter, so zero-initialised layers (AdaLN-Zero gates,
-    final projections) become active and the model's output is non-trivial. Drawn with NumPy
-    (seeded by ``key``): nothing to compile (a jitted version compiled once per parameter tree,
-    about a minute of the suite)."""
-    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel())
-    return jax.tree.map(
-        lambda x: jnp.asarray(np.asarray(x, np.float64) + scale * rng.standard_normal(x.shape),
-                              x.dtype), params)
+    final projections) become active and the model's output is non-trivial. One compile."""
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    keys = jax.random.split(key, len(leaves))
+    return treedef.unflatten([x + scale * jax.random.normal(k, x.shape, x.dtype)
+                              for x, k in zip(leaves, keys, strict=True)])
 
 
 def synthetic_tokens(seed: int, num_real: Sequence[int] = (13, 13), slots: int = SLOTS,

@@ -198,7 +198,9 @@ def test_learned_variance_baseline_learns(data):
     cfg = dataclasses.replace(CFG, baseline_variance="learned", dropout=0.0)
     target = jax.random.uniform(jax.random.key(13), (B, Q, 4), maxval=0.5)
     batch = TrainBatch(tokens=tokens, queries=queries, target=target)
-    optimizer = optax.adam(3e-3)
+    # lr 1e-3: at 3e-3 the NLL oscillates (it spiked from -8 to +36 at step 150 with another
+    # XLA emitter); at 1e-3 it falls to about -11 by step 100 under either and stays below -5.
+    optimizer = optax.adam(1e-3)
     params = init_baseline(jax.random.key(14), cfg)
 
     @jax.jit

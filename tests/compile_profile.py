@@ -1,0 +1,109 @@
+"""Where the suite's time goes: JAX tracing, lowering and XLA compile seconds per test.
+
+An opt-in pytest plugin (not loaded by a plain ``pytest``), and the summary of what it wrote::
+
+    FLOWMAPS_COMPILE_PROFILE=/tmp/profile PYTHONPATH=tests pytest -p compile_profile
+    python tests/compile_profile.py /tmp/profile
+
+Each process (the xdist workers, or the one process with ``-n 0``) listens to JAX's monitoring
+events (``jax.monitoring``: ``jaxpr_trace_duration``, ``jaxpr_to_mlir_module_duration``,
+``backend_compile_duration`` with the compiled function's name, and the persistent cache's
+``compile_time_saved_sec``) and writes ``<dir>/<worker>.json``: one row per test (its wall
+seconds and the seconds of each event inside it) and the compile seconds per function. Child
+processes a test starts (notebook kernels, the forced-devices run) are not seen, only their
+wall time. The summary prints the totals, the seconds per test file and the functions that took
+longest to compile.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import pathlib
+import sys
+import time
+
+EVENTS = {"jaxpr_trace_duration": "trace", "jaxpr_to_mlir_module_duration": "lower",
+          "backend_compile_duration": "compile", "compile_time_saved_sec": "cache_saved"}
+
+
+class _Recorder:
+    def __init__(self):
+        self.current = collections.Counter()
+        self.functions = collections.Counter()
+        self.rows: list[dict] = []
+        self.start = 0.0
+
+    def listen(self, event: str, seconds: float, **kwargs) -> None:
+        name = EVENTS.get(event.rsplit("/", 1)[-1])
+        if name is None:
+            return
+        self.current[name] += seconds
+        if name == "compile":
+            self.current["compiles"] += 1
+            self.functions[str(kwargs.get("fun_name"))] += seconds
+
+
+_RECORDER: _Recorder | None = None
+
+
+def pytest_configure(config):
+    global _RECORDER
+    if not os.environ.get("FLOWMAPS_COMPILE_PROFILE"):
+        raise SystemExit("-p compile_profile needs FLOWMAPS_COMPILE_PROFILE=<directory>")
+    from jax import monitoring
+
+    _RECORDER = _Recorder()
+    monitoring.register_event_duration_secs_listener(_RECORDER.listen)
+
+
+def pytest_runtest_protocol(item, nextitem):
+    _RECORDER.current.clear()
+    _RECORDER.start = time.perf_counter()
+
+
+def pytest_runtest_makereport(item, call):
+    if call.when == "teardown":
+        _RECORDER.rows.append({"test": item.nodeid, "wall": time.perf_counter() - _RECORDER.start,
+                               **{k: round(v, 3) for k, v in _RECORDER.current.items()}})
+
+
+def pytest_sessionfinish(session):
+    out = pathlib.Path(os.environ["FLOWMAPS_COMPILE_PROFILE"])
+    out.mkdir(parents=True, exist_ok=True)
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    (out / f"{worker}.json").write_text(json.dumps(
+        {"rows": _RECORDER.rows, "functions": _RECORDER.functions.most_common()}))
+
+
+def summarise(directory: str, top: int = 15) -> None:
+    """Print the totals, seconds per test file and the slowest-compiling functions."""
+    rows, functions = [], collections.Counter()
+    for path in sorted(pathlib.Path(directory).glob("*.json")):
+        data = json.loads(path.read_text())
+        rows += data["rows"]
+        functions.update(dict(data["functions"]))
+    if not rows:
+        raise SystemExit(f"no profile in {directory}: run pytest -p compile_profile first")
+    total = {k: sum(r.get(k, 0) for r in rows) for k in ("wall", *EVENTS.values(), "compiles")}
+    print(f"{len(rows)} tests, {total['wall']:.0f} test-seconds: XLA compile "
+          f"{total['compile']:.0f} s ({total['compiles']:.0f} compiles), tracing "
+          f"{total['trace']:.0f} s, lowering {total['lower']:.0f} s; the persistent cache "
+          f"saved {total['cache_saved']:.0f} s")
+    by_file = collections.defaultdict(collections.Counter)
+    for r in rows:
+        by_file[r["test"].split("::")[0]].update(
+            {k: r.get(k, 0) for k in ("wall", "compile", "trace", "lower")})
+    print(f"\n{'test file':<40} {'wall':>7} {'compile':>8} {'trace+lower':>12}")
+    for name, c in sorted(by_file.items(), key=lambda kv: -kv[1]["wall"]):
+        print(f"{name:<40} {c['wall']:7.0f} {c['compile']:8.0f} {c['trace'] + c['lower']:12.0f}")
+    print(f"\n{'function (XLA compile)':<40} {'seconds':>8}")
+    for name, seconds in functions.most_common(top):
+        print(f"{name:<40} {seconds:8.1f}")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 2:
+        raise SystemExit("usage: python tests/compile_profile.py DIRECTORY")
+    summarise(sys.argv[1])
