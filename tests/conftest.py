@@ -13,12 +13,15 @@ import tempfile
 # One persistent XLA compilation cache per test session, shared by the xdist workers and by the
 # subprocesses and notebook kernels the tests start (they inherit the environment): a function
 # compiled by one process is loaded by the others. Set before JAX is imported, by the first
-# process (removed when it exits); a user's own setting wins.
+# process (removed when it exits); a user's own setting wins. Every program is stored, however
+# fast it compiled: most of the suite's thousands of compiles are small, and the two workers and
+# the children build many of the same ones (idle 2-core run: pytest 638 s with a 0.5 s floor,
+# 538 s with none; docs/results.md, "Test suite time").
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     _cache = tempfile.mkdtemp(prefix="flowmaps-jax-xla-")
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
-os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 # Compilation dominates the suite (tiny models, a few steps): XLA's
 # ``jax_disable_most_optimizations`` about halves it. The programs are the same, their machine
 # code less optimised; tests comparing two programs compare them under the same flag, and the
