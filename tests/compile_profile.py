@@ -32,6 +32,7 @@ class _Recorder:
     def __init__(self):
         self.current = collections.Counter()
         self.functions = collections.Counter()
+        self.counts = collections.Counter()
         self.rows: list[dict] = []
         self.start = 0.0
 
@@ -43,6 +44,7 @@ class _Recorder:
         if name == "compile":
             self.current["compiles"] += 1
             self.functions[str(kwargs.get("fun_name"))] += seconds
+            self.counts[str(kwargs.get("fun_name"))] += 1
 
 
 _RECORDER: _Recorder | None = None
@@ -74,16 +76,18 @@ def pytest_sessionfinish(session):
     out.mkdir(parents=True, exist_ok=True)
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     (out / f"{worker}.json").write_text(json.dumps(
-        {"rows": _RECORDER.rows, "functions": _RECORDER.functions.most_common()}))
+        {"rows": _RECORDER.rows, "functions": _RECORDER.functions.most_common(),
+         "counts": dict(_RECORDER.counts)}))
 
 
-def summarise(directory: str, top: int = 15) -> None:
+def summarise(directory: str, top: int = 25) -> None:
     """Print the totals, seconds per test file and the slowest-compiling functions."""
-    rows, functions = [], collections.Counter()
+    rows, functions, counts = [], collections.Counter(), collections.Counter()
     for path in sorted(pathlib.Path(directory).glob("*.json")):
         data = json.loads(path.read_text())
         rows += data["rows"]
         functions.update(dict(data["functions"]))
+        counts.update(data.get("counts", {}))
     if not rows:
         raise SystemExit(f"no profile in {directory}: run pytest -p compile_profile first")
     total = {k: sum(r.get(k, 0) for r in rows) for k in ("wall", *EVENTS.values(), "compiles")}
@@ -98,9 +102,9 @@ def summarise(directory: str, top: int = 15) -> None:
     print(f"\n{'test file':<40} {'wall':>7} {'compile':>8} {'trace+lower':>12}")
     for name, c in sorted(by_file.items(), key=lambda kv: -kv[1]["wall"]):
         print(f"{name:<40} {c['wall']:7.0f} {c['compile']:8.0f} {c['trace'] + c['lower']:12.0f}")
-    print(f"\n{'function (XLA compile)':<40} {'seconds':>8}")
+    print(f"\n{'function (XLA compile)':<40} {'seconds':>8} {'compiles':>9}")
     for name, seconds in functions.most_common(top):
-        print(f"{name:<40} {seconds:8.1f}")
+        print(f"{name:<40} {seconds:8.1f} {counts[name]:9d}")
 
 
 if __name__ == "__main__":
