@@ -15,7 +15,8 @@ whose run directory already holds a checkpoint at ``--stop-at`` is not retrained
 
 ``--smoke`` shrinks every size so that the script can be checked in seconds per variant (its
 numbers mean nothing): the ``smoke`` preset's model and data instead of ``cpu``'s, stopped at step
-4, scored on 4 environments (one has a Δτ = 1 query), written to ``runs/ablation-smoke`` unless
+4, scored on 4 environments (one has a Δτ = 1 query) with 16 KL draws and the accurate likelihood
+on 3 grid points, written to ``runs/ablation-smoke`` unless
 ``--out`` says otherwise; combine it with ``--only`` to run fewer variants
 (tests/test_experiments.py). Every variant's config is built (and so checked) before the first
 training, with or without ``--only``.
@@ -81,7 +82,8 @@ def main() -> None:
     parser.add_argument("--only", nargs="*", default=None, help="variant names to run")
     parser.add_argument("--smoke", action="store_true",
                         help="tiny sizes to check that the script runs: the smoke preset, "
-                             "stop at step 4, 4 environments")
+                             "stop at step 4, 4 environments, 16 KL draws, a 3-point accurate "
+                             "likelihood")
     args = parser.parse_args()
     unknown = sorted(set(args.only or ()) - set(VARIANTS))
     if unknown:
@@ -92,6 +94,9 @@ def main() -> None:
                               ("out", "runs/ablation", "runs/ablation-smoke")):
         if getattr(args, name) is None:
             setattr(args, name, smoke if args.smoke else full)
+    # --smoke: the KL on 16 draws and the accurate likelihood on its smallest grid (its 48-point
+    # solve, compiled for compile speed in the tests, would be most of the run)
+    scoring = {"kl_draws": 16, "likelihood_steps": 3} if args.smoke else {}
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / "ablation.json"
@@ -119,7 +124,7 @@ def main() -> None:
         scenes = validation_split(cfg.flowsim, num_envs=args.num_envs)
         res, _, _ = evaluation.run_evaluation([predictor], scenes, cfg.flowsim, None,
                                               sample_counts=(100,), figures=False,
-                                              progress=False)
+                                              progress=False, **scoring)
         row = res["rows"][predictor.name]
         slot = row["slots"]["100"]
         results[name] = {

@@ -13,7 +13,8 @@ exits 1 and prints the first differences if anything moved by more than ``--atol
 bit-identical on the same machine). The reference was written before the issue-9 restructure.
 
 ``--smoke`` runs the same three trainings and the evaluation at a tiny size (4 steps each, 2
-environments, 4 samples, 4 KL draws; about a minute instead of several): a check that the script
+environments, 4 samples, 4 KL draws, the accurate likelihood on 3 grid points; about a minute
+instead of several): a check that the script
 and the CLIs it drives still run (tests/test_experiments.py). Its fingerprint compares only with
 another ``--smoke`` fingerprint, never with docs/behaviour_reference.json. With ``--smoke`` the
 CLIs' ``main(argv)`` run in this process (one JAX start-up) instead of ``python -m`` subprocesses.
@@ -40,7 +41,7 @@ RUNS = {
 }
 SMOKE_STEPS = "4"  # --smoke: training steps per run (instead of 30; the smoke preset warms up 2)
 EVALUATE = ["--num-envs", "12", "--samples", "8,16", "--kl-draws", "16"]
-SMOKE_EVALUATE = ["--num-envs", "2", "--samples", "4", "--kl-draws", "4"]
+SMOKE_EVALUATE = ["--num-envs", "2", "--samples", "4", "--kl-draws", "4", "--likelihood-steps", "3"]
 # Wall-clock rates and temp-dir paths differ from run to run; everything else must not.
 VOLATILE_KEYS = {"seconds", "sec_per_step", "steps_per_sec", "samples_per_sec", "elapsed",
                  "time", "wall_s", "source"}

@@ -42,6 +42,11 @@ def main(argv=None) -> None:
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--eval-envs", type=int, default=40)
+    parser.add_argument("--kl-draws", type=int, default=evaluation.DEFAULT_KL_DRAWS,
+                        help="draws from q per query for the KL")
+    parser.add_argument("--likelihood-steps", type=int,
+                        default=evaluation.DEFAULT_LIKELIHOOD_STEPS,
+                        help="grid points of the accurate likelihood behind the KL")
     parser.add_argument("--out", default="runs/sweep_settings")
     args = parser.parse_args(argv)
 
@@ -59,8 +64,8 @@ def main(argv=None) -> None:
         predictor = load(result.checkpoint_dir)
         scenes = validation_split(cfg.flowsim, args.eval_envs)
         results, model_rows, _ = evaluation.run_evaluation(
-            [predictor], scenes, cfg.flowsim, sample_counts=(100,), figures=False,
-            progress=False)
+            [predictor], scenes, cfg.flowsim, sample_counts=(100,), kl_draws=args.kl_draws,
+            likelihood_steps=args.likelihood_steps, figures=False, progress=False)
         row = results["rows"][predictor.name]
         # share of samples assigned to some slot (within 0.05) = 1 − the off bin of p̂
         near = 1.0 - float(np.mean(model_rows[-1].slots[100]["p_hat"][..., -1]))

@@ -32,7 +32,9 @@ The rules (what runs, what is shortened, what is skipped and why):
   - ``python -m flowmaps_jax.train``: ``--preset smoke`` (replacing any preset; not with
     ``--resume``, which keeps the run's saved config), ``--steps 4`` (``6`` with ``--resume``, so
     that it does continue), ``--no-progress``;
-  - ``python -m flowmaps_jax.evaluate``: 2 environments, 4 samples, 4 KL draws;
+  - ``python -m flowmaps_jax.evaluate``: 2 environments, 4 samples, 4 KL draws, the accurate
+    likelihood on its smallest grid (3 points; its 48-point RK4 solve, run without most of XLA's
+    optimisations, took most of each evaluation's time);
   - ``python -m flowmaps_jax.search``: 2 environments, 8 samples;
   - ``python experiments/diagnose_precision.py``: 2 + 4 environments, 8 samples;
   - commands that write into the repository or the installed package by default get an output
@@ -90,7 +92,7 @@ TRAIN_STEPS, RESUME_STEPS = "4", "6"
 # target (a -m module or an experiments/ script name) -> {option: value}; None: a flag
 SHORTEN: dict[str, dict[str, str | None]] = {
     "flowmaps_jax.evaluate": {"--num-envs": "2", "--samples": "4", "--kl-draws": "4",
-                              "--no-progress": None},
+                              "--likelihood-steps": "3", "--no-progress": None},
     "flowmaps_jax.search": {"--num-envs": "2", "--samples": "8", "--no-progress": None},
     "diagnose_precision.py": {"--num-envs": "2", "--ranking-envs": "4", "--samples": "8"},
 }

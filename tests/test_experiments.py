@@ -133,9 +133,10 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         ["--queries", "1", "--steps", "2", "--preset", "smoke", "--out", "sweep_q"],
         rf"^Q=  1: val loss {NUM} after 2 steps", ["sweep_q/q1/metrics.jsonl"]),
     # ~50 s: one variant with an override, the smoke preset, 2 steps, 2 environments scored
+    # (16 KL draws, the accurate likelihood on 3 grid points)
     "sweep_settings.py": (
-        ["tiny:lr=1e-3", "--preset", "smoke", "--steps", "2", "--eval-envs", "2", "--out",
-         "sweep_settings"],
+        ["tiny:lr=1e-3", "--preset", "smoke", "--steps", "2", "--eval-envs", "2", "--kl-draws",
+         "16", "--likelihood-steps", "3", "--out", "sweep_settings"],
         rf'^\{{"name": "tiny", "overrides": \["lr=1e-3"\], "steps": 2, .*"kl": {NUM}',
         ["sweep_settings/tiny/metrics.jsonl"]),
 }

@@ -119,7 +119,8 @@ def test_sharded_generate_equals_unsharded(num_envs):
 def test_sharded_sampling_and_evaluation_equal_unsharded():
     """Predictor.sample / log_prob split over both devices equal one device's, and so does the
     evaluation protocol built on them (6 environments in chunks of 3: padded to 4 on two
-    devices). The direct calls use the protocol's shapes, so both share compiled code."""
+    devices; the accurate likelihood on its smallest grid, whose 48-point solve was most of this
+    test's run time). The direct calls use the protocol's shapes, so both share compiled code."""
     from flowmaps_jax.evaluation import build_eval_queries, run_evaluation
     from flowmaps_jax.flowsim import FlowSimConfig, validation_split
 
@@ -141,7 +142,8 @@ def test_sharded_sampling_and_evaluation_equal_unsharded():
                                rtol=1e-5, atol=1e-5)  # measured: 2.8e-6 relative at most
 
     reports = [run_evaluation([p], scenes, sim, None, seed=0, sample_counts=(4,), kl_draws=8,
-                              chunk_envs=3, figures=False, progress=False)[0]
+                              chunk_envs=3, likelihood_steps=3, figures=False,
+                              progress=False)[0]
                for p in (one, two)]
     rows = [r["rows"] for r in reports]
     assert rows[0].keys() == rows[1].keys()

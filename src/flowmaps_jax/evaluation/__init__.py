@@ -32,6 +32,7 @@ from flowmaps_jax.evaluation.kl import (
 from flowmaps_jax.evaluation.protocol import (
     DEFAULT_CHUNK_ENVS,
     DEFAULT_KL_DRAWS,
+    DEFAULT_LIKELIHOOD_STEPS,
     DEFAULT_NUM_ENVS,
     DEFAULT_SAMPLES,
     REFERENCE_ROWS,
@@ -74,6 +75,7 @@ __all__ = [
     "ASSIGN_RADIUS",
     "DEFAULT_CHUNK_ENVS",
     "DEFAULT_KL_DRAWS",
+    "DEFAULT_LIKELIHOOD_STEPS",
     "DEFAULT_NUM_ENVS",
     "DEFAULT_SAMPLES",
     "REFERENCE_ROWS",
