@@ -94,8 +94,8 @@ def main() -> None:
                               ("out", "runs/ablation", "runs/ablation-smoke")):
         if getattr(args, name) is None:
             setattr(args, name, smoke if args.smoke else full)
-    # --smoke: the KL on 16 draws and the accurate likelihood on its smallest grid (its 48-point
-    # solve, compiled for compile speed in the tests, would be most of the run)
+    # --smoke: the KL on 16 draws and the accurate likelihood on its smallest grid (the tests run
+    # this without most of XLA's optimisations, where the 48-point solve is slow)
     scoring = {"kl_draws": 16, "likelihood_steps": 3} if args.smoke else {}
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

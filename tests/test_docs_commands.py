@@ -34,7 +34,7 @@ The rules (what runs, what is shortened, what is skipped and why):
     that it does continue), ``--no-progress``;
   - ``python -m flowmaps_jax.evaluate``: 2 environments, 4 samples, 4 KL draws, the accurate
     likelihood on its smallest grid (3 points; its 48-point RK4 solve, run without most of XLA's
-    optimisations, took most of each evaluation's time);
+    optimisations, was about a sixth of an evaluation of the shipped models);
   - ``python -m flowmaps_jax.search``: 2 environments, 8 samples;
   - ``python experiments/diagnose_precision.py``: 2 + 4 environments, 8 samples;
   - commands that write into the repository or the installed package by default get an output

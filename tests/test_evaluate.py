@@ -312,8 +312,7 @@ def test_cli_evaluates_the_shipped_models(tmp_path, capsys):
     reproduces docs/results.md's table, at the sizes the documented commands run at in
     tests/test_docs_commands.py (so that the two share compiled programs through the suite's
     XLA cache): 2 environments, 4 samples, 4 KL draws, the accurate likelihood on 3 grid points
-    (its default 48-point solve, compiled without most of XLA's optimisations, took most of the
-    time)."""
+    (its default 48-point solve runs slowly without most of XLA's optimisations)."""
     code = main(["--checkpoint", "pretrained:flowmaps", "--baseline", "pretrained:mlp",
                     "--num-envs", "2", "--samples", "4", "--kl-draws", "4", "--no-figures",
                     "--likelihood-steps", "3", "--no-progress", "--out", str(tmp_path)])

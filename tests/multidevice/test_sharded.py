@@ -119,8 +119,9 @@ def test_sharded_generate_equals_unsharded(num_envs):
 def test_sharded_sampling_and_evaluation_equal_unsharded():
     """Predictor.sample / log_prob split over both devices equal one device's, and so does the
     evaluation protocol built on them (6 environments in chunks of 3: padded to 4 on two
-    devices; the accurate likelihood on its smallest grid, whose 48-point solve was most of this
-    test's run time). The direct calls use the protocol's shapes, so both share compiled code."""
+    devices; the accurate likelihood on its smallest grid, as its default 48-point solve runs
+    slowly without most of XLA's optimisations). The direct calls use the protocol's shapes, so
+    both share compiled code."""
     from flowmaps_jax.evaluation import build_eval_queries, run_evaluation
     from flowmaps_jax.flowsim import FlowSimConfig, validation_split
 
