@@ -92,7 +92,7 @@ def main(argv=None) -> None:
             s = slot_scores(p[sel].astype(np.float32), q[sel].astype(np.float32), mask[sel])
             rank = realised_rank(p[sel, :-1], truth[sel], mask[sel])
             print(f"| {name} | {np.mean(s['tv']):.3f} | {np.mean(s['top1']):.3f} | "
-                  f"{np.mean(s['search_cost_ratio']):.3f} | {rank.mean():.3f} ± "
+                  f"{np.mean(s['search_cost_ratio']):.4f} | {rank.mean():.3f} ± "
                   f"{rank.std() / np.sqrt(rank.size):.3f} | {np.mean(p[sel, -1]):.3f} |")
 
 
