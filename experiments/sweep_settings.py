@@ -22,10 +22,12 @@ import time
 import numpy as np
 
 from flowmaps_jax import evaluation
+from flowmaps_jax.evaluation.protocol import check_likelihood_steps
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.predictor import load
 from flowmaps_jax.training.config import apply_overrides, get_preset
 from flowmaps_jax.training.loop import run
+from flowmaps_jax.validation import check_int
 
 
 def parse_variant(text: str) -> tuple[str, list[str]]:
@@ -46,10 +48,14 @@ def main(argv=None) -> None:
                         help="draws from q per query for the KL")
     parser.add_argument("--likelihood-steps", type=int,
                         default=evaluation.DEFAULT_LIKELIHOOD_STEPS,
-                        help="grid points of the accurate likelihood behind the KL")
+                        help="grid points of the accurate likelihood behind the KL; 0: off")
     parser.add_argument("--out", default="runs/sweep_settings")
     args = parser.parse_args(argv)
 
+    # checked before any training writes a run directory
+    check_int("--kl-draws", args.kl_draws, 2)
+    likelihood_steps = check_likelihood_steps(
+        check_int("--likelihood-steps", args.likelihood_steps, 0) or None)
     variants = [parse_variant(v) for v in args.variants]
     rows = []
     for name, overrides in variants:
@@ -65,7 +71,7 @@ def main(argv=None) -> None:
         scenes = validation_split(cfg.flowsim, args.eval_envs)
         results, model_rows, _ = evaluation.run_evaluation(
             [predictor], scenes, cfg.flowsim, sample_counts=(100,), kl_draws=args.kl_draws,
-            likelihood_steps=args.likelihood_steps, figures=False, progress=False)
+            likelihood_steps=likelihood_steps, figures=False, progress=False)
         row = results["rows"][predictor.name]
         # share of samples assigned to some slot (within 0.05) = 1 − the off bin of p̂
         near = 1.0 - float(np.mean(model_rows[-1].slots[100]["p_hat"][..., -1]))
