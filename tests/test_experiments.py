@@ -181,3 +181,14 @@ def test_script_runs_at_a_tiny_size(script, tmp_path, monkeypatch):
         assert path.is_file() and path.stat().st_size > 0, f"{command}\ndid not write {name}"
         if name.endswith(".png"):
             assert path.read_bytes()[:8] == PNG_MAGIC, f"{name} is not a PNG"
+
+
+@pytest.mark.parametrize("option, value", [("--kl-draws", "1"), ("--likelihood-steps", "2")])
+def test_sweep_settings_checks_its_evaluation_options_before_training(option, value, tmp_path):
+    """A bad evaluation option stops sweep_settings.py before the first variant trains: a
+    ValueError naming the option, and no run directory written."""
+    code, output = run_python_in_process(
+        [str(EXPERIMENTS / "sweep_settings.py"), "tiny:lr=1e-3", "--preset", "smoke", "--steps",
+         "2", option, value, "--out", "sweep"], tmp_path)
+    assert code == 1 and "ValueError" in output and option.lstrip("-") in output.replace("_", "-")
+    assert not (tmp_path / "sweep").exists()
