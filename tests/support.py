@@ -23,13 +23,18 @@ SLOTS, FURNITURE = 20, 10  # FlowSim's token slots and tables
 
 
 @jax.jit
+def _perturb_leaf(x, key, scale):
+    return x + scale * jax.random.normal(key, x.shape, x.dtype)
+
+
 def perturb(params, key: jax.Array, scale=0.3):
     """Noise of std ``scale`` on every parameter, so zero-initialised layers (AdaLN-Zero gates,
-    final projections) become active and the model's output is non-trivial. One compile."""
+    final projections) become active and the model's output is non-trivial. Leaf i gets
+    ``normal(split(key, n)[i])``; one small program per leaf shape, shared by every model (one
+    program per whole tree compiled for seconds per model config)."""
     leaves, treedef = jax.tree_util.tree_flatten(params)
     keys = jax.random.split(key, len(leaves))
-    return treedef.unflatten([x + scale * jax.random.normal(k, x.shape, x.dtype)
-                              for x, k in zip(leaves, keys, strict=True)])
+    return treedef.unflatten([_perturb_leaf(x, keys[i], scale) for i, x in enumerate(leaves)])
 
 
 def synthetic_tokens(seed: int, num_real: Sequence[int] = (13, 13), slots: int = SLOTS,
