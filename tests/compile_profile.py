@@ -9,10 +9,11 @@ Each process (the xdist workers, or the one process with ``-n 0``) listens to JA
 events (``jax.monitoring``: ``jaxpr_trace_duration``, ``jaxpr_to_mlir_module_duration``,
 ``backend_compile_duration`` with the compiled function's name, and the persistent cache's
 ``compile_time_saved_sec``) and writes ``<dir>/<worker>.json``: one row per test (its wall
-seconds and the seconds of each event inside it) and the compile seconds per function. Child
-processes a test starts (notebook kernels, the forced-devices run) are not seen, only their
-wall time. The summary prints the totals, the seconds per test file and the functions that took
-longest to compile.
+seconds, its CPU seconds with those of the child processes it waited for, and the seconds of
+each event inside it) and the compile seconds per function. Inside child processes (notebook
+kernels, the forced-devices run) no events are seen, only their wall and CPU time. The summary
+prints the totals, each worker's test-seconds against its CPU-seconds (whether the cores were
+busy), the seconds per test file and the functions that took longest to compile.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ class _Recorder:
         self.functions = collections.Counter()
         self.counts = collections.Counter()
         self.rows: list[dict] = []
-        self.start = 0.0
+        self.start = self.cpu_start = 0.0
 
     def listen(self, event: str, seconds: float, **kwargs) -> None:
         name = EVENTS.get(event.rsplit("/", 1)[-1])
@@ -60,14 +61,25 @@ def pytest_configure(config):
     monitoring.register_event_duration_secs_listener(_RECORDER.listen)
 
 
+def _cpu_seconds() -> float:
+    """CPU seconds of this process and of its finished children (notebook kernels, the
+    forced-devices run)."""
+    import resource
+
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
 def pytest_runtest_protocol(item, nextitem):
     _RECORDER.current.clear()
     _RECORDER.start = time.perf_counter()
+    _RECORDER.cpu_start = _cpu_seconds()
 
 
 def pytest_runtest_makereport(item, call):
     if call.when == "teardown":
         _RECORDER.rows.append({"test": item.nodeid, "wall": time.perf_counter() - _RECORDER.start,
+                               "cpu": round(_cpu_seconds() - _RECORDER.cpu_start, 3),
                                **{k: round(v, 3) for k, v in _RECORDER.current.items()}})
 
 
@@ -83,9 +95,13 @@ def pytest_sessionfinish(session):
 def summarise(directory: str, top: int = 25) -> None:
     """Print the totals, seconds per test file and the slowest-compiling functions."""
     rows, functions, counts = [], collections.Counter(), collections.Counter()
+    workers = {}
     for path in sorted(pathlib.Path(directory).glob("*.json")):
         data = json.loads(path.read_text())
         rows += data["rows"]
+        if data["rows"]:  # the xdist controller runs no tests
+            workers[path.stem] = (sum(r["wall"] for r in data["rows"]),
+                                  sum(r.get("cpu", 0) for r in data["rows"]))
         functions.update(dict(data["functions"]))
         counts.update(data.get("counts", {}))
     if not rows:
@@ -95,6 +111,10 @@ def summarise(directory: str, top: int = 25) -> None:
           f"{total['compile']:.0f} s ({total['compiles']:.0f} compiles), tracing "
           f"{total['trace']:.0f} s, lowering {total['lower']:.0f} s; the persistent cache "
           f"saved {total['cache_saved']:.0f} s")
+    # CPU below wall: a worker waited (I/O, threads); at ~100 % both cores were busy throughout
+    for worker, (wall, cpu) in workers.items():
+        print(f"{worker}: {wall:.0f} test-seconds, {cpu:.0f} CPU-seconds "
+              f"({100 * cpu / max(wall, 1e-9):.0f} %, its children included)")
     by_file = collections.defaultdict(collections.Counter)
     for r in rows:
         by_file[r["test"].split("::")[0]].update(

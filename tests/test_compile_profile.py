@@ -22,13 +22,16 @@ def test_recorder_sorts_events_and_counts_compiles():
 def test_summary_adds_the_workers_up(tmp_path, capsys):
     for worker, wall in (("gw0", 10.0), ("gw1", 4.0)):
         (tmp_path / f"{worker}.json").write_text(json.dumps({
-            "rows": [{"test": f"tests/test_{worker}.py::t", "wall": wall, "compile": wall / 2,
-                      "compiles": 3, "trace": 1.0, "lower": 0.5}],
+            "rows": [{"test": f"tests/test_{worker}.py::t", "wall": wall, "cpu": wall * 0.9,
+                      "compile": wall / 2, "compiles": 3, "trace": 1.0, "lower": 0.5}],
             "functions": [["jit(step)", wall / 2]], "counts": {"jit(step)": 3}}))
     compile_profile.summarise(str(tmp_path))
     out = capsys.readouterr().out
     assert out.startswith("2 tests, 14 test-seconds: XLA compile 7 s (6 compiles), tracing 2 s")
-    assert "tests/test_gw0.py" in out.splitlines()[3]  # the slowest file first
+    assert "gw0: 10 test-seconds, 9 CPU-seconds (90 %" in out and "gw1: 4 test-seconds" in out
+    lines = out.splitlines()
+    assert "tests/test_gw0.py" in lines[lines.index(next(x for x in lines if x.startswith(
+        "test file"))) + 1]  # the slowest file first
     assert re.search(r"^jit\(step\)\s+7\.0\s+6$", out, re.MULTILINE)
 
 
