@@ -30,8 +30,8 @@ def _perturb_leaf(x, key, scale):
 def perturb(params, key: jax.Array, scale=0.3):
     """Noise of std ``scale`` on every parameter, so zero-initialised layers (AdaLN-Zero gates,
     final projections) become active and the model's output is non-trivial. Leaf i gets
-    ``normal(split(key, n)[i])``; one small program per leaf shape, shared by every model (one
-    program per whole tree compiled for seconds per model config)."""
+    ``normal(split(key, n)[i])``, drawn by one small program per leaf shape that every model
+    shares (one program over the whole tree took seconds to compile for each model config)."""
     leaves, treedef = jax.tree_util.tree_flatten(params)
     keys = jax.random.split(key, len(leaves))
     return treedef.unflatten([_perturb_leaf(x, keys[i], scale) for i, x in enumerate(leaves)])
