@@ -18,10 +18,13 @@ import argparse
 import json
 import pathlib
 import time
+import types
 
 import numpy as np
 
 from flowmaps_jax import evaluation
+from flowmaps_jax.evaluation.cli import build_parser as evaluate_parser
+from flowmaps_jax.evaluation.cli import check_size
 from flowmaps_jax.evaluation.protocol import check_likelihood_steps
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.predictor import load
@@ -52,17 +55,27 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default="runs/sweep_settings")
     args = parser.parse_args(argv)
 
-    # checked before any training writes a run directory
+    # Everything is checked before any training writes a run directory: the options, every
+    # variant's config, and each evaluation's memory and work (the evaluate CLI's shared estimate,
+    # at its defaults for what this script does not set).
+    check_int("--eval-envs", args.eval_envs)
     check_int("--kl-draws", args.kl_draws, 2)
     likelihood_steps = check_likelihood_steps(
         check_int("--likelihood-steps", args.likelihood_steps, 0) or None)
-    variants = [parse_variant(v) for v in args.variants]
+    base = {"steps": args.steps, "warmup_steps": min(200, args.steps // 10),
+            "val_every": args.steps, "ckpt_every": args.steps,
+            "log_every": max(1, args.steps // 10)}
+    variants = [(name, overrides, apply_overrides(apply_overrides(get_preset(args.preset), base),
+                                                  overrides))
+                for name, overrides in map(parse_variant, args.variants)]
+    scoring = evaluate_parser().parse_args([
+        "--checkpoint", "(each variant)", "--samples", "100", "--kl-draws", str(args.kl_draws),
+        "--likelihood-steps", str(args.likelihood_steps)])
+    for _, _, cfg in variants:  # check_size reads a predictor's kind, model and flowsim only
+        model = types.SimpleNamespace(kind=cfg.model_kind, model=cfg.model, flowsim=cfg.flowsim)
+        check_size([model], args.eval_envs, cfg.flowsim, scoring)
     rows = []
-    for name, overrides in variants:
-        base = {"steps": args.steps, "warmup_steps": min(200, args.steps // 10),
-                "val_every": args.steps, "ckpt_every": args.steps,
-                "log_every": max(1, args.steps // 10)}
-        cfg = apply_overrides(apply_overrides(get_preset(args.preset), base), overrides)
+    for name, overrides, cfg in variants:
         run_dir = pathlib.Path(args.out) / name
         start = time.perf_counter()
         result = run(cfg, run_dir, progress=False, log=lambda _: None, overwrite=True)

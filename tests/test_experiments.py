@@ -183,12 +183,18 @@ def test_script_runs_at_a_tiny_size(script, tmp_path, monkeypatch):
             assert path.read_bytes()[:8] == PNG_MAGIC, f"{name} is not a PNG"
 
 
-@pytest.mark.parametrize("option, value", [("--kl-draws", "1"), ("--likelihood-steps", "2")])
-def test_sweep_settings_checks_its_evaluation_options_before_training(option, value, tmp_path):
-    """A bad evaluation option stops sweep_settings.py before the first variant trains: a
-    ValueError naming the option, and no run directory written."""
+@pytest.mark.parametrize("args, named", [
+    (["--kl-draws", "1"], "kl-draws"),
+    (["--likelihood-steps", "2"], "likelihood-steps"),
+    (["--kl-draws", "100000000"], "--kl-draws 100000000"),  # the shared memory estimate
+    (["later:bogus=1"], "bogus"),  # a bad second variant, found before the first trains
+])
+def test_sweep_settings_checks_everything_before_training(args, named, tmp_path):
+    """A bad option, an evaluation too large for the shared resource budget, or a bad variant
+    stops sweep_settings.py before the first variant trains: a ValueError naming it, and no run
+    directory written."""
     code, output = run_python_in_process(
-        [str(EXPERIMENTS / "sweep_settings.py"), "tiny:lr=1e-3", "--preset", "smoke", "--steps",
-         "2", option, value, "--out", "sweep"], tmp_path)
-    assert code == 1 and "ValueError" in output and option.lstrip("-") in output.replace("_", "-")
+        [str(EXPERIMENTS / "sweep_settings.py"), "tiny:lr=1e-3", *args, "--preset", "smoke",
+         "--steps", "2", "--eval-envs", "2", "--out", "sweep"], tmp_path)
+    assert code == 1 and "ValueError" in output and named in output.replace("_", "-")
     assert not (tmp_path / "sweep").exists()
