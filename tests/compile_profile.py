@@ -22,6 +22,7 @@ import collections
 import json
 import os
 import pathlib
+import resource
 import sys
 import time
 
@@ -64,8 +65,6 @@ def pytest_configure(config):
 def _cpu_seconds() -> float:
     """CPU seconds of this process and of its finished children (notebook kernels, the
     forced-devices run)."""
-    import resource
-
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
     return time.process_time() + children.ru_utime + children.ru_stime
 
