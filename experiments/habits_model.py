@@ -9,6 +9,10 @@ Every row is scored against the exact posterior with H = 8, as experiments/habit
 TV, top-1, search-cost ratio, and the mean rank of the true table (realised rank), per habit.
 
     python experiments/habits_model.py --checkpoint runs/habits-preferences [--num-envs 400]
+
+``--by-horizon`` adds, per habit, the search-cost ratio and top-1 of each model and of the exact
+posterior given one map, by Δτ (1 … 5, then 6 and more): where a model's excess over the exact
+answer comes from.
 """
 
 from __future__ import annotations
@@ -54,6 +58,8 @@ def main(argv=None) -> None:
     parser.add_argument("--checkpoint", nargs="+", required=True)
     parser.add_argument("--num-envs", type=int, default=400)
     parser.add_argument("--which", default="best", choices=["best", "latest"])
+    parser.add_argument("--by-horizon", action="store_true",
+                        help="also tabulate the models and exact H = 1 by Δτ, per habit")
     args = parser.parse_args(argv)
     predictors = [load_model(spec, which=args.which) for spec in args.checkpoint]
     config = predictors[0].flowsim
@@ -94,6 +100,27 @@ def main(argv=None) -> None:
             print(f"| {name} | {np.mean(s['tv']):.3f} | {np.mean(s['top1']):.3f} | "
                   f"{np.mean(s['search_cost_ratio']):.4f} | {rank.mean():.3f} ± "
                   f"{rank.std() / np.sqrt(rank.size):.3f} | {np.mean(p[sel, -1]):.3f} |")
+        if args.by_horizon:
+            by_horizon({k: v[sel] for k, v in rows.items()}, q[sel], mask[sel], horizon[sel],
+                       len(predictors))
+
+
+def by_horizon(rows, q, mask, horizon, num_models):
+    """Print search-cost ratio (top-1) of the model rows and exact H = 1 by Δτ."""
+    names = [*list(rows)[:num_models], "exact, H = 1"]
+    print("\n| Δτ | queries | " + " | ".join(names) + " |")
+    print("|---|---|" + "---|" * len(names))
+    for lo, hi in [(1, 1), (2, 2), (3, 3), (4, 4), (5, 5), (6, None)]:
+        sel = (horizon >= lo) & (horizon <= (hi or horizon.max()))
+        if not sel.any():
+            continue
+        cells = []
+        for name in names:
+            p = rows[name]
+            s = slot_scores(p[sel].astype(np.float32), q[sel].astype(np.float32), mask[sel])
+            cells.append(f"{np.mean(s['search_cost_ratio']):.4f} ({np.mean(s['top1']):.2f})")
+        label = f"{lo}" if hi else f"≥ {lo}"
+        print(f"| {label} | {sel.sum()} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

@@ -116,9 +116,10 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         rf"^\| exact, H = 1 \| {NUM} \| {NUM} \| {NUM} \| {NUM} ± {NUM} \|$", []),
     # ~20 s: the shipped (routine-world, H = 1) model on 2 environments
     "habits_model.py": (
-        ["--checkpoint", "pretrained:flowmaps", "--num-envs", "2"],
+        ["--checkpoint", "pretrained:flowmaps", "--num-envs", "2", "--by-horizon"],
         rf"^\| pretrained:flowmaps \(H = 1, step \d+\) \| {NUM} \| {NUM} \| {NUM} \| {NUM} ± "
-        rf"{NUM} \| {NUM} \|$", []),
+        rf"{NUM} \| {NUM} \|$(?:.*\n)*^\| (?:\d|≥ 6) \| \d+ \| {NUM} \({NUM}\) \| "
+        rf"1\.0000 \(1\.00\) \|$", []),
     # ~25 s: the README quick start; it prints nothing and writes fork_next.png
     "quickstart.py": ([], "", ["fork_next.png"]),
     # ~35 s: the docs figures and the quick-start figure, into figures/
