@@ -332,11 +332,18 @@ def observed_history(scenes, env, obj, tau, history_len, max_history: int | None
     tau = jnp.asarray(tau, jnp.int32)
     h = jnp.broadcast_to(jnp.asarray(history_len, jnp.int32), tau.shape)
     width = int(np.max(np.asarray(history_len))) if max_history is None else max_history
+    return _observed_history(jnp.asarray(scenes.slot), jnp.asarray(env), jnp.asarray(obj), tau,
+                             h, width)
+
+
+@functools.partial(jax.jit, static_argnames=("width",))
+def _observed_history(slot, env, obj, tau, h, width: int):
+    """One compiled gather for :func:`observed_history` (eagerly it was ~10 small programs per
+    shape)."""
     lag = jnp.arange(width - 1, -1, -1)  # H_max - 1 … 0
     time = tau[:, None] - lag[None, :]
     valid = (lag[None, :] < h[:, None]) & (time >= 0)
-    slots = jnp.asarray(scenes.slot)[jnp.asarray(env)[:, None], jnp.maximum(time, 0),
-                                     jnp.asarray(obj)[:, None]]
+    slots = slot[env[:, None], jnp.maximum(time, 0), obj[:, None]]
     return jnp.where(valid, slots, 0), valid
 
 
@@ -360,10 +367,19 @@ def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     if not (env.shape == obj.shape == tau.shape == horizon.shape) or env.ndim != 1:
         raise ValueError(f"env, obj, tau and horizon must be 1-D arrays of one length; got "
                          f"shapes {env.shape}, {obj.shape}, {tau.shape}, {horizon.shape}")
+    width = int(np.max(history_len))
+    history_len = np.broadcast_to(history_len, tau.shape).astype(np.int32)
+    return _history_posterior(scenes, config, env, obj, tau, horizon, history_len, width)
+
+
+@functools.partial(jax.jit, static_argnames=("config", "width"))
+def _history_posterior(scenes, config, env, obj, tau, horizon, history_len, width: int):
+    """The checked body of :func:`history_posterior`, one compiled program per query count and
+    history width (the hypotheses' matrices built eagerly were hundreds of small programs)."""
     transitions, prior = scene_hypotheses(scenes, config, env, obj)
-    history, valid = observed_history(scenes, env, obj, tau, history_len)
-    posterior, _ = history_posterior_batch(transitions, prior, history, valid,
-                                           jnp.asarray(tau), jnp.asarray(horizon), t)
+    history, valid = _observed_history(scenes.slot, env, obj, tau, history_len, width)
+    posterior, _ = history_posterior_batch(transitions, prior, history, valid, tau, horizon,
+                                           config.num_timesteps)
     return posterior
 
 

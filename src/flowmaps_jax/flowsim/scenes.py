@@ -170,7 +170,12 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
     history = check_history(history, config)
     env, tau = _check_indices(env=(env, scenes.num_envs - 1),
                               tau=(tau, config.num_timesteps - 1))
-    return _tokens(scenes, env, tau, config, history)
+    return _tokens_jit(scenes, env, tau, config, history)
+
+
+# One compiled gather per (config, history, N) for the checked entry point; the training batch
+# and the search call ``_tokens`` inside their own compiled functions.
+_tokens_jit = jax.jit(_tokens, static_argnames=("config", "history"))
 
 
 def slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
