@@ -30,6 +30,7 @@ so the rows score it with the cores of :mod:`.kl` and :mod:`.slots`, not their p
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Sequence
@@ -177,7 +178,6 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     ``exact_h1``, ``empirical``) are set; the times and draws do not depend on H.
     """
     from flowmaps_jax.flowsim.scenes import (
-        draw_query_times,
         normalise_boxes,
         scene_tokens,
         slot_boxes,
@@ -194,13 +194,7 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
             raise ValueError(f"horizon must be < num_timesteps={t_max}; got {horizon}")
     m = config.num_objects
     env = jnp.arange(num_envs, dtype=jnp.int32)
-    env_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_QUERIES), e))(
-        env)
-
-    # the paper's law, as the training batches draw it (or the fixed Δτ)
-    tau, tau_q = jax.vmap(lambda k: draw_query_times(k, (), (), config, horizon=horizon))(
-        env_keys)
-    tau, tau_q = tau.astype(jnp.int32), tau_q.astype(jnp.int32)
+    tau, tau_q, kl_keys = _query_times_and_keys(key, num_envs, config, horizon)
     tokens = scene_tokens(scenes, env, tau, config)
     obj = jnp.broadcast_to(jnp.arange(m, dtype=jnp.int32), (num_envs, m))
     descriptor = jnp.asarray(scenes.object_kind, jnp.int32)[env]
@@ -222,7 +216,6 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     target = normalise_boxes(jnp.asarray(scenes.object_boxes)[env, tau_q], config)
 
     # the ground truth is made here from validated inputs: the mixture's jitted cores directly
-    kl_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_KL), e))(env)
     points = jax.vmap(lambda k, p, b, bm: sample_gt_mixture_core(k, p, b, bm, kl_draws))(
         kl_keys, probs, boxes, mask)  # (E, M, kl_draws, 4), environment e from kl_keys[e]
     log_q = gt_mixture_log_prob_core(points, probs, boxes, mask)
@@ -231,6 +224,22 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
                    num_slots=num_slots.astype(jnp.int32), slot_probs=probs, slot_boxes=boxes,
                    slot_mask=mask, target=jnp.asarray(target, jnp.float32), kl_points=points,
                    kl_log_q=log_q, **extra)
+
+
+@functools.partial(jax.jit, static_argnames=("num_envs", "config", "horizon"))
+def _query_times_and_keys(key, num_envs: int, config: FlowSimConfig, horizon: int | None):
+    """(τ (E,), τ_q (E,), the KL draws' keys (E,)) of :func:`build_eval_queries`: environment
+    e's from ``key`` and e alone; one compiled program (eagerly, a few dozen small ones)."""
+    from flowmaps_jax.flowsim.scenes import draw_query_times
+
+    env = jnp.arange(num_envs, dtype=jnp.int32)
+    env_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_QUERIES), e))(
+        env)
+    # the paper's law, as the training batches draw it (or the fixed Δτ)
+    tau, tau_q = jax.vmap(lambda k: draw_query_times(k, (), (), config, horizon=horizon))(
+        env_keys)
+    kl_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_KL), e))(env)
+    return tau.astype(jnp.int32), tau_q.astype(jnp.int32), kl_keys
 
 
 def _history_truth(scenes, config: FlowSimConfig, tau, horizon, history: int):
