@@ -11,6 +11,7 @@ import itertools
 import jax
 import numpy as np
 import pytest
+from support import perturb
 
 from flowmaps_jax.flowsim import (
     FlowSimConfig,
@@ -301,8 +302,7 @@ def test_a_history_model_reads_the_past_maps(mixed):
     assert "age_embed" not in str(jax.tree_util.tree_structure(params_1))
     model = ModelConfig(**small, history=3)
     params = family.init(jax.random.key(0), model)
-    params = jax.tree.map(lambda p: p + 0.1 * jax.random.normal(jax.random.key(1), p.shape),
-                          params)  # leave AdaLN-Zero's zero start
+    params = perturb(params, jax.random.key(1), scale=0.1)  # leave AdaLN-Zero's zero start
     tokens = scene_tokens(scenes, np.array([5]), np.array([9]), cfg, history=3)
     moved = tokens.replace(boxes=tokens.boxes.at[0, 13:].add(0.05))  # the past objects moved
     queries = Queries(descriptor=np.array([[0]], np.int32), tau_q=np.array([[12]], np.int32))
