@@ -14,6 +14,11 @@ each event inside it) and the compile seconds per function. Inside child process
 kernels, the forced-devices run) no events are seen, only their wall and CPU time. The summary
 prints the totals, each worker's test-seconds against its CPU-seconds (whether the cores were
 busy), the seconds per test file and the functions that took longest to compile.
+
+It also counts lowerings and compiles by the line of the repository (``src/``, ``tests/``,
+``experiments/``; the innermost on the stack) that started them. A line with hundreds of compiles
+is usually eager ``jax.numpy`` work (outside ``jax.jit`` XLA compiles one small program per
+operation and shape), and one ``jax.jit`` around its function makes them one program per shape.
 """
 
 from __future__ import annotations
@@ -30,11 +35,27 @@ EVENTS = {"jaxpr_trace_duration": "trace", "jaxpr_to_mlir_module_duration": "low
           "backend_compile_duration": "compile", "compile_time_saved_sec": "cache_saved"}
 
 
+_REPO = str(pathlib.Path(__file__).resolve().parents[1]) + os.sep
+_OURS = tuple(_REPO + d + os.sep for d in ("src", "tests", "experiments"))
+
+
+def _site(frame) -> str:
+    """The innermost repository line (``path:line``) on the stack, ``?`` if none."""
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if name.startswith(_OURS) and name != __file__:
+            return f"{name[len(_REPO):]}:{frame.f_lineno}"
+        frame = frame.f_back
+    return "?"
+
+
 class _Recorder:
     def __init__(self):
         self.current = collections.Counter()
         self.functions = collections.Counter()
         self.counts = collections.Counter()
+        self.sites = collections.Counter()  # repository line -> lowering + compile seconds
+        self.site_counts = collections.Counter()  # repository line -> compiles
         self.rows: list[dict] = []
         self.start = self.cpu_start = 0.0
 
@@ -47,6 +68,10 @@ class _Recorder:
             self.current["compiles"] += 1
             self.functions[str(kwargs.get("fun_name"))] += seconds
             self.counts[str(kwargs.get("fun_name"))] += 1
+        if name in ("lower", "compile"):
+            site = _site(sys._getframe(1))
+            self.sites[site] += seconds
+            self.site_counts[site] += name == "compile"
 
 
 _RECORDER: _Recorder | None = None
@@ -88,12 +113,14 @@ def pytest_sessionfinish(session):
     worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
     (out / f"{worker}.json").write_text(json.dumps(
         {"rows": _RECORDER.rows, "functions": _RECORDER.functions.most_common(),
-         "counts": dict(_RECORDER.counts)}))
+         "counts": dict(_RECORDER.counts), "sites": dict(_RECORDER.sites),
+         "site_counts": dict(_RECORDER.site_counts)}))
 
 
 def summarise(directory: str, top: int = 25) -> None:
     """Print the totals, seconds per test file and the slowest-compiling functions."""
     rows, functions, counts = [], collections.Counter(), collections.Counter()
+    sites, site_counts = collections.Counter(), collections.Counter()
     workers = {}
     for path in sorted(pathlib.Path(directory).glob("*.json")):
         data = json.loads(path.read_text())
@@ -103,6 +130,8 @@ def summarise(directory: str, top: int = 25) -> None:
                                   sum(r.get("cpu", 0) for r in data["rows"]))
         functions.update(dict(data["functions"]))
         counts.update(data.get("counts", {}))
+        sites.update(data.get("sites", {}))
+        site_counts.update(data.get("site_counts", {}))
     if not rows:
         raise SystemExit(f"no profile in {directory}: run pytest -p compile_profile first")
     total = {k: sum(r.get(k, 0) for r in rows) for k in ("wall", *EVENTS.values(), "compiles")}
@@ -124,6 +153,10 @@ def summarise(directory: str, top: int = 25) -> None:
     print(f"\n{'function (XLA compile)':<40} {'seconds':>8} {'compiles':>9}")
     for name, seconds in functions.most_common(top):
         print(f"{name:<40} {seconds:8.1f} {counts[name]:9d}")
+    if site_counts:
+        print(f"\n{'repository line (most compiles)':<60} {'compiles':>9} {'seconds':>8}")
+        for site, n in site_counts.most_common(top):
+            print(f"{site:<60} {n:9d} {sites[site]:8.1f}")
 
 
 if __name__ == "__main__":

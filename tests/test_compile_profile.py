@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 
 import compile_profile
 import pytest
@@ -19,12 +20,34 @@ def test_recorder_sorts_events_and_counts_compiles():
     assert rec.functions == {"jit(step)": 3.0} and rec.counts == {"jit(step)": 2}
 
 
+def test_recorder_names_the_repository_line_that_compiled():
+    import jax
+    import jax.numpy as jnp
+    from jax import monitoring
+
+    rec = compile_profile._Recorder()
+    monitoring.register_event_duration_secs_listener(rec.listen)
+    try:
+        x = jnp.zeros((3, 1, 7)) + 1.0  # eager, at shapes nothing else uses: compiled here
+        eager_line = sys._getframe().f_lineno - 1
+        doubled = jax.jit(lambda v: v * 2.0)(x)
+        jit_line = sys._getframe().f_lineno - 1
+    finally:
+        monitoring.unregister_event_duration_listener(rec.listen)
+    assert doubled.shape == (3, 1, 7)
+    here = "tests/test_compile_profile.py"
+    assert rec.site_counts[f"{here}:{jit_line}"] == 1
+    assert rec.site_counts[f"{here}:{eager_line}"] == sum(rec.counts.values()) - 1 >= 1
+    assert set(rec.sites) == {f"{here}:{eager_line}", f"{here}:{jit_line}"}
+
+
 def test_summary_adds_the_workers_up(tmp_path, capsys):
     for worker, wall in (("gw0", 10.0), ("gw1", 4.0)):
         (tmp_path / f"{worker}.json").write_text(json.dumps({
             "rows": [{"test": f"tests/test_{worker}.py::t", "wall": wall, "cpu": wall * 0.9,
                       "compile": wall / 2, "compiles": 3, "trace": 1.0, "lower": 0.5}],
-            "functions": [["jit(step)", wall / 2]], "counts": {"jit(step)": 3}}))
+            "functions": [["jit(step)", wall / 2]], "counts": {"jit(step)": 3},
+            "sites": {"src/a.py:7": wall / 4}, "site_counts": {"src/a.py:7": 3}}))
     compile_profile.summarise(str(tmp_path))
     out = capsys.readouterr().out
     assert out.startswith("2 tests, 14 test-seconds: XLA compile 7 s (6 compiles), tracing 2 s")
@@ -33,6 +56,7 @@ def test_summary_adds_the_workers_up(tmp_path, capsys):
     assert "tests/test_gw0.py" in lines[lines.index(next(x for x in lines if x.startswith(
         "test file"))) + 1]  # the slowest file first
     assert re.search(r"^jit\(step\)\s+7\.0\s+6$", out, re.MULTILINE)
+    assert re.search(r"^src/a\.py:7\s+6\s+3\.5$", out, re.MULTILINE)
 
 
 def test_summary_of_nothing_says_so(tmp_path):
