@@ -110,8 +110,8 @@ def by_horizon(rows, q, mask, horizon, num_models):
     names = [*list(rows)[:num_models], "exact, H = 1"]
     print("\n| Δτ | queries | " + " | ".join(names) + " |")
     print("|---|---|" + "---|" * len(names))
-    for lo, hi in [(1, 1), (2, 2), (3, 3), (4, 4), (5, 5), (6, None)]:
-        sel = (horizon >= lo) & (horizon <= (hi or horizon.max()))
+    bins = [(str(d), horizon == d) for d in range(1, 6)] + [("≥ 6", horizon >= 6)]
+    for label, sel in bins:
         if not sel.any():
             continue
         cells = []
@@ -119,7 +119,6 @@ def by_horizon(rows, q, mask, horizon, num_models):
             p = rows[name]
             s = slot_scores(p[sel].astype(np.float32), q[sel].astype(np.float32), mask[sel])
             cells.append(f"{np.mean(s['search_cost_ratio']):.4f} ({np.mean(s['top1']):.2f})")
-        label = f"{lo}" if hi else f"≥ {lo}"
         print(f"| {label} | {sel.sum()} | " + " | ".join(cells) + " |")
 
 

@@ -43,7 +43,7 @@ def _site(frame) -> str:
     """The innermost repository line (``path:line``) on the stack, ``?`` if none."""
     while frame is not None:
         name = frame.f_code.co_filename
-        if name.startswith(_OURS) and name != __file__:
+        if name.startswith(_OURS):
             return f"{name[len(_REPO):]}:{frame.f_lineno}"
         frame = frame.f_back
     return "?"

@@ -174,7 +174,7 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
 
 
 # One compiled gather per (config, history, N) for the checked entry point; the training batch
-# and the search call ``_tokens`` inside their own compiled functions.
+# (``_train_batch``) calls the plain ``_tokens`` inside its own compiled function.
 _tokens_jit = jax.jit(_tokens, static_argnames=("config", "history"))
 
 
