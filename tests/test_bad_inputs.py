@@ -112,7 +112,7 @@ _INT_FIELDS = {  # values every one of which makes the (otherwise default) confi
     "min_object_px": ints_outside(1, 25),
     "num_timesteps": ints_outside(2, INT32_MAX),
     "max_tokens": ints_outside(13, INT32_MAX),
-    "layout_budget": ints_outside(0, INT32_MAX),
+    "layout_budget": ints_outside(1, INT32_MAX),
     "layout_candidates": ints_outside(1, INT32_MAX),
 }
 _FRACTIONS = ("table_min_frac", "table_max_frac", "object_frac")

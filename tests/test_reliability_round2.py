@@ -184,8 +184,9 @@ def test_no_write_through_a_symlink_in_a_run_dir(tmp_path):
         rundir.open_append(link)
     (tmp_path / "config.json.tmp").symlink_to(outside)
     rundir.write_atomic(tmp_path / "config.json.tmp".removesuffix(".tmp"), "new")
-    rundir.write_atomic(link, b"replaced")  # the link itself is replaced
-    assert outside.read_text() == "keep" and not link.is_symlink()
+    with pytest.raises(ValueError, match="symbolic link"):  # refused, never followed
+        rundir.write_atomic(link, b"replaced")
+    assert outside.read_text() == "keep" and link.is_symlink()
     assert (tmp_path / "config.json").read_text() == "new"
 
 

@@ -234,7 +234,7 @@ def test_configs_that_cannot_make_scenes_are_refused():
     FlowSimConfig(min_per_kind=1, num_furniture=3, object_frac=1.0)
     with pytest.raises(ValueError, match="max_tokens=12 is smaller than the 13 tokens"):
         FlowSimConfig(max_tokens=12)
-    with pytest.raises(ValueError, match=r"layout_budget must be an int in 0\.\.2147483647"):
+    with pytest.raises(ValueError, match=r"layout_budget must be an int in 1\.\.2147483647"):
         FlowSimConfig(layout_budget=2**40)
 
 

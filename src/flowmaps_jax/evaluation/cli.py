@@ -36,7 +36,7 @@ from flowmaps_jax.evaluation.protocol import (
     DEFAULT_SAMPLES,
 )
 from flowmaps_jax.evaluation.report import markdown_table
-from flowmaps_jax.evaluation.run import model_token_config, run_evaluation
+from flowmaps_jax.evaluation.run import FIGURES, REPORT_FILES, model_token_config, run_evaluation
 from flowmaps_jax.flowsim.worlds import WORLDS, world_config, world_of
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR
@@ -44,6 +44,7 @@ from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, PRETRAINED_PREFIX, SOLVERS
 from flowmaps_jax.validation import (
     check_choice,
     check_int,
+    check_no_links,
     check_output_dir,
     check_resources,
     check_seed,
@@ -178,6 +179,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             out = pathlib.Path(args.checkpoint) / "eval"
         out = pathlib.Path(check_output_dir("--out", out))  # before the evaluation runs
+        check_no_links("--out", out, [*REPORT_FILES, *(() if args.no_figures else FIGURES)])
         mesh = distributed.local_mesh(args.devices)
         model = load_model(args.checkpoint, args.which, args.devices)
         baselines = [load_model(path, args.which, args.devices) for path in args.baseline]

@@ -41,7 +41,17 @@ from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import check_history
 from flowmaps_jax.flowsim.worlds import world_of
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import (
+    check_int,
+    check_no_links,
+    check_output_dir,
+    make_output_dir,
+    save_figure,
+)
+
+REPORT_FILES = ("results.json", "results.md")
+FIGURES = ("kl.png", "by_horizon.png", "samples.png", "slots.png")
+"""The files an evaluation writes into its ``out_dir`` (figures unless ``figures=False``)."""
 
 
 def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfig,
@@ -85,6 +95,9 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     for p in predictors:
         if p.model.history > 1:
             check_history(p.model.history, model_token_config(config, p))
+    if out_dir is not None:  # before anything runs: a file there, or a link at a report's name
+        check_output_dir("out_dir", out_dir)
+        check_no_links("out_dir", out_dir, [*REPORT_FILES, *(FIGURES if figures else ())])
     start = time.perf_counter()
     key = jax.random.key(seed)
     evalset = build_eval_queries(scenes, config, key, kl_draws, history=history)
@@ -113,16 +126,16 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
                                    habits=[list(h) for h in config.habits])
         results["by_habit"] = summarise_habits(rows, evalset)
     if out_dir is not None:
-        out = pathlib.Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
+        out = make_output_dir("out_dir", out_dir)
+        check_no_links("out_dir", out, [*REPORT_FILES, *(FIGURES if figures else ())])
         if figures:
             model_rows = [r for r in rows if r.samples is not None]
-            plots = {"kl.png": lambda: plot_kl(results),
-                     "by_horizon.png": lambda: plot_by_horizon(results),
-                     "samples.png": lambda: plot_samples(scenes, evalset, model_rows, config),
-                     "slots.png": lambda: plot_slot_bars(evalset, model_rows, config)}
+            plots = {FIGURES[0]: lambda: plot_kl(results),
+                     FIGURES[1]: lambda: plot_by_horizon(results),
+                     FIGURES[2]: lambda: plot_samples(scenes, evalset, model_rows, config),
+                     FIGURES[3]: lambda: plot_slot_bars(evalset, model_rows, config)}
             for filename, make in plots.items():
-                make().savefig(out / filename, dpi=110)
+                save_figure(make(), out / filename, name="out_dir file", dpi=110)
                 results["figures"].append(filename)
         results["seconds"] = round(time.perf_counter() - start, 1)
         write_report(results, out)

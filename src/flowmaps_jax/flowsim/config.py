@@ -101,7 +101,9 @@ class FlowSimConfig:
     jitter_probs: schedule_jitter offsets (-1, 0, +1) around the one-place-per-step schedule.
     num_timesteps: T.
     max_tokens: S, scene tokens are padded to this length.
-    layout_budget: at most this many layout redraws per environment before ``generate`` gives up.
+    layout_budget: at most this many layout redraws per environment before ``generate`` gives up
+        (at least 1: about one first attempt in 16 of the paper's map needs a redraw, so a budget
+        of 0 cannot place the layouts of even a small split).
     layout_candidates: random positions proposed for the last furniture piece of a layout
         attempt (piece i of F gets ceil(layout_candidates * i / (F - 1)), at least 1); if none
         fits next to the pieces already placed, the whole layout is redrawn.
@@ -150,7 +152,7 @@ class FlowSimConfig:
             raise ValueError(f"map_size must be <= {MAX_MAP_SIZE} (positions are drawn from 16 "
                              f"random bits); got {self.map_size}")
         for name, low in (("num_furniture", 1), ("min_per_kind", 1), ("min_object_px", 1),
-                          ("num_timesteps", 2), ("max_tokens", 1), ("layout_budget", 0),
+                          ("num_timesteps", 2), ("max_tokens", 1), ("layout_budget", 1),
                           ("layout_candidates", 1)):  # all become int32 arrays somewhere
             self._store(name, check_int(name, getattr(self, name), low, INT32_MAX))
         for name in ("table_min_frac", "table_max_frac", "object_frac"):

@@ -128,17 +128,22 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     tau: (...) int state time; only needed (and required) for "schedule_jitter", whose
         posterior depends on the absolute query time τ + Δτ rather than on ``slot_now``.
     Leading dims broadcast. Entries beyond K are zero; each row sums to 1.
-    Inputs are validated when concrete; under ``jit`` out-of-range horizons are clipped.
+    Concrete inputs are validated (``ValueError`` naming the argument). Traced ones (under
+    ``jit``) cannot be: a row whose num_slots, slot_now, horizon (or tau, tau + horizon) is out
+    of range is all NaN, never the answer of another, in-range input.
     """
     check_instance("config", config, FlowSimConfig)
     dynamics = check_choice("dynamics", config.dynamics if dynamics is None else dynamics,
                             DYNAMICS)
     max_h = config.num_timesteps - 1
-    if is_concrete(num_slots, slot_now, horizon):
+    concrete = is_concrete(num_slots, slot_now, horizon)
+    if concrete:
         _check_slots(num_slots, slot_now, config)
         check_int_array("horizon", horizon, 0, max_h)
     if dynamics == "markov":
-        return _markov_posterior(num_slots, slot_now, horizon, config)
+        probs = _markov_posterior(num_slots, slot_now, horizon, config)
+        return probs if concrete else _nan_outside(
+            probs, _in_range(num_slots, slot_now, horizon, max_h, config))
     if tau is None:
         raise ValueError("tau is required for dynamics='schedule_jitter' (its posterior depends "
                          "on the absolute query time tau + horizon)")
@@ -148,7 +153,27 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     now = jax.nn.one_hot(jnp.asarray(slot_now), config.num_furniture, dtype=jnp.float32)
     ahead = _jitter_posterior(num_slots, slot_now, jnp.asarray(tau) + jnp.asarray(horizon),
                               config)
-    return jnp.where((jnp.asarray(horizon) == 0)[..., None], now, ahead)
+    probs = jnp.where((jnp.asarray(horizon) == 0)[..., None], now, ahead)
+    if concrete and is_concrete(tau):
+        return probs
+    tau, query = jnp.asarray(tau), jnp.asarray(tau) + jnp.asarray(horizon)
+    valid = (_in_range(num_slots, slot_now, horizon, max_h, config) & (tau >= 0)
+             & (tau <= max_h) & (query <= max_h))
+    return _nan_outside(probs, valid)
+
+
+def _in_range(num_slots, slot_now, horizon, max_h: int, config: FlowSimConfig) -> jnp.ndarray:
+    """(...) bool: where num_slots is in 1..F, slot_now in 0..K − 1 and horizon in 0..max_h (the
+    checks of concrete inputs, on traced ones)."""
+    k, now, h = (jnp.asarray(a) for a in (num_slots, slot_now, horizon))
+    valid = (k >= 1) & (k <= config.num_furniture) & (h >= 0) & (h <= max_h)
+    return valid if slot_now is None else valid & (now >= 0) & (now < k)
+
+
+def _nan_outside(values: jnp.ndarray, valid: jnp.ndarray, trailing: int = 1) -> jnp.ndarray:
+    """``values`` (..., *trailing dims) with NaN where ``valid`` (...) is False."""
+    valid = jnp.reshape(valid, jnp.shape(valid) + (1,) * trailing)
+    return jnp.where(valid, values, jnp.nan)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -168,9 +193,13 @@ def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.
 
     The top-left K × K block (K = num_slots, (...) int) is the cyclic kernel of
     ``config.transition_probs``; the rest is zero. ``onehot(slot) @ P^h`` equals
-    ``exact_posterior(K, slot, h)``.
+    ``exact_posterior(K, slot, h)``. A concrete ``num_slots`` out of 1..F is a ``ValueError``;
+    a traced one (under ``jit``) gives an all-NaN matrix.
     """
     check_instance("config", config, FlowSimConfig)
     if is_concrete(num_slots):
         _check_slots(num_slots, None, config)
-    return _transition_matrix(num_slots, config)
+        return _transition_matrix(num_slots, config)
+    k = jnp.asarray(num_slots)
+    return _nan_outside(_transition_matrix(num_slots, config),
+                        (k >= 1) & (k <= config.num_furniture), trailing=2)

@@ -91,6 +91,14 @@ def scenes_bytes_per_env(config: FlowSimConfig) -> int:
     return sum(array_bytes(shape) for shape in shapes.values())
 
 
+def layout_bytes(config: FlowSimConfig, num_envs: int) -> int:
+    """Working memory of laying out ``num_envs`` environments' furniture: a block of at most
+    :data:`BLOCK` attempts, each with its random words (``layout_candidates`` proposals per
+    piece) and every proposal's box tested against the F pieces."""
+    words = layout.layout_num_words(config)
+    return min(int(num_envs), BLOCK) * words * 4 * (4 + config.num_furniture)
+
+
 def validate_scenes(scenes, config: FlowSimConfig | None = None, *, values: bool = True,
                     name: str = "scenes") -> None:
     """Raise ``ValueError`` naming the field if ``scenes`` is not a well-formed ``Scenes``.
@@ -274,8 +282,9 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh
     part: generate only these environments of the ``num_envs`` (a slice, e.g. this host's
         :func:`flowmaps_jax.distributed.host_part`); they equal the same rows of the full set.
     Raises ``ValueError`` on bad arguments (also when ``num_envs`` environments would not fit in
-    memory, see ``validation.check_request_size``) and ``RuntimeError`` if some layout could not be
-    placed within ``config.layout_budget`` redraws (the config is too crowded). Not for use
+    memory, see ``validation.check_request_size``) and :class:`LayoutError` (a ``ValueError`` and a
+    ``RuntimeError``) if some layout could not be placed within ``config.layout_budget`` redraws
+    (the config is too crowded). Not for use
     inside ``jit`` (it checks the layouts on the host); there, call ``scenes_from_env_keys``.
     """
     check_instance("config", config, FlowSimConfig)
@@ -286,18 +295,26 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh
         count = len(range(num_envs)[part])
         if count == 0:
             raise ValueError(f"part={part} selects no environment of {num_envs}")
-    check_request_size(f"generate({count} environments)", count * scenes_bytes_per_env(config))
+    check_request_size(f"generate({count} environments, layout_candidates="
+                       f"{config.layout_candidates})",
+                       count * scenes_bytes_per_env(config) + layout_bytes(config, count))
     env_keys = jax.random.split(check_key(key), num_envs)
     scenes, ok = _generate_on(env_keys if part is None else env_keys[part], config, mesh)
     failed = int(np.sum(~np.asarray(ok)))
     if failed:
-        raise RuntimeError(
+        raise LayoutError(
             f"generate: {failed} of {count} layouts could not be placed within "
             f"layout_budget={config.layout_budget} redraws; the map is too crowded for "
             f"num_furniture={config.num_furniture} tables of up to {config.table_max_frac} of "
             f"map_size={config.map_size} (raise map_size/layout_budget/layout_candidates or "
             "lower num_furniture/table_max_frac)")
     return scenes
+
+
+class LayoutError(ValueError, RuntimeError):
+    """Some layouts could not be placed within ``config.layout_budget`` redraws: the config asks
+    for a map more crowded than its budget can lay out. A ``ValueError`` (a command reports it
+    as a bad argument, exit code 2, in one line) and, as before, a ``RuntimeError``."""
 
 
 def _generate_on(env_keys, config: FlowSimConfig, mesh):

@@ -38,7 +38,13 @@ import numpy as np
 
 from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig, sim_params
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
-from flowmaps_jax.validation import check_instance, check_int_array
+from flowmaps_jax.validation import (
+    check_instance,
+    check_int,
+    check_int_array,
+    check_probabilities,
+    is_concrete,
+)
 
 ROUTINE, PREFERENCES, DYNAMIC = range(3)
 
@@ -78,7 +84,14 @@ def habit_prior(num_slots, habit_probs, num_furniture: int) -> jnp.ndarray:
     """Prior (..., NH) float32 over the hypotheses of objects with ``num_slots`` (...) places.
 
     habit_probs: (3,) weights of the families in ``HABITS`` order (summing to 1).
+    Concrete arguments are checked (``ValueError`` naming the argument: ``habit_probs`` must be
+    3 finite, non-negative probabilities summing to 1, ``num_slots`` in 1..``num_furniture``);
+    traced ones (under ``jit``) are used as given.
     """
+    num_furniture = check_int("num_furniture", num_furniture)
+    check_probabilities("habit_probs", habit_probs, (3,))
+    if is_concrete(num_slots):
+        check_int_array("num_slots", num_slots, 1, num_furniture)
     family, _, needs = (jnp.asarray(a) for a in hypothesis_table(num_furniture))
     k = jnp.asarray(num_slots, jnp.int32)[..., None]
     exists = needs <= k  # (..., NH)
@@ -363,10 +376,10 @@ def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     tau = check_int_array("tau", tau, 0, t - 1)
     horizon = check_int_array("horizon", horizon, 0, t - 1)
     check_int_array("tau + horizon", tau + horizon, 0, t - 1)
-    history_len = check_history_len(history_len, tau, t)
     if not (env.shape == obj.shape == tau.shape == horizon.shape) or env.ndim != 1:
         raise ValueError(f"env, obj, tau and horizon must be 1-D arrays of one length; got "
                          f"shapes {env.shape}, {obj.shape}, {tau.shape}, {horizon.shape}")
+    history_len = check_history_len(history_len, tau, t)
     width = int(np.max(history_len))
     history_len = np.broadcast_to(history_len, tau.shape).astype(np.int32)
     return _history_posterior(scenes, config, env, obj, tau, horizon, history_len, width)
@@ -464,9 +477,14 @@ def check_history_len(history_len, tau, num_timesteps: int) -> np.ndarray:
     """history_len (an int or (Q,) ints) in 1 … T and at most τ + 1 (the query's past)."""
     h = check_int_array("history_len", history_len, 1, num_timesteps,
                         high_name=f"T={num_timesteps}")
-    too_long = np.broadcast_to(h, np.shape(tau)) > np.asarray(tau) + 1
+    try:
+        h_all, tau_all = np.broadcast_arrays(h, np.asarray(tau))
+    except ValueError:
+        raise ValueError(f"history_len must be one int or one per query (shape "
+                         f"{np.shape(tau)}); got shape {np.shape(h)}") from None
+    too_long = (h_all > tau_all + 1).ravel()
     if np.any(too_long):
         raise ValueError(f"history_len={int(np.max(h))} is longer than the query's past: an "
-                         f"object seen up to tau={int(np.asarray(tau)[np.argmax(too_long)])} has "
+                         f"object seen up to tau={int(tau_all.ravel()[np.argmax(too_long)])} has "
                          f"at most tau + 1 observations")
     return h

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import functools
+import io
 import json
 import os
 
@@ -39,12 +40,14 @@ from flowmaps_jax.validation import (
     check_int,
     check_int_array,
     check_key,
+    check_no_links,
     check_output_file,
     check_real,
     check_real_array,
     check_request_size,
     check_seed,
     read_npz,
+    write_file,
 )
 
 FORMAT_VERSION = 2
@@ -309,17 +312,11 @@ def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) ->
     _check_inputs(config)
     validate_scenes(scenes, config)
     arrays = {name: np.asarray(getattr(scenes, name)) for name in _FIELDS}
-    partial = f"{path}.partial-{os.getpid()}"
-    try:
-        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0),
-                     0o644)  # a new file: never through a link planted at that name
-        with os.fdopen(fd, "wb") as handle:
-            np.savez_compressed(handle, format_version=np.int64(FORMAT_VERSION),
-                                config_json=np.asarray(json.dumps(config.to_dict())), **arrays)
-        os.replace(partial, path)
-    finally:
-        if os.path.exists(partial):
-            os.remove(partial)
+    check_no_links("path", os.path.dirname(os.path.abspath(path)), [os.path.basename(path)])
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, format_version=np.int64(FORMAT_VERSION),
+                        config_json=np.asarray(json.dumps(config.to_dict())), **arrays)
+    write_file(path, buffer.getvalue(), name="path")  # a temporary file, a rename; no link
 
 
 def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:

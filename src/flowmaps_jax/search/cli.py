@@ -48,11 +48,20 @@ from flowmaps_jax.search import protocol as pr
 from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.search.probabilities import TABLE_METHODS
 from flowmaps_jax.search.report import markdown_table, write_report
-from flowmaps_jax.validation import check_choice, check_int, check_output_dir, check_seed
+from flowmaps_jax.validation import (
+    check_choice,
+    check_int,
+    check_no_links,
+    check_output_dir,
+    check_seed,
+    make_output_dir,
+    save_figure,
+)
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
 FIGURES = ("episodes.png", "success_vs_looks.png", "success_vs_distance.png")
+REPORT_FILES = ("search.json", "search.md")
 
 
 def _int_list(text: str) -> list[int]:
@@ -125,7 +134,7 @@ def write_figures(results: dict, runs: dict, search_set: ep.SearchSet, config,
                FIGURES[1]: fg.plot_success_vs_looks(results),
                FIGURES[2]: fg.plot_success_vs_distance(results)}
     for filename, figure in figures.items():
-        figure.savefig(out / filename, dpi=100)
+        save_figure(figure, out / filename, name="--out file", dpi=100)
     return list(figures)
 
 
@@ -173,6 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         out = pathlib.Path(check_output_dir(
             "--out", args.out or pathlib.Path(args.checkpoint) / "search"))
+        check_no_links("--out", out, [*REPORT_FILES, *(() if args.no_figures else FIGURES)])
         models = [load_model(spec, args.which, args.devices)
                   for spec in [args.checkpoint, *args.baseline]]
         config, history = search_world(models, args.world, args.history)
@@ -200,10 +210,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        out = make_output_dir("--out", out)
         if not args.no_figures:
             results["figures"] = write_figures(results, runs, search_set, config, out)
         paths = write_report(results, out)
+    except ValueError as err:  # a link planted at an output name while the search ran
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_USAGE
     except OSError as err:  # a full disk, a quota: one line, not a traceback
         print(f"error: could not write the results into {out}: {err.strerror or err}",
               file=sys.stderr)

@@ -138,14 +138,15 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
 
 def check_table_method(predictor: Any, method: str, num_samples: int) -> int:
     """``ValueError`` unless ``predictor`` can give table probabilities by ``method``
-    (:data:`TABLE_METHODS`); returns ``num_samples`` checked (≥ 1; unused by "weights")."""
+    (:data:`TABLE_METHODS`); returns ``num_samples`` checked (≥ 1; "weights" does not use it,
+    but it must still be an int ≥ 0)."""
     if method not in TABLE_METHODS:
         raise ValueError(f"method must be one of {TABLE_METHODS}; got {method!r}")
     if method == "weights":
         if not callable(getattr(predictor, "table_weights", None)):
             raise ValueError("method='weights' needs a predictor with table_weights (a FlowMaps "
                              f"Predictor with a read-out head); got {type(predictor).__name__}")
-        return num_samples
+        return check_int("num_samples", num_samples, 0)
     if not callable(getattr(predictor, "sample", None)):
         raise ValueError(f"predictor must have a sample(tokens, queries, num_samples, key) method "
                          f"(a flowmaps_jax.predictor.Predictor); got {type(predictor).__name__}")

@@ -15,6 +15,8 @@ import json
 import pathlib
 import re
 
+from flowmaps_jax.validation import check_no_links, make_output_dir, write_file
+
 POLICY_LABELS = {"most-probable": "most-probable first",
                  "greedy": "greedy probability per pixel",
                  "optimal": "optimal expected travel (exact DP)",
@@ -165,10 +167,13 @@ def compact_json(results: dict) -> str:
 
 
 def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathlib.Path]:
-    """Write ``search.json`` and ``search.md`` into out_dir (created); returns their paths."""
-    out = pathlib.Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    """Write ``search.json`` and ``search.md`` into out_dir (created); returns their paths.
+    Both go through the shared writer (:func:`flowmaps_jax.validation.write_file`: a temporary
+    file and a rename; a symbolic link at either name is a ``ValueError``)."""
+    out = make_output_dir("out_dir", out_dir)
     paths = {"json": out / "search.json", "markdown": out / "search.md"}
-    paths["json"].write_text(compact_json(results) + "\n")
-    paths["markdown"].write_text(markdown_table(results))
+    check_no_links("out_dir", out, [p.name for p in paths.values()])
+    text = compact_json(results) + "\n"
+    write_file(paths["json"], text, name="out_dir file")
+    write_file(paths["markdown"], markdown_table(results), name="out_dir file")
     return paths

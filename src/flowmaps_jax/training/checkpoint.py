@@ -188,8 +188,22 @@ class CheckpointStore:
         best = self.best_val_loss
         if best is not None and val_loss >= best:
             return False
-        meta = describe_state(state, config, log_window)
+        self.save_best(state, config, val_loss, log_window=log_window)
+        return True
+
+    def save_best(self, state, config: dict, val_loss: float, *,
+                  log_window: dict | None = None) -> bool:
+        """Save ``state`` to ``best`` as an improvement the caller has decided on (a resumed run
+        replaying steps before a best its first run saved: the same save comes again later), a
+        save of the same step replaced. A kept best of a later step with a val loss at most
+        ``val_loss`` stays, as orbax's best-of-one would keep it (nothing is written); returns
+        whether it saved."""
         step = int(state.step)
+        kept_step, kept_loss = self._best.best_step(), self.best_val_loss
+        if kept_step is not None and kept_step > step and kept_loss is not None \
+                and kept_loss <= val_loss:
+            return False
+        meta = describe_state(state, config, log_window)
         if step in self._best.all_steps():
             self._best.delete(step)
         self._write(self._best, step, state, config, meta, metrics={"val_loss": val_loss})

@@ -137,7 +137,8 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
         overrides.append(f"init_from={args.init_from}")
     cfg = apply_overrides(cfg, overrides)
     if run_dir is None:
-        run_dir = rundir.check_run_dir(args.run_dir if args.run_dir else default_run_dir(cfg))
+        run_dir = rundir.check_run_dir(args.run_dir if args.run_dir is not None
+                                       else default_run_dir(cfg))  # '' is refused, not default
     return cfg, run_dir
 
 

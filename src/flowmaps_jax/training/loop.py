@@ -118,7 +118,8 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         val_loss, routine = None, None
 
         stop.start_steps()
-        with (runlog.RunBook(run_dir, cfg, kept=kept, window=window, primary=primary) as book,
+        with (runlog.RunBook(run_dir, cfg, kept=kept, window=window, primary=primary,
+                             start_step=start) as book,
               _ProgressBar(cfg.steps, progress) as bar):
             log(f"Compiling; training steps {start + 1}..{end} of {cfg.steps} "
                 f"({samples_per_step} query-samples per step) ...")

@@ -114,6 +114,9 @@ def _convert(text: str, hint: Any, key: str) -> Any:
         if text.lower() in _FALSE_WORDS:
             return False
         raise ValueError(f"bad value {text!r} for {key!r}: expected a boolean (true/false)")
+    if hint in (int, float) and not text.isascii():  # int("１") is 1 to Python
+        raise ValueError(f"bad value {text!r} for {key!r}: expected "
+                         f"{'an integer' if hint is int else 'a number'} in ASCII digits")
     if hint is int:
         with contextlib.suppress(ValueError):
             return int(text)

@@ -12,8 +12,9 @@
   power loss) is taken over with a message. The lock is released on exit, and a directory the
   claim created is removed again if nothing was written.
 * :func:`write_atomic` writes a file through a temporary file and a rename, so a crash or a full
-  disk never leaves it half-written; :func:`open_append` opens a log for appending. Neither
-  follows a symbolic link.
+  disk never leaves it half-written (the shared writer,
+  :func:`flowmaps_jax.validation.write_file`); :func:`open_append` opens a log for appending.
+  Both refuse a symbolic link.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import socket
 import time
 from collections.abc import Callable, Iterator
 
-from flowmaps_jax.validation import check_output_dir
+from flowmaps_jax.validation import check_output_dir, write_file
 
 LOCK_NAME = ".lock"
 RUN_FILES = ("config.json", "metrics.jsonl", "routine_curve.png", "checkpoints")
@@ -48,23 +49,10 @@ _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 
 
 def write_atomic(path: pathlib.Path, data: str | bytes) -> None:
-    """Write ``data`` to ``path`` via ``<path>.tmp`` and a rename (no half-written file). A
-    symbolic link at ``path`` is replaced, not followed; one at the temporary name is removed."""
-    path = pathlib.Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    raw = data.encode() if isinstance(data, str) else bytes(data)
-    try:
-        tmp.unlink(missing_ok=True)  # a leftover (or a planted link): removed, never followed
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
-        with os.fdopen(fd, "wb") as file:
-            file.write(raw)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise
+    """Write ``data`` to ``path`` via ``<path>.tmp`` and a rename (no half-written file), with
+    the one writer of every command (:func:`flowmaps_jax.validation.write_file`): a symbolic
+    link at ``path`` is refused (``ValueError``), one at the temporary name is removed."""
+    write_file(path, data, name="run file")
 
 
 def open_append(path: pathlib.Path):

@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import io
 import json
+import math
 import pathlib
 from collections.abc import Callable
 
@@ -77,11 +78,19 @@ class RunBook:
     kept: on resume, the lines ``metrics.jsonl`` is first rewritten with (atomically; see
     :func:`kept_records`); None appends to it as it is. window: the window a resumed run's
     checkpoint carried. primary: False on the other processes of a multi-host job, which write
-    no metrics (they take part in the checkpoint saves).
+    no metrics (they take part in the checkpoint saves). start_step: the step the run starts
+    from (0 for a new run, or one started again).
+
+    The best val loss a val pass must beat is the best *as of* ``start_step``: the one the
+    checkpoint's window carried, else the last ``"best": true`` record kept, else the kept
+    ``best`` checkpoint if it is not later than ``start_step``. A best checkpoint from after
+    ``start_step`` (a run killed between its ``best/N`` and ``last/N`` saves) is the same run's
+    future: the replay saves it again when it gets there, so the records of a resumed run are
+    those of a run never stopped, whichever save a kill fell between.
     """
 
     def __init__(self, run_dir: pathlib.Path, cfg: TrainConfig, *, kept: list[str] | None,
-                 window: dict | None, primary: bool = True):
+                 window: dict | None, primary: bool = True, start_step: int = 0):
         self.run_dir, self.config = run_dir, cfg.to_dict()
         path = run_dir / METRICS
         if primary and kept is not None:
@@ -92,8 +101,8 @@ class RunBook:
         except BaseException:
             self._close_file()
             raise
-        self.best_loss, self.best_step = self.store.best_val_loss, self.store.best_step()
         window = window or {}
+        self.best_loss, self.best_step = _best_as_of(window, kept, self.store, start_step)
         self.window: list[dict] = list(window.get("records", []))
         self.timed_steps = int(window.get("timed_steps", 0))  # compiled steps in the window
         self.step_seconds = float(window.get("step_seconds", 0.0))  # and their time only
@@ -116,9 +125,11 @@ class RunBook:
     def write_val(self, state, step: int, val_loss: float) -> None:
         """The val record of ``state``; a val loss that beats the best (after step 0) saves
         ``state`` as the ``best`` checkpoint."""
-        improved = step > 0 and self.store.save_if_best(state, self.config, val_loss,
-                                                        log_window=self.window_state())
+        improved = step > 0 and math.isfinite(val_loss) and (
+            self.best_loss is None or val_loss < self.best_loss)
         if improved:
+            self.store.save_best(state, self.config, val_loss,
+                                 log_window=self.window_state(best=(val_loss, step)))
             self.best_loss, self.best_step = val_loss, step
         self._write({"kind": "val", "step": step, "val_loss": val_loss, "best": bool(improved)})
 
@@ -129,10 +140,12 @@ class RunBook:
         """A checkpoint of ``state`` in ``last`` (a step already saved is not saved again)."""
         self.store.save(state, self.config, log_window=self.window_state())
 
-    def window_state(self) -> dict:
-        """The window as JSON data, carried by every checkpoint."""
+    def window_state(self, best: tuple[float, int] | None = None) -> dict:
+        """The window as JSON data, carried by every checkpoint, with the best val loss and its
+        step so far (``best``: those the save itself makes)."""
+        loss, step = (self.best_loss, self.best_step) if best is None else best
         return {"records": self.window, "timed_steps": self.timed_steps,
-                "step_seconds": self.step_seconds}
+                "step_seconds": self.step_seconds, "best_val_loss": loss, "best_step": step}
 
     def latest_step(self) -> int | None:
         return self.store.latest_step()
@@ -167,6 +180,25 @@ class RunBook:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _best_as_of(window: dict, kept: list[str] | None, store: checkpoint.CheckpointStore,
+                start_step: int) -> tuple[float | None, int | None]:
+    """(best val loss, its step) of a run as of ``start_step`` (see :class:`RunBook`)."""
+    if "best_val_loss" in window:  # saved with the checkpoint the run continues
+        loss, step = window["best_val_loss"], window.get("best_step")
+        return (None if loss is None else float(loss)), (None if step is None else int(step))
+    if kept is not None and jax.process_count() == 1:  # older checkpoints: the kept records
+        best = (None, None)
+        for line in kept:
+            record = json.loads(line)
+            if record.get("kind") == "val" and record.get("best") is True:
+                best = (float(record["val_loss"]), int(record["step"]))
+        return best
+    step = store.best_step()
+    if step is None or step > start_step:
+        return None, None
+    return store.best_val_loss, step
 
 
 def kept_records(run_dir: pathlib.Path, resumed_step: int | None,
@@ -231,8 +263,13 @@ def checkpoint_root(run_dir: pathlib.Path) -> pathlib.Path:
 def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig | None:
     """The ``config.json`` of a run that saved no checkpoint yet (killed or interrupted before
     its first save), which ``--resume`` starts again from step 0; None when the run directory
-    holds a checkpoint (or anything else). ValueError if there is nothing to start from."""
-    if not run_dir.is_dir() or rundir.has_checkpoint(run_dir):
+    holds a checkpoint (or anything else). ValueError if there is nothing to start from.
+
+    A run killed between its first ``best/N`` save and its ``last/N`` save holds only a best
+    checkpoint: without ``from_step`` it too starts again from step 0 (it saved no state to
+    continue; the replay saves the same best again)."""
+    only_best = from_step is None and _only_best_saved(run_dir)
+    if not run_dir.is_dir() or (rundir.has_checkpoint(run_dir) and not only_best):
         checkpoint_root(run_dir)  # a checkpoint directory given as the run: refused
         return None
     if from_step is not None:
@@ -240,11 +277,22 @@ def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig
     try:
         return TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
     except FileNotFoundError:
+        if only_best:
+            return checkpoint.load_config(run_dir / "checkpoints", checkpoint.BEST)
         raise ValueError(f"run directory {run_dir} holds no checkpoint and no config.json: "
                          f"nothing to resume; start a new run there") from None
     except (OSError, ValueError, TypeError) as err:
         raise ValueError(f"run directory {run_dir} holds no checkpoint, and its config.json "
                          f"is unreadable ({err}); start a new run there") from None
+
+
+def _only_best_saved(run_dir: pathlib.Path) -> bool:
+    """Whether the run's checkpoints hold a finished ``best`` step and no ``last`` one."""
+    root = run_dir / "checkpoints"
+    if not root.is_dir() or root.is_symlink():
+        return False
+    held = {sub.name for _, sub in checkpoint.saved_copies(root)}
+    return held == {"best"}
 
 
 def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int | None,
@@ -255,7 +303,8 @@ def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int |
     unsaved = _unsaved_config(run_dir, from_step)
     if unsaved is not None:
         check_resumable(unsaved, cfg)
-        log(f"No checkpoint was saved in {run_dir} yet: starting the run again from step 0")
+        log(f"No checkpoint of the state to continue was saved in {run_dir} yet: starting the "
+            f"run again from step 0")
         return None
     root = checkpoint_root(run_dir)
     check_resumable(checkpoint.load_config(root, step=from_step), cfg)

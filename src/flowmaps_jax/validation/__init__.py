@@ -19,13 +19,17 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
   name, a metadata field: no path, no markup); :func:`read_npz` (an untrusted ``.npz``: member
   names whitelisted, declared sizes checked before anything is decompressed, no pickles).
+* :mod:`.writes`: :func:`write_file`, :func:`make_output_dir`, :func:`save_figure`,
+  :func:`check_no_links`: the one writer of every command's output files (a temporary file and
+  a rename; a symbolic link at the target, or in a folder it creates, is refused).
 * :mod:`.resources`: :func:`array_bytes`, :func:`memory_limit`, :func:`flops_limit`,
   :func:`check_request_size`, :func:`check_resources`, :func:`network_flops`,
-  :func:`solver_evaluations`. Every size that scales memory or time goes through
-  :func:`check_resources` before anything runs: a request above the budget is a ``ValueError``
-  naming it, the estimate and the limit. The budgets: memory, :data:`MAX_BYTES_ENV` (default the
-  accelerator's memory, else the host's); work, :data:`MAX_FLOPS_ENV` (default
-  :data:`DEFAULT_MAX_FLOPS` floating-point operations per uninterruptible call).
+  :func:`solver_evaluations`, :func:`embedding_bytes`, :func:`embedding_flops`. Every size that
+  scales memory or time goes through :func:`check_resources` before anything runs: a request
+  above the budget is a ``ValueError`` naming it, the estimate and the limit. The budgets:
+  memory, :data:`MAX_BYTES_ENV` (default the accelerator's memory, else the host's); work,
+  :data:`MAX_FLOPS_ENV` (default :data:`DEFAULT_MAX_FLOPS` floating-point operations per
+  uninterruptible call; a sequential step counts as at least :data:`SEQUENTIAL_FLOPS`).
 """
 
 from flowmaps_jax.validation.arrays import (
@@ -51,9 +55,12 @@ from flowmaps_jax.validation.resources import (
     DEFAULT_MAX_FLOPS,
     MAX_BYTES_ENV,
     MAX_FLOPS_ENV,
+    SEQUENTIAL_FLOPS,
     array_bytes,
     check_request_size,
     check_resources,
+    embedding_bytes,
+    embedding_flops,
     flops_limit,
     memory_limit,
     network_flops,
@@ -71,6 +78,12 @@ from flowmaps_jax.validation.scalars import (
     check_seed,
     is_real_dtype,
 )
+from flowmaps_jax.validation.writes import (
+    check_no_links,
+    make_output_dir,
+    save_figure,
+    write_file,
+)
 
 __all__ = [
     "DEFAULT_MAX_FLOPS",
@@ -79,6 +92,7 @@ __all__ = [
     "MAX_FLOPS_ENV",
     "PROB_ATOL",
     "SEED_MAX",
+    "SEQUENTIAL_FLOPS",
     "array_bytes",
     "check_array",
     "check_choice",
@@ -90,6 +104,7 @@ __all__ = [
     "check_int_array",
     "check_key",
     "check_mask",
+    "check_no_links",
     "check_output_dir",
     "check_output_file",
     "check_path",
@@ -101,11 +116,16 @@ __all__ = [
     "check_resources",
     "check_seed",
     "check_shape",
+    "embedding_bytes",
+    "embedding_flops",
     "flops_limit",
     "is_concrete",
     "is_real_dtype",
+    "make_output_dir",
     "memory_limit",
     "network_flops",
     "read_npz",
+    "save_figure",
     "solver_evaluations",
+    "write_file",
 ]

@@ -57,6 +57,25 @@ def check_dir(name: str, value: Any) -> str:
     return path
 
 
+def _check_name_lengths(name: str, path: str) -> None:
+    """``ValueError`` if a component of ``path`` is longer than the file system allows (NAME_MAX,
+    usually 255 bytes) or the whole path longer than PATH_MAX: it could never be created."""
+    parent = _existing_parent(path)
+    try:
+        name_max = os.pathconf(parent, "PC_NAME_MAX")
+        path_max = os.pathconf(parent, "PC_PATH_MAX")
+    except (OSError, ValueError, AttributeError):
+        name_max, path_max = 255, 4096
+    for part in path.split(os.sep):
+        if len(os.fsencode(part)) > name_max:
+            raise ValueError(f"{name} {_short_repr(path)}: the name {_short_repr(part, 40)} is "
+                             f"{len(os.fsencode(part))} bytes long, more than the {name_max} "
+                             f"the file system allows")
+    if len(os.fsencode(os.path.abspath(path))) >= path_max:
+        raise ValueError(f"{name} {_short_repr(path)} is longer than the {path_max} bytes the "
+                         f"file system allows for a path")
+
+
 def _existing_parent(path: str) -> str:
     parent = os.path.dirname(os.path.abspath(path))
     while not os.path.exists(parent):
@@ -68,6 +87,7 @@ def check_output_file(name: str, value: Any, *, overwrite: bool = True) -> str:
     """A file path that can be written now: its folder exists and is writable, the path is not a
     directory, and (unless ``overwrite``) no file is there yet."""
     path = check_path(name, value)
+    _check_name_lengths(name, path)
     if os.path.isdir(path):
         raise ValueError(f"{name} {path!r} is a directory; give a file path")
     folder = os.path.dirname(os.path.abspath(path))
@@ -86,8 +106,10 @@ def check_output_file(name: str, value: Any, *, overwrite: bool = True) -> str:
 
 def check_output_dir(name: str, value: Any, *, empty: bool = False) -> str:
     """A directory that exists (or can be created) and is writable; with ``empty``, one that
-    holds nothing yet. A path that is a file, or lies under a file, is refused."""
+    holds nothing yet. A path that is a file, or lies under a file, is refused, and so is one
+    with a name longer than the file system allows."""
     path = check_path(name, value)
+    _check_name_lengths(name, path)
     if os.path.exists(path):
         if not os.path.isdir(path):
             raise ValueError(f"{name} {path!r} is a file, not a directory")

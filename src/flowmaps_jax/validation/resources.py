@@ -28,6 +28,12 @@ DEFAULT_MAX_FLOPS = 10**17
 """Default work budget, by the generous estimates here: about 200 default evaluations of the cpu
 preset's models (2 minutes each on a 2-core CPU) or 30 of a paper-size model; it refuses sizes
 that would run for days (``--num-steps 10**9``). Raise it with :data:`MAX_FLOPS_ENV`."""
+SEQUENTIAL_FLOPS = 10**12
+"""What one step of a sequential loop (an ODE solver's network evaluation) counts for in the work
+budget at the least, however small the batch: the steps run one after another, so their
+latency, not their arithmetic, sets the time (``num_steps=10**6`` on four samples runs for
+minutes). With the default budget a call may take 10**5 sequential evaluations (a midpoint
+solve on 50 000 grid points; the default is 10)."""
 _SUFFIXES = {"": 1, "K": 10**3, "M": 10**6, "G": 10**9, "T": 10**12, "P": 10**15,
              "KI": 2**10, "MI": 2**20, "GI": 2**30, "TI": 2**40, "PI": 2**50}
 
@@ -91,12 +97,19 @@ def check_request_size(name: str, num_bytes: int, limit: int | None = None) -> i
     return int(num_bytes)
 
 
-def check_resources(name: str, *, num_bytes: int = 0, flops: int = 0) -> None:
+def check_resources(name: str, *, num_bytes: int = 0, flops: int = 0,
+                    sequential: int = 0) -> None:
     """The shared budget check: ``ValueError`` naming ``name`` (the argument and its value)
     when the estimated memory (bytes) or work (FLOPs) is over :func:`memory_limit` /
-    :func:`flops_limit`."""
+    :func:`flops_limit`. ``sequential``: steps of the call that run one after another (an ODE
+    solve's network evaluations), each counted as at least :data:`SEQUENTIAL_FLOPS`."""
     check_request_size(name, int(num_bytes))
     limit = flops_limit()
+    if int(sequential) * SEQUENTIAL_FLOPS > limit:
+        raise ValueError(f"{name} would run {float(sequential):.3g} network evaluations one "
+                         f"after another, more than the {float(limit // SEQUENTIAL_FLOPS):.3g} "
+                         f"the work budget allows ({MAX_FLOPS_ENV} overrides it; each counts "
+                         f"as {float(SEQUENTIAL_FLOPS):.0e} operations); ask for fewer steps")
     if flops > limit:
         raise ValueError(f"{name} would take about {float(flops):.3g} floating-point operations, "
                          f"more than the budget of {float(limit):.3g} ({MAX_FLOPS_ENV} overrides "
@@ -110,13 +123,29 @@ def network_flops(model: Any, kind: str, num_tokens: int) -> tuple[int, int]:
     dim, ratio = int(model.dim), int(model.mlp_ratio)
     per_layer = dim * dim * (4 + 2 * ratio)
     encoder = 2 * int(model.encoder_layers) * num_tokens * (per_layer + 2 * num_tokens * dim)
+    encoder += num_tokens * embedding_flops(model, 4)  # each token's box
+    query = embedding_flops(model, 5)  # a query's box and its time
     if kind == "mlp":
         hidden = int(model.baseline_hidden)
-        return 2 * (dim * hidden + hidden * hidden + 8 * hidden + 4 * dim * dim), encoder
+        return 2 * (dim * hidden + hidden * hidden + 8 * hidden + 4 * dim * dim) + query, encoder
     blocks = int(model.cdit_blocks)
-    return 2 * blocks * (per_layer + 6 * dim * dim + 2 * num_tokens * dim), encoder
+    return 2 * blocks * (per_layer + 6 * dim * dim + 2 * num_tokens * dim) + query, encoder
 
 
 def solver_evaluations(num_steps: int, method: str = "midpoint") -> int:
-    """Network evaluations of one ODE solve with ``num_steps`` grid points."""
-    return (int(num_steps) - 1) * (2 if method == "midpoint" else 1)
+    """Network evaluations of one ODE solve with ``num_steps`` grid points (midpoint 2 per
+    interval, RK4 ("accurate") 4, Euler 1)."""
+    return (int(num_steps) - 1) * {"midpoint": 2, "accurate": 4}.get(method, 1)
+
+
+def embedding_bytes(model: Any, scalars: int) -> int:
+    """Bytes of the sinusoidal features of ``scalars`` scalars of one row or token (their
+    arguments, sines, cosines and the concatenation fed to the first dense layer: 5 floats per
+    scalar and band): what ``model.freq_bands`` adds to every row's working memory."""
+    return 4 * 5 * int(scalars) * int(model.freq_bands)
+
+
+def embedding_flops(model: Any, scalars: int) -> int:
+    """FLOPs of the sinusoidal embedding of ``scalars`` scalars (their 2 × ``freq_bands``
+    features through a dense layer of width ``model.dim``)."""
+    return 2 * 2 * int(scalars) * int(model.freq_bands) * int(model.dim)

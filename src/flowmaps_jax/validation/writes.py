@@ -1,0 +1,111 @@
+"""The one writer every command's output files go through (reports, JSON, Markdown, PNG, shipped
+weights, a run's config and metrics): nothing is ever written through a symbolic link.
+
+* :func:`write_file` writes bytes or text to a path: a symbolic link at the path is refused
+  (``ValueError`` naming it), the data goes to ``<path>.tmp`` (created exclusively, never
+  following a link; a leftover there is removed first) and is renamed into place, so a crash or
+  a full disk never leaves a half-written file and no file outside the output folder changes.
+* :func:`make_output_dir` creates an output folder and the parents it lacks, one by one; a
+  component that turns out to be a symbolic link (planted while it was being created) is
+  refused. An existing folder given by the caller (``--out``) is used as it is.
+* :func:`save_figure` renders a matplotlib figure in memory and writes it with
+  :func:`write_file`.
+* :func:`check_no_links` refuses, up front, links at the names a command is about to write, so
+  that a command refuses before it runs for minutes rather than after.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import pathlib
+from collections.abc import Iterable
+from typing import Any
+
+_NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
+
+
+def _link_error(name: str, path: os.PathLike | str) -> ValueError:
+    try:
+        target = os.readlink(path)
+    except OSError:
+        target = "?"
+    return ValueError(f"{name} {os.fspath(path)!r} is a symbolic link (-> {target}); refusing to "
+                      f"write through it: remove the link or choose another output folder")
+
+
+def check_no_links(name: str, folder: Any, filenames: Iterable[str]) -> None:
+    """``ValueError`` if any of ``filenames`` (or its temporary ``<name>.tmp``) inside ``folder``
+    is a symbolic link: writing there would go outside ``folder``."""
+    folder = pathlib.Path(folder)
+    for filename in filenames:
+        for candidate in (folder / filename, folder / f"{filename}.tmp"):
+            if candidate.is_symlink():
+                raise _link_error(name, candidate)
+
+
+def make_output_dir(name: str, path: Any) -> pathlib.Path:
+    """The folder ``path``, created with the parents it lacks (each one by this call, with
+    ``mkdir``, which never follows a link); ``ValueError`` naming ``name`` if a component it
+    creates is, or becomes, a symbolic link or a file. Returns it as a Path."""
+    path = pathlib.Path(path)
+    missing = []
+    probe = path
+    while not os.path.lexists(probe):
+        missing.append(probe)
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if missing and not os.path.isdir(probe):
+        raise ValueError(f"{name} {os.fspath(path)!r} lies under {os.fspath(probe)!r}, which is "
+                         f"not a directory")
+    for component in reversed(missing):
+        try:
+            os.mkdir(component)
+        except FileExistsError:
+            pass  # made meanwhile by another process: checked below
+        if os.path.islink(component):
+            raise _link_error(name, component)
+        if not os.path.isdir(component):
+            raise ValueError(f"{name} {os.fspath(component)!r} is a file, not a directory")
+    if not os.path.isdir(path):
+        raise ValueError(f"{name} {os.fspath(path)!r} is a file, not a directory")
+    return path
+
+
+def write_file(path: Any, data: str | bytes, *, name: str = "output file") -> pathlib.Path:
+    """Write ``data`` (text as UTF-8, or bytes) to ``path`` through ``<path>.tmp`` and a rename.
+
+    A symbolic link at ``path`` is a ``ValueError`` naming ``name`` (nothing is written); one at
+    the temporary name is removed, never followed. The temporary file is created exclusively
+    (``O_EXCL | O_NOFOLLOW``), synced, then renamed over ``path``. An ``OSError`` (a full disk)
+    removes the temporary file and propagates. Returns ``path`` as a Path."""
+    path = pathlib.Path(path)
+    if path.is_symlink():
+        raise _link_error(name, path)
+    tmp = path.with_name(path.name + ".tmp")
+    raw = data.encode() if isinstance(data, str) else bytes(data)
+    try:
+        tmp.unlink(missing_ok=True)  # a leftover (or a planted link): removed, never followed
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
+        with os.fdopen(fd, "wb") as file:
+            file.write(raw)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)  # replaces the name itself: a link planted meanwhile goes
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def save_figure(figure: Any, path: Any, *, name: str = "figure", **savefig_kwargs) -> pathlib.Path:
+    """``figure.savefig`` rendered in memory (the format from ``path``'s suffix unless given),
+    then written with :func:`write_file`."""
+    path = pathlib.Path(path)
+    buffer = io.BytesIO()
+    savefig_kwargs.setdefault("format", path.suffix.lstrip(".") or "png")
+    figure.savefig(buffer, **savefig_kwargs)
+    return write_file(path, buffer.getvalue(), name=name)
