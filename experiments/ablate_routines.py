@@ -1,7 +1,8 @@
 """Ablation: what makes FlowMaps learn the routines? Equal steps of one schedule per variant.
 
-Every variant is the `cpu` preset's full schedule (8,500 steps, cosine) with the paper's recipe
-(the preset before issue 8, ``OLD_CPU``) and then some fields changed,
+Every variant is the `cpu-pointer` preset's full schedule (8,500 steps, cosine; the `cpu` preset
+before issue 33) with the paper's recipe (the preset before issue 8, ``OLD_CPU``) and then some
+fields changed,
 trained sequentially (never side by side) and stopped after ``--stop-at`` steps, so variants are
 compared at equal steps of the same learning-rate schedule; the step time of each is reported, so
 equal wall-clock can be read off too. Each is then scored on the evaluation protocol (first
@@ -63,6 +64,15 @@ VARIANTS = {
                                      "model.pointer_width_scale=10"],
     "route head (transition^Δτ), relative widths": [*RECIPE, "model.head=route", "pointer_loss=1",
                                                     "model.pointer_width_scale=10"],
+    # issue 33: the pointer head (the cpu preset until then) and the mixture head, both on
+    # endless data, at equal steps of the same schedule
+    "pointer head, relative widths, endless data": [*RECIPE, "model.head=pointer",
+                                                    "pointer_loss=1",
+                                                    "model.pointer_widths=relative",
+                                                    "model.pointer_width_scale=10",
+                                                    "data=endless"],
+    "mixture head (table weights + placement flow), endless data": [
+        *RECIPE, "model.head=mixture", "pointer_loss=1", "data=endless"],
 }
 
 
@@ -89,7 +99,7 @@ def main() -> None:
     if unknown:
         parser.error(f"--only: no variant named {', '.join(map(repr, unknown))}; the variants are "
                      + ", ".join(map(repr, VARIANTS)))
-    preset = "smoke" if args.smoke else "cpu"
+    preset = "smoke" if args.smoke else "cpu-pointer"  # the cpu preset before issue 33
     for name, full, smoke in (("stop_at", 2000, 4), ("num_envs", 100, 4),
                               ("out", "runs/ablation", "runs/ablation-smoke")):
         if getattr(args, name) is None:

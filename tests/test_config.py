@@ -37,7 +37,13 @@ def test_default_is_cpu_and_smoke_is_tiny():
     assert smoke.model.dim < cpu.model.dim < get_preset("paper").model.dim
     assert smoke.steps <= 50 and smoke.train_envs <= 100
     assert cpu.t_sampler == "beta" and cpu.model.box_scale == 1.0
-    assert cpu.model.head == "pointer" and cpu.pointer_loss > 0
+    assert cpu.model.head == "mixture" and cpu.pointer_loss > 0
+    # issue 33: fresh homes every chunk by default; the paper's recipe keeps the fixed split, and
+    # the previous default (pointer head, fixed split) stays as cpu-pointer, the habits' base
+    assert cpu.data == "endless" and get_preset("paper").data == "train"
+    old = get_preset("cpu-pointer")
+    assert (old.model.head, old.data, old.steps) == ("pointer", "train", 8500)
+    assert get_preset("habits").model.head == "pointer"
 
 
 def test_pointer_loss_needs_the_pointer_head_but_the_mlp_ignores_it():

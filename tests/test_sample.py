@@ -322,7 +322,8 @@ def test_exported_weights_load_as_the_same_predictor(tmp_path, checkpoints, inpu
 
 def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
     """The .json says which checkpoint of the run it holds ("best" or "latest") and why; the
-    CLI exports the last step by default and the best-by-validation one with --which best."""
+    CLI exports the best-by-validation step by default (the one evaluate and search load) and
+    the last one with --which latest."""
     import json
 
     from flowmaps_jax import export, shipped
@@ -339,7 +340,7 @@ def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
     for which, step in (("latest", 7), ("best", 3)):
         out = tmp_path / which
         args = ["--checkpoint", str(run), "--name", "flowmaps", "--out", str(out)]
-        assert export.main(args + ([] if which == "latest" else ["--which", "best"])) == 0
+        assert export.main(args + ([] if which == "best" else ["--which", "latest"])) == 0
         meta = json.loads((out / "flowmaps.json").read_text())
         assert (meta["which"], meta["step"]) == (which, step)
         assert f"step {step}" in meta["why"]
@@ -353,7 +354,8 @@ def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
     assert "best validation loss was at step 3" in json.loads(
         (tmp_path / "latest" / "flowmaps.json").read_text())["why"]
     # a given reason is stored as given; a run without a best step exports its last, and says so
-    export.export_pretrained(run, "flowmaps", tmp_path / "why", why="the docs use it")
+    export.export_pretrained(run, "flowmaps", tmp_path / "why", why="the docs use it",
+                             which="latest")
     assert shipped.describe("flowmaps", tmp_path / "why")["why"] == "the docs use it"
     export.export_pretrained(path, "flowmaps", tmp_path / "nobest", which="best")
     info = shipped.describe("flowmaps", tmp_path / "nobest")

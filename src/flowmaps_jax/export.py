@@ -2,7 +2,8 @@
 
 :func:`export_pretrained` writes ``<name>.npz`` and ``<name>.json`` (atomically: temporary files,
 then renames), e.g. ``python -m flowmaps_jax.export --checkpoint runs/X/checkpoints --name mlp``
-(the last step; ``--which best`` exports the best-by-validation step instead).
+(the best-by-validation step, the one evaluate and search load by default: one default path;
+``--which latest`` exports the last step instead).
 ``python -m flowmaps_jax.pretrained`` runs the same command.
 """
 
@@ -22,8 +23,13 @@ from flax import traverse_util
 from flowmaps_jax.predictor import load
 from flowmaps_jax.shipped import MAX_BYTES, NAMES, PRETRAINED_DIR, WHICH, check_name, describe
 from flowmaps_jax.training import checkpoint
-from flowmaps_jax.training.rundir import write_atomic
-from flowmaps_jax.validation import check_choice, check_output_dir
+from flowmaps_jax.validation import (
+    check_choice,
+    check_no_links,
+    check_output_dir,
+    make_output_dir,
+    write_file,
+)
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -38,7 +44,7 @@ def _params_bytes(params) -> bytes:
 def _default_why(which: str, step: int, best_step: int | None, latest_step: int | None) -> str:
     """The reason recorded for an export without ``why``: what the step is within its run."""
     if which == "best":
-        return (f"step {step}, the run's lowest validation loss (the step evaluate and search "
+        return (f"step {step}, the run's lowest validation score (the step evaluate and search "
                 f"load from a run by default); the run's last step is {latest_step}")
     best = (f"its best validation loss was at step {best_step}" if best_step is not None
             else "it saved no best-by-validation step")
@@ -47,11 +53,12 @@ def _default_why(which: str, step: int, best_step: int | None, latest_step: int 
 
 def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
                       directory: str | pathlib.Path = PRETRAINED_DIR,
-                      which: str = "latest", note: str = "", why: str = "") -> pathlib.Path:
+                      which: str = "best", note: str = "", why: str = "") -> pathlib.Path:
     """Copy a checkpoint's EMA weights into ``directory`` as ``name`` (.npz + .json).
 
-    which: "latest" (the end of the run, default) or "best" (lowest validation loss; a run
-    without one exports its latest step, and the .json says so). The .json records ``which``
+    which: "best" (default: the step evaluate and search load by default, lowest validation
+    score; a run without one exports its latest step, and the .json says so) or "latest" (the
+    end of the run). The .json records ``which``
     and ``why``: the given reason, or by default what the step is within its run (its last
     step or its best, and the step of the other). Raises ``ValueError`` if the checkpoint is
     missing, holds a different model family than the name implies, or is too big. Returns the
@@ -62,6 +69,7 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     if not isinstance(why, str):
         raise ValueError(f"why must be text; got {type(why).__name__}")
     check_output_dir("directory", directory)  # before anything is read or written
+    check_no_links("directory", directory, [f"{name}.npz", f"{name}.json"])
     ckpt_root = checkpoint.resolve_checkpoint_dir(checkpoint_dir)
     best_step = next(iter(checkpoint.saved_steps(ckpt_root, checkpoint.BEST)), None)
     latest_step = next(iter(checkpoint.saved_steps(ckpt_root, checkpoint.LATEST)), None)
@@ -82,16 +90,16 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     if len(data) > MAX_BYTES:
         raise ValueError(f"{name}: {len(data) / 2**20:.1f} MB of weights, over the "
                          f"{MAX_BYTES / 2**20:.0f} MB budget")
-    root = pathlib.Path(directory)
-    root.mkdir(parents=True, exist_ok=True)
+    root = make_output_dir("directory", directory)
     meta = {"name": name, "kind": predictor.kind, "step": predictor.step,
             "source": str(checkpoint_dir), "which": which,
             "why": why or (("--which best, but " if fallback else "")
                            + _default_why(which, predictor.step, best_step, latest_step)),
             "note": note,
             "sha256": hashlib.sha256(data).hexdigest(), "config": cfg.to_dict()}
-    write_atomic(root / f"{name}.npz", data)  # a temporary file and a rename; no link followed
-    write_atomic(root / f"{name}.json", (json.dumps(meta, indent=2) + "\n").encode())
+    text = json.dumps(meta, indent=2) + "\n"
+    write_file(root / f"{name}.npz", data, name="directory file")  # a temporary file, a rename
+    write_file(root / f"{name}.json", text, name="directory file")
     return root / f"{name}.npz"
 
 
@@ -101,9 +109,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      description="Export a checkpoint as a shipped model.")
     parser.add_argument("--checkpoint", required=True, help="run or checkpoint directory")
     parser.add_argument("--name", required=True, choices=NAMES)
-    parser.add_argument("--which", choices=WHICH, default="latest",
-                        help="the run's last step (latest, default: the shipped weights are the "
-                             "runs' last steps) or its best-by-validation step (best)")
+    parser.add_argument("--which", choices=WHICH, default="best",
+                        help="the run's best-by-validation step (best, default: the step "
+                             "evaluate and search load) or its last step (latest)")
     parser.add_argument("--out", default=str(PRETRAINED_DIR), help="target directory")
     parser.add_argument("--note", default="", help="provenance note stored in the .json")
     parser.add_argument("--why", default="",

@@ -49,7 +49,7 @@ from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
-from flowmaps_jax.model.family import ModelFamily, canonical_inputs
+from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
 from flowmaps_jax.model.flowmaps import check_inputs
 from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles
@@ -60,7 +60,10 @@ from flowmaps_jax.validation import (
     check_int,
     check_key,
     check_real_array,
-    check_request_size,
+    check_resources,
+    embedding_bytes,
+    network_flops,
+    solver_evaluations,
 )
 
 SOLVERS = flow.SOLVERS
@@ -182,10 +185,23 @@ class Predictor:
                              f"B={b}, Q={q}")
         return b, q
 
-    def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool) -> None:
-        """Refuse (ValueError) a request whose working memory would not fit, before XLA tries."""
-        check_request_size(f"{what} of {b} scenes x {q} queries x {n} boxes",
-                           self.family.request_bytes(self.model, b * q * n, with_density))
+    def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool,
+                       num_steps: int = 2, method: str = "midpoint", slots: int = 1) -> None:
+        """Refuse (ValueError) a request whose working memory or work would not fit the shared
+        budget (:func:`flowmaps_jax.validation.check_resources`), before XLA tries: the rows'
+        memory (``model.freq_bands`` included), the solver's ``num_steps`` (its time grid, and
+        its evaluations one after another) and the FLOPs of every evaluation."""
+        rows = b * q * n
+        factor = DENSITY_FACTOR if with_density else 1
+        evaluations = solver_evaluations(num_steps, method) if self.family.uses_solver else 1
+        per_row, per_map = network_flops(self.model, self.kind, slots)
+        check_resources(
+            f"{what} of {b} scenes x {q} queries x {n} boxes with num_steps={num_steps} "
+            f"(model.freq_bands={self.model.freq_bands})",
+            num_bytes=self.family.request_bytes(self.model, rows, with_density)
+            + rows * factor * embedding_bytes(self.model, 5) + 8 * num_steps,
+            flops=rows * evaluations * factor * per_row + b * per_map,
+            sequential=evaluations)
 
     # ----------------------------------------------------------------------- inference
 
@@ -202,14 +218,16 @@ class Predictor:
         ``return_log_prob=True`` returns ``(boxes, log_p)`` with log_p (B, Q, num_samples) the
         exact log-density of each normalised box, from the same forward solve (FlowMaps
         integrates the augmented ODE with the exact divergence: no second, backward solve;
-        the boxes equal those without it, to float rounding). Planners weigh samples with it.
+        the boxes equal those without it, to float rounding; the mixture head sums the near
+        tables' terms, so it solves backwards once more). Planners weigh samples with it.
         """
         b, q = self.validate(tokens, queries)
         num_samples = check_int("num_samples", num_samples)
         num_steps, method = flow.check_solver(num_steps, method)
         check_flag("pixels", pixels)
         check_flag("return_log_prob", return_log_prob)
-        self._check_request("sample", b, q, num_samples, return_log_prob)
+        self._check_request("sample", b, q, num_samples, return_log_prob, num_steps, method,
+                            np.shape(tokens.boxes)[1])
         keys = scene_keys(key, b)
         tokens, queries, keys = self._on_mesh(*canonical_inputs(tokens, queries), keys)
         family = self.family
@@ -246,7 +264,8 @@ class Predictor:
         x = jnp.asarray(check_real_array("x", x, (b, q, None, 4)), jnp.float32)
         if x.shape[2] < 1:
             raise ValueError("x must hold at least one box per query (N >= 1)")
-        self._check_request("log_prob", b, q, x.shape[2], True)
+        self._check_request("log_prob", b, q, x.shape[2], True, num_steps, method,
+                            np.shape(tokens.boxes)[1])
         far = jnp.any(jnp.abs(x) > FAR_LIMIT, axis=-1)  # (B, Q, N): density 0, not NaN
         x = jnp.where(far[..., None], 0.5, x)
         tokens, queries, x = self._on_mesh(*canonical_inputs(tokens, queries), x)
@@ -256,19 +275,22 @@ class Predictor:
 
     @property
     def has_table_weights(self) -> bool:
-        """Whether :meth:`table_weights` applies: FlowMaps with a pointer or route read-out."""
+        """Whether :meth:`table_weights` applies: FlowMaps with a mixture, pointer or route
+        read-out."""
         return self.family.has_table_weights(self.model)
 
     def table_weights(self, tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
-        """FlowMaps with a read-out head (``model.head`` "pointer" or "route"): the mass
-        (B, Q, S + 1) its mixture puts on each table of the map, read from the model without
+        """FlowMaps with a read-out head (``model.head`` "mixture", "pointer" or "route"): the
+        mass (B, Q, S + 1) its mixture puts on each table of the map, read from the model without
         sampling (:func:`flowmaps_jax.model.inference.table_weights`). Weight on tokens that are
-        not tables goes to the "off" entry (last). The route head's samples follow these
-        weights exactly while its residual is zero; the pointer head's are its weights at t = 0.
+        not tables goes to the "off" entry (last). The mixture head's weights are its posterior
+        over tables itself (its samples draw their table from them); the route head's samples
+        follow them while its residual is zero; the pointer head's are its weights at t = 0.
         """
         if not self.has_table_weights:
-            raise ValueError("table_weights needs a FlowMaps model with model.head 'pointer' or "
-                             f"'route' (explicit mixture weights); this one is {self.name} with "
+            raise ValueError("table_weights needs a FlowMaps model with model.head 'mixture', "
+                             f"'pointer' or 'route' (explicit mixture weights); this one is "
+                             f"{self.name} with "
                              f"head={self.model.head!r}: use table_probabilities with samples")
         b, _ = self.validate(tokens, queries)
         s = np.shape(tokens.boxes)[1]

@@ -13,9 +13,10 @@ import dataclasses
 from flowmaps_jax.validation import check_choice, check_flag, check_int, check_real
 
 BASELINE_VARIANCES = ("mean", "learned")
-HEADS = ("velocity", "pointer", "route")
+HEADS = ("velocity", "pointer", "route", "mixture")
 PRECISIONS = ("float32", "bf16")
 POINTER_WIDTHS = ("absolute", "relative")
+WEIGHT_ATTENTION = ("cross", "self")
 REMOVED_FIELDS = ("max_tokens",)
 """Fields that older configs carry and that configured nothing: :meth:`ModelConfig.from_dict`
 drops them, so configs saved with them still load."""
@@ -46,7 +47,14 @@ class ModelConfig:
         "Sharper boxes"). (0, 1), the default, is the paper's identity map.
     head: the velocity read-out: ``"velocity"`` (the paper's linear head), ``"pointer"`` (a
         Gaussian mixture over the map's tokens, :mod:`flowmaps_jax.model.readout`) or ``"route"``
-        (the pointer with a one-step transition raised to Δτ, :mod:`flowmaps_jax.model.route`).
+        (the pointer with a one-step transition raised to Δτ, :mod:`flowmaps_jax.model.route`) or
+        ``"mixture"`` (explicit table weights from their own CDiT rows and a flow placing the
+        object on the chosen table, :mod:`flowmaps_jax.model.mixture`).
+    weight_blocks: blocks of the mixture head's table-weight rows (``head="mixture"``).
+    weight_attention: how those rows attend (``head="mixture"``): ``"cross"`` (CDiT blocks: each
+        row cross-attends to the map's context tokens) or ``"self"`` (pre-norm transformer
+        layers over one object's rows, so that each row sees every other table's relation to the
+        table the object stands on).
     pointer_width_scale: the pointer/route widths' log-variance is this × its parameter, so Adam
         moves it this much faster.
     pointer_widths: ``"absolute"`` (the pointer's widths in flow units, as first shipped) or
@@ -83,10 +91,13 @@ class ModelConfig:
     condition_on_dtau: bool = False
     precision: str = "float32"
     history: int = 1
+    weight_blocks: int = 2
+    weight_attention: str = "cross"
 
     def __post_init__(self):
         for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
-                     "num_descriptors", "tau_max", "freq_bands", "baseline_hidden", "history"):
+                     "num_descriptors", "tau_max", "freq_bands", "baseline_hidden", "history",
+                     "weight_blocks"):
             check_int(f"ModelConfig.{name}", getattr(self, name))
         if self.dim % self.heads:
             raise ValueError(
@@ -101,6 +112,7 @@ class ModelConfig:
         check_real("ModelConfig.pointer_width_scale", self.pointer_width_scale, 0.0, 1000.0,
                    low_open=True)
         check_choice("ModelConfig.pointer_widths", self.pointer_widths, POINTER_WIDTHS)
+        check_choice("ModelConfig.weight_attention", self.weight_attention, WEIGHT_ATTENTION)
         check_flag("ModelConfig.condition_on_dtau", self.condition_on_dtau)
         check_choice("ModelConfig.baseline_variance", self.baseline_variance, BASELINE_VARIANCES)
         check_choice("ModelConfig.precision", self.precision, PRECISIONS)

@@ -22,10 +22,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from flowmaps_jax.model import mixture
 from flowmaps_jax.model.cdit import CDiTBlock, FinalLayer
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.embeddings import SinusoidalMLP
-from flowmaps_jax.model.encoder import MapEncoder, example_inputs
+from flowmaps_jax.model.embeddings import FlatDense, SinusoidalMLP
+from flowmaps_jax.model.encoder import EncoderLayer, MapEncoder, example_inputs
 from flowmaps_jax.model.readout import PointerReadout
 from flowmaps_jax.model.route import RouteReadout
 from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
@@ -65,7 +66,7 @@ class FlowMaps(nn.Module):
                                         cfg.precision)
         self.tau_q_embed = nn.Embed(cfg.tau_max, cfg.dim)
         self.descriptor_embed = nn.Embed(cfg.num_descriptors, cfg.dim)
-        if cfg.condition_on_dtau:
+        if cfg.condition_on_dtau or cfg.head == "mixture":
             self.dtau_embed = nn.Embed(cfg.tau_max, cfg.dim)
         self.blocks = [CDiTBlock(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout, cfg.precision)
                        for _ in range(cfg.cdit_blocks)]
@@ -80,6 +81,19 @@ class FlowMaps(nn.Module):
                                         cfg.pointer_width_scale, cfg.precision)
         else:
             self.final = FinalLayer(cfg.dim, precision=cfg.precision)
+        if cfg.head == "mixture":  # the table weights' own CDiT rows (model/mixture.py)
+            if cfg.weight_attention == "self":
+                self.weight_blocks = [EncoderLayer(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout,
+                                                   cfg.precision)
+                                      for _ in range(cfg.weight_blocks)]
+            else:
+                self.weight_blocks = [CDiTBlock(cfg.dim, cfg.heads, cfg.mlp_ratio, cfg.dropout,
+                                                cfg.precision) for _ in range(cfg.weight_blocks)]
+            self.weight_pos = self.param("weight_pos", nn.initializers.normal(0.02), (cfg.dim,))
+            self.start_pos = self.param("start_pos", nn.initializers.normal(0.02), (cfg.dim,))
+            self.weight_tau_embed = nn.Embed(cfg.tau_max, cfg.dim)
+            self.weight_final = FinalLayer(cfg.dim, out_dim=cfg.tau_max, precision=cfg.precision)
+            self.table_embed = FlatDense(cfg.dim, precision=cfg.precision)
 
     def encode(self, tokens: SceneTokens, deterministic: bool = True) -> Context:
         mask = tokens.mask.astype(bool)
@@ -93,6 +107,9 @@ class FlowMaps(nn.Module):
              + self.time_embed(t[..., None]))  # (B, Q, D)
         if cfg.condition_on_dtau:
             c = c + self.dtau_embed(self._dtau(context, queries))
+        if cfg.head == "mixture":
+            raise ValueError("ModelConfig.head='mixture' has no unconditional velocity: use "
+                             "placement_velocity with the rows' tables")
         x = self.query_embed(x_t) + self.query_pos  # (B, Q, N, D)
         for block in self.blocks:
             x = block(x, c, context.tokens, context.mask, deterministic)
@@ -102,6 +119,50 @@ class FlowMaps(nn.Module):
         if cfg.head == "route":
             return self.readout(self.final_norm(x, c), self.descriptor_embed(queries.descriptor),
                                 context, queries.descriptor, self._dtau(context, queries), x_t, t)
+        return self.final(x, c)
+
+    def object_table_logits(self, context: Context, descriptors, deterministic: bool = True):
+        """The mixture head's table logits for every horizon (B, R, S, tau_max) of the objects
+        named by ``descriptors`` (B, R), a very negative number off the furniture: one CDiT row
+        per (object, map token), conditioned on the object's descriptor and the map's τ only,
+        so one pass serves every Δτ (column Δτ) and nothing depends on x_t or t."""
+        c = (self.weight_tau_embed(context.tau)[:, None, :]
+             + self.descriptor_embed(descriptors))  # (B, R, D)
+        _, _, start = mixture.placement_frame(context, descriptors)
+        s = context.tokens.shape[1]
+        on_start = jax.nn.one_hot(start, s, dtype=context.tokens.dtype)[..., None]  # (B,R,S,1)
+        rows = context.tokens[:, None] + self.weight_pos + on_start * self.start_pos
+        if self.config.weight_attention == "self":  # one object's rows attend to each other
+            b, r = descriptors.shape
+            x = (rows + c[:, :, None, :]).reshape(b * r, s, -1)
+            mask = jnp.broadcast_to(context.mask[:, None], (b, r, s)).reshape(b * r, s)
+            for block in self.weight_blocks:
+                x = block(x, mask, deterministic)
+            rows = x.reshape(b, r, s, -1)
+        else:
+            for block in self.weight_blocks:
+                rows = block(rows, c, context.tokens, context.mask, deterministic)
+        logits = self.weight_final(rows, c)  # (B, R, S, tau_max)
+        keep = mixture.tables_of(context)[:, None, :, None]
+        return jnp.where(keep, logits, jnp.finfo(jnp.float32).min / 4)
+
+    def table_logits(self, context: Context, queries: Queries, deterministic: bool = True):
+        """The mixture head's table logits (B, Q, S) of each query at its own Δτ."""
+        logits = self.object_table_logits(context, queries.descriptor, deterministic)
+        return select_horizon(logits, self._dtau(context, queries))
+
+    def placement_velocity(self, context: Context, z_t, t, queries: Queries, table,
+                           deterministic: bool = True):
+        """The mixture head's vector field in the local frame of each row's table:
+        z_t (B, Q, N, 4), t (B, Q), table (B, Q, N) token indices → v (B, Q, N, 4)."""
+        smooth = mixture.SMOOTH_FREQUENCY / self.config.max_frequency  # a smooth field
+        c = (self.tau_q_embed(queries.tau_q) + self.descriptor_embed(queries.descriptor)
+             + self.time_embed(smooth * t[..., None])
+             + self.dtau_embed(self._dtau(context, queries)))
+        chosen = mixture.gather_tokens(context.tokens, table)  # (B, Q, N, D)
+        x = self.query_embed(smooth * z_t) + self.query_pos + self.table_embed(chosen)
+        for block in self.blocks:
+            x = block(x, c, context.tokens, context.mask, deterministic)
         return self.final(x, c)
 
     def _dtau(self, context: Context, queries: Queries):
@@ -115,7 +176,18 @@ class FlowMaps(nn.Module):
                             mixture_only=True)
 
     def __call__(self, tokens, x_t, t, queries, deterministic: bool = True):
+        if self.config.head == "mixture":  # init: touch both branches
+            context = self.encode(tokens, deterministic)
+            logits = self.table_logits(context, queries, deterministic)
+            table = jnp.argmax(logits, axis=-1)[:, :, None]
+            table = jnp.broadcast_to(table, x_t.shape[:3])
+            return self.placement_velocity(context, x_t, t, queries, table, deterministic)
         return self.velocity(self.encode(tokens, deterministic), x_t, t, queries, deterministic)
+
+
+def select_horizon(logits, dtau):
+    """Per-horizon logits (B, Q, S, T) at each query's Δτ (B, Q) → (B, Q, S)."""
+    return jnp.take_along_axis(logits, dtau[:, :, None, None], axis=-1)[..., 0]
 
 
 def _rngs(dropout_key):
@@ -146,6 +218,34 @@ def velocity(params, config: ModelConfig, context: Context, x_t, t, queries: Que
     """
     return FlowMaps(config).apply({"params": params}, context, x_t, t, queries,
                                   dropout_key is None, method=FlowMaps.velocity,
+                                  rngs=_rngs(dropout_key))
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def table_logits(params, config: ModelConfig, context: Context, queries: Queries, *,
+                 dropout_key=None):
+    """The mixture head's table logits (B, Q, S) (``head="mixture"`` only), free of x_t and t;
+    a very negative number off the furniture tokens."""
+    return FlowMaps(config).apply({"params": params}, context, queries, dropout_key is None,
+                                  method=FlowMaps.table_logits, rngs=_rngs(dropout_key))
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def object_table_logits(params, config: ModelConfig, context: Context, descriptors, *,
+                        dropout_key=None):
+    """The mixture head's table logits at every horizon (B, R, S, tau_max) of the objects
+    ``descriptors`` (B, R) (``head="mixture"`` only); column Δτ is the horizon Δτ."""
+    return FlowMaps(config).apply({"params": params}, context, descriptors, dropout_key is None,
+                                  method=FlowMaps.object_table_logits, rngs=_rngs(dropout_key))
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def placement_velocity(params, config: ModelConfig, context: Context, z_t, t, queries: Queries,
+                       table, *, dropout_key=None):
+    """The mixture head's vector field in each row's table frame (``head="mixture"`` only):
+    z_t (B, Q, N, 4), t (B, Q), table (B, Q, N) token indices → v (B, Q, N, 4)."""
+    return FlowMaps(config).apply({"params": params}, context, z_t, t, queries, table,
+                                  dropout_key is None, method=FlowMaps.placement_velocity,
                                   rngs=_rngs(dropout_key))
 
 

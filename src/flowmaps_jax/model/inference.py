@@ -20,13 +20,16 @@ import jax
 import jax.numpy as jnp
 
 from flowmaps_jax import flow
+from flowmaps_jax.model import mixture
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.family import ModelFamily, scene_noise
 from flowmaps_jax.model.flowmaps import (
     encode,
     init_params,
     make_velocity_fn,
+    placement_velocity,
     route_mixture,
+    table_logits,
     velocity_and_anchor_logits,
 )
 from flowmaps_jax.model.route import mixture_log_prob
@@ -69,6 +72,9 @@ def flow_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queri
     Encodes the B maps once, then integrates all B·Q·N noise rows together (``lax.scan`` over the
     num_steps − 1 intervals). No validation: use :meth:`flowmaps_jax.predictor.Predictor.sample`.
     """
+    if config.head == "mixture":
+        return _mixture_sample(params, config, tokens, queries, keys, num_samples, num_steps,
+                               method)
     velocity_fn, x0 = _field_and_noise(params, config, tokens, queries, keys, num_samples)
     return from_flow_space(flow.integrate(velocity_fn, x0, num_steps, method), config)
 
@@ -82,6 +88,8 @@ def flow_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Que
     Encodes the maps once; the backward ODE for all rows runs in one ``lax.scan`` in the flow's
     space (``ModelConfig.box_scale``/``box_offset``), plus that map's constant log-Jacobian.
     """
+    if config.head == "mixture":
+        return _mixture_log_prob(params, config, tokens, queries, x, num_steps, method)
     context = encode(params, config, tokens)
     velocity_fn = make_velocity_fn(params, config, context, queries)
     z = to_flow_space(x, config)
@@ -101,6 +109,8 @@ def table_weights(params, config: ModelConfig, tokens: SceneTokens, queries: Que
     table frequencies can differ a little; tests/test_route.py and docs/results.md compare them.)
     """
     context = encode(params, config, tokens)
+    if config.head == "mixture":
+        return jax.nn.softmax(table_logits(params, config, context, queries), axis=-1)
     if config.head == "route":
         log_w, _, _ = route_mixture(params, config, context, queries)
         return jnp.exp(log_w)
@@ -129,9 +139,56 @@ def flow_sample_with_log_prob(params, config: ModelConfig, tokens: SceneTokens, 
     """FlowMaps samples (B, Q, N, 4) with their exact log-density (B, Q, N) from one forward
     solve of the augmented ODE (:func:`flowmaps_jax.flow.sample_with_log_prob`). The samples
     equal :func:`flow_sample`'s for the same keys (to float rounding)."""
+    if config.head == "mixture":  # the density needs every near table's term: a second solve
+        boxes = _mixture_sample(params, config, tokens, queries, keys, num_samples, num_steps,
+                                method)
+        return boxes, _mixture_log_prob(params, config, tokens, queries, boxes, num_steps,
+                                        method)
     velocity_fn, x0 = _field_and_noise(params, config, tokens, queries, keys, num_samples)
     z, log_p = flow.sample_with_log_prob(velocity_fn, x0, num_steps, method)
     return from_flow_space(z, config), log_p + flow_space_log_det(config)
+
+
+def _placement_fn(params, config: ModelConfig, context, queries: Queries, table):
+    """``fn(z (B, Q, N, 4), t scalar) -> v``: the placement flow on the rows' tables (B, Q, N)."""
+    def velocity_fn(z, t):
+        t_bq = jnp.broadcast_to(jnp.asarray(t, z.dtype), z.shape[:2])
+        return placement_velocity(params, config, context, z, t_bq, queries, table)
+    return velocity_fn
+
+
+def _mixture_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
+                    keys: jax.Array, num_samples: int, num_steps: int, method: str):
+    """The mixture head's samples (B, Q, N, 4): a table s ~ π per row (from fold_in(key, 1) of
+    the scene's key), then the placement flow from noise (the scene's key) in s's frame."""
+    context = encode(params, config, tokens)
+    logits = table_logits(params, config, context, queries)  # (B, Q, S)
+    q = queries.tau_q.shape[1]
+    x0 = scene_noise(keys, (q, num_samples, 4))
+    table = jax.vmap(lambda k, lg: jax.random.categorical(
+        jax.random.fold_in(k, 1), lg[:, None, :], axis=-1, shape=(q, num_samples)))(keys, logits)
+    means, scale, _ = mixture.placement_frame(context, queries.descriptor)
+    z = flow.integrate(_placement_fn(params, config, context, queries, table), x0, num_steps,
+                       method)
+    return mixture.from_local(z, mixture.gather_rows(means, table), scale)
+
+
+def _mixture_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
+                      x: jnp.ndarray, num_steps: int, method: str):
+    """log Σ_s π_s p_θ(x | s) (B, Q, N) over the ``mixture.MIXTURE_TERMS`` tables nearest each
+    box: one backward solve of N × terms rows, each in its table's frame."""
+    context = encode(params, config, tokens)
+    log_w = jax.nn.log_softmax(table_logits(params, config, context, queries), axis=-1)
+    means, scale, _ = mixture.placement_frame(context, queries.descriptor)
+    index, valid = mixture.nearest_tables(x, context)  # (B, Q, N, K)
+    b, q, n, k = index.shape
+    table = index.reshape(b, q, n * k)
+    boxes = jnp.repeat(x, k, axis=2)  # (B, Q, N·K, 4), row n·K + j is box n at table j
+    z = mixture.to_local(boxes, mixture.gather_rows(means, table), scale)
+    log_pz = flow.log_prob(_placement_fn(params, config, context, queries, table), z, num_steps,
+                           method) + mixture.local_log_det(scale)
+    terms = log_pz.reshape(b, q, n, k) + mixture.gather_rows(log_w, table).reshape(b, q, n, k)
+    return jax.nn.logsumexp(jnp.where(valid, terms, -jnp.inf), axis=-1)
 
 
 def _row_bytes(config: ModelConfig) -> int:
@@ -144,5 +201,5 @@ FAMILY = ModelFamily(
     sample_with_log_prob=flow_sample_with_log_prob, log_prob=flow_log_prob,
     label=lambda config: "FlowMaps", row_bytes=_row_bytes, uses_solver=True,
     table_weights=table_weights,
-    has_table_weights=lambda config: config.head in ("pointer", "route"))
+    has_table_weights=lambda config: config.head in ("pointer", "route", "mixture"))
 """FlowMaps (flow matching, CDiT velocity network); the head is ``ModelConfig.head``."""

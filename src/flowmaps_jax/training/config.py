@@ -33,6 +33,7 @@ from typing import Any
 
 from flowmaps_jax.flow import T_SAMPLERS
 from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.flowsim.generate import layout_bytes
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY  # the habits preset's H
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import MODEL_FAMILIES as MODEL_KINDS
@@ -52,6 +53,7 @@ from flowmaps_jax.validation import (
     check_real,
     check_resources,
     check_seed,
+    embedding_bytes,
     network_flops,
     solver_evaluations,
 )
@@ -123,10 +125,10 @@ class TrainConfig:
     target_noise: train on targets jittered by ``target_noise`` × the evaluation protocol's
         ground-truth std (centre 0.35 × side, size 0.02 × side), i.e. on samples of the protocol's
         smoothed q rather than on its delta peaks (0 = paper).
-    pointer_loss: weight of an auxiliary cross-entropy on the pointer head's anchor logits
-        against the table the target stands on (``training.objectives.cfm_loss``; FlowMaps with
-        ``model.head="pointer"`` only; the MLP baseline ignores it. Departs from the paper;
-        0 = off).
+    pointer_loss: weight of the cross-entropy of the table weights against the table the
+        target stands on (the mixture head's weights, or the pointer / route head's anchor
+        logits as an auxiliary loss; ``training.objectives``; the MLP baseline ignores it.
+        Departs from the paper; 0 = off).
     data: "train" (fixed FlowSim split of ``train_envs`` environments) or "endless" (a fresh
         chunk of ``train_envs`` environments every ``train_envs // batch_size`` steps).
     init_from: start from these weights instead of a random init (a run or checkpoint
@@ -201,14 +203,7 @@ class TrainConfig:
                              f"got {self.init_from!r}")
         if self.devices is not None:
             check_int("devices", self.devices, maximum=INT32_MAX)
-            if self.batch_size % self.devices:
-                raise ValueError(
-                    f"batch_size={self.batch_size} does not divide evenly over devices="
-                    f"{self.devices} (each device takes batch_size / devices scenes): use a "
-                    f"multiple of {self.devices}, or devices dividing {self.batch_size}")
-        if check_int("warmup_steps", self.warmup_steps, minimum=0) >= self.steps:
-            raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
-                             f"got {self.warmup_steps!r}")
+        check_int("warmup_steps", self.warmup_steps, minimum=0)
         # Every float: a finite real number (not inf, NaN, a bool or a string) within its range.
         check_real("lr", self.lr, 0.0, low_open=True)
         for name in ("b1", "b2", "ema_decay"):
@@ -219,13 +214,23 @@ class TrainConfig:
         check_real("short_horizon_frac", self.short_horizon_frac, 0.0, 1.0)
         check_real("target_noise", self.target_noise, 0.0, 10.0, high_open=True)
         check_real("pointer_loss", self.pointer_loss, 0.0, 100.0, high_open=True)
+        # Then the checks that couple two fields: each field's own error is named first.
+        if self.devices is not None and self.batch_size % self.devices:
+            raise ValueError(
+                f"batch_size={self.batch_size} does not divide evenly over devices="
+                f"{self.devices} (each device takes batch_size / devices scenes): use a "
+                f"multiple of {self.devices}, or devices dividing {self.batch_size}")
+        if self.warmup_steps >= self.steps:
+            raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
+                             f"got {self.warmup_steps!r}")
         if not isinstance(self.model, ModelConfig):
             raise ValueError(f"model must be a ModelConfig; got {type(self.model).__name__}")
         if not isinstance(self.flowsim, FlowSimConfig):
             raise ValueError(f"flowsim must be a FlowSimConfig; got {type(self.flowsim).__name__}")
         if self.pointer_loss > 0 and self.model_kind == "flowmaps" and \
-                self.model.head not in ("pointer", "route"):
-            raise ValueError("pointer_loss > 0 needs model.head='pointer' or 'route' (the MLP "
+                self.model.head not in ("pointer", "route", "mixture"):
+            raise ValueError("pointer_loss > 0 needs model.head='pointer', 'route' or 'mixture' "
+                             "(the MLP "
                              "baseline ignores it)")
         sim, net = self.flowsim, self.model
         if net.num_descriptors < sim.num_descriptors:
@@ -296,11 +301,16 @@ def resource_estimate(cfg: TrainConfig, devices: int = 1) -> list[tuple[str, int
     b, q = cfg.batch_size, cfg.queries_per_scene
     per_layer = net.dim * net.dim * (4 + 2 * net.mlp_ratio)
     params = (net.encoder_layers * per_layer + net.cdit_blocks * (per_layer + 6 * net.dim ** 2)
-              + 2 * net.dim * net.baseline_hidden + net.baseline_hidden ** 2)
+              + 2 * net.dim * net.baseline_hidden + net.baseline_hidden ** 2
+              + 2 * net.freq_bands * net.dim * (4 + 4 + 1)  # the box, query and time embeddings
+              + 2 * net.num_descriptors * net.dim  # the descriptor embeddings
+              + (net.weight_blocks * (per_layer + 6 * net.dim ** 2)
+                 if net.head == "mixture" else 0))  # the mixture head's weight rows
     query_flops, scene_flops = network_flops(net, cfg.model_kind, tokens)
     # activations kept for the backward pass: per query row and per scene token, every layer
-    row = 4 * net.dim * (net.mlp_ratio + 8) * net.cdit_blocks * 2
-    token = 4 * (net.dim * (net.mlp_ratio + 8) + tokens * net.heads) * net.encoder_layers * 2
+    row = 4 * net.dim * (net.mlp_ratio + 8) * net.cdit_blocks * 2 + 2 * embedding_bytes(net, 5)
+    token = (4 * (net.dim * (net.mlp_ratio + 8) + tokens * net.heads) * net.encoder_layers * 2
+             + 2 * embedding_bytes(net, 4))
     shard = max(1, int(devices))
     step_bytes = -(-b // shard) * (q * row + tokens * token)
     batch_bytes = 4 * (b * sim.max_tokens * 7 + b * q * 6)
@@ -313,20 +323,26 @@ def resource_estimate(cfg: TrainConfig, devices: int = 1) -> list[tuple[str, int
     evaluations = solver_evaluations(DEFAULT_NUM_STEPS) if uses_solver else 1
     return [
         (f"the model (model.dim={net.dim}, model.encoder_layers={net.encoder_layers}, "
-         f"model.cdit_blocks={net.cdit_blocks}, model.mlp_ratio={net.mlp_ratio}: about "
+         f"model.cdit_blocks={net.cdit_blocks}, model.mlp_ratio={net.mlp_ratio}, "
+         f"model.freq_bands={net.freq_bands}, model.baseline_hidden={net.baseline_hidden}, "
+         f"model.num_descriptors={net.num_descriptors}: about "
          f"{params:,} parameters, with EMA, optimiser state and gradients)",
          4 * 5 * params, 0),
-        (f"a train step (batch_size={b} x queries_per_scene={q} at model.dim={net.dim})",
+        (f"a train step (batch_size={b} x queries_per_scene={q} at model.dim={net.dim}, "
+         f"model.freq_bands={net.freq_bands})",
          step_bytes, 3 * (b * q * query_flops + b * scene_flops)),
         (f"the validation batches (val_batches={cfg.val_batches} of batch_size={b} x "
-         f"queries_per_scene={q})",
+         f"queries_per_scene={q}, flowsim.max_tokens={sim.max_tokens})",
          cfg.val_batches * batch_bytes + step_bytes // 2,
          cfg.val_batches * (b * q * query_flops + b * scene_flops)),
-        (f"the data (train_envs={cfg.train_envs} + val_envs={cfg.val_envs} environments)",
-         envs * env_bytes, 0),
+        (f"the data (train_envs={cfg.train_envs} + val_envs={cfg.val_envs} environments, "
+         f"flowsim.layout_candidates={sim.layout_candidates})",
+         envs * env_bytes + layout_bytes(sim, envs), 0),
         (f"the routine diagnostic (routine_envs={routine_envs} environments x "
-         f"{_ROUTINE_QUERIES} queries x routine_samples={cfg.routine_samples} samples)",
-         routine_rows * (4 * net.dim * (net.mlp_ratio + 4) + 4 * (4 + sim.num_furniture)),
+         f"{_ROUTINE_QUERIES} queries x routine_samples={cfg.routine_samples} samples, "
+         f"model.freq_bands={net.freq_bands})",
+         routine_rows * (4 * net.dim * (net.mlp_ratio + 4) + 4 * (4 + sim.num_furniture)
+                         + embedding_bytes(net, 5)),
          routine_rows * evaluations * query_flops + routine_envs * 2 * scene_flops),
     ]
 
@@ -363,22 +379,37 @@ def paper_preset() -> TrainConfig:
 
 
 def cpu_preset() -> TrainConfig:
-    """Default: the model a 2-core CPU trains in under 30 minutes, and that learns the routines.
+    """Default: the model a 2-core CPU trains in about 30 minutes, and that learns the routines.
 
-    Size (docs/results.md, "Choosing the cpu preset"): D = 128 with 4 + 4 layers, B = 64 scenes ×
-    Q = 8 queries, 8,500 steps. Recipe (docs/results.md, "Learning the routines", ablation by
-    ``experiments/ablate_routines.py``; docs/design.md says why): the pointer read-out head with
-    its auxiliary pointer loss, Δτ conditioning, half the queries one step ahead, targets jittered
-    by the protocol's σ, lr 1e-3 and no dropout. ``--preset paper`` keeps the paper's recipe.
+    Size (docs/results.md, "Choosing the cpu preset"): D = 128 with 4 + 4 layers (+ 2 CDiT
+    blocks for the table weights), B = 64 scenes × Q = 8 queries, 7,000 steps. Recipe
+    (docs/results.md, "The posterior at the floor"; docs/design.md says why): the mixture
+    read-out (explicit table weights trained by cross-entropy, a flow placing the object on the
+    chosen table), fresh FlowSim homes for every chunk of steps (``data="endless"``), Δτ
+    conditioning, half the queries one step ahead, targets jittered by the protocol's σ, lr 1e-3
+    and no dropout. ``--preset paper`` keeps the paper's recipe.
     """
     return TrainConfig(
         model=ModelConfig(dim=128, encoder_layers=4, cdit_blocks=4, heads=4, dropout=0.0,
+                          baseline_hidden=256, head="mixture", condition_on_dtau=True,
+                          weight_blocks=2),
+        batch_size=64, queries_per_scene=8, steps=7000, lr=1e-3, warmup_steps=200,
+        clip_norm=1.0, ema_decay=0.999, short_horizon_frac=0.5, short_horizon_max=1,
+        target_noise=1.0, pointer_loss=1.0, data="endless", log_every=50, val_every=500,
+        ckpt_every=500, preset="cpu")
+
+
+def pointer_cpu_preset() -> TrainConfig:
+    """The ``cpu`` preset as it was before the mixture head (issue 21's recipe): the pointer
+    read-out with relative widths and its auxiliary pointer loss, 8,500 steps on the fixed
+    2,500-home split. The habit worlds' models were trained from it; the ablation compares
+    against it."""
+    return dataclasses.replace(
+        cpu_preset(),
+        model=ModelConfig(dim=128, encoder_layers=4, cdit_blocks=4, heads=4, dropout=0.0,
                           baseline_hidden=256, head="pointer", condition_on_dtau=True,
                           pointer_widths="relative", pointer_width_scale=10.0),
-        batch_size=64, queries_per_scene=8, steps=8500, lr=1e-3, warmup_steps=200,
-        clip_norm=1.0, ema_decay=0.999, short_horizon_frac=0.5, short_horizon_max=1,
-        target_noise=1.0, pointer_loss=1.0, log_every=50, val_every=500,
-        ckpt_every=500, preset="cpu")
+        steps=8500, data="train", preset="cpu-pointer")
 
 
 def smoke_preset() -> TrainConfig:
@@ -394,8 +425,9 @@ def smoke_preset() -> TrainConfig:
 
 
 def habits_preset() -> TrainConfig:
-    """The ``cpu`` recipe on the preferences world (``flowsim.worlds``), reading the last
-    ``HABITS_HISTORY`` maps so that it can learn which places each object favours.
+    """The pointer ``cpu`` recipe (:func:`pointer_cpu_preset`) on the preferences world
+    (``flowsim.worlds``), reading the last ``HABITS_HISTORY`` maps so that it can learn which
+    places each object favours.
 
     Fresh environments every chunk (``data="endless"``): on the fixed 2,500-environment split
     the validation loss rose after 2,000 of 4,000 steps (each object's hidden favourites are
@@ -403,7 +435,7 @@ def habits_preset() -> TrainConfig:
     3,000 steps, about 16 minutes on 2 cores."""
     from flowmaps_jax.flowsim.worlds import world_config
 
-    base = cpu_preset()
+    base = pointer_cpu_preset()
     sim = world_config("preferences", FlowSimConfig(
         max_tokens=FlowSimConfig().num_furniture + FlowSimConfig().num_objects * HABITS_HISTORY))
     return dataclasses.replace(
@@ -419,8 +451,8 @@ def with_world(cfg: TrainConfig, world: str) -> TrainConfig:
     return dataclasses.replace(cfg, flowsim=world_config(world, cfg.flowsim))
 
 
-PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "smoke": smoke_preset,
-           "habits": habits_preset}
+PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "cpu-pointer": pointer_cpu_preset,
+           "smoke": smoke_preset, "habits": habits_preset}
 DEFAULT_PRESET = "cpu"
 
 

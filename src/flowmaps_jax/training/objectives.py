@@ -25,10 +25,17 @@ import jax.numpy as jnp
 
 from flowmaps_jax import flow
 from flowmaps_jax.boxes import from_centre, to_centre
-from flowmaps_jax.model import baseline
+from flowmaps_jax.model import baseline, mixture
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
-from flowmaps_jax.model.flowmaps import encode, velocity, velocity_and_anchor_logits
+from flowmaps_jax.model.flowmaps import (
+    encode,
+    object_table_logits,
+    placement_velocity,
+    select_horizon,
+    velocity,
+    velocity_and_anchor_logits,
+)
 from flowmaps_jax.model.inference import to_flow_space
 from flowmaps_jax.tokens import FURNITURE, SceneTokens, TrainBatch
 
@@ -87,6 +94,45 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
     return loss, {"loss": loss, "mse_per_query": mse, **extra}
 
 
+def mixture_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
+                 t_sampler: str = "beta", deterministic: bool = False, table_loss: float = 1.0,
+                 num_objects: int = 3):
+    """The mixture head's loss (``head="mixture"``); returns ``(loss, aux)``.
+
+    ``table_loss`` × the cross-entropy of the table weights against the table the target stands
+    on (:func:`supporting_token`), the proper scoring rule of π, plus the flow-matching loss of
+    the placement flow on that table, in its local frame (:mod:`flowmaps_jax.model.mixture`).
+    aux: ``loss``, ``mse_per_query`` (B, Q), ``table_ce`` and ``selection`` (= ``table_ce``: what
+    the best checkpoint is chosen by). The table weights are computed once per (scene, object)
+    for the scene's ``num_objects`` current objects (:func:`mixture.scene_objects`), at every
+    horizon, and each query reads its object's row at its Δτ.
+    """
+    noise_key, t_key, enc_key, w_key, vel_key = jax.random.split(key, 5)
+    if deterministic:
+        enc_key = w_key = vel_key = None
+    context = encode(params, config, batch.tokens, dropout_key=enc_key)
+    table = supporting_token(batch.tokens, batch.target)  # (B, Q)
+    objects = mixture.scene_objects(batch.tokens, num_objects)  # (B, M)
+    logits = object_table_logits(params, config, context, objects, dropout_key=w_key)
+    which = jnp.argmax(batch.queries.descriptor[:, :, None] == objects[:, None, :], axis=-1)
+    logits = jnp.take_along_axis(logits, which[:, :, None, None], axis=1)  # (B, Q, S, T)
+    dtau = jnp.clip(batch.queries.tau_q - batch.tokens.tau[:, None], 0, config.tau_max - 1)
+    log_w = jax.nn.log_softmax(select_horizon(logits, dtau), axis=-1)
+    ce = -jnp.mean(jnp.take_along_axis(log_w, table[..., None], axis=-1))
+    means, scale, _ = mixture.placement_frame(context, batch.queries.descriptor)
+    rows = table[:, :, None]  # (B, Q, 1)
+    z1 = mixture.to_local(batch.target[:, :, None], mixture.gather_rows(means, rows), scale)
+    z1 = z1[:, :, 0]  # (B, Q, 4)
+    z0 = jax.random.normal(noise_key, z1.shape, z1.dtype)
+    t = flow.sample_t(t_key, z1.shape[:2], t_sampler)
+    z_t = flow.linear_path(z0, z1, t)[:, :, None, :]
+    v = placement_velocity(params, config, context, z_t, t, batch.queries, rows,
+                           dropout_key=vel_key)
+    mse = jnp.mean(jnp.square(v[:, :, 0] - flow.target_velocity(z0, z1)), axis=-1)  # (B, Q)
+    loss = jnp.mean(mse) + table_loss * ce
+    return loss, {"loss": loss, "mse_per_query": mse, "table_ce": ce, "selection": ce}
+
+
 def jitter_targets(key: jax.Array, boxes: jnp.ndarray, scale: float) -> jnp.ndarray:
     """Boxes (..., 4) moved by ``scale`` × the evaluation protocol's ground-truth std
     (``gt_mixture_sigma``): at scale 1, a draw from the smoothed q around each box."""
@@ -98,6 +144,10 @@ def jitter_targets(key: jax.Array, boxes: jnp.ndarray, scale: float) -> jnp.ndar
 
 
 def _flowmaps_loss(params, cfg: TrainConfig, batch: TrainBatch, key: jax.Array, train: bool):
+    if cfg.model.head == "mixture":
+        return mixture_loss(params, cfg.model, batch, key, cfg.t_sampler,
+                            deterministic=not train, table_loss=cfg.pointer_loss,
+                            num_objects=cfg.flowsim.num_objects)
     return cfm_loss(params, cfg.model, batch, key, cfg.t_sampler, deterministic=not train,
                     pointer_loss=cfg.pointer_loss)
 

@@ -264,7 +264,10 @@ def make_fused_train_step(cfg: TrainConfig, objective: Objective | None = None,
 
 def make_eval_loss(cfg: TrainConfig, objective: Objective | None = None,
                    mesh: Mesh | None = None):
-    """Jitted ``(params, val_batches) -> mean loss`` over stacked batches (leading axis).
+    """Jitted ``(params, val_batches) -> mean loss`` over stacked batches (leading axis): the
+    objective's ``selection`` diagnostic where it has one (the mixture head's table
+    cross-entropy, which tracks the posterior), else its loss. The ``best`` checkpoint is the
+    step where this is lowest.
 
     Deterministic: no dropout, and the flow noise of batch j is always ``fold_in(eval_key, j)``,
     so calls at different training steps differ only through ``params`` (pass the EMA params).
@@ -282,7 +285,8 @@ def make_eval_loss(cfg: TrainConfig, objective: Objective | None = None,
             if mesh is not None:
                 batch = jax.lax.with_sharding_constraint(batch,
                                                          distributed.batch_sharding(mesh))
-            return objective.loss(params, batch, key, False)[0]
+            loss, aux = objective.loss(params, batch, key, False)
+            return aux.get("selection", loss)  # the family's checkpoint-selection criterion
 
         return jnp.mean(jax.lax.map(one, (batches, keys)))
 

@@ -1,0 +1,123 @@
+"""Mixture read-out: explicit table weights π_s, and a flow that places the object on table s.
+
+Why. The exact posterior of FlowSim is a mixture over the tables of the object's kind: the
+probability π_s that the object stands on table s at τ_q, times a placement density on that
+table. The pointer head (:mod:`.readout`) folds the choice of table into the flow (its anchor
+logits depend on x_t and t), so the table probabilities are only read off approximately and the
+samples that have not chosen a table land between two. This head makes the model that family:
+
+    p_θ(box | map, query) = Σ_s π_s(map, query, Δτ) · p_θ(box | s, map, query)
+
+* **Table weights** π (B, Q, S), independent of x_t and t: one CDiT row per map token (its
+  context token, plus a learned vector on the table the queried object stands on at τ), run
+  through ``weight_blocks`` CDiT blocks that cross-attend to the map, conditioned by AdaLN-Zero on
+  τ_q, the query descriptor and Δτ (no flow time); a zero-initialised AdaLN final layer gives one
+  logit per row, masked to the furniture tokens. Trained by cross-entropy against the table the
+  target stands on: the proper scoring rule, minimised by the exact posterior over tables.
+* **Placement** p_θ(box | s): the CDiT vector field (AdaLN-Zero on τ_q, descriptor, Δτ and t)
+  with the chosen table's context token added to the query row, integrated from Gaussian noise
+  in the table's *local frame* (:func:`to_local`): z = (c(box) − μ_s) / scale, where c is the
+  centre form (cy, cx, h, w), μ_s = (table s's centre, the object's own h, w) and
+  scale = ``LOCAL_SCALE`` × the object's (h, w, h, w). The frame is a fixed affine map, so
+  log p(box | s) = log p(z) − Σ log scale exactly (the centre form has unit Jacobian).
+
+Sampling draws s ~ π, then integrates the flow on table s: every sample is placed relative to a
+table. The density sums the ``MIXTURE_TERMS`` tables nearest each box (:func:`nearest_tables`);
+a table farther away holds the box many local widths out, where its term is negligible.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from flowmaps_jax.boxes import from_centre, to_centre
+from flowmaps_jax.model.route import object_box, start_table
+from flowmaps_jax.tokens import FURNITURE
+
+LOCAL_SCALE = (0.25, 0.25, 0.05, 0.05)
+"""The local frame's unit, as fractions of the object's (h, w, h, w): the route head's initial
+widths, so that placements of a few units cover an object's spread on its table."""
+
+SMOOTH_FREQUENCY = 8.0
+"""The highest angular frequency (radians per unit) at which the placement flow sees its local
+coordinates z and the flow time t: their sinusoidal features are those of the model's own
+``max_frequency`` (1000, tuned to resolve a pixel of a box in [0, 1]) applied to the inputs
+scaled by ``SMOOTH_FREQUENCY / max_frequency``. A local unit is a fraction of an object's side,
+so features at 1000 rad per unit made the field rough and its likelihood integral diverge."""
+
+MIXTURE_TERMS = 2
+"""Tables per box in the mixture density: the box's nearest tables (by centre)."""
+
+
+def tables_of(context) -> jnp.ndarray:
+    """(B, S) bool: the map's furniture tokens, the components of the mixture."""
+    return context.mask & (context.kind == FURNITURE)
+
+
+def placement_frame(context, query_descriptor):
+    """The local frames of every (query, token): means (B, Q, S, 4) in centre form (the token's
+    centre with the object's h, w), scale (B, Q, 4), and start (B, Q) the table the queried object
+    stands on at τ (nearest table centre to its token)."""
+    tables = tables_of(context)
+    obj = object_box(context.boxes, context.descriptor, context.kind, context.mask,
+                     query_descriptor)  # (B, Q, 4)
+    size = jnp.maximum(obj[..., 2:], 1e-4)  # (B, Q, 2)
+    centres = to_centre(context.boxes)[..., :2]  # (B, S, 2)
+    b, q, s = obj.shape[0], obj.shape[1], centres.shape[1]
+    means = jnp.concatenate([jnp.broadcast_to(centres[:, None], (b, q, s, 2)),
+                             jnp.broadcast_to(size[:, :, None], (b, q, s, 2))], axis=-1)
+    scale = jnp.asarray(LOCAL_SCALE, jnp.float32) * jnp.concatenate([size, size], axis=-1)
+    start = jnp.argmax(start_table(context.boxes, tables, obj), axis=-1)
+    return means, scale, start
+
+
+def gather_rows(values, index):
+    """values (B, Q, S, ...) at per-row token indices index (B, Q, N) → (B, Q, N, ...)."""
+    return jax.vmap(jax.vmap(lambda v, i: v[i]))(values, index)
+
+
+def gather_tokens(tokens, index):
+    """tokens (B, S, D) at index (B, Q, N) → (B, Q, N, D)."""
+    return jax.vmap(lambda t, i: t[i])(tokens, index)
+
+
+def to_local(box, mean, scale):
+    """Boxes (B, Q, N, 4) (y, x, h, w) → local coordinates z (B, Q, N, 4) of the frames with
+    centre-form means (B, Q, N, 4) and scale (B, Q, 4)."""
+    return (to_centre(box) - mean) / scale[:, :, None, :]
+
+
+def from_local(z, mean, scale):
+    """Inverse of :func:`to_local`."""
+    return from_centre(mean + scale[:, :, None, :] * z)
+
+
+def local_log_det(scale) -> jnp.ndarray:
+    """log |det ∂z/∂box| (B, Q, 1) = −Σ log scale: add to log p(z) to get log p(box)."""
+    return -jnp.sum(jnp.log(scale), axis=-1)[..., None]
+
+
+def nearest_tables(box, context, terms: int = MIXTURE_TERMS):
+    """The ``terms`` furniture tokens (B, Q, N, terms) whose centres are nearest each box's
+    centre (B, Q, N, 4), nearest first, and valid (B, Q, N, terms): False where the map has
+    fewer furniture tokens than ``terms``."""
+    d = jnp.sum(jnp.square(to_centre(box)[..., None, :2]
+                           - to_centre(context.boxes)[:, None, None, :, :2]), axis=-1)
+    d = jnp.where(tables_of(context)[:, None, None, :], d, jnp.inf)  # (B, Q, N, S)
+    k = min(terms, d.shape[-1])
+    neg, index = jax.lax.top_k(-d, k)
+    return index, jnp.isfinite(neg)
+
+
+def scene_objects(tokens, num_objects: int):
+    """Descriptors (B, num_objects) of the first ``num_objects`` object tokens of the current map
+    (age 0) of each scene, in token order: the objects a training batch queries, so that the
+    table weights are computed once per (scene, object) and shared by its queries."""
+    from flowmaps_jax.tokens import OBJECT
+
+    current = tokens.mask.astype(bool) & (tokens.kind == OBJECT)
+    if tokens.age is not None:
+        current &= tokens.age == 0
+    order = jnp.argsort(jnp.logical_not(current), axis=-1, stable=True)[:, :num_objects]
+    return jnp.take_along_axis(jnp.asarray(tokens.descriptor), order, axis=-1)

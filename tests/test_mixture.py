@@ -1,0 +1,174 @@
+"""The mixture head (issue 33): explicit table weights and a flow that places the object on a table.
+
+Known answers: a fresh mixture model's placement flow has a zero final projection, so it carries
+noise unchanged, z_1 = z_0 ~ N(0, I), in each table's local frame. Its density is then the closed
+form Σ_s π_s N(z_s; 0, I) / Π scale, and its samples land on table s with frequency π_s. The
+table weights are perturbed away from uniform so that these checks see them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from support import TINY, perturb
+
+from flowmaps_jax.evaluation import protocol as ev
+from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.flowsim.scenes import validation_split
+from flowmaps_jax.model import init_params, mixture
+from flowmaps_jax.model.family import canonical_inputs
+from flowmaps_jax.model.flowmaps import encode, object_table_logits, table_logits
+from flowmaps_jax.predictor import Predictor
+from flowmaps_jax.search.probabilities import table_probabilities
+from flowmaps_jax.tokens import FURNITURE
+
+SIM = FlowSimConfig()
+MIXTURE = dataclasses.replace(TINY, head="mixture", weight_blocks=1)
+
+
+@pytest.fixture(scope="module")
+def evalset():
+    return ev.build_eval_queries(validation_split(SIM, num_envs=40), SIM, jax.random.key(5),
+                                 kl_draws=16)
+
+
+@pytest.fixture(scope="module")
+def fresh():
+    """A mixture model whose table weights are perturbed and whose flow is still zero."""
+    params = init_params(jax.random.key(1), MIXTURE)
+    weights_only = {k: v for k, v in params.items() if k.startswith(("weight", "encoder"))}
+    params = {**params, **perturb(weights_only, jax.random.key(2), 0.5)}
+    return Predictor.from_params(params, MIXTURE)
+
+
+def _closed_form(predictor, part):
+    """log Σ_s π_s N(z_s; 0, I) / Π scale over every table (the zero flow's exact density)."""
+    tokens, queries = canonical_inputs(part.tokens, part.queries)
+    context = encode(predictor.params, MIXTURE, tokens)
+    log_w = jax.nn.log_softmax(table_logits(predictor.params, MIXTURE, context, queries), -1)
+    means, scale, _ = mixture.placement_frame(context, queries.descriptor)
+    x = jnp.asarray(part.kl_points)
+    z = (mixture.to_centre(x)[:, :, :, None] - means[:, :, None]) / scale[:, :, None, None]
+    log_n = -0.5 * jnp.sum(z ** 2 + jnp.log(2 * jnp.pi), -1) + mixture.local_log_det(scale)[
+        ..., None]
+    return np.asarray(jax.nn.logsumexp(log_n + log_w[:, :, None], axis=-1))
+
+
+def test_weights_are_a_distribution_over_the_tables(evalset, fresh):
+    w = np.asarray(fresh.table_weights(evalset.tokens, evalset.queries))
+    np.testing.assert_allclose(w.sum(-1), 1.0, rtol=1e-5)
+    tables = (np.asarray(evalset.tokens.mask) & (np.asarray(evalset.tokens.kind) == FURNITURE))
+    off_tables = np.concatenate([~tables, np.ones_like(tables[:, :1])], -1)[:, None]
+    assert np.all(w[np.broadcast_to(off_tables, w.shape)] < 1e-6)
+    assert np.std(w[..., :SIM.num_furniture]) > 0.01  # perturbed: not uniform
+
+
+def test_one_pass_gives_every_horizon(evalset, fresh):
+    """Column Δτ of the per-object logits is the query's logits at Δτ: one consistent model."""
+    part = evalset.take(np.arange(6))
+    tokens, queries = canonical_inputs(part.tokens, part.queries)
+    context = encode(fresh.params, MIXTURE, tokens)
+    per_query = np.asarray(table_logits(fresh.params, MIXTURE, context, queries))
+    every = np.asarray(object_table_logits(fresh.params, MIXTURE, context, queries.descriptor))
+    dtau = np.asarray(queries.tau_q) - np.asarray(tokens.tau)[:, None]
+    np.testing.assert_allclose(np.take_along_axis(every, dtau[..., None, None], -1)[..., 0],
+                               per_query, rtol=1e-5, atol=1e-5)
+
+
+def test_density_is_the_closed_form(evalset, fresh):
+    part = evalset.take(np.arange(6))
+    want = _closed_form(fresh, part)
+    for method, steps in (("midpoint", 10), ("accurate", 24)):
+        got = np.asarray(fresh.log_prob(part.tokens, part.queries, part.kl_points,
+                                        num_steps=steps, method=method))
+        np.testing.assert_allclose(got, want, atol=2e-3, rtol=1e-5)
+
+
+def test_samples_land_on_the_tables_with_the_weights(evalset, fresh):
+    part = evalset.take(np.arange(4))
+    n = 2000
+    sampled = np.asarray(table_probabilities(fresh, part.tokens, part.queries, n,
+                                             jax.random.key(3)))
+    weights = np.asarray(fresh.table_weights(part.tokens, part.queries))
+    assert np.mean(sampled[..., -1]) < 0.01
+    tolerance = 5 * np.sqrt(weights * (1 - weights) / n) + 2e-3
+    assert np.all(np.abs(sampled[..., :-1] - weights[..., :-1]) <= tolerance[..., :-1])
+
+
+def test_sample_with_log_prob_matches_log_prob(evalset, fresh):
+    part = evalset.take(np.arange(3))
+    boxes, log_p = fresh.sample(part.tokens, part.queries, 8, jax.random.key(4),
+                                return_log_prob=True)
+    again = fresh.log_prob(part.tokens, part.queries, boxes)
+    np.testing.assert_allclose(np.asarray(log_p), np.asarray(again), atol=1e-4)
+
+
+def test_frame_round_trip_and_start_table(evalset):
+    tokens, queries = canonical_inputs(evalset.tokens, evalset.queries)
+    params = init_params(jax.random.key(0), MIXTURE)
+    context = encode(params, MIXTURE, tokens)
+    means, scale, start = mixture.placement_frame(context, queries.descriptor)
+    box = jnp.asarray(evalset.kl_points[:, :, :3])
+    rows = jnp.broadcast_to(start[..., None], box.shape[:3])
+    local = mixture.to_local(box, mixture.gather_rows(means, rows), scale)
+    back = mixture.from_local(local, mixture.gather_rows(means, rows), scale)
+    np.testing.assert_allclose(np.asarray(back), np.asarray(box), atol=1e-6)
+    # every slot's box sits at the origin of its own table's frame (FlowSim centres objects)
+    slots = jnp.asarray(evalset.slot_boxes)  # (E, M, F, 4)
+    table, _ = mixture.nearest_tables(slots, context, terms=1)
+    z = mixture.to_local(slots, mixture.gather_rows(means, table[..., 0]), scale)
+    real = np.asarray(evalset.slot_mask)
+    np.testing.assert_allclose(np.asarray(z)[real], 0.0, atol=1e-4)
+    assert np.all(np.asarray(start) >= 0)
+
+
+def test_default_load_picks_the_lowest_validation_table_cross_entropy(tmp_path):
+    """The checkpoint rule (issue 33): a mixture-head run's validation score is the table
+    weights' cross-entropy on the fixed validation batches, and the default load (``best``, what
+    evaluate, search and export use) is the step where it is lowest."""
+    import json
+
+    from flowmaps_jax.predictor import load
+    from flowmaps_jax.training import data, loop, objectives
+    from flowmaps_jax.training.config import get_preset
+
+    base = get_preset("smoke")
+    cfg = dataclasses.replace(base, model=dataclasses.replace(base.model, head="mixture",
+                                                              weight_blocks=1),
+                              pointer_loss=1.0, steps=30, val_every=10, ckpt_every=10,
+                              routine_envs=0, lr=3e-3)
+    loop.run(cfg, tmp_path, progress=False)
+    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    val = {r["step"]: r["val_loss"] for r in records if r["kind"] == "val" and r["step"] > 0}
+    rule = min(val, key=val.get)
+    loaded = load(tmp_path / "checkpoints")
+    assert loaded.step == rule
+    _, val_scenes = data.load_splits(cfg, log=lambda _: None)
+    batches = data.make_val_batches(cfg, val_scenes)
+    objective = objectives.objective_for(cfg)
+    ce = np.mean([float(objective.loss(loaded.params, jax.tree.map(lambda x, j=j: x[j], batches),
+                                       jax.random.key(j), False)[1]["table_ce"])
+                  for j in range(cfg.val_batches)])
+    np.testing.assert_allclose(ce, val[rule], rtol=1e-4)  # the score is the table CE
+
+
+def test_self_attending_weight_rows_are_a_distribution_at_every_horizon(evalset):
+    """``weight_attention="self"``: one object's rows attend to each other; still one pass for
+    every horizon, and a distribution over the map's tables that moves with the start table."""
+    cfg = dataclasses.replace(MIXTURE, weight_attention="self")
+    params = perturb(init_params(jax.random.key(3), cfg), jax.random.key(4), 0.3)
+    part = evalset.take(np.arange(6))
+    tokens, queries = canonical_inputs(part.tokens, part.queries)
+    context = encode(params, cfg, tokens)
+    per_query = np.asarray(table_logits(params, cfg, context, queries))
+    every = np.asarray(object_table_logits(params, cfg, context, queries.descriptor))
+    dtau = np.asarray(queries.tau_q) - np.asarray(tokens.tau)[:, None]
+    np.testing.assert_allclose(np.take_along_axis(every, dtau[..., None, None], -1)[..., 0],
+                               per_query, rtol=1e-5, atol=1e-5)
+    w = np.asarray(Predictor.from_params(params, cfg).table_weights(part.tokens, part.queries))
+    np.testing.assert_allclose(w.sum(-1), 1.0, rtol=1e-5)
+    assert np.all(w[..., -1] < 1e-6) and np.std(w[..., :SIM.num_furniture]) > 0.01
