@@ -120,9 +120,9 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         rf"^\| pretrained:flowmaps \(H = 1, step \d+\) \| {NUM} \| {NUM} \| {NUM} \| {NUM} ± "
         rf"{NUM} \| {NUM} \|$(?:.*\n)*^\| (?:\d|≥ 6) \| \d+ \| {NUM} \({NUM}\) \| "
         rf"1\.0000 \(1\.00\) \|$", []),
-    # ~10 s: the shipped model on 1 environment, 1 draw, one grid per solver
+    # ~10 s: the shipped model on 1 environment, 2 draws, one grid per solver
     "likelihood_convergence.py": (
-        ["--envs", "1", "--draws", "1", "--midpoint", "3", "--accurate", "3"],
+        ["--envs", "1", "--draws", "2", "--midpoint", "3", "--accurate", "3"],
         rf"^\| midpoint \| 3 \| {NUM} \| {NUM} \|\n^\| accurate \| 3 \| {NUM} \| {NUM} \|$", []),
     # ~25 s: the README quick start; it prints nothing and writes fork_next.png
     "quickstart.py": ([], "", ["fork_next.png"]),
