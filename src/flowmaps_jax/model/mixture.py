@@ -33,7 +33,7 @@ import jax.numpy as jnp
 
 from flowmaps_jax.boxes import from_centre, to_centre
 from flowmaps_jax.model.route import object_box, start_table
-from flowmaps_jax.tokens import FURNITURE
+from flowmaps_jax.tokens import FURNITURE, OBJECT
 
 LOCAL_SCALE = (0.25, 0.25, 0.05, 0.05)
 """The local frame's unit, as fractions of the object's (h, w, h, w): the route head's initial
@@ -114,8 +114,6 @@ def scene_objects(tokens, num_objects: int):
     """Descriptors (B, num_objects) of the first ``num_objects`` object tokens of the current map
     (age 0) of each scene, in token order: the objects a training batch queries, so that the
     table weights are computed once per (scene, object) and shared by its queries."""
-    from flowmaps_jax.tokens import OBJECT
-
     current = tokens.mask.astype(bool) & (tokens.kind == OBJECT)
     if tokens.age is not None:
         current &= tokens.age == 0
