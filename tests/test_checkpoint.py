@@ -15,10 +15,13 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from flowmaps_jax import checkpoint_reader
-from flowmaps_jax.training import checkpoint, objectives
+from flowmaps_jax.store import checkpoints, integrity
+from flowmaps_jax.store.checkpoint_store import CheckpointSaveError, CheckpointStore
+from flowmaps_jax.store.integrity import NonFiniteStateError
+from flowmaps_jax.training import objectives
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import get_preset
+from flowmaps_jax.training.resume import load_config
 
 # orbax leaves un-awaited read coroutines behind after a failed restore (tests below damage
 # checkpoints on purpose); they surface as "unraisable exception" warnings, possibly during a
@@ -55,7 +58,7 @@ def _assert_same(a, b):
 def saved(tmp_path):
     """A checkpoint dir with steps 1..4 saved (keep 2) and a best at step 2 (val 0.5)."""
     root = tmp_path / "checkpoints"
-    with checkpoint.CheckpointStore(root, keep_last=2) as store:
+    with CheckpointStore(root, keep_last=2) as store:
         for step in range(1, 5):
             store.save(_state_at(step), CFG.to_dict())
             if step in (2, 3):
@@ -64,22 +67,22 @@ def saved(tmp_path):
 
 
 def test_round_trip_restores_every_field(saved):
-    state, config = checkpoint.restore(saved, _target())[:2]
+    state, config = checkpoints.restore(saved, _target())[:2]
     assert isinstance(state, train_state.TrainState)
     _assert_same(state, _state_at(4))
     assert config == CFG.to_dict()
-    assert checkpoint.load_config(saved) == CFG
+    assert load_config(saved) == CFG
 
 
 def test_keeps_last_k_and_the_best_even_when_it_falls_out(saved):
     assert sorted(int(p.name) for p in (saved / "last").iterdir()) == [3, 4]
-    best = checkpoint.restore(saved, _target(), which="best").state
+    best = checkpoints.restore(saved, _target(), which="best").state
     assert int(best.step) == 2  # step 3 had a worse validation loss and step 2 left last-k
     _assert_same(best, _state_at(2))
 
 
 def test_best_is_replaced_only_by_a_lower_loss_and_survives_reopening(saved):
-    with checkpoint.CheckpointStore(saved, keep_last=2) as store:
+    with CheckpointStore(saved, keep_last=2) as store:
         assert store.best_val_loss == 0.5
         assert not store.save_if_best(_state_at(5), CFG.to_dict(), 0.6)
         assert not store.save_if_best(_state_at(5), CFG.to_dict(), float("nan"))
@@ -89,45 +92,45 @@ def test_best_is_replaced_only_by_a_lower_loss_and_survives_reopening(saved):
 
 
 def test_saving_the_same_step_twice_is_harmless(tmp_path):
-    with checkpoint.CheckpointStore(tmp_path, keep_last=1) as store:
+    with CheckpointStore(tmp_path, keep_last=1) as store:
         store.save(_state_at(3), CFG.to_dict())
         store.save(_state_at(3), CFG.to_dict())
         assert store.latest_step() == 3
 
 
 def test_run_directory_resolves_to_its_checkpoints(saved):
-    state = checkpoint.restore(saved.parent, _target()).state
+    state = checkpoints.restore(saved.parent, _target()).state
     assert int(state.step) == 4
 
 
 def test_load_config_of_best_and_bad_choice(saved):
-    assert checkpoint.load_config(saved, "best") == CFG
+    assert load_config(saved, "best") == CFG
     with pytest.raises(ValueError, match="which"):
-        checkpoint.load_config(saved, "newest")
+        load_config(saved, "newest")
 
 
 def test_unfinished_temporary_save_is_ignored(saved):
     partial = saved / "last" / "9.orbax-checkpoint-tmp-1234"
     (partial / "state").mkdir(parents=True)
     (partial / "state" / "junk").write_text("half written")
-    state = checkpoint.restore(saved, _target()).state
+    state = checkpoints.restore(saved, _target()).state
     assert int(state.step) == 4
 
 
 def test_missing_directory(tmp_path):
     with pytest.raises(ValueError, match=str(tmp_path / "nope")):
-        checkpoint.restore(tmp_path / "nope", _target())
+        checkpoints.restore(tmp_path / "nope", _target())
 
 
 def test_directory_without_checkpoints(tmp_path):
     (tmp_path / "somefile").write_text("x")
     with pytest.raises(ValueError, match="not a checkpoint directory"):
-        checkpoint.restore(tmp_path, _target())
+        checkpoints.restore(tmp_path, _target())
     (tmp_path / "last").mkdir()
     with pytest.raises(ValueError, match="no finished save"):
-        checkpoint.restore(tmp_path, _target())
+        checkpoints.restore(tmp_path, _target())
     with pytest.raises(ValueError, match="best"):
-        checkpoint.restore(tmp_path, _target(), which="best")
+        checkpoints.restore(tmp_path, _target(), which="best")
 
 
 def _truncate_data_files(step_dir):
@@ -147,7 +150,7 @@ def test_damaged_checkpoint_gives_value_error_naming_the_path(saved, damage, fra
     step_dir = saved / "last" / "4"
     damage(step_dir)
     with pytest.raises(ValueError, match=fragment) as err:
-        checkpoint.restore(saved, _target())
+        checkpoints.restore(saved, _target())
     assert str(step_dir) in str(err.value)
     gc.collect()  # orbax's leftover coroutines (see pytestmark) are collected here
 
@@ -156,13 +159,13 @@ def test_mismatched_model_gives_value_error(saved):
     wrong = objectives.Objective(init=lambda key: {"dense": {"w": jnp.zeros((5, 4)),
                                                            "b": jnp.zeros(4)}}, loss=None)
     with pytest.raises(ValueError, match="does not match"):
-        checkpoint.restore(saved, train_state.abstract_state(CFG, wrong))
+        checkpoints.restore(saved, train_state.abstract_state(CFG, wrong))
     gc.collect()
 
 
 def test_keep_last_must_be_positive(tmp_path):
     with pytest.raises(ValueError, match="keep_last"):
-        checkpoint.CheckpointStore(tmp_path, keep_last=0)
+        CheckpointStore(tmp_path, keep_last=0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -170,12 +173,12 @@ def test_keep_last_must_be_positive(tmp_path):
 
 
 def test_every_save_carries_checksums_of_every_array_and_the_config(saved):
-    restored = checkpoint.restore(saved, _target())
-    names = {checkpoint_reader.leaf_name(path) for path, _ in
+    restored = checkpoints.restore(saved, _target())
+    names = {integrity.leaf_name(path) for path, _ in
              jax.tree_util.tree_flatten_with_path(_state_at(4))[0]}
     assert set(restored.meta["checksums"]) == names and "params/dense/w" in names
     assert restored.meta["config_sha256"] and restored.step == 4
-    raw = checkpoint.restore(saved)  # a raw pytree verifies against the same names
+    raw = checkpoints.restore(saved)  # a raw pytree verifies against the same names
     assert int(raw.state["step"]) == 4
 
 
@@ -197,24 +200,24 @@ def _edit_json(path, edit):
 def test_damaged_newest_step_names_the_newest_intact_one(saved, damage, fragment):
     damage(saved / "last" / "4")
     with pytest.raises(ValueError, match="The newest intact checkpoint is step 3") as err:
-        checkpoint.restore(saved, _target())
+        checkpoints.restore(saved, _target())
     assert fragment in str(err.value) and str(saved / "last" / "4") in str(err.value)
     assert f"load({str(saved)!r}, step=3)" in str(err.value)
     assert "--from-step 3" in str(err.value)  # saved lives in a run directory's checkpoints/
-    _assert_same(checkpoint.restore(saved, _target(), step=3).state, _state_at(3))
+    _assert_same(checkpoints.restore(saved, _target(), step=3).state, _state_at(3))
     gc.collect()
 
 
 def test_a_step_is_restored_by_number_from_last_or_best(saved):
-    assert checkpoint.saved_steps(saved) == [2, 3, 4]
-    restored = checkpoint.restore(saved, _target(), step=2)  # only in best/
+    assert checkpoints.saved_steps(saved) == [2, 3, 4]
+    restored = checkpoints.restore(saved, _target(), step=2)  # only in best/
     assert restored.path == saved / "best" / "2"
     _assert_same(restored.state, _state_at(2))
-    assert checkpoint.load_config(saved, step=2) == CFG
+    assert load_config(saved, step=2) == CFG
     with pytest.raises(ValueError, match=r"step 7 is not saved .*\[2, 3, 4\]"):
-        checkpoint.restore(saved, _target(), step=7)
+        checkpoints.restore(saved, _target(), step=7)
     with pytest.raises(ValueError, match="step must be an int"):
-        checkpoint.restore(saved, _target(), step="3")
+        checkpoints.restore(saved, _target(), step="3")
 
 
 def _poisoned(part: str):
@@ -225,10 +228,10 @@ def _poisoned(part: str):
 
 @pytest.mark.parametrize("part", ["params", "ema_params", "opt_state"])
 def test_non_finite_state_is_never_saved(tmp_path, part):
-    with checkpoint.CheckpointStore(tmp_path, keep_last=2) as store:
-        with pytest.raises(checkpoint.NonFiniteStateError, match=f"step 5.*{part}/"):
+    with CheckpointStore(tmp_path, keep_last=2) as store:
+        with pytest.raises(NonFiniteStateError, match=f"step 5.*{part}/"):
             store.save(_poisoned(part), CFG.to_dict())
-        with pytest.raises(checkpoint.NonFiniteStateError, match="NaN or inf"):
+        with pytest.raises(NonFiniteStateError, match="NaN or inf"):
             store.save_if_best(_poisoned(part), CFG.to_dict(), 0.1)
         assert store.latest_step() is None and store.best_step() is None
     assert not any((tmp_path / "last").iterdir()) and not any((tmp_path / "best").iterdir())
@@ -236,14 +239,15 @@ def test_non_finite_state_is_never_saved(tmp_path, part):
 
 def test_non_finite_state_on_disk_is_never_loaded(tmp_path, monkeypatch):
     with monkeypatch.context() as patch:  # write one as an older version could have
-        patch.setattr(checkpoint, "state_checksums",  # the writer's check finds nothing
-                      lambda state: (checkpoint_reader.state_checksums(state)[0], []))
-        with checkpoint.CheckpointStore(tmp_path, keep_last=2) as store:
+        checksums = integrity.state_checksums
+        patch.setattr(integrity, "state_checksums",  # the writer's check finds nothing
+                      lambda state: (checksums(state)[0], []))
+        with CheckpointStore(tmp_path, keep_last=2) as store:
             store.save(_poisoned("opt_state"), CFG.to_dict())
     with pytest.raises(ValueError, match=r"NaN or inf values in opt_state/1/0/mu/dense/b"):
-        checkpoint.restore(tmp_path, _target())
+        checkpoints.restore(tmp_path, _target())
     with pytest.raises(ValueError, match="No other saved step is intact"):
-        checkpoint.restore(tmp_path)
+        checkpoints.restore(tmp_path)
 
 
 def test_steps_saved_before_checksums_still_restore_but_are_checked_for_nan(tmp_path):
@@ -255,19 +259,19 @@ def test_steps_saved_before_checksums_still_restore_but_are_checked_for_nan(tmp_
         manager.close()
 
     legacy_save(3, _state_at(3))
-    restored = checkpoint.restore(tmp_path, _target())
+    restored = checkpoints.restore(tmp_path, _target())
     assert restored.meta is None
     _assert_same(restored.state, _state_at(3))
     legacy_save(5, _poisoned("params"))
     with pytest.raises(ValueError, match=r"NaN or inf.*newest intact checkpoint is step 3"):
-        checkpoint.restore(tmp_path, _target())
+        checkpoints.restore(tmp_path, _target())
 
 
 def test_set_aside_moves_later_steps_out_of_the_way(saved):
-    moved_to, moved = checkpoint.set_aside(saved, 2)
+    moved_to, moved = checkpoints.set_aside(saved, 2)
     assert moved == [3, 4] and sorted(p.name for p in (moved_to / "last").iterdir()) == ["3", "4"]
-    assert checkpoint.saved_steps(saved) == [2]
-    assert checkpoint.set_aside(saved, 2) == (None, [])
+    assert checkpoints.saved_steps(saved) == [2]
+    assert checkpoints.set_aside(saved, 2) == (None, [])
 
 
 # --------------------------------------------------------------------------------------------
@@ -285,17 +289,17 @@ def test_a_failed_write_is_one_short_error_and_leaves_no_partial_save(saved, mon
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(ocp.CheckpointManager, "save", full_disk)
-    with checkpoint.CheckpointStore(saved, keep_last=2) as store:
-        with pytest.raises(checkpoint.CheckpointSaveError) as err:
+    with CheckpointStore(saved, keep_last=2) as store:
+        with pytest.raises(CheckpointSaveError) as err:
             store.save(_state_at(5), CFG.to_dict())
         assert err.value.errno == errno.ENOSPC
         assert str(err.value) == (f"could not save checkpoint step 5 in {saved / 'last'}: "
                                   f"No space left on device")
-        with pytest.raises(checkpoint.CheckpointSaveError, match=r"step 6 in .*best"):
+        with pytest.raises(CheckpointSaveError, match=r"step 6 in .*best"):
             store.save_if_best(_state_at(6), CFG.to_dict(), 0.1)
     assert capsys.readouterr().err == ""
     assert sorted(p.name for p in (saved / "last").iterdir()) == ["3", "4"]
-    assert int(checkpoint.restore(saved, _target()).state.step) == 4
+    assert int(checkpoints.restore(saved, _target()).state.step) == 4
 
 
 def test_output_of_a_successful_save_is_not_swallowed(tmp_path, monkeypatch, capsys):
@@ -306,7 +310,7 @@ def test_output_of_a_successful_save_is_not_swallowed(tmp_path, monkeypatch, cap
         return original(manager, *args, **kwargs)
 
     monkeypatch.setattr(ocp.CheckpointManager, "save", chatty)
-    with checkpoint.CheckpointStore(tmp_path) as store:
+    with CheckpointStore(tmp_path) as store:
         store.save(_state_at(1), CFG.to_dict())
     assert "a warning worth seeing" in capsys.readouterr().err
 
@@ -314,4 +318,4 @@ def test_output_of_a_successful_save_is_not_swallowed(tmp_path, monkeypatch, cap
 @pytest.mark.parametrize("bad", [None, 123, b"/tmp"])
 def test_checkpoint_dir_must_be_a_path(bad):
     with pytest.raises(ValueError, match="checkpoint_dir must be a path"):
-        checkpoint.restore(bad)
+        checkpoints.restore(bad)

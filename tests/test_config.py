@@ -165,11 +165,12 @@ def _save_run(run_dir, cfg):
     """A run directory whose checkpoint (a stand-in state) carries ``cfg``."""
     import jax.numpy as jnp
 
-    from flowmaps_jax.training import checkpoint, objectives
+    from flowmaps_jax.store.checkpoint_store import CheckpointStore
+    from flowmaps_jax.training import objectives
     from flowmaps_jax.training import state as train_state
 
     stand_in = objectives.Objective(init=lambda key: {"w": jnp.ones(3)}, loss=None)
-    with checkpoint.CheckpointStore(run_dir / "checkpoints") as store:
+    with CheckpointStore(run_dir / "checkpoints") as store:
         store.save(train_state.init_state(cfg, objective=stand_in), cfg.to_dict())
 
 

@@ -38,9 +38,8 @@ The rules (what runs, what is shortened, what is skipped and why):
   - ``python -m flowmaps_jax.search``: 2 environments, 8 samples;
   - ``python experiments/diagnose_precision.py``: 2 + 4 environments, 8 samples;
   - commands that write into the repository or the installed package by default get an output
-    directory in the temporary one: ``python -m flowmaps_jax.export`` and its deprecated alias
-    ``python -m flowmaps_jax.pretrained`` (``--out exported``, never the shipped weights) and
-    ``experiments/render_docs_figures.py`` (``--out figures``).
+    directory in the temporary one: ``python -m flowmaps_jax.export`` (``--out exported``, never
+    the packaged weights) and ``experiments/render_docs_figures.py`` (``--out figures``).
 
   Every other command runs as written.
 
@@ -96,8 +95,7 @@ SHORTEN: dict[str, dict[str, str | None]] = {
     "flowmaps_jax.search": {"--num-envs": "2", "--samples": "8", "--no-progress": None},
     "diagnose_precision.py": {"--num-envs": "2", "--ranking-envs": "4", "--samples": "8"},
 }
-DEFAULT_OUT = {"flowmaps_jax.export": "exported", "flowmaps_jax.pretrained": "exported",
-               "render_docs_figures.py": "figures"}
+DEFAULT_OUT = {"flowmaps_jax.export": "exported", "render_docs_figures.py": "figures"}
 
 
 @dataclasses.dataclass
@@ -405,9 +403,8 @@ def test_commands_are_shortened_or_dropped_by_the_rules():
     resume = rewrite(shlex.split("python -m flowmaps_jax.train --run-dir r --resume"))[0]
     assert "--preset" not in resume and resume[-3:] == ["--steps", "6", "--no-progress"]
     assert "--num-envs" in rewrite(shlex.split("python -m flowmaps_jax.evaluate --checkpoint x"))[0]
-    for exporter in ("flowmaps_jax.export", "flowmaps_jax.pretrained"):  # the command, its alias
-        export = rewrite(shlex.split(f"python -m {exporter} --checkpoint c --name mlp"))[0]
-        assert export[-2:] == ["--out", "exported"]
+    export = rewrite(shlex.split("python -m flowmaps_jax.export --checkpoint c --name mlp"))[0]
+    assert export[-2:] == ["--out", "exported"]
     for dropped in ("pip install -e .", ". .venv/bin/activate", "pytest",
                     "python -m venv .venv", "python experiments/bench_train.py --steps 10",
                     "python experiments/sweep_queries.py --steps 800"):

@@ -325,7 +325,7 @@ def test_cli_evaluates_the_shipped_models(tmp_path, capsys):
 def test_evaluate_cli_on_saved_checkpoints(tmp_path, capsys):
     """``python -m flowmaps_jax.evaluate`` on a FlowMaps and an MLP checkpoint as training saves
     them (training through the CLI is tests/test_training.py's; here the states are fresh)."""
-    from flowmaps_jax.training import checkpoint
+    from flowmaps_jax.store.checkpoint_store import CheckpointStore
     from flowmaps_jax.training import state as train_state
     from flowmaps_jax.training.config import get_preset
 
@@ -333,7 +333,7 @@ def test_evaluate_cli_on_saved_checkpoints(tmp_path, capsys):
     for kind, where, step in (("flowmaps", run / "checkpoints", 4), ("mlp", tmp_path / "mlp", 0)):
         cfg = dataclasses.replace(get_preset("smoke"), model=CFG, model_kind=kind)
         state = train_state.init_state(cfg).replace(step=jnp.asarray(step, jnp.int32))
-        with checkpoint.CheckpointStore(where, keep_last=1) as store:
+        with CheckpointStore(where, keep_last=1) as store:
             store.save(state, cfg.to_dict())
     out = tmp_path / "eval"
     code = main(["--checkpoint", str(run), "--baseline", str(tmp_path / "mlp"),

@@ -239,13 +239,13 @@ def test_cli_refuses_a_bogus_world_cleanly(tmp_path, capsys):
 def test_cli_evaluates_a_history_model_on_another_world(tmp_path, capsys):
     """A two-map checkpoint trained on the routine world, evaluated on the preferences world
     with ``--history 3``: the world's scenes, its habit table, the model's own 2 maps."""
-    from flowmaps_jax.training import checkpoint
+    from flowmaps_jax.store.checkpoint_store import CheckpointStore
     from flowmaps_jax.training import state as train_state
     from flowmaps_jax.training.config import get_preset
 
     run = tmp_path / "run"
     cfg = dataclasses.replace(get_preset("smoke"), model=H2)
-    with checkpoint.CheckpointStore(run / "checkpoints", keep_last=1) as store:
+    with CheckpointStore(run / "checkpoints", keep_last=1) as store:
         store.save(train_state.init_state(cfg), cfg.to_dict())
     out = tmp_path / "eval"
     code = main(["--checkpoint", str(run), "--world", "preferences", "--history", "3",

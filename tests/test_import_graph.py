@@ -28,17 +28,17 @@ def _name(path: pathlib.Path) -> str:
 
 MODULES = {_name(path): path for path in sorted((SRC / PACKAGE).rglob("*.py"))}
 
-# The modules that load and run a trained model: none may import flowmaps_jax.training, not even
-# lazily, so that sampling a shipped model needs neither optax nor the training loop. (The
-# deprecated alias flowmaps_jax.pretrained is not one: it re-exports the exporter, lazily.)
+# The modules that load, run and export a trained model: none may import flowmaps_jax.training,
+# not even lazily, so that sampling a pretrained model needs neither optax nor the training loop.
 INFERENCE = sorted(
     name for name in MODULES
-    if name in (f"{PACKAGE}.{m}" for m in ("predictor", "sample", "shipped", "checkpoint_reader",
-                                            "flow", "tokens", "boxes", "validation",
-                                            "distributed"))
-    or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim")))
-ALIASES = {f"{PACKAGE}.sample": f"{PACKAGE}.predictor", f"{PACKAGE}.model.sampling":
-           f"{PACKAGE}.model.inference"}
+    if name in (f"{PACKAGE}.{m}" for m in ("predictor", "export", "flow", "tokens", "boxes",
+                                            "validation", "distributed"))
+    or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store")))
+STORE = sorted(name for name in MODULES if name.startswith(f"{PACKAGE}.store"))
+# What sits above the store: it may import none of them, lazily or not.
+ABOVE_STORE = tuple(f"{PACKAGE}.{m}" for m in ("training", "predictor", "evaluation", "search",
+                                                "export", "train", "evaluate"))
 
 
 def _known(target: str) -> str | None:
@@ -131,9 +131,9 @@ def test_the_graph_is_read():
     assert len(MODULES) > 40
     assert f"{PACKAGE}.model.inference" in edges(f"{PACKAGE}.predictor")
     # a lazy import is an edge too
-    assert f"{PACKAGE}.export" in edges(f"{PACKAGE}.pretrained")
-    for alias, home in ALIASES.items():
-        assert home in edges(alias)
+    assert f"{PACKAGE}.predictor" in edges(f"{PACKAGE}.training.loop")
+    assert {f"{PACKAGE}.store", f"{PACKAGE}.export"} <= set(INFERENCE)
+    assert len(STORE) > 5
 
 
 def test_no_import_circles():
@@ -142,14 +142,34 @@ def test_no_import_circles():
 
 @pytest.mark.parametrize("module", INFERENCE)
 def test_inference_never_imports_training(module):
+    """Lazy imports included (every import in the source is an edge)."""
     chains = reach(module)
     training = sorted(m for m in chains if m.startswith(f"{PACKAGE}.training"))
     assert not training, f"{module} imports training: {chains[training[0]]}"
 
 
+@pytest.mark.parametrize("module", STORE)
+def test_the_store_imports_nothing_above_it(module):
+    chains = reach(module)
+    above = sorted(m for m in chains if m.startswith(ABOVE_STORE))
+    assert not above, f"{module} reaches up: {chains[above[0]]}"
+
+
+def test_only_the_store_imports_orbax():
+    importers = []
+    for name, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            if any(n == "orbax" or n.startswith("orbax.") for n in names):
+                importers.append(name)
+    assert importers and all(m.startswith(f"{PACKAGE}.store.") for m in importers), importers
+
+
 def test_importing_the_predictor_loads_neither_optax_nor_training():
-    code = ("import sys, flowmaps_jax.predictor, flowmaps_jax.sample, flowmaps_jax.shipped, "
-            "flowmaps_jax.pretrained; print(sorted(m for m in sys.modules if m == 'optax' or "
+    code = ("import sys, flowmaps_jax.predictor, flowmaps_jax.export, flowmaps_jax.store.rundir, "
+            "flowmaps_jax.store.checkpoint_store; print(sorted(m for m in sys.modules if "
+            "m == 'optax' or "
             "m.startswith(('optax.', 'flowmaps_jax.training'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)

@@ -11,7 +11,7 @@ import pytest
 from flowmaps_jax.flowsim.scenes import scene_tokens, slot_boxes, validation_split
 from flowmaps_jax.flowsim.worlds import world_of
 from flowmaps_jax.predictor import load_pretrained
-from flowmaps_jax.shipped import available
+from flowmaps_jax.store.pretrained import available
 from flowmaps_jax.tokens import Queries
 from flowmaps_jax.training.config import get_preset
 

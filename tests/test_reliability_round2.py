@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 
 from flowmaps_jax import validation as v
+from flowmaps_jax.store import rundir
 from flowmaps_jax.training import cli as train_cli
-from flowmaps_jax.training import rundir
 from flowmaps_jax.training.config import apply_overrides, check_run_resources, get_preset
 
 CFG = dataclasses.replace(get_preset("smoke"), routine_envs=0)
@@ -227,10 +227,11 @@ def test_disk_full_is_one_line_and_exit_74(tmp_path, capsys, monkeypatch):
 
 # ------------------------------------------------------------------ evaluate and search CLIs
 
-from flowmaps_jax import export, predictor, shipped  # noqa: E402
+from flowmaps_jax import export, predictor  # noqa: E402
 from flowmaps_jax.evaluation import cli as eval_cli  # noqa: E402
 from flowmaps_jax.search import cli as search_cli  # noqa: E402
 from flowmaps_jax.search import episodes as E  # noqa: E402
+from flowmaps_jax.store import pretrained  # noqa: E402
 
 MODELS = ["--checkpoint", "pretrained:flowmaps", "--baseline", "pretrained:mlp"]
 
@@ -361,7 +362,7 @@ def test_run_episodes_budget_is_bounded(search_set):
 def _copy_weights(tmp_path, name="mlp", edit=None, meta_edit=None):
     """A copy of the shipped weights ``name`` in tmp_path, its arrays changed by ``edit`` and
     its .json by ``meta_edit``, resealed (the SHA-256 updated) as an attacker would."""
-    src = shipped.PRETRAINED_DIR
+    src = pretrained.PRETRAINED_DIR
     with np.load(src / f"{name}.npz") as data:
         arrays = {k: data[k] for k in data.files}
     if edit:

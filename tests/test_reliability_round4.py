@@ -38,8 +38,10 @@ from flowmaps_jax.predictor import Predictor
 from flowmaps_jax.search import cli as search_cli
 from flowmaps_jax.search import report as search_report
 from flowmaps_jax.search.probabilities import table_probabilities
-from flowmaps_jax.training import checkpoint, loop, rundir
+from flowmaps_jax.store import checkpoints, rundir
+from flowmaps_jax.store.checkpoint_store import CheckpointStore
 from flowmaps_jax.training import cli as train_cli
+from flowmaps_jax.training import loop
 from flowmaps_jax.training.config import (
     TrainConfig,
     apply_overrides,
@@ -188,14 +190,14 @@ def _records(run_dir):
 def straight(tmp_path_factory):
     """(run dir of a run never stopped, the saves it made in order)."""
     saves = []
-    original = checkpoint.CheckpointStore._write
+    original = CheckpointStore._write
 
     def write(self, manager, step, *args, **kwargs):
         original(self, manager, step, *args, **kwargs)
         saves.append((pathlib.Path(str(manager.directory)).name, step))
 
     mp = pytest.MonkeyPatch()
-    mp.setattr(checkpoint.CheckpointStore, "_write", write)
+    mp.setattr(CheckpointStore, "_write", write)
     try:
         run_dir = tmp_path_factory.mktemp("r4") / "straight"
         loop.run(CFG, run_dir, **SILENT)
@@ -212,7 +214,7 @@ def test_a_run_killed_between_any_two_saves_resumes_to_the_same_records(
     the issue's case, best/20 saved and last/20 not)."""
     reference, _ = straight
     done = []
-    original = checkpoint.CheckpointStore._write
+    original = CheckpointStore._write
 
     def write(self, manager, step, *args, **kwargs):
         original(self, manager, step, *args, **kwargs)
@@ -226,12 +228,12 @@ def test_a_run_killed_between_any_two_saves_resumes_to_the_same_records(
 
     run_dir = tmp_path / "run"
     with monkeypatch.context() as mp:
-        mp.setattr(checkpoint.CheckpointStore, "_write", write)
+        mp.setattr(CheckpointStore, "_write", write)
         with pytest.raises(_Killed):
             loop.run(CFG, run_dir, on_step=on_step, **SILENT)
     result = loop.run(CFG, run_dir, resume=True, **SILENT)
     ok = result.status == "done" and _records(run_dir) == _records(reference) \
-        and checkpoint.saved_steps(run_dir, "best") == [20] \
+        and checkpoints.saved_steps(run_dir, "best") == [20] \
         and result.best_step == 20
     _tally("2 resume", ok)
     assert ok, (_records(run_dir), _records(reference))

@@ -26,7 +26,8 @@ import orbax.checkpoint as ocp
 import pytest
 
 from flowmaps_jax.predictor import load
-from flowmaps_jax.training import checkpoint, cli, loop, rundir
+from flowmaps_jax.store import checkpoints, rundir
+from flowmaps_jax.training import cli, loop
 from flowmaps_jax.training.config import get_preset
 
 # A damaged checkpoint makes orbax leave un-awaited coroutines behind ("unraisable" warnings).
@@ -97,7 +98,7 @@ def test_a_run_resumed_off_the_log_interval_logs_what_a_straight_run_logs(runs):
         for key in a:
             if isinstance(a[key], float):
                 assert math.isclose(a[key], b[key], rel_tol=1e-6, abs_tol=1e-7), (a, b, key)
-    window = checkpoint.restore(runs["at12"]).meta["log_window"]
+    window = checkpoints.restore(runs["at12"]).meta["log_window"]
     assert len(window["records"]) == 2  # steps 11 and 12 travel in the checkpoint
 
 
@@ -119,8 +120,8 @@ def test_overwrite_moves_the_old_run_aside(at12, capsys):
     assert code == 0
     (old,) = at12.parent.glob("run.old-*")
     assert f"moved the old run in {at12} to {old}" in out
-    assert checkpoint.saved_steps(old) == [10, 12]  # the old run, untouched
-    assert checkpoint.saved_steps(at12) == [1]  # the new run alone
+    assert checkpoints.saved_steps(old) == [10, 12]  # the old run, untouched
+    assert checkpoints.saved_steps(at12) == [1]  # the new run alone
     assert [r["step"] for r in _records(at12)] == [0, 1]
     assert not (at12 / rundir.LOCK_NAME).exists()
 
@@ -230,7 +231,7 @@ def test_a_damaged_newest_step_names_the_intact_one_and_from_step_resumes_it(at1
     code, out, _ = _cli(["--resume", "--run-dir", str(at12), "--from-step", "10", "--stop-at",
                          "11", "--no-progress"], capsys)
     assert code == 0 and "Moved the later checkpoints (steps [12]) aside" in out
-    assert checkpoint.saved_steps(at12) == [10, 11]
+    assert checkpoints.saved_steps(at12) == [10, 11]
     assert [r["step"] for r in _records(at12) if r["kind"] == "train"] == [5, 10, 11]
 
 
@@ -251,7 +252,7 @@ def test_a_non_finite_state_is_not_saved_and_stops_the_run(tmp_path, monkeypatch
     result = loop.run(cfg, tmp_path, progress=False, log=said.append)
     assert result.status == "nan" and result.step == 10 and result.state is None
     assert any("refusing to save step 10" in line and "params/" in line for line in said)
-    assert checkpoint.saved_steps(tmp_path) == [5]
+    assert checkpoints.saved_steps(tmp_path) == [5]
     assert np.isfinite(load(tmp_path, which="latest").params["query_pos"]).all()
 
 
@@ -268,7 +269,7 @@ def test_a_full_disk_stops_with_one_short_message(at12, monkeypatch, capsys):
     assert code == cli.EXIT_WRITE_FAILED
     assert err.count("\n") == 1 and "No space left on device" in err
     assert "Event loop" not in err and f"--resume --run-dir {at12}" in err
-    assert checkpoint.saved_steps(at12) == [10, 12]
+    assert checkpoints.saved_steps(at12) == [10, 12]
     assert not (at12 / rundir.LOCK_NAME).exists()
 
 

@@ -262,7 +262,7 @@ def test_bad_log_prob_points(flowmaps, mlp, inputs):
 @pytest.fixture(scope="module")
 def checkpoints(tmp_path_factory):
     """A FlowMaps and an MLP checkpoint written by the real checkpoint store (no training)."""
-    from flowmaps_jax.training import checkpoint
+    from flowmaps_jax.store.checkpoint_store import CheckpointStore
     from flowmaps_jax.training import state as train_state
     from flowmaps_jax.training.config import get_preset
 
@@ -274,7 +274,7 @@ def checkpoints(tmp_path_factory):
         state = train_state.init_state(cfg, jax.random.key(1))
         state = state.replace(ema_params=perturb(state.ema_params, jax.random.key(2), 0.1),
                               step=jnp.asarray(7, jnp.int32))
-        with checkpoint.CheckpointStore(root / kind, keep_last=1) as store:
+        with CheckpointStore(root / kind, keep_last=1) as store:
             store.save(state, cfg.to_dict())
         dirs[kind] = (root / kind, state)
     return dirs
@@ -311,12 +311,12 @@ def test_exported_weights_load_as_the_same_predictor(tmp_path, checkpoints, inpu
     mlp_path, _ = checkpoints["mlp"]
     export_pretrained(mlp_path, "mlp-learned", tmp_path)
     for name, source in (("flowmaps", path), ("mlp-learned", mlp_path)):
-        shipped, loaded = load_pretrained(name, tmp_path), load(source, which="latest")
-        assert (shipped.kind, shipped.model, shipped.step) == (loaded.kind, loaded.model, 7)
-        same = jax.tree_util.tree_map(np.array_equal, shipped.params, loaded.params)
+        packaged, loaded = load_pretrained(name, tmp_path), load(source, which="latest")
+        assert (packaged.kind, packaged.model, packaged.step) == (loaded.kind, loaded.model, 7)
+        same = jax.tree_util.tree_map(np.array_equal, packaged.params, loaded.params)
         assert all(jax.tree_util.tree_leaves(same))
         key = jax.random.key(3)
-        np.testing.assert_array_equal(shipped.sample(*inputs, N, key),
+        np.testing.assert_array_equal(packaged.sample(*inputs, N, key),
                                       loaded.sample(*inputs, N, key))
 
 
@@ -326,15 +326,17 @@ def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
     the last one with --which latest."""
     import json
 
-    from flowmaps_jax import export, shipped
-    from flowmaps_jax.training import checkpoint
+    from flowmaps_jax import export
+    from flowmaps_jax.store import pretrained
+    from flowmaps_jax.store.checkpoint_store import CheckpointStore
+    from flowmaps_jax.training.resume import load_config
 
     path, state = checkpoints["flowmaps"]
     run = tmp_path / "run"
     best_state = state.replace(ema_params=perturb(state.ema_params, jax.random.key(5), 0.1),
                                step=jnp.asarray(3, jnp.int32))
-    cfg = checkpoint.load_config(path)
-    with checkpoint.CheckpointStore(run, keep_last=2) as store:
+    cfg = load_config(path)
+    with CheckpointStore(run, keep_last=2) as store:
         assert store.save_if_best(best_state, cfg.to_dict(), 1.5)
         store.save(state, cfg.to_dict())  # the last step, 7
     for which, step in (("latest", 7), ("best", 3)):
@@ -345,7 +347,7 @@ def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
         assert (meta["which"], meta["step"]) == (which, step)
         assert f"step {step}" in meta["why"]
         assert f"step {step} ({which}: " in capsys.readouterr().out
-        assert shipped.describe("flowmaps", out)["which"] == which
+        assert pretrained.describe("flowmaps", out)["which"] == which
         loaded = load_pretrained("flowmaps", out)
         want = load(run, which=which)
         assert loaded.step == want.step == step
@@ -356,46 +358,45 @@ def test_export_records_which_checkpoint_and_why(tmp_path, checkpoints, capsys):
     # a given reason is stored as given; a run without a best step exports its last, and says so
     export.export_pretrained(run, "flowmaps", tmp_path / "why", why="the docs use it",
                              which="latest")
-    assert shipped.describe("flowmaps", tmp_path / "why")["why"] == "the docs use it"
+    assert pretrained.describe("flowmaps", tmp_path / "why")["why"] == "the docs use it"
     export.export_pretrained(path, "flowmaps", tmp_path / "nobest", which="best")
-    info = shipped.describe("flowmaps", tmp_path / "nobest")
+    info = pretrained.describe("flowmaps", tmp_path / "nobest")
     assert info["which"] == "latest" and "no best" in info["why"]
     with pytest.raises(ValueError, match="which"):
         export.export_pretrained(run, "flowmaps", tmp_path / "bad", which="first")
 
 
-def test_shipped_json_without_which_still_loads(tmp_path):
-    """The shipped .json files predate "which": they load, and describe() says "unknown"; a
+def test_pretrained_json_without_which_still_loads(tmp_path):
+    """The pretrained .json files predate "which": they load, and describe() says "unknown"; a
     .json with another value is refused."""
     import json
     import shutil
 
-    from flowmaps_jax import shipped
+    from flowmaps_jax.store import pretrained
 
-    for name in shipped.available():
-        meta = json.loads((shipped.PRETRAINED_DIR / f"{name}.json").read_text())
-        info = shipped.describe(name)
+    for name in pretrained.available():
+        meta = json.loads((pretrained.PRETRAINED_DIR / f"{name}.json").read_text())
+        info = pretrained.describe(name)
         assert info["which"] == meta.get("which", "unknown") and info["step"] == meta["step"]
     for name in ("mlp",):
-        shutil.copy(shipped.PRETRAINED_DIR / f"{name}.npz", tmp_path)
-        meta = json.loads((shipped.PRETRAINED_DIR / f"{name}.json").read_text())
+        shutil.copy(pretrained.PRETRAINED_DIR / f"{name}.npz", tmp_path)
+        meta = json.loads((pretrained.PRETRAINED_DIR / f"{name}.json").read_text())
         meta.pop("which", None)
         (tmp_path / f"{name}.json").write_text(json.dumps(meta))
-        assert shipped.describe(name, tmp_path)["which"] == "unknown"
+        assert pretrained.describe(name, tmp_path)["which"] == "unknown"
         assert load_pretrained(name, tmp_path).step == meta["step"]
         (tmp_path / f"{name}.json").write_text(json.dumps({**meta, "which": "first"}))
         with pytest.raises(ValueError, match="which 'first'"):
             load_pretrained(name, tmp_path)
         with pytest.raises(ValueError, match="which 'first'"):
-            shipped.describe(name, tmp_path)
+            pretrained.describe(name, tmp_path)
 
 
 def test_pretrained_errors_are_value_errors(tmp_path, checkpoints):
     from flowmaps_jax.export import export_pretrained
-    from flowmaps_jax.sample import load_pretrained as public_load  # the deprecated alias
 
     with pytest.raises(ValueError, match=r"flowmaps.*mlp.*mlp-learned"):
-        public_load("flowmap")
+        load_pretrained("flowmap")
     with pytest.raises(ValueError, match="not in"):
         load_pretrained("mlp", tmp_path)
     with pytest.raises(ValueError, match="needs a 'mlp' model"):

@@ -17,8 +17,9 @@ import optax
 import pytest
 
 from flowmaps_jax.predictor import load
+from flowmaps_jax.store import checkpoints
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
-from flowmaps_jax.training import checkpoint, cli, data, loop, objectives
+from flowmaps_jax.training import cli, data, loop, objectives
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import apply_overrides, get_preset
 
@@ -255,9 +256,9 @@ def test_cli_smoke_run_writes_config_metrics_and_checkpoints(straight_run):
     assert all(0.0 <= r["offset_+1"] <= 1.0 and r["search_cost_ratio"] >= 1.0 for r in routine)
     assert "Routines at step 20" in printed
     assert (run_dir / "routine_curve.png").stat().st_size > 10_000
-    state, config = checkpoint.restore(run_dir, train_state.abstract_state(SMOKE))[:2]
+    state, config = checkpoints.restore(run_dir, train_state.abstract_state(SMOKE))[:2]
     assert int(state.step) == 20 and config == SMOKE.to_dict()
-    best = checkpoint.restore(run_dir, train_state.abstract_state(SMOKE), which="best").state
+    best = checkpoints.restore(run_dir, train_state.abstract_state(SMOKE), which="best").state
     assert int(best.step) in (10, 20)
     # the run directory is printed at the start; the summary names the best step and the last
     start = printed.index(f"Run directory: {run_dir.absolute()}")
@@ -279,10 +280,10 @@ def test_resume_continues_exactly(straight_run, tmp_path):
     second = loop.run(SMOKE, tmp_path, resume=True, progress=False)
     assert second.status == "done" and second.step == 20
     assert first.best_step == 10 and second.best_step in (10, 20)  # restored with the store
-    assert [second.best_step] == checkpoint.saved_steps(tmp_path / "checkpoints", "best")
+    assert [second.best_step] == checkpoints.saved_steps(tmp_path / "checkpoints", "best")
     target = train_state.abstract_state(SMOKE)
-    split = checkpoint.restore(tmp_path, target).state
-    straight = checkpoint.restore(straight_dir, target).state
+    split = checkpoints.restore(tmp_path, target).state
+    straight = checkpoints.restore(straight_dir, target).state
     for a, b in zip(_leaves(split), _leaves(straight), strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
     records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
@@ -296,7 +297,7 @@ def test_ctrl_c_saves_a_checkpoint_and_stops(tmp_path):
 
     result = loop.run(SMOKE, tmp_path, on_step=press_ctrl_c, progress=False)
     assert result.status == "interrupted" and result.step == 7
-    state = checkpoint.restore(tmp_path, train_state.abstract_state(SMOKE)).state
+    state = checkpoints.restore(tmp_path, train_state.abstract_state(SMOKE)).state
     assert int(state.step) == 7
 
 
@@ -316,7 +317,7 @@ def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch
     result = loop.run(SMOKE, tmp_path, progress=False)
     assert result.status == "nan" and result.step == 12 and result.state is None
     assert "Loss is nan at step 13" in capsys.readouterr().out
-    state = checkpoint.restore(tmp_path, train_state.abstract_state(SMOKE)).state
+    state = checkpoints.restore(tmp_path, train_state.abstract_state(SMOKE)).state
     assert int(state.step) == 10  # the last good checkpoint; nothing saved after the NaN
     assert sorted(int(p.name) for p in (tmp_path / "checkpoints" / "last").iterdir()) == [10]
 
@@ -329,7 +330,7 @@ def test_endless_data_is_fresh_and_resumes_exactly(straight_run, tmp_path):
     assert straight.status == resumed.status == "done"
     for a, b in zip(_leaves(straight.state), _leaves(resumed.state), strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
-    fixed_split = checkpoint.restore(straight_run[1], train_state.abstract_state(SMOKE)).state
+    fixed_split = checkpoints.restore(straight_run[1], train_state.abstract_state(SMOKE)).state
     pairs = zip(_leaves(straight.state.params), _leaves(fixed_split.params), strict=True)
     assert any(not np.allclose(a, b) for a, b in pairs)  # other data, other weights
 

@@ -1,7 +1,7 @@
 """Inference API: load a trained model and draw box samples or exact log-likelihoods.
 
     predictor = load("runs/flowmaps-cpu-.../checkpoints")          # FlowMaps or MLP baseline
-    predictor = load_pretrained("flowmaps")                        # or a shipped model
+    predictor = load_pretrained("flowmaps")                        # or a pretrained model
     boxes = predictor.sample(tokens, queries, num_samples=25, key=jax.random.key(0))
     log_p = predictor.log_prob(tokens, queries, boxes)               # (B, Q, 25)
 
@@ -29,8 +29,8 @@ Several devices: ``predictor.sharded()`` splits the scenes of every call over al
 as on one device.
 
 Loading needs neither optax nor the training code: :func:`load` reads checkpoints through
-:mod:`flowmaps_jax.checkpoint_reader`, :func:`load_pretrained` the shipped weights through
-:mod:`flowmaps_jax.shipped`.
+:mod:`flowmaps_jax.store.checkpoints`, :func:`load_pretrained` the pretrained weights through
+:mod:`flowmaps_jax.store.pretrained`.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from flowmaps_jax import checkpoint_reader, distributed, flow, shipped
+from flowmaps_jax import distributed, flow
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
 from flowmaps_jax.model.config import ModelConfig
@@ -52,9 +52,9 @@ from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
 from flowmaps_jax.model.flowmaps import check_inputs
 from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
+from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles
 from flowmaps_jax.validation import (
-    check_choice,
     check_flag,
     check_instance,
     check_int,
@@ -325,40 +325,28 @@ def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
     the checksums saved with it and for NaN/inf. Raises ``ValueError`` for a missing, empty,
     damaged or non-finite checkpoint (naming the newest intact step when there is one).
     """
-    which = check_choice("which", which, checkpoint_reader.WHICH)
-    use_ema = check_flag("use_ema", use_ema)
-    root = checkpoint_reader.resolve_checkpoint_dir(checkpoint_dir)
-    if step is not None:
-        step = check_int("step", step, minimum=0)
-    elif which == checkpoint_reader.BEST and not checkpoint_reader.saved_steps(root, which):
-        which = checkpoint_reader.LATEST
-    restored = checkpoint_reader.restore(root, which=which, step=step)
-    try:
-        spec = checkpoint_reader.model_spec(restored.config)
-    except (ValueError, TypeError) as err:
-        raise ValueError(f"checkpoint {restored.path}: cannot read the config: {err}") from None
-    params = restored.state["ema_params" if use_ema else "params"]
-    checkpoint_reader.check_params(params, spec, f"checkpoint {restored.path}")
-    return Predictor(params=params, model=spec.model, kind=spec.kind, flowsim=spec.flowsim,
-                     source=str(root), step=int(restored.state["step"]))
+    weights = checkpoints.load_weights(checkpoint_dir, which, use_ema, step)
+    spec = weights.spec
+    return Predictor(params=weights.params, model=spec.model, kind=spec.kind,
+                     flowsim=spec.flowsim, source=str(weights.root), step=weights.step)
 
 
-def load_pretrained(name: str, directory: str | pathlib.Path = shipped.PRETRAINED_DIR
+def load_pretrained(name: str, directory: str | pathlib.Path = pretrained.PRETRAINED_DIR
                     ) -> Predictor:
-    """A trained default model shipped inside the package: ``"flowmaps"``, ``"mlp"`` or
+    """A trained default model packaged with flowmaps-jax: ``"flowmaps"``, ``"mlp"`` or
     ``"mlp-learned"`` (the EMA weights of the `cpu`-preset runs in docs/results.md), the same
     :class:`Predictor` as :func:`load` of that run. ``directory``: where the weights are (the
     package's ``pretrained/`` folder by default). Raises ``ValueError`` for an unknown name
     (listing the names), or weights that are missing, damaged (SHA-256 mismatch) or do not fit
-    their config. See :mod:`flowmaps_jax.shipped`."""
-    weights = shipped.read_weights(name, directory)
+    their config. See :mod:`flowmaps_jax.store.pretrained`."""
+    weights = pretrained.read_weights(name, directory)
     return Predictor(params=weights.params, model=weights.spec.model, kind=weights.spec.kind,
                      flowsim=weights.spec.flowsim, source=f"pretrained:{weights.name}",
                      step=weights.step)
 
 
 PRETRAINED_PREFIX = "pretrained:"
-"""A model spec starting with this names shipped weights (``pretrained:flowmaps``)."""
+"""A model spec starting with this names pretrained weights (``pretrained:flowmaps``)."""
 
 
 def load_model(spec: str, which: str = "best", devices: int | None = None) -> Predictor:

@@ -19,7 +19,8 @@ from flowmaps_jax import distributed
 from flowmaps_jax.flowsim import generate
 from flowmaps_jax.model import init_params
 from flowmaps_jax.predictor import Predictor
-from flowmaps_jax.training import checkpoint, loop, state
+from flowmaps_jax.store import checkpoints
+from flowmaps_jax.training import loop, state
 from flowmaps_jax.training.config import apply_overrides, get_preset
 
 assert jax.device_count() == 2, "run with XLA_FLAGS=--xla_force_host_platform_device_count=2"
@@ -69,9 +70,9 @@ def test_checkpoint_from_two_devices_continues_on_one(runs, tmp_path):
     run_dir = tmp_path / "copy"
     shutil.copytree(two.run_dir, run_dir)
     ckpt = run_dir / "checkpoints"
-    on_two = checkpoint.restore(ckpt, state.abstract_state(SMOKE, mesh=distributed.data_mesh()),
+    on_two = checkpoints.restore(ckpt, state.abstract_state(SMOKE, mesh=distributed.data_mesh()),
                                 step=3).state
-    on_one = checkpoint.restore(ckpt, state.abstract_state(SMOKE), step=3).state
+    on_one = checkpoints.restore(ckpt, state.abstract_state(SMOKE), step=3).state
     assert int(on_one.step) == 3
     assert len(jax.tree.leaves(on_one.params)[0].sharding.device_set) == 1
     assert len(jax.tree.leaves(on_two.params)[0].sharding.device_set) == 2
@@ -98,7 +99,7 @@ def test_incompatible_checkpoint_is_a_value_error(runs):
     run_dir = runs["two"][0].run_dir
     other = apply_overrides(SMOKE, ["model.dim=48"])
     with pytest.raises(ValueError, match="does not match the model"):
-        checkpoint.restore(run_dir / "checkpoints",
+        checkpoints.restore(run_dir / "checkpoints",
                            state.abstract_state(other, mesh=distributed.data_mesh()))
     with pytest.raises(ValueError, match=r"--resume cannot change model\.dim"):
         loop.run(apply_overrides(other, ["steps=8"]), run_dir, resume=True, progress=False,

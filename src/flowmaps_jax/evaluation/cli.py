@@ -103,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate FlowMaps (and baselines) against FlowSim's exact posterior.")
     parser.add_argument("--checkpoint", required=True,
                         help="run or checkpoint directory of the model to evaluate (FlowMaps), "
-                             "or pretrained:NAME for a shipped model (e.g. pretrained:flowmaps)")
+                             "or pretrained:NAME for a pretrained model (e.g. pretrained:flowmaps)")
     parser.add_argument("--baseline", action="extend", nargs="+", default=[], metavar="DIR",
                         help="run or checkpoint directories (or pretrained:NAME) of baselines "
                              "(several after one flag, or the flag repeated)")

@@ -11,15 +11,15 @@ Modules, in the order data flows through them:
   (``LOSSES``; the families themselves are :mod:`flowmaps_jax.model.families`).
 * :mod:`~flowmaps_jax.training.state`: ``TrainState``, optax optimiser and EMA, the jitted train
   step and the val loss.
-* :mod:`~flowmaps_jax.training.checkpoint`: orbax checkpoints (last k + best), each step with
-  SHA-256 checksums of its arrays (a ``meta`` item), non-finite state refused both ways.
-* :mod:`~flowmaps_jax.training.rundir`: one run per directory (refuse / ``--overwrite``, a lock
-  file, atomic writes).
-* :mod:`~flowmaps_jax.training.runlog`: a run's bookkeeping: the claim on its directory,
-  ``metrics.jsonl``, the resume policy, the best val step, the summary.
+* :mod:`~flowmaps_jax.training.runlog`: a run's records: ``metrics.jsonl``, its checkpoints
+  (last k + best), the best val step, the summary.
+* :mod:`~flowmaps_jax.training.resume`: the resume policy (which checkpoint ``--resume``
+  continues, with which config).
 * :mod:`~flowmaps_jax.training.loop`: ``run``, the training loop (prelude, step loop, summary).
 * :mod:`~flowmaps_jax.training.cli`: the ``python -m flowmaps_jax.train`` command.
 
 "val" in training is the EMA loss on the fixed validation batches (``val_every``,
 ``metrics.jsonl``'s ``"kind": "val"``); checking arguments is :mod:`flowmaps_jax.validation`.
+What is on disk (checkpoints, their checksums, the run directory and its lock) is
+:mod:`flowmaps_jax.store`.
 """

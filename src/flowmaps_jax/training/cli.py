@@ -14,8 +14,8 @@ Examples::
 A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` (one JSON record
 per log interval: ``"kind": "train"`` with mean loss/grad_norm/lr and steps/s and samples/s over
 the compiled steps only, or ``"kind": "val"`` with the EMA validation loss) and ``checkpoints/``
-(see :mod:`flowmaps_jax.training.checkpoint`). It belongs to one run
-(:mod:`flowmaps_jax.training.rundir`): a new run needs an empty directory (or ``--overwrite``,
+(see :mod:`flowmaps_jax.store.checkpoints`). It belongs to one run
+(:mod:`flowmaps_jax.store.rundir`): a new run needs an empty directory (or ``--overwrite``,
 or one whose run saved no checkpoint: ``--resume`` also starts that one again from step 0), one
 process writes it at a time, and nothing in it is written before every check has passed,
 resource bounds included (:func:`flowmaps_jax.training.config.check_run_resources`).
@@ -39,7 +39,8 @@ import time
 import typing
 
 from flowmaps_jax import distributed
-from flowmaps_jax.training import rundir, runlog
+from flowmaps_jax.store import rundir
+from flowmaps_jax.training import resume
 from flowmaps_jax.training.config import (
     DEFAULT_PRESET,
     MODEL_KINDS,  # the model families by name, as TrainConfig checks model_kind
@@ -120,10 +121,9 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
         if args.preset is not None or args.model is not None:
             raise ValueError("--resume uses the run's saved config; change fields with --set, "
                              "not --preset/--model")
-        if args.overwrite:
-            raise ValueError("--resume and --overwrite exclude each other")
+        rundir.check_mode(args.resume, args.overwrite)  # before the run directory is read
         run_dir = rundir.check_run_dir(args.run_dir)
-        cfg = runlog.resume_config(run_dir, args.from_step)
+        cfg = resume.resume_config(run_dir, args.from_step)
     else:
         cfg = get_preset(args.preset or DEFAULT_PRESET)
         run_dir = None
@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(err))
     except OSError as err:  # a full disk or another failed write: one line, not a traceback
         print(f"{parser.prog}: error: {_one_line(err)}", file=sys.stderr)
-        if argv is None:  # no teardown: orbax's threads would print tracebacks after the line
+        if argv is None:  # no teardown: checkpoint threads would print tracebacks after the line
             _exit_now(EXIT_WRITE_FAILED)
         return EXIT_WRITE_FAILED
     except KeyboardInterrupt:  # outside the step loop (data, compilation) or a second Ctrl-C

@@ -4,7 +4,7 @@
 
 1. **Prelude.** Every check first, resource bounds included
    (:func:`flowmaps_jax.training.config.check_run_resources`); then the run directory is claimed
-   (:func:`flowmaps_jax.training.runlog.claim`), a resumed run's checkpoint restored, the
+   (:func:`flowmaps_jax.store.rundir.claim`), a resumed run's checkpoint restored, the
    functions compiled (:func:`compiled_functions`), the data generated and the state built.
    Nothing in the run directory is written before every check has passed.
 2. **The step loop.** One train step per iteration, then the periodic blocks: a train record
@@ -14,8 +14,8 @@
 3. **Summary.** The last checkpoint, the routine curve and the commands to evaluate or resume.
 
 A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` and
-``checkpoints/`` (:mod:`flowmaps_jax.training.runlog`, :mod:`flowmaps_jax.training.checkpoint`)
-and belongs to one run (:mod:`flowmaps_jax.training.rundir`). The batch and noise of step i
+``checkpoints/`` (:mod:`flowmaps_jax.training.runlog`, :mod:`flowmaps_jax.store.checkpoints`)
+and belongs to one run (:mod:`flowmaps_jax.store.rundir`). The batch and noise of step i
 depend only on the state's keys and i, so a resumed run continues exactly, and the metrics of
 the steps since the last train record travel in the checkpoint, so the records of a resumed run
 are those of a run never stopped. Ctrl-C saves a checkpoint and returns; a NaN/inf loss, or a
@@ -41,7 +41,10 @@ import numpy as np
 from tqdm import tqdm
 
 from flowmaps_jax import distributed
-from flowmaps_jax.training import checkpoint, data, objectives, rundir, runlog
+from flowmaps_jax.store import checkpoints, rundir
+from flowmaps_jax.store.checkpoint_store import CheckpointSaveError
+from flowmaps_jax.store.integrity import NonFiniteStateError
+from flowmaps_jax.training import data, objectives, runlog
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import (
     TrainConfig,
@@ -49,6 +52,7 @@ from flowmaps_jax.training.config import (
     compile_key,
     format_config,
 )
+from flowmaps_jax.training.resume import restore_for_resume
 from flowmaps_jax.training.runlog import RunResult
 from flowmaps_jax.validation import check_instance, check_int
 
@@ -72,19 +76,20 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         always spans ``cfg.steps``. on_step(step, metrics): called after every step (tests).
 
     Nothing in ``run_dir`` is written before every check has passed, and ``run_dir/.lock``
-    keeps other processes out while the run lasts (see :mod:`flowmaps_jax.training.rundir`).
-    A failed checkpoint write (e.g. a full disk) raises ``checkpoint.CheckpointSaveError``.
+    keeps other processes out while the run lasts (see :mod:`flowmaps_jax.store.rundir`). A
+    failed checkpoint write (e.g. a full disk) raises
+    :class:`~flowmaps_jax.store.checkpoint_store.CheckpointSaveError`.
     """
     # ---- Prelude: every check, then the run's pieces; nothing is written before the last one.
     run_dir, mesh = _check_run(cfg, run_dir, resume=resume, from_step=from_step, stop_at=stop_at)
     start_params = None if resume else _start_params(cfg, log)
     primary = jax.process_index() == 0
-    with _StopFlag() as stop, runlog.claim(run_dir, resume=resume, overwrite=overwrite,
+    with _StopFlag() as stop, rundir.claim(run_dir, resume=resume, overwrite=overwrite,
                                            log=log):
-        resumed = runlog.restore_for_resume(cfg, run_dir, from_step, mesh, log) if resume else None
+        resumed = restore_for_resume(cfg, run_dir, from_step, mesh, log) if resume else None
         kept = None  # a new run appends to metrics.jsonl; a resumed one first trims it
         if resume and primary:  # starting again from step 0 (resumed None): no record is kept
-            kept = runlog.kept_records(
+            kept = rundir.kept_records(
                 run_dir, None if resumed is None else int(resumed.state.step), log)
         log("Config:\n" + format_config(cfg))
         log(f"Run directory: {run_dir.absolute()} (config.json, metrics.jsonl, checkpoints/)")
@@ -103,8 +108,8 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
             state, window = resumed.state, (resumed.meta or {}).get("log_window")
             log(f"Resumed from {resumed.path} at step {int(state.step)}")
             if from_step is not None and primary:
-                moved_to, moved = checkpoint.set_aside(runlog.checkpoint_root(run_dir),
-                                                       from_step)
+                moved_to, moved = checkpoints.set_aside(rundir.checkpoint_root(run_dir),
+                                                        from_step)
                 if moved:
                     log(f"Moved the later checkpoints (steps {moved}) aside to {moved_to}")
         if primary:
@@ -167,10 +172,10 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
 
                 if status != "nan":
                     book.save(state)  # the last state, whether done, stopped or interrupted
-            except checkpoint.NonFiniteStateError as err:
+            except NonFiniteStateError as err:
                 status = "nan"
                 log(f"\n{err}. Stopping without saving this state.")
-            except checkpoint.CheckpointSaveError as err:
+            except CheckpointSaveError as err:
                 raise book.save_failed(err, done) from err
             latest = book.latest_step()
 

@@ -1,21 +1,18 @@
-"""A run's bookkeeping: the claim on its directory, ``metrics.jsonl``, the resume policy, the
-best val step and the closing summary. :mod:`flowmaps_jax.training.loop` calls these; none of
-them trains.
+"""A run's records: ``metrics.jsonl``, its checkpoints, the best val step and the closing
+summary. :mod:`flowmaps_jax.training.loop` calls these; none of them trains.
 
-* :func:`claim` holds the run directory for one job (:func:`flowmaps_jax.training.rundir.claim`
-  on process 0 of a multi-host job; every process learns whether it could).
 * :class:`RunBook` keeps ``metrics.jsonl``, one JSON record per interval: ``"kind": "train"``
   (mean loss / grad_norm / lr over the steps since the last record, and steps/s and samples/s
   over the compiled steps only), ``"kind": "val"`` (the EMA loss on the fixed validation
   batches, and whether it is the best so far) and ``"kind": "routine"`` (the routine
-  diagnostic). It also writes the checkpoints (last k, and ``best`` by val loss), each carrying
-  the unlogged steps since the last train record, so that a resumed run writes the records of
-  a run never stopped.
-* Resume policy: :func:`restore_for_resume` (the checkpoint ``--resume`` continues),
-  :func:`resume_config` (the config a resumed run starts from), :func:`check_resumable` (only
-  :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS` may change), :func:`kept_records`
-  (the metrics a resumed run keeps).
+  diagnostic). It also writes the checkpoints (last k, and ``best`` by val loss; through
+  :class:`flowmaps_jax.store.checkpoint_store.CheckpointStore`), each carrying the unlogged
+  steps since the last train record, so that a resumed run writes the records of a run never
+  stopped.
 * :class:`RunResult`, :func:`print_summary` and :func:`write_routine_curve`: the end of a run.
+
+The run directory itself (the claim, the lock, atomic writes) is :mod:`flowmaps_jax.store.rundir`;
+the resume policy is :mod:`flowmaps_jax.training.resume`.
 """
 
 from __future__ import annotations
@@ -31,41 +28,11 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from flowmaps_jax import distributed
-from flowmaps_jax.training import checkpoint, rundir
+from flowmaps_jax.store import rundir
+from flowmaps_jax.store.checkpoint_store import CheckpointSaveError, CheckpointStore
+from flowmaps_jax.store.rundir import METRICS
 from flowmaps_jax.training import state as train_state
-from flowmaps_jax.training.config import RESUMABLE_FIELDS, TrainConfig
-from flowmaps_jax.training.overrides import flatten
-
-METRICS = "metrics.jsonl"
-
-
-@contextlib.contextmanager
-def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool, log: Callable[[str], None]):
-    """Hold ``run_dir`` for this run (:func:`flowmaps_jax.training.rundir.claim`).
-
-    On a multi-host job the first process owns the run directory (lock, config, metrics; every
-    process takes part in the checkpoint saves, which orbax coordinates). The others learn
-    whether it could claim it, so a refused run stops every process at once with the reason.
-    """
-    if jax.process_count() == 1:
-        with rundir.claim(run_dir, resume=resume, overwrite=overwrite, log=log):
-            yield
-        return
-    with contextlib.ExitStack() as held:
-        error = ""
-        if jax.process_index() == 0:
-            try:
-                held.enter_context(rundir.claim(run_dir, resume=resume, overwrite=overwrite,
-                                                log=log))
-            except ValueError as err:
-                error = str(err)
-        if distributed.agree(not error):
-            yield
-            return
-        raise ValueError(error or f"process 0 could not claim the run directory {run_dir} "
-                                  "(its log says why)")
-
+from flowmaps_jax.training.config import TrainConfig
 
 # --------------------------------------------------------------------------------------------
 # metrics.jsonl and the checkpoints
@@ -97,7 +64,7 @@ class RunBook:
             rundir.write_atomic(path, "".join(line + "\n" for line in kept))
         self._file = rundir.open_append(path) if primary else None
         try:
-            self.store = checkpoint.CheckpointStore(run_dir / "checkpoints", cfg.keep_last)
+            self.store = CheckpointStore(run_dir / "checkpoints", cfg.keep_last)
         except BaseException:
             self._close_file()
             raise
@@ -150,14 +117,13 @@ class RunBook:
     def latest_step(self) -> int | None:
         return self.store.latest_step()
 
-    def save_failed(self, err: checkpoint.CheckpointSaveError,
-                    step: int) -> checkpoint.CheckpointSaveError:
+    def save_failed(self, err: CheckpointSaveError, step: int) -> CheckpointSaveError:
         """``err`` (a failed checkpoint write) completed with what is saved and how to go on."""
         latest = self.store.latest_step()
         saved = (f"the saved checkpoints are intact (latest: step {latest})"
                  if latest is not None else "no checkpoint was saved yet (--resume starts the "
                  "run again from step 0)")
-        return checkpoint.CheckpointSaveError(
+        return CheckpointSaveError(
             err.errno, f"{err}. Training stopped at step {step}; {saved}. Free some space, then "
             f"continue with python -m flowmaps_jax.train --resume --run-dir {self.run_dir}")
 
@@ -182,7 +148,7 @@ class RunBook:
         self.close()
 
 
-def _best_as_of(window: dict, kept: list[str] | None, store: checkpoint.CheckpointStore,
+def _best_as_of(window: dict, kept: list[str] | None, store: CheckpointStore,
                 start_step: int) -> tuple[float | None, int | None]:
     """(best val loss, its step) of a run as of ``start_step`` (see :class:`RunBook`)."""
     if "best_val_loss" in window:  # saved with the checkpoint the run continues
@@ -199,143 +165,6 @@ def _best_as_of(window: dict, kept: list[str] | None, store: checkpoint.Checkpoi
     if step is None or step > start_step:
         return None, None
     return store.best_val_loss, step
-
-
-def kept_records(run_dir: pathlib.Path, resumed_step: int | None,
-                 log: Callable[[str], None]) -> list[str]:
-    """The lines of ``metrics.jsonl`` that a resumed run keeps: those up to the restored step
-    ``resumed_step`` (none for a run that starts again from step 0). A half-written last line (a
-    crash mid-write) is dropped with a message; a bad line elsewhere is a ValueError naming it."""
-    path = run_dir / METRICS
-    if resumed_step is None or not path.exists():
-        return []
-    lines = path.read_bytes().decode("utf-8", errors="replace").split("\n")
-    numbered = [(n, line) for n, line in enumerate(lines, 1) if line.strip()]
-    kept = []
-    for n, line in numbered:
-        try:
-            record = json.loads(line)
-            if not isinstance(record, dict) or not isinstance(record.get("step", 0), int):
-                raise ValueError("not a JSON object with an integer step")
-        except ValueError as err:
-            if n != numbered[-1][0]:
-                raise ValueError(f"{path} line {n} is not a metrics record ({err}); repair or "
-                                 f"delete that line, then resume again") from None
-            log(f"Dropped the half-written last line of {path} (line {n}: {_clip(line)})")
-            continue
-        if record.get("step", 0) <= resumed_step:
-            kept.append(line)
-    return kept
-
-
-def _clip(text: str, limit: int = 60) -> str:
-    return repr(text if len(text) <= limit else text[:limit] + "...")
-
-
-# --------------------------------------------------------------------------------------------
-# Resume policy
-
-
-def check_resumable(saved: TrainConfig, cfg: TrainConfig) -> None:
-    """ValueError naming the first field where ``cfg`` differs from the checkpoint's ``saved``
-    config outside :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`."""
-    old, new = flatten(saved.to_dict()), flatten(cfg.to_dict())
-    for key in sorted(set(old) | set(new)):
-        if key.split(".")[0] not in RESUMABLE_FIELDS and old.get(key) != new.get(key):
-            raise ValueError(
-                f"--resume cannot change {key} (the checkpoint has {old.get(key)!r}, this run "
-                f"asks for {new.get(key)!r}): it would change the model, its parameters, its "
-                f"optimiser or its data. Only {', '.join(RESUMABLE_FIELDS)} may change on "
-                f"resume; train with other settings in a new --run-dir")
-
-
-def checkpoint_root(run_dir: pathlib.Path) -> pathlib.Path:
-    """The checkpoint directory of the run in ``run_dir`` (ValueError for a checkpoint
-    directory given as the run)."""
-    ckpt_dir = run_dir / "checkpoints"
-    if not ckpt_dir.exists() and ((run_dir / "last").is_dir() or (run_dir / "best").is_dir()):
-        raise ValueError(f"run_dir {str(run_dir)!r} is a checkpoint directory (it holds last/ or "
-                         f"best/), not a run directory: resume the run that holds it, "
-                         f"--run-dir {run_dir.parent}")
-    return checkpoint.resolve_checkpoint_dir(ckpt_dir if ckpt_dir.exists() else run_dir)
-
-
-def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig | None:
-    """The ``config.json`` of a run that saved no checkpoint yet (killed or interrupted before
-    its first save), which ``--resume`` starts again from step 0; None when the run directory
-    holds a checkpoint (or anything else). ValueError if there is nothing to start from.
-
-    A run killed between its first ``best/N`` save and its ``last/N`` save holds only a best
-    checkpoint: without ``from_step`` it too starts again from step 0 (it saved no state to
-    continue; the replay saves the same best again)."""
-    only_best = from_step is None and _only_best_saved(run_dir)
-    if not run_dir.is_dir() or (rundir.has_checkpoint(run_dir) and not only_best):
-        checkpoint_root(run_dir)  # a checkpoint directory given as the run: refused
-        return None
-    if from_step is not None:
-        raise ValueError(f"--from-step {from_step}: the run in {run_dir} saved no checkpoint")
-    try:
-        return TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
-    except FileNotFoundError:
-        if only_best:
-            return checkpoint.load_config(run_dir / "checkpoints", checkpoint.BEST)
-        raise ValueError(f"run directory {run_dir} holds no checkpoint and no config.json: "
-                         f"nothing to resume; start a new run there") from None
-    except (OSError, ValueError, TypeError) as err:
-        raise ValueError(f"run directory {run_dir} holds no checkpoint, and its config.json "
-                         f"is unreadable ({err}); start a new run there") from None
-
-
-def _only_best_saved(run_dir: pathlib.Path) -> bool:
-    """Whether the run's checkpoints hold a finished ``best`` step and no ``last`` one."""
-    root = run_dir / "checkpoints"
-    if not root.is_dir() or root.is_symlink():
-        return False
-    held = {sub.name for _, sub in checkpoint.saved_copies(root)}
-    return held == {"best"}
-
-
-def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int | None,
-                       mesh, log: Callable[[str], None] = print) -> checkpoint.Restored | None:
-    """The verified checkpoint to continue from (onto ``mesh``, whatever device count it was
-    saved from), after checking that ``cfg`` may resume it; None for a run that saved no
-    checkpoint yet (it starts again from step 0 with its ``config.json``)."""
-    unsaved = _unsaved_config(run_dir, from_step)
-    if unsaved is not None:
-        check_resumable(unsaved, cfg)
-        log(f"No checkpoint of the state to continue was saved in {run_dir} yet: starting the "
-            f"run again from step 0")
-        return None
-    root = checkpoint_root(run_dir)
-    check_resumable(checkpoint.load_config(root, step=from_step), cfg)
-    restored = checkpoint.restore(root, train_state.abstract_state(cfg, mesh=mesh),
-                                  step=from_step)
-    if int(restored.state.step) > cfg.steps:
-        raise ValueError(f"the checkpoint is at step {int(restored.state.step)}, past "
-                         f"steps={cfg.steps}; pass --steps with at least that many")
-    return restored
-
-
-def resume_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig:
-    """The config a resumed run starts from: the checkpoint's, with the fields --resume may
-    change taken from ``config.json`` when that file is readable (it holds the last run's
-    --steps etc. even when no checkpoint was saved since)."""
-    unsaved = _unsaved_config(run_dir, from_step)
-    if unsaved is not None:  # no checkpoint yet: the run starts again with its config.json
-        return unsaved
-    saved = checkpoint.load_config(checkpoint_root(run_dir), step=from_step)
-    try:
-        latest = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
-    except (OSError, ValueError, TypeError):  # missing or unreadable: the checkpoint's config
-        return saved
-    try:
-        check_resumable(saved, latest)
-    except ValueError:
-        raise ValueError(f"{run_dir / 'config.json'} is not the config of the run's "
-                         f"checkpoints (another model or settings); restore or delete it, then "
-                         f"resume") from None
-    return dataclasses.replace(saved, **{name: getattr(latest, name)
-                                         for name in RESUMABLE_FIELDS})
 
 
 # --------------------------------------------------------------------------------------------

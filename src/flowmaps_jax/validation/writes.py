@@ -1,4 +1,4 @@
-"""The one writer every command's output files go through (reports, JSON, Markdown, PNG, shipped
+"""The one writer every command's output files go through (reports, JSON, Markdown, PNG, pretrained
 weights, a run's config and metrics): nothing is ever written through a symbolic link.
 
 * :func:`write_file` writes bytes or text to a path: a symbolic link at the path is refused

@@ -1,23 +1,24 @@
-"""The trained default models shipped inside the package: which there are, and reading them safely.
+"""The pretrained models packaged with flowmaps-jax: which there are, reading them safely, and
+writing them from a checkpoint.
 
 The EMA weights of the `cpu`-preset runs documented in docs/results.md ("Shipped weights") live in
 the data folder ``flowmaps_jax/pretrained/``: ``<name>.npz`` (float32 parameter arrays keyed by
 their path in the params pytree) next to ``<name>.json`` (the run's config, model family, step,
 source, which checkpoint of the run it is, ``"which": "best"`` or ``"latest"``, and why, and the
 SHA-256 of the .npz, checked on load). Files written before ``which`` was recorded lack it:
-:func:`describe` reports ``"unknown"`` for them (the shipped files are the runs' last steps,
-docs/results.md). A plain ``pip install .`` carries them; nothing is downloaded. Reading trusts
-neither file: the ``.json`` is size-limited and its fields are checked (a name, a model family, a
-step that is a count, ``which`` if present), the ``.npz`` is read only after its SHA-256 matches,
-with its members whitelisted (exactly the model's parameters, their declared shapes checked
-before anything is decompressed) and every weight finite.
+:func:`describe` reports ``"unknown"`` for them. A plain ``pip install .`` carries them; nothing
+is downloaded. Reading trusts neither file: the ``.json`` is size-limited and its fields are
+checked (a name, a model family, a step that is a count, ``which`` if present), the ``.npz`` is
+read only after its SHA-256 matches, with its members whitelisted (exactly the model's
+parameters, their declared shapes checked before anything is decompressed) and every weight
+finite.
 
     from flowmaps_jax.predictor import load_pretrained
     predictor = load_pretrained("flowmaps")      # or "mlp", "mlp-learned"
 
 :func:`read_weights` is what :func:`flowmaps_jax.predictor.load_pretrained` calls;
-:mod:`flowmaps_jax.export` writes the files from a checkpoint
-(``python -m flowmaps_jax.export --checkpoint runs/X/checkpoints --name mlp``).
+:func:`export_pretrained` writes the files from a checkpoint (the command is
+``python -m flowmaps_jax.export --checkpoint runs/X/checkpoints --name mlp``).
 """
 
 from __future__ import annotations
@@ -32,22 +33,31 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
-from flowmaps_jax.checkpoint_reader import ModelSpec, model_spec
-from flowmaps_jax.validation import read_npz
+from flowmaps_jax.store import checkpoints
+from flowmaps_jax.store.checkpoints import WHICH
+from flowmaps_jax.store.model_spec import ModelSpec, model_spec
+from flowmaps_jax.validation import (
+    check_choice,
+    check_no_links,
+    check_output_dir,
+    make_output_dir,
+    read_npz,
+    write_file,
+)
 
-PRETRAINED_DIR = pathlib.Path(__file__).resolve().parent / "pretrained"
+PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[1] / "pretrained"
+"""The package data folder holding the pretrained weights."""
 NAMES = ("flowmaps", "mlp", "mlp-learned",
          "flowmaps-preferences", "flowmaps-dynamic", "flowmaps-mixed",
          "flowmaps-preferences-h1", "flowmaps-dynamic-h1", "flowmaps-mixed-h1")
-"""The shipped models: FlowMaps and the two MLP baselines (the paper's world, ``routine``), and
-one FlowMaps per habits world (``flowsim.WORLDS``), trained with ``--preset habits --set
+"""The pretrained models: FlowMaps and the two MLP baselines (the paper's world, ``routine``),
+and one FlowMaps per habits world (``flowsim.WORLDS``), trained with ``--preset habits --set
 world=NAME``: ``flowmaps-<world>`` reads the last 8 maps, ``flowmaps-<world>-h1`` is the same
 recipe reading one map (the "H = 1 model" reference row). A name starting with ``flowmaps``
 holds a FlowMaps model, one starting with ``mlp`` the MLP baseline."""
 MAX_BYTES = 12 * 1024 * 1024  # size budget per model: issue 8 set 10 MB; issue 33's mixture head
 # (two more CDiT blocks for the table weights, 0.66M parameters) needs 11.3 MB
 MAX_META_BYTES = 1024 * 1024  # a .json larger than this is not one export_pretrained wrote
-WHICH = ("latest", "best")  # the checkpoint of a run that an export copies
 UNKNOWN = "unknown"  # "which" of a .json written before it was recorded
 
 
@@ -62,6 +72,10 @@ def available(directory: str | pathlib.Path = PRETRAINED_DIR) -> list[str]:
     """The names whose weights are present in ``directory``."""
     root = pathlib.Path(directory)
     return [n for n in NAMES if (root / f"{n}.npz").is_file() and (root / f"{n}.json").is_file()]
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
 
 
 def _check_meta(name: str, meta, file: str) -> dict:
@@ -94,7 +108,7 @@ def _read_meta(name: str, root: pathlib.Path) -> dict:
     if meta_path.stat().st_size > MAX_META_BYTES:
         raise ValueError(f"pretrained {name!r}: {meta_path.name} holds "
                          f"{meta_path.stat().st_size:,} bytes, more than the "
-                         f"{MAX_META_BYTES:,} a shipped model may have")
+                         f"{MAX_META_BYTES:,} a pretrained model may have")
     try:
         return _check_meta(name, json.loads(meta_path.read_text()), meta_path.name)
     except ValueError as err:
@@ -108,11 +122,11 @@ def _check_present(name: str, root: pathlib.Path) -> None:
 
 
 def describe(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> dict:
-    """What the shipped model ``name`` is, from its ``.json`` only (no weights are read):
+    """What the pretrained model ``name`` is, from its ``.json`` only (no weights are read):
     ``{"name", "kind", "step", "which", "why", "source", "note"}``. ``which`` is "latest" (the
     run's last step), "best" (its best-by-validation step) or "unknown" for a .json written
     before exports recorded it; ``why`` is then "". ValueError when the files are missing or
-    the .json is not one :func:`flowmaps_jax.export.export_pretrained` wrote."""
+    the .json is not one :func:`export_pretrained` wrote."""
     name = check_name(name)
     root = pathlib.Path(directory)
     _check_present(name, root)
@@ -122,8 +136,8 @@ def describe(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> dict:
             "source": meta.get("source"), "note": meta.get("note", "")}
 
 
-class ShippedWeights(NamedTuple):
-    """Verified shipped weights: their ``name``, ``params`` pytree, the model ``spec`` their
+class PretrainedWeights(NamedTuple):
+    """Verified pretrained weights: their ``name``, ``params`` pytree, the model ``spec`` their
     config describes, the training ``step`` and the checked ``.json`` as ``meta``."""
 
     name: str
@@ -133,11 +147,10 @@ class ShippedWeights(NamedTuple):
     meta: dict
 
 
-def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> ShippedWeights:
-    """The shipped weights ``name`` ("flowmaps", "mlp" or "mlp-learned") in ``directory``, read
-    and checked (see the module doc). Raises ``ValueError`` for an unknown name (listing the
-    names), or weights that are missing, damaged (SHA-256 mismatch) or do not fit their
-    config."""
+def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> PretrainedWeights:
+    """The pretrained weights ``name`` (one of :data:`NAMES`) in ``directory``, read and checked
+    (see the module doc). Raises ``ValueError`` for an unknown name (listing the names), or
+    weights that are missing, damaged (SHA-256 mismatch) or do not fit their config."""
     name = check_name(name)
     root = pathlib.Path(directory)
     npz, meta_path = root / f"{name}.npz", root / f"{name}.json"
@@ -145,7 +158,7 @@ def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> S
     for path, limit in ((meta_path, MAX_META_BYTES), (npz, 2 * MAX_BYTES)):
         if path.stat().st_size > limit:
             raise ValueError(f"pretrained {name!r}: {path.name} holds {path.stat().st_size:,} "
-                             f"bytes, more than the {limit:,} a shipped model may have")
+                             f"bytes, more than the {limit:,} a pretrained model may have")
     try:
         meta = _check_meta(name, json.loads(meta_path.read_text()), meta_path.name)
         spec = model_spec(meta["config"])
@@ -174,4 +187,79 @@ def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> S
                          f"reinstall the package")
     params = traverse_util.unflatten_dict({k: jnp.asarray(a) for k, a in arrays.items()},
                                           sep="/")
-    return ShippedWeights(name=name, params=params, spec=spec, step=meta.get("step"), meta=meta)
+    return PretrainedWeights(name=name, params=params, spec=spec, step=meta.get("step"),
+                             meta=meta)
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+
+
+def _params_bytes(params) -> bytes:
+    flat = traverse_util.flatten_dict(params, sep="/")
+    buffer = io.BytesIO()
+    np.savez(buffer, **{k: np.asarray(v, np.float32) for k, v in sorted(flat.items())})
+    return buffer.getvalue()
+
+
+def _default_why(which: str, step: int, best_step: int | None, latest_step: int | None) -> str:
+    """The reason recorded for an export without ``why``: what the step is within its run."""
+    if which == "best":
+        return (f"step {step}, the run's lowest validation score (the step evaluate and search "
+                f"load from a run by default); the run's last step is {latest_step}")
+    best = (f"its best validation loss was at step {best_step}" if best_step is not None
+            else "it saved no best-by-validation step")
+    return f"step {step}, the run's last (the weights at the end of training); {best}"
+
+
+def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
+                      directory: str | pathlib.Path = PRETRAINED_DIR,
+                      which: str = "best", note: str = "", why: str = "") -> pathlib.Path:
+    """Copy a checkpoint's EMA weights into ``directory`` as ``name`` (.npz + .json, each
+    written through a temporary file and a rename).
+
+    which: "best" (default: the step evaluate and search load by default, lowest validation
+    score; a run without one exports its latest step, and the .json says so) or "latest" (the
+    end of the run). The .json records ``which`` and ``why``: the given reason, or by default
+    what the step is within its run (its last step or its best, and the step of the other),
+    and the run's config as the checkpoint stored it. Raises ``ValueError`` if the checkpoint
+    is missing, holds a different model family than the name implies, or is too big. Returns
+    the path of the .npz.
+    """
+    name = check_name(name)
+    which = check_choice("which", which, WHICH)
+    if not isinstance(why, str):
+        raise ValueError(f"why must be text; got {type(why).__name__}")
+    check_output_dir("directory", directory)  # before anything is read or written
+    check_no_links("directory", directory, [f"{name}.npz", f"{name}.json"])
+    ckpt_root = checkpoints.resolve_checkpoint_dir(checkpoint_dir)
+    best_step = next(iter(checkpoints.saved_steps(ckpt_root, checkpoints.BEST)), None)
+    latest_step = next(iter(checkpoints.saved_steps(ckpt_root, checkpoints.LATEST)), None)
+    fallback = which == "best" and best_step is None
+    if fallback:  # as load() does: the latest save
+        which = "latest"
+    weights = checkpoints.load_weights(checkpoint_dir, which=which)
+    kind, model = weights.spec.kind, weights.spec.model
+    expected_kind = "mlp" if name.startswith("mlp") else "flowmaps"
+    if kind != expected_kind:
+        raise ValueError(f"checkpoint_dir holds a {kind!r} model; name {name!r} needs "
+                         f"a {expected_kind!r} model")
+    variant = "learned" if name == "mlp-learned" else "mean"
+    if expected_kind == "mlp" and model.baseline_variance != variant:
+        raise ValueError(f"checkpoint_dir holds the MLP with baseline_variance="
+                         f"{model.baseline_variance!r}; name {name!r} needs {variant!r}")
+    data = _params_bytes(weights.params)
+    if len(data) > MAX_BYTES:
+        raise ValueError(f"{name}: {len(data) / 2**20:.1f} MB of weights, over the "
+                         f"{MAX_BYTES / 2**20:.0f} MB budget")
+    root = make_output_dir("directory", directory)
+    meta = {"name": name, "kind": kind, "step": weights.step,
+            "source": str(checkpoint_dir), "which": which,
+            "why": why or (("--which best, but " if fallback else "")
+                           + _default_why(which, weights.step, best_step, latest_step)),
+            "note": note,
+            "sha256": hashlib.sha256(data).hexdigest(), "config": weights.restored.config}
+    text = json.dumps(meta, indent=2) + "\n"
+    write_file(root / f"{name}.npz", data, name="directory file")  # a temporary file, a rename
+    write_file(root / f"{name}.json", text, name="directory file")
+    return root / f"{name}.npz"

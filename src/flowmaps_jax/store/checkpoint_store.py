@@ -1,29 +1,13 @@
-"""Writing checkpoints with orbax: keep the last k and the best by validation loss.
+"""Writing a run's checkpoints: the last k saves and the best by validation loss.
 
-Layout of a checkpoint directory (by default ``<run_dir>/checkpoints``)::
-
-    <dir>/last/<step>/{state, config, meta}   the ``keep_last`` most recent saves
-    <dir>/best/<step>/{state, config, meta}   the single save with the lowest validation loss
-
-Two ``orbax.checkpoint.CheckpointManager`` instances do this: ``last`` keeps ``max_to_keep``
-recent steps, ``best`` keeps one step chosen by ``best_fn`` (validation loss, mode ``min``). A
-separate "best" manager means the best survives even when it falls out of the last k. Each save
-holds the whole :class:`~flowmaps_jax.training.state.TrainState` (step, params, EMA params,
-optimiser state, PRNG and data keys), the run's config as JSON, and a JSON ``meta`` item with
-the SHA-256 of every array and of the config (plus the training loop's unlogged metrics window,
-so that a resumed run logs the same records as a straight one). Saves are synchronous and
-atomic: orbax writes the three items to a temporary directory and renames it when complete, so
-an interrupted save never appears as a checkpoint.
-
-Integrity. A state holding NaN or inf (params, EMA or optimiser state) is never saved
-(:class:`NonFiniteStateError`). A failed write (e.g. a full disk) raises
-:class:`CheckpointSaveError` with one short message; the partial save is removed.
-
-Reading is :mod:`flowmaps_jax.checkpoint_reader` (no training code, so that inference can use
-it): :func:`saved_steps` and :func:`restore`, re-exported here, verify every restore.
-Restoring into a ``TrainState`` needs a target of the right structure
-(``training.state.abstract_state(cfg)``); :func:`load_config` reads the stored config as a
-:class:`~flowmaps_jax.training.config.TrainConfig`.
+:class:`CheckpointStore` holds the two orbax managers of :mod:`.checkpoints` (``last/`` keeps
+``keep_last`` recent steps, ``best/`` the one with the lowest validation loss, so the best
+survives when it falls out of the last k). Each save holds the whole training state, the run's
+config and the ``meta`` item of :mod:`.integrity` (checksums and the loop's unlogged metrics
+window). Saves are synchronous and atomic: orbax writes a temporary directory and renames it
+when complete, so an interrupted save never appears as a step. A state holding NaN or inf is
+never saved (:class:`~.integrity.NonFiniteStateError`); a failed write (a full disk) raises
+:class:`CheckpointSaveError` with one line, and the partial save is removed.
 """
 
 from __future__ import annotations
@@ -36,39 +20,12 @@ import math
 import pathlib
 import shutil
 import sys
-import time
 
 import orbax.checkpoint as ocp
 
-from flowmaps_jax.checkpoint_reader import (
-    BEST,
-    LATEST,
-    SUBDIRS,
-    WHICH,
-    Restored,
-    best_manager,
-    config_checksum,
-    last_manager,
-    name_list,
-    resolve_checkpoint_dir,
-    restore,
-    saved_copies,
-    saved_steps,
-    shorten,
-    state_checksums,
-)
-from flowmaps_jax.training.config import TrainConfig
+from flowmaps_jax.store.checkpoints import BEST, LATEST, SUBDIRS, best_manager, last_manager
+from flowmaps_jax.store.integrity import describe_state, shorten
 from flowmaps_jax.validation import check_int
-
-__all__ = ["BEST", "LATEST", "WHICH", "CheckpointSaveError", "CheckpointStore",
-           "NonFiniteStateError", "Restored", "describe_state", "load_config",
-           "resolve_checkpoint_dir", "restore", "saved_steps", "set_aside"]
-
-META_FORMAT = 1
-
-
-class NonFiniteStateError(ValueError):
-    """A state with NaN or inf in its params, EMA params or optimiser state was not saved."""
 
 
 class CheckpointSaveError(OSError):
@@ -76,22 +33,6 @@ class CheckpointSaveError(OSError):
 
     def __str__(self) -> str:
         return str(self.strerror)
-
-
-def describe_state(state, config: dict, log_window: dict | None = None) -> dict:
-    """The ``meta`` item of a save: SHA-256 of every array leaf and of ``config``, plus the
-    loop's ``log_window``. Raises :class:`NonFiniteStateError` if a float leaf is NaN or inf."""
-    checksums, bad = state_checksums(state)
-    if bad:
-        raise NonFiniteStateError(
-            f"refusing to save step {int(state.step)}: the state holds NaN or inf values in "
-            f"{name_list(bad)}")
-    return {"format": META_FORMAT, "checksums": checksums,
-            "config_sha256": config_checksum(config), "log_window": log_window}
-
-
-# --------------------------------------------------------------------------------------------
-# Saving
 
 
 class _HoldRecords(logging.Filter):
@@ -138,8 +79,9 @@ class CheckpointStore:
     """Writes checkpoints of one run: ``save`` (last k) and ``save_if_best`` (best by val loss).
 
     directory: checkpoint root (created if needed); keep_last: recent checkpoints kept (k >= 1).
-    Both saves raise :class:`NonFiniteStateError` (nothing written) for a state holding NaN or
-    inf, and :class:`CheckpointSaveError` when the write fails (the partial save is removed).
+    Both saves raise :class:`~.integrity.NonFiniteStateError` (nothing written) for a state
+    holding NaN or inf, and :class:`CheckpointSaveError` when the write fails (the partial save
+    is removed).
     """
 
     def __init__(self, directory: str | pathlib.Path, keep_last: int = 2):
@@ -224,33 +166,3 @@ class CheckpointStore:
 
     def __exit__(self, *exc):
         self.close()
-
-
-# --------------------------------------------------------------------------------------------
-# Reading back (the rest is flowmaps_jax.checkpoint_reader)
-
-
-def load_config(directory: str | pathlib.Path, which: str = LATEST,
-                step: int | None = None) -> TrainConfig:
-    """The :class:`~flowmaps_jax.training.config.TrainConfig` stored with the ``which``
-    checkpoint ("latest" or "best"), or with the saved ``step`` when given."""
-    return TrainConfig.from_dict(restore(directory, which=which, step=step,
-                                         with_state=False).config)
-
-
-def set_aside(directory: str | pathlib.Path, after_step: int) -> tuple[pathlib.Path | None,
-                                                                      list[int]]:
-    """Move every saved step later than ``after_step`` (in last/ and best/) into
-    ``<root>/set-aside-<timestamp>/``, so that a run resumed from ``after_step`` writes its own
-    later steps. Returns (that folder or None if nothing moved, the moved steps)."""
-    root = resolve_checkpoint_dir(directory)
-    later = [(step, sub) for step, sub in saved_copies(root) if step > after_step]
-    if not later:
-        return None, []
-    dest = root / f"set-aside-{time.strftime('%Y%m%d-%H%M%S')}"
-    while dest.exists():
-        dest = dest.with_name(dest.name + "x")
-    for step, sub in later:
-        (dest / sub.name).mkdir(parents=True, exist_ok=True)
-        (sub / str(step)).rename(dest / sub.name / str(step))
-    return dest, sorted({step for step, _ in later})

@@ -1,41 +1,36 @@
-"""Reading checkpoints: find the saved steps, restore one and verify it. Needs no training code.
+"""The orbax checkpoint directory of a run: its layout, finding, restoring and verifying steps,
+and setting later steps aside.
 
-Layout of a checkpoint directory (written by :class:`flowmaps_jax.training.checkpoint.
-CheckpointStore`; by default ``<run_dir>/checkpoints``)::
+Layout (by default ``<run_dir>/checkpoints``)::
 
     <dir>/last/<step>/{state, config, meta}   the ``keep_last`` most recent saves
     <dir>/best/<step>/{state, config, meta}   the single save with the lowest validation loss
 
 ``state`` is the whole training state (step, params, EMA params, optimiser state, PRNG and data
-keys), ``config`` the run's config as JSON, ``meta`` the SHA-256 of every array and of the config.
+keys), ``config`` the run's config as JSON, ``meta`` the checksums of :mod:`.integrity`; the
+writer is :class:`~.checkpoint_store.CheckpointStore`.
 
-The read API is two functions: :func:`saved_steps` (which steps are saved, of one kind or all)
-and :func:`restore` (one step, verified). Every restore recomputes the checksums and checks
-finiteness; a missing, partial, altered or non-finite step raises ``ValueError`` naming it, and
-names the newest intact step and how to load it. Steps written before checksums existed (no
-``meta`` item) are checked for finiteness only. :func:`model_spec` reads the part of a stored
-config that inference needs (the model family, its sizes, the simulator), so that
-:func:`flowmaps_jax.predictor.load` restores a model without the training code (no optax).
+Reading: :func:`saved_steps` and :func:`restore` (one step, verified: checksums recomputed,
+finiteness checked); a missing, partial, altered or non-finite step raises ``ValueError``
+naming it and the newest intact step. Steps written before checksums existed (no ``meta``) are
+checked for finiteness only. :func:`load_weights` is a step's weights and the model its config
+describes (what :func:`flowmaps_jax.predictor.load` and the exporter read).
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import pathlib
+import time
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
-import numpy as np
 import orbax.checkpoint as ocp
 
-from flowmaps_jax.flowsim.config import FlowSimConfig
-from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.families import model_family
-from flowmaps_jax.model.family import ModelFamily
-from flowmaps_jax.validation import check_choice, check_int, check_path
+from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
+from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
+from flowmaps_jax.validation import check_choice, check_flag, check_int, check_path
 
 LATEST = "latest"
 BEST = "best"
@@ -62,10 +57,6 @@ class Restored(NamedTuple):
     path: pathlib.Path
 
 
-class _Damaged(ValueError):
-    """One saved copy of a step failed to restore or verify (internal)."""
-
-
 def last_manager(path: pathlib.Path, keep_last: int | None):
     """orbax manager of the recent saves in ``path``; ``keep_last=None`` opens an existing
     directory for reading."""
@@ -88,84 +79,6 @@ def best_manager(path: pathlib.Path, create: bool = True):
 def _reader(sub: pathlib.Path):
     return best_manager(sub, create=False) if sub.name == SUBDIRS[BEST] else \
         last_manager(sub, None)
-
-
-# --------------------------------------------------------------------------------------------
-# Checksums and finiteness (the ``meta`` item)
-
-
-def leaf_name(path) -> str:
-    """``params/encoder/kernel`` for a key path, the same for a TrainState and its raw restore."""
-    parts = []
-    for entry in path:
-        for attr in ("name", "key", "idx"):
-            if hasattr(entry, attr):
-                parts.append(str(getattr(entry, attr)))
-                break
-    return "/".join(parts)
-
-
-def _host_leaves(tree) -> list[tuple[str, np.ndarray]]:
-    out = []
-    for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
-        if jnp.issubdtype(getattr(leaf, "dtype", np.float32), jax.dtypes.prng_key):
-            leaf = jax.random.key_data(leaf)
-        out.append((leaf_name(path), np.asarray(jax.device_get(leaf))))
-    return out
-
-
-def _digest(arr: np.ndarray) -> str:
-    header = f"{arr.dtype.name}{arr.shape}".encode()
-    return hashlib.sha256(header + np.ascontiguousarray(arr).tobytes()).hexdigest()
-
-
-def config_checksum(config: dict) -> str:
-    """SHA-256 of a JSON config dict (key order does not matter)."""
-    return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
-
-
-def name_list(names: list[str], limit: int = 3) -> str:
-    """The first ``limit`` names, then how many more."""
-    more = f" and {len(names) - limit} more" if len(names) > limit else ""
-    return ", ".join(names[:limit]) + more
-
-
-def _non_finite(leaves: list[tuple[str, np.ndarray]]) -> list[str]:
-    """``name (k of n)`` for every floating leaf holding NaN or inf."""
-    bad = []
-    for name, arr in leaves:
-        if jnp.issubdtype(arr.dtype, jnp.inexact):
-            count = arr.size - int(np.count_nonzero(np.isfinite(arr)))
-            if count:
-                bad.append(f"{name} ({count} of {arr.size})")
-    return bad
-
-
-def state_checksums(state) -> tuple[dict[str, str], list[str]]:
-    """(SHA-256 of every array leaf of ``state`` by :func:`leaf_name`, ``name (k of n)`` of every
-    floating leaf holding NaN or inf): what a save records and a restore checks."""
-    leaves = _host_leaves(state)
-    return {name: _digest(arr) for name, arr in leaves}, _non_finite(leaves)
-
-
-def _verify(state, config: dict, meta: dict | None) -> None:
-    """Raise _Damaged unless ``state``/``config`` match the checksums in ``meta`` and are finite."""
-    got, bad = state_checksums(state)
-    if meta is not None:
-        expected = meta.get("checksums") if isinstance(meta, dict) else None
-        if not isinstance(expected, dict):
-            raise _Damaged("has an unreadable meta item (no checksums)")
-        if set(got) != set(expected):
-            raise _Damaged(f"does not match its checksums: arrays "
-                           f"{name_list(sorted(set(got) ^ set(expected)))} differ in name")
-        changed = [name for name in got if got[name] != expected[name]]
-        if changed:
-            raise _Damaged(f"fails its checksums: {len(changed)} of {len(got)} arrays differ "
-                           f"from what was saved ({name_list(changed)})")
-        if meta.get("config_sha256") != config_checksum(config):
-            raise _Damaged("fails its checksums: the stored config differs from what was saved")
-    if bad:
-        raise _Damaged(f"holds NaN or inf values in {name_list(bad)}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -244,8 +157,8 @@ def _saved_items(step_dir: pathlib.Path) -> list[str]:
         handlers = json.loads((step_dir / _STEP_METADATA).read_text())["item_handlers"]
         return [item for item in ITEMS if item in handlers]
     except (OSError, ValueError, KeyError, TypeError) as err:
-        raise _Damaged(f"is incomplete or corrupt: cannot read {_STEP_METADATA} "
-                       f"({type(err).__name__})") from None
+        raise Damaged(f"is incomplete or corrupt: cannot read {_STEP_METADATA} "
+                      f"({type(err).__name__})") from None
 
 
 def _saved_structure(state_dir: pathlib.Path):
@@ -260,7 +173,7 @@ def _saved_structure(state_dir: pathlib.Path):
 
 def _read_step(sub: pathlib.Path, step: int, target_state=None, *,
                with_state: bool = True) -> Restored:
-    """Restore and verify one saved copy; raises _Damaged saying what is wrong."""
+    """Restore and verify one saved copy; raises Damaged saying what is wrong."""
     step_dir = sub / str(step)
     items = _saved_items(step_dir)
     missing = [item for item in ITEMS if item not in items and item != "meta"]
@@ -268,7 +181,7 @@ def _read_step(sub: pathlib.Path, step: int, target_state=None, *,
     missing += [f"state/{name}" for name in _STATE_FILES
                 if "state" not in missing and not (step_dir / "state" / name).is_file()]
     if missing:
-        raise _Damaged(f"is incomplete or corrupt: missing {missing}")
+        raise Damaged(f"is incomplete or corrupt: missing {missing}")
     args = {"config": ocp.args.JsonRestore()}
     if "meta" in items:
         args["meta"] = ocp.args.JsonRestore()
@@ -280,17 +193,17 @@ def _read_step(sub: pathlib.Path, step: int, target_state=None, *,
             args["state"] = ocp.args.StandardRestore(target)
         restored = manager.restore(step, args=ocp.args.Composite(**args))
     except Exception as err:  # orbax/tensorstore raise many types; report them uniformly
-        raise _Damaged(f"is corrupt, incomplete or does not match the model "
-                       f"({type(err).__name__}: {shorten(err)})") from err
+        raise Damaged(f"is corrupt, incomplete or does not match the model "
+                      f"({type(err).__name__}: {shorten(err)})") from err
     finally:
         manager.close()
     config, meta = restored["config"], restored["meta"] if "meta" in items else None
     if not isinstance(config, dict):
-        raise _Damaged("has no config")
+        raise Damaged("has no config")
     if with_state:
-        _verify(restored["state"], config, meta)
-    elif meta is not None and meta.get("config_sha256") != config_checksum(config):
-        raise _Damaged("fails its checksums: the stored config differs from what was saved")
+        verify(restored["state"], config, meta)
+    else:
+        verify_config(config, meta)
     return Restored(state=restored["state"] if with_state else None, config=config, meta=meta,
                     step=step, path=step_dir)
 
@@ -309,7 +222,7 @@ def _intact_hint(root: pathlib.Path, target_state=None, skip=()) -> str:
             continue
         try:
             _read_step(sub, step, target_state)
-        except _Damaged:
+        except Damaged:
             continue
         run_dir = _run_dir_of(root)
         train = "" if run_dir is None else (
@@ -328,7 +241,7 @@ def _restore_copies(root: pathlib.Path, copies: list[tuple[int, pathlib.Path]], 
     for step, sub in copies:
         try:
             return _read_step(sub, step, target_state, with_state=with_state)
-        except _Damaged as err:
+        except Damaged as err:
             failures.append(f"checkpoint {sub / str(step)} {err}")
     raise ValueError(failures[0] + "." + _intact_hint(root, target_state, skip=copies))
 
@@ -369,70 +282,54 @@ def restore(directory: str | pathlib.Path, target_state=None, *, which: str = LA
         raise ValueError(f"cannot read the config: {err}") from None
 
 
-def shorten(err: Exception | str, limit: int = 400) -> str:
-    """An error's text, cut to ``limit`` characters."""
-    text = str(err)
-    return text if len(text) <= limit else text[:limit] + " ..."
+class Weights(NamedTuple):
+    """A checkpoint's verified weights: ``params``, the model ``spec`` its config describes, the
+    ``step``, the whole ``restored`` checkpoint and its checkpoint ``root``."""
+
+    params: Any
+    spec: ModelSpec
+    step: int
+    restored: Restored
+    root: pathlib.Path
 
 
-# --------------------------------------------------------------------------------------------
-# The model a stored config describes
+def load_weights(directory: str | pathlib.Path, which: str = BEST, use_ema: bool = True,
+                 step: int | None = None) -> Weights:
+    """The weights of the ``which`` checkpoint under ``directory`` (or of the saved ``step``),
+    checked against the model their config describes. ``which="best"`` falls back to the
+    latest save when no validation has run yet; ``use_ema``: the EMA weights (default) or the
+    raw training weights. ``ValueError`` for a missing, damaged or non-finite checkpoint."""
+    which = check_choice("which", which, WHICH)
+    use_ema = check_flag("use_ema", use_ema)
+    root = resolve_checkpoint_dir(directory)
+    if step is not None:
+        step = check_int("step", step, minimum=0)
+    elif which == BEST and not saved_steps(root, which):
+        which = LATEST
+    restored = restore(root, which=which, step=step)
+    try:
+        spec = model_spec(restored.config)
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"checkpoint {restored.path}: cannot read the config: {err}") from None
+    params = restored.state["ema_params" if use_ema else "params"]
+    check_params(params, spec, f"checkpoint {restored.path}")
+    return Weights(params=params, spec=spec, step=int(restored.state["step"]),
+                   restored=restored, root=root)
 
 
-DEFAULT_FAMILY = "flowmaps"
-"""The family of a stored config without ``model_kind`` (``TrainConfig``'s default)."""
-
-
-class ModelSpec(NamedTuple):
-    """The part of a stored run config that inference needs."""
-
-    kind: str
-    """The model family's name (``TrainConfig.model_kind``)."""
-    model: ModelConfig
-    flowsim: FlowSimConfig
-
-    @property
-    def family(self) -> ModelFamily:
-        return model_family(self.kind)
-
-    def abstract_params(self):
-        """Structure, shapes and dtypes of the params this model initialises (nothing
-        computed)."""
-        return jax.eval_shape(lambda key: self.family.init(key, self.model), jax.random.key(0))
-
-
-def model_spec(config: dict) -> ModelSpec:
-    """The model family, model sizes and simulator of a stored run config (a checkpoint's
-    ``config`` item or a shipped model's ``.json`` ``config``; ``TrainConfig.to_dict()``).
-    Checks them, and that the model fits the simulator; the training fields are not read.
-    Raises ``ValueError`` naming what is wrong."""
-    if not isinstance(config, dict):
-        raise ValueError(f"the config must be a dict; got {type(config).__name__}")
-    kind = config.get("model_kind", DEFAULT_FAMILY)
-    model_family(kind)  # ValueError listing the families
-    model = ModelConfig.from_dict(config["model"]) if "model" in config else ModelConfig()
-    flowsim = FlowSimConfig.from_dict(config["flowsim"]) if "flowsim" in config \
-        else FlowSimConfig()
-    if model.num_descriptors < flowsim.num_descriptors:
-        raise ValueError(f"model.num_descriptors={model.num_descriptors} is smaller than the "
-                         f"simulator's {flowsim.num_descriptors} descriptor ids")
-    if model.tau_max != flowsim.num_timesteps:
-        raise ValueError(f"model.tau_max={model.tau_max} must equal "
-                         f"flowsim.num_timesteps={flowsim.num_timesteps}")
-    return ModelSpec(kind=kind, model=model, flowsim=flowsim)
-
-
-def check_params(params, spec: ModelSpec, where: str) -> None:
-    """``ValueError`` unless ``params`` has the structure, shapes and dtypes that ``spec``'s
-    family initialises (weights that do not fit their config)."""
-    expected = spec.abstract_params()
-    got_tree, want_tree = jax.tree.structure(params), jax.tree.structure(expected)
-    if got_tree != want_tree:
-        raise ValueError(f"{where} holds parameters of another structure than the "
-                         f"{spec.kind!r} model its config describes")
-    for (path, leaf), want in zip(jax.tree_util.tree_flatten_with_path(params)[0],
-                                  jax.tree.leaves(expected), strict=True):
-        if np.shape(leaf) != want.shape or leaf.dtype != want.dtype:
-            raise ValueError(f"{where}: parameter {leaf_name(path)} is {np.shape(leaf)} "
-                             f"{leaf.dtype}; the model its config describes has "
-                             f"{want.shape} {want.dtype}")
+def set_aside(directory: str | pathlib.Path, after_step: int) -> tuple[pathlib.Path | None,
+                                                                      list[int]]:
+    """Move every saved step later than ``after_step`` (in last/ and best/) into
+    ``<root>/set-aside-<timestamp>/``, so that a run resumed from ``after_step`` writes its own
+    later steps. Returns (that folder or None if nothing moved, the moved steps)."""
+    root = resolve_checkpoint_dir(directory)
+    later = [(step, sub) for step, sub in saved_copies(root) if step > after_step]
+    if not later:
+        return None, []
+    dest = root / f"set-aside-{time.strftime('%Y%m%d-%H%M%S')}"
+    while dest.exists():
+        dest = dest.with_name(dest.name + "x")
+    for step, sub in later:
+        (dest / sub.name).mkdir(parents=True, exist_ok=True)
+        (sub / str(step)).rename(dest / sub.name / str(step))
+    return dest, sorted({step for step, _ in later})

@@ -10,17 +10,21 @@
   lock file ``<dir>/.lock`` (created with ``O_EXCL``, holding ``<pid> <host>``) keeps a second
   process out while the first one runs; a lock left by a process that no longer exists (kill -9,
   power loss) is taken over with a message. The lock is released on exit, and a directory the
-  claim created is removed again if nothing was written.
+  claim created is removed again if nothing was written. On a multi-host job process 0 holds
+  the directory and every process learns whether it could.
 * :func:`write_atomic` writes a file through a temporary file and a rename, so a crash or a full
   disk never leaves it half-written (the shared writer,
   :func:`flowmaps_jax.validation.write_file`); :func:`open_append` opens a log for appending.
   Both refuse a symbolic link.
+* The metrics file :data:`METRICS` (one JSON record per line): :func:`kept_records` are the
+  lines a resumed run keeps. The checkpoints: :func:`checkpoint_root`, :func:`only_best_saved`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import os
 import pathlib
 import shutil
@@ -28,10 +32,15 @@ import socket
 import time
 from collections.abc import Callable, Iterator
 
+import jax
+
+from flowmaps_jax import distributed
+from flowmaps_jax.store import checkpoints
 from flowmaps_jax.validation import check_output_dir, write_file
 
 LOCK_NAME = ".lock"
-RUN_FILES = ("config.json", "metrics.jsonl", "routine_curve.png", "checkpoints")
+METRICS = "metrics.jsonl"
+RUN_FILES = ("config.json", METRICS, "routine_curve.png", "checkpoints")
 """What a training run writes in its directory (besides the lock)."""
 _TEMPORARY = tuple(f"{name}.tmp" for name in RUN_FILES[:3])  # write_atomic's, if it was killed
 DISK_ERRNOS = frozenset(getattr(errno, name) for name in ("ENOSPC", "EDQUOT", "EFBIG", "EIO")
@@ -207,13 +216,48 @@ def move_aside(run_dir: pathlib.Path) -> pathlib.Path:
     return target
 
 
-@contextlib.contextmanager
-def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
-          log: Callable[[str], None] = print) -> Iterator[RunLock]:
-    """Hold ``run_dir`` for one run (see the module docstring); ValueError if it is not free."""
-    run_dir = check_run_dir(run_dir)
+def check_mode(resume: bool, overwrite: bool) -> None:
+    """ValueError if a run asks to both continue (``resume``) and replace (``overwrite``)."""
     if resume and overwrite:
         raise ValueError("--resume and --overwrite exclude each other")
+
+
+@contextlib.contextmanager
+def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
+          log: Callable[[str], None] = print) -> Iterator[RunLock | None]:
+    """Hold ``run_dir`` for one run (see the module docstring); ValueError if it is not free.
+    Yields the lock (None on the processes of a multi-host job other than the first).
+
+    On a multi-host job the first process owns the run directory (lock, config, metrics; every
+    process takes part in the checkpoint saves, which the checkpointer coordinates). The others
+    learn whether it could claim it, so a refused run stops every process at once with the
+    reason.
+    """
+    if jax.process_count() == 1:
+        with _claim_here(run_dir, resume=resume, overwrite=overwrite, log=log) as lock:
+            yield lock
+        return
+    with contextlib.ExitStack() as held:
+        error, lock = "", None
+        if jax.process_index() == 0:
+            try:
+                lock = held.enter_context(_claim_here(run_dir, resume=resume,
+                                                      overwrite=overwrite, log=log))
+            except ValueError as err:
+                error = str(err)
+        if distributed.agree(not error):
+            yield lock
+            return
+        raise ValueError(error or f"process 0 could not claim the run directory {run_dir} "
+                                  "(its log says why)")
+
+
+@contextlib.contextmanager
+def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
+                log: Callable[[str], None]) -> Iterator[RunLock]:
+    """:func:`claim` by this process alone."""
+    run_dir = check_run_dir(run_dir)
+    check_mode(resume, overwrite)
     if overwrite:
         here = pathlib.Path.cwd().resolve()
         if run_dir.resolve() == here or run_dir.resolve() in here.parents:
@@ -257,3 +301,59 @@ def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
         if created:
             with contextlib.suppress(OSError):
                 run_dir.rmdir()  # only succeeds if nothing was written
+
+
+# --------------------------------------------------------------------------------------------
+# The metrics file and the checkpoints of a run
+
+
+def kept_records(run_dir: pathlib.Path, resumed_step: int | None,
+                 log: Callable[[str], None]) -> list[str]:
+    """The lines of ``metrics.jsonl`` that a resumed run keeps: those up to the restored step
+    ``resumed_step`` (none for a run that starts again from step 0). A half-written last line (a
+    crash mid-write) is dropped with a message; a bad line elsewhere is a ValueError naming it."""
+    path = run_dir / METRICS
+    if resumed_step is None or not path.exists():
+        return []
+    lines = path.read_bytes().decode("utf-8", errors="replace").split("\n")
+    numbered = [(n, line) for n, line in enumerate(lines, 1) if line.strip()]
+    kept = []
+    for n, line in numbered:
+        try:
+            record = json.loads(line)
+            if not isinstance(record, dict) or not isinstance(record.get("step", 0), int):
+                raise ValueError("not a JSON object with an integer step")
+        except ValueError as err:
+            if n != numbered[-1][0]:
+                raise ValueError(f"{path} line {n} is not a metrics record ({err}); repair or "
+                                 f"delete that line, then resume again") from None
+            log(f"Dropped the half-written last line of {path} (line {n}: {_clip(line)})")
+            continue
+        if record.get("step", 0) <= resumed_step:
+            kept.append(line)
+    return kept
+
+
+def _clip(text: str, limit: int = 60) -> str:
+    return repr(text if len(text) <= limit else text[:limit] + "...")
+
+
+def checkpoint_root(run_dir: pathlib.Path) -> pathlib.Path:
+    """The checkpoint directory of the run in ``run_dir`` (ValueError for a checkpoint
+    directory given as the run)."""
+    ckpt_dir = run_dir / "checkpoints"
+    if not ckpt_dir.exists() and ((run_dir / "last").is_dir() or (run_dir / "best").is_dir()):
+        raise ValueError(f"run_dir {str(run_dir)!r} is a checkpoint directory (it holds last/ or "
+                         f"best/), not a run directory: resume the run that holds it, "
+                         f"--run-dir {run_dir.parent}")
+    return checkpoints.resolve_checkpoint_dir(ckpt_dir if ckpt_dir.exists() else run_dir)
+
+
+def only_best_saved(run_dir: pathlib.Path) -> bool:
+    """Whether the run's checkpoints hold a finished ``best`` step and no ``last`` one (a run
+    killed between its first ``best/N`` and ``last/N`` saves)."""
+    root = run_dir / "checkpoints"
+    if not root.is_dir() or root.is_symlink():
+        return False
+    held = {sub.name for _, sub in checkpoints.saved_copies(root)}
+    return held == {"best"}

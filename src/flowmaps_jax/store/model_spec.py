@@ -1,0 +1,74 @@
+"""The model a stored run config describes: its family, sizes and simulator, and the check that
+stored weights fit it. Read from a checkpoint's ``config`` item or a pretrained model's
+``.json``; the training fields of the config are not read (no training code, no optax)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.model.config import ModelConfig
+from flowmaps_jax.model.families import model_family
+from flowmaps_jax.model.family import ModelFamily
+from flowmaps_jax.store.integrity import leaf_name
+
+DEFAULT_FAMILY = "flowmaps"
+"""The family of a stored config without ``model_kind`` (``TrainConfig``'s default)."""
+
+
+class ModelSpec(NamedTuple):
+    """The part of a stored run config that inference needs."""
+
+    kind: str
+    """The model family's name (``TrainConfig.model_kind``)."""
+    model: ModelConfig
+    flowsim: FlowSimConfig
+
+    @property
+    def family(self) -> ModelFamily:
+        return model_family(self.kind)
+
+    def abstract_params(self):
+        """Structure, shapes and dtypes of the params this model initialises (nothing
+        computed)."""
+        return jax.eval_shape(lambda key: self.family.init(key, self.model), jax.random.key(0))
+
+
+def model_spec(config: dict) -> ModelSpec:
+    """The model family, model sizes and simulator of a stored run config (a checkpoint's
+    ``config`` item or a pretrained model's ``.json`` ``config``; ``TrainConfig.to_dict()``).
+    Checks them, and that the model fits the simulator; the training fields are not read.
+    Raises ``ValueError`` naming what is wrong."""
+    if not isinstance(config, dict):
+        raise ValueError(f"the config must be a dict; got {type(config).__name__}")
+    kind = config.get("model_kind", DEFAULT_FAMILY)
+    model_family(kind)  # ValueError listing the families
+    model = ModelConfig.from_dict(config["model"]) if "model" in config else ModelConfig()
+    flowsim = FlowSimConfig.from_dict(config["flowsim"]) if "flowsim" in config \
+        else FlowSimConfig()
+    if model.num_descriptors < flowsim.num_descriptors:
+        raise ValueError(f"model.num_descriptors={model.num_descriptors} is smaller than the "
+                         f"simulator's {flowsim.num_descriptors} descriptor ids")
+    if model.tau_max != flowsim.num_timesteps:
+        raise ValueError(f"model.tau_max={model.tau_max} must equal "
+                         f"flowsim.num_timesteps={flowsim.num_timesteps}")
+    return ModelSpec(kind=kind, model=model, flowsim=flowsim)
+
+
+def check_params(params, spec: ModelSpec, where: str) -> None:
+    """``ValueError`` unless ``params`` has the structure, shapes and dtypes that ``spec``'s
+    family initialises (weights that do not fit their config)."""
+    expected = spec.abstract_params()
+    got_tree, want_tree = jax.tree.structure(params), jax.tree.structure(expected)
+    if got_tree != want_tree:
+        raise ValueError(f"{where} holds parameters of another structure than the "
+                         f"{spec.kind!r} model its config describes")
+    for (path, leaf), want in zip(jax.tree_util.tree_flatten_with_path(params)[0],
+                                  jax.tree.leaves(expected), strict=True):
+        if np.shape(leaf) != want.shape or leaf.dtype != want.dtype:
+            raise ValueError(f"{where}: parameter {leaf_name(path)} is {np.shape(leaf)} "
+                             f"{leaf.dtype}; the model its config describes has "
+                             f"{want.shape} {want.dtype}")

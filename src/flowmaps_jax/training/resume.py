@@ -1,0 +1,115 @@
+"""Resume policy: which checkpoint ``--resume`` continues and with which config.
+
+* :func:`load_config`: the :class:`~flowmaps_jax.training.config.TrainConfig` stored with a
+  checkpoint.
+* :func:`check_resumable`: only :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS` may change
+  on resume.
+* :func:`restore_for_resume`: the verified checkpoint a resumed run continues (None for a run
+  that saved none yet: it starts again from step 0).
+* :func:`resume_config`: the config a resumed run starts from.
+
+Reading and verifying the checkpoints is :mod:`flowmaps_jax.store.checkpoints`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+from collections.abc import Callable
+
+from flowmaps_jax.store import checkpoints, rundir
+from flowmaps_jax.training import state as train_state
+from flowmaps_jax.training.config import RESUMABLE_FIELDS, TrainConfig
+from flowmaps_jax.training.overrides import flatten
+
+
+def load_config(directory: str | pathlib.Path, which: str = checkpoints.LATEST,
+                step: int | None = None) -> TrainConfig:
+    """The :class:`~flowmaps_jax.training.config.TrainConfig` stored with the ``which``
+    checkpoint ("latest" or "best"), or with the saved ``step`` when given."""
+    return TrainConfig.from_dict(checkpoints.restore(directory, which=which, step=step,
+                                                     with_state=False).config)
+
+
+
+def check_resumable(saved: TrainConfig, cfg: TrainConfig) -> None:
+    """ValueError naming the first field where ``cfg`` differs from the checkpoint's ``saved``
+    config outside :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`."""
+    old, new = flatten(saved.to_dict()), flatten(cfg.to_dict())
+    for key in sorted(set(old) | set(new)):
+        if key.split(".")[0] not in RESUMABLE_FIELDS and old.get(key) != new.get(key):
+            raise ValueError(
+                f"--resume cannot change {key} (the checkpoint has {old.get(key)!r}, this run "
+                f"asks for {new.get(key)!r}): it would change the model, its parameters, its "
+                f"optimiser or its data. Only {', '.join(RESUMABLE_FIELDS)} may change on "
+                f"resume; train with other settings in a new --run-dir")
+
+
+def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig | None:
+    """The ``config.json`` of a run that saved no checkpoint yet (killed or interrupted before
+    its first save), which ``--resume`` starts again from step 0; None when the run directory
+    holds a checkpoint (or anything else). ValueError if there is nothing to start from.
+
+    A run killed between its first ``best/N`` save and its ``last/N`` save holds only a best
+    checkpoint: without ``from_step`` it too starts again from step 0 (it saved no state to
+    continue; the replay saves the same best again)."""
+    only_best = from_step is None and rundir.only_best_saved(run_dir)
+    if not run_dir.is_dir() or (rundir.has_checkpoint(run_dir) and not only_best):
+        rundir.checkpoint_root(run_dir)  # a checkpoint directory given as the run: refused
+        return None
+    if from_step is not None:
+        raise ValueError(f"--from-step {from_step}: the run in {run_dir} saved no checkpoint")
+    try:
+        return TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+    except FileNotFoundError:
+        if only_best:
+            return load_config(run_dir / "checkpoints", checkpoints.BEST)
+        raise ValueError(f"run directory {run_dir} holds no checkpoint and no config.json: "
+                         f"nothing to resume; start a new run there") from None
+    except (OSError, ValueError, TypeError) as err:
+        raise ValueError(f"run directory {run_dir} holds no checkpoint, and its config.json "
+                         f"is unreadable ({err}); start a new run there") from None
+
+
+def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int | None,
+                       mesh, log: Callable[[str], None] = print) -> checkpoints.Restored | None:
+    """The verified checkpoint to continue from (onto ``mesh``, whatever device count it was
+    saved from), after checking that ``cfg`` may resume it; None for a run that saved no
+    checkpoint yet (it starts again from step 0 with its ``config.json``)."""
+    unsaved = _unsaved_config(run_dir, from_step)
+    if unsaved is not None:
+        check_resumable(unsaved, cfg)
+        log(f"No checkpoint of the state to continue was saved in {run_dir} yet: starting the "
+            f"run again from step 0")
+        return None
+    root = rundir.checkpoint_root(run_dir)
+    check_resumable(load_config(root, step=from_step), cfg)
+    restored = checkpoints.restore(root, train_state.abstract_state(cfg, mesh=mesh),
+                                  step=from_step)
+    if int(restored.state.step) > cfg.steps:
+        raise ValueError(f"the checkpoint is at step {int(restored.state.step)}, past "
+                         f"steps={cfg.steps}; pass --steps with at least that many")
+    return restored
+
+
+def resume_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig:
+    """The config a resumed run starts from: the checkpoint's, with the fields --resume may
+    change taken from ``config.json`` when that file is readable (it holds the last run's
+    --steps etc. even when no checkpoint was saved since)."""
+    unsaved = _unsaved_config(run_dir, from_step)
+    if unsaved is not None:  # no checkpoint yet: the run starts again with its config.json
+        return unsaved
+    saved = load_config(rundir.checkpoint_root(run_dir), step=from_step)
+    try:
+        latest = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+    except (OSError, ValueError, TypeError):  # missing or unreadable: the checkpoint's config
+        return saved
+    try:
+        check_resumable(saved, latest)
+    except ValueError:
+        raise ValueError(f"{run_dir / 'config.json'} is not the config of the run's "
+                         f"checkpoints (another model or settings); restore or delete it, then "
+                         f"resume") from None
+    return dataclasses.replace(saved, **{name: getattr(latest, name)
+                                         for name in RESUMABLE_FIELDS})
