@@ -172,3 +172,28 @@ def test_self_attending_weight_rows_are_a_distribution_at_every_horizon(evalset)
     w = np.asarray(Predictor.from_params(params, cfg).table_weights(part.tokens, part.queries))
     np.testing.assert_allclose(w.sum(-1), 1.0, rtol=1e-5)
     assert np.all(w[..., -1] < 1e-6) and np.std(w[..., :SIM.num_furniture]) > 0.01
+
+
+def test_relative_geometry_is_zero_at_the_start_table_and_feeds_the_rows(evalset):
+    """``weight_geometry="relative"``: each row's features are its centre offset from the start
+    table and its turn around the map centre; both vanish on the start table itself, and the
+    option changes the table weights (the rows read them)."""
+    part = evalset.take(np.arange(6))
+    tokens, _ = canonical_inputs(part.tokens, part.queries)
+    start = jnp.asarray([[0, 3], [2, 1]] * 3)  # (6, 2) token indices
+    feats = np.asarray(mixture.relative_geometry(tokens.boxes, start))
+    assert feats.shape == (6, 2, tokens.boxes.shape[1], 2 + 4 * len(mixture.GEOMETRY_FREQUENCIES)
+                           + 4)
+    at_start = np.take_along_axis(feats, np.asarray(start)[:, :, None, None], axis=2)[:, :, 0]
+    np.testing.assert_allclose(at_start[..., :2], 0.0, atol=1e-7)  # no offset
+    np.testing.assert_allclose(at_start[..., -4:], [0.0, 0.0, 1.0, 1.0], atol=1e-6)  # no turn
+    cfg = dataclasses.replace(MIXTURE, weight_geometry="relative", weight_attention="self")
+    params = perturb(init_params(jax.random.key(3), cfg), jax.random.key(4), 0.3)
+    w = np.asarray(Predictor.from_params(params, cfg).table_weights(part.tokens, part.queries))
+    np.testing.assert_allclose(w.sum(-1), 1.0, rtol=1e-5)
+    flat = dict(params)
+    flat["geometry_embed"] = jax.tree.map(jnp.zeros_like, params["geometry_embed"])
+    w0 = np.asarray(Predictor.from_params(flat, cfg).table_weights(part.tokens, part.queries))
+    assert np.abs(w - w0).max() > 1e-4
+    with pytest.raises(ValueError, match="weight_geometry"):
+        dataclasses.replace(MIXTURE, weight_geometry="absolute")

@@ -17,6 +17,7 @@ HEADS = ("velocity", "pointer", "route", "mixture")
 PRECISIONS = ("float32", "bf16")
 POINTER_WIDTHS = ("absolute", "relative")
 WEIGHT_ATTENTION = ("cross", "self")
+WEIGHT_GEOMETRY = ("none", "relative")
 REMOVED_FIELDS = ("max_tokens",)
 """Fields that older configs carry and that configured nothing: :meth:`ModelConfig.from_dict`
 drops them, so configs saved with them still load."""
@@ -55,6 +56,10 @@ class ModelConfig:
         row cross-attends to the map's context tokens) or ``"self"`` (pre-norm transformer
         layers over one object's rows, so that each row sees every other table's relation to the
         table the object stands on).
+    weight_geometry: what each table-weight row knows of where its table lies (``head="mixture"``):
+        ``"none"`` (only its context token) or ``"relative"`` (also Fourier features of its centre
+        relative to the table the object stands on, and of its angle around the map centre
+        relative to that table's: the quantities FlowSim's orders are defined by).
     pointer_width_scale: the pointer/route widths' log-variance is this × its parameter, so Adam
         moves it this much faster.
     pointer_widths: ``"absolute"`` (the pointer's widths in flow units, as first shipped) or
@@ -93,6 +98,7 @@ class ModelConfig:
     history: int = 1
     weight_blocks: int = 2
     weight_attention: str = "cross"
+    weight_geometry: str = "none"
 
     def __post_init__(self):
         for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
@@ -113,6 +119,7 @@ class ModelConfig:
                    low_open=True)
         check_choice("ModelConfig.pointer_widths", self.pointer_widths, POINTER_WIDTHS)
         check_choice("ModelConfig.weight_attention", self.weight_attention, WEIGHT_ATTENTION)
+        check_choice("ModelConfig.weight_geometry", self.weight_geometry, WEIGHT_GEOMETRY)
         check_flag("ModelConfig.condition_on_dtau", self.condition_on_dtau)
         check_choice("ModelConfig.baseline_variance", self.baseline_variance, BASELINE_VARIANCES)
         check_choice("ModelConfig.precision", self.precision, PRECISIONS)
