@@ -51,7 +51,7 @@ from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
 from flowmaps_jax.model.flowmaps import check_inputs
-from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
+from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles
 from flowmaps_jax.validation import (
     check_choice,
@@ -94,8 +94,8 @@ class Predictor:
 
     params: the model's parameter pytree (EMA weights when loaded with ``use_ema=True``).
     model: its :class:`~flowmaps_jax.model.ModelConfig` (static: defines the compiled functions).
-    kind: the name of its model family (:data:`flowmaps_jax.model.MODEL_FAMILIES`, as
-        ``TrainConfig.model_kind``): "flowmaps" (flow matching) or "mlp" (Gaussian baseline;
+    family_name: the name of its model family (:data:`flowmaps_jax.model.MODEL_FAMILIES`, as
+        ``TrainConfig.family``): "flowmaps" (flow matching) or "mlp" (Gaussian baseline;
         variant in ``model.baseline_variance``). :attr:`family` is the family itself.
     flowsim: the simulator config the model was trained on (map size for pixel boxes).
     source: where the params came from (checkpoint path) and step, for reports.
@@ -106,14 +106,14 @@ class Predictor:
 
     params: Any = dataclasses.field(repr=False)  # a pytree of arrays: too long to print
     model: ModelConfig
-    kind: str = "flowmaps"
+    family_name: str = "flowmaps"
     flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig)
     source: str | None = None
     step: int | None = None
     mesh: Mesh | None = dataclasses.field(default=None, repr=False)
 
     def __post_init__(self):
-        model_family(self.kind)  # ValueError listing the families
+        model_family(self.family_name)  # ValueError listing the families
         check_instance("model", self.model, ModelConfig)
         check_instance("flowsim", self.flowsim, FlowSimConfig)
         if self.mesh is not None:
@@ -143,19 +143,25 @@ class Predictor:
         return out if self.mesh is None else jax.tree.map(lambda x: x[:b], out)
 
     @classmethod
-    def from_params(cls, params, model: ModelConfig, kind: str = "flowmaps",
+    def from_params(cls, params, model: ModelConfig, family_name: str = "flowmaps",
                     flowsim: FlowSimConfig | None = None, **info) -> Predictor:
         """Wrap params you already have (tests, notebooks, a training loop) without a checkpoint.
 
         Example: ``Predictor.from_params(model.init_params(key, cfg), cfg)``.
         """
-        return cls(params=params, model=model, kind=kind,
+        return cls(params=params, model=model, family_name=family_name,
                    flowsim=FlowSimConfig() if flowsim is None else flowsim, **info)
 
     @property
     def family(self) -> ModelFamily:
         """The model family: init, the jitted cores, the memory estimate, the label."""
-        return model_family(self.kind)
+        return model_family(self.family_name)
+
+    @property
+    def kind(self) -> str:
+        """:attr:`family_name` under the word the on-disk metas use (``"kind"``): kept for the
+        disk code (``export``) until it reads ``family_name``."""
+        return self.family_name
 
     @property
     def name(self) -> str:
@@ -194,7 +200,7 @@ class Predictor:
         rows = b * q * n
         factor = DENSITY_FACTOR if with_density else 1
         evaluations = solver_evaluations(num_steps, method) if self.family.uses_solver else 1
-        per_row, per_map = network_flops(self.model, self.kind, slots)
+        per_row, per_map = network_flops(self.model, self.family_name, slots)
         check_resources(
             f"{what} of {b} scenes x {q} queries x {n} boxes with num_steps={num_steps} "
             f"(model.freq_bands={self.model.freq_bands})",
@@ -282,10 +288,11 @@ class Predictor:
     def table_weights(self, tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
         """FlowMaps with a read-out head (``model.head`` "mixture", "pointer" or "route"): the
         mass (B, Q, S + 1) its mixture puts on each table of the map, read from the model without
-        sampling (:func:`flowmaps_jax.model.inference.table_weights`). Weight on tokens that are
-        not tables goes to the "off" entry (last). The mixture head's weights are its posterior
-        over tables itself (its samples draw their table from them); the route head's samples
-        follow them while its residual is zero; the pointer head's are its weights at t = 0.
+        sampling (:func:`flowmaps_jax.model.flowmaps_family.table_weights`). Weight on tokens
+        that are not tables goes to the "off" entry (last). The mixture head's weights are its
+        posterior over tables itself (its samples draw their table from them); the route head's
+        samples follow them while its residual is zero; the pointer head's are its weights at
+        t = 0.
         """
         if not self.has_table_weights:
             raise ValueError("table_weights needs a FlowMaps model with model.head 'mixture', "
@@ -304,7 +311,7 @@ class Predictor:
     def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
         """MLP baseline only: (mean, log_var), each (B, Q, 4), of the predicted Gaussian."""
         if self.family.gaussian is None:
-            raise ValueError("gaussian() is only defined for the MLP baseline (kind='mlp')")
+            raise ValueError("gaussian() is only defined for the MLP baseline (family_name='mlp')")
         b, _ = self.validate(tokens, queries)
         tokens, queries = self._on_mesh(*canonical_inputs(tokens, queries))
         return self._rows(self.family.gaussian(self.params, self.model, tokens, queries), b)
@@ -339,7 +346,7 @@ def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
         raise ValueError(f"checkpoint {restored.path}: cannot read the config: {err}") from None
     params = restored.state["ema_params" if use_ema else "params"]
     checkpoint_reader.check_params(params, spec, f"checkpoint {restored.path}")
-    return Predictor(params=params, model=spec.model, kind=spec.kind, flowsim=spec.flowsim,
+    return Predictor(params=params, model=spec.model, family_name=spec.kind, flowsim=spec.flowsim,
                      source=str(root), step=int(restored.state["step"]))
 
 
@@ -352,9 +359,9 @@ def load_pretrained(name: str, directory: str | pathlib.Path = shipped.PRETRAINE
     (listing the names), or weights that are missing, damaged (SHA-256 mismatch) or do not fit
     their config. See :mod:`flowmaps_jax.shipped`."""
     weights = shipped.read_weights(name, directory)
-    return Predictor(params=weights.params, model=weights.spec.model, kind=weights.spec.kind,
-                     flowsim=weights.spec.flowsim, source=f"pretrained:{weights.name}",
-                     step=weights.step)
+    return Predictor(params=weights.params, model=weights.spec.model,
+                     family_name=weights.spec.kind, flowsim=weights.spec.flowsim,
+                     source=f"pretrained:{weights.name}", step=weights.step)
 
 
 PRETRAINED_PREFIX = "pretrained:"

@@ -73,7 +73,7 @@ def check_size(models, num_envs: int, config, args: argparse.Namespace) -> None:
     n, chunk = max(args.samples), min(args.chunk_envs, num_envs)
     queries = f"on {e} environments x {m} objects"
     check_resources(f"--kl-draws {d} {queries}", num_bytes=4 * e * m * d * (6 + 4 * f))
-    families = [model_family(p.kind) for p in models]
+    families = [model_family(p.family_name) for p in models]
     sampling = max(fam.request_bytes(p.model, chunk * m * n, False)
                    for fam, p in zip(families, models, strict=True))
     check_resources(f"--samples {n} {queries} ({len(models)} models)",
@@ -85,7 +85,7 @@ def check_size(models, num_envs: int, config, args: argparse.Namespace) -> None:
     flops = 0
     for fam, p in zip(families, models, strict=True):
         # each model reads its own tokens: a history model's last H maps (model_view)
-        per_query, per_map = network_flops(p.model, p.kind,
+        per_query, per_map = network_flops(p.model, p.family_name,
                                            model_token_config(config, p).max_tokens)
         sampled = solver_evaluations(args.num_steps, args.method) if fam.uses_solver else 1
         density = solver_evaluations(logp_steps, args.method) if fam.uses_solver else 1

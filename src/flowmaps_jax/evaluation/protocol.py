@@ -458,7 +458,7 @@ def evaluate_predictor_core(predictor, evalset: EvalSet, key, counts: tuple[int,
     slots = {n: _slot_entry(evalset, empirical_slots_core(
                  samples_all[:, :, :n], evalset.slot_boxes, evalset.slot_mask))
              for n in counts}
-    info = {"kind": predictor.kind, "source": predictor.source, "step": predictor.step,
+    info = {"kind": predictor.family_name, "source": predictor.source, "step": predictor.step,
             "seconds": round(seconds, 2), "num_steps": num_steps, "logp_steps": logp_steps,
             "method": method, "likelihood_steps": likelihood_steps if accurate else None,
             "likelihood_draws": draws if accurate else None}

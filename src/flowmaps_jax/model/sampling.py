@@ -5,7 +5,7 @@ from flowmaps_jax.model.baseline import (  # noqa: F401
     gaussian_sample,
     gaussian_sample_with_log_prob,
 )
-from flowmaps_jax.model.inference import (  # noqa: F401
+from flowmaps_jax.model.flowmaps_family import (  # noqa: F401
     DEFAULT_NUM_STEPS,
     flow_log_prob,
     flow_sample,

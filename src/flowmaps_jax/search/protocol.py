@@ -264,7 +264,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     rows, runs = score_priors(search_set, priors, config, policies=policies, budget=budget,
                               p_miss=p_miss, start=start, key=key, progress=progress)
     for predictor, name in zip(predictors, names, strict=True):
-        rows[name]["info"] = {"kind": getattr(predictor, "kind", None),
+        rows[name]["info"] = {"kind": getattr(predictor, "family_name", None),
                               "source": getattr(predictor, "source", None),
                               "step": getattr(predictor, "step", None),
                               "table_method": (table_method if _has_weights(predictor)

@@ -213,9 +213,9 @@ def _start_params(cfg: TrainConfig, log: Callable[[str], None]):
         source = load_model(cfg.init_from, devices=1)
     except ValueError as err:
         raise ValueError(f"init_from={cfg.init_from!r}: {err}") from None
-    if source.kind != cfg.model_kind:
-        raise ValueError(f"init_from={cfg.init_from!r} is a {source.kind!r} model; this run "
-                         f"trains {cfg.model_kind!r}")
+    if source.family_name != cfg.family:
+        raise ValueError(f"init_from={cfg.init_from!r} is a {source.family_name!r} model; this "
+                         f"run trains {cfg.family!r}")
     objective = objectives.objective_for(cfg)
     fresh = jax.eval_shape(objective.init, jax.random.PRNGKey(0))
     train_state.check_overlay(fresh, source.params, f"init_from={cfg.init_from!r}")
@@ -329,7 +329,7 @@ def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any],
             params, on = jax.device_get(state.ema_params), None
         else:
             params, on = state.ema_params, mesh
-        predictor = Predictor.from_params(params, cfg.model, cfg.model_kind, cfg.flowsim, mesh=on)
+        predictor = Predictor.from_params(params, cfg.model, cfg.family, cfg.flowsim, mesh=on)
         return routine.routine_metrics(predictor, probe, num_samples=cfg.routine_samples)
 
     return run_probe
