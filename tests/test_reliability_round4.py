@@ -37,7 +37,7 @@ from flowmaps_jax.model import ModelConfig
 from flowmaps_jax.predictor import Predictor
 from flowmaps_jax.search import cli as search_cli
 from flowmaps_jax.search import report as search_report
-from flowmaps_jax.search.probabilities import table_probabilities
+from flowmaps_jax.tables import table_probabilities
 from flowmaps_jax.training import checkpoint, loop, rundir
 from flowmaps_jax.training import cli as train_cli
 from flowmaps_jax.training.config import (

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from flowmaps_jax import checkpoint_reader, distributed, flow, shipped
+from flowmaps_jax import checkpoint_reader, distributed, flow, shipped, tables
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
 from flowmaps_jax.model.config import ModelConfig
@@ -251,11 +251,9 @@ class Predictor:
         plus an "off" mass in the last entry: the prior a search planner calls. ``method``
         "samples" counts ``num_samples`` samples per query; "weights" reads the route head's
         mixture weights (:meth:`table_weights`, no sampling noise). See
-        :func:`flowmaps_jax.search.table_probabilities`."""
-        from flowmaps_jax.search.probabilities import table_probabilities
-
-        return table_probabilities(self, tokens, queries, num_samples, key, method=method,
-                                   **sample_kwargs)
+        :func:`flowmaps_jax.tables.table_probabilities` (also ``search.table_probabilities``)."""
+        return tables.table_probabilities(self, tokens, queries, num_samples, key,
+                                          method=method, **sample_kwargs)
 
     def log_prob(self, tokens: SceneTokens, queries: Queries, x,
                  num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
@@ -301,11 +299,11 @@ class Predictor:
                              f"head={self.model.head!r}: use table_probabilities with samples")
         b, _ = self.validate(tokens, queries)
         s = np.shape(tokens.boxes)[1]
-        tables = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == FURNITURE)
+        is_table = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == FURNITURE)
         tokens, queries = self._on_mesh(*canonical_inputs(tokens, queries))
         w = self._rows(self.family.table_weights(self.params, self.model, tokens, queries), b)
         w = jnp.pad(w, ((0, 0), (0, 0), (0, s - w.shape[-1])))  # trimmed padding back
-        w = jnp.where(tables[:, None, :], w, 0.0)
+        w = jnp.where(is_table[:, None, :], w, 0.0)
         return jnp.concatenate([w, 1.0 - w.sum(-1, keepdims=True)], axis=-1).clip(0.0, 1.0)
 
     def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:

@@ -37,6 +37,7 @@ from flowmaps_jax.evaluation.protocol import (
 )
 from flowmaps_jax.evaluation.report import markdown_table
 from flowmaps_jax.evaluation.run import FIGURES, REPORT_FILES, model_token_config, run_evaluation
+from flowmaps_jax.flowsim.scenes import load_scenes, validation_split
 from flowmaps_jax.flowsim.worlds import WORLDS, world_config, world_of
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR
@@ -187,8 +188,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.world is not None:
             config = world_config(args.world, config)
         if args.scenes is not None:
-            from flowmaps_jax.flowsim.scenes import load_scenes
-
             scenes, config = load_scenes(args.scenes)
             if args.world is not None and world_of(config) != args.world:
                 raise ValueError(f"--world {args.world}: the scenes of --scenes {args.scenes} "
@@ -198,8 +197,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_size([*baselines, model], scenes.num_envs, config, args)
         else:
             check_size([*baselines, model], args.num_envs, config, args)
-            from flowmaps_jax.flowsim.scenes import validation_split
-
             scenes = validation_split(config, num_envs=args.num_envs, mesh=mesh)
         print(f"Evaluating {model.name} ({model.source}, step {model.step})"
               + "".join(f" vs {b.name} ({b.source}, step {b.step})" for b in baselines)

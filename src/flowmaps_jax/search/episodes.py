@@ -47,11 +47,7 @@ from flowmaps_jax.flowsim.habits import (  # noqa: F401  (names this module re-e
 )
 from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
-from flowmaps_jax.search.probabilities import (
-    check_table_method,
-    slots_to_tables_core,
-    table_probabilities_core,
-)
+from flowmaps_jax.search.probabilities import slots_to_tables_core
 from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the simulator's home was here)
     DEFAULT_BUDGET,
     Episodes,
@@ -68,6 +64,7 @@ from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the sim
     run_episodes,
     simulate,
 )
+from flowmaps_jax.tables import check_table_method, table_probabilities_core
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import (
     PROB_ATOL,

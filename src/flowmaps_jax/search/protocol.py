@@ -36,7 +36,7 @@ from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.search.policies import POLICIES, check_optimal_size, check_policy
-from flowmaps_jax.search.probabilities import ASSIGN_TOLERANCE, TABLE_METHODS
+from flowmaps_jax.tables import ASSIGN_TOLERANCE, TABLE_METHODS
 from flowmaps_jax.validation import check_int
 
 MAIN_POLICIES = ("most-probable", "greedy", "optimal")

@@ -41,6 +41,8 @@ import numpy as np
 from tqdm import tqdm
 
 from flowmaps_jax import distributed
+from flowmaps_jax.evaluation import routine
+from flowmaps_jax.predictor import Predictor, load_model
 from flowmaps_jax.training import checkpoint, data, objectives, rundir, runlog
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import (
@@ -207,8 +209,6 @@ def _start_params(cfg: TrainConfig, log: Callable[[str], None]):
     another model family or architecture."""
     if cfg.init_from is None:
         return None
-    from flowmaps_jax.predictor import load_model
-
     try:
         source = load_model(cfg.init_from, devices=1)
     except ValueError as err:
@@ -315,9 +315,6 @@ def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any],
     ``cfg.routine_envs`` validation environments with the state's EMA weights; None when off."""
     if cfg.routine_envs <= 0:
         return None
-    from flowmaps_jax.evaluation import routine
-    from flowmaps_jax.predictor import Predictor
-
     probe = routine.build_probe(val_scenes, cfg.flowsim,
                                 min(cfg.routine_envs, val_scenes.num_envs), cfg.seed,
                                 history=cfg.model.history)
