@@ -10,8 +10,9 @@ Each ``--flags`` variant (``none``: XLA's defaults; otherwise XLA flags without 
 at start), which builds the ``--preset``'s model and times, for each part, the lowering (Python
 tracing and StableHLO) and the backend compile of:
 
-* ``sample``: :func:`flowmaps_jax.model.inference.flow_sample` (64 samples, the 10-point grid);
-* ``log_prob``: :func:`flowmaps_jax.model.inference.flow_log_prob` (64 boxes per query);
+* ``sample``: :func:`flowmaps_jax.model.flowmaps_family.flow_sample` (64 samples, the 10-point
+  grid);
+* ``log_prob``: :func:`flowmaps_jax.model.flowmaps_family.flow_log_prob` (64 boxes per query);
 * ``train``: the fused train step (:func:`flowmaps_jax.training.state.make_fused_train_step`).
 
 By default the children compile as the suite does, with ``JAX_DISABLE_MOST_OPTIMIZATIONS=true``;
@@ -47,7 +48,7 @@ def _child(preset: str, parts: list[str]) -> dict[str, tuple[float, float]]:
     import jax
 
     from flowmaps_jax.flowsim import generate
-    from flowmaps_jax.model.inference import flow_log_prob, flow_sample
+    from flowmaps_jax.model.flowmaps_family import flow_log_prob, flow_sample
     from flowmaps_jax.training import state as train_state
     from flowmaps_jax.training.config import get_preset
     from flowmaps_jax.training.data import default_batch_fn

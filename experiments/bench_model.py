@@ -27,8 +27,8 @@ import numpy as np
 from flowmaps_jax.flow import integrate
 from flowmaps_jax.flowsim import FlowSimConfig
 from flowmaps_jax.model import ModelConfig, encode, init_params, make_velocity_fn
+from flowmaps_jax.model.flowmaps_family import cfm_loss
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
-from flowmaps_jax.training.objectives import cfm_loss
 
 
 def synthetic_batch(key, batch: int, queries: int, config: ModelConfig,

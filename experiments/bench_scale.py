@@ -67,7 +67,7 @@ def measure(devices: int, precision: str, params_out: str, preset: str, extra: l
     train_s = (time.perf_counter() - start) / steps
     np.savez(params_out, *[np.asarray(x) for x in jax.tree.leaves(state.params)])
 
-    predictor = Predictor.from_params(state.ema_params, cfg.model, cfg.model_kind,
+    predictor = Predictor.from_params(state.ema_params, cfg.model, cfg.family,
                                       cfg.flowsim).sharded(devices)
     b, q = sample_scenes, cfg.queries_per_scene
     env = jax.numpy.arange(b) % cfg.train_envs

@@ -37,7 +37,7 @@ RUNS = {
     "pointer": ["--preset", "smoke", "--steps", "30", "--set", "model.head=pointer",
                 "--set", "model.condition_on_dtau=true", "--set", "short_horizon_frac=0.5",
                 "--set", "target_noise=1.0", "--set", "pointer_loss=1.0"],
-    "mlp": ["--preset", "smoke", "--steps", "30", "--model", "mlp"],
+    "mlp": ["--preset", "smoke", "--steps", "30", "--family", "mlp"],
 }
 SMOKE_STEPS = "4"  # --smoke: training steps per run (instead of 30; the smoke preset warms up 2)
 EVALUATE = ["--num-envs", "12", "--samples", "8,16", "--kl-draws", "16"]

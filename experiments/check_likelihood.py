@@ -24,7 +24,7 @@ from flowmaps_jax.evaluation.protocol import build_eval_queries
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.model import init_params
 from flowmaps_jax.model.family import canonical_inputs
-from flowmaps_jax.model.inference import route_mixture_log_prob
+from flowmaps_jax.model.flowmaps_family import route_mixture_log_prob
 from flowmaps_jax.predictor import Predictor, load_model
 from flowmaps_jax.training.config import get_preset
 

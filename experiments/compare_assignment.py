@@ -18,9 +18,10 @@ import numpy as np
 
 from flowmaps_jax.evaluation.kl import sample_gt_mixture
 from flowmaps_jax.evaluation.protocol import build_eval_queries
-from flowmaps_jax.evaluation.slots import empirical_slots, sampled_oracle_slots, slot_scores
+from flowmaps_jax.evaluation.slots import sampled_oracle_slots, slot_scores
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.predictor import load_model
+from flowmaps_jax.tables import empirical_slots
 
 
 def main(argv=None) -> None:

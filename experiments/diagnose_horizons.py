@@ -28,9 +28,10 @@ import numpy as np
 
 from flowmaps_jax.evaluation.kl import gt_mixture_log_prob
 from flowmaps_jax.evaluation.protocol import build_eval_queries
-from flowmaps_jax.evaluation.slots import empirical_slots, slot_scores
+from flowmaps_jax.evaluation.slots import slot_scores
 from flowmaps_jax.flowsim.scenes import train_split, validation_split
 from flowmaps_jax.predictor import load_model
+from flowmaps_jax.tables import empirical_slots
 
 
 def score(predictor, scenes, config, horizon: int, samples: int, seed: int,
@@ -45,7 +46,7 @@ def score(predictor, scenes, config, horizon: int, samples: int, seed: int,
     tv = slot_scores(p_hat, q, ev.slot_mask)["tv"]
     out = {"tv": tv.mean(), "off": p_hat[..., -1].mean(), "p_real": pick(p_hat).mean(),
            "q_real": pick(q).mean(), "kl_weights": float("nan")}
-    if predictor.kind == "flowmaps" and predictor.model.head in ("pointer", "route"):
+    if predictor.family_name == "flowmaps" and predictor.model.head in ("pointer", "route"):
         w = np.asarray(predictor.table_weights(ev.tokens, ev.queries))[..., :-1]  # (E, M, S)
         order = np.asarray(scenes.visit_order)[np.asarray(ev.env)]  # (E, M, F) token per slot
         w_slot = np.where(order >= 0, np.take_along_axis(w, np.maximum(order, 0), -1), 0.0)

@@ -71,8 +71,8 @@ def main(argv=None) -> None:
     scoring = evaluate_parser().parse_args([
         "--checkpoint", "(each variant)", "--samples", "100", "--kl-draws", str(args.kl_draws),
         "--likelihood-steps", str(args.likelihood_steps)])
-    for _, _, cfg in variants:  # check_size reads a predictor's kind, model and flowsim only
-        model = types.SimpleNamespace(kind=cfg.model_kind, model=cfg.model, flowsim=cfg.flowsim)
+    for _, _, cfg in variants:  # check_size reads a predictor's family_name, model and flowsim only
+        model = types.SimpleNamespace(family_name=cfg.family, model=cfg.model, flowsim=cfg.flowsim)
         check_size([model], args.eval_envs, cfg.flowsim, scoring)
     rows = []
     for name, overrides, cfg in variants:

@@ -16,6 +16,7 @@ from flowmaps_jax.training.config import (
     format_config,
     get_preset,
 )
+from flowmaps_jax.training.overrides import replace_fields
 
 
 def test_paper_preset_matches_the_paper():
@@ -25,7 +26,7 @@ def test_paper_preset_matches_the_paper():
     assert (cfg.batch_size, cfg.steps, cfg.lr) == (256, 30_000, 1e-4)
     assert (cfg.b1, cfg.b2, cfg.ema_decay) == (0.95, 0.999, 0.9999)
     assert cfg.t_sampler == "beta"
-    assert cfg.model_kind == "flowmaps"
+    assert cfg.family == "flowmaps"
     # none of the routine-learning departures (issue 8): the paper's velocity head and objective
     assert (m.head, m.condition_on_dtau) == ("velocity", False)
     assert (cfg.short_horizon_frac, cfg.target_noise, cfg.pointer_loss) == (0.0, 0.0, 0.0)
@@ -50,7 +51,7 @@ def test_pointer_loss_needs_the_pointer_head_but_the_mlp_ignores_it():
     cpu = get_preset("cpu")
     with pytest.raises(ValueError, match="pointer_loss"):
         apply_overrides(cpu, ["model.head=velocity"])
-    mlp = apply_overrides(cpu, ["model_kind=mlp", "model.head=velocity"])
+    mlp = apply_overrides(cpu, ["family=mlp", "model.head=velocity"])
     assert mlp.pointer_loss == cpu.pointer_loss
 
 
@@ -107,6 +108,32 @@ def test_configs_saved_with_removed_fields_still_load():
         TrainConfig.from_dict(data)
 
 
+def test_the_family_is_stored_under_its_old_key():
+    """TrainConfig.family is "model_kind" in config.json, as older versions wrote it: saved runs
+    and shipped models read as before, and a config naming it either way loads (once)."""
+    mlp = apply_overrides(get_preset("smoke"), ["family=mlp"])
+    data = mlp.to_dict()
+    assert data["model_kind"] == "mlp" and "family" not in data
+    assert list(data)[:3] == ["model", "model_kind", "flowsim"]  # the order older versions wrote
+    assert TrainConfig.from_dict(data) == mlp
+    renamed = {("family" if k == "model_kind" else k): v for k, v in data.items()}
+    assert TrainConfig.from_dict(renamed) == mlp
+    with pytest.raises(ValueError, match="twice"):
+        TrainConfig.from_dict({**data, "family": "mlp"})
+    assert apply_overrides(get_preset("smoke"), ["model_kind=mlp"]) == mlp
+
+
+def test_typed_values_are_set_as_given_with_the_text_overrides():
+    smoke = get_preset("smoke")
+    cfg = replace_fields(smoke, ["warmup_steps=50", "steps=3"], {"steps": 100, "init_from": "none"})
+    assert (cfg.steps, cfg.warmup_steps, cfg.init_from) == (100, 50, "none")  # no text parsing
+    assert replace_fields(smoke) is smoke
+    with pytest.raises(ValueError, match=r"bad override \(steps\): steps must be"):
+        replace_fields(smoke, (), {"steps": 0})
+    with pytest.raises(ValueError, match="unknown config key 'stepz'"):
+        replace_fields(smoke, (), {"stepz": 3})
+
+
 def test_overrides_convert_types_including_nested_fields():
     cfg = apply_overrides(get_preset("smoke"), [
         "model.dim=64", "lr=2e-3", "steps=1e3", "clip_norm=none", "t_sampler=uniform",
@@ -131,7 +158,8 @@ def test_coupled_overrides_are_validated_together():
     ("nonsense=1", "nonsense"),
     ("lr=fast", "'lr'"),
     ("steps=1.5", "integer"),
-    ("model_kind=transformer", "model_kind"),
+    ("family=transformer", "family"),
+    ("model_kind=transformer", "model_kind"),  # the key config.json stores it under
     ("t_sampler=normal", "t_sampler"),
     ("model=3", "section"),
     ("lr.x=1", "lr.x"),
@@ -149,11 +177,22 @@ def test_bad_overrides_raise_value_error_naming_the_key(override, fragment):
 
 def test_cli_flags_override_the_preset(tmp_path):
     args = build_parser().parse_args([
-        "--preset", "smoke", "--model", "mlp", "--steps", "7", "--set", "lr=0.01",
+        "--preset", "smoke", "--family", "mlp", "--steps", "7", "--set", "lr=0.01",
         "--set", "model.dim=16", "--run-dir", str(tmp_path / "r")])
     cfg, run_dir = resolve_config(args)
-    assert (cfg.model_kind, cfg.steps, cfg.lr, cfg.model.dim) == ("mlp", 7, 0.01, 16)
+    assert (cfg.family, cfg.steps, cfg.lr, cfg.model.dim) == ("mlp", 7, 0.01, 16)
     assert run_dir == tmp_path / "r"
+    # --model is the older spelling of --family; the typed flags win over --set
+    args = build_parser().parse_args(["--preset", "smoke", "--model", "mlp", "--steps", "9",
+                                      "--set", "steps=5", "--set", "family=flowmaps"])
+    cfg, _ = resolve_config(args)
+    assert (cfg.family, cfg.steps) == ("mlp", 9)
+
+
+def test_a_bad_typed_flag_is_a_usage_error_naming_it(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--preset", "smoke", "--steps", "0"])
+    assert exit_info.value.code == 2 and "steps must be" in capsys.readouterr().err
 
 
 def test_default_run_dir_names_model_and_preset():

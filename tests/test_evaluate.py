@@ -43,7 +43,8 @@ def evalset(scenes):
 @pytest.fixture(scope="module")
 def predictors():
     flow = Predictor.from_params(model.init_params(jax.random.PRNGKey(0), CFG), CFG)
-    mlp = Predictor.from_params(model.init_baseline(jax.random.PRNGKey(1), CFG), CFG, kind="mlp")
+    mlp = Predictor.from_params(model.init_baseline(jax.random.PRNGKey(1), CFG), CFG,
+                                family_name="mlp")
     return mlp, flow
 
 
@@ -150,7 +151,7 @@ class _LastSeenSampler:
     be exactly the last-seen row's — a check of how evaluate_predictor wires samples and
     likelihoods to the metrics. Used with one chunk holding every environment, in order."""
 
-    kind, source, step, name = "stand-in", None, None, "stand-in"
+    family_name, source, step, name = "stand-in", None, None, "stand-in"
 
     def __init__(self, evalset):
         self.evalset = evalset
@@ -331,7 +332,7 @@ def test_evaluate_cli_on_saved_checkpoints(tmp_path, capsys):
 
     run = tmp_path / "flow"
     for kind, where, step in (("flowmaps", run / "checkpoints", 4), ("mlp", tmp_path / "mlp", 0)):
-        cfg = dataclasses.replace(get_preset("smoke"), model=CFG, model_kind=kind)
+        cfg = dataclasses.replace(get_preset("smoke"), model=CFG, family=kind)
         state = train_state.init_state(cfg).replace(step=jnp.asarray(step, jnp.int32))
         with CheckpointStore(where, keep_last=1) as store:
             store.save(state, cfg.to_dict())

@@ -274,12 +274,13 @@ def test_the_size_check_counts_a_history_models_own_tokens(monkeypatch):
     seen = []
     real = cli.network_flops
     monkeypatch.setattr(cli, "network_flops",
-                        lambda net, kind, tokens: seen.append(tokens) or real(net, kind, tokens))
+                        lambda net, name, tokens: seen.append(tokens) or real(net, name, tokens))
     sim = FlowSimConfig()
     wide = dataclasses.replace(sim, max_tokens=34)
-    models = [types.SimpleNamespace(model=dataclasses.replace(TINY, history=8), kind="flowmaps",
+    models = [types.SimpleNamespace(model=dataclasses.replace(TINY, history=8),
+                                    family_name="flowmaps",
                                     flowsim=wide),
-              types.SimpleNamespace(model=TINY, kind="flowmaps", flowsim=sim)]
+              types.SimpleNamespace(model=TINY, family_name="flowmaps", flowsim=sim)]
     args = argparse.Namespace(kl_draws=4, samples=[8], chunk_envs=4, num_steps=8,
                               logp_steps=None, method="euler", likelihood_steps=0)
     cli.check_size(models, 4, sim, args)

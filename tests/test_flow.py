@@ -23,8 +23,8 @@ from flowmaps_jax.flow import (
     target_velocity,
 )
 from flowmaps_jax.model import encode, init_params, make_velocity_fn
+from flowmaps_jax.model.flowmaps_family import cfm_loss
 from flowmaps_jax.tokens import TrainBatch
-from flowmaps_jax.training.objectives import cfm_loss
 
 # An affine field v(x, t) = A x + b with non-diagonal A: x1 = e^A x0 + A⁻¹(e^A − I) b is Gaussian.
 A = jnp.array([[-0.5, 0.3, 0.0, 0.1], [0.2, 0.4, -0.3, 0.0],

@@ -33,7 +33,7 @@ MODULES = {_name(path): path for path in sorted((SRC / PACKAGE).rglob("*.py"))}
 INFERENCE = sorted(
     name for name in MODULES
     if name in (f"{PACKAGE}.{m}" for m in ("predictor", "export", "flow", "tokens", "boxes",
-                                            "validation", "distributed"))
+                                            "validation", "distributed", "tables"))
     or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store")))
 STORE = sorted(name for name in MODULES if name.startswith(f"{PACKAGE}.store"))
 # What sits above the store: it may import none of them, lazily or not.
@@ -129,7 +129,7 @@ def _cycles() -> list[list[str]]:
 
 def test_the_graph_is_read():
     assert len(MODULES) > 40
-    assert f"{PACKAGE}.model.inference" in edges(f"{PACKAGE}.predictor")
+    assert f"{PACKAGE}.model.flowmaps_family" in edges(f"{PACKAGE}.predictor")
     # a lazy import is an edge too
     assert f"{PACKAGE}.predictor" in edges(f"{PACKAGE}.training.loop")
     assert {f"{PACKAGE}.store", f"{PACKAGE}.export"} <= set(INFERENCE)
@@ -176,9 +176,14 @@ def test_importing_the_predictor_loads_neither_optax_nor_training():
     assert out.stdout.strip() == "[]", out.stdout
 
 
-def test_every_family_is_registered_once_with_its_loss():
+def test_every_family_is_registered_once_with_its_loss_in_its_own_module():
     from flowmaps_jax.model import MODEL_FAMILIES
-    from flowmaps_jax.training.objectives import LOSSES
+    from flowmaps_jax.training import objectives
 
-    assert all(family.name == name for name, family in MODEL_FAMILIES.items())
-    assert set(LOSSES) == set(MODEL_FAMILIES)
+    for name, family in MODEL_FAMILIES.items():
+        assert family.name == name
+        home = [m for m in list(sys.modules.values())
+                if getattr(m, "FAMILY", None) is family and m.__name__.startswith(PACKAGE)]
+        assert [m.__name__ for m in home] == [family.loss.__module__], name
+        assert family.loss.__module__.startswith(f"{PACKAGE}.model."), name
+    assert not hasattr(objectives, "LOSSES")  # one registry: the families carry their losses

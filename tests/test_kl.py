@@ -13,7 +13,7 @@ from support import BOXES, MASK, SHEAR, Q, mixture_log_density, protocol_sd
 
 from flowmaps_jax.boxes import from_centre, to_centre
 from flowmaps_jax.evaluation import kl
-from flowmaps_jax.evaluation.slots import empirical_slots
+from flowmaps_jax.tables import empirical_slots
 
 # --------------------------------------------------------------------------- the mixture
 

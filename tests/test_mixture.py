@@ -23,7 +23,7 @@ from flowmaps_jax.model import init_params, mixture
 from flowmaps_jax.model.family import canonical_inputs
 from flowmaps_jax.model.flowmaps import encode, object_table_logits, table_logits
 from flowmaps_jax.predictor import Predictor
-from flowmaps_jax.search.probabilities import table_probabilities
+from flowmaps_jax.tables import table_probabilities
 from flowmaps_jax.tokens import FURNITURE
 
 SIM = FlowSimConfig()

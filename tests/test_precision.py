@@ -206,7 +206,7 @@ def test_bf16_train_steps_track_float32(smoke_batches):
 def test_bf16_loss_of_the_smoke_baseline(smoke_batches):
     """MLP baseline, same perturbed params, batch and key (dropout on): bf16 loss close to
     float32's. (Its gradients go through the same FlatDense as FlowMaps', tested above.)"""
-    cfgs = {p: apply_overrides(SMOKE, {"model_kind": "mlp", "precision": p}) for p in PRECISIONS}
+    cfgs = {p: apply_overrides(SMOKE, {"family": "mlp", "precision": p}) for p in PRECISIONS}
     params = _jitter(objectives.objective_for(cfgs["float32"]).init(jax.random.key(0)))
     loss = {p: float(jax.jit(objectives.objective_for(cfg).loss, static_argnums=3)(
         params, smoke_batches[0], jax.random.key(7), True)[0]) for p, cfg in cfgs.items()}

@@ -36,7 +36,7 @@ def test_one_model_per_habits_world_and_its_one_map_reference(world):
 def test_shipped_weights_have_the_cpu_preset_shapes(name):
     predictor = load_pretrained(name)
     cpu = get_preset("cpu")
-    assert predictor.kind == ("mlp" if name.startswith("mlp") else "flowmaps")
+    assert predictor.family_name == ("mlp" if name.startswith("mlp") else "flowmaps")
     assert predictor.model.dim == cpu.model.dim
     assert predictor.model.encoder_layers == cpu.model.encoder_layers
     leaves = jax.tree_util.tree_leaves(predictor.params)

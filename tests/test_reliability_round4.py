@@ -37,9 +37,9 @@ from flowmaps_jax.model import ModelConfig
 from flowmaps_jax.predictor import Predictor
 from flowmaps_jax.search import cli as search_cli
 from flowmaps_jax.search import report as search_report
-from flowmaps_jax.search.probabilities import table_probabilities
 from flowmaps_jax.store import checkpoints, rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointStore
+from flowmaps_jax.tables import table_probabilities
 from flowmaps_jax.training import cli as train_cli
 from flowmaps_jax.training import loop
 from flowmaps_jax.training.config import (

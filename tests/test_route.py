@@ -24,10 +24,10 @@ from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.model import init_params
 from flowmaps_jax.model.family import canonical_inputs
-from flowmaps_jax.model.inference import route_mixture_log_prob
+from flowmaps_jax.model.flowmaps_family import route_mixture_log_prob
 from flowmaps_jax.model.route import propagate, start_table
 from flowmaps_jax.predictor import Predictor
-from flowmaps_jax.search.probabilities import table_probabilities
+from flowmaps_jax.tables import table_probabilities
 from flowmaps_jax.tokens import FURNITURE
 
 SIM = FlowSimConfig()

@@ -134,7 +134,7 @@ def test_resume_refuses_changes_to_the_model_without_touching_the_run(at12, caps
         assert code == 2 and f"--resume cannot change {field}" in err, err
     assert _snapshot(at12) == before
     with pytest.raises(ValueError, match="model_kind"):
-        loop.run(dataclasses.replace(CFG, model_kind="mlp"), at12, resume=True)
+        loop.run(dataclasses.replace(CFG, family="mlp"), at12, resume=True)
     assert _snapshot(at12) == before
 
 

@@ -52,7 +52,7 @@ def flowmaps():
 def mlp():
     cfg = dataclasses.replace(CFG, baseline_variance="learned")
     params = perturb(model.init_baseline(jax.random.key(2), cfg), jax.random.key(3), 0.3)
-    return Predictor.from_params(params, cfg, kind="mlp")
+    return Predictor.from_params(params, cfg, family_name="mlp")
 
 
 # --------------------------------------------------------------------------- sampling
@@ -84,7 +84,7 @@ def test_sample_is_deterministic_by_key(flowmaps, inputs):
 
 def test_trailing_padding_is_dropped_without_changing_results(flowmaps, inputs):
     """The predictor trims empty token slots before the jitted model; results must not change."""
-    from flowmaps_jax.model.inference import flow_sample
+    from flowmaps_jax.model.flowmaps_family import flow_sample
     from flowmaps_jax.predictor import scene_keys
 
     tokens, queries = inputs
@@ -252,8 +252,8 @@ def test_bad_log_prob_points(flowmaps, mlp, inputs):
         flowmaps.gaussian(*inputs)
     with pytest.raises(ValueError, match="tokens must be a SceneTokens"):
         mlp.sample({"boxes": 0}, inputs[1], 2, jax.random.key(0))
-    with pytest.raises(ValueError, match="kind"):
-        Predictor.from_params({}, CFG, kind="diffusion")
+    with pytest.raises(ValueError, match="model family"):
+        Predictor.from_params({}, CFG, family_name="diffusion")
 
 
 # --------------------------------------------------------------------------- loading
@@ -270,7 +270,7 @@ def checkpoints(tmp_path_factory):
     dirs = {}
     for kind in ("flowmaps", "mlp"):
         net = CFG if kind == "flowmaps" else dataclasses.replace(CFG, baseline_variance="learned")
-        cfg = dataclasses.replace(get_preset("smoke"), model=net, model_kind=kind)
+        cfg = dataclasses.replace(get_preset("smoke"), model=net, family=kind)
         state = train_state.init_state(cfg, jax.random.key(1))
         state = state.replace(ema_params=perturb(state.ema_params, jax.random.key(2), 0.1),
                               step=jnp.asarray(7, jnp.int32))
@@ -280,11 +280,11 @@ def checkpoints(tmp_path_factory):
     return dirs
 
 
-def test_load_restores_the_model_kind_params_and_step(checkpoints, inputs):
+def test_load_restores_the_model_family_params_and_step(checkpoints, inputs):
     for kind in ("flowmaps", "mlp"):
         path, state = checkpoints[kind]
         predictor = load(path, which="best")  # no validation yet: falls back to the latest save
-        assert predictor.kind == kind
+        assert predictor.family_name == kind
         assert predictor.step == 7
         same = jax.tree_util.tree_map(np.array_equal, predictor.params, state.ema_params)
         assert all(jax.tree_util.tree_leaves(same))
@@ -312,7 +312,8 @@ def test_exported_weights_load_as_the_same_predictor(tmp_path, checkpoints, inpu
     export_pretrained(mlp_path, "mlp-learned", tmp_path)
     for name, source in (("flowmaps", path), ("mlp-learned", mlp_path)):
         packaged, loaded = load_pretrained(name, tmp_path), load(source, which="latest")
-        assert (packaged.kind, packaged.model, packaged.step) == (loaded.kind, loaded.model, 7)
+        assert (packaged.family_name, packaged.model, packaged.step) == (loaded.family_name,
+                                                                      loaded.model, 7)
         same = jax.tree_util.tree_map(np.array_equal, packaged.params, loaded.params)
         assert all(jax.tree_util.tree_leaves(same))
         key = jax.random.key(3)

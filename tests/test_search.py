@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from flowmaps_jax import tables
 from flowmaps_jax.flowsim import exact_posterior
 from flowmaps_jax.search import cli, figures, protocol, report
 from flowmaps_jax.search import episodes as E
@@ -211,7 +212,7 @@ def test_exact_table_probabilities_are_the_exact_posterior_on_the_route(search_s
 def test_sampled_table_probabilities_and_their_dict_form(search_set):
     tokens = jax.tree_util.tree_map(lambda a: a[:4], search_set.tokens)
     queries = jax.tree_util.tree_map(lambda a: a[:4], search_set.queries)
-    probs = np.asarray(T.table_probabilities(EchoPredictor(), tokens, queries, 8,
+    probs = np.asarray(tables.table_probabilities(EchoPredictor(), tokens, queries, 8,
                                              jax.random.key(0)))
     seen = np.asarray(search_set.visit_order)[np.arange(4)[:, None], np.arange(3),
                                               np.asarray(search_set.slot_now)[:4]]
@@ -322,9 +323,9 @@ def test_other_bad_inputs(search_set):
         E.make_episodes(search_set, np.zeros((2, 3, 4)))
     queries = search_set.queries.replace(descriptor=search_set.queries.descriptor + 3)
     with pytest.raises(ValueError, match=r"queries.descriptor\[0, 0\]"):
-        T.table_boxes(search_set.tokens, queries)
+        tables.table_boxes(search_set.tokens, queries)
     with pytest.raises(ValueError, match="num_samples"):
-        T.table_probabilities(EchoPredictor(), search_set.tokens, search_set.queries, 0,
+        tables.table_probabilities(EchoPredictor(), search_set.tokens, search_set.queries, 0,
                               jax.random.key(0))
     with pytest.raises(ValueError, match="nearest"):
         protocol.score_priors(search_set, {}, None, policies=("nearest",))

@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from support import BOXES, MASK, Q  # two real slots of a 3-slot padded problem
 
+from flowmaps_jax import tables as A  # the assignment rule
 from flowmaps_jax.evaluation import slots as S
 
 
@@ -42,7 +43,7 @@ def brute_force_cost(order, q):
 
 def test_assignment_v2_nearest_centre_within_three_centre_sigmas():
     # BOXES are 0.1-sided objects: the v2 radius is max(0.05, 3 · 0.35 · 0.1) = 0.105.
-    np.testing.assert_allclose(S.assign_radius(BOXES[:2]), [0.105, 0.105], rtol=1e-6)
+    np.testing.assert_allclose(A.assign_radius(BOXES[:2]), [0.105, 0.105], rtol=1e-6)
     samples = np.array([
         BOXES[1],                                   # exactly on slot 1
         BOXES[0] + [0.1, 0.0, 0.0, 0.0],            # centre 0.1 away: inside slot 0's radius
@@ -51,23 +52,23 @@ def test_assignment_v2_nearest_centre_within_three_centre_sigmas():
         (BOXES[0] + BOXES[1]) / 2,                  # far from both → off
         [0.15, 0.25, 0.2, 0.2],                     # slot 0's centre, another size: slot 0
     ], np.float32)
-    one_each = S.empirical_slots(samples[:, None], np.broadcast_to(BOXES, (6, 3, 4)),
+    one_each = A.empirical_slots(samples[:, None], np.broadcast_to(BOXES, (6, 3, 4)),
                                  np.broadcast_to(MASK, (6, 3)))  # one sample per query
     np.testing.assert_array_equal(np.argmax(one_each, -1), [1, 0, 3, 3, 3, 0])
-    np.testing.assert_allclose(S.empirical_slots(samples, BOXES, MASK), [2 / 6, 1 / 6, 0, 3 / 6],
+    np.testing.assert_allclose(A.empirical_slots(samples, BOXES, MASK), [2 / 6, 1 / 6, 0, 3 / 6],
                                rtol=1e-6)
     # Nearest centre wins when two slots are within their radius.
     close = np.array([[0.2, 0.3, 0.1, 0.1], [0.2, 0.33, 0.1, 0.1]], np.float32)
     np.testing.assert_allclose(
-        S.empirical_slots(np.array([[0.2, 0.32, 0.1, 0.1]], np.float32), close, np.ones(2, bool)),
+        A.empirical_slots(np.array([[0.2, 0.32, 0.1, 0.1]], np.float32), close, np.ones(2, bool)),
         [0.0, 1.0, 0.0])
     # A larger least radius captures the far sample; small objects keep the 0.05 floor.
-    np.testing.assert_allclose(S.empirical_slots(samples[2:3], BOXES, MASK, radius=0.12),
+    np.testing.assert_allclose(A.empirical_slots(samples[2:3], BOXES, MASK, radius=0.12),
                                [1.0, 0.0, 0.0, 0.0])
     tiny = np.array([[0.2, 0.3, 0.02, 0.02]], np.float32)
-    np.testing.assert_allclose(S.assign_radius(tiny), [0.05])
+    np.testing.assert_allclose(A.assign_radius(tiny), [0.05])
     moved = tiny + np.float32([0.049, 0, 0, 0])
-    np.testing.assert_allclose(S.empirical_slots(moved, tiny, np.ones(1, bool)), [1.0, 0.0])
+    np.testing.assert_allclose(A.empirical_slots(moved, tiny, np.ones(1, bool)), [1.0, 0.0])
 
 
 def test_assignment_v1_kept_for_comparison():
@@ -76,15 +77,15 @@ def test_assignment_v1_kept_for_comparison():
         BOXES[0] + [0.0, 0.051, 0.0, 0.0],          # just outside → off
         [0.15, 0.25, 0.2, 0.2],                     # slot 0's centre, another size: off in v1
     ], np.float32)
-    np.testing.assert_allclose(S.empirical_slots(samples, BOXES, MASK, rule="v1"),
+    np.testing.assert_allclose(A.empirical_slots(samples, BOXES, MASK, rule="v1"),
                                [1 / 3, 0.0, 0.0, 2 / 3], rtol=1e-6)
     with pytest.raises(ValueError, match="rule"):
-        S.empirical_slots(samples, BOXES, MASK, rule="v3")
+        A.empirical_slots(samples, BOXES, MASK, rule="v3")
 
 
 def test_histogram_counts_over_n():
     samples = np.stack([BOXES[0], BOXES[0], BOXES[1], BOXES[2] + 0.5])
-    np.testing.assert_allclose(S.empirical_slots(samples, BOXES, MASK), [0.5, 0.25, 0.0, 0.25])
+    np.testing.assert_allclose(A.empirical_slots(samples, BOXES, MASK), [0.5, 0.25, 0.0, 0.25])
 
 
 # --------------------------------------------------------------------------- scores
@@ -211,8 +212,8 @@ P2 = np.array([0.5, 0.5, 0.0])
      "slot_mask"),
     (lambda: S.slot_scores(np.array([1.0, 0, 0]), np.array([0.5, 0.5]), np.array([True, False])),
      "q puts probability"),
-    (lambda: S.empirical_slots(np.zeros((2, 4)), BOXES, MASK, radius=0.0), "radius"),
-    (lambda: S.empirical_slots(np.zeros((2, 3)), BOXES, MASK), "samples must have shape"),
+    (lambda: A.empirical_slots(np.zeros((2, 4)), BOXES, MASK, radius=0.0), "radius"),
+    (lambda: A.empirical_slots(np.zeros((2, 3)), BOXES, MASK), "samples must have shape"),
     (lambda: S.last_seen_slots(np.array([3]), 3), "slot_now"),
     (lambda: S.uniform_slots(np.array([0]), 3), "count"),
     (lambda: S.sampled_oracle_slots(jax.random.PRNGKey(0), jnp.asarray([0.5, 0.6]), 4), "q"),

@@ -205,7 +205,7 @@ def test_same_state_batch_and_key_give_the_same_step(flow_setup):
 
 
 def test_mlp_baseline_trains_with_learned_variance():
-    cfg = apply_overrides(SMOKE, {"model_kind": "mlp", "model.baseline_variance": "learned",
+    cfg = apply_overrides(SMOKE, {"family": "mlp", "model.baseline_variance": "learned",
                                   "lr": 3e-3, "steps": 100})
     objective = objectives.objective_for(cfg)
     step_fn = train_state.make_fused_train_step(cfg, objective, batch_fn=fixed_batch_fn)

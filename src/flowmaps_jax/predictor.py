@@ -44,14 +44,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from flowmaps_jax import distributed, flow
+from flowmaps_jax import distributed, flow, tables
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
 from flowmaps_jax.model.flowmaps import check_inputs
-from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
+from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles
 from flowmaps_jax.validation import (
@@ -94,8 +94,8 @@ class Predictor:
 
     params: the model's parameter pytree (EMA weights when loaded with ``use_ema=True``).
     model: its :class:`~flowmaps_jax.model.ModelConfig` (static: defines the compiled functions).
-    kind: the name of its model family (:data:`flowmaps_jax.model.MODEL_FAMILIES`, as
-        ``TrainConfig.model_kind``): "flowmaps" (flow matching) or "mlp" (Gaussian baseline;
+    family_name: the name of its model family (:data:`flowmaps_jax.model.MODEL_FAMILIES`, as
+        ``TrainConfig.family``): "flowmaps" (flow matching) or "mlp" (Gaussian baseline;
         variant in ``model.baseline_variance``). :attr:`family` is the family itself.
     flowsim: the simulator config the model was trained on (map size for pixel boxes).
     source: where the params came from (checkpoint path) and step, for reports.
@@ -106,14 +106,14 @@ class Predictor:
 
     params: Any = dataclasses.field(repr=False)  # a pytree of arrays: too long to print
     model: ModelConfig
-    kind: str = "flowmaps"
+    family_name: str = "flowmaps"
     flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig)
     source: str | None = None
     step: int | None = None
     mesh: Mesh | None = dataclasses.field(default=None, repr=False)
 
     def __post_init__(self):
-        model_family(self.kind)  # ValueError listing the families
+        model_family(self.family_name)  # ValueError listing the families
         check_instance("model", self.model, ModelConfig)
         check_instance("flowsim", self.flowsim, FlowSimConfig)
         if self.mesh is not None:
@@ -143,19 +143,25 @@ class Predictor:
         return out if self.mesh is None else jax.tree.map(lambda x: x[:b], out)
 
     @classmethod
-    def from_params(cls, params, model: ModelConfig, kind: str = "flowmaps",
+    def from_params(cls, params, model: ModelConfig, family_name: str = "flowmaps",
                     flowsim: FlowSimConfig | None = None, **info) -> Predictor:
         """Wrap params you already have (tests, notebooks, a training loop) without a checkpoint.
 
         Example: ``Predictor.from_params(model.init_params(key, cfg), cfg)``.
         """
-        return cls(params=params, model=model, kind=kind,
+        return cls(params=params, model=model, family_name=family_name,
                    flowsim=FlowSimConfig() if flowsim is None else flowsim, **info)
 
     @property
     def family(self) -> ModelFamily:
         """The model family: init, the jitted cores, the memory estimate, the label."""
-        return model_family(self.kind)
+        return model_family(self.family_name)
+
+    @property
+    def kind(self) -> str:
+        """:attr:`family_name` under the word the on-disk metas use (``"kind"``): kept for the
+        disk code (``export``) until it reads ``family_name``."""
+        return self.family_name
 
     @property
     def name(self) -> str:
@@ -194,7 +200,7 @@ class Predictor:
         rows = b * q * n
         factor = DENSITY_FACTOR if with_density else 1
         evaluations = solver_evaluations(num_steps, method) if self.family.uses_solver else 1
-        per_row, per_map = network_flops(self.model, self.kind, slots)
+        per_row, per_map = network_flops(self.model, self.family_name, slots)
         check_resources(
             f"{what} of {b} scenes x {q} queries x {n} boxes with num_steps={num_steps} "
             f"(model.freq_bands={self.model.freq_bands})",
@@ -245,11 +251,9 @@ class Predictor:
         plus an "off" mass in the last entry: the prior a search planner calls. ``method``
         "samples" counts ``num_samples`` samples per query; "weights" reads the route head's
         mixture weights (:meth:`table_weights`, no sampling noise). See
-        :func:`flowmaps_jax.search.table_probabilities`."""
-        from flowmaps_jax.search.probabilities import table_probabilities
-
-        return table_probabilities(self, tokens, queries, num_samples, key, method=method,
-                                   **sample_kwargs)
+        :func:`flowmaps_jax.tables.table_probabilities` (also ``search.table_probabilities``)."""
+        return tables.table_probabilities(self, tokens, queries, num_samples, key,
+                                          method=method, **sample_kwargs)
 
     def log_prob(self, tokens: SceneTokens, queries: Queries, x,
                  num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
@@ -282,10 +286,11 @@ class Predictor:
     def table_weights(self, tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
         """FlowMaps with a read-out head (``model.head`` "mixture", "pointer" or "route"): the
         mass (B, Q, S + 1) its mixture puts on each table of the map, read from the model without
-        sampling (:func:`flowmaps_jax.model.inference.table_weights`). Weight on tokens that are
-        not tables goes to the "off" entry (last). The mixture head's weights are its posterior
-        over tables itself (its samples draw their table from them); the route head's samples
-        follow them while its residual is zero; the pointer head's are its weights at t = 0.
+        sampling (:func:`flowmaps_jax.model.flowmaps_family.table_weights`). Weight on tokens
+        that are not tables goes to the "off" entry (last). The mixture head's weights are its
+        posterior over tables itself (its samples draw their table from them); the route head's
+        samples follow them while its residual is zero; the pointer head's are its weights at
+        t = 0.
         """
         if not self.has_table_weights:
             raise ValueError("table_weights needs a FlowMaps model with model.head 'mixture', "
@@ -294,17 +299,17 @@ class Predictor:
                              f"head={self.model.head!r}: use table_probabilities with samples")
         b, _ = self.validate(tokens, queries)
         s = np.shape(tokens.boxes)[1]
-        tables = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == FURNITURE)
+        is_table = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == FURNITURE)
         tokens, queries = self._on_mesh(*canonical_inputs(tokens, queries))
         w = self._rows(self.family.table_weights(self.params, self.model, tokens, queries), b)
         w = jnp.pad(w, ((0, 0), (0, 0), (0, s - w.shape[-1])))  # trimmed padding back
-        w = jnp.where(tables[:, None, :], w, 0.0)
+        w = jnp.where(is_table[:, None, :], w, 0.0)
         return jnp.concatenate([w, 1.0 - w.sum(-1, keepdims=True)], axis=-1).clip(0.0, 1.0)
 
     def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
         """MLP baseline only: (mean, log_var), each (B, Q, 4), of the predicted Gaussian."""
         if self.family.gaussian is None:
-            raise ValueError("gaussian() is only defined for the MLP baseline (kind='mlp')")
+            raise ValueError("gaussian() is only defined for the MLP baseline (family_name='mlp')")
         b, _ = self.validate(tokens, queries)
         tokens, queries = self._on_mesh(*canonical_inputs(tokens, queries))
         return self._rows(self.family.gaussian(self.params, self.model, tokens, queries), b)
@@ -327,7 +332,7 @@ def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
     """
     weights = checkpoints.load_weights(checkpoint_dir, which, use_ema, step)
     spec = weights.spec
-    return Predictor(params=weights.params, model=spec.model, kind=spec.kind,
+    return Predictor(params=weights.params, model=spec.model, family_name=spec.kind,
                      flowsim=spec.flowsim, source=str(weights.root), step=weights.step)
 
 
@@ -340,7 +345,7 @@ def load_pretrained(name: str, directory: str | pathlib.Path = pretrained.PRETRA
     (listing the names), or weights that are missing, damaged (SHA-256 mismatch) or do not fit
     their config. See :mod:`flowmaps_jax.store.pretrained`."""
     weights = pretrained.read_weights(name, directory)
-    return Predictor(params=weights.params, model=weights.spec.model, kind=weights.spec.kind,
+    return Predictor(params=weights.params, model=weights.spec.model, family_name=weights.spec.kind,
                      flowsim=weights.spec.flowsim, source=f"pretrained:{weights.name}",
                      step=weights.step)
 

@@ -59,10 +59,8 @@ from flowmaps_jax.evaluation.routine import (
 )
 from flowmaps_jax.evaluation.run import default_history, run_evaluation
 from flowmaps_jax.evaluation.slots import (
-    ASSIGN_RADIUS,
     ROUTE_OFFSET_LABELS,
     SLOT_METRICS,
-    empirical_slots,
     last_seen_slots,
     oracle_slots,
     route_offset_mass,
@@ -70,6 +68,7 @@ from flowmaps_jax.evaluation.slots import (
     slot_scores,
     uniform_slots,
 )
+from flowmaps_jax.tables import ASSIGN_RADIUS, empirical_slots  # the protocol's assignment
 
 __all__ = [
     "ASSIGN_RADIUS",

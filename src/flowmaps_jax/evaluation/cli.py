@@ -37,6 +37,7 @@ from flowmaps_jax.evaluation.protocol import (
 )
 from flowmaps_jax.evaluation.report import markdown_table
 from flowmaps_jax.evaluation.run import FIGURES, REPORT_FILES, model_token_config, run_evaluation
+from flowmaps_jax.flowsim.scenes import load_scenes, validation_split
 from flowmaps_jax.flowsim.worlds import WORLDS, world_config, world_of
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR
@@ -73,7 +74,7 @@ def check_size(models, num_envs: int, config, args: argparse.Namespace) -> None:
     n, chunk = max(args.samples), min(args.chunk_envs, num_envs)
     queries = f"on {e} environments x {m} objects"
     check_resources(f"--kl-draws {d} {queries}", num_bytes=4 * e * m * d * (6 + 4 * f))
-    families = [model_family(p.kind) for p in models]
+    families = [model_family(p.family_name) for p in models]
     sampling = max(fam.request_bytes(p.model, chunk * m * n, False)
                    for fam, p in zip(families, models, strict=True))
     check_resources(f"--samples {n} {queries} ({len(models)} models)",
@@ -85,7 +86,7 @@ def check_size(models, num_envs: int, config, args: argparse.Namespace) -> None:
     flops = 0
     for fam, p in zip(families, models, strict=True):
         # each model reads its own tokens: a history model's last H maps (model_view)
-        per_query, per_map = network_flops(p.model, p.kind,
+        per_query, per_map = network_flops(p.model, p.family_name,
                                            model_token_config(config, p).max_tokens)
         sampled = solver_evaluations(args.num_steps, args.method) if fam.uses_solver else 1
         density = solver_evaluations(logp_steps, args.method) if fam.uses_solver else 1
@@ -187,8 +188,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.world is not None:
             config = world_config(args.world, config)
         if args.scenes is not None:
-            from flowmaps_jax.flowsim.scenes import load_scenes
-
             scenes, config = load_scenes(args.scenes)
             if args.world is not None and world_of(config) != args.world:
                 raise ValueError(f"--world {args.world}: the scenes of --scenes {args.scenes} "
@@ -198,8 +197,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_size([*baselines, model], scenes.num_envs, config, args)
         else:
             check_size([*baselines, model], args.num_envs, config, args)
-            from flowmaps_jax.flowsim.scenes import validation_split
-
             scenes = validation_split(config, num_envs=args.num_envs, mesh=mesh)
         print(f"Evaluating {model.name} ({model.source}, step {model.step})"
               + "".join(f" vs {b.name} ({b.source}, step {b.step})" for b in baselines)

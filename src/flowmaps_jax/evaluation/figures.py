@@ -12,6 +12,7 @@ from matplotlib.figure import Figure
 
 from flowmaps_jax.evaluation.protocol import REFERENCE_ROWS, EvalSet, RowResult
 from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.flowsim.render import draw_posterior, overlay_boxes
 
 
 def _is_reference(name: str, row: dict) -> bool:
@@ -121,8 +122,6 @@ def plot_samples(scenes, evalset: EvalSet, rows: Sequence[RowResult], config: Fl
     """Paper Fig. 3: for each picked query (default: fork, remote, bottle), the map at τ with the
     exact posterior over the object's places shaded and labelled (its modes), and ``num_shown``
     samples of each model row overlaid (one row of panels per model)."""
-    from flowmaps_jax.flowsim.render import draw_posterior, overlay_boxes
-
     rows = [r for r in rows if r.samples is not None]
     if not rows:
         raise ValueError("rows must include at least one model row with samples")

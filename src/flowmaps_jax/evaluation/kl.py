@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.boxes import from_centre, to_centre
+from flowmaps_jax.tables import CENTRE_SIGMA_SCALE  # the centre std, shared with the assignment
 from flowmaps_jax.validation import (
     PROB_ATOL,
     check_array,
@@ -35,8 +36,6 @@ from flowmaps_jax.validation import (
     is_concrete,
 )
 
-CENTRE_SIGMA_SCALE = 0.35
-"""Centre std of a mixture component as a fraction of the box side (h for cy, w for cx)."""
 SIZE_SIGMA_SCALE = 0.02
 """Size std of a mixture component as a fraction of the box side (h for h, w for w)."""
 

@@ -48,7 +48,6 @@ from flowmaps_jax.evaluation.kl import (
     sample_gt_mixture_core,
 )
 from flowmaps_jax.evaluation.slots import (
-    empirical_slots_core,
     last_seen_slots_core,
     oracle_slots_core,
     sampled_oracle_slots_core,
@@ -63,7 +62,9 @@ from flowmaps_jax.flowsim.habits import (
     history_references,
     uses_history,
 )
+from flowmaps_jax.flowsim.scenes import draw_query_times, normalise_boxes, scene_tokens, slot_boxes
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
+from flowmaps_jax.tables import empirical_slots_core
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import check_instance, check_int
 
@@ -177,12 +178,6 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     last min(H, τ + 1) observations and the EvalSet's ``habit``, ``history`` (and for H > 1
     ``exact_h1``, ``empirical``) are set; the times and draws do not depend on H.
     """
-    from flowmaps_jax.flowsim.scenes import (
-        normalise_boxes,
-        scene_tokens,
-        slot_boxes,
-    )
-
     check_instance("config", config, FlowSimConfig)
     kl_draws = check_int("kl_draws", kl_draws, 2)
     num_envs = scenes.num_envs
@@ -230,8 +225,6 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
 def _query_times_and_keys(key, num_envs: int, config: FlowSimConfig, horizon: int | None):
     """(τ (E,), τ_q (E,), the KL draws' keys (E,)) of :func:`build_eval_queries`: environment
     e's from ``key`` and e alone; one compiled program (eagerly, a few dozen small ones)."""
-    from flowmaps_jax.flowsim.scenes import draw_query_times
-
     env = jnp.arange(num_envs, dtype=jnp.int32)
     env_keys = jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, _SALT_QUERIES), e))(
         env)
@@ -415,7 +408,7 @@ def evaluate_predictor_core(predictor, evalset: EvalSet, key, counts: tuple[int,
     sample_key = jax.random.fold_in(key, _SALT_SAMPLES)
     env_keys = jax.vmap(lambda e: jax.random.fold_in(sample_key, e))(jnp.asarray(evalset.env))
     samples = []
-    flow_density = predictor.kind == "flowmaps"
+    flow_density = predictor.family_name == "flowmaps"
     accurate = likelihood_steps is not None and flow_density
     solves = {"paper": (logp_steps, method)}
     if accurate:
@@ -458,7 +451,7 @@ def evaluate_predictor_core(predictor, evalset: EvalSet, key, counts: tuple[int,
     slots = {n: _slot_entry(evalset, empirical_slots_core(
                  samples_all[:, :, :n], evalset.slot_boxes, evalset.slot_mask))
              for n in counts}
-    info = {"kind": predictor.kind, "source": predictor.source, "step": predictor.step,
+    info = {"kind": predictor.family_name, "source": predictor.source, "step": predictor.step,
             "seconds": round(seconds, 2), "num_steps": num_steps, "logp_steps": logp_steps,
             "method": method, "likelihood_steps": likelihood_steps if accurate else None,
             "likelihood_draws": draws if accurate else None}

@@ -28,10 +28,11 @@ from matplotlib.figure import Figure
 from flowmaps_jax.evaluation.protocol import EvalSet, build_eval_queries
 from flowmaps_jax.evaluation.slots import (
     ROUTE_OFFSET_LABELS,
-    empirical_slots_core,
     route_offset_mass_core,
     slot_scores_core,
 )
+from flowmaps_jax.flowsim.scenes import scene_tokens
+from flowmaps_jax.tables import empirical_slots_core
 from flowmaps_jax.validation import check_instance, check_int
 
 EXACT_ONE_STEP = (0.2, 0.7, 0.1, 0.0, 0.0, 0.0)
@@ -53,8 +54,6 @@ def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
     history: H of the model it scores. With H > 1 its tokens are the last H maps
     (``scene_tokens(..., history=H)``, within ``config.max_tokens``) and, as in the evaluation,
     the ground truth is the exact posterior given the last min(H, τ + 1) observations."""
-    from flowmaps_jax.flowsim.scenes import scene_tokens
-
     num_envs = check_int("num_envs", num_envs, 1)
     if num_envs > scenes.num_envs:
         raise ValueError(f"num_envs={num_envs} is more than the {scenes.num_envs} environments "

@@ -35,12 +35,12 @@ from flowmaps_jax.evaluation.protocol import (
     reference_rows_core,
 )
 from flowmaps_jax.evaluation.report import summarise_habits, summarise_rows, write_report
-from flowmaps_jax.evaluation.slots import ASSIGN_RADIUS
 from flowmaps_jax.flowsim import habits
 from flowmaps_jax.flowsim.config import FlowSimConfig
-from flowmaps_jax.flowsim.scenes import check_history
+from flowmaps_jax.flowsim.scenes import check_history, scene_tokens
 from flowmaps_jax.flowsim.worlds import world_of
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
+from flowmaps_jax.tables import ASSIGN_RADIUS
 from flowmaps_jax.validation import (
     check_int,
     check_no_links,
@@ -163,8 +163,6 @@ def model_view(evalset: EvalSet, scenes, config: FlowSimConfig,
     of the last h maps (SceneTokens (E, S) with ``age``, S its ``flowsim.max_tokens``), the
     queries and ground truth unchanged; the same tokens again for a one-map model (rebuilt only
     when its token count is smaller than the evaluation config's)."""
-    from flowmaps_jax.flowsim.scenes import scene_tokens
-
     h = predictor.model.history
     if h == 1 and predictor.flowsim.max_tokens >= config.max_tokens:
         return evalset

@@ -1,7 +1,8 @@
 """Slot metrics: where samples land among the places an object can be, scored against q.
 
-Assignment (protocol v2, docs/protocol.md): a sample goes to the slot k whose object *centre*
-(y + h/2, x + w/2 of b_k) is nearest to the sample's centre, and to the "off" bin when that
+Assignment (protocol v2, docs/protocol.md; :func:`flowmaps_jax.tables.empirical_slots`, below
+the predictor, which the search's table masses share): a sample goes to the slot k whose object
+*centre* (y + h/2, x + w/2 of b_k) is nearest to the sample's centre, and to the "off" bin when that
 distance exceeds the slot's radius max(``ASSIGN_RADIUS``, ``ASSIGN_SIGMAS`` · σ_c), with
 σ_c = 0.35 × the object's longer side (the centre std of the smoothed q of :mod:`.kl`). Draws from
 that q land off about 1 % of the time, so a model that matches q is not punished. (v1, kept as
@@ -30,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.evaluation.kl import CENTRE_SIGMA_SCALE
+from flowmaps_jax.tables import histogram
 from flowmaps_jax.validation import (
     PROB_ATOL,
     check_array,
@@ -39,17 +40,8 @@ from flowmaps_jax.validation import (
     check_mask,
     check_probabilities,
     check_shape,
-    is_concrete,
 )
 
-ASSIGN_RADIUS = 0.05
-"""The least assignment radius (normalised units): a sample whose centre lies this close to a slot's
-centre always counts for the nearest slot."""
-ASSIGN_SIGMAS = 3.0
-"""The radius grows to this many centre stds σ_c of the smoothed q (0.35 × the longer side)."""
-ASSIGN_RULES = ("v2", "v1")
-"""``"v2"``: nearest centre, radius max(0.05, 3 σ_c) (the protocol); ``"v1"``: the old L2 < 0.05
-over the four numbers, kept to compare the two once."""
 TIE_ATOL = 1e-6
 """Two slot scores closer than this are tied."""
 SLOT_METRICS = ("tv", "top1", "search_cost_ratio")
@@ -64,67 +56,6 @@ def _check_distribution(name: str, probs, slot_mask=None) -> None:
     where ``slot_mask`` is False (an off bin beyond the mask is free)."""
     check_probabilities(name, probs, atol=PROB_ATOL, min_value=-PROB_ATOL, support=slot_mask,
                         support_name="slot_mask")
-
-
-# --------------------------------------------------------------------------- empirical p̂
-
-
-def assign_radius(slot_boxes: jnp.ndarray) -> jnp.ndarray:
-    """Per-slot radius of the v2 rule: max(ASSIGN_RADIUS, ASSIGN_SIGMAS · 0.35 · max(h, w)).
-
-    slot_boxes (..., K, 4) (y, x, h, w) → (..., K)."""
-    side = jnp.maximum(slot_boxes[..., 2], slot_boxes[..., 3])
-    return jnp.maximum(ASSIGN_RADIUS, ASSIGN_SIGMAS * CENTRE_SIGMA_SCALE * side)
-
-
-@partial(jax.jit, static_argnames="rule")
-def _assign(samples, slot_boxes, slot_mask, radius, rule="v2"):
-    """(..., N) int slot index of each sample, K for "off" (the rules of the module doc)."""
-    if rule == "v1":
-        diff = samples[..., :, None, :] - slot_boxes[..., None, :, :]  # (..., N, K, 4)
-        limit = jnp.broadcast_to(radius, slot_boxes.shape[:-1])
-    else:
-        centre = lambda b: b[..., :2] + 0.5 * b[..., 2:]  # noqa: E731
-        diff = centre(samples)[..., :, None, :] - centre(slot_boxes)[..., None, :, :]
-        limit = jnp.maximum(radius, assign_radius(slot_boxes))  # (..., K)
-    dist = jnp.sqrt(jnp.sum(diff**2, axis=-1))
-    dist = jnp.where(slot_mask[..., None, :], dist, jnp.inf)
-    nearest = jnp.argmin(dist, axis=-1)
-    closest = jnp.min(dist, axis=-1)
-    within = closest < jnp.take_along_axis(limit[..., None, :], nearest[..., None], axis=-1)[..., 0]
-    return jnp.where(within, nearest, slot_boxes.shape[-2]).astype(jnp.int32)
-
-
-@partial(jax.jit, static_argnames="num_slots")
-def _histogram(assignment, num_slots):
-    return jnp.mean(jax.nn.one_hot(assignment, num_slots + 1), axis=-2)
-
-
-def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jnp.ndarray,
-                    radius: float = ASSIGN_RADIUS, rule: str = "v2") -> jnp.ndarray:
-    """p̂ of samples under the protocol's assignment (module doc), else off.
-
-    samples: (..., N, 4). slot_boxes: (..., K, 4). slot_mask: (..., K) bool.
-    radius: the least radius (v2; the radius itself under ``rule="v1"``).
-    Returns (..., K + 1) float32 counts / N: the K slots then the off bin.
-    """
-    if rule not in ASSIGN_RULES:
-        raise ValueError(f"rule must be one of {ASSIGN_RULES}; got {rule!r}")
-    s_shape = check_array("samples", samples, (..., None, 4)).shape
-    b_shape = check_array("slot_boxes", slot_boxes, (..., None, 4)).shape
-    check_shape("samples.shape[:-2]", s_shape[:-2], b_shape[:-2], "the leading dims of slot_boxes")
-    check_mask("slot_mask", slot_mask, b_shape[:-1])
-    if is_concrete(radius) and not float(radius) > 0:
-        raise ValueError(f"radius must be positive; got {radius}")
-    return empirical_slots_core(samples, slot_boxes, slot_mask, radius, rule)
-
-
-def empirical_slots_core(samples, slot_boxes, slot_mask, radius=ASSIGN_RADIUS,
-                         rule: str = "v2") -> jnp.ndarray:
-    """Core of :func:`empirical_slots` (no checks; ``slot_boxes`` an array)."""
-    assignment = _assign(jnp.asarray(samples, jnp.float32), jnp.asarray(slot_boxes, jnp.float32),
-                         jnp.asarray(slot_mask, bool), radius, rule)
-    return _histogram(assignment, slot_boxes.shape[-2])
 
 
 # --------------------------------------------------------------------------- scores against q
@@ -218,7 +149,7 @@ def oracle_slots_core(q) -> jnp.ndarray:
 def sampled_oracle_slots_core(key, q, n):
     """Core of :func:`sampled_oracle_slots` (no checks; ``q`` float32)."""
     draws = jax.random.categorical(key, jnp.log(q)[..., None, :], shape=(*q.shape[:-1], n))
-    return _histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
+    return histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
 
 
 def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:

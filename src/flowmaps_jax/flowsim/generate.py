@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from flowmaps_jax import distributed
 from flowmaps_jax.flowsim import dynamics, habits, layout
 from flowmaps_jax.flowsim.config import (
     DEFAULT_CONFIG,
@@ -328,8 +329,6 @@ def _generate_on(env_keys, config: FlowSimConfig, mesh):
         check_instance("mesh", mesh, Mesh)
     if mesh is None or mesh.size == 1:
         return scenes_from_env_keys(env_keys, params, shape)
-    from flowmaps_jax import distributed
-
     num_envs = env_keys.shape[0]
     scenes, ok = _sharded_generator(mesh, shape)(distributed.shard_rows(env_keys, mesh), params)
     return jax.tree.map(lambda x: x[:num_envs], (scenes, ok))
@@ -339,11 +338,9 @@ def _generate_on(env_keys, config: FlowSimConfig, mesh):
 def _sharded_generator(mesh, shape: SimShape):
     from jax.sharding import PartitionSpec
 
-    from flowmaps_jax.distributed import DATA_AXIS
-
     def local(keys, params):  # one device's block of environments, a plain local program
         return scenes_from_env_keys(keys, params, shape)
 
-    rows = PartitionSpec(DATA_AXIS)
+    rows = PartitionSpec(distributed.DATA_AXIS)
     return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(rows, PartitionSpec()),
                                  out_specs=rows, check_vma=False))

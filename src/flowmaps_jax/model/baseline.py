@@ -5,7 +5,8 @@ mean (4) (+ log-variance (4) for the ``"learned"`` variant; the ``"mean"`` varia
 variance, as the paper's reference). ``config.baseline_variance`` picks the variant.
 
 This file is the whole family (the worked example of docs/design.md, "Adding a model family"):
-the network, its loss, its jitted inference cores (:func:`gaussian_sample`,
+the network, its loss (:func:`baseline_loss`, as the family's :func:`mlp_loss`), its jitted
+inference cores (:func:`gaussian_sample`,
 :func:`gaussian_log_prob`, :func:`gaussian_sample_with_log_prob`) and :data:`FAMILY`, registered
 in :mod:`flowmaps_jax.model.families`.
 """
@@ -22,7 +23,7 @@ import jax.numpy as jnp
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.embeddings import FlatDense
 from flowmaps_jax.model.encoder import MapEncoder, example_inputs
-from flowmaps_jax.model.family import ModelFamily, scene_noise, without_solver
+from flowmaps_jax.model.family import LossOptions, ModelFamily, scene_noise, without_solver
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
 
 LOG_VAR_RANGE = (-12.0, 4.0)  # keeps the learned variance away from 0 and from blowing up
@@ -93,6 +94,13 @@ def baseline_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array
     return loss, {"loss": loss, "mse": mse}
 
 
+def mlp_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array, train: bool,
+             options: LossOptions):
+    """The baseline's training loss ``(loss, aux)`` (``ModelFamily.loss``): :func:`baseline_loss`
+    with dropout from ``key`` when ``train``, none otherwise; ``options`` are not used."""
+    return baseline_loss(params, config, batch, key if train else None)
+
+
 # --------------------------------------------------------------------------- inference cores
 
 
@@ -131,7 +139,7 @@ def gaussian_sample_with_log_prob(params, config: ModelConfig, tokens: SceneToke
 
 
 FAMILY = ModelFamily(
-    name="mlp", init=init_baseline, sample=without_solver(gaussian_sample),
+    name="mlp", init=init_baseline, loss=mlp_loss, sample=without_solver(gaussian_sample),
     sample_with_log_prob=without_solver(gaussian_sample_with_log_prob),
     log_prob=without_solver(gaussian_log_prob),
     label=lambda config: f"MLP ({config.baseline_variance})",

@@ -1,12 +1,13 @@
 """What a model family gives the pipeline (:class:`ModelFamily`), and helpers its cores share.
 
-A *model family* (FlowMaps, the MLP baseline) is one model's init, its jitted inference cores, its
-working-memory estimate and its report label, bundled in one :class:`ModelFamily` object that the
-family's own module defines (:data:`flowmaps_jax.model.inference.FAMILY`,
-:data:`flowmaps_jax.model.baseline.FAMILY`) and :mod:`flowmaps_jax.model.families` registers by
-name. :class:`flowmaps_jax.predictor.Predictor` calls the cores after validating its inputs;
-training registers each family's loss under the same name
-(:data:`flowmaps_jax.training.objectives.LOSSES`).
+A *model family* (FlowMaps, the MLP baseline) is one model's init, its training loss, its jitted
+inference cores, its working-memory estimate and its report label, bundled in one
+:class:`ModelFamily` object that the family's own module defines
+(:data:`flowmaps_jax.model.flowmaps_family.FAMILY`, :data:`flowmaps_jax.model.baseline.FAMILY`)
+and :mod:`flowmaps_jax.model.families` registers by name. :class:`flowmaps_jax.predictor.Predictor`
+calls the cores after validating its inputs; training asks the family for its loss
+(:func:`flowmaps_jax.training.objectives.objective_for`). The losses are pure JAX: neither they
+nor anything here imports optax or the training code.
 
 The cores are unvalidated, ``jax.jit``-compiled pure functions of canonical inputs
 (:func:`canonical_inputs`). Shapes: tokens (B, S), queries (B, Q), keys (B,) one PRNG key per
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -33,12 +35,28 @@ def _never(config: ModelConfig) -> bool:
     return False
 
 
+class LossOptions(NamedTuple):
+    """The training recipe's knobs that a family's loss reads (``TrainConfig`` fills them in).
+
+    t_sampler: the flow-time law (:data:`flowmaps_jax.flow.T_SAMPLERS`).
+    pointer_loss: weight of the cross-entropy of the table weights (FlowMaps' read-out heads).
+    num_objects: the scene's current objects (``flowsim.num_objects``; the mixture head's rows).
+    """
+
+    t_sampler: str = "beta"
+    pointer_loss: float = 0.0
+    num_objects: int = 3
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelFamily:
     """One family of models, as the pipeline sees it (all pure functions).
 
-    name: the registry key, also ``TrainConfig.model_kind`` and ``Predictor.kind``.
+    name: the registry key, also ``TrainConfig.family`` and ``Predictor.family_name`` (stored on
+        disk as a config's ``"model_kind"`` and a meta's ``"kind"``).
     init(key, model_cfg) -> params.
+    loss(params, model_cfg, batch: TrainBatch, key, train: bool, options: LossOptions)
+        -> (scalar loss, aux dict); ``train=False`` is deterministic given ``key`` (no dropout).
     sample(params, model_cfg, tokens, queries, keys (B,), num_samples, *, num_steps, method)
         -> boxes (B, Q, N, 4); sample_with_log_prob the same plus log p (B, Q, N).
     log_prob(params, model_cfg, tokens, queries, x (B, Q, N, 4), *, num_steps, method)
@@ -56,6 +74,7 @@ class ModelFamily:
 
     name: str
     init: Callable
+    loss: Callable
     sample: Callable
     sample_with_log_prob: Callable
     log_prob: Callable

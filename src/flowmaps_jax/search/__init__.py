@@ -15,7 +15,8 @@ The protocol is documented in docs/search.md.
     outcome = search.run_episodes(episodes, "optimal")
     scores = search.episode_scores(outcome)            # sr@1..3, looks, travel, spl per episode
 
-Modules: ``probabilities`` (table probabilities of any prior, plain-dict form), ``policies``
+Modules: ``probabilities`` (table probabilities of the exact priors, plain-dict form; a model's
+are :mod:`flowmaps_jax.tables`, below the predictor), ``policies``
 (most-probable, greedy, exact optimal DP, nearest), ``simulator`` (episodes, Bayes update, the
 jitted episode loop: no FlowSim), ``episodes`` (the FlowSim search set, its priors and the
 episodes they make), ``scores`` (SR@k, looks, travel, SPL, ratios), ``protocol`` (every prior
@@ -41,13 +42,7 @@ from flowmaps_jax.search.policies import (
     optimal_expected_travel,
     plan_costs,
 )
-from flowmaps_jax.search.probabilities import (
-    ASSIGN_TOLERANCE,
-    slots_to_tables,
-    table_boxes,
-    table_dict,
-    table_probabilities,
-)
+from flowmaps_jax.search.probabilities import slots_to_tables, table_dict
 from flowmaps_jax.search.scores import (
     SCORES,
     episode_scores,
@@ -67,6 +62,7 @@ from flowmaps_jax.search.simulator import (
     run_episodes,
     simulate,
 )
+from flowmaps_jax.tables import ASSIGN_TOLERANCE, table_boxes, table_probabilities
 
 __all__ = [
     "ASSIGN_TOLERANCE",

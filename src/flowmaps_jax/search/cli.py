@@ -46,8 +46,8 @@ from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import figures as fg
 from flowmaps_jax.search import protocol as pr
 from flowmaps_jax.search import simulator as sim
-from flowmaps_jax.search.probabilities import TABLE_METHODS
 from flowmaps_jax.search.report import markdown_table, write_report
+from flowmaps_jax.tables import TABLE_METHODS
 from flowmaps_jax.validation import (
     check_choice,
     check_int,

@@ -46,12 +46,8 @@ from flowmaps_jax.flowsim.habits import (  # noqa: F401  (names this module re-e
     uses_history,
 )
 from flowmaps_jax.model.families import MODEL_FAMILIES
-from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
-from flowmaps_jax.search.probabilities import (
-    check_table_method,
-    slots_to_tables_core,
-    table_probabilities_core,
-)
+from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
+from flowmaps_jax.search.probabilities import slots_to_tables_core
 from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the simulator's home was here)
     DEFAULT_BUDGET,
     Episodes,
@@ -68,6 +64,7 @@ from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the sim
     run_episodes,
     simulate,
 )
+from flowmaps_jax.tables import check_table_method, table_probabilities_core
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import (
     PROB_ATOL,
@@ -121,14 +118,15 @@ def check_search_size(config: FlowSimConfig, num_rows: int, *, budget: int,
                     num_bytes=set_bytes + prior_bytes + kept + every,
                     flops=jobs * k * n * budget * look)
     for predictor in predictors:
-        model, kind = getattr(predictor, "model", None), getattr(predictor, "kind", None)
-        if model is None or kind not in MODEL_FAMILIES:
+        model = getattr(predictor, "model", None)
+        family_name = getattr(predictor, "family_name", None)
+        if model is None or family_name not in MODEL_FAMILIES:
             continue
-        per_query, per_map = network_flops(model, kind, s)
-        evaluations = (solver_evaluations(DEFAULT_NUM_STEPS) if MODEL_FAMILIES[kind].uses_solver
-                       else 1)
+        per_query, per_map = network_flops(model, family_name, s)
+        evaluations = (solver_evaluations(DEFAULT_NUM_STEPS)
+                       if MODEL_FAMILIES[family_name].uses_solver else 1)
         check_resources(
-            f"samples={num_samples} per query for {getattr(predictor, 'name', kind)} on "
+            f"samples={num_samples} per query for {getattr(predictor, 'name', family_name)} on "
             f"{n} queries of {rows_text}",
             num_bytes=4 * min(chunk_rows, rows) * m * num_samples * (4 * model.dim * (
                 model.mlp_ratio + 4) + 4 * (s + 4)),

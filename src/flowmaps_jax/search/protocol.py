@@ -36,7 +36,7 @@ from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.search.policies import POLICIES, check_optimal_size, check_policy
-from flowmaps_jax.search.probabilities import ASSIGN_TOLERANCE, TABLE_METHODS
+from flowmaps_jax.tables import ASSIGN_TOLERANCE, TABLE_METHODS
 from flowmaps_jax.validation import check_int
 
 MAIN_POLICIES = ("most-probable", "greedy", "optimal")
@@ -264,7 +264,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     rows, runs = score_priors(search_set, priors, config, policies=policies, budget=budget,
                               p_miss=p_miss, start=start, key=key, progress=progress)
     for predictor, name in zip(predictors, names, strict=True):
-        rows[name]["info"] = {"kind": getattr(predictor, "kind", None),
+        rows[name]["info"] = {"kind": getattr(predictor, "family_name", None),
                               "source": getattr(predictor, "source", None),
                               "step": getattr(predictor, "step", None),
                               "table_method": (table_method if _has_weights(predictor)

@@ -23,7 +23,7 @@ class ModelSpec(NamedTuple):
     """The part of a stored run config that inference needs."""
 
     kind: str
-    """The model family's name (``TrainConfig.model_kind``)."""
+    """The model family's name (``TrainConfig.family``, stored as ``"model_kind"``)."""
     model: ModelConfig
     flowsim: FlowSimConfig
 

@@ -4,11 +4,11 @@ Modules, in the order data flows through them:
 
 * :mod:`~flowmaps_jax.training.config`: ``TrainConfig`` (each field declaring its role: compiled
   in, resumable), the ``paper`` / ``cpu`` / ``smoke`` presets.
-* :mod:`~flowmaps_jax.training.overrides`: ``--set key=value`` overrides and the config's JSON
-  round trip.
+* :mod:`~flowmaps_jax.training.overrides`: ``--set key=value`` overrides, the typed flags
+  (``replace_fields``) and the config's JSON round trip.
 * :mod:`~flowmaps_jax.training.data`: the FlowSim splits and the traceable batch sampler.
-* :mod:`~flowmaps_jax.training.objectives`: the CFM loss and one loss per model family
-  (``LOSSES``; the families themselves are :mod:`flowmaps_jax.model.families`).
+* :mod:`~flowmaps_jax.training.objectives`: the model family's init and loss bound to the run
+  (the families and their losses are :mod:`flowmaps_jax.model.families`).
 * :mod:`~flowmaps_jax.training.state`: ``TrainState``, optax optimiser and EMA, the jitted train
   step and the val loss.
 * :mod:`~flowmaps_jax.training.runlog`: a run's records: ``metrics.jsonl``, its checkpoints

@@ -3,7 +3,7 @@
 Examples::
 
     python -m flowmaps_jax.train                          # cpu preset, FlowMaps
-    python -m flowmaps_jax.train --preset smoke --model mlp --set model.baseline_variance=learned
+    python -m flowmaps_jax.train --preset smoke --family mlp --set model.baseline_variance=learned
     python -m flowmaps_jax.train --steps 5000 --set model.dim=96 --set lr=5e-4
     python -m flowmaps_jax.train --preset habits --set world=dynamic   # a FlowSim world
     python -m flowmaps_jax.train --preset habits --init-from pretrained:flowmaps   # warm start
@@ -26,6 +26,10 @@ checkpoint and exits; a NaN/inf loss, or a state with NaN/inf that a save refuse
 run without saving the bad state (the last good checkpoint stays). A failed write (a full disk)
 stops with one line naming it. Exit codes: 0 ok, 1 non-finite loss or state, 2 bad arguments,
 74 a failed write, 130 interrupted.
+
+The typed flags (``--family``, ``--steps``, ``--init-from``) set their config fields as the
+values argparse parsed (:func:`flowmaps_jax.training.overrides.replace_fields`); only ``--set``
+is text, converted to each field's type.
 """
 
 from __future__ import annotations
@@ -39,18 +43,18 @@ import time
 import typing
 
 from flowmaps_jax import distributed
+from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.store import rundir
 from flowmaps_jax.training import resume
 from flowmaps_jax.training.config import (
     DEFAULT_PRESET,
-    MODEL_KINDS,  # the model families by name, as TrainConfig checks model_kind
     PRESETS,
     TrainConfig,
-    apply_overrides,
     get_preset,
     with_world,
 )
 from flowmaps_jax.training.loop import run
+from flowmaps_jax.training.overrides import replace_fields
 
 EXIT_OK, EXIT_NAN, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 1, 74, 130
 
@@ -61,10 +65,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train FlowMaps (flow matching) or the MLP baseline on FlowSim.")
     parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
                         help=f"named configuration (default {DEFAULT_PRESET})")
-    parser.add_argument("--model", choices=tuple(MODEL_KINDS), default=None,
-                        help="flowmaps (default) or mlp (Gaussian baseline)")
+    parser.add_argument("--family", "--model", dest="family", choices=tuple(MODEL_FAMILIES),
+                        default=None,
+                        help="the model family: flowmaps (default) or mlp (Gaussian baseline); "
+                             "--model is its older spelling")
     parser.add_argument("--run-dir", default=None,
-                        help="output directory (default runs/<model>-<preset>-<timestamp>); "
+                        help="output directory (default runs/<family>-<preset>-<timestamp>); "
                              "a new run needs an empty or missing one")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --run-dir from its latest checkpoint")
@@ -91,8 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def default_run_dir(cfg: TrainConfig) -> pathlib.Path:
-    """``runs/<model_kind>-<preset>-<YYYYmmdd-HHMMSS>`` under the current directory."""
-    return pathlib.Path("runs") / f"{cfg.model_kind}-{cfg.preset}-{time.strftime('%Y%m%d-%H%M%S')}"
+    """``runs/<family>-<preset>-<YYYYmmdd-HHMMSS>`` under the current directory."""
+    return pathlib.Path("runs") / f"{cfg.family}-{cfg.preset}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def split_world(overrides: typing.Iterable[str]) -> tuple[list[str], str | None]:
@@ -118,9 +124,9 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
     if args.resume:
         if args.run_dir is None:
             raise ValueError("--resume needs --run-dir (the run to continue)")
-        if args.preset is not None or args.model is not None:
+        if args.preset is not None or args.family is not None:
             raise ValueError("--resume uses the run's saved config; change fields with --set, "
-                             "not --preset/--model")
+                             "not --preset/--family")
         rundir.check_mode(args.resume, args.overwrite)  # before the run directory is read
         run_dir = rundir.check_run_dir(args.run_dir)
         cfg = resume.resume_config(run_dir, args.from_step)
@@ -129,13 +135,9 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
         run_dir = None
     if world is not None:
         cfg = with_world(cfg, world)
-    if args.model is not None:
-        overrides.append(f"model_kind={args.model}")
-    if args.steps is not None:
-        overrides.append(f"steps={args.steps}")
-    if args.init_from is not None:
-        overrides.append(f"init_from={args.init_from}")
-    cfg = apply_overrides(cfg, overrides)
+    typed = {name: value for name, value in (("family", args.family), ("steps", args.steps),
+                                             ("init_from", args.init_from)) if value is not None}
+    cfg = replace_fields(cfg, overrides, typed)
     if run_dir is None:
         run_dir = rundir.check_run_dir(args.run_dir if args.run_dir is not None
                                        else default_run_dir(cfg))  # '' is refused, not default

@@ -34,11 +34,10 @@ from typing import Any
 from flowmaps_jax.flow import T_SAMPLERS
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.generate import layout_bytes
-from flowmaps_jax.flowsim.worlds import HABITS_HISTORY  # the habits preset's H
+from flowmaps_jax.flowsim.worlds import HABITS_HISTORY, world_config  # the habits preset's H
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.families import MODEL_FAMILIES as MODEL_KINDS
-from flowmaps_jax.model.families import model_family
-from flowmaps_jax.model.inference import DEFAULT_NUM_STEPS
+from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
+from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.training.overrides import (
     SHORTHANDS,
     apply_overrides,
@@ -94,9 +93,12 @@ ROLES = {
 """The role each :class:`TrainConfig` field declares (``metadata["role"]``)."""
 
 
-def _field(role: str, default: Any) -> Any:
-    """A dataclass field declaring its role in a run (a key of :data:`ROLES`)."""
-    return dataclasses.field(default=default, metadata={"role": role})
+def _field(role: str, default: Any, stored_as: str | None = None) -> Any:
+    """A dataclass field declaring its role in a run (a key of :data:`ROLES`), and the key it is
+    stored under in ``config.json`` when that is not its name (``stored_as``; see
+    :func:`flowmaps_jax.training.overrides.config_to_dict`)."""
+    metadata = {"role": role} if stored_as is None else {"role": role, "stored_as": stored_as}
+    return dataclasses.field(default=default, metadata=metadata)
 
 
 _AS_RECIPE = {"role": "recipe"}  # for the nested configs, built by a default_factory
@@ -111,8 +113,11 @@ class TrainConfig:
     """Everything that defines a training run (model, data, optimiser, logging, checkpoints).
 
     model: network sizes (``ModelConfig``); also used by the MLP baseline's Map Encoder.
-    model_kind: "flowmaps" (flow matching, CDiT) or "mlp" (Gaussian baseline; its variant is
-        ``model.baseline_variance``, "mean" or "learned").
+    family: the model family, a :data:`~flowmaps_jax.model.families.MODEL_FAMILIES` name:
+        "flowmaps" (flow matching, CDiT) or "mlp" (Gaussian baseline; its variant is
+        ``model.baseline_variance``, "mean" or "learned"). Stored in ``config.json`` under the
+        key older versions wrote, ``"model_kind"`` (read back, and accepted by ``--set``, too),
+        so that every saved run and shipped model reads as before.
     flowsim: simulator settings for the generated train/validation splits.
     batch_size: scenes per step (B); queries_per_scene: queries sharing one encoder pass (Q).
     steps: total optimiser steps; the cosine schedule decays over exactly this many.
@@ -154,7 +159,7 @@ class TrainConfig:
     """
 
     model: ModelConfig = dataclasses.field(default_factory=ModelConfig, metadata=_AS_RECIPE)
-    model_kind: str = _recipe("flowmaps")
+    family: str = _recipe("flowmaps", stored_as="model_kind")
     flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig, metadata=_AS_RECIPE)
     batch_size: int = _recipe(64)
     queries_per_scene: int = _recipe(4)
@@ -187,7 +192,7 @@ class TrainConfig:
     preset: str = _bookkeeping("cpu")
 
     def __post_init__(self):
-        _check_choice("model_kind", self.model_kind, tuple(MODEL_KINDS))
+        _check_choice("family", self.family, tuple(MODEL_FAMILIES))
         _check_choice("t_sampler", self.t_sampler, T_SAMPLERS)
         _check_choice("data", self.data, DATA_SOURCES)
         for name in ("batch_size", "queries_per_scene", "steps", "train_envs", "val_envs",
@@ -227,7 +232,7 @@ class TrainConfig:
             raise ValueError(f"model must be a ModelConfig; got {type(self.model).__name__}")
         if not isinstance(self.flowsim, FlowSimConfig):
             raise ValueError(f"flowsim must be a FlowSimConfig; got {type(self.flowsim).__name__}")
-        if self.pointer_loss > 0 and self.model_kind == "flowmaps" and \
+        if self.pointer_loss > 0 and self.family == "flowmaps" and \
                 self.model.head not in ("pointer", "route", "mixture"):
             raise ValueError("pointer_loss > 0 needs model.head='pointer', 'route' or 'mixture' "
                              "(the MLP "
@@ -306,7 +311,7 @@ def resource_estimate(cfg: TrainConfig, devices: int = 1) -> list[tuple[str, int
               + 2 * net.num_descriptors * net.dim  # the descriptor embeddings
               + (net.weight_blocks * (per_layer + 6 * net.dim ** 2)
                  if net.head == "mixture" else 0))  # the mixture head's weight rows
-    query_flops, scene_flops = network_flops(net, cfg.model_kind, tokens)
+    query_flops, scene_flops = network_flops(net, cfg.family, tokens)
     # activations kept for the backward pass: per query row and per scene token, every layer
     row = 4 * net.dim * (net.mlp_ratio + 8) * net.cdit_blocks * 2 + 2 * embedding_bytes(net, 5)
     token = (4 * (net.dim * (net.mlp_ratio + 8) + tokens * net.heads) * net.encoder_layers * 2
@@ -319,7 +324,7 @@ def resource_estimate(cfg: TrainConfig, devices: int = 1) -> list[tuple[str, int
                      + sim.num_timesteps * sim.num_objects * 5 + 1)
     routine_envs = min(cfg.routine_envs, cfg.val_envs)
     routine_rows = routine_envs * _ROUTINE_QUERIES * cfg.routine_samples
-    uses_solver = model_family(cfg.model_kind).uses_solver
+    uses_solver = model_family(cfg.family).uses_solver
     evaluations = solver_evaluations(DEFAULT_NUM_STEPS) if uses_solver else 1
     return [
         (f"the model (model.dim={net.dim}, model.encoder_layers={net.encoder_layers}, "
@@ -433,8 +438,6 @@ def habits_preset() -> TrainConfig:
     the validation loss rose after 2,000 of 4,000 steps (each object's hidden favourites are
     fixed per environment, so a fixed split can be memorised; docs/results.md, issue 18).
     3,000 steps, about 16 minutes on 2 cores."""
-    from flowmaps_jax.flowsim.worlds import world_config
-
     base = pointer_cpu_preset()
     sim = world_config("preferences", FlowSimConfig(
         max_tokens=FlowSimConfig().num_furniture + FlowSimConfig().num_objects * HABITS_HISTORY))
@@ -446,8 +449,6 @@ def habits_preset() -> TrainConfig:
 def with_world(cfg: TrainConfig, world: str) -> TrainConfig:
     """``cfg`` on the FlowSim world ``world`` (a ``flowsim.WORLDS`` name; ValueError naming
     ``world`` otherwise): only ``flowsim.habits`` changes (``--set world=dynamic``)."""
-    from flowmaps_jax.flowsim.worlds import world_config
-
     return dataclasses.replace(cfg, flowsim=world_config(world, cfg.flowsim))
 
 

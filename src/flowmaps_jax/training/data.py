@@ -18,6 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.distributed import host_part
+from flowmaps_jax.flowsim.generate import generate
+from flowmaps_jax.flowsim.scenes import make_train_batch, train_split, validation_split
 from flowmaps_jax.tokens import TrainBatch, trim_padding
 from flowmaps_jax.training.config import TrainConfig
 from flowmaps_jax.training.objectives import jitter_targets
@@ -41,8 +44,6 @@ def load_splits(cfg: TrainConfig, log: Callable[[str], None] = print, mesh=None)
     part = host_train_part(cfg) if train_envs is not None else None
     key = (cfg.flowsim, train_envs, cfg.val_envs, None if part is None else (part.start, part.stop))
     if key not in _SPLIT_CACHE:
-        from flowmaps_jax.flowsim.scenes import train_split, validation_split
-
         start = time.perf_counter()
         train = None
         if train_envs is not None:
@@ -69,8 +70,6 @@ def host_train_part(cfg: TrainConfig) -> slice | None:
             raise ValueError(f"{name}={getattr(cfg, name)} does not divide over the {hosts} "
                              f"hosts of this job (each host draws its share); use a multiple "
                              f"of {hosts}")
-    from flowmaps_jax.distributed import host_part
-
     return host_part(cfg.train_envs)
 
 
@@ -82,8 +81,6 @@ def default_batch_fn(cfg: TrainConfig) -> BatchFn:
 
     Token padding beyond the F + M real tokens is trimmed (exact: padding is masked anyway).
     """
-    from flowmaps_jax.flowsim.scenes import make_train_batch
-
     b, q, sim, history = cfg.batch_size, cfg.queries_per_scene, cfg.flowsim, cfg.model.history
     real_tokens = sim.num_furniture + sim.num_objects * history  # the rest of S is padding
 
@@ -117,8 +114,6 @@ def endless_scenes(cfg: TrainConfig, data_key: jax.Array, step: int, mesh=None):
     (data_key, c) only, so a resumed run regenerates exactly the same environments. ``mesh``
     splits the work over devices; a multi-host job generates this host's share only.
     """
-    from flowmaps_jax.flowsim.generate import generate
-
     chunk = int(step) // endless_chunk_steps(cfg)
     raw = jax.random.fold_in(jax.random.fold_in(np.asarray(data_key), _CHUNK_SALT), chunk)
     # An uncommitted typed key, as the fixed splits use, so that generation and the train step

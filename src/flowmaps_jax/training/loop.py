@@ -41,6 +41,8 @@ import numpy as np
 from tqdm import tqdm
 
 from flowmaps_jax import distributed
+from flowmaps_jax.evaluation import routine
+from flowmaps_jax.predictor import Predictor, load_model
 from flowmaps_jax.store import checkpoints, rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointSaveError
 from flowmaps_jax.store.integrity import NonFiniteStateError
@@ -212,15 +214,13 @@ def _start_params(cfg: TrainConfig, log: Callable[[str], None]):
     another model family or architecture."""
     if cfg.init_from is None:
         return None
-    from flowmaps_jax.predictor import load_model
-
     try:
         source = load_model(cfg.init_from, devices=1)
     except ValueError as err:
         raise ValueError(f"init_from={cfg.init_from!r}: {err}") from None
-    if source.kind != cfg.model_kind:
-        raise ValueError(f"init_from={cfg.init_from!r} is a {source.kind!r} model; this run "
-                         f"trains {cfg.model_kind!r}")
+    if source.family_name != cfg.family:
+        raise ValueError(f"init_from={cfg.init_from!r} is a {source.family_name!r} model; this "
+                         f"run trains {cfg.family!r}")
     objective = objectives.objective_for(cfg)
     fresh = jax.eval_shape(objective.init, jax.random.PRNGKey(0))
     train_state.check_overlay(fresh, source.params, f"init_from={cfg.init_from!r}")
@@ -320,9 +320,6 @@ def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any],
     ``cfg.routine_envs`` validation environments with the state's EMA weights; None when off."""
     if cfg.routine_envs <= 0:
         return None
-    from flowmaps_jax.evaluation import routine
-    from flowmaps_jax.predictor import Predictor
-
     probe = routine.build_probe(val_scenes, cfg.flowsim,
                                 min(cfg.routine_envs, val_scenes.num_envs), cfg.seed,
                                 history=cfg.model.history)
@@ -334,7 +331,7 @@ def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any],
             params, on = jax.device_get(state.ema_params), None
         else:
             params, on = state.ema_params, mesh
-        predictor = Predictor.from_params(params, cfg.model, cfg.model_kind, cfg.flowsim, mesh=on)
+        predictor = Predictor.from_params(params, cfg.model, cfg.family, cfg.flowsim, mesh=on)
         return routine.routine_metrics(predictor, probe, num_samples=cfg.routine_samples)
 
     return run_probe

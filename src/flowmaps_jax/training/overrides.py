@@ -2,9 +2,14 @@
 
 * :func:`apply_overrides` replaces fields of a config dataclass (``TrainConfig``) from strings
   such as ``model.dim=64`` (the command line's ``--set``), converting each to its field's type.
+* :func:`replace_fields` sets fields from values already typed (the command line's typed flags,
+  ``--steps``, ``--family``, ``--init-from``), together with the text overrides, and checks the
+  result once.
 * :func:`config_to_dict` / :func:`config_from_dict` turn a config into nested JSON dicts and
   back (``TrainConfig.to_dict`` / ``from_dict``, a run directory's ``config.json``); nested
-  configs with a ``to_dict`` / ``from_dict`` of their own (``FlowSimConfig``) use it.
+  configs with a ``to_dict`` / ``from_dict`` of their own (``FlowSimConfig``) use it. A field
+  whose metadata names ``"stored_as"`` is stored under that key (the name older versions wrote:
+  ``TrainConfig.family`` is ``"model_kind"`` on disk); both keys read back.
 * :func:`flatten`: a nested dict as ``{"model.dim": 64, ...}``.
 
 Nothing here knows ``TrainConfig`` itself: every function works on the dataclass it is given.
@@ -33,52 +38,88 @@ def apply_overrides(cfg, overrides: typing.Iterable[str] | dict[str, Any]):
     Keys in :data:`SHORTHANDS` are short for a nested path: ``precision=bf16`` sets
     ``model.precision``.
     """
-    if isinstance(overrides, dict):
-        items = list(overrides.items())
-    else:
-        items = []
-        for text in overrides:
-            if "=" not in text:
-                raise ValueError(f"override {text!r} must look like key=value")
-            key, value = text.split("=", 1)
-            items.append((key.strip(), value.strip()))
-    if not items:
+    return replace_fields(cfg, overrides)
+
+
+def replace_fields(cfg, overrides: typing.Iterable[str] | dict[str, Any] = (),
+                   typed: dict[str, Any] | None = None):
+    """Return ``cfg`` with the text ``overrides`` (as :func:`apply_overrides`) and then the
+    ``typed`` values set, every change checked once, together.
+
+    typed: ``{key: value}`` with values already of the field's type, set as they are (no text
+    conversion: ``"none"`` stays the string ``"none"``); keys as in :func:`apply_overrides`.
+    A typed value wins over a text override of the same key. ``ValueError`` naming the keys for
+    an unknown key or an invalid result.
+    """
+    items = _override_items(overrides)
+    typed_items = list((typed or {}).items())
+    if not items and not typed_items:
         return cfg
     cls = type(cfg)
     data = cfg.to_dict()
     for key, value in items:
-        path = SHORTHANDS.get(key, key).split(".")
-        _set_path(cls, data, path, value, key)
+        _set_path(cls, data, SHORTHANDS.get(key, key).split("."), value, key)
+    for key, value in typed_items:
+        _set_path(cls, data, SHORTHANDS.get(key, key).split("."), value, key, convert=False)
     try:
         return cls.from_dict(data)
     except (ValueError, TypeError) as err:
-        keys = ", ".join(k for k, _ in items)
+        keys = ", ".join(dict.fromkeys(k for k, _ in items + typed_items))
         raise ValueError(f"bad override ({keys}): {err}") from err
 
 
-def _set_path(cls: type, data: dict, path: list[str], value: Any, full_key: str) -> None:
-    """Set ``data[path]`` (a to_dict() view of dataclass ``cls``), converting ``value``."""
+def _override_items(overrides: typing.Iterable[str] | dict[str, Any]) -> list[tuple[str, Any]]:
+    """``[(key, value), ...]`` of a dict, or of ``key=value`` strings (ValueError otherwise)."""
+    if isinstance(overrides, dict):
+        return list(overrides.items())
+    items = []
+    for text in overrides:
+        if "=" not in text:
+            raise ValueError(f"override {text!r} must look like key=value")
+        key, value = text.split("=", 1)
+        items.append((key.strip(), value.strip()))
+    return items
+
+
+def _set_path(cls: type, data: dict, path: list[str], value: Any, full_key: str,
+              convert: bool = True) -> None:
+    """Set ``data[path]`` (a to_dict() view of dataclass ``cls``) to ``value``, converted from
+    text to the field's type when it is a string and ``convert``. A field may be named by its
+    stored key too (``model_kind`` for ``family``)."""
     names = _field_names(cls)
-    head = path[0]
+    head = _field_of_key(cls).get(path[0], path[0])
     if head not in names:
         raise ValueError(f"unknown config key {full_key!r} ({cls.__name__} has no field "
-                         f"{head!r}; known: {sorted(names)})")
+                         f"{path[0]!r}; known: {sorted(names)})")
+    stored = _stored_keys(cls)[head]
     hint = typing.get_type_hints(cls)[head]
     is_section = isinstance(hint, type) and dataclasses.is_dataclass(hint)
     if len(path) > 1:
         if not is_section:
             raise ValueError(f"unknown config key {full_key!r} ({head!r} has no sub-fields)")
-        _set_path(hint, data[head], path[1:], value, full_key)
+        _set_path(hint, data[stored], path[1:], value, full_key, convert)
     elif is_section:
         raise ValueError(f"config key {full_key!r} is a section; set one of its fields, "
                          f"e.g. {full_key}.{_field_names(hint)[0]}=...")
     else:
-        data[head] = _convert(value, hint, full_key) if isinstance(value, str) else value
+        data[stored] = _convert(value, hint, full_key) if convert and isinstance(value, str) \
+            else value
 
 
 def _field_names(cls: type) -> list[str]:
     """Field names of dataclass ``cls`` in declaration order."""
     return [f.name for f in dataclasses.fields(cls)]
+
+
+def _stored_keys(cls: type) -> dict[str, str]:
+    """``{field name: the key it is stored under}`` of dataclass ``cls`` (its name unless its
+    metadata says ``stored_as``)."""
+    return {f.name: f.metadata.get("stored_as", f.name) for f in dataclasses.fields(cls)}
+
+
+def _field_of_key(cls: type) -> dict[str, str]:
+    """``{stored key: field name}`` for the fields of ``cls`` stored under another key."""
+    return {key: name for name, key in _stored_keys(cls).items() if key != name}
 
 
 _NONE_WORDS = ("none", "null")
@@ -142,9 +183,11 @@ def _convert(text: str, hint: Any, key: str) -> Any:
 
 
 def config_to_dict(cfg) -> dict:
-    """The fields of dataclass ``cfg`` as a JSON-able dict: nested configs become nested dicts
-    (through their own ``to_dict`` when they have one), tuples become lists."""
-    return {f.name: _to_jsonable(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+    """The fields of dataclass ``cfg`` as a JSON-able dict, each under its stored key (its name,
+    or its metadata's ``stored_as``): nested configs become nested dicts (through their own
+    ``to_dict`` when they have one), tuples become lists."""
+    return {f.metadata.get("stored_as", f.name): _to_jsonable(getattr(cfg, f.name))
+            for f in dataclasses.fields(cfg)}
 
 
 def _to_jsonable(obj: Any) -> Any:
@@ -168,10 +211,15 @@ def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:
     """Inverse of :func:`config_to_dict`: dataclass ``cls`` from a dict. Nested configs are
     built with their own ``from_dict`` when they have one; lists become tuples. Unknown keys
     (other than the removed fields that old configs still carry) raise ``ValueError`` naming
-    ``where``."""
+    ``where``. A field reads from its stored key or from its name (not both)."""
     _check_dict(cls, data, where)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     data = {k: v for k, v in data.items() if k not in _REMOVED_KEYS.get(cls.__name__, ())}
+    for key, name in _field_of_key(cls).items():
+        if key in data and name in data:
+            raise ValueError(f"{where} sets {name!r} twice (as {name!r} and as {key!r})")
+        if key in data:
+            data[name] = data.pop(key)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ValueError(f"{where} has unknown keys {unknown} for {cls.__name__}")

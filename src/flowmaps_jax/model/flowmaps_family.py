@@ -1,11 +1,17 @@
-"""FlowMaps' inference: its jitted, unvalidated cores and its :class:`ModelFamily` entry.
+"""The FlowMaps family: its training loss, its jitted inference cores and its registry entry.
 
-FlowMaps integrates its velocity field with :mod:`flowmaps_jax.flow` in the flow's data space
-z = box_scale · (box − box_offset) (:func:`to_flow_space`; training regresses towards z too). The
-cores: :func:`flow_sample`, :func:`flow_log_prob`, :func:`flow_sample_with_log_prob`, and for the
-read-out heads :func:`table_weights` and :func:`route_mixture_log_prob`. :data:`FAMILY` bundles
-them for :mod:`flowmaps_jax.model.families`; the validated, user-facing wrapper is
-:class:`flowmaps_jax.predictor.Predictor`.
+The network itself (Map Encoder, CDiT velocity field, read-out heads) is
+:mod:`flowmaps_jax.model.flowmaps`; this module is everything else the family is. FlowMaps
+integrates its velocity field with :mod:`flowmaps_jax.flow` in the flow's data space
+z = box_scale · (box − box_offset) (:func:`to_flow_space`); training regresses towards z too.
+
+* The loss (pure JAX, no optax): conditional flow matching on the linear path (:func:`cfm_loss`,
+  with the optional pointer loss on the table the target stands on, :func:`supporting_token`),
+  or for the mixture head :func:`mixture_loss`; :func:`flowmaps_loss` picks by the head.
+* The cores: :func:`flow_sample`, :func:`flow_log_prob`, :func:`flow_sample_with_log_prob`, and
+  for the read-out heads :func:`table_weights` and :func:`route_mixture_log_prob`.
+* :data:`FAMILY` bundles them for :mod:`flowmaps_jax.model.families`; the validated, user-facing
+  wrapper is :class:`flowmaps_jax.predictor.Predictor`.
 
 Shapes: tokens (B, S), queries (B, Q), keys (B,) one PRNG key per scene, boxes (B, Q, N, 4)
 normalised (y, x, h, w), log-densities (B, Q, N). Inputs as :func:`family.canonical_inputs` gives.
@@ -20,20 +26,24 @@ import jax
 import jax.numpy as jnp
 
 from flowmaps_jax import flow
+from flowmaps_jax.boxes import to_centre
 from flowmaps_jax.model import mixture
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.family import ModelFamily, scene_noise
+from flowmaps_jax.model.family import LossOptions, ModelFamily, scene_noise
 from flowmaps_jax.model.flowmaps import (
     encode,
     init_params,
     make_velocity_fn,
+    object_table_logits,
     placement_velocity,
     route_mixture,
+    select_horizon,
     table_logits,
+    velocity,
     velocity_and_anchor_logits,
 )
 from flowmaps_jax.model.route import mixture_log_prob
-from flowmaps_jax.tokens import Queries, SceneTokens
+from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, TrainBatch
 
 DEFAULT_NUM_STEPS = 10
 """ODE grid points (the reference's ``linspace(0, 1, 10)``): 18 midpoint evaluations."""
@@ -52,6 +62,111 @@ def from_flow_space(z: jnp.ndarray, config: ModelConfig) -> jnp.ndarray:
 def flow_space_log_det(config: ModelConfig) -> float:
     """log |det ∂z/∂box| = 4 · log(box_scale): add to log p(z) to get log p(box)."""
     return 4 * math.log(config.box_scale)
+
+
+# --------------------------------------------------------------------------- the loss
+
+
+def supporting_token(tokens: SceneTokens, boxes: jnp.ndarray) -> jnp.ndarray:
+    """Index (B, Q) of the furniture token whose centre is nearest each box's centre (B, Q, 4):
+    the table an object box stands on. Normalised (y, x, h, w) boxes."""
+    centre, token_centre = to_centre(boxes)[..., :2], to_centre(tokens.boxes)[..., :2]
+    d = jnp.sum(jnp.square(centre[:, :, None] - token_centre[:, None]), -1)  # (B, Q, S)
+    ok = (tokens.mask.astype(bool) & (tokens.kind == FURNITURE))[:, None, :]
+    return jnp.argmin(jnp.where(ok, d, jnp.inf), axis=-1)
+
+
+def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
+             t_sampler: str = "beta", deterministic: bool = False, pointer_loss: float = 0.0):
+    """Conditional flow-matching loss on one batch; returns ``(loss, aux)``.
+
+    The map of each of the B scenes is encoded once and shared by its Q queries. Per query:
+    X_0 ~ N(0, I_4), t ~ ``t_sampler``, x_t on the linear path (B, Q, 1, 4), and the loss is the
+    squared error to X_1 − X_0 averaged over the 4 numbers (X_1 is the target box in the flow's
+    space, :func:`to_flow_space`), then over queries and scenes.
+    ``deterministic=True`` turns dropout off (validation).
+    ``pointer_loss`` > 0 (pointer head only; departs from the paper) adds that weight times the
+    cross-entropy of the head's anchor logits against the table the target stands on
+    (:func:`supporting_token`): direct supervision of *which* table, as a pointer probe gets.
+    aux: ``{"loss": scalar, "mse_per_query": (B, Q)}`` (+ ``"pointer_ce"`` when used).
+    """
+    if t_sampler not in flow.T_SAMPLERS:
+        raise ValueError(f"t_sampler must be one of {flow.T_SAMPLERS}; got {t_sampler!r}")
+    noise_key, t_key, enc_key, vel_key = jax.random.split(key, 4)
+    if deterministic:
+        enc_key = vel_key = None
+    x1 = to_flow_space(batch.target, config)  # (B, Q, 4)
+    x0 = jax.random.normal(noise_key, x1.shape, x1.dtype)
+    t = flow.sample_t(t_key, x1.shape[:2], t_sampler)  # (B, Q)
+    x_t = flow.linear_path(x0, x1, t)[:, :, None, :]  # (B, Q, 1, 4)
+    context = encode(params, config, batch.tokens, dropout_key=enc_key)
+    extra = {}
+    if pointer_loss > 0:
+        v, logits = velocity_and_anchor_logits(params, config, context, x_t, t, batch.queries,
+                                               dropout_key=vel_key)
+        table = supporting_token(batch.tokens, batch.target)  # (B, Q)
+        log_w = jax.nn.log_softmax(logits[:, :, 0], axis=-1)  # (B, Q, S)
+        extra["pointer_ce"] = -jnp.mean(jnp.take_along_axis(log_w, table[..., None], axis=-1))
+    else:
+        v = velocity(params, config, context, x_t, t, batch.queries, dropout_key=vel_key)
+    mse = jnp.mean(jnp.square(v[:, :, 0] - flow.target_velocity(x0, x1)), axis=-1)  # (B, Q)
+    loss = jnp.mean(mse) + pointer_loss * extra.get("pointer_ce", 0.0)
+    return loss, {"loss": loss, "mse_per_query": mse, **extra}
+
+
+def mixture_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
+                 t_sampler: str = "beta", deterministic: bool = False, table_loss: float = 1.0,
+                 num_objects: int = 3):
+    """The mixture head's loss (``head="mixture"``); returns ``(loss, aux)``.
+
+    ``table_loss`` × the cross-entropy of the table weights against the table the target stands
+    on (:func:`supporting_token`), the proper scoring rule of π, plus the flow-matching loss of
+    the placement flow on that table, in its local frame (:mod:`flowmaps_jax.model.mixture`).
+    aux: ``loss``, ``mse_per_query`` (B, Q), ``table_ce`` and ``selection`` (= ``table_ce``: what
+    the best checkpoint is chosen by). The table weights are computed once per (scene, object)
+    for the scene's ``num_objects`` current objects (:func:`mixture.scene_objects`), at every
+    horizon, and each query reads its object's row at its Δτ.
+    """
+    noise_key, t_key, enc_key, w_key, vel_key = jax.random.split(key, 5)
+    if deterministic:
+        enc_key = w_key = vel_key = None
+    context = encode(params, config, batch.tokens, dropout_key=enc_key)
+    table = supporting_token(batch.tokens, batch.target)  # (B, Q)
+    objects = mixture.scene_objects(batch.tokens, num_objects)  # (B, M)
+    logits = object_table_logits(params, config, context, objects, dropout_key=w_key)
+    which = jnp.argmax(batch.queries.descriptor[:, :, None] == objects[:, None, :], axis=-1)
+    logits = jnp.take_along_axis(logits, which[:, :, None, None], axis=1)  # (B, Q, S, T)
+    dtau = jnp.clip(batch.queries.tau_q - batch.tokens.tau[:, None], 0, config.tau_max - 1)
+    log_w = jax.nn.log_softmax(select_horizon(logits, dtau), axis=-1)
+    ce = -jnp.mean(jnp.take_along_axis(log_w, table[..., None], axis=-1))
+    means, scale, _ = mixture.placement_frame(context, batch.queries.descriptor)
+    rows = table[:, :, None]  # (B, Q, 1)
+    z1 = mixture.to_local(batch.target[:, :, None], mixture.gather_rows(means, rows), scale)
+    z1 = z1[:, :, 0]  # (B, Q, 4)
+    z0 = jax.random.normal(noise_key, z1.shape, z1.dtype)
+    t = flow.sample_t(t_key, z1.shape[:2], t_sampler)
+    z_t = flow.linear_path(z0, z1, t)[:, :, None, :]
+    v = placement_velocity(params, config, context, z_t, t, batch.queries, rows,
+                           dropout_key=vel_key)
+    mse = jnp.mean(jnp.square(v[:, :, 0] - flow.target_velocity(z0, z1)), axis=-1)  # (B, Q)
+    loss = jnp.mean(mse) + table_loss * ce
+    return loss, {"loss": loss, "mse_per_query": mse, "table_ce": ce, "selection": ce}
+
+
+def flowmaps_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array, train: bool,
+                  options: LossOptions):
+    """FlowMaps' training loss ``(loss, aux)`` (``ModelFamily.loss``): :func:`mixture_loss` for
+    the mixture head (its table cross-entropy weighted by ``options.pointer_loss``),
+    :func:`cfm_loss` otherwise; ``train=False`` turns dropout off."""
+    if config.head == "mixture":
+        return mixture_loss(params, config, batch, key, options.t_sampler,
+                            deterministic=not train, table_loss=options.pointer_loss,
+                            num_objects=options.num_objects)
+    return cfm_loss(params, config, batch, key, options.t_sampler, deterministic=not train,
+                    pointer_loss=options.pointer_loss)
+
+
+# --------------------------------------------------------------------------- inference cores
 
 
 def _field_and_noise(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
@@ -197,7 +312,7 @@ def _row_bytes(config: ModelConfig) -> int:
 
 
 FAMILY = ModelFamily(
-    name="flowmaps", init=init_params, sample=flow_sample,
+    name="flowmaps", init=init_params, loss=flowmaps_loss, sample=flow_sample,
     sample_with_log_prob=flow_sample_with_log_prob, log_prob=flow_log_prob,
     label=lambda config: "FlowMaps", row_bytes=_row_bytes, uses_solver=True,
     table_weights=table_weights,

@@ -1,0 +1,237 @@
+"""Where boxes land: the protocol's assignment of boxes to places, and a model's table masses.
+
+Below the predictor and the evaluation, so that both, and the search, share one rule:
+
+* **The assignment** (protocol v2, docs/protocol.md): a box goes to the place (slot) k whose
+  object *centre* (y + h/2, x + w/2 of b_k) is nearest to the box's centre, and to "off" when
+  that distance exceeds the slot's radius max(:data:`ASSIGN_RADIUS`, :data:`ASSIGN_SIGMAS` · σ_c),
+  σ_c = :data:`CENTRE_SIGMA_SCALE` × the object's longer side (the centre std of the protocol's
+  smoothed q, :mod:`flowmaps_jax.evaluation.kl`). ``rule="v1"``, kept for comparison: L2 over
+  the four numbers below ``ASSIGN_RADIUS``. :func:`empirical_slots` gives the share (..., K + 1)
+  of samples (..., N, 4) on each of K slots, then off; the evaluation's slots are the K places of
+  the object's kind (:mod:`flowmaps_jax.evaluation.slots`).
+* **Table masses** (:func:`table_probabilities`, what ``Predictor.table_probabilities`` and
+  the search's priors call): the slots are every table of the map, ``probs`` (B, Q, S + 1) with
+  entry ``[b, q, s]`` the mass on furniture token s (zero on object tokens and padding) and the
+  last entry the mass on no table. A sampling model's N samples are assigned as above (the
+  object's size read from its own token at τ, :func:`table_boxes`); a model with explicit table
+  weights can be read without sampling (``method="weights"``).
+
+Shapes: ``...`` free leading dims (one per query), ``K`` slots, ``slot_mask`` (..., K) True on
+real slots; tokens (B, S), queries (B, Q). Public functions check their arguments once; the
+``_core`` functions are their unchecked cores, for callers that built the arrays themselves.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.tokens import FURNITURE, OBJECT, Queries, SceneTokens
+from flowmaps_jax.validation import (
+    check_array,
+    check_instance,
+    check_int,
+    check_mask,
+    check_shape,
+    is_concrete,
+)
+
+CENTRE_SIGMA_SCALE = 0.35
+"""Centre std of a mixture component of the protocol's q as a fraction of the box side (h for
+cy, w for cx); the assignment radius grows with it."""
+ASSIGN_RADIUS = 0.05
+"""The least assignment radius (normalised units): a sample whose centre lies this close to a slot's
+centre always counts for the nearest slot."""
+ASSIGN_SIGMAS = 3.0
+"""The radius grows to this many centre stds σ_c of the smoothed q (0.35 × the longer side)."""
+ASSIGN_RULES = ("v2", "v1")
+"""``"v2"``: nearest centre, radius max(0.05, 3 σ_c) (the protocol); ``"v1"``: the old L2 < 0.05
+over the four numbers, kept to compare the two once."""
+ASSIGN_TOLERANCE = ASSIGN_RADIUS
+"""The least assignment radius of table masses (normalised units; the evaluation protocol's): a
+sample whose centre is this close to a table's centre counts for the nearest table. On a 256 px
+map 0.05 is 12.75 px."""
+
+
+# --------------------------------------------------------------------------- the assignment
+
+
+def assign_radius(slot_boxes: jnp.ndarray) -> jnp.ndarray:
+    """Per-slot radius of the v2 rule: max(ASSIGN_RADIUS, ASSIGN_SIGMAS · 0.35 · max(h, w)).
+
+    slot_boxes (..., K, 4) (y, x, h, w) → (..., K)."""
+    side = jnp.maximum(slot_boxes[..., 2], slot_boxes[..., 3])
+    return jnp.maximum(ASSIGN_RADIUS, ASSIGN_SIGMAS * CENTRE_SIGMA_SCALE * side)
+
+
+@partial(jax.jit, static_argnames="rule")
+def _assign(samples, slot_boxes, slot_mask, radius, rule="v2"):
+    """(..., N) int slot index of each sample, K for "off" (the rules of the module doc)."""
+    if rule == "v1":
+        diff = samples[..., :, None, :] - slot_boxes[..., None, :, :]  # (..., N, K, 4)
+        limit = jnp.broadcast_to(radius, slot_boxes.shape[:-1])
+    else:
+        centre = lambda b: b[..., :2] + 0.5 * b[..., 2:]  # noqa: E731
+        diff = centre(samples)[..., :, None, :] - centre(slot_boxes)[..., None, :, :]
+        limit = jnp.maximum(radius, assign_radius(slot_boxes))  # (..., K)
+    dist = jnp.sqrt(jnp.sum(diff**2, axis=-1))
+    dist = jnp.where(slot_mask[..., None, :], dist, jnp.inf)
+    nearest = jnp.argmin(dist, axis=-1)
+    closest = jnp.min(dist, axis=-1)
+    within = closest < jnp.take_along_axis(limit[..., None, :], nearest[..., None], axis=-1)[..., 0]
+    return jnp.where(within, nearest, slot_boxes.shape[-2]).astype(jnp.int32)
+
+
+@partial(jax.jit, static_argnames="num_slots")
+def histogram(assignment, num_slots):
+    """(..., K + 1) float32 share of the N assignments (..., N) in each of K slots + off."""
+    return jnp.mean(jax.nn.one_hot(assignment, num_slots + 1), axis=-2)
+
+
+def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jnp.ndarray,
+                    radius: float = ASSIGN_RADIUS, rule: str = "v2") -> jnp.ndarray:
+    """p̂ of samples under the protocol's assignment (module doc), else off.
+
+    samples: (..., N, 4). slot_boxes: (..., K, 4). slot_mask: (..., K) bool.
+    radius: the least radius (v2; the radius itself under ``rule="v1"``).
+    Returns (..., K + 1) float32 counts / N: the K slots then the off bin.
+    """
+    if rule not in ASSIGN_RULES:
+        raise ValueError(f"rule must be one of {ASSIGN_RULES}; got {rule!r}")
+    s_shape = check_array("samples", samples, (..., None, 4)).shape
+    b_shape = check_array("slot_boxes", slot_boxes, (..., None, 4)).shape
+    check_shape("samples.shape[:-2]", s_shape[:-2], b_shape[:-2], "the leading dims of slot_boxes")
+    check_mask("slot_mask", slot_mask, b_shape[:-1])
+    if is_concrete(radius) and not float(radius) > 0:
+        raise ValueError(f"radius must be positive; got {radius}")
+    return empirical_slots_core(samples, slot_boxes, slot_mask, radius, rule)
+
+
+def empirical_slots_core(samples, slot_boxes, slot_mask, radius=ASSIGN_RADIUS,
+                         rule: str = "v2") -> jnp.ndarray:
+    """Core of :func:`empirical_slots` (no checks; ``slot_boxes`` an array)."""
+    assignment = _assign(jnp.asarray(samples, jnp.float32), jnp.asarray(slot_boxes, jnp.float32),
+                         jnp.asarray(slot_mask, bool), radius, rule)
+    return histogram(assignment, slot_boxes.shape[-2])
+
+
+# --------------------------------------------------------------------------- table masses
+
+
+def _check_pair(tokens: Any, queries: Any) -> tuple[int, int, int]:
+    """(B, S, Q) of SceneTokens (B, S) and Queries (B, Q), or ValueError naming the argument."""
+    check_instance("tokens", tokens, SceneTokens)
+    check_instance("queries", queries, Queries)
+    box_shape = np.shape(tokens.boxes)
+    if len(box_shape) != 3 or box_shape[-1] != 4:
+        raise ValueError(f"tokens.boxes must have shape (B, S, 4); got {box_shape}")
+    q_shape = np.shape(queries.descriptor)
+    if len(q_shape) != 2 or q_shape[0] != box_shape[0]:
+        raise ValueError(f"queries.descriptor must have shape (B={box_shape[0]}, Q); got "
+                         f"{q_shape}")
+    return box_shape[0], box_shape[1], q_shape[1]
+
+
+def _object_matches(tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
+    """(B, Q, S) bool: the real object tokens whose descriptor is the query's."""
+    is_object = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == OBJECT)
+    same = jnp.asarray(queries.descriptor)[:, :, None] == jnp.asarray(tokens.descriptor)[:, None]
+    return same & is_object[:, None, :]
+
+
+@jax.jit
+def _table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
+    match = _object_matches(tokens, queries).astype(jnp.float32)  # (B, Q, S)
+    size = jnp.einsum("bqs,bsk->bqk", match, tokens.boxes[..., 2:]) / jnp.maximum(
+        match.sum(-1, keepdims=True), 1.0)  # (B, Q, 2) object (h, w)
+    table = tokens.boxes[:, None, :, :]  # (B, 1, S, 4)
+    shape = (*size.shape[:2], table.shape[2], 2)
+    centre = jnp.broadcast_to(table[..., :2] + 0.5 * table[..., 2:], shape)
+    size = jnp.broadcast_to(size[:, :, None, :], shape)
+    boxes = jnp.concatenate([centre - 0.5 * size, size], axis=-1)  # (B, Q, S, 4)
+    is_table = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == FURNITURE)
+    mask = jnp.broadcast_to(is_table[:, None, :], boxes.shape[:-1])
+    return jnp.where(mask[..., None], boxes, 0.0), mask
+
+
+def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """Where the queried object would be on each table: its box centred on every table.
+
+    tokens: SceneTokens (B, S); queries: Queries (B, Q). Returns ``boxes`` (B, Q, S, 4) normalised
+    (y, x, h, w) (zeros on non-tables) and ``mask`` (B, Q, S) bool, True on furniture tokens.
+    The object's (h, w) is that of its token in ``tokens`` (same descriptor, kind OBJECT); raises
+    ``ValueError`` naming ``queries.descriptor`` if a queried object has no token in its map.
+    """
+    _check_pair(tokens, queries)
+    counts = np.asarray(_object_matches(tokens, queries).sum(-1))
+    if np.any(counts != 1):
+        b, q = np.argwhere(counts != 1)[0]
+        raise ValueError(f"queries.descriptor[{b}, {q}] must name exactly one object token of its "
+                         f"map (its size places it on the tables); found {counts[b, q]}")
+    return _table_boxes(tokens, queries)
+
+
+# --------------------------------------------------------------------------- sampled priors
+
+
+TABLE_METHODS = ("samples", "weights")
+"""How :func:`table_probabilities` reads a model: by counting samples, or from explicit weights."""
+
+
+def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
+                        num_samples: int, key: jax.Array, method: str = "samples",
+                        **sample_kwargs) -> jnp.ndarray:
+    """Mass on each table of the map from a sampling model → (B, Q, S + 1) float32.
+
+    predictor: anything with :meth:`flowmaps_jax.predictor.Predictor.sample` (FlowMaps or the MLP
+    baseline). tokens: SceneTokens (B, S). queries: Queries (B, Q). num_samples: N boxes per query.
+    key: one typed PRNG key (``jax.random.key``) or one per scene (B,), as ``Predictor.sample``.
+    Entry s < S is the fraction of the N samples assigned to furniture token s (see the module
+    doc: tolerance :data:`ASSIGN_TOLERANCE`), entry S the fraction on no table. Extra keyword
+    arguments (``num_steps``, ``solver``) go to ``predictor.sample`` (``solver`` as its
+    ``method``).
+    ``method="weights"``: a read-out head's explicit mixture weights instead
+    (``predictor.table_weights``; ``num_samples`` and ``key`` unused), no sampling noise.
+    """
+    num_samples = check_table_method(predictor, method, num_samples)
+    if method == "samples":
+        table_boxes(tokens, queries)  # checks the pair: every queried object is on its map
+    return table_probabilities_core(predictor, tokens, queries, num_samples, key, method,
+                                    **sample_kwargs)
+
+
+def check_table_method(predictor: Any, method: str, num_samples: int) -> int:
+    """``ValueError`` unless ``predictor`` can give table probabilities by ``method``
+    (:data:`TABLE_METHODS`); returns ``num_samples`` checked (≥ 1; "weights" does not use it,
+    but it must still be an int ≥ 0)."""
+    if method not in TABLE_METHODS:
+        raise ValueError(f"method must be one of {TABLE_METHODS}; got {method!r}")
+    if method == "weights":
+        if not callable(getattr(predictor, "table_weights", None)):
+            raise ValueError("method='weights' needs a predictor with table_weights (a FlowMaps "
+                             f"Predictor with a read-out head); got {type(predictor).__name__}")
+        return check_int("num_samples", num_samples, 0)
+    if not callable(getattr(predictor, "sample", None)):
+        raise ValueError(f"predictor must have a sample(tokens, queries, num_samples, key) method "
+                         f"(a flowmaps_jax.predictor.Predictor); got {type(predictor).__name__}")
+    return check_int("num_samples", num_samples)
+
+
+def table_probabilities_core(predictor: Any, tokens: SceneTokens, queries: Queries,
+                             num_samples: int, key: jax.Array, method: str = "samples",
+                             **sample_kwargs) -> jnp.ndarray:
+    """Core of :func:`table_probabilities`: no checks of the arguments (see
+    :func:`check_table_method`) nor of the (tokens, queries) pair; the predictor's samples, its
+    own output, are checked as they are assigned (:func:`empirical_slots`)."""
+    if method == "weights":
+        return predictor.table_weights(tokens, queries)
+    boxes, mask = _table_boxes(tokens, queries)
+    if "solver" in sample_kwargs:
+        sample_kwargs["method"] = sample_kwargs.pop("solver")
+    samples = predictor.sample(tokens, queries, num_samples, key, **sample_kwargs)
+    return empirical_slots(samples, boxes, mask, ASSIGN_TOLERANCE)
