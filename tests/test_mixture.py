@@ -186,7 +186,9 @@ def test_relative_geometry_is_zero_at_the_start_table_and_feeds_the_rows(evalset
                            + 4)
     at_start = np.take_along_axis(feats, np.asarray(start)[:, :, None, None], axis=2)[:, :, 0]
     np.testing.assert_allclose(at_start[..., :2], 0.0, atol=1e-7)  # no offset
-    np.testing.assert_allclose(at_start[..., -4:], [0.0, 0.0, 1.0, 1.0], atol=1e-6)  # no turn
+    np.testing.assert_allclose(at_start[..., -4:],  # no turn
+                               np.broadcast_to([0.0, 0.0, 1.0, 1.0], at_start[..., -4:].shape),
+                               atol=1e-6)
     cfg = dataclasses.replace(MIXTURE, weight_geometry="relative", weight_attention="self")
     params = perturb(init_params(jax.random.key(3), cfg), jax.random.key(4), 0.3)
     w = np.asarray(Predictor.from_params(params, cfg).table_weights(part.tokens, part.queries))
