@@ -17,6 +17,7 @@ from flowmaps_jax.flowsim.homes.config import (
     context_of,
     hour_of_day,
 )
+from flowmaps_jax.flowsim.homes.export import homes_schema, load_homes, save_homes
 from flowmaps_jax.flowsim.homes.floorplan import geodesic_distances, room_adjacency
 from flowmaps_jax.flowsim.homes.posterior import (
     favourite_weights,
@@ -46,8 +47,11 @@ __all__ = [
     "homes_from_keys",
     "homes_history_posterior",
     "homes_posterior",
+    "homes_schema",
     "hour_of_day",
+    "load_homes",
     "room_adjacency",
+    "save_homes",
     "simulate",
     "transition_matrix",
     "validate_homes",

@@ -219,14 +219,16 @@ def generate_homes(key, config: HomesConfig = DEFAULT_HOMES_CONFIG, num_homes: i
 @functools.partial(jax.jit, static_argnames=("steps", "num_chains", "config"))
 def _simulate(key, home: Homes, object_index, tau, steps: int, num_chains: int,
               config: HomesConfig):
-    fields = home.as_dict()
+    fields = home.as_dict()  # that object alone (an M axis of 1): chains of it only
+    for name, (symbols, _, _, _) in FIELDS.items():
+        if "M" in symbols:
+            axis = symbols.index("M") - 1
+            fields[name] = jax.lax.dynamic_slice_in_dim(fields[name], object_index, 1, axis)
     start = fields["receptacle"][tau]
 
     def chain(k):
-        m = config.max_objects
-        u = _uniform16(jax.random.bits(k, (-(-steps * m // 2),), jnp.uint32), steps * m)
-        u = u.reshape(steps, m)
-        return sample_paths(fields, start, tau, u, config)[-1, object_index]
+        u = _uniform16(jax.random.bits(k, (-(-steps // 2),), jnp.uint32), steps)
+        return sample_paths(fields, start, tau, u[:, None], config)[-1, 0]
 
     return jax.vmap(chain)(jax.random.split(key, num_chains))
 
