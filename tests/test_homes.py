@@ -28,6 +28,7 @@ from flowmaps_jax.flowsim.homes import (
     homes_history_posterior,
     homes_posterior,
     load_homes,
+    object_boxes,
     room_adjacency,
     save_homes,
     simulate,
@@ -170,6 +171,18 @@ def test_rooms_receptacles_and_doors(homes):
                     on_x = np.isclose(pos[0], x0) | np.isclose(pos[0], x1)
                     on_y = np.isclose(pos[1], y0) | np.isclose(pos[1], y1)
                     assert (on_x or on_y) and x0 - 1e-5 <= pos[0] <= x1 + 1e-5
+
+
+def test_object_boxes_stand_on_their_receptacles(homes):
+    boxes = np.asarray(object_boxes(homes, 30, CONFIG))
+    valid = np.asarray(homes.object_valid)
+    under = np.take_along_axis(np.asarray(homes.receptacle_box),
+                               np.maximum(np.asarray(homes.receptacle[:, 30]), 0)[..., None],
+                               axis=1)
+    np.testing.assert_allclose(boxes[valid][:, :2], under[valid][:, :2])
+    np.testing.assert_allclose(boxes[valid][:, 2] - boxes[valid][:, 5] / 2, under[valid][:, 5],
+                               atol=1e-6)
+    assert np.all(boxes[~valid] == 0) and np.all(boxes[valid][:, 3:] > 0)
 
 
 def test_geodesics(homes):

@@ -27,7 +27,7 @@ from flowmaps_jax.flowsim.homes.posterior import (
 )
 from flowmaps_jax.flowsim.homes.rollout import generate_homes, homes_from_keys, simulate
 from flowmaps_jax.flowsim.homes.vocabulary import ObjectClass, ReceptacleClass, RoomType
-from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, validate_homes
+from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, object_boxes, validate_homes
 
 __all__ = [
     "DEFAULT_HOMES_CONFIG",
@@ -50,6 +50,7 @@ __all__ = [
     "homes_schema",
     "hour_of_day",
     "load_homes",
+    "object_boxes",
     "room_adjacency",
     "save_homes",
     "simulate",

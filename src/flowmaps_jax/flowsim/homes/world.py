@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
@@ -97,6 +98,20 @@ def sizes(config: HomesConfig, num_homes: int | None = None) -> dict[str, int]:
 def field_shape(field: str, dims: dict[str, int], batched: bool = True) -> tuple[int, ...]:
     symbols = FIELDS[field][0]
     return tuple(dims[s] for s in (symbols if batched else symbols[1:]))
+
+
+def object_boxes(homes: Homes, hour, config: HomesConfig) -> jax.Array:
+    """(E, M, 6) float32 object boxes (cx, cy, cz, w, d, h) at ``hour`` (an int, or (E,) ints):
+    the class's size, centred on its receptacle's top (objects on one receptacle share its
+    centre); 0 for masked objects. Jittable."""
+    hour = jnp.broadcast_to(jnp.asarray(hour), homes.home_size.shape[:1])
+    where = jnp.take_along_axis(homes.receptacle, hour[:, None, None], axis=1)[:, 0]  # (E, M)
+    under = jnp.take_along_axis(homes.receptacle_box, jnp.maximum(where, 0)[..., None], axis=1)
+    size = jnp.asarray([o.size for o in config.object_classes], jnp.float32)[
+        jnp.maximum(homes.object_class, 0)]  # (E, M, 3)
+    centre = jnp.stack([under[..., 0], under[..., 1], under[..., 5] + size[..., 2] / 2], -1)
+    box = jnp.concatenate([centre, size], axis=-1)
+    return jnp.where(homes.object_valid[..., None], box, 0.0)
 
 
 def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: bool = True,
