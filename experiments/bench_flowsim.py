@@ -11,6 +11,11 @@ n cores, wall time is at best CPU time / n.
 ``--world`` generates a habit world (``flowsim.worlds``); with ``--history 8`` each timing also
 reads every object's last 8 observations at every timestep out of the scenes (the model's and
 the exact posterior's input), so the number is "environments with habits and histories / s".
+
+Then the homes rows (``flowsim.homes``): ``generate_homes`` of 6-room 3-D homes with up to 15
+objects over 4 weeks of hourly steps (672), per regime (``--homes``, default ``preferences``;
+``--homes`` with no regime skips them), at ``--homes-sizes`` homes (default: each of ``--sizes``
+capped at 1000).
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.flowsim import WORLDS, FlowSimConfig, generate, world_config
+from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig, generate_homes
 
 
 def _timed(fn):
@@ -42,11 +48,18 @@ def main(argv=None) -> None:
     parser.add_argument("--world", nargs="+", default=["routine"], choices=list(WORLDS))
     parser.add_argument("--history", type=int, default=1,
                         help="also gather each object's last H observations at every timestep")
+    parser.add_argument("--homes", nargs="*", default=["preferences"],
+                        choices=[*REGIMES, "mixed"], help="homes regimes to time (none: skip)")
+    parser.add_argument("--homes-sizes", type=int, nargs="+", default=None,
+                        help="homes per call (default: each of --sizes, at most 1000)")
     args = parser.parse_args(argv)
     for world in args.world:
         config = world_config(world, FlowSimConfig(dynamics=args.dynamics))
         print(f"\nworld: {world} (habits {config.habits}), history H={args.history}")
         bench(config, args)
+    sizes = args.homes_sizes or sorted({min(size, 1000) for size in args.sizes})
+    for regime in args.homes:
+        bench_homes(HomesConfig(regime=regime), sizes, args.repeats)
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -86,6 +99,26 @@ def bench(config: FlowSimConfig, args) -> None:
               f"{np.mean(redraws):>12.3f}")
     print("redraw rate = mean layout redraws per environment "
           f"(fraction of environments redrawn at least once: {np.mean(redraws > 0):.3f})")
+
+
+def bench_homes(config: HomesConfig, sizes: list[int], repeats: int) -> None:
+    """One homes row per size: ``generate_homes`` timed after compilation."""
+    print(f"\nhomes: regime {config.regime}, {config.num_rooms} rooms, up to "
+          f"{config.max_receptacles} receptacles and {config.max_objects} objects, "
+          f"T={config.num_hours} hours")
+    print(f"{'homes':>8} {'compile s':>10} {'best wall s':>12} {'homes/s (wall)':>15} "
+          f"{'cpu s':>8} {'homes/cpu-s':>12} {'objects':>8}")
+    for size in sizes:
+        _, compile_wall, _ = _timed(lambda size=size: generate_homes(jax.random.key(0), config,
+                                                                     size))
+        best_wall, best_cpu = np.inf, np.inf
+        for repeat in range(repeats):
+            homes, wall, cpu = _timed(lambda repeat=repeat, size=size: generate_homes(
+                jax.random.key(repeat + 1), config, size))
+            best_wall, best_cpu = min(best_wall, wall), min(best_cpu, cpu)
+        objects = float(np.mean(np.sum(np.asarray(homes.object_valid), axis=1)))
+        print(f"{size:>8} {compile_wall:>10.2f} {best_wall:>12.4f} {size / best_wall:>15,.0f} "
+              f"{best_cpu:>8.3f} {size / best_cpu:>12,.0f} {objects:>8.1f}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,386 @@
+"""``HomesConfig``: the numbers and the vocabulary of the homes world (a static jit argument).
+
+Frozen and hashable, so it can be a static argument of ``jax.jit``; ``validate()`` (run when
+the config is built) raises ``ValueError`` naming the field for anything that could not make
+valid homes: an unknown room type, receptacle class or object class, an object class that may
+stand on nothing (or on nothing any room of the home holds), negative or zero sizes, a floor
+plan too small for its doors, a vocabulary or a scene larger than the token budget.
+
+Time: hour t = 0 … ``num_hours`` − 1 starts on a Monday at 00:00; hour of day t mod 24, day of
+week ⌊t / 24⌋ mod 7 (0 = Monday, 5 and 6 the weekend). The preferences regime has
+``NUM_CONTEXTS`` = 8 contexts: four phases of the day (00–06, 06–12, 12–18, 18–24) on weekdays
+and on weekends.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+from flowmaps_jax.flowsim.homes.vocabulary import (
+    DEFAULT_ROOMS,
+    OBJECT_CLASSES,
+    RECEPTACLE_CLASSES,
+    ROOM_TYPES,
+    ObjectClass,
+    ReceptacleClass,
+    RoomType,
+)
+from flowmaps_jax.validation import (
+    check_choice,
+    check_instance,
+    check_int,
+    check_plain_name,
+    check_probabilities,
+    check_real,
+)
+
+REGIMES = ("preferences", "balanced", "frequent", "routine")
+"""Schedule regimes (index = the ``regime`` id stored per object). ``HomesConfig.regime`` may
+also be ``"mixed"``: each object draws one of the four uniformly."""
+
+MAX_OBJECTS = 15
+"""At most this many dynamic objects per home (FlowMaps 2026's homes)."""
+
+MAX_PER_ROOM = 4
+"""Receptacles per room at most: a room is split into 2 × 2 cells, one receptacle per cell."""
+
+NUM_CONTEXTS = 8
+"""Preference contexts: 4 phases of the day × (weekday, weekend)."""
+
+HOURS_PER_WEEK = 24 * 7
+
+DEFAULT_ACTIVITY = tuple(0.2 if (h < 7 or h == 23) else 1.0 for h in range(24))
+"""Hourly activity (multiplies every regime's move probability): low at night (23:00–07:00)."""
+
+
+def _pair(name: str, value: Any, low: float, *, integer: bool = False) -> tuple:
+    """A (lo, hi) pair with low <= lo <= hi, as a tuple of Python numbers."""
+    if not isinstance(value, (tuple, list)) or len(value) != 2:
+        raise ValueError(f"{name} must be a (lo, hi) pair; got {value!r}")
+    if integer:
+        lo, hi = (check_int(f"{name}[{i}]", v, int(low)) for i, v in enumerate(value))
+    else:
+        lo, hi = (check_real(f"{name}[{i}]", v, low, low_open=True) for i, v in enumerate(value))
+    if lo > hi:
+        raise ValueError(f"{name} must have lo <= hi; got {value!r}")
+    return (lo, hi)
+
+
+@dataclasses.dataclass(frozen=True)
+class HomesConfig:
+    """Everything the homes world is made of; the defaults give 6-room homes over 4 weeks.
+
+    rooms: the room type of every room of a home (a multiset, shuffled over the grid cells).
+    grid_rows: the floor plan is ``grid_rows`` × (len(rooms) / grid_rows) cells.
+    home_width, home_depth: (lo, hi) metres, the footprint's x and y sides (uniform).
+    split_jitter: cell widths (and each column's cell depths) ∝ 1 + j·U[−1, 1].
+    door_width, wall_margin: metres; receptacles keep ``wall_margin`` from the walls of their
+        cell, doors keep it from the ends of their wall.
+    extra_door_prob: each further wall between neighbouring columns long enough for a door gets
+        one with this probability (one door per column boundary, and one between every two rooms
+        stacked in a column, always: every home is connected).
+    receptacles_per_room: (lo, hi) receptacles in each room, uniform, distinct classes.
+    objects_per_home: (lo, hi) dynamic objects drawn (distinct classes); hi <= MAX_OBJECTS.
+    num_hours: T, hourly steps (default 4 weeks).
+    regime: one of ``REGIMES`` or "mixed".
+    routine_probs: the routine's (stay, advance one, advance two) each hour.
+    preference_move, preference_mass: preferences move with ρ · activity per hour to a place
+        drawn from π_c, with this mass on the context's favourite.
+    balanced_move, balanced_cycle: balanced moves with ρ · activity, to the next place of its
+        cycle with this probability, else to one of the other places uniformly.
+    frequent_move, frequent_length: frequent moves with ρ · activity to another place j with
+        weight exp(−geodesic distance / length), metres.
+    activity: 24 hourly multipliers in [0, 1].
+    size_jitter: receptacle sizes are the class's × (1 + s·U[−1, 1]).
+    max_tokens: scene token budget, >= rooms + max receptacles + max objects.
+    max_vocabulary: descriptor budget, >= room types + receptacle classes + object classes.
+    room_types, receptacle_classes, object_classes: the vocabulary (``homes.vocabulary``).
+    """
+
+    rooms: tuple[str, ...] = DEFAULT_ROOMS
+    grid_rows: int = 2
+    home_width: tuple[float, float] = (10.0, 14.0)
+    home_depth: tuple[float, float] = (7.5, 10.0)
+    split_jitter: float = 0.3
+    door_width: float = 0.9
+    wall_margin: float = 0.1
+    extra_door_prob: float = 0.3
+    receptacles_per_room: tuple[int, int] = (2, 3)
+    objects_per_home: tuple[int, int] = (10, 15)
+    num_hours: int = 4 * HOURS_PER_WEEK
+    regime: str = "preferences"
+    routine_probs: tuple[float, float, float] = (0.2, 0.7, 0.1)
+    preference_move: float = 0.3
+    preference_mass: float = 0.8
+    balanced_move: float = 0.3
+    balanced_cycle: float = 0.5
+    frequent_move: float = 0.9
+    frequent_length: float = 3.0
+    activity: tuple[float, ...] = DEFAULT_ACTIVITY
+    size_jitter: float = 0.1
+    max_tokens: int = 48
+    max_vocabulary: int = 128
+    room_types: tuple[RoomType, ...] = ROOM_TYPES
+    receptacle_classes: tuple[ReceptacleClass, ...] = RECEPTACLE_CLASSES
+    object_classes: tuple[ObjectClass, ...] = OBJECT_CLASSES
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def _store(self, name: str, value: Any) -> None:
+        object.__setattr__(self, name, value)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the field if this config cannot make valid homes."""
+        self._check_vocabulary()
+        self._check_rooms()
+        self._check_numbers()
+        self._check_plan()
+        self._check_budget()
+
+    # ----------------------------------------------------------------- checks
+    def _check_vocabulary(self) -> None:
+        for field, cls in (("room_types", RoomType), ("receptacle_classes", ReceptacleClass),
+                           ("object_classes", ObjectClass)):
+            entries = getattr(self, field)
+            if not isinstance(entries, tuple) or not entries:
+                raise ValueError(f"{field} must be a non-empty tuple of {cls.__name__}")
+            names = set()
+            for entry in entries:
+                check_instance(f"{field} entries", entry, cls)
+                check_plain_name(f"{field}: name", entry.name)
+                if entry.name in names:
+                    raise ValueError(f"{field}: name {entry.name!r} is used twice")
+                names.add(entry.name)
+                if not isinstance(entry.text, str) or not entry.text.strip():
+                    raise ValueError(f"{field}: {entry.name!r} text must be a non-empty string")
+        rooms = {r.name for r in self.room_types}
+        for rec in self.receptacle_classes:
+            self._check_size(f"receptacle_classes: {rec.name!r} size", rec.size)
+            self._check_names(f"receptacle_classes: {rec.name!r} rooms", rec.rooms, rooms,
+                              "room type")
+        receptacles = {r.name for r in self.receptacle_classes}
+        for obj in self.object_classes:
+            self._check_size(f"object_classes: {obj.name!r} size", obj.size)
+            self._check_names(f"object_classes: {obj.name!r} receptacles", obj.receptacles,
+                              receptacles, "receptacle class")
+
+    @staticmethod
+    def _check_size(name: str, size: Any) -> None:
+        if not isinstance(size, tuple) or len(size) != 3:
+            raise ValueError(f"{name} must be a (w, d, h) tuple in metres; got {size!r}")
+        for value in size:
+            check_real(name, value, 0.0, low_open=True)
+
+    @staticmethod
+    def _check_names(name: str, values: Any, known: set[str], what: str) -> None:
+        if not isinstance(values, tuple) or not values:
+            raise ValueError(f"{name} must be a non-empty tuple of {what} names; got {values!r}")
+        for value in values:
+            if value not in known:
+                raise ValueError(f"{name}: unknown {what} {value!r} (known: {sorted(known)})")
+        if len(set(values)) != len(values):
+            raise ValueError(f"{name} names a {what} twice: {values!r}")
+
+    def _check_rooms(self) -> None:
+        known = {r.name for r in self.room_types}
+        if not isinstance(self.rooms, tuple) or not self.rooms:
+            raise ValueError(f"rooms must be a non-empty tuple of room type names; got "
+                             f"{self.rooms!r}")
+        for room in self.rooms:  # a multiset: a home may have two bedrooms
+            if room not in known:
+                raise ValueError(f"rooms: unknown room type {room!r} (known: {sorted(known)})")
+        rows = check_int("grid_rows", self.grid_rows, 1)
+        if len(self.rooms) % rows:
+            raise ValueError(f"rooms: {len(self.rooms)} rooms do not fill a grid of grid_rows="
+                             f"{rows} rows")
+        lo, hi = _pair("receptacles_per_room", self.receptacles_per_room, 1, integer=True)
+        self._store("receptacles_per_room", (lo, hi))
+        if hi > MAX_PER_ROOM:
+            raise ValueError(f"receptacles_per_room must be <= {MAX_PER_ROOM} (one per cell of "
+                             f"a 2 x 2 split of the room); got {self.receptacles_per_room}")
+        for room in set(self.rooms):
+            count = sum(room in r.rooms for r in self.receptacle_classes)
+            if count < lo:
+                raise ValueError(f"rooms: room type {room!r} holds {count} receptacle classes, "
+                                 f"fewer than receptacles_per_room[0]={lo}")
+        placed = {r.name for r in self.receptacle_classes if set(r.rooms) & set(self.rooms)}
+        for obj in self.object_classes:
+            if not set(obj.receptacles) & placed:
+                raise ValueError(f"object_classes: {obj.name!r} may stand on no receptacle class "
+                                 f"that a room of rooms={self.rooms} holds")
+        olo, ohi = _pair("objects_per_home", self.objects_per_home, 1, integer=True)
+        self._store("objects_per_home", (olo, ohi))
+        if ohi > min(MAX_OBJECTS, len(self.object_classes)):
+            raise ValueError(f"objects_per_home[1] must be <= {MAX_OBJECTS} and <= the "
+                             f"{len(self.object_classes)} object classes (one object per "
+                             f"class); got {ohi}")
+
+    def _check_numbers(self) -> None:
+        self._store("num_hours", check_int("num_hours", self.num_hours, 2, 2**20))
+        check_choice("regime", self.regime, (*REGIMES, "mixed"))
+        probs = self.routine_probs
+        if not isinstance(probs, (tuple, list)) or len(probs) != 3:
+            raise ValueError(f"routine_probs must be 3 probabilities; got {probs!r}")
+        self._store("routine_probs",
+                    tuple(float(p) for p in check_probabilities("routine_probs", probs)))
+        for name in ("preference_move", "preference_mass", "balanced_move", "balanced_cycle",
+                     "frequent_move", "extra_door_prob"):
+            self._store(name, check_real(name, getattr(self, name), 0.0, 1.0))
+        self._store("frequent_length",
+                    check_real("frequent_length", self.frequent_length, 0.0, low_open=True))
+        for name in ("split_jitter", "size_jitter"):
+            self._store(name, check_real(name, getattr(self, name), 0.0, 1.0, high_open=True))
+        act = self.activity
+        if not isinstance(act, (tuple, list)) or len(act) != 24:
+            raise ValueError(f"activity must be 24 hourly values in [0, 1]; got {act!r}")
+        self._store("activity", tuple(check_real("activity", a, 0.0, 1.0) for a in act))
+
+    def _check_plan(self) -> None:
+        self._store("home_width", _pair("home_width", self.home_width, 0.0))
+        self._store("home_depth", _pair("home_depth", self.home_depth, 0.0))
+        self._store("door_width", check_real("door_width", self.door_width, 0.0, low_open=True))
+        self._store("wall_margin", check_real("wall_margin", self.wall_margin, 0.0))
+        door = self.door_width + 2 * self.wall_margin
+        narrow_w, narrow_d = self.smallest_room
+        if min(narrow_w, narrow_d) < door or min(narrow_w, narrow_d) / 2 <= 2 * self.wall_margin:
+            raise ValueError(f"home_width/home_depth: the smallest room can be {narrow_w:.2f} x "
+                             f"{narrow_d:.2f} m, too small for a door of door_width="
+                             f"{self.door_width} m + 2 x wall_margin (or for its 2 x 2 cells)")
+        overlap = self.home_depth[0] / (2 * self.grid_rows - 1) if self.grid_cols > 1 else door
+        if overlap < door:
+            raise ValueError(f"home_depth[0]={self.home_depth[0]} m is too small: neighbouring "
+                             f"columns may share no wall of door_width + 2 x wall_margin = "
+                             f"{door} m (needs home_depth[0] >= {door * (2 * self.grid_rows - 1)})")
+
+    def _check_budget(self) -> None:
+        self._store("max_tokens", check_int("max_tokens", self.max_tokens, 1))
+        self._store("max_vocabulary", check_int("max_vocabulary", self.max_vocabulary, 1))
+        tokens = self.num_rooms + self.max_receptacles + self.max_objects
+        if tokens > self.max_tokens:
+            raise ValueError(f"max_tokens={self.max_tokens} is smaller than the {tokens} tokens "
+                             f"of a home ({self.num_rooms} rooms + {self.max_receptacles} "
+                             f"receptacles + {self.max_objects} objects)")
+        if self.vocabulary_size > self.max_vocabulary:
+            raise ValueError(f"max_vocabulary={self.max_vocabulary} is smaller than the "
+                             f"vocabulary's {self.vocabulary_size} classes (room types + "
+                             f"receptacle classes + object classes)")
+
+    # ----------------------------------------------------------------- derived
+    @property
+    def num_rooms(self) -> int:
+        return len(self.rooms)
+
+    @property
+    def grid_cols(self) -> int:
+        return self.num_rooms // self.grid_rows
+
+    @property
+    def max_receptacles(self) -> int:
+        """R: receptacle slots per home (rooms × receptacles_per_room[1])."""
+        return self.num_rooms * self.receptacles_per_room[1]
+
+    @property
+    def max_objects(self) -> int:
+        """M: object slots per home."""
+        return self.objects_per_home[1]
+
+    @property
+    def max_doors(self) -> int:
+        """D: door slots: every stacked pair in a column, every row pair across a boundary."""
+        rows, cols = self.grid_rows, self.grid_cols
+        return cols * (rows - 1) + (cols - 1) * rows * rows
+
+    @property
+    def vocabulary_size(self) -> int:
+        return len(self.room_types) + len(self.receptacle_classes) + len(self.object_classes)
+
+    @property
+    def descriptor_offsets(self) -> tuple[int, int, int]:
+        """Where room types, receptacle classes and object classes start in the shared
+        descriptor vocabulary (``vocabulary``)."""
+        return (0, len(self.room_types), len(self.room_types) + len(self.receptacle_classes))
+
+    @property
+    def vocabulary(self) -> tuple[str, ...]:
+        """The text descriptor of every descriptor id (room types, receptacles, objects)."""
+        return tuple(c.text for c in (*self.room_types, *self.receptacle_classes,
+                                      *self.object_classes))
+
+    @property
+    def smallest_room(self) -> tuple[float, float]:
+        """The narrowest (x, y) sides a room can have, metres."""
+        j = self.split_jitter
+
+        def narrow(total: float, n: int) -> float:
+            return total * (1 - j) / ((1 - j) + (n - 1) * (1 + j))
+
+        return (narrow(self.home_width[0], self.grid_cols),
+                narrow(self.home_depth[0], self.grid_rows))
+
+    @property
+    def room_type_index(self) -> tuple[int, ...]:
+        names = [r.name for r in self.room_types]
+        return tuple(names.index(r) for r in self.rooms)
+
+    def room_allows(self) -> list[list[bool]]:
+        """(room types, receptacle classes): may a receptacle class go in a room type."""
+        return [[rt.name in rc.rooms for rc in self.receptacle_classes] for rt in self.room_types]
+
+    def object_allows(self) -> list[list[bool]]:
+        """(object classes, receptacle classes): may an object class stand on a class."""
+        return [[rc.name in oc.receptacles for rc in self.receptacle_classes]
+                for oc in self.object_classes]
+
+    @property
+    def regimes_used(self) -> tuple[int, ...]:
+        """The ``REGIMES`` indices objects of this config can follow (static)."""
+        return tuple(range(len(REGIMES))) if self.regime == "mixed" else (
+            REGIMES.index(self.regime),)
+
+    # ----------------------------------------------------------------- (de)serialisation
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dict (tuples become lists, vocabulary entries dicts)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> HomesConfig:
+        """Inverse of ``to_dict``; unknown keys or bad entries raise ``ValueError``."""
+        if not isinstance(data, dict):
+            raise ValueError(f"HomesConfig.from_dict needs a dict; got {type(data).__name__}")
+        unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise ValueError(f"HomesConfig.from_dict: unknown fields {unknown}")
+        kwargs = {k: _tuples(v) for k, v in data.items()}
+        try:
+            for field, entry in (("room_types", RoomType),
+                                 ("receptacle_classes", ReceptacleClass),
+                                 ("object_classes", ObjectClass)):
+                if field in data:
+                    kwargs[field] = tuple(entry(**{k: _tuples(v) for k, v in e.items()})
+                                          for e in data[field])
+        except (TypeError, ValueError, AttributeError) as err:
+            raise ValueError(f"HomesConfig.from_dict: bad vocabulary entry: {err}") from err
+        return cls(**kwargs)
+
+
+def _tuples(value: Any) -> Any:
+    """Lists (from JSON) as tuples, recursively."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
+DEFAULT_HOMES_CONFIG = HomesConfig()
+
+
+def hour_of_day(t):
+    """Hour of day of hour t (works on ints and arrays)."""
+    return t % 24
+
+
+def context_of(t):
+    """Preference context of hour t: phase of day (⌊hour / 6⌋) + 4 on weekends."""
+    day = (t // 24) % 7
+    return (t % 24) // 6 + 4 * (day >= 5)
+

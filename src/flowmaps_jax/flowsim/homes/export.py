@@ -1,0 +1,140 @@
+"""Homes on disk: one ``.npz`` of plain arrays plus a JSON schema, and a loader that refuses bad
+files.
+
+``save_homes(path, homes, config)`` writes ``path`` (an ``.npz``: every ``Homes`` field as an
+array named after it, ``format_version`` (int64), ``config_json`` and ``schema_json`` (UTF-8
+strings)) and, beside it, ``<stem>.schema.json``: the same schema, for tools that read the
+arrays without this package (numpy, or any zip + .npy reader). The schema names every field's
+shape (symbols and sizes), dtype, unit and meaning, the vocabulary (class names and text
+descriptors, in id order), the regimes and the time convention. Both files are written aside
+and renamed into place (``validation.write_file``), never through a symbolic link.
+
+``load_homes(path)`` returns (homes, config) and raises ``ValueError`` naming the file for
+anything ``save_homes`` could not have written: another format or schema version, missing or
+unexpected members, wrong shapes or dtypes, non-finite values, ids or masks out of range.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import pathlib
+
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig
+from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
+from flowmaps_jax.validation import (
+    check_file,
+    check_instance,
+    check_no_links,
+    check_output_file,
+    read_npz,
+    write_file,
+)
+
+FORMAT = "flowmaps-homes"
+SCHEMA_VERSION = 1
+_META = ("format_version", "config_json", "schema_json")
+
+
+def schema_path(path) -> pathlib.Path:
+    """The schema file beside ``path``: ``homes.npz`` -> ``homes.schema.json``."""
+    path = pathlib.Path(path)
+    stem = path.name[:-4] if path.name.endswith(".npz") else path.name
+    return path.with_name(stem + ".schema.json")
+
+
+def homes_schema(config: HomesConfig, num_homes: int) -> dict:
+    """The JSON schema of a file of ``num_homes`` homes of ``config``."""
+    dims = sizes(config, num_homes)
+    return {
+        "format": FORMAT,
+        "schema_version": SCHEMA_VERSION,
+        "units": {"length": "metres", "time": "hours"},
+        "time": ("hour t = 0 … T − 1 starts on Monday 00:00; hour of day t mod 24; day of week "
+                 "floor(t / 24) mod 7 (0 = Monday); preference context = floor(hour of day / 6) "
+                 "+ 4 on Saturday and Sunday"),
+        "coordinates": "x along the home's width, y along its depth, z up; origin at a corner",
+        "sizes": {k: v for k, v in dims.items() if not k.isdigit()},
+        "size_meaning": {"E": "homes", "NR": "rooms", "D": "door slots",
+                         "R": "receptacle slots", "M": "object slots", "T": "hours",
+                         "C": f"preference contexts ({NUM_CONTEXTS})"},
+        "fields": {name: {"shape": list(symbols), "sizes": list(field_shape(name, dims)),
+                          "dtype": dtype, "unit": unit, "meaning": meaning}
+                   for name, (symbols, dtype, unit, meaning) in FIELDS.items()},
+        "vocabulary": {
+            "room_types": [{"name": r.name, "text": r.text} for r in config.room_types],
+            "receptacle_classes": [{"name": r.name, "text": r.text, "size_whd_m": list(r.size)}
+                                   for r in config.receptacle_classes],
+            "object_classes": [{"name": o.name, "text": o.text, "size_whd_m": list(o.size)}
+                               for o in config.object_classes]},
+        "regimes": list(REGIMES),
+        "members": {"format_version": "int64 scalar, the schema version",
+                    "config_json": "the HomesConfig as JSON (HomesConfig.to_dict)",
+                    "schema_json": "this schema as JSON"},
+    }
+
+
+def save_homes(path, homes: Homes, config: HomesConfig) -> pathlib.Path:
+    """Write ``homes`` (checked against ``config`` first) to ``path`` (.npz) and its schema to
+    ``schema_path(path)``. Returns the schema's path."""
+    path = check_output_file("path", path)
+    check_instance("config", config, HomesConfig)
+    validate_homes(homes, config)
+    schema = homes_schema(config, homes.num_homes)
+    side = schema_path(path)
+    check_no_links("path", os.path.dirname(os.path.abspath(path)),
+                   [os.path.basename(path), side.name])
+    arrays = {name: np.asarray(value) for name, value in homes.as_dict().items()}
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, format_version=np.int64(SCHEMA_VERSION),
+                        config_json=np.asarray(json.dumps(config.to_dict())),
+                        schema_json=np.asarray(json.dumps(schema)), **arrays)
+    write_file(path, buffer.getvalue(), name="path")
+    return write_file(side, json.dumps(schema, indent=1) + "\n", name="schema file")
+
+
+def load_homes(path) -> tuple[Homes, HomesConfig]:
+    """Read a file written by ``save_homes``; ``ValueError`` naming it if it is not one (see
+    the module's docstring). The file is untrusted: members are whitelisted and their declared
+    sizes checked before anything is decompressed (``validation.read_npz``)."""
+    try:
+        path = check_file("path", path)
+        contents = read_npz(repr(path), path, allowed=(*_META, *FIELDS))
+    except ValueError as err:
+        raise ValueError(f"load_homes: {err}") from None
+    where = f"load_homes: {path!r}"
+    missing = [name for name in (*_META, *FIELDS) if name not in contents]
+    if missing:
+        raise ValueError(f"{where} is missing arrays {missing}")
+    version = contents["format_version"]
+    if version.shape != () or version.dtype.kind not in "iu" or int(version) != SCHEMA_VERSION:
+        raise ValueError(f"{where} has format_version {version!r}; this code reads version "
+                         f"{SCHEMA_VERSION}")
+    try:
+        config = HomesConfig.from_dict(json.loads(str(contents["config_json"])))
+        schema = json.loads(str(contents["schema_json"]))
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{where} has an invalid config_json or schema_json: {err}") from None
+    if not isinstance(schema, dict) or schema.get("format") != FORMAT or schema.get(
+            "schema_version") != SCHEMA_VERSION:
+        raise ValueError(f"{where}: schema_json is not a {FORMAT} schema of version "
+                         f"{SCHEMA_VERSION}")
+    shape = contents["home_size"].shape
+    if len(shape) != 2 or shape[0] < 1:
+        raise ValueError(f"{where}: home_size has shape {shape}, expected (E, 2) with E >= 1")
+    dims = sizes(config, shape[0])
+    for name, (_, dtype, _, _) in FIELDS.items():
+        array = contents[name]
+        if array.shape != field_shape(name, dims) or array.dtype != np.dtype(dtype):
+            raise ValueError(f"{where}: {name} has shape {array.shape} and dtype {array.dtype}, "
+                             f"expected {field_shape(name, dims)} and {dtype}")
+    homes = Homes(**{name: contents[name] for name in FIELDS})
+    try:
+        validate_homes(homes, config)
+    except ValueError as err:
+        raise ValueError(f"{where}: {err}") from None
+    return Homes(**{name: jnp.asarray(contents[name]) for name in FIELDS}), config

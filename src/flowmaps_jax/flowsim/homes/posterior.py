@@ -1,0 +1,163 @@
+"""The exact posterior of an object's receptacle at a later hour: a forward pass of P_t.
+
+``homes_posterior(home, i, τ, τ_q)`` is onehot(s_τ) P_τ P_{τ+1} … P_{τ_q − 1}, the object's
+receptacle at τ_q given where it is at τ and its law (:mod:`.schedules`), computed exactly by a
+``lax.fori_loop`` over the hours (each step p ← (1 − m_t) p + m_t p B_{c(t)}, R² work).
+
+``homes_history_posterior(home, i, τ, τ_q, history)`` is the posterior given the object's last
+``history`` observations s_{τ−H+1} … s_τ when the preferences regime's favourites are hidden
+(uniform over the allowed receptacles, independently per context). The likelihood of favourite
+f_c factorises over contexts, so the favourite of context c has weights
+
+    w_c(f) ∝ Π_{t in the window, c(t) = c} [(1 − m_t) δ(s_t, s_{t+1}) + m_t π(s_{t+1}; f)],
+
+and because a preferences step maps p to (1 − m_t) p + m_t π_{c(t)} (linear in one π at a
+time), the posterior is the same forward pass with π_c replaced by its posterior mean
+π̄_c = mass · w_c + b (1 − w_c) — exact, not an approximation. The other regimes' laws are seen
+on the map (cycle, distances), so for them the history changes nothing: the chain is Markov.
+
+``home`` is one home (``Homes.home(i)``); every function is jittable and vmappable (over
+homes, objects, hours). Concrete inputs are checked (``ValueError`` naming the argument); a
+traced query out of range (τ_q ≤ τ, τ_q beyond the rollout, a masked object) gives NaNs.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from flowmaps_jax.flowsim.homes import schedules
+from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
+from flowmaps_jax.flowsim.homes.schedules import PREFERENCES
+from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
+from flowmaps_jax.validation import check_instance, check_int, check_int_array, is_concrete
+
+
+def object_law(home: Homes, object_index, config: HomesConfig) -> dict:
+    """One object's law: move (24,), kernel (R, R), targets (C, R), regime (), allowed (R,)."""
+    allowed = home.object_allowed[object_index]
+    regime = home.regime[object_index]
+    num = home.num_allowed[object_index]
+    kernel = schedules.move_kernel(regime, home.cycle[object_index], num, allowed,
+                                   home.receptacle_distance, config)
+    return {"move": schedules.move_probabilities(regime, config), "kernel": kernel,
+            "targets": schedules.preference_targets(home.favourite[object_index], allowed, num,
+                                                    config.preference_mass),
+            "regime": regime, "allowed": allowed}
+
+
+def _forward(law: dict, p, tau, tau_q):
+    return jax.lax.fori_loop(tau, tau_q, lambda t, q: schedules.step_distribution(law, q, t), p)
+
+
+def _valid(home: Homes, object_index, tau, tau_q):
+    t = home.receptacle.shape[0]
+    return (home.object_valid[object_index] & (tau >= 0) & (tau_q > tau) & (tau_q < t))
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _posterior(home: Homes, object_index, tau, tau_q, config: HomesConfig):
+    law = object_law(home, object_index, config)
+    r = law["allowed"].shape[0]
+    start = jax.nn.one_hot(home.receptacle[tau, object_index], r, dtype=jnp.float32)
+    p = _forward(law, start, tau, tau_q)
+    return jnp.where(_valid(home, object_index, tau, tau_q), p, jnp.nan)
+
+
+def favourite_weights(home: Homes, object_index, tau, history, config: HomesConfig):
+    """(C, R) float32: the posterior over each context's favourite of a preferences object
+    given its receptacles at hours τ − history + 1 … τ (uniform over allowed receptacles for
+    a context the window does not inform)."""
+    law = object_law(home, object_index, config)
+    allowed, num = law["allowed"], home.num_allowed[object_index]
+    s = home.receptacle[:, object_index]
+    t = jnp.arange(s.shape[0] - 1)
+    here, there = s[:-1], s[1:]
+    m = law["move"][t % 24][:, None]  # (T − 1, 1)
+    r = allowed.shape[0]
+    f = jnp.arange(r)
+    mass = jnp.where(num > 1, config.preference_mass, 1.0)
+    rest = jnp.where(num > 1, (1.0 - config.preference_mass) / jnp.maximum(num - 1, 1), 0.0)
+    pi = jnp.where(there[:, None] == f[None, :], mass, rest)  # π(s_{t+1}; f) (T − 1, R)
+    lik = (1.0 - m) * (here == there)[:, None] + m * pi
+    window = (t >= tau - history + 1) & (t < tau)
+    loglik = jnp.where(window[:, None], jnp.log(lik), 0.0)
+    per_context = jax.nn.one_hot(context_of(t), law["targets"].shape[0], dtype=jnp.float32)
+    total = per_context.T @ loglik  # (C, R)
+    return jax.nn.softmax(jnp.where(allowed[None, :], total, -jnp.inf), axis=-1)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _history_posterior(home: Homes, object_index, tau, tau_q, history, config: HomesConfig):
+    law = object_law(home, object_index, config)
+    weights = favourite_weights(home, object_index, tau, history, config)
+    law["targets"] = jnp.where(law["regime"] == PREFERENCES, schedules.preference_targets(
+        weights, law["allowed"], home.num_allowed[object_index], config.preference_mass),
+        law["targets"])
+    r = law["allowed"].shape[0]
+    start = jax.nn.one_hot(home.receptacle[tau, object_index], r, dtype=jnp.float32)
+    p = _forward(law, start, tau, tau_q)
+    valid = _valid(home, object_index, tau, tau_q) & (history >= 1) & (history <= tau + 1)
+    return jnp.where(valid, p, jnp.nan)
+
+
+def _check_query(home, object_index, tau, tau_q, config: HomesConfig) -> None:
+    check_instance("config", config, HomesConfig)
+    validate_homes(home, config, batched=False, values=False)
+    for name, value in (("object_index", object_index), ("tau", tau), ("tau_q", tau_q)):
+        check_int_array(name, value, shape=())
+    if not is_concrete(object_index, tau, tau_q):
+        return
+    t = config.num_hours
+    object_index = check_int("object_index", object_index, 0, config.max_objects - 1)
+    tau = check_int("tau", tau, 0, t - 1)
+    if int(tau_q) <= tau:
+        raise ValueError(f"tau_q must be > tau={tau} (a later hour); got {int(tau_q)}")
+    check_int("tau_q", tau_q, tau + 1, t - 1)  # beyond the rollout: names the horizon
+    if is_concrete(home.object_valid) and not bool(home.object_valid[object_index]):
+        raise ValueError(f"object_index {object_index} is a masked object slot (unused, or "
+                         f"its class has no allowed receptacle in this home)")
+
+
+def homes_posterior(home: Homes, object_index, tau, tau_q,
+                    config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
+    """(R,) float32: P(object ``object_index`` on receptacle r at hour ``tau_q`` | where it is
+    at ``tau``), exact; mass only on its allowed receptacles, sums to 1.
+
+    home: one home (``Homes.home(i)``, fields without the E axis); object_index, tau, tau_q:
+    int scalars (or traced ones, under jit / vmap), 0 <= tau < tau_q <= T − 1.
+    """
+    _check_query(home, object_index, tau, tau_q, config)
+    return _posterior(home, object_index, tau, tau_q, config)
+
+
+def homes_history_posterior(home: Homes, object_index, tau, tau_q, history,
+                            config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
+    """(R,) float32: the posterior at ``tau_q`` given the object's receptacles at the
+    ``history`` hours τ − history + 1 … τ, the preferences regime's favourites hidden (see the
+    module's docstring); for the other regimes it equals ``homes_posterior``. 1 <= history
+    <= tau + 1 (history 1: only where it is now)."""
+    _check_query(home, object_index, tau, tau_q, config)
+    check_int_array("history", history, shape=())
+    if is_concrete(history, tau):
+        check_int("history", history, 1, int(tau) + 1)
+    return _history_posterior(home, object_index, tau, tau_q, history, config)
+
+
+def transition_matrix(home: Homes, object_index, hour,
+                      config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
+    """P_hour (R, R) float32 of one object: [i, j] = P(j at hour + 1 | i at hour); zero outside
+    its allowed receptacles. A pure function of (home, object, hour of week)."""
+    check_instance("config", config, HomesConfig)
+    validate_homes(home, config, batched=False, values=False)
+    if is_concrete(object_index, hour):
+        check_int("object_index", object_index, 0, config.max_objects - 1)
+        check_int("hour", hour, 0, config.num_hours - 2)
+    return _transition_matrix(home, object_index, hour, config)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _transition_matrix(home: Homes, object_index, hour, config: HomesConfig):
+    return schedules.transition_matrix(object_law(home, object_index, config), hour)
