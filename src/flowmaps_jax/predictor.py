@@ -158,12 +158,6 @@ class Predictor:
         return model_family(self.family_name)
 
     @property
-    def kind(self) -> str:
-        """:attr:`family_name` under the word the on-disk metas use (``"kind"``): kept for the
-        disk code (``export``) until it reads ``family_name``."""
-        return self.family_name
-
-    @property
     def name(self) -> str:
         """Row label for reports: "FlowMaps", "MLP (mean)" or "MLP (learned)"."""
         return self.family.label(self.model)

@@ -170,7 +170,7 @@ class FlowMaps(nn.Module):
         return self.final(x, c)
 
     def _dtau(self, context: Context, queries: Queries):
-        return jnp.clip(queries.tau_q - context.tau[:, None], 0, self.config.tau_max - 1)
+        return horizon_index(queries.tau_q, context.tau, self.config.tau_max)
 
     def mixture(self, context: Context, queries: Queries):
         """The route head's mixture (log-weights (B, Q, S), means (B, Q, S, 4), log-variances
@@ -187,6 +187,12 @@ class FlowMaps(nn.Module):
             table = jnp.broadcast_to(table, x_t.shape[:3])
             return self.placement_velocity(context, x_t, t, queries, table, deterministic)
         return self.velocity(self.encode(tokens, deterministic), x_t, t, queries, deterministic)
+
+
+def horizon_index(tau_q, tau, tau_max: int):
+    """Each query's horizon Δτ = τ_q − τ (B, Q) as a column index of the per-horizon outputs,
+    clipped to [0, tau_max − 1]; tau_q (B, Q), tau (B,)."""
+    return jnp.clip(tau_q - tau[:, None], 0, tau_max - 1)
 
 
 def select_horizon(logits, dtau):

@@ -32,6 +32,7 @@ from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.family import LossOptions, ModelFamily, scene_noise
 from flowmaps_jax.model.flowmaps import (
     encode,
+    horizon_index,
     init_params,
     make_velocity_fn,
     object_table_logits,
@@ -136,7 +137,7 @@ def mixture_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
     logits = object_table_logits(params, config, context, objects, dropout_key=w_key)
     which = jnp.argmax(batch.queries.descriptor[:, :, None] == objects[:, None, :], axis=-1)
     logits = jnp.take_along_axis(logits, which[:, :, None, None], axis=1)  # (B, Q, S, T)
-    dtau = jnp.clip(batch.queries.tau_q - batch.tokens.tau[:, None], 0, config.tau_max - 1)
+    dtau = horizon_index(batch.queries.tau_q, batch.tokens.tau, config.tau_max)
     log_w = jax.nn.log_softmax(select_horizon(logits, dtau), axis=-1)
     ce = -jnp.mean(jnp.take_along_axis(log_w, table[..., None], axis=-1))
     means, scale, _ = mixture.placement_frame(context, batch.queries.descriptor)

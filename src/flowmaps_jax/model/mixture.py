@@ -131,7 +131,7 @@ def relative_geometry(boxes, start):
     the sine and cosine of the angle around the map centre (0.5, 0.5) minus the start table's
     (and of twice it). boxes (B, S, 4) normalised, start (B, R) token indices."""
     centres = to_centre(boxes)[..., :2]  # (B, S, 2)
-    here = jax.vmap(lambda c, i: c[i])(centres, start)  # (B, R, 2)
+    here = gather_tokens(centres, start)  # (B, R, 2)
     offset = centres[:, None] - here[:, :, None]  # (B, R, S, 2)
     angle = jnp.arctan2(centres[..., 1] - 0.5, -(centres[..., 0] - 0.5))  # (B, S)
     here_angle = jnp.take_along_axis(angle, start, axis=1)  # (B, R)
