@@ -39,6 +39,8 @@ def test_default_is_cpu_and_smoke_is_tiny():
     assert smoke.steps <= 50 and smoke.train_envs <= 100
     assert cpu.t_sampler == "beta" and cpu.model.box_scale == 1.0
     assert cpu.model.head == "mixture" and cpu.pointer_loss > 0
+    # issue 33: the table-weight rows attend to each other and know their table's geometry
+    assert (cpu.model.weight_attention, cpu.model.weight_geometry) == ("self", "relative")
     # issue 33: fresh homes every chunk by default; the paper's recipe keeps the fixed split, and
     # the previous default (pointer head, fixed split) stays as cpu-pointer, the habits' base
     assert cpu.data == "endless" and get_preset("paper").data == "train"

@@ -44,6 +44,11 @@ def test_shipped_weights_have_the_cpu_preset_shapes(name):
     assert predictor.source == f"pretrained:{name}"
 
 
+def test_shipped_flowmaps_is_the_cpu_preset_model():
+    """pretrained:flowmaps comes from README block 1 (the cpu preset) as documented."""
+    assert load_pretrained("flowmaps").model == get_preset("cpu").model
+
+
 def test_shipped_flowmaps_puts_samples_on_tables_of_the_queried_kind():
     predictor = load_pretrained("flowmaps")
     config = predictor.flowsim
