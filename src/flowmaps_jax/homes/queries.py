@@ -1,0 +1,86 @@
+"""Queries on homes: which object, the map's hour τ and the query hour τ_q.
+
+A prior answers ``prior(homes, queries) -> (E, Q, R)`` float32: for home e and query j the
+probability that object ``queries.object_index[e, j]`` stands on receptacle slot r at hour
+``queries.tau_q[e, j]``, given the home at hour ``queries.tau[e, j]`` and (where the prior uses
+it) the object's receptacles over the ``history`` hours up to τ. Rows sum to 1 and put mass only
+on the object's allowed receptacles.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from flowmaps_jax.flowsim.homes.config import HomesConfig
+from flowmaps_jax.flowsim.homes.world import Homes
+from flowmaps_jax.validation import check_int, check_int_array, is_concrete
+
+DEFAULT_HORIZONS = (1, 3, 6, 12, 24, 72, 168)
+"""Query horizons τ_q − τ in hours: an hour, a morning, half a day, a day, three days, a week."""
+
+
+@struct.dataclass
+class HomesQueries:
+    """Q queries per home, each (E, Q) int32: object slot, map hour τ, query hour τ_q > τ."""
+
+    object_index: jax.Array
+    tau: jax.Array
+    tau_q: jax.Array
+
+    @property
+    def horizon(self) -> jax.Array:
+        """(E, Q) τ_q − τ in hours."""
+        return self.tau_q - self.tau
+
+
+def draw_queries(key, homes: Homes, config: HomesConfig, num_queries: int, *,
+                 history: int = 168, horizons: tuple[int, ...] = DEFAULT_HORIZONS
+                 ) -> HomesQueries:
+    """Q queries per home: a valid object uniformly, a horizon uniformly from ``horizons``, and
+    τ uniformly from the hours that leave ``history`` hours before it and the horizon after it
+    (τ ∈ [history − 1, T − 1 − Δ]). Pure given ``key``; jittable."""
+    t = config.num_hours
+    num_queries = check_int("num_queries", num_queries, 1)
+    history = check_int("history", history, 1, t - 1)
+    horizons = tuple(check_int("horizons", h, 1, t - history) for h in horizons)
+    e, m = homes.object_valid.shape
+    k_obj, k_h, k_tau = jax.random.split(key, 3)
+    logits = jnp.where(homes.object_valid, 0.0, -jnp.inf)[:, None, :]
+    obj = jax.random.categorical(k_obj, jnp.broadcast_to(logits, (e, num_queries, m)))
+    dt = jnp.asarray(horizons, jnp.int32)[jax.random.randint(k_h, (e, num_queries), 0,
+                                                            len(horizons))]
+    low = history - 1
+    u = jax.random.uniform(k_tau, (e, num_queries))
+    tau = low + jnp.floor(u * (t - dt - low)).astype(jnp.int32)
+    return HomesQueries(object_index=obj.astype(jnp.int32), tau=tau, tau_q=tau + dt)
+
+
+def check_queries(queries: HomesQueries, homes: Homes, config: HomesConfig) -> HomesQueries:
+    """``ValueError`` naming the field unless ``queries`` fits ``homes``: (E, Q) ints, objects
+    valid, 0 <= τ < τ_q <= T − 1 (values checked when concrete)."""
+    e = homes.object_valid.shape[0]
+    fields = {}
+    for name in ("object_index", "tau", "tau_q"):
+        value = getattr(queries, name)
+        check_int_array(f"queries.{name}", value)
+        if np.ndim(value) != 2 or np.shape(value)[0] != e:
+            raise ValueError(f"queries.{name} must have shape (E={e}, Q); got {np.shape(value)}")
+        fields[name] = value
+    if len({np.shape(v) for v in fields.values()}) != 1:
+        raise ValueError("queries.object_index, queries.tau and queries.tau_q must share one "
+                         f"shape; got {[np.shape(v) for v in fields.values()]}")
+    if is_concrete(*fields.values(), homes.object_valid):
+        obj, tau, tau_q = (np.asarray(fields[k]) for k in ("object_index", "tau", "tau_q"))
+        if np.any(obj < 0) or np.any(obj >= config.max_objects):
+            raise ValueError(f"queries.object_index must be in 0..{config.max_objects - 1}")
+        if not np.all(np.take_along_axis(np.asarray(homes.object_valid), obj, axis=1)):
+            raise ValueError("queries.object_index names a masked object slot")
+        if np.any(tau < 0) or np.any(tau_q <= tau):
+            raise ValueError("queries.tau_q must be > queries.tau >= 0")
+        if np.any(tau_q > config.num_hours - 1):
+            raise ValueError(f"queries.tau_q must be <= T - 1 = {config.num_hours - 1} (the "
+                             f"rollout's last hour)")
+    return queries
