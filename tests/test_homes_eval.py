@@ -363,3 +363,12 @@ def test_the_command_names_a_bad_argument(args, named, tmp_path, capsys):
     assert ev.main(["--out", str(tmp_path / "x"), *args, "--no-progress"]) == ev.EXIT_USAGE
     assert named in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_a_checkpoint_without_the_homes_model_names_the_flag(tmp_path, capsys):
+    import importlib.util
+
+    if importlib.util.find_spec("flowmaps_jax.homes.predictor") is not None:
+        pytest.skip("the FlowMaps homes model is installed")
+    code = ev.main(["--out", str(tmp_path / "x"), "--checkpoint", "flowmaps-homes"])
+    assert code == ev.EXIT_USAGE and "--checkpoint" in capsys.readouterr().err
