@@ -63,6 +63,12 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         ["--sizes", "4", "--repeats", "1", "--world", "routine", "mixed", "--history", "2"],
         rf"^world: mixed .*\n(?:.*\n)*^\s+4\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}$",
         []),
+    # ~10 s: 8 homes x 4 queries, 16 DP episodes, the priors on 4 homes x 2 queries, 1 repeat
+    "bench_homes_navigation.py": (
+        ["--homes", "8", "--queries", "4", "--dp-episodes", "16", "--prior-homes", "4",
+         "--prior-queries", "2", "--repeats", "1"],
+        rf"^\s+most-probable:\s+{NUM} episodes/s(?:.*\n)*^\s+optimal:\s+{NUM} episodes/s"
+        rf"(?:.*\n)*^prior\s+uniform:\s+{NUM} prior evaluations/s", []),
     # ~45 s: a D=16 one-layer model, B=2 × Q=2, 1 timed step, and the sampling benchmark
     "bench_model.py": (
         ["--queries", "2", "--batch", "2", "--steps", "1", "--dim", "16", "--encoder-layers", "1",

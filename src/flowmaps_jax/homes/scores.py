@@ -1,0 +1,156 @@
+"""Posterior scores of a prior against the exact posterior, per query, and their summaries.
+
+Per query (:func:`posterior_scores`; p, q (..., R) over receptacle slots, ``allowed`` (..., R)
+the object's allowed receptacles; docs/protocol.md's definitions on a finite support):
+
+* ``kl``: KL(q ‖ p) = Σ_{q_r > 0} q_r log(q_r / p_r) in nats, sample-free for probability rows
+  (p floored at ``KL_FLOOR`` so that a row putting no mass where q has some scores large, not
+  inf). Not reported for sample rows (a histogram's zeros).
+* ``tv``: ½ Σ_r |p_r − q_r| + ½ (1 − Σ_r p_r): mass a sample row puts off every allowed
+  receptacle (:func:`assign_samples`) counts fully.
+* ``top1``: is p's most probable receptacle a mode of q? Ties in q: any mode counts; ties in p:
+  the fraction of p's tied best receptacles that are modes of q (the expectation of a uniform
+  tie break). Scores within ``TIE_ATOL`` tie.
+* ``rank_cost``: visit the allowed receptacles by decreasing p and pay the rank of the one the
+  object is on, Σ_r rank_r q_r (tied receptacles share their group's mean rank), over the same
+  sum visiting by decreasing q (the least possible): ≥ 1, 1 when p ranks them as q does.
+
+:func:`summarise` gives mean ± standard error over queries, overall, by regime (the queried
+object's ``homes.regime``) and by horizon τ_q − τ.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig
+from flowmaps_jax.flowsim.homes.world import Homes
+from flowmaps_jax.homes.priors import allowed_slots
+from flowmaps_jax.homes.queries import HomesQueries
+from flowmaps_jax.validation import check_array, check_shape
+
+TIE_ATOL = 1e-6
+"""Two probabilities closer than this are tied (top-1, rank cost), as in docs/protocol.md."""
+KL_FLOOR = 1e-9
+"""KL(q ‖ p) reads max(p, KL_FLOOR): about 20.7 nats per unit of q's mass where p has none."""
+POSTERIOR_METRICS = ("kl", "tv", "top1", "rank_cost")
+ASSIGN_MARGIN = 0.1
+"""Metres: a sampled box counts for a receptacle within half its footprint diagonal plus this."""
+
+
+def _modes(scores, valid):
+    best = jnp.max(jnp.where(valid, scores, -jnp.inf), axis=-1, keepdims=True)
+    return valid & (scores >= best - TIE_ATOL)
+
+
+def visit_ranks(scores, valid):
+    """(..., R) mean rank (1 = first) of each valid slot visiting by decreasing ``scores``;
+    tied slots share their group's mean rank; invalid slots rank after all valid ones."""
+    s_i, s_j = scores[..., :, None], scores[..., None, :]
+    valid_j = valid[..., None, :]
+    higher = valid_j & (s_j > s_i + TIE_ATOL)
+    tied = valid_j & (jnp.abs(s_j - s_i) <= TIE_ATOL) & ~jnp.eye(scores.shape[-1], dtype=bool)
+    rank = 1.0 + jnp.sum(higher, axis=-1) + 0.5 * jnp.sum(tied, axis=-1)
+    return jnp.where(valid, rank, jnp.sum(valid, axis=-1, keepdims=True) + 1.0)
+
+
+@jax.jit
+def _posterior_scores(p, q, allowed):
+    p, q = jnp.where(allowed, p, 0.0), jnp.where(allowed, q, 0.0)
+    kl = jnp.sum(jnp.where(q > 0, q * (jnp.log(jnp.where(q > 0, q, 1.0))
+                                       - jnp.log(jnp.maximum(p, KL_FLOOR))), 0.0), axis=-1)
+    off = jnp.clip(1.0 - jnp.sum(p, axis=-1), 0.0, 1.0)
+    tv = 0.5 * jnp.sum(jnp.abs(p - q), axis=-1) + 0.5 * off
+    p_modes, q_modes = _modes(p, allowed), _modes(q, allowed)
+    top1 = jnp.sum(p_modes & q_modes, axis=-1) / jnp.maximum(jnp.sum(p_modes, axis=-1), 1)
+    cost = jnp.sum(visit_ranks(p, allowed) * q, axis=-1)
+    best = jnp.sum(visit_ranks(q, allowed) * q, axis=-1)
+    return {"kl": kl, "tv": tv, "top1": top1, "rank_cost": cost / best}
+
+
+def posterior_scores(p, q, allowed) -> dict[str, jax.Array]:
+    """{``kl``, ``tv``, ``top1``, ``rank_cost``} (...) of p (..., R) against q (..., R) on the
+    ``allowed`` (..., R) receptacles (see the module's docstring)."""
+    shape = check_array("q", q, (..., None)).shape
+    check_shape("p", tuple(np.shape(p)), shape)
+    check_shape("allowed", tuple(np.shape(allowed)), shape)
+    return _posterior_scores(jnp.asarray(p, jnp.float32), jnp.asarray(q, jnp.float32),
+                             jnp.asarray(allowed, bool))
+
+
+def object_positions(homes: Homes, queries: HomesQueries, config: HomesConfig) -> jax.Array:
+    """(E, Q, R, 3): the centre (x, y, z) the queried object's box would have on each
+    receptacle (on its top, as ``flowsim.homes.object_boxes`` places it)."""
+    size = jnp.asarray([o.size for o in config.object_classes], jnp.float32)
+    cls = jnp.take_along_axis(homes.object_class, queries.object_index, axis=1)
+    height = size[jnp.maximum(cls, 0), 2]  # (E, Q)
+    box = homes.receptacle_box[:, None]  # (E, 1, R, 6)
+    top = box[..., 2] + box[..., 5] / 2
+    z = top + height[..., None] / 2
+    return jnp.stack([jnp.broadcast_to(box[..., 0], z.shape),
+                      jnp.broadcast_to(box[..., 1], z.shape), z], axis=-1)
+
+
+@jax.jit
+def _assign(samples, positions, allowed, footprint):
+    centre = samples[..., None, :3]  # (E, Q, N, 1, 3)
+    dist = jnp.linalg.norm(centre - positions[:, :, None], axis=-1)  # (E, Q, N, R)
+    dist = jnp.where(allowed[:, :, None], dist, jnp.inf)
+    nearest = jnp.argmin(dist, axis=-1)
+    radius = jnp.take_along_axis(jnp.broadcast_to(footprint[:, None, None], dist.shape),
+                                 nearest[..., None], axis=-1)[..., 0]
+    inside = jnp.min(dist, axis=-1) <= radius
+    hits = (nearest[..., None] == jnp.arange(dist.shape[-1])) & inside[..., None]
+    return jnp.mean(hits, axis=-2, dtype=jnp.float32)
+
+
+def assign_samples(samples, homes: Homes, queries: HomesQueries,
+                   config: HomesConfig) -> jax.Array:
+    """(E, Q, R) fractions of sampled boxes (E, Q, N, 6) (cx, cy, cz, w, d, h) on each allowed
+    receptacle: a sample counts for the allowed receptacle whose object position
+    (:func:`object_positions`) is nearest to its centre, unless farther than half that
+    receptacle's footprint diagonal plus ``ASSIGN_MARGIN``; then it is off (1 − the sum)."""
+    shape = check_array("samples", samples, (None, None, None, 6)).shape
+    check_shape("samples", shape[:2], tuple(queries.object_index.shape), "(E, Q) of queries")
+    box = homes.receptacle_box
+    footprint = 0.5 * jnp.hypot(box[..., 3], box[..., 4]) + ASSIGN_MARGIN  # (E, R)
+    return _assign(jnp.asarray(samples, jnp.float32), object_positions(homes, queries, config),
+                   allowed_slots(homes, queries), footprint)
+
+
+# --------------------------------------------------------------------------- summaries
+
+
+def _json(x: float) -> float | None:
+    return float(f"{x:.6g}") if math.isfinite(x) else None
+
+
+def stats(values) -> dict:
+    """{mean, stderr, count} of per-query values (stderr None for fewer than two; JSON-safe)."""
+    v = np.asarray(values, np.float64).ravel()
+    stderr = float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else float("nan")
+    return {"mean": _json(float(v.mean())) if v.size else None, "stderr": _json(stderr),
+            "count": int(v.size)}
+
+
+def query_groups(homes: Homes, queries: HomesQueries) -> dict[str, np.ndarray]:
+    """{"regime": (E, Q) regime names, "horizon": (E, Q) τ_q − τ} of every query."""
+    regime = np.take_along_axis(np.asarray(homes.regime), np.asarray(queries.object_index), 1)
+    return {"regime": np.asarray(REGIMES)[regime], "horizon": np.asarray(queries.horizon)}
+
+
+def summarise(values, groups: dict[str, np.ndarray]) -> dict:
+    """{"overall": stats, "by_<group>": {id: stats}} of per-query values (E, Q); ids as
+    strings, regimes in ``REGIMES`` order, horizons ascending."""
+    v = np.asarray(values, np.float64)
+    out = {"overall": stats(v)}
+    for name, labels in groups.items():
+        labels = np.asarray(labels)
+        ids = [r for r in REGIMES if np.any(labels == r)] if name == "regime" else \
+            sorted(np.unique(labels).tolist())
+        out[f"by_{name}"] = {str(i): stats(v[labels == i]) for i in ids}
+    return out
