@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import NamedTuple
 
 import flax.linen as nn
 import jax
@@ -364,3 +365,33 @@ def sample_placements(params, config: HomesModelConfig, homes_config: HomesConfi
     z0 = jax.random.normal(noise_key, (b, q, num_samples, 6))
     z1 = flow.integrate(velocity_fn, z0, num_steps, "midpoint")
     return table, mean + scale * z1
+
+
+# --------------------------------------------------------------------------- stored configs
+
+
+class HomesSpec(NamedTuple):
+    """What a stored homes config describes (the store layer's model spec of this family):
+    ``kind`` (:data:`FAMILY_NAME`), the network's ``model`` sizes and the ``homes`` world."""
+
+    kind: str
+    model: HomesModelConfig
+    homes: HomesConfig
+
+    def abstract_params(self):
+        """Structure, shapes and dtypes of the params (nothing computed)."""
+        return jax.eval_shape(lambda key: init_params(key, self.model, self.homes),
+                              jax.random.key(0))
+
+
+def homes_spec(config: dict) -> HomesSpec:
+    """The spec of a stored homes run config (``HomesTrainConfig.to_dict()``: its ``model`` and
+    ``homes`` sections; the training fields are not read). ``ValueError`` naming what is
+    wrong."""
+    if not isinstance(config, dict) or config.get("model_kind") != FAMILY_NAME:
+        raise ValueError(f"not a stored {FAMILY_NAME!r} config")
+    for section in ("model", "homes"):
+        if not isinstance(config.get(section), dict):
+            raise ValueError(f"the {FAMILY_NAME!r} config has no {section!r} section")
+    return HomesSpec(kind=FAMILY_NAME, model=HomesModelConfig.from_dict(config["model"]),
+                     homes=HomesConfig.from_dict(config["homes"]))
