@@ -66,11 +66,13 @@ class HomesPredictor:
     # ------------------------------------------------------------------ loading
 
     @classmethod
-    def load(cls, source, which: str = "best") -> HomesPredictor:
+    def load(cls, source, which: str = "best",
+             directory: str | pathlib.Path = pretrained.PRETRAINED_DIR) -> HomesPredictor:
         """The model in ``source``: a run or checkpoint directory (its ``which`` step: "best",
         the lowest validation CE, by default; "latest" its last), or a packaged name such as
-        ``"flowmaps-homes"`` (also as ``"pretrained:flowmaps-homes"``). ``ValueError`` naming
-        ``source`` when it is missing, damaged or not a homes model."""
+        ``"flowmaps-homes"`` (also as ``"pretrained:flowmaps-homes"``), read from
+        ``directory`` (the package's weights by default). ``ValueError`` naming ``source`` when
+        it is missing, damaged or not a homes model."""
         which = check_choice("which", which, checkpoints.WHICH)
         if not isinstance(source, (str, pathlib.Path)):
             raise ValueError(f"source must be a checkpoint directory or a packaged name; got "
@@ -81,7 +83,7 @@ class HomesPredictor:
             name in pretrained.NAMES and not pathlib.Path(name).exists())
         try:
             if packaged:
-                weights = pretrained.read_weights(name)
+                weights = pretrained.read_weights(name, directory)
                 where, step = f"pretrained:{name}", weights.step
             else:
                 weights = checkpoints.load_weights(source, which)
