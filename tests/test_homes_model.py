@@ -11,7 +11,9 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
+from support import perturb, run_python_in_process
 
 from flowmaps_jax.flowsim.homes import context_of, generate_homes, object_boxes
 from flowmaps_jax.homes import model as homes_model
@@ -21,7 +23,6 @@ from flowmaps_jax.homes.predictor import HomesPredictor
 from flowmaps_jax.homes.queries import HomesQueries
 from flowmaps_jax.predictor import load_model, load_pretrained
 from flowmaps_jax.store import model_spec, pretrained
-from support import perturb, run_python_in_process
 
 CFG = homes_train.homes_smoke_preset()
 CONFIG, MODEL = CFG.homes, CFG.model
@@ -97,7 +98,7 @@ def test_token_budget_and_tau_are_checked(homes):
         dataclasses.replace(CONFIG, max_tokens=10)
     tight = dataclasses.replace(CONFIG)
     object.__setattr__(tight, "max_tokens", 10)  # a config that skipped its own checks
-    with pytest.raises(ValueError, match="config.max_tokens=10"):
+    with pytest.raises(ValueError, match=r"config.max_tokens=10"):
         homes_tokens.home_tokens(homes, np.zeros(homes.num_homes, np.int32), tight)
     with pytest.raises(ValueError, match="tau"):
         homes_tokens.home_tokens(homes, np.zeros(homes.num_homes + 1, np.int32), CONFIG)
@@ -160,7 +161,7 @@ def test_history_features_match_a_hand_computation(homes, queries):
 
 
 def test_queries_are_checked(homes, queries):
-    with pytest.raises(ValueError, match="queries.tau"):
+    with pytest.raises(ValueError, match=r"queries.tau"):
         homes_tokens.history_features(homes, queries.replace(tau=queries.tau[:, :2]), CONFIG)
     with pytest.raises(ValueError, match="tau_q"):
         homes_tokens.history_features(homes, queries.replace(tau_q=queries.tau), CONFIG)
@@ -219,19 +220,27 @@ def test_samples_stand_on_a_receptacle_drawn_from_the_weights(params, batch):
     assert np.all(np.abs(z) < 6)
 
 
-def test_a_few_dozen_steps_lower_the_loss():
-    cfg = dataclasses.replace(CFG, steps=40, lr=3e-3, warmup_steps=2, chunk_steps=40)
+def test_a_few_dozen_steps_lower_the_loss(homes):
+    """The loss, its gradients and the run's optimiser on one fixed batch (the train step on
+    fresh homes runs in the training CLI's test below)."""
+    cfg = dataclasses.replace(CFG, steps=40, lr=3e-3, warmup_steps=2)
     state = homes_train.init_state(cfg)
-    val = homes_train.validation_batches(cfg)
-    evaluate, step = homes_train.make_eval(cfg), homes_train.make_train_step(cfg)
-    before = [float(x) for x in evaluate(state.ema_params, val)]
-    homes = homes_train.train_homes(cfg, 0)
+    batch = jax.jit(lambda key: homes_train.draw_batch(key, homes, cfg))(jax.random.key(0))
+    tx = homes_train.make_optimizer(cfg)
+
+    @jax.jit
+    def step(params, opt_state):
+        grads, aux = jax.grad(lambda p: homes_model.homes_loss(
+            p, MODEL, CONFIG, batch, jax.random.key(1)), has_aux=True)(params)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, aux
+
+    params, opt_state = state.params, tx.init(state.params)
+    _, _, before = step(params, opt_state)
     for _ in range(cfg.steps):
-        state, metrics = step(state, homes)
-    after = [float(x) for x in evaluate(state.params, val)]
-    assert after[0] < before[0] - 0.05, (before, after)  # the receptacle cross-entropy
-    assert after[0] + after[1] < sum(before), (before, after)
-    assert np.isfinite(float(metrics["loss"]))
+        params, opt_state, aux = step(params, opt_state)
+    assert float(aux["ce"]) < 0.5 * float(before["ce"]), (before, aux)
+    assert float(aux["cfm"]) < float(before["cfm"]), (before, aux)
 
 
 # --------------------------------------------------------------------------- training, loading
@@ -281,14 +290,14 @@ def test_export_and_load_by_name_round_trip_with_integrity_checks(run_dir, homes
     data = bytearray(npz.read_bytes())
     data[len(data) // 2] ^= 0xFF
     npz.write_bytes(bytes(data))
-    with pytest.raises(ValueError, match="source 'flowmaps-homes'.*damaged"):
+    with pytest.raises(ValueError, match=r"source 'flowmaps-homes'.*damaged"):
         HomesPredictor.load("flowmaps-homes", directory=out)
 
 
 def test_loading_refuses_missing_and_foreign_sources(tmp_path):
-    with pytest.raises(ValueError, match="source .*does not exist"):
+    with pytest.raises(ValueError, match=r"source .*does not exist"):
         HomesPredictor.load(tmp_path / "nothing")
-    with pytest.raises(ValueError, match="source .*not a checkpoint directory"):
+    with pytest.raises(ValueError, match=r"source .*not a checkpoint directory"):
         HomesPredictor.load(tmp_path)
     with pytest.raises(ValueError, match="source 'mlp' holds a 'mlp' model"):
         HomesPredictor.load("mlp")
@@ -298,13 +307,13 @@ def test_loading_refuses_missing_and_foreign_sources(tmp_path):
 
 def test_the_predictor_checks_its_inputs(run_dir, homes, queries):
     predictor = HomesPredictor.load(run_dir)
-    with pytest.raises(ValueError, match="queries.tau_q"):
+    with pytest.raises(ValueError, match=r"queries.tau_q"):
         predictor.probabilities(homes, queries.replace(tau_q=queries.tau), CONFIG)
-    with pytest.raises(ValueError, match="queries.object_index"):
+    with pytest.raises(ValueError, match=r"queries.object_index"):
         predictor.probabilities(homes, queries.replace(object_index=queries.object_index[:1]),
                                 CONFIG)
     other = dataclasses.replace(CONFIG, max_tokens=CONFIG.max_tokens + 1)
-    with pytest.raises(ValueError, match="config.max_tokens"):
+    with pytest.raises(ValueError, match=r"config.max_tokens"):
         predictor.probabilities(homes, queries, other)
     with pytest.raises(ValueError, match="num_samples"):
         predictor.sample(jax.random.key(0), homes, queries, CONFIG, 0)

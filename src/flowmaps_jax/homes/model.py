@@ -15,9 +15,11 @@ The model is issue 33's mixture read-out on a home's tokens (:mod:`flowmaps_jax.
   (:func:`flowmaps_jax.model.mixture.relative_geometry`), plus c. ``weight_blocks`` times, the
   rows of one query self-attend (over the object's allowed receptacles) and then cross-attend to
   the context (a :class:`~flowmaps_jax.model.cdit.CDiTBlock`, AdaLN-Zero on c); a zero-initialised
-  AdaLN final layer gives one logit per row, masked to the object's allowed receptacles
-  (``Homes.object_allowed``). Trained by cross-entropy against the receptacle the object stands
-  on at τ_q: the proper scoring rule, whose optimum is the exact posterior.
+  AdaLN final layer gives one logit per row, plus a zero-initialised linear term of the row's
+  features (what they say directly is learnt in the first steps, while the zero-initialised
+  deep path starts), masked to the object's allowed receptacles (``Homes.object_allowed``).
+  Trained by cross-entropy against the receptacle the object stands on at τ_q: the proper
+  scoring rule, whose optimum is the exact posterior.
 * **Placement** p_θ(box | r): a flow-matching model of the 6-D box in the local frame of
   receptacle r, z = (box − μ_r) / scale_r with μ_r = (r's centre x, y; its top + the object's
   half height; the object's w, d, h) and scale_r = :data:`PLACEMENT_SCALE` × (r's w, d; the
@@ -194,6 +196,7 @@ class HomesNet(nn.Module):
         self.row_self = [layer() for _ in range(cfg.weight_blocks)]
         self.row_cross = [block() for _ in range(cfg.weight_blocks)]
         self.weight_final = FinalLayer(d, out_dim=1)
+        self.feature_logit = FlatDense(1, kernel_init=nn.initializers.zeros_init())
         self.z_embed = SinusoidalMLP(d, cfg.freq_bands, cfg.max_frequency)
         self.time_embed = SinusoidalMLP(d, cfg.freq_bands, cfg.max_frequency)
         self.table_embed = FlatDense(d)
@@ -224,14 +227,14 @@ class HomesNet(nn.Module):
         geometry = mixture.relative_geometry(_receptacle_boxes_4d(context.boxes,
                                                                   self.homes_config),
                                              batch.current)  # (B, Q, R, 22)
-        rows = (context.tokens[:, None, first:first + r]
-                + self.row_mlp(jnp.concatenate([batch.history, geometry], axis=-1))
+        features = jnp.concatenate([batch.history, geometry], axis=-1)
+        rows = (context.tokens[:, None, first:first + r] + self.row_mlp(features)
                 + self.weight_pos + c[:, :, None, :])  # (B, Q, R, D)
         allowed = batch.allowed.reshape(b * q, r)
         for attend, cross in zip(self.row_self, self.row_cross, strict=True):
             rows = attend(rows.reshape(b * q, r, -1), allowed, True).reshape(b, q, r, -1)
             rows = cross(rows, c, context.tokens, context.mask, True)
-        logits = self.weight_final(rows, c)[..., 0]
+        logits = self.weight_final(rows, c)[..., 0] + self.feature_logit(features)[..., 0]
         return jnp.where(batch.allowed, logits, NEGATIVE)
 
     def placement_velocity(self, context: Context, c, z_t, t, table):
