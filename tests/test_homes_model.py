@@ -341,3 +341,16 @@ def test_the_train_config_round_trips_and_refuses_bad_fields():
     assert homes_train._override(CFG, "model.dim=8").model.dim == 8
     with pytest.raises(ValueError, match="unknown key"):
         homes_train._override(CFG, "model.width=8")
+
+
+def test_large_requests_run_in_chunks_of_queries_with_the_same_answers(run_dir, homes, queries,
+                                                                       monkeypatch):
+    from flowmaps_jax.homes import predictor as homes_predictor
+
+    predictor = HomesPredictor.load(run_dir)
+    whole = np.asarray(predictor.probabilities(homes, queries, CONFIG))
+    monkeypatch.setattr(homes_predictor, "ROWS_PER_CALL",
+                        homes.num_homes * CONFIG.max_receptacles * 2)  # 2 of the 3 queries
+    np.testing.assert_array_equal(predictor.probabilities(homes, queries, CONFIG), whole)
+    boxes = predictor.sample(jax.random.key(0), homes, queries, CONFIG, 2)
+    assert boxes.shape == (homes.num_homes, 3, 2, 6) and np.all(np.isfinite(boxes))

@@ -49,7 +49,21 @@ COMPATIBLE_FIELDS = ("rooms", "receptacles_per_room", "objects_per_home", "max_t
 """The config fields a model's token layout and vocabulary depend on: a config given to the
 predictor must agree with the model's on these (the schedules may differ)."""
 
+ROWS_PER_CALL = 8192
+"""Query rows one compiled call takes at most (queries × samples); larger requests run in
+chunks of queries of one padded shape (one compiled program), so memory stays bounded."""
+
 _query_batch = jax.jit(per_query_batch, static_argnames=("config", "history"))
+
+
+def _window(a, start: int, size: int):
+    """Columns start … start + size − 1 of a (E, Q, …), padded with copies of column 0."""
+    part = a[:, start:start + size]
+    return jnp.concatenate([part, jnp.repeat(a[:, :1], size - part.shape[1], 1)], 1)
+
+
+def _head(a, count: int):
+    return a[:, :count]
 
 
 class HomesPredictor:
@@ -111,20 +125,35 @@ class HomesPredictor:
         check_queries(queries, homes, config)
 
     def _batch(self, homes, queries):
-        queries = jax.tree.map(lambda a: jnp.asarray(a, jnp.int32), queries)
         return _query_batch(homes, queries, self.homes, self.model.history)
+
+    def _chunked(self, fn, queries: HomesQueries, rows_per_query: int):
+        """``fn(queries chunk)`` over chunks of the query axis (the last padded with copies of
+        the first query), concatenated along it: one compiled shape however many queries."""
+        queries = jax.tree.map(lambda a: jnp.asarray(a, jnp.int32), queries)
+        e, q = queries.tau.shape
+        size = max(1, min(q, ROWS_PER_CALL // max(e * rows_per_query, 1)))
+        if size == q:
+            return fn(queries)
+        parts = [jax.tree.map(functools.partial(_head, count=min(size, q - start)),
+                              fn(jax.tree.map(functools.partial(_window, start=start,
+                                                                size=size), queries)))
+                 for start in range(0, q, size)]
+        return jax.tree.map(lambda *a: jnp.concatenate(a, axis=1), *parts)
 
     def probabilities(self, homes: Homes, queries: HomesQueries,
                       config: HomesConfig) -> jax.Array:
         """(E, Q, R) float32: the model's probability that each queried object stands on
         receptacle slot r at τ_q; 0 off its allowed receptacles, rows sum to 1."""
         self.check(homes, queries, config)
-        e, q = queries.tau.shape
-        check_request_size(f"probabilities of {e} x {q} queries",
-                           e * q * self._row_bytes(self.homes.max_receptacles))
-        p = receptacle_probabilities(self.params, self.model, self.homes,
-                                     self._batch(homes, queries))
-        return p.reshape(e, q, -1)
+        e = queries.tau.shape[0]
+
+        def run(chunk):
+            p = receptacle_probabilities(self.params, self.model, self.homes,
+                                         self._batch(homes, chunk))
+            return p.reshape(e, chunk.tau.shape[1], -1)
+
+        return self._chunked(run, queries, self.homes.max_receptacles)
 
     def sample(self, key, homes: Homes, queries: HomesQueries, config: HomesConfig,
                num_samples: int, num_steps: int = DEFAULT_NUM_STEPS, *,
@@ -138,13 +167,19 @@ class HomesPredictor:
         num_steps = check_int("num_steps (ODE grid points)", num_steps, 2)
         e, q = queries.tau.shape
         check_request_size(f"sample({e} x {q} queries x {num_samples} samples)",
-                           e * q * (num_samples + self.homes.max_receptacles)
-                           * self._row_bytes(1))
-        table, boxes = sample_placements(self.params, self.model, self.homes,
-                                         self._batch(homes, queries), key, num_samples,
-                                         num_steps)
-        boxes = denormalise_boxes(boxes.reshape(e, q, num_samples, 6), homes.home_size)
-        table = table.reshape(e, q, num_samples)
+                           e * q * num_samples * 6 * 4 * 2)  # the boxes and receptacles
+        calls = iter(range(q))  # chunk k draws with fold_in(key, k)
+
+        def run(chunk):
+            qc = chunk.tau.shape[1]
+            table, boxes = sample_placements(self.params, self.model, self.homes,
+                                             self._batch(homes, chunk),
+                                             jax.random.fold_in(key, next(calls)), num_samples,
+                                             num_steps)
+            return table.reshape(e, qc, num_samples), boxes.reshape(e, qc, num_samples, 6)
+
+        table, boxes = self._chunked(run, queries, num_samples + self.homes.max_receptacles)
+        boxes = denormalise_boxes(boxes, homes.home_size)
         return (boxes, table) if return_receptacles else boxes
 
     def as_prior(self, config: HomesConfig):
@@ -153,11 +188,6 @@ class HomesPredictor:
 
     def _prior(self, homes, queries, config):
         return self.probabilities(homes, queries, config)
-
-    def _row_bytes(self, rows: int) -> int:
-        """Working memory of ``rows`` rows of one query plus its scene (float32)."""
-        d = self.model.dim
-        return 4 * d * (self.model.mlp_ratio + 8) * (rows + self.homes.max_tokens) * 4
 
     def __repr__(self) -> str:
         return (f"HomesPredictor(source={self.source!r}, step={self.step}, "
