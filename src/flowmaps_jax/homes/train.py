@@ -139,9 +139,10 @@ class HomesTrainConfig:
 
 def homes_preset() -> HomesTrainConfig:
     """The shipped homes model's recipe: D = 64, 2 encoder layers, 2 weight block pairs, 2
-    placement blocks (0.6M parameters); 32 homes × 8 queries per step, 5,000 steps. Measured
-    on the 2-core CPU at nice 19 beside another training run: 1.8 steps/s, so about 23 minutes
-    on an idle machine (about twice that beside another run)."""
+    placement blocks (0.6M parameters); 32 homes × 8 queries per step, 5,000 steps. Measured on
+    the 2-core CPU at nice 19: 1.6–2.2 steps/s beside another training run, about 3.5 with the
+    machine nearly idle, so about 25 minutes idle (compilation and validation included) and
+    about twice that beside another run."""
     return HomesTrainConfig(steps=5000)
 
 
