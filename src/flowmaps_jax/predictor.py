@@ -53,6 +53,7 @@ from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inp
 from flowmaps_jax.model.flowmaps import check_inputs
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.store import checkpoints, pretrained
+from flowmaps_jax.store.model_spec import HOMES_FAMILY
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles
 from flowmaps_jax.validation import (
     check_flag,
@@ -326,6 +327,8 @@ def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
     """
     weights = checkpoints.load_weights(checkpoint_dir, which, use_ema, step)
     spec = weights.spec
+    if spec.kind == HOMES_FAMILY:  # the homes model has its own predictor
+        return _homes_predictor(weights, str(weights.root))
     return Predictor(params=weights.params, model=spec.model, family_name=spec.kind,
                      flowsim=spec.flowsim, source=str(weights.root), step=weights.step)
 
@@ -337,8 +340,11 @@ def load_pretrained(name: str, directory: str | pathlib.Path = pretrained.PRETRA
     :class:`Predictor` as :func:`load` of that run. ``directory``: where the weights are (the
     package's ``pretrained/`` folder by default). Raises ``ValueError`` for an unknown name
     (listing the names), or weights that are missing, damaged (SHA-256 mismatch) or do not fit
-    their config. See :mod:`flowmaps_jax.store.pretrained`."""
+    their config. See :mod:`flowmaps_jax.store.pretrained`. ``"flowmaps-homes"`` (and
+    :func:`load` of a homes run) gives a :class:`flowmaps_jax.homes.predictor.HomesPredictor`."""
     weights = pretrained.read_weights(name, directory)
+    if weights.spec.kind == HOMES_FAMILY:  # "flowmaps-homes": a HomesPredictor
+        return _homes_predictor(weights, f"pretrained:{weights.name}")
     return Predictor(params=weights.params, model=weights.spec.model, family_name=weights.spec.kind,
                      flowsim=weights.spec.flowsim, source=f"pretrained:{weights.name}",
                      step=weights.step)
@@ -356,4 +362,15 @@ def load_model(spec: str, which: str = "best", devices: int | None = None) -> Pr
         predictor = load_pretrained(spec[len(PRETRAINED_PREFIX):])
     else:
         predictor = load(spec, which=which)
+    if not isinstance(predictor, Predictor):
+        raise ValueError(f"{spec} is a FlowSim homes model: load it with "
+                         f"flowmaps_jax.homes.predictor.HomesPredictor.load")
     return predictor.sharded(devices)
+
+
+def _homes_predictor(weights, source: str):
+    """The homes model's :class:`flowmaps_jax.homes.predictor.HomesPredictor`."""
+    from flowmaps_jax.homes.predictor import HomesPredictor
+
+    return HomesPredictor(weights.params, weights.spec.model, weights.spec.homes, source,
+                          weights.step)

@@ -17,6 +17,9 @@ from flowmaps_jax.store.integrity import leaf_name
 
 DEFAULT_FAMILY = "flowmaps"
 """The family of a stored config without ``model_kind`` (``TrainConfig``'s default)."""
+HOMES_FAMILY = "flowmaps-homes"
+"""The homes model (``flowmaps_jax.homes.model.FAMILY_NAME``): its configs, model and
+simulator are read by :func:`flowmaps_jax.homes.model.homes_spec`."""
 
 
 class ModelSpec(NamedTuple):
@@ -45,6 +48,9 @@ def model_spec(config: dict) -> ModelSpec:
     if not isinstance(config, dict):
         raise ValueError(f"the config must be a dict; got {type(config).__name__}")
     kind = config.get("model_kind", DEFAULT_FAMILY)
+    if kind == HOMES_FAMILY:  # a spec of the same shape: kind, model, abstract_params()
+        from flowmaps_jax.homes.model import homes_spec
+        return homes_spec(config)
     model_family(kind)  # ValueError listing the families
     model = ModelConfig.from_dict(config["model"]) if "model" in config else ModelConfig()
     flowsim = FlowSimConfig.from_dict(config["flowsim"]) if "flowsim" in config \

@@ -35,7 +35,7 @@ from flax import traverse_util
 
 from flowmaps_jax.store import checkpoints
 from flowmaps_jax.store.checkpoints import WHICH
-from flowmaps_jax.store.model_spec import ModelSpec, model_spec
+from flowmaps_jax.store.model_spec import HOMES_FAMILY, ModelSpec, model_spec
 from flowmaps_jax.validation import (
     check_choice,
     check_no_links,
@@ -49,12 +49,15 @@ PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[1] / "pretrained"
 """The package data folder holding the pretrained weights."""
 NAMES = ("flowmaps", "mlp", "mlp-learned",
          "flowmaps-preferences", "flowmaps-dynamic", "flowmaps-mixed",
-         "flowmaps-preferences-h1", "flowmaps-dynamic-h1", "flowmaps-mixed-h1")
+         "flowmaps-preferences-h1", "flowmaps-dynamic-h1", "flowmaps-mixed-h1",
+         "flowmaps-homes")
 """The pretrained models: FlowMaps and the two MLP baselines (the paper's world, ``routine``),
 and one FlowMaps per habits world (``flowsim.WORLDS``), trained with ``--preset habits --set
 world=NAME``: ``flowmaps-<world>`` reads the last 8 maps, ``flowmaps-<world>-h1`` is the same
-recipe reading one map (the "H = 1 model" reference row). A name starting with ``flowmaps``
-holds a FlowMaps model, one starting with ``mlp`` the MLP baseline."""
+recipe reading one map (the "H = 1 model" reference row); ``flowmaps-homes`` is the FlowSim
+homes model (``--preset homes``, :class:`flowmaps_jax.homes.predictor.HomesPredictor`). A name
+starting with ``mlp`` holds the MLP baseline, ``flowmaps-homes`` the homes model, any other
+starting with ``flowmaps`` a FlowMaps model."""
 MAX_BYTES = 12 * 1024 * 1024  # size budget per model: issue 8 set 10 MB; issue 33's mixture head
 # (two more CDiT blocks for the table weights, 0.66M parameters) needs 11.3 MB
 MAX_META_BYTES = 1024 * 1024  # a .json larger than this is not one export_pretrained wrote
@@ -66,6 +69,12 @@ def check_name(name) -> str:
     if not isinstance(name, str) or name not in NAMES:
         raise ValueError(f"name must be one of {list(NAMES)}; got {name!r}")
     return name
+
+
+def _kind_of(name: str) -> str:
+    """The model family the pretrained name ``name`` holds."""
+    return "mlp" if name.startswith("mlp") else HOMES_FAMILY if name == HOMES_FAMILY \
+        else "flowmaps"
 
 
 def available(directory: str | pathlib.Path = PRETRAINED_DIR) -> list[str]:
@@ -240,7 +249,7 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
         which = "latest"
     weights = checkpoints.load_weights(checkpoint_dir, which=which)
     kind, model = weights.spec.kind, weights.spec.model
-    expected_kind = "mlp" if name.startswith("mlp") else "flowmaps"
+    expected_kind = _kind_of(name)
     if kind != expected_kind:
         raise ValueError(f"checkpoint_dir holds a {kind!r} model; name {name!r} needs "
                          f"a {expected_kind!r} model")

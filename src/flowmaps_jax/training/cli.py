@@ -10,6 +10,7 @@ Examples::
     python -m flowmaps_jax.train --resume --run-dir runs/flowmaps-cpu-20250101-120000
     python -m flowmaps_jax.train --resume --run-dir runs/X --from-step 500   # an older save
     python -m flowmaps_jax.train --overwrite --run-dir runs/X   # old run moved to X.old-<time>
+    python -m flowmaps_jax.train --preset homes --run-dir runs/homes   # FlowSim homes (homes.train)
 
 A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` (one JSON record
 per log interval: ``"kind": "train"`` with mean loss/grad_norm/lr and steps/s and samples/s over
@@ -43,6 +44,7 @@ import time
 import typing
 
 from flowmaps_jax import distributed
+from flowmaps_jax.homes import train as homes_train
 from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.store import rundir
 from flowmaps_jax.training import resume
@@ -63,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m flowmaps_jax.train",
         description="Train FlowMaps (flow matching) or the MLP baseline on FlowSim.")
-    parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
+    parser.add_argument("--preset", choices=sorted({*PRESETS, *homes_train.PRESETS}), default=None,
                         help=f"named configuration (default {DEFAULT_PRESET})")
     parser.add_argument("--family", "--model", dest="family", choices=tuple(MODEL_FAMILIES),
                         default=None,
@@ -164,6 +166,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        if args.preset in homes_train.PRESETS:  # the homes model (flowmaps_jax.homes.train)
+            return homes_train.main_from_args(args)
         distributed.initialize()  # a multi-host job: connect the processes first
         cfg, run_dir = resolve_config(args)
         result = run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite,
