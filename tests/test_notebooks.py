@@ -20,6 +20,7 @@ import pathlib
 import re
 
 import nbformat
+import numpy as np
 import pytest
 from nbclient import NotebookClient
 
@@ -28,7 +29,8 @@ TOUR = "flowsim_tour.ipynb"
 KL_PLOTS = "kl_plots.ipynb"
 SEARCH = "search_demo.ipynb"
 HABITS = "habits.ipynb"
-NOTEBOOKS = (TOUR, KL_PLOTS, SEARCH, HABITS)
+HOMES = "homes.ipynb"
+NOTEBOOKS = (TOUR, KL_PLOTS, SEARCH, HABITS, HOMES)
 CELL_TIMEOUT = 900  # seconds; a cold kernel on a loaded 2-core machine compiles slowly
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -215,4 +217,23 @@ def test_habits_shows_each_habit_the_sharpening_posterior_and_the_model(executed
     assert tv and 0.0 <= float(tv.group(1)) <= 1.0
     images = _images(nb)
     assert len(images) == 3  # habits over time, posterior bars by H, the model next to it
+    assert all(image.startswith(PNG_MAGIC) for image in images)
+
+
+# --------------------------------------------------------------------------- homes
+
+
+def test_homes_shows_a_home_its_exact_posterior_and_the_model(executed):
+    nb = _notebook(executed, HOMES)
+    text = _stdout(nb)
+    for regime in ("preferences", "balanced", "frequent", "routine"):
+        assert f"{regime:>12}: object" in text
+    rows = re.findall(r"^[* ]\s*\S.* \(\w+\) +([\d.]+) +([\d.]+) +([\d.]+) +([\d.]+)$", text, re.M)
+    assert rows, text[:2000]
+    values = np.asarray(rows, float)
+    assert np.all((values >= 0) & (values <= 1))
+    tv = re.search(r"^TV\(exact, FlowMaps\) per object: \[(.*)\]$", text, re.M)
+    assert tv and all(0.0 <= float(v) <= 1.0 for v in tv.group(1).split())
+    images = _images(nb)
+    assert len(images) == 2  # the top view (3 panels) and the 3-D view
     assert all(image.startswith(PNG_MAGIC) for image in images)

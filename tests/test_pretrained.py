@@ -21,7 +21,29 @@ SHIPPED = ("flowmaps", "mlp", "mlp-learned", *(f"flowmaps-{w}" for w in HABIT_WO
 
 
 def test_every_default_model_is_shipped():
-    assert available() == list(SHIPPED)
+    assert available() == [*SHIPPED, "flowmaps-homes"]
+
+
+def test_shipped_homes_model_loads_by_name_and_gives_posteriors():
+    """pretrained:flowmaps-homes (issue 35) is the homes preset's model; its receptacle weights
+    are distributions over each queried object's allowed receptacles."""
+    from flowmaps_jax.flowsim.homes import generate_homes
+    from flowmaps_jax.homes import draw_queries
+    from flowmaps_jax.homes.predictor import HomesPredictor
+    from flowmaps_jax.homes.train import homes_preset
+
+    predictor = load_pretrained("flowmaps-homes")
+    assert isinstance(predictor, HomesPredictor)
+    assert predictor.model == homes_preset().model
+    config = homes_preset().homes
+    homes = generate_homes(jax.random.key(5), config, 2)
+    queries = draw_queries(jax.random.key(6), homes, config, 3)
+    p = np.asarray(predictor.probabilities(homes, queries, config))
+    allowed = np.take_along_axis(np.asarray(homes.object_allowed),
+                                 np.asarray(queries.object_index)[..., None], axis=1)
+    assert p.shape == allowed.shape
+    np.testing.assert_allclose(p.sum(-1), 1.0, atol=1e-5)
+    assert np.all(p[~allowed] == 0.0)
 
 
 @pytest.mark.parametrize("world", HABIT_WORLDS)
