@@ -12,7 +12,7 @@ argument: a dict whose keys are the config's fields.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Collection, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping
 from typing import Any
 
 from flowmaps_jax.validation.arrays import check_probabilities
@@ -232,18 +232,14 @@ def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
             object.__setattr__(obj, field, value)
 
 
-def check_keys(name: str, data: Any, known: Collection[str], *,
-               what: str = "unknown fields") -> Mapping:
-    """``data`` if it is a dict whose keys all lie in ``known``, else ``ValueError`` starting
-    with ``name`` (e.g. ``"FlowSimConfig.from_dict"``) and listing the others as ``what``."""
+def check_keys(name: str, data: Any, known: Collection[str] | None = None, *,
+               what: str = "unknown fields") -> dict:
+    """``data`` if it is a dict whose keys all lie in ``known`` (None: any keys), else
+    ``ValueError`` starting with ``name`` (e.g. ``"FlowSimConfig.from_dict"``) and listing the
+    others as ``what``."""
     if not isinstance(data, dict):
         raise ValueError(f"{name} needs a dict; got {type(data).__name__}")
-    unknown = sorted(set(data) - set(known), key=str)
+    unknown = [] if known is None else sorted(set(data) - set(known), key=str)
     if unknown:
         raise ValueError(f"{name}: {what} {unknown}")
     return data
-
-
-def field_names(cls: type, drop: Sequence[str] = ()) -> tuple[str, ...]:
-    """The field names of the dataclass ``cls``, less ``drop``."""
-    return tuple(f.name for f in dataclasses.fields(cls) if f.name not in drop)
