@@ -45,7 +45,6 @@ from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, PRETRAINED_PREFIX, SOLVERS
 from flowmaps_jax.validation import (
     check_choice,
     check_int,
-    check_no_links,
     check_output_dir,
     check_resources,
     check_seed,
@@ -179,8 +178,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError("--out is required when --checkpoint is a pretrained model")
         else:
             out = pathlib.Path(args.checkpoint) / "eval"
-        out = pathlib.Path(check_output_dir("--out", out))  # before the evaluation runs
-        check_no_links("--out", out, [*REPORT_FILES, *(() if args.no_figures else FIGURES)])
+        out = pathlib.Path(check_output_dir(  # before the evaluation runs
+            "--out", out, files=[*REPORT_FILES, *(() if args.no_figures else FIGURES)]))
         mesh = distributed.local_mesh(args.devices)
         model = load_model(args.checkpoint, args.which, args.devices)
         baselines = [load_model(path, args.which, args.devices) for path in args.baseline]

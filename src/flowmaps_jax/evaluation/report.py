@@ -26,7 +26,7 @@ from flowmaps_jax.evaluation.slots import (
     route_offset_mass_core,
 )
 from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig
-from flowmaps_jax.validation import check_no_links, make_output_dir, write_file
+from flowmaps_jax.validation import make_output_dir, write_file
 
 # --------------------------------------------------------------------------- aggregation
 
@@ -243,9 +243,8 @@ def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathli
     """Write ``results.json`` and ``results.md`` into out_dir (created); returns their paths.
     Both go through the shared writer (:func:`flowmaps_jax.validation.write_file`: a temporary
     file and a rename; a symbolic link at either name is a ``ValueError``)."""
-    out = make_output_dir("out_dir", out_dir)
+    out = make_output_dir("out_dir", out_dir, files=("results.json", "results.md"))
     paths = {"json": out / "results.json", "markdown": out / "results.md"}
-    check_no_links("out_dir", out, [p.name for p in paths.values()])
     text = json.dumps(results, indent=2, allow_nan=False) + "\n"  # refused before any write
     write_file(paths["json"], text, name="out_dir file")
     write_file(paths["markdown"], markdown_table(results), name="out_dir file")

@@ -43,7 +43,6 @@ from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tables import ASSIGN_RADIUS
 from flowmaps_jax.validation import (
     check_int,
-    check_no_links,
     check_output_dir,
     make_output_dir,
     save_figure,
@@ -96,8 +95,7 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         if p.model.history > 1:
             check_history(p.model.history, model_token_config(config, p))
     if out_dir is not None:  # before anything runs: a file there, or a link at a report's name
-        check_output_dir("out_dir", out_dir)
-        check_no_links("out_dir", out_dir, [*REPORT_FILES, *(FIGURES if figures else ())])
+        check_output_dir("out_dir", out_dir, files=[*REPORT_FILES, *(FIGURES if figures else ())])
     start = time.perf_counter()
     key = jax.random.key(seed)
     evalset = build_eval_queries(scenes, config, key, kl_draws, history=history)
@@ -127,7 +125,6 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         results["by_habit"] = summarise_habits(rows, evalset)
     if out_dir is not None:
         out = make_output_dir("out_dir", out_dir)
-        check_no_links("out_dir", out, [*REPORT_FILES, *(FIGURES if figures else ())])
         if figures:
             model_rows = [r for r in rows if r.samples is not None]
             plots = {FIGURES[0]: lambda: plot_kl(results),

@@ -17,7 +17,6 @@ from __future__ import annotations
 import functools
 import io
 import json
-import os
 
 import jax
 import jax.numpy as jnp
@@ -40,12 +39,12 @@ from flowmaps_jax.validation import (
     check_int,
     check_int_array,
     check_key,
-    check_no_links,
     check_output_file,
     check_real,
     check_real_array,
     check_request_size,
     check_seed,
+    prefix_errors,
     read_npz,
     write_file,
 )
@@ -258,21 +257,16 @@ def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: in
     ``history``: tokens of the last H maps (see ``scene_tokens``).
     """
     _check_inputs(config, scenes)
-    batch_size, queries_per_scene = _check_batch_size(batch_size, queries_per_scene, config)
+    batch_size = check_int("batch_size", batch_size)
+    queries_per_scene = check_int("queries_per_scene", queries_per_scene)
+    check_request_size(f"a batch of {batch_size} scenes x {queries_per_scene} queries",
+                       array_bytes((batch_size, config.max_tokens, 7))
+                       + array_bytes((batch_size, queries_per_scene, 6)))
     short_frac = check_real("short_frac", short_frac, 0.0, 1.0)
     short_max = check_int("short_max", short_max)
     history = check_history(history, config)
     return _train_batch(check_key(key), scenes, batch_size, queries_per_scene, config,
                         short_frac, short_max, history)
-
-
-def _check_batch_size(batch_size, queries_per_scene, config: FlowSimConfig) -> tuple[int, int]:
-    """Positive ints whose TrainBatch (tokens, queries, targets) fits in memory."""
-    b = check_int("batch_size", batch_size)
-    q = check_int("queries_per_scene", queries_per_scene)
-    check_request_size(f"a batch of {b} scenes x {q} queries",
-                       array_bytes((b, config.max_tokens, 7)) + array_bytes((b, q, 6)))
-    return b, q
 
 
 # ------------------------------------------------------------------------------ datasets
@@ -288,7 +282,6 @@ def train_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 2500,
 
     mesh / part: as in :func:`~flowmaps_jax.flowsim.generate.generate` (split the work over
     devices; generate only this host's share). Neither changes an environment."""
-    _check_inputs(config)
     return generate(_split_key(seed, _TRAIN_TAG), num_envs, config, mesh=mesh, part=part)
 
 
@@ -296,7 +289,6 @@ def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200
                      seed: int = VALIDATION_SEED, *, mesh=None) -> Scenes:
     """The held-out environments: ``generate(fold_in(key(seed), 1), num_envs, config)``;
     a different seed and tag from ``train_split``. mesh: split the work over devices."""
-    _check_inputs(config)
     return generate(_split_key(seed, _VALIDATION_TAG), num_envs, config, mesh=mesh)
 
 
@@ -312,7 +304,6 @@ def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) ->
     _check_inputs(config)
     validate_scenes(scenes, config)
     arrays = {name: np.asarray(getattr(scenes, name)) for name in _FIELDS}
-    check_no_links("path", os.path.dirname(os.path.abspath(path)), [os.path.basename(path)])
     buffer = io.BytesIO()
     np.savez_compressed(buffer, format_version=np.int64(FORMAT_VERSION),
                         config_json=np.asarray(json.dumps(config.to_dict())), **arrays)
@@ -327,37 +318,25 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
     is untrusted: a member ``save_scenes`` does not write, Python objects, or arrays declared
     larger than the memory budget are refused before anything is decompressed
     (:func:`flowmaps_jax.validation.read_npz`)."""
-    try:
+    with prefix_errors("load_scenes: "):
         path = check_file("path", path)
-    except ValueError as err:
-        raise ValueError(f"load_scenes: {err}") from None
-    try:
         contents = read_npz(repr(path), path, allowed=("format_version", "config_json", *_FIELDS))
-    except ValueError as err:
-        raise ValueError(f"load_scenes: {err}") from None
-    if "format_version" not in contents:
-        raise ValueError(f"load_scenes: {path!r} has no format_version; not a FlowSim file")
-    try:
+    with prefix_errors(f"load_scenes: {path!r}: ", also=(TypeError,)):
+        if "format_version" not in contents:
+            raise ValueError("it has no format_version; not a FlowSim file")
         version = check_int("format_version", contents["format_version"], None)
-    except ValueError as err:
-        raise ValueError(f"load_scenes: {path!r}: {err}") from None
-    if version not in (1, FORMAT_VERSION):
-        raise ValueError(f"load_scenes: {path!r} has format version {version}; this code reads "
-                         f"versions 1 and {FORMAT_VERSION}")
-    if version == 1 and "habit" not in contents and "slot" in contents:  # before habits: routine
-        contents["habit"] = np.zeros((contents["slot"].shape[0], contents["slot"].shape[2]),
-                                     np.int32)
-    missing = [n for n in ("config_json", *_FIELDS) if n not in contents]
-    if missing:
-        raise ValueError(f"load_scenes: {path!r} is missing arrays {missing}")
-    try:
-        config = FlowSimConfig.from_dict(json.loads(str(contents["config_json"])))
-    except (ValueError, TypeError) as err:
-        raise ValueError(f"load_scenes: {path!r} has an invalid config: {err}") from err
-    try:
+        if version not in (1, FORMAT_VERSION):
+            raise ValueError(f"it has format version {version}; this code reads versions 1 and "
+                             f"{FORMAT_VERSION}")
+        if version == 1 and "habit" not in contents and "slot" in contents:  # routine only
+            contents["habit"] = np.zeros((contents["slot"].shape[0], contents["slot"].shape[2]),
+                                         np.int32)
+        missing = [n for n in ("config_json", *_FIELDS) if n not in contents]
+        if missing:
+            raise ValueError(f"it is missing arrays {missing}")
+        with prefix_errors("it has an invalid config: ", also=(TypeError,)):
+            config = FlowSimConfig.from_dict(json.loads(str(contents["config_json"])))
         validate_scenes(Scenes(**{name: contents[name] for name in _FIELDS}), config)
-    except ValueError as err:
-        raise ValueError(f"load_scenes: {path!r}: {err}") from None
     scenes = Scenes(**{name: jnp.asarray(contents[name],
                                          jnp.float32 if name in _FLOAT_FIELDS else jnp.int32)
                        for name in _FIELDS})

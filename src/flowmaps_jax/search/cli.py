@@ -51,7 +51,6 @@ from flowmaps_jax.tables import TABLE_METHODS
 from flowmaps_jax.validation import (
     check_choice,
     check_int,
-    check_no_links,
     check_output_dir,
     check_seed,
     make_output_dir,
@@ -181,8 +180,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         out = pathlib.Path(check_output_dir(
-            "--out", args.out or pathlib.Path(args.checkpoint) / "search"))
-        check_no_links("--out", out, [*REPORT_FILES, *(() if args.no_figures else FIGURES)])
+            "--out", args.out or pathlib.Path(args.checkpoint) / "search",
+            files=[*REPORT_FILES, *(() if args.no_figures else FIGURES)]))
         models = [load_model(spec, args.which, args.devices)
                   for spec in [args.checkpoint, *args.baseline]]
         config, history = search_world(models, args.world, args.history)

@@ -38,7 +38,6 @@ from flowmaps_jax.store.checkpoints import WHICH
 from flowmaps_jax.store.model_spec import ModelSpec, model_spec
 from flowmaps_jax.validation import (
     check_choice,
-    check_no_links,
     check_output_dir,
     make_output_dir,
     read_npz,
@@ -230,8 +229,8 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     which = check_choice("which", which, WHICH)
     if not isinstance(why, str):
         raise ValueError(f"why must be text; got {type(why).__name__}")
-    check_output_dir("directory", directory)  # before anything is read or written
-    check_no_links("directory", directory, [f"{name}.npz", f"{name}.json"])
+    # before anything is read or written
+    check_output_dir("directory", directory, files=[f"{name}.npz", f"{name}.json"])
     ckpt_root = checkpoints.resolve_checkpoint_dir(checkpoint_dir)
     best_step = next(iter(checkpoints.saved_steps(ckpt_root, checkpoints.BEST)), None)
     latest_step = next(iter(checkpoints.saved_steps(ckpt_root, checkpoints.LATEST)), None)

@@ -19,6 +19,11 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
   name, a metadata field: no path, no markup); :func:`read_npz` (an untrusted ``.npz``: member
   names whitelisted, declared sizes checked before anything is decompressed, no pickles).
+* :mod:`.fields`: :func:`check_fields` (a config's fields, from a ``{field: rule}`` table of
+  :class:`~.fields.Int`, :class:`~.fields.Real`, :class:`~.fields.Choice`, ... rules) and
+  :func:`check_keys` (the dict a ``from_dict`` reads).
+* :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
+  (the file or command they concern).
 * :mod:`.writes`: :func:`write_file`, :func:`make_output_dir`, :func:`save_figure`,
   :func:`check_no_links`: the one writer of every command's output files (a temporary file and
   a rename; a symbolic link at the target, or in a folder it creates, is refused).
@@ -42,6 +47,8 @@ from flowmaps_jax.validation.arrays import (
     check_shape,
     is_concrete,
 )
+from flowmaps_jax.validation.errors import prefix_errors
+from flowmaps_jax.validation.fields import check_fields, check_keys
 from flowmaps_jax.validation.files import (
     check_dir,
     check_file,
@@ -97,12 +104,14 @@ __all__ = [
     "check_array",
     "check_choice",
     "check_dir",
+    "check_fields",
     "check_file",
     "check_flag",
     "check_instance",
     "check_int",
     "check_int_array",
     "check_key",
+    "check_keys",
     "check_mask",
     "check_no_links",
     "check_output_dir",
@@ -124,6 +133,7 @@ __all__ = [
     "make_output_dir",
     "memory_limit",
     "network_flops",
+    "prefix_errors",
     "read_npz",
     "save_figure",
     "solver_evaluations",

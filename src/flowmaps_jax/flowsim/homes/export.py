@@ -86,8 +86,7 @@ def save_homes(path, homes: Homes, config: HomesConfig) -> pathlib.Path:
     validate_homes(homes, config)
     schema = homes_schema(config, homes.num_homes)
     side = schema_path(path)
-    check_no_links("path", os.path.dirname(os.path.abspath(path)),
-                   [os.path.basename(path), side.name])
+    check_no_links("path", os.path.dirname(os.path.abspath(path)), [side.name])
     arrays = {name: np.asarray(value) for name, value in homes.as_dict().items()}
     buffer = io.BytesIO()
     np.savez_compressed(buffer, format_version=np.int64(SCHEMA_VERSION),
