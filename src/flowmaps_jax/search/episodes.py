@@ -57,7 +57,6 @@ from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the sim
     check_belief,
     check_episodes,
     check_episodes_size,
-    check_p_miss,
     expected_outcomes,
     look_flops,
     outcome_bytes,

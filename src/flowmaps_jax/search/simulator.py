@@ -18,9 +18,10 @@ index). :func:`expected_outcomes` runs every possible hiding place at once (the 
 in one batch) for exact expectations under a truth distribution.
 
 Nothing here knows FlowSim: :mod:`.episodes` builds :class:`Episodes` from FlowSim scenes.
-The public functions check their arguments once and call their core (``_core`` appended;
-:func:`simulate` for :func:`run_episodes`), which checks nothing: the search protocol calls the
-cores on episodes it built.
+The public functions (:func:`run_episodes`, :func:`expected_outcomes`, :func:`bayes_update`)
+check their arguments once; the jitted simulation they run (:func:`simulate`,
+:func:`simulate_every_target`, on a policy's :func:`policy_index`) checks nothing: the search
+protocol runs it on the episodes it built and checked.
 """
 
 from __future__ import annotations
@@ -104,13 +105,6 @@ class Outcome:
 
 
 # --------------------------------------------------------------------------- validation
-
-
-def check_p_miss(p_miss) -> float:
-    """``p_miss`` (the chance a look at the right table misses the object) as a float in
-    [0, 1), else ``ValueError`` naming it."""
-    return check_real("p_miss (the chance a look at the right table misses the object)", p_miss,
-                      0.0, 1.0, high_open=True)
 
 
 def check_belief(name: str, belief, valid, valid_name: str = "valid") -> None:
@@ -200,7 +194,7 @@ def bayes_update(belief, looked, p_miss: float = 0.0, valid=None, looks_at=None)
     tables (default all) looked at least often, counting this look (``looks_at`` (..., K) int:
     looks so far *including* this one; default: only this one).
     """
-    p_miss = check_p_miss(p_miss)
+    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
     b = np.asarray(belief)
     valid = np.ones(b.shape, bool) if valid is None else np.asarray(valid, bool)
     check_belief("belief", b, valid)
@@ -269,19 +263,29 @@ def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
     """
     policy = check_policy(policy)
     budget = check_int("budget", budget)
-    p_miss = check_p_miss(p_miss)
+    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
     episodes = check_episodes(episodes, policy)
     check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy)
     key = jax.random.key(0) if key is None else check_key(key)
-    return run_episodes_core(episodes, policy, key, budget, p_miss)
+    return simulate(episodes, key, jnp.float32(p_miss), policy_index(policy), budget)
 
 
-def run_episodes_core(episodes: Episodes, policy: str, key: jax.Array, budget: int,
-                      p_miss: float) -> Outcome:
-    """Core of :func:`run_episodes` (no checks: canonical episodes, as :func:`check_episodes`
-    returns them, and checked arguments)."""
-    return simulate(episodes, key, jnp.float32(p_miss), jnp.int32(POLICIES.index(policy)),
-                    budget)
+def policy_index(policy: str) -> jnp.ndarray:
+    """A policy's name as the traced index :func:`simulate` takes (its place in ``POLICIES``)."""
+    return jnp.int32(POLICIES.index(policy))
+
+
+def simulate_every_target(episodes: Episodes, policy_index, budget: int) -> Outcome:
+    """Every episode once per possible hiding table t, with a perfect detector (the K · N
+    episodes in one batch; ``episodes.target`` is ignored) → Outcome with leading axes (K, N).
+    No validation, as :func:`simulate` (canonical episodes, as :func:`check_episodes` returns
+    them): :func:`expected_outcomes` checks first."""
+    k, n = episodes.num_tables, episodes.num_episodes
+    tiled = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k, *a.shape)).reshape(
+        k * n, *a.shape[1:]), episodes)
+    tiled = tiled.replace(target=jnp.repeat(jnp.arange(k, dtype=jnp.int32), n))
+    every = simulate(tiled, jax.random.key(0), jnp.float32(0.0), policy_index, budget)
+    return jax.tree_util.tree_map(lambda a: a.reshape(k, n, *a.shape[1:]), every)
 
 
 def expected_outcomes(episodes: Episodes, truth, policy: str,
@@ -300,20 +304,7 @@ def expected_outcomes(episodes: Episodes, truth, policy: str,
     check_belief("truth", truth, episodes.valid, "episodes.valid")
     check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy,
                         copies=episodes.num_tables)
-    return expected_outcomes_core(episodes, truth, policy, budget)
-
-
-def expected_outcomes_core(episodes: Episodes, truth, policy: str,
-                           budget: int) -> tuple[Outcome, jnp.ndarray]:
-    """Core of :func:`expected_outcomes` (no checks: canonical episodes, as
-    :func:`check_episodes` returns them, and checked arguments)."""
-    k, n = episodes.num_tables, episodes.num_episodes
-    tiled = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k, *a.shape)).reshape(
-        k * n, *a.shape[1:]), episodes)
-    tiled = tiled.replace(target=jnp.repeat(jnp.arange(k, dtype=jnp.int32), n))
-    every = simulate(tiled, jax.random.key(0), jnp.float32(0.0),
-                     jnp.int32(POLICIES.index(policy)), budget)
-    every = jax.tree_util.tree_map(lambda a: a.reshape(k, n, *a.shape[1:]), every)
+    every = simulate_every_target(episodes, policy_index(policy), budget)
     return every, jnp.asarray(truth, jnp.float32).T
 
 

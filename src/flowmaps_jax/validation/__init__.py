@@ -21,7 +21,8 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   names whitelisted, declared sizes checked before anything is decompressed, no pickles).
 * :mod:`.fields`: :func:`check_fields` (a config's fields, from a ``{field: rule}`` table of
   :class:`~.fields.Int`, :class:`~.fields.Real`, :class:`~.fields.Choice`, ... rules) and
-  :func:`check_keys` (the dict a ``from_dict`` reads).
+  :func:`check_keys` (the dict a ``from_dict`` reads); :func:`check_options` (a command line's
+  options, from the same kind of table).
 * :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
   (the file or command they concern).
 * :mod:`.writes`: :func:`write_file`, :func:`make_output_dir`, :func:`save_figure`,
@@ -48,7 +49,7 @@ from flowmaps_jax.validation.arrays import (
     is_concrete,
 )
 from flowmaps_jax.validation.errors import prefix_errors
-from flowmaps_jax.validation.fields import check_fields, check_keys
+from flowmaps_jax.validation.fields import check_fields, check_keys, check_options
 from flowmaps_jax.validation.files import (
     check_dir,
     check_file,
@@ -114,6 +115,7 @@ __all__ = [
     "check_keys",
     "check_mask",
     "check_no_links",
+    "check_options",
     "check_output_dir",
     "check_output_file",
     "check_path",

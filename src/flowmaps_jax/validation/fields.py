@@ -1,12 +1,13 @@
 """Table-driven checks of a config's fields, and of the dicts configs are read back from.
 
-A config dataclass declares one rule per field (a ``{field: rule}`` table) and checks them all
-with one call, :func:`check_fields`, instead of one ``check_*`` call per field. A rule is one of
-the small classes below (:class:`Int`, :class:`Real`, :class:`Choice`, ...): data describing what
-a field may hold. Calling a rule with ``(name, value)`` runs the matching check of
-:mod:`flowmaps_jax.validation` and returns the value in the form to go on with; every message
-still starts with the field's name. :func:`check_keys` is the one check of a ``from_dict``
-argument: a dict whose keys are the config's fields.
+A config dataclass (or a command line, :func:`check_options`) declares one rule per field (a
+``{field: rule}`` table) and checks them all with one call, :func:`check_fields`, instead of
+one ``check_*`` call per field. A rule is one of the small classes below (:class:`Int`,
+:class:`Real`, :class:`Choice`, ...): data describing what a field may hold. Calling a rule
+with ``(name, value)`` runs the matching check of :mod:`flowmaps_jax.validation` and returns
+the value in the form to go on with; every message still starts with the field's name.
+:func:`check_keys` is the one check of a ``from_dict`` argument: a dict whose keys are the
+config's fields.
 """
 
 from __future__ import annotations
@@ -137,12 +138,16 @@ class Entries:
 
 @dataclasses.dataclass(frozen=True)
 class Optional:
-    """``None``, or a value passing ``rule``."""
+    """``None`` (or a value of ``off``, such as 0 for "off", of the same type), or a value
+    passing ``rule``."""
 
     rule: Rule
+    off: tuple = ()
 
     def __call__(self, name: str, value: Any) -> Any:
-        return None if value is None else self.rule(name, value)
+        if value is None or any(type(value) is type(v) and value == v for v in self.off):
+            return value
+        return self.rule(name, value)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -230,6 +235,14 @@ def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
         value = rule(prefix + labels.get(field, field), getattr(obj, field))
         if store:
             object.__setattr__(obj, field, value)
+
+
+def check_options(args: Any, rules: Mapping[str, Rule]) -> None:
+    """A command line's parsed options (an ``argparse.Namespace``) against ``{dest: rule}``,
+    before anything runs; each message names the option as typed (``num_envs``: ``--num-envs``).
+    The values are checked, not converted."""
+    check_fields(args, rules, prefix="--", store=False,
+                 labels={dest: dest.replace("_", "-") for dest in rules})
 
 
 def check_keys(name: str, data: Any, known: Collection[str] | None = None, *,
