@@ -17,13 +17,14 @@ import math
 import pathlib
 from collections.abc import Hashable, Sequence
 
+import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.evaluation.protocol import EvalSet, RowResult
 from flowmaps_jax.evaluation.slots import (
     ROUTE_OFFSET_LABELS,
     SLOT_METRICS,
-    route_offset_mass_core,
+    offset_mass,
 )
 from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig
 from flowmaps_jax.validation import make_output_dir, write_file
@@ -98,7 +99,9 @@ def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimC
     one_step = np.asarray(evalset.horizon) == 1
     for row in rows:
         p_hat = row.slots[max(row.slots)]["p_hat"]
-        mass = np.asarray(route_offset_mass_core(p_hat, evalset.slot_now, evalset.num_slots))
+        mass = np.asarray(offset_mass(jnp.asarray(p_hat, jnp.float32),
+                                      jnp.asarray(evalset.slot_now, jnp.int32),
+                                      jnp.asarray(evalset.num_slots, jnp.int32)))
         entry = {"route_offsets_one_step": {
                      "labels": list(ROUTE_OFFSET_LABELS), "count": int(one_step.sum()),
                      "mean": [_json_number(float(v)) for v in
