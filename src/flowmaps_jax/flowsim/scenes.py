@@ -34,20 +34,18 @@ from flowmaps_jax.flowsim.generate import (
 )
 from flowmaps_jax.validation import (
     array_bytes,
+    check_args,
     check_file,
-    check_instance,
     check_int,
     check_int_array,
-    check_key,
     check_output_file,
-    check_real,
-    check_real_array,
     check_request_size,
     check_seed,
     prefix_errors,
     read_npz,
     write_file,
 )
+from flowmaps_jax.validation.fields import Instance, Int, Key, Real, RealArray
 
 FORMAT_VERSION = 2
 TRAIN_SEED = 0
@@ -58,11 +56,7 @@ _TRAIN_TAG, _VALIDATION_TAG = 0, 1
 # ------------------------------------------------------------------------------ validation
 
 
-def _check_inputs(config, *scenes) -> None:
-    """The config and (shapes and dtypes only: cheap, and fine under jit) the scenes given."""
-    check_instance("config", config, FlowSimConfig)
-    for each in scenes:
-        validate_scenes(each, config, values=False)
+_CONFIG = Instance(FlowSimConfig)
 
 
 def _check_indices(**indices: tuple) -> tuple[jnp.ndarray, ...]:
@@ -82,20 +76,18 @@ def _check_indices(**indices: tuple) -> tuple[jnp.ndarray, ...]:
 # ------------------------------------------------------------------------------ boxes
 
 
+@check_args(boxes_px=RealArray((..., 4)), config=_CONFIG)
 def normalise_boxes(boxes_px, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Pixel boxes (..., 4) (y0, x0, y1, x1) → normalised (y, x, h, w) / (map_size − 1)."""
-    check_instance("config", config, FlowSimConfig)
-    boxes = check_real_array("boxes_px", boxes_px, (..., 4))
-    return box_geometry.normalise(jnp.asarray(boxes, jnp.float32), config.map_size)
+    return box_geometry.normalise(jnp.asarray(boxes_px, jnp.float32), config.map_size)
 
 
+@check_args(boxes=RealArray((..., 4), finite=False), config=_CONFIG)
 def denormalise_boxes(boxes, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Inverse of ``normalise_boxes``: (..., 4) (y, x, h, w) → pixels (y0, x0, y1, x1).
 
     NaN or inf pass through (model samples are converted as they are; check them separately).
     """
-    check_instance("config", config, FlowSimConfig)
-    boxes = check_real_array("boxes", boxes, (..., 4), finite=False)
     return box_geometry.denormalise(jnp.asarray(boxes, jnp.float32), config.map_size)
 
 
@@ -158,6 +150,7 @@ def check_history(history, config: FlowSimConfig) -> int:
     return h
 
 
+@check_args(config=_CONFIG)
 def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFIG,
                  history: int = 1) -> tok.SceneTokens:
     """Tokens of environments ``env`` (N,) at state times ``tau`` (N,): SceneTokens (N, S).
@@ -168,7 +161,7 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
     t = 0 are masked out): furniture does not move in FlowSim, so the past maps add only their
     objects. Raises ``ValueError`` if the tokens exceed S. jit-able (a gather).
     """
-    _check_inputs(config, scenes)
+    validate_scenes(scenes, config, values=False)  # shapes and dtypes: cheap, fine under jit
     history = check_history(history, config)
     env, tau = _check_indices(env=(env, scenes.num_envs - 1),
                               tau=(tau, config.num_timesteps - 1))
@@ -180,10 +173,11 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
 _tokens_jit = jax.jit(_tokens, static_argnames=("config", "history"))
 
 
+@check_args(config=_CONFIG)
 def slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """(N, F, 4) normalised (y, x, h, w) box object ``obj`` (N,) of environment ``env`` (N,)
     would have at each position k of its visiting order (zeros for k >= num_slots)."""
-    _check_inputs(config, scenes)
+    validate_scenes(scenes, config, values=False)
     env, obj = _check_indices(env=(env, scenes.num_envs - 1),
                               obj=(obj, config.num_objects - 1))
     return _slot_boxes(scenes, env, obj, config)
@@ -247,6 +241,8 @@ def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                           target=target)
 
 
+@check_args(key=Key(), batch_size=Int(), queries_per_scene=Int(), config=_CONFIG,
+            short_frac=Real(0.0, 1.0), short_max=Int())
 def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                      config: FlowSimConfig = DEFAULT_CONFIG, short_frac: float = 0.0,
                      short_max: int = 3, history: int = 1) -> tok.TrainBatch:
@@ -256,16 +252,12 @@ def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: in
     (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config, short_*).
     ``history``: tokens of the last H maps (see ``scene_tokens``).
     """
-    _check_inputs(config, scenes)
-    batch_size = check_int("batch_size", batch_size)
-    queries_per_scene = check_int("queries_per_scene", queries_per_scene)
+    validate_scenes(scenes, config, values=False)
     check_request_size(f"a batch of {batch_size} scenes x {queries_per_scene} queries",
                        array_bytes((batch_size, config.max_tokens, 7))
                        + array_bytes((batch_size, queries_per_scene, 6)))
-    short_frac = check_real("short_frac", short_frac, 0.0, 1.0)
-    short_max = check_int("short_max", short_max)
     history = check_history(history, config)
-    return _train_batch(check_key(key), scenes, batch_size, queries_per_scene, config,
+    return _train_batch(key, scenes, batch_size, queries_per_scene, config,
                         short_frac, short_max, history)
 
 
@@ -294,14 +286,13 @@ def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200
 
 # ------------------------------------------------------------------------------ .npz I/O
 
+@check_args(path=check_output_file, config=_CONFIG)
 def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) -> None:
     """Write scenes and their config to one ``.npz`` (with ``FORMAT_VERSION``) at ``path``.
 
     Everything is checked first (the path's folder exists and is writable, the scenes match the
     config in every array); the file appears whole or not at all (written aside, then renamed).
     """
-    path = check_output_file("path", path)
-    _check_inputs(config)
     validate_scenes(scenes, config)
     arrays = {name: np.asarray(getattr(scenes, name)) for name in _FIELDS}
     buffer = io.BytesIO()

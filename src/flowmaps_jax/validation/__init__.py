@@ -22,7 +22,8 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
 * :mod:`.fields`: :func:`check_fields` (a config's fields, from a ``{field: rule}`` table of
   :class:`~.fields.Int`, :class:`~.fields.Real`, :class:`~.fields.Choice`, ... rules) and
   :func:`check_keys` (the dict a ``from_dict`` reads); :func:`check_options` (a command line's
-  options, from the same kind of table).
+  options, from the same kind of table); :func:`check_args` (a function's arguments, declared
+  beside its signature: ``@check_args(num_envs=Int(), key=Key())``).
 * :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
   (the file or command they concern).
 * :mod:`.writes`: :func:`write_file`, :func:`make_output_dir`, :func:`save_figure`,
@@ -49,7 +50,7 @@ from flowmaps_jax.validation.arrays import (
     is_concrete,
 )
 from flowmaps_jax.validation.errors import prefix_errors
-from flowmaps_jax.validation.fields import check_fields, check_keys, check_options
+from flowmaps_jax.validation.fields import check_args, check_fields, check_keys, check_options
 from flowmaps_jax.validation.files import (
     check_dir,
     check_file,
@@ -102,6 +103,7 @@ __all__ = [
     "SEED_MAX",
     "SEQUENTIAL_FLOPS",
     "array_bytes",
+    "check_args",
     "check_array",
     "check_choice",
     "check_dir",

@@ -13,16 +13,25 @@ config's fields.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import inspect
 from collections.abc import Callable, Collection, Mapping
 from typing import Any
 
-from flowmaps_jax.validation.arrays import check_probabilities
+from flowmaps_jax.validation.arrays import (
+    check_array,
+    check_int_array,
+    check_mask,
+    check_probabilities,
+    check_real_array,
+)
 from flowmaps_jax.validation.files import check_plain_name
 from flowmaps_jax.validation.scalars import (
     check_choice,
     check_flag,
     check_instance,
     check_int,
+    check_key,
     check_real,
     check_seed,
 )
@@ -88,6 +97,62 @@ class Seed:
 
     def __call__(self, name: str, value: Any) -> int:
         return check_seed(name, value)
+
+
+@dataclasses.dataclass(frozen=True)
+class Array:
+    """An array (numpy, jax or a tracer) of ``shape`` (:func:`~flowmaps_jax.validation.check_array`;
+    ``None`` for any size, a leading ``...`` for any leading dims)."""
+
+    shape: tuple | None = None
+
+    def __call__(self, name: str, value: Any):
+        return check_array(name, value, self.shape)
+
+
+@dataclasses.dataclass(frozen=True)
+class RealArray:
+    """A real array of ``shape``, finite if ``finite``
+    (:func:`~flowmaps_jax.validation.check_real_array`)."""
+
+    shape: tuple | None = None
+    finite: bool = True
+
+    def __call__(self, name: str, value: Any):
+        return check_real_array(name, value, self.shape, finite=self.finite)
+
+
+@dataclasses.dataclass(frozen=True)
+class IntArray:
+    """An integer array in ``low..high`` (:func:`~flowmaps_jax.validation.check_int_array`)."""
+
+    low: int | None = None
+    high: int | None = None
+    shape: tuple | None = None
+
+    def __call__(self, name: str, value: Any):
+        return check_int_array(name, value, self.low, self.high, shape=self.shape)
+
+
+@dataclasses.dataclass(frozen=True)
+class Mask:
+    """A 0/1 mask as booleans (:func:`~flowmaps_jax.validation.check_mask`)."""
+
+    shape: tuple | None = None
+
+    def __call__(self, name: str, value: Any):
+        return check_mask(name, value, self.shape)
+
+
+@dataclasses.dataclass(frozen=True)
+class Key:
+    """A PRNG key of one of the key-array ``shapes``, as a typed key
+    (:func:`~flowmaps_jax.validation.check_key`)."""
+
+    shapes: tuple = ((),)
+
+    def __call__(self, name: str, value: Any):
+        return check_key(value, name, self.shapes)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,6 +300,31 @@ def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
         value = rule(prefix + labels.get(field, field), getattr(obj, field))
         if store:
             object.__setattr__(obj, field, value)
+
+
+def check_args(**rules: Rule) -> Callable[[Callable], Callable]:
+    """A function's argument checks, declared with its signature: ``@check_args(num_envs=Int(),
+    key=Key())`` checks each named argument against its rule (defaults included) before the
+    function runs, and passes it on in its checked form (a Python int, a typed key); every
+    message names the argument. Arguments whose bounds depend on other arguments are checked in
+    the body."""
+    def decorate(function: Callable) -> Callable:
+        signature = inspect.signature(function)
+        unknown = sorted(set(rules) - set(signature.parameters))
+        if unknown:
+            raise TypeError(f"check_args: {function.__qualname__} has no arguments {unknown}")
+
+        @functools.wraps(function)
+        def checked(*args, **kwargs):
+            bound = signature.bind(*args, **kwargs)
+            bound.apply_defaults()
+            for name, rule in rules.items():
+                bound.arguments[name] = rule(name, bound.arguments[name])
+            return function(*bound.args, **bound.kwargs)
+
+        return checked
+
+    return decorate
 
 
 def check_options(args: Any, rules: Mapping[str, Rule]) -> None:
