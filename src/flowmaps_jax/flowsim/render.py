@@ -29,7 +29,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, FancyArrowPatch, Patch, Polygon, Rectangle
 
-from flowmaps_jax.flowsim.config import SHAPES, FlowSimConfig
+from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.generate import Scenes, validate_scenes
 from flowmaps_jax.validation import check_args, check_int, check_probabilities
 from flowmaps_jax.validation.fields import Flag, Instance, Optional, RealArray
@@ -162,10 +162,8 @@ def _box_patch(box: np.ndarray, shape: str, **style: Any):
     if shape in _POLYGON_SIDES:
         return Polygon(_regular_vertices(cy, cx, radius, _POLYGON_SIDES[shape]), closed=True,
                        **style)
-    if shape == "star":
-        return Polygon(_regular_vertices(cy, cx, 1.1 * radius, 5, inner=0.45), closed=True,
-                       **style)
-    raise ValueError(f"unknown object shape {shape!r}; render knows {SHAPES}")
+    # "star", the last of config.SHAPES (a config names only those)
+    return Polygon(_regular_vertices(cy, cx, 1.1 * radius, 5, inner=0.45), closed=True, **style)
 
 
 def _draw_furniture(ax: Axes, view: _EnvView, emphasise: set[int] | None = None) -> None:
