@@ -55,9 +55,8 @@ from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles
 from flowmaps_jax.validation import (
-    check_flag,
-    check_instance,
-    check_int,
+    check_args,
+    check_fields,
     check_key,
     check_real_array,
     check_resources,
@@ -65,6 +64,7 @@ from flowmaps_jax.validation import (
     network_flops,
     solver_evaluations,
 )
+from flowmaps_jax.validation.fields import Flag, Instance, Int, Optional
 
 SOLVERS = flow.SOLVERS
 FAR_LIMIT = 1e3
@@ -114,10 +114,8 @@ class Predictor:
 
     def __post_init__(self):
         model_family(self.family_name)  # ValueError listing the families
-        check_instance("model", self.model, ModelConfig)
-        check_instance("flowsim", self.flowsim, FlowSimConfig)
+        check_fields(self, _FIELDS, store=False)
         if self.mesh is not None:
-            check_instance("mesh", self.mesh, Mesh)
             # Replicate once, not at every call (a frozen dataclass: set the field directly).
             object.__setattr__(self, "params", distributed.replicate(self.params, self.mesh))
 
@@ -171,7 +169,6 @@ class Predictor:
         descriptors, a query that names a table instead of an object category, more token slots
         than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
-        check_instance("queries", queries, Queries)
         check_inputs(self.model, tokens, queries)  # every field: type, dtype, shape, range
         b, q = np.shape(queries.descriptor)
         slots = np.shape(tokens.boxes)[1]
@@ -205,6 +202,7 @@ class Predictor:
 
     # ----------------------------------------------------------------------- inference
 
+    @check_args(num_samples=Int(), pixels=Flag(), return_log_prob=Flag())
     def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
                num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
                pixels: bool = False, return_log_prob: bool = False):
@@ -222,10 +220,7 @@ class Predictor:
         tables' terms, so it solves backwards once more). Planners weigh samples with it.
         """
         b, q = self.validate(tokens, queries)
-        num_samples = check_int("num_samples", num_samples)
         num_steps, method = flow.check_solver(num_steps, method)
-        check_flag("pixels", pixels)
-        check_flag("return_log_prob", return_log_prob)
         self._check_request("sample", b, q, num_samples, return_log_prob, num_steps, method,
                             np.shape(tokens.boxes)[1])
         keys = scene_keys(key, b)
@@ -310,6 +305,11 @@ class Predictor:
 
 
 # --------------------------------------------------------------------------- loading
+
+
+_FIELDS = {"model": Instance(ModelConfig), "flowsim": Instance(FlowSimConfig),
+           "mesh": Optional(Instance(Mesh))}
+"""What each field of a :class:`Predictor` may hold (``family_name``: a family's name)."""
 
 
 def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
