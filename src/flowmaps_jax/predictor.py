@@ -326,7 +326,7 @@ def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
     """
     weights = checkpoints.load_weights(checkpoint_dir, which, use_ema, step)
     spec = weights.spec
-    return Predictor(params=weights.params, model=spec.model, family_name=spec.kind,
+    return Predictor(params=weights.params, model=spec.model, family_name=spec.family_name,
                      flowsim=spec.flowsim, source=str(weights.root), step=weights.step)
 
 
@@ -339,9 +339,9 @@ def load_pretrained(name: str, directory: str | pathlib.Path = pretrained.PRETRA
     (listing the names), or weights that are missing, damaged (SHA-256 mismatch) or do not fit
     their config. See :mod:`flowmaps_jax.store.pretrained`."""
     weights = pretrained.read_weights(name, directory)
-    return Predictor(params=weights.params, model=weights.spec.model, family_name=weights.spec.kind,
-                     flowsim=weights.spec.flowsim, source=f"pretrained:{weights.name}",
-                     step=weights.step)
+    return Predictor(params=weights.params, model=weights.spec.model,
+                     family_name=weights.spec.family_name, flowsim=weights.spec.flowsim,
+                     source=f"pretrained:{weights.name}", step=weights.step)
 
 
 PRETRAINED_PREFIX = "pretrained:"

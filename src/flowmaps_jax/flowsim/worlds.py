@@ -2,7 +2,7 @@
 
 ``routine`` is the paper's world (every object on its cyclic routine); ``preferences`` and
 ``dynamic`` give every object that habit; ``mixed`` draws each object's habit from the three
-evenly. One model is trained and shipped per world, as the authors do.
+evenly. One pretrained model is trained per world, as the authors do.
 """
 
 from __future__ import annotations

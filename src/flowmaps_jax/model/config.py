@@ -3,7 +3,7 @@
 Frozen so it is hashable and can be a static argument of ``jax.jit``. The defaults are the paper's
 size (D = 256, 8 encoder layers, 8 CDiT blocks, 8 heads, dropout 0.1); training presets live in
 :mod:`flowmaps_jax.training.config`. :meth:`ModelConfig.from_dict` reads the ``model`` section of a
-stored run config (a checkpoint's or a shipped model's).
+stored run config (a checkpoint's or a pretrained model's).
 """
 
 from __future__ import annotations

@@ -7,9 +7,9 @@ posterior, on FlowSim's validation split.
 Writes ``search.json``, ``search.md`` and the figures ``episodes.png``, ``success_vs_looks.png``
 and ``success_vs_distance.png`` into ``--out`` (default ``<checkpoint>/search``). Models are
 run or checkpoint directories (their best-by-validation step unless ``--which latest``), or
-``pretrained:NAME`` for a model shipped with the package; the checkpoint and step of each are
-printed before the search starts and recorded in ``search.json``. The protocol is documented in
-docs/search.md.
+``pretrained:NAME`` for a pretrained model packaged with flowmaps-jax; the checkpoint and step
+of each are printed before the search starts and recorded in ``search.json``. The protocol is
+documented in docs/search.md.
 
 ``--world NAME`` searches scenes of another FlowSim world (``flowsim.WORLDS``: routine,
 preferences, dynamic, mixed; default: the world of the first model's config). ``--history H``:

@@ -154,10 +154,10 @@ def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> P
     with prefix_errors(f"pretrained {name!r}: unreadable {meta_path.name}: ",
                        also=(KeyError, TypeError)):
         spec = model_spec(meta["config"])
-    if meta.get("kind", spec.kind) != spec.kind:
+    if meta.get("kind", spec.family_name) != spec.family_name:  # "kind": the family's name
         raise ValueError(f"pretrained {name!r}: {meta_path.name} names kind "
                          f"{str(meta.get('kind'))[:40]!r} but its config is a "
-                         f"{spec.kind!r} model")
+                         f"{spec.family_name!r} model")
     data = npz.read_bytes()
     if hashlib.sha256(data).hexdigest() != meta["sha256"]:
         raise ValueError(f"pretrained {name!r}: {npz.name} is damaged (SHA-256 does not match "
@@ -225,13 +225,13 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     if fallback:  # as load() does: the latest save
         which = "latest"
     weights = checkpoints.load_weights(checkpoint_dir, which=which)
-    kind, model = weights.spec.kind, weights.spec.model
-    expected_kind = "mlp" if name.startswith("mlp") else "flowmaps"
-    if kind != expected_kind:
-        raise ValueError(f"checkpoint_dir holds a {kind!r} model; name {name!r} needs "
-                         f"a {expected_kind!r} model")
+    family_name, model = weights.spec.family_name, weights.spec.model
+    expected = "mlp" if name.startswith("mlp") else "flowmaps"
+    if family_name != expected:
+        raise ValueError(f"checkpoint_dir holds a {family_name!r} model; name {name!r} needs "
+                         f"a {expected!r} model")
     variant = "learned" if name == "mlp-learned" else "mean"
-    if expected_kind == "mlp" and model.baseline_variance != variant:
+    if expected == "mlp" and model.baseline_variance != variant:
         raise ValueError(f"checkpoint_dir holds the MLP with baseline_variance="
                          f"{model.baseline_variance!r}; name {name!r} needs {variant!r}")
     data = _params_bytes(weights.params)
@@ -239,7 +239,7 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
         raise ValueError(f"{name}: {len(data) / 2**20:.1f} MB of weights, over the "
                          f"{MAX_BYTES / 2**20:.0f} MB budget")
     root = make_output_dir("directory", directory)
-    meta = {"name": name, "kind": kind, "step": weights.step,
+    meta = {"name": name, "kind": family_name, "step": weights.step,
             "source": str(checkpoint_dir), "which": which,
             "why": why or (("--which best, but " if fallback else "")
                            + _default_why(which, weights.step, best_step, latest_step)),

@@ -124,7 +124,7 @@ class TrainConfig:
         "flowmaps" (flow matching, CDiT) or "mlp" (Gaussian baseline; its variant is
         ``model.baseline_variance``, "mean" or "learned"). Stored in ``config.json`` under the
         key older versions wrote, ``"model_kind"`` (read back, and accepted by ``--set``, too),
-        so that every saved run and shipped model reads as before.
+        so that every saved run and pretrained model reads as before.
     flowsim: simulator settings for the generated train/validation splits.
     batch_size: scenes per step (B); queries_per_scene: queries sharing one encoder pass (Q).
     steps: total optimiser steps; the cosine schedule decays over exactly this many.
