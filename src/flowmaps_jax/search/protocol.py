@@ -37,9 +37,9 @@ from flowmaps_jax.flowsim import HABITS, FlowSimConfig, Scenes, world_of
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search import simulator as sim
-from flowmaps_jax.search.policies import POLICIES, check_optimal_size, check_policy
+from flowmaps_jax.search.policies import POLICIES, check_optimal_size
 from flowmaps_jax.tables import ASSIGN_TOLERANCE, TABLE_METHODS
-from flowmaps_jax.validation import check_int, check_real
+from flowmaps_jax.validation import check_choice, check_int, check_real
 
 MAIN_POLICIES = ("most-probable", "greedy", "optimal")
 """The policies every prior is driven by (``"nearest"`` is the prior-free row)."""
@@ -112,7 +112,7 @@ def _check_policies(policies: Sequence[str]) -> tuple[str, ...]:
     if not policies or len(set(policies)) != len(policies):
         raise ValueError(f"policies must be distinct names from {POLICIES}; got {policies}")
     for p in policies:
-        if check_policy(p) == "nearest":
+        if check_choice("policies", p, POLICIES) == "nearest":
             raise ValueError("policies: 'nearest' is its own row (nearest table first), not a "
                              "policy to drive the priors with")
     return policies
@@ -227,6 +227,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     """
     if table_method not in TABLE_METHODS:
         raise ValueError(f"table_method must be one of {TABLE_METHODS}; got {table_method!r}")
+    policies = tuple(policies)
     check_int("seed", seed, minimum=None)
     num_samples = check_int("num_samples", num_samples)
     for p in predictors:
@@ -280,7 +281,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
             "times_per_env": None if horizons is not None else int(times_per_env),
             "horizons": None if horizons is None else [int(h) for h in horizons],
             "num_samples": num_samples, "table_method": table_method,
-            "policies": list(_check_policies(policies)),
+            "policies": list(policies),  # as score_priors checked them
             "budget": int(budget), "p_miss": float(p_miss), "start": start, "seed": int(seed),
             "assign_tolerance": ASSIGN_TOLERANCE, "dynamics": config.dynamics,
             "map_size": config.map_size, "max_tables": search_set.num_tables},

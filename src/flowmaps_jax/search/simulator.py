@@ -36,18 +36,17 @@ from flax import struct
 from flowmaps_jax.search.policies import (
     POLICIES,
     check_optimal_size,
-    check_policy,
     choose_indexed,
     distances,
 )
 from flowmaps_jax.validation import (
     PROB_ATOL,
-    check_int,
-    check_key,
+    check_args,
     check_probabilities,
     check_real,
     check_resources,
 )
+from flowmaps_jax.validation.fields import Choice, Int, Key, Optional, Real
 
 DEFAULT_BUDGET = 10
 """Looks per episode (FlowSim has at most 4 tables of a kind: every policy finds the object
@@ -252,6 +251,8 @@ def simulate(episodes: Episodes, key, p_miss, policy_index, budget: int) -> Outc
         keys, p_miss, policy_index)
 
 
+@check_args(policy=Choice(POLICIES), key=Optional(Key()), budget=Int(),
+            p_miss=Real(0.0, 1.0, high_open=True))
 def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
                  budget: int = DEFAULT_BUDGET, p_miss: float = 0.0) -> Outcome:
     """Run N episodes with ``policy`` (see :mod:`flowmaps_jax.search.policies`) → Outcome (N, ...).
@@ -261,12 +262,9 @@ def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
     episodes, an unknown policy, p_miss outside [0, 1), a budget < 1, or "optimal" with more than
     7 tables. Compiled once per (N, K, budget), shared by all policies.
     """
-    policy = check_policy(policy)
-    budget = check_int("budget", budget)
-    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
     episodes = check_episodes(episodes, policy)
     check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy)
-    key = jax.random.key(0) if key is None else check_key(key)
+    key = jax.random.key(0) if key is None else key
     return simulate(episodes, key, jnp.float32(p_miss), policy_index(policy), budget)
 
 
@@ -288,6 +286,7 @@ def simulate_every_target(episodes: Episodes, policy_index, budget: int) -> Outc
     return jax.tree_util.tree_map(lambda a: a.reshape(k, n, *a.shape[1:]), every)
 
 
+@check_args(policy=Choice(POLICIES), budget=Int())
 def expected_outcomes(episodes: Episodes, truth, policy: str,
                       budget: int = DEFAULT_BUDGET) -> tuple[Outcome, jnp.ndarray]:
     """Exact expectations over where the object hides, with a perfect detector.
@@ -298,8 +297,6 @@ def expected_outcomes(episodes: Episodes, truth, policy: str,
     posterior). ``search.scores.expected_scores`` averages any score with these weights;
     :func:`at_targets` picks each episode's own target (its ``run_episodes`` outcome).
     """
-    policy = check_policy(policy)
-    budget = check_int("budget", budget)
     episodes = check_episodes(episodes, policy)
     check_belief("truth", truth, episodes.valid, "episodes.valid")
     check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy,
