@@ -57,6 +57,7 @@ from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_rol
 from flowmaps_jax.validation import (
     check_args,
     check_fields,
+    check_instance,
     check_key,
     check_real_array,
     check_resources,
@@ -169,6 +170,7 @@ class Predictor:
         descriptors, a query that names a table instead of an object category, more token slots
         than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
+        check_instance("queries", queries, Queries)  # check_inputs takes None for "no queries"
         check_inputs(self.model, tokens, queries)  # every field: type, dtype, shape, range
         b, q = np.shape(queries.descriptor)
         slots = np.shape(tokens.boxes)[1]

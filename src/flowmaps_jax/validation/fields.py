@@ -291,15 +291,18 @@ class Pair:
 
 
 def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
-                 store: bool = True, labels: Mapping[str, str] | None = None) -> None:
+                 store: bool = True, labels: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Check every field of ``obj`` named in ``rules`` against its rule, in the table's order;
-    the message names ``prefix + field`` (or ``prefix + labels[field]``). With ``store``, keep
-    the checked form (Python numbers, tuples) on ``obj``, a frozen dataclass included."""
+    the message names ``prefix + field`` (or ``prefix + labels[field]``). Returns the checked
+    values ``{field: value}``; with ``store``, also keeps the checked form (Python numbers,
+    tuples) on ``obj``, a frozen dataclass included."""
     labels = labels or {}
+    checked = {}
     for field, rule in rules.items():
-        value = rule(prefix + labels.get(field, field), getattr(obj, field))
+        checked[field] = value = rule(prefix + labels.get(field, field), getattr(obj, field))
         if store:
             object.__setattr__(obj, field, value)
+    return checked
 
 
 def check_args(**rules: Rule) -> Callable[[Callable], Callable]:
