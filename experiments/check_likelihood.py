@@ -4,7 +4,7 @@ Two models, each on boxes drawn from the protocol's smoothed q one step ahead:
 
 1. A route-head FlowMaps whose residual is zero (fresh weights): its flow carries noise exactly
    onto a Gaussian mixture, so log p has a closed form to compare with.
-2. A trained model (``--checkpoint``, default the shipped ``pretrained:flowmaps``).
+2. A trained model (``--checkpoint``, default the pretrained ``pretrained:flowmaps``).
 
 For each, the mean log p at increasing grid sizes with the paper's midpoint solver (uniform grid)
 and with ``method="accurate"`` (RK4 on t = 1 − (1 − s)⁴), and the time per solve.

@@ -1,5 +1,5 @@
 # ruff: noqa: I001  (the imports are the README block's, as written there)
-"""The README quick start, as a script: samples the shipped FlowMaps for the fork one step ahead.
+"""The README quick start, as a script: samples the pretrained FlowMaps for the fork one step ahead.
 
     python experiments/quickstart.py        # writes fork_next.png in the current directory
 
@@ -14,7 +14,7 @@ from flowmaps_jax.flowsim.scenes import scene_tokens, validation_split
 from flowmaps_jax.predictor import load_pretrained
 from flowmaps_jax.tokens import Queries
 
-predictor = load_pretrained("flowmaps")            # shipped inside the package (8.9 MB)
+predictor = load_pretrained("flowmaps")            # packaged with flowmaps-jax (8.9 MB)
 config = predictor.flowsim
 scenes = validation_split(config, num_envs=1)      # a held-out FlowSim home
 env, fork, tau, tau_q = 0, 0, 5, 6                 # where is the fork one step after τ = 5?

@@ -5,7 +5,7 @@
 Writes flowsim_scene.png, flowsim_timeline.png, flowsim_orders.png and flowsim_posterior.png.
 The environment shown is the first of a fixed batch whose first three transitions include a
 stay, a one-place advance and a two-place skip, so the timeline shows every kind of move.
-It also writes quickstart_fork.png by running the README's quick-start block itself (the shipped
+It also writes quickstart_fork.png by running the README's quick-start block itself (the pretrained
 FlowMaps), so the README's figure is exactly what its code draws.
 """
 

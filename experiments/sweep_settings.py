@@ -25,7 +25,6 @@ import numpy as np
 from flowmaps_jax import evaluation
 from flowmaps_jax.evaluation.cli import build_parser as evaluate_parser
 from flowmaps_jax.evaluation.cli import check_size
-from flowmaps_jax.evaluation.protocol import check_likelihood_steps
 from flowmaps_jax.flowsim.scenes import validation_split
 from flowmaps_jax.predictor import load
 from flowmaps_jax.training.config import apply_overrides, get_preset
@@ -60,8 +59,9 @@ def main(argv=None) -> None:
     # at its defaults for what this script does not set).
     check_int("--eval-envs", args.eval_envs)
     check_int("--kl-draws", args.kl_draws, 2)
-    likelihood_steps = check_likelihood_steps(
-        check_int("--likelihood-steps", args.likelihood_steps, 0) or None)
+    likelihood_steps = check_int("--likelihood-steps", args.likelihood_steps, 0) or None
+    if likelihood_steps is not None:  # the accurate likelihood's grid: 3 points at least
+        check_int("--likelihood-steps", likelihood_steps, 3)
     base = {"steps": args.steps, "warmup_steps": min(200, args.steps // 10),
             "val_every": args.steps, "ckpt_every": args.steps,
             "log_every": max(1, args.steps // 10)}

@@ -323,8 +323,9 @@ def test_the_store_reads_both_families():
     assert model_spec.HOMES_FAMILY == homes_model.FAMILY_NAME
     assert "flowmaps-homes" in pretrained.NAMES
     spec = model_spec.model_spec(CFG.to_dict())
-    assert spec.kind == homes_model.FAMILY_NAME and spec.model == MODEL and spec.homes == CONFIG
-    assert model_spec.model_spec({"model_kind": "flowmaps"}).kind == "flowmaps"
+    assert spec.family_name == homes_model.FAMILY_NAME
+    assert spec.model == MODEL and spec.homes == CONFIG
+    assert model_spec.model_spec({"model_kind": "flowmaps"}).family_name == "flowmaps"
     with pytest.raises(ValueError, match="'homes' section"):
         model_spec.model_spec({"model_kind": "flowmaps-homes", "model": {}})
 

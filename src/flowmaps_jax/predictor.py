@@ -56,9 +56,9 @@ from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.store.model_spec import HOMES_FAMILY
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles
 from flowmaps_jax.validation import (
-    check_flag,
+    check_args,
+    check_fields,
     check_instance,
-    check_int,
     check_key,
     check_real_array,
     check_resources,
@@ -66,6 +66,7 @@ from flowmaps_jax.validation import (
     network_flops,
     solver_evaluations,
 )
+from flowmaps_jax.validation.fields import Flag, Instance, Int, Optional
 
 SOLVERS = flow.SOLVERS
 FAR_LIMIT = 1e3
@@ -115,10 +116,8 @@ class Predictor:
 
     def __post_init__(self):
         model_family(self.family_name)  # ValueError listing the families
-        check_instance("model", self.model, ModelConfig)
-        check_instance("flowsim", self.flowsim, FlowSimConfig)
+        check_fields(self, _FIELDS, store=False)
         if self.mesh is not None:
-            check_instance("mesh", self.mesh, Mesh)
             # Replicate once, not at every call (a frozen dataclass: set the field directly).
             object.__setattr__(self, "params", distributed.replicate(self.params, self.mesh))
 
@@ -172,7 +171,7 @@ class Predictor:
         descriptors, a query that names a table instead of an object category, more token slots
         than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
-        check_instance("queries", queries, Queries)
+        check_instance("queries", queries, Queries)  # check_inputs takes None for "no queries"
         check_inputs(self.model, tokens, queries)  # every field: type, dtype, shape, range
         b, q = np.shape(queries.descriptor)
         slots = np.shape(tokens.boxes)[1]
@@ -206,6 +205,7 @@ class Predictor:
 
     # ----------------------------------------------------------------------- inference
 
+    @check_args(num_samples=Int(), pixels=Flag(), return_log_prob=Flag())
     def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
                num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
                pixels: bool = False, return_log_prob: bool = False):
@@ -223,10 +223,7 @@ class Predictor:
         tables' terms, so it solves backwards once more). Planners weigh samples with it.
         """
         b, q = self.validate(tokens, queries)
-        num_samples = check_int("num_samples", num_samples)
         num_steps, method = flow.check_solver(num_steps, method)
-        check_flag("pixels", pixels)
-        check_flag("return_log_prob", return_log_prob)
         self._check_request("sample", b, q, num_samples, return_log_prob, num_steps, method,
                             np.shape(tokens.boxes)[1])
         keys = scene_keys(key, b)
@@ -313,6 +310,11 @@ class Predictor:
 # --------------------------------------------------------------------------- loading
 
 
+_FIELDS = {"model": Instance(ModelConfig), "flowsim": Instance(FlowSimConfig),
+           "mesh": Optional(Instance(Mesh))}
+"""What each field of a :class:`Predictor` may hold (``family_name``: a family's name)."""
+
+
 def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
          use_ema: bool = True, step: int | None = None) -> Predictor:
     """Load a trained model from a checkpoint directory (or a run directory holding one).
@@ -327,9 +329,9 @@ def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
     """
     weights = checkpoints.load_weights(checkpoint_dir, which, use_ema, step)
     spec = weights.spec
-    if spec.kind == HOMES_FAMILY:  # the homes model has its own predictor
+    if spec.family_name == HOMES_FAMILY:  # the homes model has its own predictor
         return _homes_predictor(weights, str(weights.root))
-    return Predictor(params=weights.params, model=spec.model, family_name=spec.kind,
+    return Predictor(params=weights.params, model=spec.model, family_name=spec.family_name,
                      flowsim=spec.flowsim, source=str(weights.root), step=weights.step)
 
 
@@ -343,11 +345,11 @@ def load_pretrained(name: str, directory: str | pathlib.Path = pretrained.PRETRA
     their config. See :mod:`flowmaps_jax.store.pretrained`. ``"flowmaps-homes"`` (and
     :func:`load` of a homes run) gives a :class:`flowmaps_jax.homes.predictor.HomesPredictor`."""
     weights = pretrained.read_weights(name, directory)
-    if weights.spec.kind == HOMES_FAMILY:  # "flowmaps-homes": a HomesPredictor
+    if weights.spec.family_name == HOMES_FAMILY:  # "flowmaps-homes": a HomesPredictor
         return _homes_predictor(weights, f"pretrained:{weights.name}")
-    return Predictor(params=weights.params, model=weights.spec.model, family_name=weights.spec.kind,
-                     flowsim=weights.spec.flowsim, source=f"pretrained:{weights.name}",
-                     step=weights.step)
+    return Predictor(params=weights.params, model=weights.spec.model,
+                     family_name=weights.spec.family_name, flowsim=weights.spec.flowsim,
+                     source=f"pretrained:{weights.name}", step=weights.step)
 
 
 PRETRAINED_PREFIX = "pretrained:"

@@ -18,8 +18,9 @@ Below the predictor and the evaluation, so that both, and the search, share one 
   weights can be read without sampling (``method="weights"``).
 
 Shapes: ``...`` free leading dims (one per query), ``K`` slots, ``slot_mask`` (..., K) True on
-real slots; tokens (B, S), queries (B, Q). Public functions check their arguments once; the
-``_core`` functions are their unchecked cores, for callers that built the arrays themselves.
+real slots; tokens (B, S), queries (B, Q). Public functions check their arguments once; callers
+that built the arrays themselves run the jitted kernels, which check nothing:
+``histogram(assign_slots(samples, slot_boxes, slot_mask, radius), K)`` is :func:`empirical_slots`.
 """
 
 from __future__ import annotations
@@ -70,8 +71,9 @@ def assign_radius(slot_boxes: jnp.ndarray) -> jnp.ndarray:
 
 
 @partial(jax.jit, static_argnames="rule")
-def _assign(samples, slot_boxes, slot_mask, radius, rule="v2"):
-    """(..., N) int slot index of each sample, K for "off" (the rules of the module doc)."""
+def assign_slots(samples, slot_boxes, slot_mask, radius=ASSIGN_RADIUS, rule="v2"):
+    """(..., N) int slot index of each sample, K for "off" (the rules of the module doc); no
+    checks (samples and slot_boxes float32, slot_mask bool)."""
     if rule == "v1":
         diff = samples[..., :, None, :] - slot_boxes[..., None, :, :]  # (..., N, K, 4)
         limit = jnp.broadcast_to(radius, slot_boxes.shape[:-1])
@@ -109,15 +111,10 @@ def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jn
     check_mask("slot_mask", slot_mask, b_shape[:-1])
     if is_concrete(radius) and not float(radius) > 0:
         raise ValueError(f"radius must be positive; got {radius}")
-    return empirical_slots_core(samples, slot_boxes, slot_mask, radius, rule)
-
-
-def empirical_slots_core(samples, slot_boxes, slot_mask, radius=ASSIGN_RADIUS,
-                         rule: str = "v2") -> jnp.ndarray:
-    """Core of :func:`empirical_slots` (no checks; ``slot_boxes`` an array)."""
-    assignment = _assign(jnp.asarray(samples, jnp.float32), jnp.asarray(slot_boxes, jnp.float32),
-                         jnp.asarray(slot_mask, bool), radius, rule)
-    return histogram(assignment, slot_boxes.shape[-2])
+    assignment = assign_slots(jnp.asarray(samples, jnp.float32),
+                              jnp.asarray(slot_boxes, jnp.float32), jnp.asarray(slot_mask, bool),
+                              radius, rule)
+    return histogram(assignment, b_shape[-2])
 
 
 # --------------------------------------------------------------------------- table masses
@@ -165,10 +162,14 @@ def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp
     tokens: SceneTokens (B, S); queries: Queries (B, Q). Returns ``boxes`` (B, Q, S, 4) normalised
     (y, x, h, w) (zeros on non-tables) and ``mask`` (B, Q, S) bool, True on furniture tokens.
     The object's (h, w) is that of its token in ``tokens`` (same descriptor, kind OBJECT); raises
-    ``ValueError`` naming ``queries.descriptor`` if a queried object has no token in its map.
+    ``ValueError`` naming ``queries.descriptor`` unless a queried object has one token in its map
+    (in the map at τ, for tokens of a history: ``age`` 0).
     """
     _check_pair(tokens, queries)
-    counts = np.asarray(_object_matches(tokens, queries).sum(-1))
+    matches = _object_matches(tokens, queries)
+    if tokens.age is not None:  # a history's past maps hold the object again: its map is age 0
+        matches = matches & (jnp.asarray(tokens.age) == 0)[:, None, :]
+    counts = np.asarray(matches.sum(-1))
     if np.any(counts != 1):
         b, q = np.argwhere(counts != 1)[0]
         raise ValueError(f"queries.descriptor[{b}, {q}] must name exactly one object token of its "
@@ -199,10 +200,13 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
     (``predictor.table_weights``; ``num_samples`` and ``key`` unused), no sampling noise.
     """
     num_samples = check_table_method(predictor, method, num_samples)
-    if method == "samples":
-        table_boxes(tokens, queries)  # checks the pair: every queried object is on its map
-    return table_probabilities_core(predictor, tokens, queries, num_samples, key, method,
-                                    **sample_kwargs)
+    if method == "weights":
+        return predictor.table_weights(tokens, queries)
+    boxes, mask = table_boxes(tokens, queries)  # every queried object is on its map
+    if "solver" in sample_kwargs:
+        sample_kwargs["method"] = sample_kwargs.pop("solver")
+    samples = predictor.sample(tokens, queries, num_samples, key, **sample_kwargs)
+    return empirical_slots(samples, boxes, mask, ASSIGN_TOLERANCE)
 
 
 def check_table_method(predictor: Any, method: str, num_samples: int) -> int:
@@ -221,17 +225,3 @@ def check_table_method(predictor: Any, method: str, num_samples: int) -> int:
                          f"(a flowmaps_jax.predictor.Predictor); got {type(predictor).__name__}")
     return check_int("num_samples", num_samples)
 
-
-def table_probabilities_core(predictor: Any, tokens: SceneTokens, queries: Queries,
-                             num_samples: int, key: jax.Array, method: str = "samples",
-                             **sample_kwargs) -> jnp.ndarray:
-    """Core of :func:`table_probabilities`: no checks of the arguments (see
-    :func:`check_table_method`) nor of the (tokens, queries) pair; the predictor's samples, its
-    own output, are checked as they are assigned (:func:`empirical_slots`)."""
-    if method == "weights":
-        return predictor.table_weights(tokens, queries)
-    boxes, mask = _table_boxes(tokens, queries)
-    if "solver" in sample_kwargs:
-        sample_kwargs["method"] = sample_kwargs.pop("solver")
-    samples = predictor.sample(tokens, queries, num_samples, key, **sample_kwargs)
-    return empirical_slots(samples, boxes, mask, ASSIGN_TOLERANCE)

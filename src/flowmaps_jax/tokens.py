@@ -28,12 +28,13 @@ from flax import struct
 
 from flowmaps_jax.validation import (
     check_array,
+    check_fields,
     check_instance,
     check_int,
     check_int_array,
-    check_mask,
     check_real_array,
 )
+from flowmaps_jax.validation.fields import IntArray, Mask
 
 FURNITURE = 0
 OBJECT = 1
@@ -107,10 +108,11 @@ def validate_tokens(tokens: SceneTokens, num_descriptors: int, max_tokens: int |
               for field in ("boxes", "descriptor", "kind", "mask", "tau")}
     boxes = check_real_array(f"{name}.boxes", fields["boxes"], (..., None, 4))
     lead = boxes.shape[:-1]
-    desc = np.asarray(check_int_array(f"{name}.descriptor", fields["descriptor"], shape=lead))
-    kind = np.asarray(check_int_array(f"{name}.kind", fields["kind"], shape=lead))
-    real = check_mask(f"{name}.mask", fields["mask"], shape=lead)
-    check_int_array(f"{name}.tau", fields["tau"], shape=lead[:-1])
+    rules = {"descriptor": IntArray(shape=lead), "kind": IntArray(shape=lead),
+             "mask": Mask(lead), "tau": IntArray(shape=lead[:-1])}
+    checked = check_fields(tokens, rules, prefix=f"{name}.", store=False)
+    desc, kind = np.asarray(checked["descriptor"]), np.asarray(checked["kind"])
+    real = checked["mask"]
     if tokens.age is not None:
         check_int_array(f"{name}.age", check_array(f"{name}.age", tokens.age), 0, None,
                         shape=lead)

@@ -43,15 +43,13 @@ from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, PRETRAINED_PREFIX, SOLVERS, load_model
 from flowmaps_jax.validation import (
-    check_choice,
-    check_int,
-    check_no_links,
+    check_options,
     check_output_dir,
     check_resources,
-    check_seed,
     network_flops,
     solver_evaluations,
 )
+from flowmaps_jax.validation.fields import Choice, Int, Optional, Seed
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -154,33 +152,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_OPTIONS = {"num_envs": Int(1), "kl_draws": Int(2), "num_steps": Int(2), "chunk_envs": Int(1),
+            "seed": Seed(), "logp_steps": Optional(Int(2)),
+            "likelihood_steps": Optional(Int(3), off=(0,)),  # 0: only the paper's grid
+            "likelihood_draws": Int(2), "world": Optional(Choice(tuple(WORLDS))),
+            "history": Optional(Int(1))}
+"""What each option may hold, checked before any model is loaded."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; returns the exit code (0 on success, 2 on a bad argument)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        check_int("--num-envs", args.num_envs, 1)
-        check_int("--kl-draws", args.kl_draws, 2)
-        check_int("--num-steps", args.num_steps, 2)
-        check_int("--chunk-envs", args.chunk_envs, 1)
-        check_seed("--seed", args.seed)
-        if args.logp_steps is not None:
-            check_int("--logp-steps", args.logp_steps, 2)
-        likelihood_steps = check_int("--likelihood-steps", args.likelihood_steps, 0) or None
-        if args.world is not None:
-            check_choice("--world", args.world, tuple(WORLDS))
-        if args.history is not None:
-            check_int("--history", args.history, 1)
-        if likelihood_steps is not None:
-            check_int("--likelihood-steps", likelihood_steps, 3)
+        check_options(args, _OPTIONS)
+        likelihood_steps = args.likelihood_steps or None  # 0: only the paper's grid
         if args.out:
             out = pathlib.Path(args.out)
         elif args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is a pretrained model")
         else:
             out = pathlib.Path(args.checkpoint) / "eval"
-        out = pathlib.Path(check_output_dir("--out", out))  # before the evaluation runs
-        check_no_links("--out", out, [*REPORT_FILES, *(() if args.no_figures else FIGURES)])
+        out = pathlib.Path(check_output_dir(  # before the evaluation runs
+            "--out", out, files=[*REPORT_FILES, *(() if args.no_figures else FIGURES)]))
         mesh = distributed.local_mesh(args.devices)
         model = load_model(args.checkpoint, args.which, args.devices)
         baselines = [load_model(path, args.which, args.devices) for path in args.baseline]
@@ -209,7 +203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             [*baselines, model], scenes, config, out, seed=args.seed, sample_counts=args.samples,
             kl_draws=args.kl_draws, chunk_envs=args.chunk_envs, num_steps=args.num_steps,
             method=args.method, logp_steps=args.logp_steps, likelihood_steps=likelihood_steps,
-            likelihood_draws=check_int("--likelihood-draws", args.likelihood_draws, 2),
+            likelihood_draws=args.likelihood_draws,
             figures=not args.no_figures,
             progress=not args.no_progress, history=args.history)
     except ValueError as err:

@@ -9,9 +9,10 @@ the other way round. KL(q‖p) = E_{x~q}[log q(x) − log p(x)] is estimated fro
 
 Shapes: ``...`` are free leading batch dims (one per query); ``K`` slots per query, padded to a
 common size, ``slot_mask`` (..., K) True on real slots (padded slots carry q_k = 0). Public
-functions validate their inputs once (shapes always, values on concrete arrays) and call their
-core, the same name with ``_core`` appended, which checks nothing: the evaluation's own modules
-call the cores on arrays they built (:mod:`.protocol`).
+functions validate their inputs once (shapes always, values on concrete arrays) and run a jitted
+kernel, which checks nothing (:func:`mixture_log_prob`, :func:`mixture_samples`,
+:func:`kl_estimate`): the evaluation's own modules run the kernels on the arrays they built
+(:mod:`.protocol`).
 """
 
 from __future__ import annotations
@@ -104,8 +105,9 @@ def _active_components(slot_probs, slot_boxes, slot_mask):
 
 
 @jax.jit
-def gt_mixture_log_prob_core(x, slot_probs, slot_boxes, slot_mask):
-    """Core of :func:`gt_mixture_log_prob` (no checks; ``x`` float32, ``slot_mask`` required):
+def mixture_log_prob(x, slot_probs, slot_boxes, slot_mask):
+    """The kernel of :func:`gt_mixture_log_prob` (no checks; ``x`` float32, ``slot_mask``
+    required):
     the mixture's log-density, the evaluation's only Gaussian density (components inline)."""
     log_w, mu, sigma = _active_components(slot_probs, slot_boxes, slot_mask)
     z = (to_centre(x)[..., :, None, :] - mu[..., None, :, :]) / sigma[..., None, :, :]
@@ -126,13 +128,13 @@ def gt_mixture_log_prob(x: jnp.ndarray, slot_probs: jnp.ndarray, slot_boxes: jnp
     q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
     x_shape = check_array("x", x, (..., None, 4)).shape
     check_shape("x.shape[:-2]", x_shape[:-2], q_shape[:-1], "the leading dims of slot_probs")
-    return gt_mixture_log_prob_core(jnp.asarray(x, jnp.float32), slot_probs, slot_boxes,
-                                    _full_mask(q_shape, slot_mask))
+    return mixture_log_prob(jnp.asarray(x, jnp.float32), slot_probs, slot_boxes,
+                            _full_mask(q_shape, slot_mask))
 
 
 @partial(jax.jit, static_argnames="n")
-def sample_gt_mixture_core(key, slot_probs, slot_boxes, slot_mask, n):
-    """Core of :func:`sample_gt_mixture` (no checks; ``slot_mask`` required)."""
+def mixture_samples(key, slot_probs, slot_boxes, slot_mask, n):
+    """The kernel of :func:`sample_gt_mixture` (no checks; ``slot_mask`` required)."""
     log_w, mu, sigma = _active_components(slot_probs, slot_boxes, slot_mask)
     k_slot, k_noise = jax.random.split(key)
     logits = jnp.broadcast_to(log_w[..., None, :], (*log_w.shape[:-1], n, log_w.shape[-1]))
@@ -151,13 +153,19 @@ def sample_gt_mixture(key: jax.Array, slot_probs: jnp.ndarray, slot_boxes: jnp.n
     """
     q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
     n = check_int("n", n)
-    return sample_gt_mixture_core(key, slot_probs, slot_boxes, _full_mask(q_shape, slot_mask), n)
+    return mixture_samples(key, slot_probs, slot_boxes, _full_mask(q_shape, slot_mask), n)
 
 
 @jax.jit
 def _mean_and_stderr(diff):
     n = diff.shape[-1]
     return Estimate(jnp.mean(diff, axis=-1), jnp.std(diff, axis=-1, ddof=1) / math.sqrt(n))
+
+
+def kl_estimate(log_q, log_p) -> Estimate:
+    """The kernel of :func:`continuous_kl` (no checks): the mean of log q − log p over the last
+    axis, and its standard error."""
+    return _mean_and_stderr(jnp.asarray(log_q, jnp.float32) - jnp.asarray(log_p, jnp.float32))
 
 
 def continuous_kl(log_q: jnp.ndarray, log_p: jnp.ndarray) -> Estimate:
@@ -170,9 +178,4 @@ def continuous_kl(log_q: jnp.ndarray, log_p: jnp.ndarray) -> Estimate:
     check_shape("log_p", np.shape(log_p), shape, "same as log_q")
     if shape[-1] < 2:
         raise ValueError(f"log_q needs at least 2 draws for a standard error; got {shape[-1]}")
-    return continuous_kl_core(log_q, log_p)
-
-
-def continuous_kl_core(log_q, log_p) -> Estimate:
-    """Core of :func:`continuous_kl` (no checks)."""
-    return _mean_and_stderr(jnp.asarray(log_q, jnp.float32) - jnp.asarray(log_p, jnp.float32))
+    return kl_estimate(log_q, log_p)

@@ -21,10 +21,10 @@
   has TV 0.
 
 :func:`build_eval_queries` makes the :class:`EvalSet`; :func:`reference_rows` and
-:func:`evaluate_predictor` score it into :class:`RowResult` rows. Each checks its arguments once
-and calls its core (``_core`` appended), which checks nothing; :func:`.run.run_evaluation` checks
-everything up front and calls the cores. An EvalSet's arrays are built here from checked inputs,
-so the rows score it with the cores of :mod:`.kl` and :mod:`.slots`, not their public checks.
+:func:`evaluate_predictor` score it into :class:`RowResult` rows. Each checks its own arguments
+once (:func:`.run.run_evaluation` leaves them to it). An EvalSet's arrays are built here from
+checked inputs, so the rows score it with the jitted kernels of :mod:`.kl`, :mod:`.slots` and
+:mod:`flowmaps_jax.tables`, not their public checks.
 """
 
 from __future__ import annotations
@@ -42,17 +42,13 @@ from flax import struct
 from tqdm import tqdm
 
 from flowmaps_jax import flow
-from flowmaps_jax.evaluation.kl import (
-    continuous_kl_core,
-    gt_mixture_log_prob_core,
-    sample_gt_mixture_core,
-)
+from flowmaps_jax.evaluation.kl import kl_estimate, mixture_log_prob, mixture_samples
 from flowmaps_jax.evaluation.slots import (
-    last_seen_slots_core,
-    oracle_slots_core,
-    sampled_oracle_slots_core,
-    slot_scores_core,
-    uniform_slots_core,
+    draw_slot_histogram,
+    one_hot_slots,
+    score_slots,
+    uniform_over_slots,
+    with_off_bin,
 )
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.dynamics import exact_posterior
@@ -64,7 +60,7 @@ from flowmaps_jax.flowsim.habits import (
 )
 from flowmaps_jax.flowsim.scenes import draw_query_times, normalise_boxes, scene_tokens, slot_boxes
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
-from flowmaps_jax.tables import empirical_slots_core
+from flowmaps_jax.tables import assign_slots, histogram
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import check_instance, check_int
 
@@ -210,10 +206,10 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     mask = jnp.arange(f) < num_slots[..., None]
     target = normalise_boxes(jnp.asarray(scenes.object_boxes)[env, tau_q], config)
 
-    # the ground truth is made here from validated inputs: the mixture's jitted cores directly
-    points = jax.vmap(lambda k, p, b, bm: sample_gt_mixture_core(k, p, b, bm, kl_draws))(
+    # the ground truth is made here from validated inputs: the mixture's jitted kernels directly
+    points = jax.vmap(lambda k, p, b, bm: mixture_samples(k, p, b, bm, kl_draws))(
         kl_keys, probs, boxes, mask)  # (E, M, kl_draws, 4), environment e from kl_keys[e]
-    log_q = gt_mixture_log_prob_core(points, probs, boxes, mask)
+    log_q = mixture_log_prob(points, probs, boxes, mask)
     return EvalSet(env=env, tau=tau, tau_q=tau_q, tokens=tokens, queries=queries, obj=obj,
                    horizon=horizon.astype(jnp.int32), slot_now=slot_now.astype(jnp.int32),
                    num_slots=num_slots.astype(jnp.int32), slot_probs=probs, slot_boxes=boxes,
@@ -280,8 +276,25 @@ class RowResult:
 
 def _slot_entry(evalset: EvalSet, p_hat) -> dict[str, np.ndarray]:
     """One sample count's entry of RowResult.slots: p̂ and its slot scores against q."""
-    return {"p_hat": np.asarray(p_hat),
-            **slot_scores_core(p_hat, evalset.slot_probs, evalset.slot_mask)}
+    return {"p_hat": np.asarray(p_hat), **scores_against_q(evalset, p_hat)}
+
+
+def scores_against_q(evalset: EvalSet, p_hat) -> dict[str, np.ndarray]:
+    """The slot scores (``slots.slot_scores``'s kernels) of p̂ (E, M, F + 1) against the set's
+    exact posterior."""
+    return score_slots(jnp.asarray(p_hat, jnp.float32),
+                       jnp.asarray(evalset.slot_probs, jnp.float32),
+                       jnp.asarray(evalset.slot_mask, bool))
+
+
+def slot_shares(evalset: EvalSet, samples) -> jnp.ndarray:
+    """p̂ (E, M, F + 1) of a model's ``samples`` (E, M, n, 4) on the set's slots: the protocol's
+    assignment (``tables.empirical_slots``'s kernels; the set's arrays were checked when it was
+    built)."""
+    return histogram(assign_slots(jnp.asarray(samples, jnp.float32),
+                                  jnp.asarray(evalset.slot_boxes, jnp.float32),
+                                  jnp.asarray(evalset.slot_mask, bool)),
+                     evalset.num_slots_padded)
 
 
 def check_counts(sample_counts: Sequence[int]) -> tuple[int, ...]:
@@ -320,38 +333,33 @@ def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMP
     density is q; only its slot histogram is noisy), as for smoothed-q samples.
     ``key``: the draws of "oracle samples" and "smoothed-q samples" (default ``key(0)``).
     """
-    return reference_rows_core(evalset, check_counts(sample_counts), key)
-
-
-def reference_rows_core(evalset: EvalSet, counts: tuple[int, ...], key) -> list[RowResult]:
-    """Core of :func:`reference_rows` (no checks; ``counts`` from :func:`check_counts`)."""
+    counts = check_counts(sample_counts)
     key = jax.random.key(0) if key is None else key
-    exact = {"oracle": oracle_slots_core(evalset.slot_probs),
-             "last-seen": last_seen_slots_core(evalset.slot_now, evalset.num_slots_padded),
-             "uniform": uniform_slots_core(evalset.num_slots, evalset.num_slots_padded)}
+    exact = {"oracle": with_off_bin(evalset.slot_probs),
+             "last-seen": one_hot_slots(evalset.slot_now, evalset.num_slots_padded),
+             "uniform": uniform_over_slots(evalset.num_slots, evalset.num_slots_padded)}
     names = list(REFERENCE_ROWS)
     if evalset.exact_h1 is not None:  # a history: its extra rows, before last-seen
         extra = history_row_names(evalset.history)
-        exact.update(zip(extra, (oracle_slots_core(evalset.exact_h1),
-                                 oracle_slots_core(evalset.empirical)), strict=True))
+        exact.update(zip(extra, (with_off_bin(jnp.asarray(evalset.exact_h1, jnp.float32)),
+                                 with_off_bin(jnp.asarray(evalset.empirical, jnp.float32))),
+                         strict=True))
         names[names.index("last-seen"):names.index("last-seen")] = extra
-    kls = {name: continuous_kl_core(evalset.kl_log_q, gt_mixture_log_prob_core(
+    kls = {name: kl_estimate(evalset.kl_log_q, mixture_log_prob(
                evalset.kl_points, p_exact[..., :-1], evalset.slot_boxes, evalset.slot_mask))
            for name, p_exact in exact.items()}
     rows = []
     for name in names:
         if name == "oracle samples":  # q's density, a fresh histogram of n draws per count
             kl = kls["oracle"]
-            slots = {n: _slot_entry(evalset, sampled_oracle_slots_core(
+            slots = {n: _slot_entry(evalset, draw_slot_histogram(
                          jax.random.fold_in(jax.random.fold_in(key, _SALT_ORACLE), n),
                          jnp.asarray(evalset.slot_probs, jnp.float32), n)) for n in counts}
         elif name == "smoothed-q samples":  # boxes drawn from the continuous q, then assigned
             kl = kls["oracle"]
-            draws = sample_gt_mixture_core(jax.random.fold_in(key, _SALT_SMOOTHED),
-                                           evalset.slot_probs, evalset.slot_boxes,
-                                           evalset.slot_mask, counts[-1])
-            slots = {n: _slot_entry(evalset, empirical_slots_core(
-                         draws[..., :n, :], evalset.slot_boxes, evalset.slot_mask))
+            draws = mixture_samples(jax.random.fold_in(key, _SALT_SMOOTHED), evalset.slot_probs,
+                                    evalset.slot_boxes, evalset.slot_mask, counts[-1])
+            slots = {n: _slot_entry(evalset, slot_shares(evalset, draws[..., :n, :]))
                      for n in counts}
         else:  # exact slot distributions: the same scores for every n
             kl, entry = kls[name], _slot_entry(evalset, exact[name])
@@ -380,27 +388,13 @@ def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
     2·n − 1 points; None skips it (``kl`` is then the paper grid's). ``likelihood_draws``: the
     accurate likelihood uses the first this-many KL draws of each query (all when fewer).
     """
-    return evaluate_predictor_core(predictor, evalset, key, check_counts(sample_counts),
-                                   check_int("chunk_envs", chunk_envs, 1),
-                                   check_ode(num_steps, method, logp_steps), progress, name,
-                                   check_likelihood_steps(likelihood_steps),
-                                   check_int("likelihood_draws", likelihood_draws, 2))
-
-
-def check_likelihood_steps(likelihood_steps) -> int | None:
-    """None, or the accurate likelihood's grid points (an int >= 3)."""
-    if likelihood_steps is None:
-        return None
-    return flow.check_solver(likelihood_steps, "accurate", name="likelihood_steps")[0]
-
-
-def evaluate_predictor_core(predictor, evalset: EvalSet, key, counts: tuple[int, ...],
-                            chunk_envs: int, ode: tuple[int, str, int], progress: bool,
-                            name: str | None, likelihood_steps: int | None = None,
-                            likelihood_draws: int = DEFAULT_LIKELIHOOD_DRAWS) -> RowResult:
-    """Core of :func:`evaluate_predictor` (no checks): ``counts`` from :func:`check_counts`,
-    ``ode`` from :func:`check_ode`, ``likelihood_steps`` from :func:`check_likelihood_steps`."""
-    num_steps, method, logp_steps = ode
+    counts = check_counts(sample_counts)
+    chunk_envs = check_int("chunk_envs", chunk_envs, 1)
+    num_steps, method, logp_steps = check_ode(num_steps, method, logp_steps)
+    if likelihood_steps is not None:
+        likelihood_steps = flow.check_solver(likelihood_steps, "accurate",
+                                             name="likelihood_steps")[0]
+    likelihood_draws = check_int("likelihood_draws", likelihood_draws, 2)
     n_max = counts[-1]
     num_envs = evalset.num_envs
     chunk = min(chunk_envs, num_envs)
@@ -440,17 +434,15 @@ def evaluate_predictor_core(predictor, evalset: EvalSet, key, counts: tuple[int,
             log_p[k].append(v)
     seconds = time.perf_counter() - start
     samples_all = np.concatenate(samples)
-    kls = {k: continuous_kl_core(evalset.kl_log_q[:, :, :draws] if k == "accurate"
-                                 else evalset.kl_log_q, jnp.asarray(np.concatenate(v)))
+    kls = {k: kl_estimate(evalset.kl_log_q[:, :, :draws] if k == "accurate"
+                          else evalset.kl_log_q, jnp.asarray(np.concatenate(v)))
            for k, v in log_p.items() if k != "tight"}
     kl = kls["accurate"] if accurate else kls["paper"]
     kl_error = 0.0 if not flow_density else None
     if accurate:  # on the environments the tighter grid ran on: the same draws, so log p differs
         tight = np.concatenate(log_p["tight"])
         kl_error = abs(float(np.mean(np.concatenate(log_p["accurate"])[:len(tight)] - tight)))
-    slots = {n: _slot_entry(evalset, empirical_slots_core(
-                 samples_all[:, :, :n], evalset.slot_boxes, evalset.slot_mask))
-             for n in counts}
+    slots = {n: _slot_entry(evalset, slot_shares(evalset, samples_all[:, :, :n])) for n in counts}
     info = {"kind": predictor.family_name, "source": predictor.source, "step": predictor.step,
             "seconds": round(seconds, 2), "num_steps": num_steps, "logp_steps": logp_steps,
             "method": method, "likelihood_steps": likelihood_steps if accurate else None,

@@ -17,16 +17,17 @@ import math
 import pathlib
 from collections.abc import Hashable, Sequence
 
+import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.evaluation.protocol import EvalSet, RowResult
 from flowmaps_jax.evaluation.slots import (
     ROUTE_OFFSET_LABELS,
     SLOT_METRICS,
-    route_offset_mass_core,
+    offset_mass,
 )
 from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig
-from flowmaps_jax.validation import check_no_links, make_output_dir, write_file
+from flowmaps_jax.validation import make_output_dir, write_file
 
 # --------------------------------------------------------------------------- aggregation
 
@@ -98,7 +99,9 @@ def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimC
     one_step = np.asarray(evalset.horizon) == 1
     for row in rows:
         p_hat = row.slots[max(row.slots)]["p_hat"]
-        mass = np.asarray(route_offset_mass_core(p_hat, evalset.slot_now, evalset.num_slots))
+        mass = np.asarray(offset_mass(jnp.asarray(p_hat, jnp.float32),
+                                      jnp.asarray(evalset.slot_now, jnp.int32),
+                                      jnp.asarray(evalset.num_slots, jnp.int32)))
         entry = {"route_offsets_one_step": {
                      "labels": list(ROUTE_OFFSET_LABELS), "count": int(one_step.sum()),
                      "mean": [_json_number(float(v)) for v in
@@ -243,9 +246,8 @@ def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathli
     """Write ``results.json`` and ``results.md`` into out_dir (created); returns their paths.
     Both go through the shared writer (:func:`flowmaps_jax.validation.write_file`: a temporary
     file and a rename; a symbolic link at either name is a ``ValueError``)."""
-    out = make_output_dir("out_dir", out_dir)
+    out = make_output_dir("out_dir", out_dir, files=("results.json", "results.md"))
     paths = {"json": out / "results.json", "markdown": out / "results.md"}
-    check_no_links("out_dir", out, [p.name for p in paths.values()])
     text = json.dumps(results, indent=2, allow_nan=False) + "\n"  # refused before any write
     write_file(paths["json"], text, name="out_dir file")
     write_file(paths["markdown"], markdown_table(results), name="out_dir file")

@@ -25,15 +25,16 @@ import numpy as np
 from flax import struct
 from matplotlib.figure import Figure
 
-from flowmaps_jax.evaluation.protocol import EvalSet, build_eval_queries
-from flowmaps_jax.evaluation.slots import (
-    ROUTE_OFFSET_LABELS,
-    route_offset_mass_core,
-    slot_scores_core,
+from flowmaps_jax.evaluation.protocol import (
+    EvalSet,
+    build_eval_queries,
+    scores_against_q,
+    slot_shares,
 )
+from flowmaps_jax.evaluation.slots import ROUTE_OFFSET_LABELS, offset_mass
 from flowmaps_jax.flowsim.scenes import scene_tokens
-from flowmaps_jax.tables import empirical_slots_core
-from flowmaps_jax.validation import check_instance, check_int
+from flowmaps_jax.validation import check_args, check_int
+from flowmaps_jax.validation.fields import Instance, Int
 
 EXACT_ONE_STEP = (0.2, 0.7, 0.1, 0.0, 0.0, 0.0)
 """The exact posterior's route-offset mass one step ahead (FlowSim's Markov dynamics)."""
@@ -73,6 +74,7 @@ def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
     return RoutineProbe(one_step=query_set(1, 1), mixed=query_set(2, None))
 
 
+@check_args(probe=Instance(RoutineProbe), num_samples=Int())
 def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None,
                     num_samples: int = 32) -> dict[str, float]:
     """Sample ``predictor`` on the probe; a flat dict of floats (JSON-ready).
@@ -81,20 +83,17 @@ def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None
     ``offset_off`` (one step ahead, mean over queries); ``one_step_tv``, ``one_step_top1``,
     ``one_step_search_cost_ratio``; ``tv``, ``top1``, ``search_cost_ratio`` (horizon mixture).
     """
-    check_instance("probe", probe, RoutineProbe)
-    num_samples = check_int("num_samples", num_samples, 1)
     key = jax.random.key(0) if key is None else key
     out: dict[str, float] = {}
     for i, (label, evalset) in enumerate((("one_step", probe.one_step), ("mixed", probe.mixed))):
         samples = predictor.sample(evalset.tokens, evalset.queries, num_samples,
                                    jax.random.fold_in(key, i))
-        # the probe's arrays were built by build_eval_queries: the slot cores, no re-check
-        p_hat = empirical_slots_core(samples, evalset.slot_boxes, evalset.slot_mask)
-        scores = {k: float(np.mean(v)) for k, v in
-                  slot_scores_core(p_hat, evalset.slot_probs, evalset.slot_mask).items()}
+        # the probe's arrays were built by build_eval_queries: the slot kernels, no re-check
+        p_hat = slot_shares(evalset, samples)
+        scores = {k: float(np.mean(v)) for k, v in scores_against_q(evalset, p_hat).items()}
         if label == "one_step":
-            mass = np.asarray(route_offset_mass_core(p_hat, evalset.slot_now,
-                                                     evalset.num_slots)).mean(axis=(0, 1))
+            mass = np.asarray(offset_mass(p_hat, evalset.slot_now,
+                                          evalset.num_slots)).mean(axis=(0, 1))
             out.update({f"offset_{name}": float(m)
                         for name, m in zip(ROUTE_OFFSET_LABELS, mass, strict=True)})
             out.update({f"one_step_{k}": v for k, v in scores.items()})

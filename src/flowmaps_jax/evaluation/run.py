@@ -28,11 +28,8 @@ from flowmaps_jax.evaluation.protocol import (
     EvalSet,
     RowResult,
     build_eval_queries,
-    check_counts,
-    check_likelihood_steps,
-    check_ode,
-    evaluate_predictor_core,
-    reference_rows_core,
+    evaluate_predictor,
+    reference_rows,
 )
 from flowmaps_jax.evaluation.report import summarise_habits, summarise_rows, write_report
 from flowmaps_jax.flowsim import habits
@@ -43,7 +40,6 @@ from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tables import ASSIGN_RADIUS
 from flowmaps_jax.validation import (
     check_int,
-    check_no_links,
     check_output_dir,
     make_output_dir,
     save_figure,
@@ -73,17 +69,13 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     reference rows, one table per habit, and the model rows are labelled with the maps each reads
     ("FlowMaps (H = 8)"); the routine world with H = 1 is the paper's report, unchanged.
 
-    Arguments are checked here, once, before any model runs (the rows are scored by the
-    protocol's cores, which check nothing). Returns (results dict as written to
-    results.json, the RowResults, the EvalSet).
+    The predictors, the history and ``out_dir`` are checked here before anything runs; the
+    sample counts and the solver settings by :func:`.protocol.reference_rows` and
+    :func:`.protocol.evaluate_predictor`, which score the rows (before any model runs). Returns
+    (results dict as written to results.json, the RowResults, the EvalSet).
     """
-    counts = check_counts(sample_counts)
     if not predictors:
         raise ValueError("predictors must hold at least one Predictor")
-    chunk_envs = check_int("chunk_envs", chunk_envs, 1)
-    num_steps, method, logp_steps = ode = check_ode(num_steps, method, logp_steps)
-    likelihood_steps = check_likelihood_steps(likelihood_steps)
-    likelihood_draws = check_int("likelihood_draws", likelihood_draws, 2)
     for p in predictors:
         if not isinstance(p, Predictor):
             raise ValueError(f"predictors must be Predictor objects; got {type(p).__name__}")
@@ -96,19 +88,24 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         if p.model.history > 1:
             check_history(p.model.history, model_token_config(config, p))
     if out_dir is not None:  # before anything runs: a file there, or a link at a report's name
-        check_output_dir("out_dir", out_dir)
-        check_no_links("out_dir", out_dir, [*REPORT_FILES, *(FIGURES if figures else ())])
+        check_output_dir("out_dir", out_dir, files=[*REPORT_FILES, *(FIGURES if figures else ())])
     start = time.perf_counter()
     key = jax.random.key(seed)
     evalset = build_eval_queries(scenes, config, key, kl_draws, history=history)
-    rows = reference_rows_core(evalset, counts, key)
+    rows = reference_rows(evalset, sample_counts, key)
     with_history = evalset.habit is not None
     names = unique_names([f"{p.name} (H = {p.model.history})" if with_history else p.name
                           for p in predictors])
     for predictor, name in zip(predictors, names, strict=True):
         view = model_view(evalset, scenes, config, predictor)
-        rows.append(evaluate_predictor_core(predictor, view, key, counts, chunk_envs, ode,
-                                            progress, name, likelihood_steps, likelihood_draws))
+        rows.append(evaluate_predictor(
+            predictor, view, key, sample_counts, chunk_envs, num_steps, method, logp_steps,
+            progress, name, likelihood_steps, likelihood_draws))
+    # as the rows checked them
+    counts = sorted(int(n) for n in sample_counts)
+    num_steps, logp_steps = int(num_steps), int(num_steps if logp_steps is None else logp_steps)
+    if likelihood_steps is not None:
+        likelihood_steps = int(likelihood_steps)
     results = {
         "protocol": {"num_envs": evalset.num_envs, "objects_per_env": config.num_objects,
                      "num_queries": evalset.num_queries, "samples": list(counts),
@@ -127,7 +124,6 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         results["by_habit"] = summarise_habits(rows, evalset)
     if out_dir is not None:
         out = make_output_dir("out_dir", out_dir)
-        check_no_links("out_dir", out, [*REPORT_FILES, *(FIGURES if figures else ())])
         if figures:
             model_rows = [r for r in rows if r.samples is not None]
             plots = {FIGURES[0]: lambda: plot_kl(results),

@@ -14,9 +14,11 @@ predictors (oracle, oracle samples, last-seen, uniform) and the route-offset mas
 diagnostic are slot distributions too.
 
 Shapes: ``...`` are free leading batch dims (one per query); ``K`` slots padded to a common size,
-``slot_mask`` (..., K) True on real slots. Public functions validate once and call their core,
-the same name with ``_core`` appended, which checks nothing: the evaluation's own modules (and
-the search) call the cores on arrays they built.
+``slot_mask`` (..., K) True on real slots. Public functions validate once and run a jitted
+kernel, which checks nothing: :func:`score_slots`, :func:`with_off_bin`,
+:func:`draw_slot_histogram`, :func:`one_hot_slots`, :func:`uniform_over_slots`,
+:func:`offset_mass`. The evaluation's own modules (and the search) run the kernels on the arrays
+they built.
 
 Ties: top-1 and the search cost break ties between slots with equal p̂ uniformly at random and
 report the expectation: deterministic, and independent of how slots happen to be numbered. Scores
@@ -99,6 +101,14 @@ def _search_cost(scores, q, slot_mask):
     return jnp.sum(_visit_ranks(scores, slot_mask) * q, axis=-1)
 
 
+def score_slots(p_hat, q, slot_mask) -> dict[str, np.ndarray]:
+    """The kernels of :func:`slot_scores` (no checks): p̂ (..., K + 1), q (..., K) float32,
+    slot_mask (..., K) bool."""
+    ratio = _search_cost(p_hat[..., :-1], q, slot_mask) / _search_cost(q, q, slot_mask)
+    return {"tv": np.asarray(_tv(p_hat, q)), "top1": np.asarray(_top1(p_hat, q, slot_mask)),
+            "search_cost_ratio": np.asarray(ratio)}
+
+
 def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
                 ) -> dict[str, np.ndarray]:
     """The protocol's slot metrics of p̂ (..., K + 1) against q (..., K); slot_mask (..., K) bool.
@@ -117,16 +127,8 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
     check_mask("slot_mask", slot_mask, q_shape)
     _check_distribution("q", q, slot_mask)
     _check_distribution("p_hat", p_hat, slot_mask)
-    return slot_scores_core(p_hat, q, slot_mask)
-
-
-def slot_scores_core(p_hat, q, slot_mask) -> dict[str, np.ndarray]:
-    """Core of :func:`slot_scores` (no checks)."""
-    p_hat, q = jnp.asarray(p_hat, jnp.float32), jnp.asarray(q, jnp.float32)
-    mask = jnp.asarray(slot_mask, bool)
-    ratio = _search_cost(p_hat[..., :-1], q, mask) / _search_cost(q, q, mask)
-    return {"tv": np.asarray(_tv(p_hat, q)), "top1": np.asarray(_top1(p_hat, q, mask)),
-            "search_cost_ratio": np.asarray(ratio)}
+    return score_slots(jnp.asarray(p_hat, jnp.float32), jnp.asarray(q, jnp.float32),
+                       jnp.asarray(slot_mask, bool))
 
 
 # --------------------------------------------------------------------------- reference predictors
@@ -136,18 +138,19 @@ def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
     """The oracle predictor: q itself. (..., K) → (..., K + 1) with an empty off bin."""
     check_array("q", q, (..., None))
     _check_distribution("q", q)
-    return oracle_slots_core(q)
+    return with_off_bin(jnp.asarray(q, jnp.float32))
 
 
-def oracle_slots_core(q) -> jnp.ndarray:
-    """Core of :func:`oracle_slots` (no checks)."""
-    q = jnp.asarray(q, jnp.float32)
+@jax.jit
+def with_off_bin(q):
+    """The kernel of :func:`oracle_slots` (no checks): q (..., K) float32 with an empty off
+    bin."""
     return jnp.concatenate([q, jnp.zeros_like(q[..., :1])], axis=-1)
 
 
 @partial(jax.jit, static_argnames="n")
-def sampled_oracle_slots_core(key, q, n):
-    """Core of :func:`sampled_oracle_slots` (no checks; ``q`` float32)."""
+def draw_slot_histogram(key, q, n):
+    """The kernel of :func:`sampled_oracle_slots` (no checks; ``q`` float32)."""
     draws = jax.random.categorical(key, jnp.log(q)[..., None, :], shape=(*q.shape[:-1], n))
     return histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
 
@@ -161,11 +164,12 @@ def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:
     check_array("q", q, (..., None))
     _check_distribution("q", q)
     n = check_int("n", n, 1)
-    return sampled_oracle_slots_core(key, jnp.asarray(q, jnp.float32), n)
+    return draw_slot_histogram(key, jnp.asarray(q, jnp.float32), n)
 
 
 @partial(jax.jit, static_argnames="num_slots")
-def _one_hot_slots(slot_now, num_slots):
+def one_hot_slots(slot_now, num_slots: int):
+    """The kernel of :func:`last_seen_slots` (no checks; ``num_slots`` an int)."""
     return jax.nn.one_hot(slot_now, num_slots + 1)
 
 
@@ -176,16 +180,12 @@ def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     """
     num_slots = check_int("num_slots", num_slots)
     check_int_array("slot_now", slot_now, 0, num_slots - 1)
-    return last_seen_slots_core(slot_now, num_slots)
-
-
-def last_seen_slots_core(slot_now, num_slots: int) -> jnp.ndarray:
-    """Core of :func:`last_seen_slots` (no checks; ``num_slots`` an int)."""
-    return _one_hot_slots(jnp.asarray(slot_now), num_slots)
+    return one_hot_slots(jnp.asarray(slot_now), num_slots)
 
 
 @partial(jax.jit, static_argnames="num_slots")
-def _uniform_slots(count, num_slots):
+def uniform_over_slots(count, num_slots: int):
+    """The kernel of :func:`uniform_slots` (no checks; ``num_slots`` an int)."""
     real = jnp.arange(num_slots) < count[..., None]
     probs = jnp.where(real, 1.0 / count[..., None], 0.0)
     return jnp.concatenate([probs, jnp.zeros_like(probs[..., :1])], axis=-1)
@@ -198,19 +198,15 @@ def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     """
     num_slots = check_int("num_slots", num_slots)
     check_int_array("count", count, 1, num_slots)
-    return uniform_slots_core(count, num_slots)
-
-
-def uniform_slots_core(count, num_slots: int) -> jnp.ndarray:
-    """Core of :func:`uniform_slots` (no checks; ``num_slots`` an int)."""
-    return _uniform_slots(jnp.asarray(count), num_slots)
+    return uniform_over_slots(jnp.asarray(count), num_slots)
 
 
 # --------------------------------------------------------------------------- routines
 
 
 @jax.jit
-def _route_offset_mass(p_hat, slot_now, num_slots):
+def offset_mass(p_hat, slot_now, num_slots):
+    """The kernel of :func:`route_offset_mass` (no checks; p̂ float32, the rest int32)."""
     k = p_hat.shape[-1] - 1
     offsets = jnp.arange(_ROUTE_OFFSETS)
     slot = (slot_now[..., None] + offsets) % jnp.maximum(num_slots[..., None], 1)  # (..., 4)
@@ -236,10 +232,5 @@ def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
     k = shape[-1] - 1
     check_int_array("slot_now", slot_now, 0, k - 1, shape=shape[:-1])
     check_int_array("num_slots", num_slots, 1, k, shape=shape[:-1])
-    return route_offset_mass_core(p_hat, slot_now, num_slots)
-
-
-def route_offset_mass_core(p_hat, slot_now, num_slots) -> jnp.ndarray:
-    """Core of :func:`route_offset_mass` (no checks)."""
-    return _route_offset_mass(jnp.asarray(p_hat, jnp.float32), jnp.asarray(slot_now, jnp.int32),
-                              jnp.asarray(num_slots, jnp.int32))
+    return offset_mass(jnp.asarray(p_hat, jnp.float32), jnp.asarray(slot_now, jnp.int32),
+                       jnp.asarray(num_slots, jnp.int32))

@@ -15,13 +15,16 @@ from typing import Any
 
 import numpy as np
 
-from flowmaps_jax.validation import (
-    INT32_MAX,
-    check_choice,
-    check_instance,
-    check_int,
-    check_probabilities,
-    check_real,
+from flowmaps_jax.validation import INT32_MAX, check_choice, check_probabilities
+from flowmaps_jax.validation.fields import (
+    Choice,
+    Entries,
+    Int,
+    Probabilities,
+    Real,
+    Text,
+    check_fields,
+    check_keys,
 )
 
 ORDERINGS = ("clockwise", "counter_clockwise", "top_to_bottom", "left_to_right", "bottom_to_top")
@@ -147,33 +150,13 @@ class FlowSimConfig:
     categories: tuple[ObjectCategory, ...] = PAPER_CATEGORIES
 
     def __post_init__(self) -> None:
-        self._store("map_size", check_int("map_size", self.map_size, 2))
-        if self.map_size > MAX_MAP_SIZE:
-            raise ValueError(f"map_size must be <= {MAX_MAP_SIZE} (positions are drawn from 16 "
-                             f"random bits); got {self.map_size}")
-        for name, low in (("num_furniture", 1), ("min_per_kind", 1), ("min_object_px", 1),
-                          ("num_timesteps", 2), ("max_tokens", 1), ("layout_budget", 1),
-                          ("layout_candidates", 1)):  # all become int32 arrays somewhere
-            self._store(name, check_int(name, getattr(self, name), low, INT32_MAX))
-        for name in ("table_min_frac", "table_max_frac", "object_frac"):
-            self._store(name, check_real(name, getattr(self, name), 0.0, 1.0, low_open=True))
+        check_fields(self, _RULES)
         if self.table_min_frac > self.table_max_frac:
             raise ValueError(f"table_min_frac ({self.table_min_frac}) must be <= table_max_frac "
                              f"({self.table_max_frac})")
-        for name in ("transition_probs", "jitter_probs"):
-            probs = getattr(self, name)
-            if not isinstance(probs, (tuple, list)) or len(probs) != 3:
-                raise ValueError(f"{name} must be a tuple of 3 probabilities; got {probs!r}")
-            self._store(name, tuple(float(p) for p in check_probabilities(name, probs)))
-        check_choice("dynamics", self.dynamics, DYNAMICS)
         self._check_habits()
         self._check_table()
         self._check_sizes()
-
-    def _store(self, name: str, value: Any) -> None:
-        """Keep the checked, plain-Python form of a field (e.g. numpy scalars become int/float,
-        so the config stays JSON-able and hashes like one built from Python numbers)."""
-        object.__setattr__(self, name, value)
 
     def _check_sizes(self) -> None:
         """Refuse configs that cannot produce valid scenes."""
@@ -230,56 +213,38 @@ class FlowSimConfig:
                 or not all(isinstance(h, (tuple, list)) and len(h) == 2 for h in habits)):
             raise ValueError(f"habits must be (name, probability) pairs, e.g. "
                              f"(('preferences', 1.0),); got {habits!r}")
-        names = [h[0] for h in habits]
-        for name in names:
-            check_choice("habits: habit name", name, HABITS)
+        names = [check_choice("habits: habit name", h[0], HABITS) for h in habits]
         if len(set(names)) != len(names):
             raise ValueError(f"habits: a habit is named twice; got {habits!r}")
         probs = check_probabilities("habits probabilities", [h[1] for h in habits])
-        self._store("habits", tuple((str(n), float(p)) for n, p in zip(names, probs, strict=True)))
-        for name in ("preference_move", "preference_mass", "dynamic_length"):
-            self._store(name, check_real(name, getattr(self, name), 0.0, 1.0, low_open=True))
-        self._store("dynamic_stay", check_real("dynamic_stay", self.dynamic_stay, 0.0, 1.0))
-        if self.dynamic_stay >= 1.0:
-            raise ValueError(f"dynamic_stay must be < 1 (a dynamic object moves); got "
-                             f"{self.dynamic_stay}")
+        object.__setattr__(self, "habits", tuple((str(n), float(p))
+                                                 for n, p in zip(names, probs, strict=True)))
         if self.has_habits and self.dynamics != "markov":
             raise ValueError(f"habits other than the routine need dynamics='markov'; got "
                              f"dynamics={self.dynamics!r} with habits={self.habits!r}")
 
     def _check_table(self) -> None:
-        for field, entries, cls in (("furniture_kinds", self.furniture_kinds, FurnitureKind),
-                                    ("categories", self.categories, ObjectCategory)):
-            if not isinstance(entries, tuple) or not entries:
-                raise ValueError(f"{field} must be a non-empty tuple of {cls.__name__}")
-            for entry in entries:
-                check_instance(f"{field} entries", entry, cls)
-        kind_names = [k.name for k in self.furniture_kinds]
+        kind_names = tuple(k.name for k in self.furniture_kinds)
         names: set[str] = set()
         descriptors: set[int] = set()
         for field, entry in [("furniture_kinds", k) for k in self.furniture_kinds] + [
                 ("categories", c) for c in self.categories]:
-            if not isinstance(entry.name, str) or not entry.name:
-                raise ValueError(f"{field}: names must be non-empty strings; got {entry.name!r}")
-            check_int(f"{field}: {entry.name!r} descriptor", entry.descriptor, 0, INT32_MAX)
+            check_fields(entry, _ENTRY_RULES, prefix=f"{field}: {entry.name!r} ", store=False)
             if entry.name in names:
                 raise ValueError(f"{field}: name {entry.name!r} is used twice")
             if entry.descriptor in descriptors:
                 raise ValueError(f"{field}: descriptor {entry.descriptor} is used twice")
-            if not isinstance(entry.colour, str) or not entry.colour:
-                raise ValueError(f"{field}: {entry.name!r} colour must be a non-empty string")
             names.add(entry.name)
             descriptors.add(entry.descriptor)
         for field in ("furniture_kinds", "categories"):  # numpy ids -> int (JSON-able)
             entries = getattr(self, field)
             if any(type(e.descriptor) is not int for e in entries):
-                self._store(field, tuple(dataclasses.replace(e, descriptor=int(e.descriptor))
-                                         for e in entries))
+                object.__setattr__(self, field, tuple(
+                    dataclasses.replace(e, descriptor=int(e.descriptor)) for e in entries))
+        rules = {**_CATEGORY_RULES, "furniture_kind": Choice(kind_names)}
         for cat in self.categories:
-            check_choice(f"categories: {cat.name!r} ordering", cat.ordering, ORDERINGS)
-            check_choice(f"categories: {cat.name!r} shape", cat.shape, SHAPES)
-            check_choice(f"categories: {cat.name!r} sits on furniture kind", cat.furniture_kind,
-                         kind_names)
+            check_fields(cat, rules, prefix=f"categories: {cat.name!r} ", store=False,
+                         labels={"furniture_kind": "sits on furniture kind"})
 
     # ----------------------------------------------------------------- derived quantities
     @property
@@ -335,13 +300,8 @@ class FlowSimConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> FlowSimConfig:
         """Inverse of ``to_dict``; unknown keys raise ``ValueError``."""
-        if not isinstance(data, dict):
-            raise ValueError(f"FlowSimConfig.from_dict needs a dict; got {type(data).__name__}")
-        known = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ValueError(f"FlowSimConfig.from_dict: unknown fields {unknown}")
-        kwargs = dict(data)
+        kwargs = dict(check_keys("FlowSimConfig.from_dict", data,
+                                 [f.name for f in dataclasses.fields(cls)]))
         try:
             if "furniture_kinds" in kwargs:
                 kwargs["furniture_kinds"] = tuple(
@@ -358,6 +318,27 @@ class FlowSimConfig:
                                      for h in kwargs["habits"])
         return cls(**kwargs)
 
+
+_FRACTION = Real(0.0, 1.0, low_open=True)
+_RULES = {
+    "map_size": Int(2, MAX_MAP_SIZE, why="positions are drawn from 16 random bits"),
+    # every count becomes an int32 array somewhere
+    **{name: Int(low, INT32_MAX) for name, low in (
+        ("num_furniture", 1), ("min_per_kind", 1), ("min_object_px", 1), ("num_timesteps", 2),
+        ("max_tokens", 1), ("layout_budget", 1), ("layout_candidates", 1))},
+    "table_min_frac": _FRACTION, "table_max_frac": _FRACTION, "object_frac": _FRACTION,
+    "transition_probs": Probabilities(3), "jitter_probs": Probabilities(3),
+    "dynamics": Choice(DYNAMICS),
+    "preference_move": _FRACTION, "preference_mass": _FRACTION, "dynamic_length": _FRACTION,
+    "dynamic_stay": Real(0.0, 1.0, high_open=True),  # < 1: a dynamic object moves
+    "furniture_kinds": Entries(FurnitureKind), "categories": Entries(ObjectCategory),
+}
+"""What each field of :class:`FlowSimConfig` may hold (numbers are stored as Python numbers, so
+the config stays JSON-able and hashes like one built from Python numbers)."""
+_ENTRY_RULES = {"name": Text(strip=False), "descriptor": Int(0, INT32_MAX),
+                "colour": Text(strip=False)}
+"""What each entry of the category table may hold."""
+_CATEGORY_RULES = {"ordering": Choice(ORDERINGS), "shape": Choice(SHAPES)}
 
 DEFAULT_CONFIG = FlowSimConfig()
 """The paper's configuration (used as the default argument everywhere)."""

@@ -26,7 +26,8 @@ import numpy as np
 
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, DYNAMICS, FlowSimConfig, SimShape
 from flowmaps_jax.flowsim.layout import uniform16
-from flowmaps_jax.validation import check_choice, check_instance, check_int_array, is_concrete
+from flowmaps_jax.validation import check_args, check_int_array, is_concrete
+from flowmaps_jax.validation.fields import Choice, Instance, Optional
 
 
 def _draw_offsets(u: jnp.ndarray, probs: jnp.ndarray) -> jnp.ndarray:
@@ -60,12 +61,10 @@ def rollout(words: jnp.ndarray, num_slots: jnp.ndarray, params: dict,
             return slot, slot
 
         _, later = jax.lax.scan(step, start[0], steps)
-    elif shape.dynamics == "schedule_jitter":
+    else:  # "schedule_jitter", the other of DYNAMICS (the config checked which)
         offsets = _draw_offsets(u, params["jitter_probs"]) - 1
         time = jnp.arange(1, t, dtype=jnp.int32).reshape((t - 1,) + (1,) * (u.ndim - 1))
         later = jnp.mod(time + offsets, num_slots[None])
-    else:
-        check_choice("dynamics", shape.dynamics, DYNAMICS)
     return jnp.concatenate([start, later], axis=0)
 
 
@@ -79,14 +78,6 @@ def _advance_table(probs: tuple[float, float, float], max_horizon: int) -> np.nd
     for h in range(1, max_horizon + 1):
         table[h] = np.convolve(table[h - 1], np.asarray(probs, np.float64))[: 2 * max_horizon + 1]
     return table
-
-
-def _check_slots(num_slots, slot_now, config: FlowSimConfig) -> None:
-    """num_slots in 1..F and, if given, slot_now in 0..num_slots − 1 (concrete values only)."""
-    check_int_array("num_slots", num_slots, 1, config.num_furniture)
-    if slot_now is not None:
-        check_int_array("slot_now", slot_now, 0, np.asarray(num_slots) - 1,
-                        high_name="num_slots - 1")
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -117,6 +108,7 @@ def _jitter_posterior(num_slots, slot_now, tau_q, config: FlowSimConfig):
     return jnp.where((tau_q == 0)[..., None], at_start, jittered)
 
 
+@check_args(config=Instance(FlowSimConfig), dynamics=Optional(Choice(DYNAMICS)))
 def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAULT_CONFIG,
                     dynamics: str | None = None, tau=None) -> jnp.ndarray:
     """Exact distribution (..., F) float32 of an object's slot ``horizon`` steps ahead.
@@ -132,13 +124,13 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     ``jit``) cannot be: a row whose num_slots, slot_now, horizon (or tau, tau + horizon) is out
     of range is all NaN, never the answer of another, in-range input.
     """
-    check_instance("config", config, FlowSimConfig)
-    dynamics = check_choice("dynamics", config.dynamics if dynamics is None else dynamics,
-                            DYNAMICS)
+    dynamics = config.dynamics if dynamics is None else dynamics
     max_h = config.num_timesteps - 1
     concrete = is_concrete(num_slots, slot_now, horizon)
     if concrete:
-        _check_slots(num_slots, slot_now, config)
+        check_int_array("num_slots", num_slots, 1, config.num_furniture)
+        check_int_array("slot_now", slot_now, 0, np.asarray(num_slots) - 1,
+                        high_name="num_slots - 1")
         check_int_array("horizon", horizon, 0, max_h)
     if dynamics == "markov":
         probs = _markov_posterior(num_slots, slot_now, horizon, config)
@@ -188,6 +180,7 @@ def _transition_matrix(num_slots, config: FlowSimConfig):
     return jnp.where((row < k)[..., None], matrix, 0.0)
 
 
+@check_args(config=Instance(FlowSimConfig))
 def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Markov transition matrix (..., F, F) float32: entry [i, j] = P(slot j next | slot i now).
 
@@ -196,9 +189,8 @@ def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.
     ``exact_posterior(K, slot, h)``. A concrete ``num_slots`` out of 1..F is a ``ValueError``;
     a traced one (under ``jit``) gives an all-NaN matrix.
     """
-    check_instance("config", config, FlowSimConfig)
     if is_concrete(num_slots):
-        _check_slots(num_slots, None, config)
+        check_int_array("num_slots", num_slots, 1, config.num_furniture)
         return _transition_matrix(num_slots, config)
     k = jnp.asarray(num_slots)
     return _nan_outside(_transition_matrix(num_slots, config),

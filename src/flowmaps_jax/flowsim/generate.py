@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.sharding import Mesh
 
 from flowmaps_jax import distributed
 from flowmaps_jax.flowsim import dynamics, habits, layout
@@ -30,15 +31,15 @@ from flowmaps_jax.flowsim.config import (
 )
 from flowmaps_jax.validation import (
     array_bytes,
+    check_args,
     check_array,
     check_instance,
-    check_int,
     check_int_array,
-    check_key,
     check_real_array,
     check_request_size,
     is_concrete,
 )
+from flowmaps_jax.validation.fields import Instance, Int, Key, Optional
 
 
 @struct.dataclass
@@ -273,6 +274,8 @@ def _habit_rollouts(env_keys, boxes, order, num_slots, params, shape: SimShape):
     return jnp.transpose(slot, (2, 1, 0)), habit.T
 
 
+@check_args(key=Key(), num_envs=Int(), config=Instance(FlowSimConfig),
+            mesh=Optional(Instance(Mesh)), part=Optional(Instance(slice)))
 def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh=None,
              part: slice | None = None) -> Scenes:
     """Generate ``num_envs`` FlowSim environments (layouts, visiting orders, T-step rollouts).
@@ -288,18 +291,15 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh
     (the config is too crowded). Not for use
     inside ``jit`` (it checks the layouts on the host); there, call ``scenes_from_env_keys``.
     """
-    check_instance("config", config, FlowSimConfig)
-    num_envs = check_int("num_envs", num_envs, 1)
     count = num_envs
     if part is not None:
-        check_instance("part", part, slice)
         count = len(range(num_envs)[part])
         if count == 0:
             raise ValueError(f"part={part} selects no environment of {num_envs}")
     check_request_size(f"generate({count} environments, layout_candidates="
                        f"{config.layout_candidates})",
                        count * scenes_bytes_per_env(config) + layout_bytes(config, count))
-    env_keys = jax.random.split(check_key(key), num_envs)
+    env_keys = jax.random.split(key, num_envs)
     scenes, ok = _generate_on(env_keys if part is None else env_keys[part], config, mesh)
     failed = int(np.sum(~np.asarray(ok)))
     if failed:
@@ -323,10 +323,6 @@ def _generate_on(env_keys, config: FlowSimConfig, mesh):
     block of keys (``shard_map``), which gives the same environments because environment e
     depends only on its key. Padding keys (to a multiple of the mesh size) are dropped."""
     params, shape = sim_params(config), sim_shape(config)
-    if mesh is not None:
-        from jax.sharding import Mesh
-
-        check_instance("mesh", mesh, Mesh)
     if mesh is None or mesh.size == 1:
         return scenes_from_env_keys(env_keys, params, shape)
     num_envs = env_keys.shape[0]

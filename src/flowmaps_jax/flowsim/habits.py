@@ -39,12 +39,12 @@ import numpy as np
 from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig, sim_params
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
 from flowmaps_jax.validation import (
-    check_instance,
-    check_int,
+    check_args,
     check_int_array,
     check_probabilities,
     is_concrete,
 )
+from flowmaps_jax.validation.fields import Instance, Int
 
 ROUTINE, PREFERENCES, DYNAMIC = range(3)
 
@@ -80,6 +80,7 @@ def hypothesis_names(num_furniture: int) -> list[str]:
             for fam, fav in zip(family, favourites, strict=True)]
 
 
+@check_args(num_furniture=Int())
 def habit_prior(num_slots, habit_probs, num_furniture: int) -> jnp.ndarray:
     """Prior (..., NH) float32 over the hypotheses of objects with ``num_slots`` (...) places.
 
@@ -88,7 +89,6 @@ def habit_prior(num_slots, habit_probs, num_furniture: int) -> jnp.ndarray:
     3 finite, non-negative probabilities summing to 1, ``num_slots`` in 1..``num_furniture``);
     traced ones (under ``jit``) are used as given.
     """
-    num_furniture = check_int("num_furniture", num_furniture)
     check_probabilities("habit_probs", habit_probs, (3,))
     if is_concrete(num_slots):
         check_int_array("num_slots", num_slots, 1, num_furniture)
@@ -360,6 +360,7 @@ def _observed_history(slot, env, obj, tau, h, width: int):
     return jnp.where(valid, slots, 0), valid
 
 
+@check_args(config=Instance(FlowSimConfig))
 def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     """Exact posterior (Q, F) over the slot of object ``obj`` in ``env`` at τ + Δτ, given its
     slots at τ − H + 1 … τ (H = ``history_len``), under the habit mixture of ``config``.
@@ -369,7 +370,6 @@ def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     the finite hypothesis set. With history_len = 1 and the paper's world it equals
     ``dynamics.exact_posterior``. Raises ``ValueError`` naming the argument on bad input.
     """
-    check_instance("config", config, FlowSimConfig)
     t = config.num_timesteps
     env = check_int_array("env", env, 0, scenes.num_envs - 1)
     obj = check_int_array("obj", obj, 0, config.num_objects - 1)

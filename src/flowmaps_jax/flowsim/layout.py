@@ -140,19 +140,19 @@ def table_angle(cy: jnp.ndarray, cx: jnp.ndarray, map_size) -> jnp.ndarray:
     return jnp.mod(jnp.arctan2(cx - half, -(cy - half)), 2.0 * jnp.pi)
 
 
+_ORDERING_KEYS = {
+    "clockwise": lambda cy, cx, map_size: table_angle(cy, cx, map_size),
+    "counter_clockwise": lambda cy, cx, map_size: -table_angle(cy, cx, map_size),
+    "top_to_bottom": lambda cy, cx, map_size: cy,
+    "bottom_to_top": lambda cy, cx, map_size: -cy,
+    "left_to_right": lambda cy, cx, map_size: cx,
+}
+"""The sort key of each rule of ``config.ORDERINGS`` (a config names only these)."""
+
+
 def ordering_key(cy: jnp.ndarray, cx: jnp.ndarray, ordering: str, map_size) -> jnp.ndarray:
     """Sort key whose ascending order is the visiting order of rule ``ordering``."""
-    if ordering == "clockwise":
-        return table_angle(cy, cx, map_size)
-    if ordering == "counter_clockwise":
-        return -table_angle(cy, cx, map_size)
-    if ordering == "top_to_bottom":
-        return cy
-    if ordering == "bottom_to_top":
-        return -cy
-    if ordering == "left_to_right":
-        return cx
-    raise ValueError(f"ordering: unknown rule {ordering!r}")
+    return _ORDERING_KEYS[ordering](cy, cx, map_size)
 
 
 def visit_orders(boxes: jnp.ndarray, kind: jnp.ndarray, params: Params, shape: SimShape):

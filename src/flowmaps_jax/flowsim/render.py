@@ -29,15 +29,10 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, FancyArrowPatch, Patch, Polygon, Rectangle
 
-from flowmaps_jax.flowsim.config import SHAPES, FlowSimConfig
+from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.generate import Scenes, validate_scenes
-from flowmaps_jax.validation import (
-    check_flag,
-    check_instance,
-    check_int,
-    check_probabilities,
-    check_real_array,
-)
+from flowmaps_jax.validation import check_args, check_int, check_probabilities
+from flowmaps_jax.validation.fields import Flag, Instance, Optional, RealArray
 
 # matplotlib marker used in legends for each object shape.
 _LEGEND_MARKERS = {"square": "s", "circle": "o", "triangle": "^", "diamond": "D",
@@ -54,11 +49,10 @@ _PANEL_SIZE = 4.0  # inches per map panel
 # Validation and config look-ups
 # --------------------------------------------------------------------------------------------
 
-def _check_types(scenes: Any, config: Any) -> None:
-    """Scenes well formed (shapes and dtypes; the scenes' own sizes, not the config's: a
-    descriptor the config lacks is named when it is looked up) and a FlowSimConfig."""
-    validate_scenes(scenes, values=False)
-    check_instance("config", config, FlowSimConfig)
+_CONFIG = Instance(FlowSimConfig)
+"""Every figure's ``config``; its ``scenes`` are checked with ``validate_scenes(scenes,
+values=False)`` (shapes and dtypes; the scenes' own sizes, not the config's: a descriptor the
+config lacks is named when it is looked up)."""
 
 
 def _num_timesteps(scenes: Scenes) -> int:
@@ -168,10 +162,8 @@ def _box_patch(box: np.ndarray, shape: str, **style: Any):
     if shape in _POLYGON_SIDES:
         return Polygon(_regular_vertices(cy, cx, radius, _POLYGON_SIDES[shape]), closed=True,
                        **style)
-    if shape == "star":
-        return Polygon(_regular_vertices(cy, cx, 1.1 * radius, 5, inner=0.45), closed=True,
-                       **style)
-    raise ValueError(f"unknown object shape {shape!r}; render knows {SHAPES}")
+    # "star", the last of config.SHAPES (a config names only those)
+    return Polygon(_regular_vertices(cy, cx, 1.1 * radius, 5, inner=0.45), closed=True, **style)
 
 
 def _draw_furniture(ax: Axes, view: _EnvView, emphasise: set[int] | None = None) -> None:
@@ -256,6 +248,8 @@ def _draw_order_arrows(ax: Axes, view: _EnvView, obj: int, numbers: bool = True,
 # Public figures
 # --------------------------------------------------------------------------------------------
 
+@check_args(config=_CONFIG, ax=Optional(Instance(Axes)), show_orders=Flag(), legend=Flag(),
+            title=Optional(Instance(str)))
 def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Axes | None = None,
                show_orders: bool = False, highlight: int | None = None, legend: bool = True,
                title: str | None = None) -> Figure:
@@ -267,16 +261,17 @@ def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Ax
     ``ax=None`` a new figure is made; otherwise the drawing goes into ``ax`` (e.g. a panel of a
     larger figure) and ``ax.figure`` is returned. ``legend`` adds a furniture/object legend.
     """
-    _check_types(scenes, config)
+    validate_scenes(scenes, values=False)
     env, tau = _check_env_tau(scenes, env, tau)
-    show_orders, legend = check_flag("show_orders", show_orders), check_flag("legend", legend)
-    if ax is not None:
-        check_instance("ax", ax, Axes)
-    if title is not None:
-        check_instance("title", title, str)
     view = _EnvView(scenes, env, config)
     if highlight is not None:
         highlight = check_int("highlight", highlight, 0, view.num_objects - 1)
+    return _draw_scene(view, env, tau, ax, show_orders, highlight, legend, title)
+
+
+def _draw_scene(view: _EnvView, env: int, tau: int, ax: Axes | None, show_orders: bool,
+                highlight: int | None, legend: bool, title: str | None) -> Figure:
+    """:func:`draw_scene` of checked arguments (its other figures' panels)."""
     if ax is None:
         _, ax = _new_axes((_PANEL_SIZE + 1.9, _PANEL_SIZE))
     _setup_map_axes(ax, view.map_size)
@@ -293,6 +288,7 @@ def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Ax
     return ax.figure
 
 
+@check_args(config=_CONFIG)
 def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSimConfig) -> Figure:
     """A row of panels showing environment ``env`` at the strictly increasing timesteps ``taus``.
 
@@ -300,7 +296,7 @@ def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSim
     ghost with an arrow to where it is now, and the panel's x-label lists how many places along its
     visiting order each object advanced (modulo the number of places K). Paper Fig. 1.
     """
-    _check_types(scenes, config)
+    validate_scenes(scenes, values=False)
     flat = np.asarray(taus) if not isinstance(taus, (str, bytes)) else np.asarray(None)
     if flat.ndim != 1 or flat.size == 0:
         raise ValueError(f"taus must be a non-empty 1-D sequence of timestep indices; got {taus!r}")
@@ -312,7 +308,7 @@ def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSim
     fig = Figure(figsize=(_PANEL_SIZE * len(taus), _PANEL_SIZE + 0.9), layout="constrained")
     axes = fig.subplots(1, len(taus), squeeze=False)[0]
     for i, (ax, tau) in enumerate(zip(axes, taus, strict=True)):
-        draw_scene(scenes, env, tau, config, ax=ax, legend=False, title=f"τ = {tau}")
+        _draw_scene(view, env, tau, ax, False, None, False, f"τ = {tau}")
         if i == 0:
             ax.set_xlabel("start", fontsize=8)
             continue
@@ -341,6 +337,7 @@ def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSim
     return fig
 
 
+@check_args(config=_CONFIG)
 def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure:
     """One panel per object category: its visiting order as numbered, cyclic arrows.
 
@@ -349,7 +346,7 @@ def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure
     The map centre (the pivot of the angular orderings) is marked with a cross; for angular
     orderings dotted rays join it to each table, and a short grey ray marks angle 0 (up).
     """
-    _check_types(scenes, config)
+    validate_scenes(scenes, values=False)
     env = check_int("env", env, 0, scenes.num_envs - 1)
     view = _EnvView(scenes, env, config)
     m_count = view.num_objects
@@ -383,6 +380,7 @@ def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure
     return fig
 
 
+@check_args(config=_CONFIG, ax=Optional(Instance(Axes)))
 def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, config: FlowSimConfig,
                    ax: Axes | None = None) -> Figure:
     """Shade the places object ``obj`` could occupy by probability, over the scene at ``tau``.
@@ -392,7 +390,7 @@ def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, con
     to 1 (e.g. empirical slot frequencies). Each place is the object's box centred on that piece of
     furniture, filled with an opacity proportional to its probability and labelled with it.
     """
-    _check_types(scenes, config)
+    validate_scenes(scenes, values=False)
     env, tau = _check_env_tau(scenes, env, tau)
     view = _EnvView(scenes, env, config)
     obj = check_int("obj", obj, 0, view.num_objects - 1)
@@ -404,7 +402,7 @@ def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, con
     if np.any(probs[k:] > 1e-6):
         raise ValueError(f"probs has mass beyond the object's {k} places")
     probs = probs[:k]
-    fig = draw_scene(scenes, env, tau, config, ax=ax, highlight=obj, legend=ax is None)
+    fig = _draw_scene(view, env, tau, ax, False, obj, ax is None, None)
     ax = fig.axes[0] if ax is None else ax
     category = view.categories[obj]
     centres = view.furniture_centres()
@@ -436,6 +434,8 @@ def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, con
     return fig
 
 
+@check_args(ax=Instance(Axes), boxes_norm=RealArray(), config=_CONFIG,
+            label=Optional(Instance(str)))
 def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig, label: str | None = None,
                   **style: Any) -> PatchCollection:
     """Draw normalised (y, x, h, w) boxes (e.g. model samples) over a map drawn in ``ax``.
@@ -445,11 +445,7 @@ def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig, label: str |
     PatchCollection defaults (unfilled black outlines). ``label``: an entry for the boxes in the
     map's legend (added beside the map if it has none). Returns the added collection.
     """
-    check_instance("config", config, FlowSimConfig)
-    check_instance("ax", ax, Axes)
-    if label is not None:
-        check_instance("label", label, str)
-    boxes = np.asarray(check_real_array("boxes_norm", boxes_norm), dtype=float)
+    boxes = np.asarray(boxes_norm, dtype=float)
     if boxes.ndim == 1:
         boxes = boxes[None]
     if boxes.ndim != 2 or boxes.shape[1] != 4:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import functools
 import io
 import json
-import os
 
 import jax
 import jax.numpy as jnp
@@ -35,20 +34,18 @@ from flowmaps_jax.flowsim.generate import (
 )
 from flowmaps_jax.validation import (
     array_bytes,
+    check_args,
     check_file,
-    check_instance,
     check_int,
     check_int_array,
-    check_key,
-    check_no_links,
     check_output_file,
-    check_real,
-    check_real_array,
     check_request_size,
     check_seed,
+    prefix_errors,
     read_npz,
     write_file,
 )
+from flowmaps_jax.validation.fields import Instance, Int, Key, Real, RealArray
 
 FORMAT_VERSION = 2
 TRAIN_SEED = 0
@@ -59,11 +56,7 @@ _TRAIN_TAG, _VALIDATION_TAG = 0, 1
 # ------------------------------------------------------------------------------ validation
 
 
-def _check_inputs(config, *scenes) -> None:
-    """The config and (shapes and dtypes only: cheap, and fine under jit) the scenes given."""
-    check_instance("config", config, FlowSimConfig)
-    for each in scenes:
-        validate_scenes(each, config, values=False)
+_CONFIG = Instance(FlowSimConfig)
 
 
 def _check_indices(**indices: tuple) -> tuple[jnp.ndarray, ...]:
@@ -83,20 +76,18 @@ def _check_indices(**indices: tuple) -> tuple[jnp.ndarray, ...]:
 # ------------------------------------------------------------------------------ boxes
 
 
+@check_args(boxes_px=RealArray((..., 4)), config=_CONFIG)
 def normalise_boxes(boxes_px, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Pixel boxes (..., 4) (y0, x0, y1, x1) → normalised (y, x, h, w) / (map_size − 1)."""
-    check_instance("config", config, FlowSimConfig)
-    boxes = check_real_array("boxes_px", boxes_px, (..., 4))
-    return box_geometry.normalise(jnp.asarray(boxes, jnp.float32), config.map_size)
+    return box_geometry.normalise(jnp.asarray(boxes_px, jnp.float32), config.map_size)
 
 
+@check_args(boxes=RealArray((..., 4), finite=False), config=_CONFIG)
 def denormalise_boxes(boxes, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Inverse of ``normalise_boxes``: (..., 4) (y, x, h, w) → pixels (y0, x0, y1, x1).
 
     NaN or inf pass through (model samples are converted as they are; check them separately).
     """
-    check_instance("config", config, FlowSimConfig)
-    boxes = check_real_array("boxes", boxes, (..., 4), finite=False)
     return box_geometry.denormalise(jnp.asarray(boxes, jnp.float32), config.map_size)
 
 
@@ -159,6 +150,7 @@ def check_history(history, config: FlowSimConfig) -> int:
     return h
 
 
+@check_args(config=_CONFIG)
 def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFIG,
                  history: int = 1) -> tok.SceneTokens:
     """Tokens of environments ``env`` (N,) at state times ``tau`` (N,): SceneTokens (N, S).
@@ -169,7 +161,7 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
     t = 0 are masked out): furniture does not move in FlowSim, so the past maps add only their
     objects. Raises ``ValueError`` if the tokens exceed S. jit-able (a gather).
     """
-    _check_inputs(config, scenes)
+    validate_scenes(scenes, config, values=False)  # shapes and dtypes: cheap, fine under jit
     history = check_history(history, config)
     env, tau = _check_indices(env=(env, scenes.num_envs - 1),
                               tau=(tau, config.num_timesteps - 1))
@@ -181,10 +173,11 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
 _tokens_jit = jax.jit(_tokens, static_argnames=("config", "history"))
 
 
+@check_args(config=_CONFIG)
 def slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """(N, F, 4) normalised (y, x, h, w) box object ``obj`` (N,) of environment ``env`` (N,)
     would have at each position k of its visiting order (zeros for k >= num_slots)."""
-    _check_inputs(config, scenes)
+    validate_scenes(scenes, config, values=False)
     env, obj = _check_indices(env=(env, scenes.num_envs - 1),
                               obj=(obj, config.num_objects - 1))
     return _slot_boxes(scenes, env, obj, config)
@@ -248,6 +241,8 @@ def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                           target=target)
 
 
+@check_args(key=Key(), batch_size=Int(), queries_per_scene=Int(), config=_CONFIG,
+            short_frac=Real(0.0, 1.0), short_max=Int())
 def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                      config: FlowSimConfig = DEFAULT_CONFIG, short_frac: float = 0.0,
                      short_max: int = 3, history: int = 1) -> tok.TrainBatch:
@@ -257,22 +252,13 @@ def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: in
     (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config, short_*).
     ``history``: tokens of the last H maps (see ``scene_tokens``).
     """
-    _check_inputs(config, scenes)
-    batch_size, queries_per_scene = _check_batch_size(batch_size, queries_per_scene, config)
-    short_frac = check_real("short_frac", short_frac, 0.0, 1.0)
-    short_max = check_int("short_max", short_max)
+    validate_scenes(scenes, config, values=False)
+    check_request_size(f"a batch of {batch_size} scenes x {queries_per_scene} queries",
+                       array_bytes((batch_size, config.max_tokens, 7))
+                       + array_bytes((batch_size, queries_per_scene, 6)))
     history = check_history(history, config)
-    return _train_batch(check_key(key), scenes, batch_size, queries_per_scene, config,
+    return _train_batch(key, scenes, batch_size, queries_per_scene, config,
                         short_frac, short_max, history)
-
-
-def _check_batch_size(batch_size, queries_per_scene, config: FlowSimConfig) -> tuple[int, int]:
-    """Positive ints whose TrainBatch (tokens, queries, targets) fits in memory."""
-    b = check_int("batch_size", batch_size)
-    q = check_int("queries_per_scene", queries_per_scene)
-    check_request_size(f"a batch of {b} scenes x {q} queries",
-                       array_bytes((b, config.max_tokens, 7)) + array_bytes((b, q, 6)))
-    return b, q
 
 
 # ------------------------------------------------------------------------------ datasets
@@ -288,7 +274,6 @@ def train_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 2500,
 
     mesh / part: as in :func:`~flowmaps_jax.flowsim.generate.generate` (split the work over
     devices; generate only this host's share). Neither changes an environment."""
-    _check_inputs(config)
     return generate(_split_key(seed, _TRAIN_TAG), num_envs, config, mesh=mesh, part=part)
 
 
@@ -296,23 +281,20 @@ def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200
                      seed: int = VALIDATION_SEED, *, mesh=None) -> Scenes:
     """The held-out environments: ``generate(fold_in(key(seed), 1), num_envs, config)``;
     a different seed and tag from ``train_split``. mesh: split the work over devices."""
-    _check_inputs(config)
     return generate(_split_key(seed, _VALIDATION_TAG), num_envs, config, mesh=mesh)
 
 
 # ------------------------------------------------------------------------------ .npz I/O
 
+@check_args(path=check_output_file, config=_CONFIG)
 def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) -> None:
     """Write scenes and their config to one ``.npz`` (with ``FORMAT_VERSION``) at ``path``.
 
     Everything is checked first (the path's folder exists and is writable, the scenes match the
     config in every array); the file appears whole or not at all (written aside, then renamed).
     """
-    path = check_output_file("path", path)
-    _check_inputs(config)
     validate_scenes(scenes, config)
     arrays = {name: np.asarray(getattr(scenes, name)) for name in _FIELDS}
-    check_no_links("path", os.path.dirname(os.path.abspath(path)), [os.path.basename(path)])
     buffer = io.BytesIO()
     np.savez_compressed(buffer, format_version=np.int64(FORMAT_VERSION),
                         config_json=np.asarray(json.dumps(config.to_dict())), **arrays)
@@ -327,37 +309,25 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
     is untrusted: a member ``save_scenes`` does not write, Python objects, or arrays declared
     larger than the memory budget are refused before anything is decompressed
     (:func:`flowmaps_jax.validation.read_npz`)."""
-    try:
+    with prefix_errors("load_scenes: "):
         path = check_file("path", path)
-    except ValueError as err:
-        raise ValueError(f"load_scenes: {err}") from None
-    try:
         contents = read_npz(repr(path), path, allowed=("format_version", "config_json", *_FIELDS))
-    except ValueError as err:
-        raise ValueError(f"load_scenes: {err}") from None
-    if "format_version" not in contents:
-        raise ValueError(f"load_scenes: {path!r} has no format_version; not a FlowSim file")
-    try:
+    with prefix_errors(f"load_scenes: {path!r}: ", also=(TypeError,)):
+        if "format_version" not in contents:
+            raise ValueError("it has no format_version; not a FlowSim file")
         version = check_int("format_version", contents["format_version"], None)
-    except ValueError as err:
-        raise ValueError(f"load_scenes: {path!r}: {err}") from None
-    if version not in (1, FORMAT_VERSION):
-        raise ValueError(f"load_scenes: {path!r} has format version {version}; this code reads "
-                         f"versions 1 and {FORMAT_VERSION}")
-    if version == 1 and "habit" not in contents and "slot" in contents:  # before habits: routine
-        contents["habit"] = np.zeros((contents["slot"].shape[0], contents["slot"].shape[2]),
-                                     np.int32)
-    missing = [n for n in ("config_json", *_FIELDS) if n not in contents]
-    if missing:
-        raise ValueError(f"load_scenes: {path!r} is missing arrays {missing}")
-    try:
-        config = FlowSimConfig.from_dict(json.loads(str(contents["config_json"])))
-    except (ValueError, TypeError) as err:
-        raise ValueError(f"load_scenes: {path!r} has an invalid config: {err}") from err
-    try:
+        if version not in (1, FORMAT_VERSION):
+            raise ValueError(f"it has format version {version}; this code reads versions 1 and "
+                             f"{FORMAT_VERSION}")
+        if version == 1 and "habit" not in contents and "slot" in contents:  # routine only
+            contents["habit"] = np.zeros((contents["slot"].shape[0], contents["slot"].shape[2]),
+                                         np.int32)
+        missing = [n for n in ("config_json", *_FIELDS) if n not in contents]
+        if missing:
+            raise ValueError(f"it is missing arrays {missing}")
+        with prefix_errors("it has an invalid config: ", also=(TypeError,)):
+            config = FlowSimConfig.from_dict(json.loads(str(contents["config_json"])))
         validate_scenes(Scenes(**{name: contents[name] for name in _FIELDS}), config)
-    except ValueError as err:
-        raise ValueError(f"load_scenes: {path!r}: {err}") from None
     scenes = Scenes(**{name: jnp.asarray(contents[name],
                                          jnp.float32 if name in _FLOAT_FIELDS else jnp.int32)
                        for name in _FIELDS})

@@ -2,7 +2,7 @@
 
 ``routine`` is the paper's world (every object on its cyclic routine); ``preferences`` and
 ``dynamic`` give every object that habit; ``mixed`` draws each object's habit from the three
-evenly. One model is trained and shipped per world, as the authors do.
+evenly. One pretrained model is trained per world, as the authors do.
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from __future__ import annotations
 import dataclasses
 
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, PAPER_HABITS, FlowSimConfig
-from flowmaps_jax.validation import check_choice, check_instance
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.fields import Choice, Instance
 
 WORLDS: dict[str, tuple[tuple[str, float], ...]] = {
     "routine": PAPER_HABITS,
@@ -25,10 +26,9 @@ HABITS_HISTORY = 8
 reference posterior of the evaluate and search CLIs uses by default in a world with habits."""
 
 
+@check_args(world=Choice(tuple(WORLDS)), base=Instance(FlowSimConfig))
 def world_config(world: str, base: FlowSimConfig = DEFAULT_CONFIG) -> FlowSimConfig:
     """``base`` with the habits of ``world`` (a ``WORLDS`` name; ValueError names it otherwise)."""
-    check_choice("world", world, tuple(WORLDS))
-    check_instance("base", base, FlowSimConfig)
     return dataclasses.replace(base, habits=WORLDS[world])
 
 

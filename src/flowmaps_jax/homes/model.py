@@ -375,9 +375,9 @@ def sample_placements(params, config: HomesModelConfig, homes_config: HomesConfi
 
 class HomesSpec(NamedTuple):
     """What a stored homes config describes (the store layer's model spec of this family):
-    ``kind`` (:data:`FAMILY_NAME`), the network's ``model`` sizes and the ``homes`` world."""
+    ``family_name`` (:data:`FAMILY_NAME`), the network's ``model`` sizes and the ``homes`` world."""
 
-    kind: str
+    family_name: str
     model: HomesModelConfig
     homes: HomesConfig
 
@@ -396,5 +396,5 @@ def homes_spec(config: dict) -> HomesSpec:
     for section in ("model", "homes"):
         if not isinstance(config.get(section), dict):
             raise ValueError(f"the {FAMILY_NAME!r} config has no {section!r} section")
-    return HomesSpec(kind=FAMILY_NAME, model=HomesModelConfig.from_dict(config["model"]),
+    return HomesSpec(family_name=FAMILY_NAME, model=HomesModelConfig.from_dict(config["model"]),
                      homes=HomesConfig.from_dict(config["homes"]))

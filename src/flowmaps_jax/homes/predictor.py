@@ -104,8 +104,8 @@ class HomesPredictor:
                 where, step = str(weights.root), weights.step
         except ValueError as err:
             raise ValueError(f"source {text!r}: {err}") from None
-        if weights.spec.kind != FAMILY_NAME:
-            raise ValueError(f"source {text!r} holds a {weights.spec.kind!r} model, not a "
+        if weights.spec.family_name != FAMILY_NAME:
+            raise ValueError(f"source {text!r} holds a {weights.spec.family_name!r} model, not a "
                              f"{FAMILY_NAME!r} one")
         return cls(weights.params, weights.spec.model, weights.spec.homes, where, step)
 

@@ -3,14 +3,14 @@
 Frozen so it is hashable and can be a static argument of ``jax.jit``. The defaults are the paper's
 size (D = 256, 8 encoder layers, 8 CDiT blocks, 8 heads, dropout 0.1); training presets live in
 :mod:`flowmaps_jax.training.config`. :meth:`ModelConfig.from_dict` reads the ``model`` section of a
-stored run config (a checkpoint's or a shipped model's).
+stored run config (a checkpoint's or a pretrained model's).
 """
 
 from __future__ import annotations
 
 import dataclasses
 
-from flowmaps_jax.validation import check_choice, check_flag, check_int, check_real
+from flowmaps_jax.validation.fields import Choice, Flag, Int, Real, check_fields, check_keys
 
 BASELINE_VARIANCES = ("mean", "learned")
 HEADS = ("velocity", "pointer", "route", "mixture")
@@ -101,28 +101,10 @@ class ModelConfig:
     weight_geometry: str = "none"
 
     def __post_init__(self):
-        for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
-                     "num_descriptors", "tau_max", "freq_bands", "baseline_hidden", "history",
-                     "weight_blocks"):
-            check_int(f"ModelConfig.{name}", getattr(self, name))
+        check_fields(self, _RULES, prefix="ModelConfig.", store=False)
         if self.dim % self.heads:
             raise ValueError(
                 f"ModelConfig.dim={self.dim} must be divisible by ModelConfig.heads={self.heads}")
-        check_real("ModelConfig.dropout", self.dropout, 0.0, 1.0, high_open=True)
-        check_real("ModelConfig.max_frequency", self.max_frequency, 1.0)
-        check_real("ModelConfig.box_scale", self.box_scale, 0.0, low_open=True)
-        check_real("ModelConfig.box_offset", self.box_offset)
-        if self.tau_max < 2:
-            raise ValueError(f"ModelConfig.tau_max must be >= 2; got {self.tau_max}")
-        check_choice("ModelConfig.head", self.head, HEADS)
-        check_real("ModelConfig.pointer_width_scale", self.pointer_width_scale, 0.0, 1000.0,
-                   low_open=True)
-        check_choice("ModelConfig.pointer_widths", self.pointer_widths, POINTER_WIDTHS)
-        check_choice("ModelConfig.weight_attention", self.weight_attention, WEIGHT_ATTENTION)
-        check_choice("ModelConfig.weight_geometry", self.weight_geometry, WEIGHT_GEOMETRY)
-        check_flag("ModelConfig.condition_on_dtau", self.condition_on_dtau)
-        check_choice("ModelConfig.baseline_variance", self.baseline_variance, BASELINE_VARIANCES)
-        check_choice("ModelConfig.precision", self.precision, PRECISIONS)
 
     @property
     def head_dim(self) -> int:
@@ -134,11 +116,28 @@ class ModelConfig:
         """The config a ``dataclasses.asdict`` / JSON dict describes (a stored run config's
         ``model`` section). Unknown keys raise ``ValueError`` naming them; the fields in
         :data:`REMOVED_FIELDS` are dropped."""
-        if not isinstance(data, dict):
-            raise ValueError(f"the model config must be a dict; got {type(data).__name__}")
-        known = {field.name for field in dataclasses.fields(cls)}
-        data = {k: v for k, v in data.items() if k not in REMOVED_FIELDS}
-        unknown = sorted(set(data) - known, key=str)
-        if unknown:
-            raise ValueError(f"the model config has unknown keys {unknown} for ModelConfig")
-        return cls(**data)
+        known = [*(field.name for field in dataclasses.fields(cls)), *REMOVED_FIELDS]
+        data = check_keys("the model config (ModelConfig.from_dict)", data, known,
+                          what="unknown keys")
+        return cls(**{k: v for k, v in data.items() if k not in REMOVED_FIELDS})
+
+
+_RULES = {
+    **{name: Int() for name in ("dim", "encoder_layers", "cdit_blocks", "heads", "mlp_ratio",
+                                "num_descriptors", "freq_bands", "baseline_hidden", "history",
+                                "weight_blocks")},
+    "tau_max": Int(2),
+    "dropout": Real(0.0, 1.0, high_open=True),
+    "max_frequency": Real(1.0),
+    "box_scale": Real(0.0, low_open=True),
+    "box_offset": Real(),
+    "head": Choice(HEADS),
+    "pointer_width_scale": Real(0.0, 1000.0, low_open=True),
+    "pointer_widths": Choice(POINTER_WIDTHS),
+    "weight_attention": Choice(WEIGHT_ATTENTION),
+    "weight_geometry": Choice(WEIGHT_GEOMETRY),
+    "condition_on_dtau": Flag(),
+    "baseline_variance": Choice(BASELINE_VARIANCES),
+    "precision": Choice(PRECISIONS),
+}
+"""What each field of :class:`ModelConfig` may hold (checked, not converted)."""

@@ -2,8 +2,9 @@
 
 The name is what a run config holds (``TrainConfig.family``, stored in ``config.json`` under the
 older key ``"model_kind"``) and what :class:`flowmaps_jax.predictor.Predictor` carries
-(``Predictor.family_name``; a shipped model's ``.json`` stores it as ``"kind"``). The on-disk keys
-keep their old names so that every checkpoint and the shipped weights read as before. Adding a
+(``Predictor.family_name``, ``ModelSpec.family_name``; a pretrained model's ``.json`` stores it
+as ``"kind"``). The on-disk keys keep their old names so that every checkpoint and the
+pretrained weights read as before. Adding a
 family is one module that defines its ``FAMILY`` (network, loss, cores; see
 :mod:`flowmaps_jax.model.baseline`) plus one line here; training then finds its loss through
 the family (``ModelFamily.loss``).

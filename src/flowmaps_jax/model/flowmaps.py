@@ -30,7 +30,7 @@ from flowmaps_jax.model.encoder import EncoderLayer, MapEncoder, example_inputs
 from flowmaps_jax.model.readout import PointerReadout
 from flowmaps_jax.model.route import RouteReadout
 from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
-from flowmaps_jax.validation import check_array, check_instance, check_real_array
+from flowmaps_jax.validation import check_array, check_real_array
 
 
 @struct.dataclass
@@ -318,9 +318,8 @@ def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries | No
     b = check_real_array("tokens.boxes", tokens.boxes, (None, None, 4)).shape[0]
     if queries is None:
         return
-    check_instance("queries", queries, Queries)
-    q = check_array("queries.descriptor", queries.descriptor, (b, None)).shape[1]
     validate_queries(queries, tokens.tau, config.num_descriptors, config.tau_max, name="queries")
+    q = check_array("queries.descriptor", queries.descriptor, (b, None)).shape[1]
     if x_t is not None:
         check_real_array("x_t", x_t, (b, q, None, 4))
     if t is not None:

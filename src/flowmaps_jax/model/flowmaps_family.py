@@ -91,8 +91,6 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
     (:func:`supporting_token`): direct supervision of *which* table, as a pointer probe gets.
     aux: ``{"loss": scalar, "mse_per_query": (B, Q)}`` (+ ``"pointer_ce"`` when used).
     """
-    if t_sampler not in flow.T_SAMPLERS:
-        raise ValueError(f"t_sampler must be one of {flow.T_SAMPLERS}; got {t_sampler!r}")
     noise_key, t_key, enc_key, vel_key = jax.random.split(key, 4)
     if deterministic:
         enc_key = vel_key = None

@@ -7,9 +7,9 @@ posterior, on FlowSim's validation split.
 Writes ``search.json``, ``search.md`` and the figures ``episodes.png``, ``success_vs_looks.png``
 and ``success_vs_distance.png`` into ``--out`` (default ``<checkpoint>/search``). Models are
 run or checkpoint directories (their best-by-validation step unless ``--which latest``), or
-``pretrained:NAME`` for a model shipped with the package; the checkpoint and step of each are
-printed before the search starts and recorded in ``search.json``. The protocol is documented in
-docs/search.md.
+``pretrained:NAME`` for a pretrained model packaged with flowmaps-jax; the checkpoint and step
+of each are printed before the search starts and recorded in ``search.json``. The protocol is
+documented in docs/search.md.
 
 ``--world NAME`` searches scenes of another FlowSim world (``flowsim.WORLDS``: routine,
 preferences, dynamic, mixed; default: the world of the first model's config). ``--history H``:
@@ -49,14 +49,14 @@ from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.search.report import markdown_table, write_report
 from flowmaps_jax.tables import TABLE_METHODS
 from flowmaps_jax.validation import (
-    check_choice,
     check_int,
-    check_no_links,
+    check_options,
     check_output_dir,
-    check_seed,
+    check_real,
     make_output_dir,
     save_figure,
 )
+from flowmaps_jax.validation.fields import Choice, Int, Optional, Seed
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -165,24 +165,25 @@ def search_world(models: Sequence, world: str | None = None,
     return config, int(history)
 
 
+_OPTIONS = {**{dest: Int() for dest in ("num_envs", "times_per_env", "samples", "budget",
+                                         "chunk_rows")},
+            "seed": Seed(), "world": Optional(Choice(tuple(WORLDS))), "history": Optional(Int())}
+"""What each option may hold, checked before any model is loaded."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; 0 on success, 2 on a bad argument, 74 on a failed write (a full disk);
     one line on stderr. Every argument, ``--out`` and the run's size are checked first."""
     args = build_parser().parse_args(argv)
     try:
-        for name in ("num_envs", "times_per_env", "samples", "budget", "chunk_rows"):
-            check_int("--" + name.replace("_", "-"), getattr(args, name))
-        check_seed("--seed", args.seed)
-        sim.check_p_miss(args.p_miss)
-        if args.world is not None:
-            check_choice("--world", args.world, tuple(WORLDS))
-        if args.history is not None:
-            check_int("--history", args.history)
+        check_options(args, _OPTIONS)
+        check_real("p_miss (the chance a look at the right table misses the object)",
+                   args.p_miss, 0.0, 1.0, high_open=True)
         if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         out = pathlib.Path(check_output_dir(
-            "--out", args.out or pathlib.Path(args.checkpoint) / "search"))
-        check_no_links("--out", out, [*REPORT_FILES, *(() if args.no_figures else FIGURES)])
+            "--out", args.out or pathlib.Path(args.checkpoint) / "search",
+            files=[*REPORT_FILES, *(() if args.no_figures else FIGURES)]))
         models = [load_model(spec, args.which, args.devices)
                   for spec in [args.checkpoint, *args.baseline]]
         config, history = search_world(models, args.world, args.history)

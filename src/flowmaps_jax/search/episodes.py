@@ -14,8 +14,11 @@ posterior is the one given the object's last H observations (``flowsim.habits``)
 also carries each object's habit family and the extra reference slot distributions
 (:data:`EXACT_H1_ROW` and the empirical frequency of the last H observations).
 
-The simulator's names (``Episodes``, ``run_episodes``, ``bayes_update``, ...) are importable
-from here too, as they were before the simulator had its own module.
+A :class:`SearchSet` is built, and everything it is built from checked, by
+:func:`build_search_set`; the functions that read one (the priors, :func:`history_tokens`,
+:func:`make_episodes`) check only their other arguments. The simulator's names (``Episodes``,
+``run_episodes``, ``bayes_update``, ...) are importable from here too, as they were before the
+simulator had its own module.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ from flowmaps_jax.flowsim.habits import (  # noqa: F401  (names this module re-e
 )
 from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
-from flowmaps_jax.search.probabilities import slots_to_tables_core
+from flowmaps_jax.search.probabilities import spread_over_tables
 from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the simulator's home was here)
     DEFAULT_BUDGET,
     Episodes,
@@ -57,14 +60,13 @@ from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the sim
     check_belief,
     check_episodes,
     check_episodes_size,
-    check_p_miss,
     expected_outcomes,
     look_flops,
     outcome_bytes,
     run_episodes,
     simulate,
 )
-from flowmaps_jax.tables import check_table_method, table_probabilities_core
+from flowmaps_jax.tables import table_probabilities
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import (
     PROB_ATOL,
@@ -254,29 +256,25 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
 # --------------------------------------------------------------------------- priors
 
 
-def _check_set(search_set) -> SearchSet:
-    return check_instance("search_set", search_set, SearchSet)
-
-
 def exact_tables(search_set: SearchSet) -> jnp.ndarray:
     """The exact posterior at τ_q as table probabilities (R, M, S + 1) (the Bayes-optimal prior)."""
-    s = _check_set(search_set)
-    return slots_to_tables_core(s.slot_probs, s.visit_order, s.tokens.num_tokens)
+    s = search_set
+    return spread_over_tables(s.slot_probs, s.visit_order, s.tokens.num_tokens)
 
 
 def uniform_tables(search_set: SearchSet) -> jnp.ndarray:
     """Uniform over the K tables of the object's kind, as table probabilities (R, M, S + 1)."""
-    s = _check_set(search_set)
-    slots = slot_metrics.uniform_slots_core(s.num_slots, s.visit_order.shape[-1])
-    return slots_to_tables_core(slots, s.visit_order, s.tokens.num_tokens)
+    s = search_set
+    slots = slot_metrics.uniform_over_slots(s.num_slots, s.visit_order.shape[-1])
+    return spread_over_tables(slots, s.visit_order, s.tokens.num_tokens)
 
 
 def extra_tables(search_set: SearchSet) -> dict[str, jnp.ndarray]:
     """The set's extra reference rows (``SearchSet.extra_slots``: the exact posterior given one
     observation, the empirical frequency of the last H) as table probabilities {name: (R, M,
     S + 1)}; empty for a set without them."""
-    s = _check_set(search_set)
-    return {name: slots_to_tables_core(slots, s.visit_order, s.tokens.num_tokens)
+    s = search_set
+    return {name: spread_over_tables(slots, s.visit_order, s.tokens.num_tokens)
             for name, slots in (s.extra_slots or {}).items()}
 
 
@@ -288,9 +286,8 @@ def history_tokens(search_set: SearchSet, scenes: Scenes, config: FlowSimConfig,
     that is fewer (a one-map model in a search whose tokens have room for a history model's maps;
     :func:`pad_tables` brings its table probabilities back to the set's S). The same set for
     H = 1 and no fewer tokens. ``scenes`` and ``config`` are those the set was built from."""
-    s = _check_set(search_set)
-    history = check_int("history", history)
-    if max_tokens is not None and check_int("max_tokens", max_tokens) < s.tokens.num_tokens:
+    s = search_set
+    if max_tokens is not None and max_tokens < s.tokens.num_tokens:
         config = dataclasses.replace(config, max_tokens=max_tokens)
     elif history == 1:
         return s
@@ -301,7 +298,7 @@ def pad_tables(table_probs, num_tokens: int) -> jnp.ndarray:
     """Table probabilities (..., S' + 1) over S' ≤ S tokens as (..., S + 1): the first S' tokens
     are the same tokens (tables first), the rest get no mass, the off bin stays last."""
     probs = jnp.asarray(table_probs)
-    extra = check_int("num_tokens", num_tokens) + 1 - probs.shape[-1]
+    extra = num_tokens + 1 - probs.shape[-1]
     if extra < 0:
         raise ValueError(f"table_probs has {probs.shape[-1] - 1} tokens, more than "
                          f"num_tokens={num_tokens}")
@@ -313,9 +310,9 @@ def pad_tables(table_probs, num_tokens: int) -> jnp.ndarray:
 
 def last_seen_tables(search_set: SearchSet) -> jnp.ndarray:
     """All mass on the table the object was seen on at τ, as table probabilities (R, M, S + 1)."""
-    s = _check_set(search_set)
-    slots = slot_metrics.last_seen_slots_core(s.slot_now, s.visit_order.shape[-1])
-    return slots_to_tables_core(slots, s.visit_order, s.tokens.num_tokens)
+    s = search_set
+    slots = slot_metrics.one_hot_slots(s.slot_now, s.visit_order.shape[-1])
+    return spread_over_tables(slots, s.visit_order, s.tokens.num_tokens)
 
 
 def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, key: jax.Array,
@@ -329,11 +326,10 @@ def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, ke
     default "samples") and the other keywords go to it. A model whose samples or table weights
     are not finite is an error naming it.
     """
-    s = _check_set(search_set)
+    s = search_set
     key = check_key(key)
     chunk = min(check_int("chunk_rows", chunk_rows), s.num_rows)
     method = sample_kwargs.pop("method", "samples")
-    num_samples = check_table_method(predictor, method, num_samples)
     predictor = _Finite(predictor)
     row_keys = jax.vmap(lambda r: jax.random.fold_in(jax.random.fold_in(key, _SALT_SAMPLES), r))(
         jnp.arange(s.num_rows))
@@ -343,8 +339,8 @@ def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, ke
     for first in tqdm(starts, desc=label, unit="chunk", disable=not progress, leave=False):
         index = np.minimum(np.arange(first, first + chunk), s.num_rows - 1)
         part = jax.tree_util.tree_map(lambda a, i=index: a[i], (s.tokens, s.queries))
-        probs = table_probabilities_core(predictor, *part, num_samples, row_keys[index], method,
-                                         **sample_kwargs)
+        probs = table_probabilities(predictor, *part, num_samples, row_keys[index], method,
+                                    **sample_kwargs)
         parts.append(np.asarray(probs)[: min(chunk, s.num_rows - first)])
     return jnp.asarray(np.concatenate(parts))
 
@@ -366,14 +362,12 @@ class _Finite:
                              f"no search number computed from them would mean anything")
         return values
 
-    def sample(self, *args, **kwargs):
-        return self._finite(self._predictor.sample(*args, **kwargs), "samples")
-
-    def table_weights(self, *args, **kwargs):
-        return self._finite(self._predictor.table_weights(*args, **kwargs), "table weights")
-
     def __getattr__(self, name: str):
-        return getattr(self._predictor, name)
+        method = getattr(self._predictor, name)  # AttributeError when the predictor lacks it
+        what = {"sample": "samples", "table_weights": "table weights"}.get(name)
+        if what is None:
+            return method
+        return lambda *args, **kwargs: self._finite(method(*args, **kwargs), what)
 
 
 # --------------------------------------------------------------------------- episodes
@@ -410,7 +404,7 @@ def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
     The episodes are canonical (as :func:`.simulator.check_episodes` returns them), ready for
     the simulator's cores.
     """
-    s = _check_set(search_set)
+    s = search_set
     if start not in STARTS:
         raise ValueError(f"start must be one of {STARTS}; got {start!r}")
     probs = jnp.asarray(table_probs, jnp.float32)
@@ -432,6 +426,6 @@ def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
 
 def truth_probs(search_set: SearchSet) -> jnp.ndarray:
     """The exact posterior over the episodes' candidate tables, (N, K) (for expectations)."""
-    s = _check_set(search_set)
+    s = search_set
     q = s.slot_probs[..., : s.num_tables]
     return q.reshape(-1, q.shape[-1])

@@ -42,13 +42,6 @@ COST_RTOL = 1e-5
 """Plan costs within this relative tolerance are tied (float32 sums of up to 7 terms)."""
 
 
-def check_policy(policy) -> str:
-    """``policy`` if it is one of ``POLICIES``, else ``ValueError`` naming it."""
-    if not isinstance(policy, str) or policy not in POLICIES:
-        raise ValueError(f"policy must be one of {POLICIES}; got {policy!r}")
-    return policy
-
-
 def check_optimal_size(num_tables: int) -> None:
     """``ValueError`` if the exact dynamic programme cannot take ``num_tables`` tables."""
     if num_tables > MAX_OPTIMAL_TABLES:

@@ -21,8 +21,9 @@ Each row sums to 1.
 :func:`table_dict` gives the same numbers as plain Python dicts keyed by table (token) index,
 for planners outside JAX.
 
-:func:`slots_to_tables` checks its arguments once; :func:`slots_to_tables_core` is its unchecked
-core, which the search set (:mod:`.episodes`) calls on the FlowSim arrays it built.
+:func:`slots_to_tables` checks its arguments once and runs the jitted kernel
+:func:`spread_over_tables`, which checks nothing and which the search set (:mod:`.episodes`) runs
+on the FlowSim arrays it built.
 """
 
 from __future__ import annotations
@@ -44,7 +45,11 @@ OFF = "off"
 
 
 @functools.partial(jax.jit, static_argnames="num_tokens")
-def _slots_to_tables(slot_probs, visit_order, num_tokens):
+def spread_over_tables(slot_probs, visit_order, num_tokens: int):
+    """The kernel of :func:`slots_to_tables` (no checks): slot_probs (..., F) or (..., F + 1)
+    (its off bin dropped), visit_order (..., F) int, −1 padded → (..., S + 1)."""
+    if slot_probs.shape[-1] == visit_order.shape[-1] + 1:
+        slot_probs = slot_probs[..., :-1]
     target = jnp.where(visit_order >= 0, visit_order, num_tokens)  # padding → the off bin
     onehot = jax.nn.one_hot(target, num_tokens + 1, dtype=jnp.float32)  # (..., F, S + 1)
     return jnp.einsum("...f,...fs->...s", slot_probs, onehot)
@@ -71,15 +76,7 @@ def slots_to_tables(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
     if not np.issubdtype(order_np.dtype, np.integer) or np.any(order_np >= num_tokens):
         raise ValueError(f"visit_order must hold integer token indices < num_tokens={num_tokens} "
                          "(−1 for padding)")
-    return slots_to_tables_core(probs, order_np, num_tokens)
-
-
-def slots_to_tables_core(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
-    """Core of :func:`slots_to_tables` (no checks; an off bin, if any, is dropped)."""
-    probs = jnp.asarray(slot_probs, jnp.float32)
-    if probs.shape[-1] == np.shape(visit_order)[-1] + 1:
-        probs = probs[..., :-1]
-    return _slots_to_tables(probs, jnp.asarray(visit_order, jnp.int32), num_tokens)
+    return spread_over_tables(probs, jnp.asarray(order_np, jnp.int32), num_tokens)
 
 
 # --------------------------------------------------------------------------- plain dicts

@@ -9,7 +9,8 @@ overall, by category and by horizon Δτ, and divided by the exact-posterior row
 policy. With a perfect detector, every row is also scored in exact expectation over the true
 table (``simulator.expected_outcomes`` weighted by the exact posterior: no rollout noise).
 Each prior is checked once (``episodes.make_episodes``) and the policies, budget and sizes once
-(:func:`score_priors`), before any episode runs; the runs are the simulator's cores.
+(:func:`score_priors`), before any episode runs; the runs are the simulator's unchecked jitted
+simulation (``simulator.simulate``, ``simulator.simulate_every_target``).
 
 In a FlowSim world with habits, or with ``history`` H > 1 (``episodes.uses_history``), the exact
 posterior is the one given the last H observations, two more reference rows follow the models
@@ -27,6 +28,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
@@ -35,9 +37,9 @@ from flowmaps_jax.flowsim import HABITS, FlowSimConfig, Scenes, world_of
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search import simulator as sim
-from flowmaps_jax.search.policies import POLICIES, check_optimal_size, check_policy
+from flowmaps_jax.search.policies import POLICIES, check_optimal_size
 from flowmaps_jax.tables import ASSIGN_TOLERANCE, TABLE_METHODS
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_choice, check_int, check_real
 
 MAIN_POLICIES = ("most-probable", "greedy", "optimal")
 """The policies every prior is driven by (``"nearest"`` is the prior-free row)."""
@@ -110,7 +112,7 @@ def _check_policies(policies: Sequence[str]) -> tuple[str, ...]:
     if not policies or len(set(policies)) != len(policies):
         raise ValueError(f"policies must be distinct names from {POLICIES}; got {policies}")
     for p in policies:
-        if check_policy(p) == "nearest":
+        if check_choice("policies", p, POLICIES) == "nearest":
             raise ValueError("policies: 'nearest' is its own row (nearest table first), not a "
                              "policy to drive the priors with")
     return policies
@@ -128,12 +130,12 @@ def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowS
     """
     policies = _check_policies(policies)
     budget = check_int("budget", budget)
-    p_miss = sim.check_p_miss(p_miss)
+    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
     if EXACT_ROW not in priors:
         raise ValueError(f"priors must include the {EXACT_ROW!r} row (the reference)")
     key = jax.random.key(0) if key is None else key
     groups = episode_groups(search_set, config)
-    truth = ep.truth_probs(search_set)
+    weights = jnp.asarray(ep.truth_probs(search_set), jnp.float32).T  # (K, N), for expectations
     uniform_episodes, _ = ep.make_episodes(search_set, ep.uniform_tables(search_set), start)
     # each prior checked once, as it becomes episodes (the same for every policy)
     made = {name: ep.make_episodes(search_set, table_probs, start)
@@ -150,12 +152,13 @@ def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowS
                              leave=False):
         episodes, mass = made[name]
         if p_miss == 0.0:  # one run per hiding place: exact expectations, and the rollout's
-            every, weights = sim.expected_outcomes_core(episodes, truth, policy, budget)
+            every = sim.simulate_every_target(episodes, sim.policy_index(policy), budget)
             outcome = sim.at_targets(every, episodes.target)
             expected = sc.expected_scores(every, weights)
         else:  # the same misses for every row
             detector = jax.random.fold_in(key, _SALT_DETECTOR)
-            outcome = sim.run_episodes_core(episodes, policy, detector, budget, p_miss)
+            outcome = sim.simulate(episodes, detector, jnp.float32(p_miss),
+                                   sim.policy_index(policy), budget)
             expected = None
         runs[name, policy] = RowRun(name, policy, episodes, outcome, sc.episode_scores(outcome),
                                     expected, np.asarray(mass))
@@ -224,6 +227,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     """
     if table_method not in TABLE_METHODS:
         raise ValueError(f"table_method must be one of {TABLE_METHODS}; got {table_method!r}")
+    policies = tuple(policies)
     check_int("seed", seed, minimum=None)
     num_samples = check_int("num_samples", num_samples)
     for p in predictors:
@@ -277,7 +281,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
             "times_per_env": None if horizons is not None else int(times_per_env),
             "horizons": None if horizons is None else [int(h) for h in horizons],
             "num_samples": num_samples, "table_method": table_method,
-            "policies": list(_check_policies(policies)),
+            "policies": list(policies),  # as score_priors checked them
             "budget": int(budget), "p_miss": float(p_miss), "start": start, "seed": int(seed),
             "assign_tolerance": ASSIGN_TOLERANCE, "dynamics": config.dynamics,
             "map_size": config.map_size, "max_tables": search_set.num_tables},

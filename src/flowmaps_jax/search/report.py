@@ -15,7 +15,7 @@ import json
 import pathlib
 import re
 
-from flowmaps_jax.validation import check_no_links, make_output_dir, write_file
+from flowmaps_jax.validation import make_output_dir, write_file
 
 POLICY_LABELS = {"most-probable": "most-probable first",
                  "greedy": "greedy probability per pixel",
@@ -170,9 +170,8 @@ def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathli
     """Write ``search.json`` and ``search.md`` into out_dir (created); returns their paths.
     Both go through the shared writer (:func:`flowmaps_jax.validation.write_file`: a temporary
     file and a rename; a symbolic link at either name is a ``ValueError``)."""
-    out = make_output_dir("out_dir", out_dir)
+    out = make_output_dir("out_dir", out_dir, files=("search.json", "search.md"))
     paths = {"json": out / "search.json", "markdown": out / "search.md"}
-    check_no_links("out_dir", out, [p.name for p in paths.values()])
     text = compact_json(results) + "\n"
     write_file(paths["json"], text, name="out_dir file")
     write_file(paths["markdown"], markdown_table(results), name="out_dir file")

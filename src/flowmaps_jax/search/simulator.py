@@ -18,9 +18,10 @@ index). :func:`expected_outcomes` runs every possible hiding place at once (the 
 in one batch) for exact expectations under a truth distribution.
 
 Nothing here knows FlowSim: :mod:`.episodes` builds :class:`Episodes` from FlowSim scenes.
-The public functions check their arguments once and call their core (``_core`` appended;
-:func:`simulate` for :func:`run_episodes`), which checks nothing: the search protocol calls the
-cores on episodes it built.
+The public functions (:func:`run_episodes`, :func:`expected_outcomes`, :func:`bayes_update`)
+check their arguments once; the jitted simulation they run (:func:`simulate`,
+:func:`simulate_every_target`, on a policy's :func:`policy_index`) checks nothing: the search
+protocol runs it on the episodes it built and checked.
 """
 
 from __future__ import annotations
@@ -35,18 +36,17 @@ from flax import struct
 from flowmaps_jax.search.policies import (
     POLICIES,
     check_optimal_size,
-    check_policy,
     choose_indexed,
     distances,
 )
 from flowmaps_jax.validation import (
     PROB_ATOL,
-    check_int,
-    check_key,
+    check_args,
     check_probabilities,
     check_real,
     check_resources,
 )
+from flowmaps_jax.validation.fields import Choice, Int, Key, Optional, Real
 
 DEFAULT_BUDGET = 10
 """Looks per episode (FlowSim has at most 4 tables of a kind: every policy finds the object
@@ -104,13 +104,6 @@ class Outcome:
 
 
 # --------------------------------------------------------------------------- validation
-
-
-def check_p_miss(p_miss) -> float:
-    """``p_miss`` (the chance a look at the right table misses the object) as a float in
-    [0, 1), else ``ValueError`` naming it."""
-    return check_real("p_miss (the chance a look at the right table misses the object)", p_miss,
-                      0.0, 1.0, high_open=True)
 
 
 def check_belief(name: str, belief, valid, valid_name: str = "valid") -> None:
@@ -200,7 +193,7 @@ def bayes_update(belief, looked, p_miss: float = 0.0, valid=None, looks_at=None)
     tables (default all) looked at least often, counting this look (``looks_at`` (..., K) int:
     looks so far *including* this one; default: only this one).
     """
-    p_miss = check_p_miss(p_miss)
+    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
     b = np.asarray(belief)
     valid = np.ones(b.shape, bool) if valid is None else np.asarray(valid, bool)
     check_belief("belief", b, valid)
@@ -258,6 +251,8 @@ def simulate(episodes: Episodes, key, p_miss, policy_index, budget: int) -> Outc
         keys, p_miss, policy_index)
 
 
+@check_args(policy=Choice(POLICIES), key=Optional(Key()), budget=Int(),
+            p_miss=Real(0.0, 1.0, high_open=True))
 def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
                  budget: int = DEFAULT_BUDGET, p_miss: float = 0.0) -> Outcome:
     """Run N episodes with ``policy`` (see :mod:`flowmaps_jax.search.policies`) → Outcome (N, ...).
@@ -267,23 +262,31 @@ def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
     episodes, an unknown policy, p_miss outside [0, 1), a budget < 1, or "optimal" with more than
     7 tables. Compiled once per (N, K, budget), shared by all policies.
     """
-    policy = check_policy(policy)
-    budget = check_int("budget", budget)
-    p_miss = check_p_miss(p_miss)
     episodes = check_episodes(episodes, policy)
     check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy)
-    key = jax.random.key(0) if key is None else check_key(key)
-    return run_episodes_core(episodes, policy, key, budget, p_miss)
+    key = jax.random.key(0) if key is None else key
+    return simulate(episodes, key, jnp.float32(p_miss), policy_index(policy), budget)
 
 
-def run_episodes_core(episodes: Episodes, policy: str, key: jax.Array, budget: int,
-                      p_miss: float) -> Outcome:
-    """Core of :func:`run_episodes` (no checks: canonical episodes, as :func:`check_episodes`
-    returns them, and checked arguments)."""
-    return simulate(episodes, key, jnp.float32(p_miss), jnp.int32(POLICIES.index(policy)),
-                    budget)
+def policy_index(policy: str) -> jnp.ndarray:
+    """A policy's name as the traced index :func:`simulate` takes (its place in ``POLICIES``)."""
+    return jnp.int32(POLICIES.index(policy))
 
 
+def simulate_every_target(episodes: Episodes, policy_index, budget: int) -> Outcome:
+    """Every episode once per possible hiding table t, with a perfect detector (the K · N
+    episodes in one batch; ``episodes.target`` is ignored) → Outcome with leading axes (K, N).
+    No validation, as :func:`simulate` (canonical episodes, as :func:`check_episodes` returns
+    them): :func:`expected_outcomes` checks first."""
+    k, n = episodes.num_tables, episodes.num_episodes
+    tiled = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k, *a.shape)).reshape(
+        k * n, *a.shape[1:]), episodes)
+    tiled = tiled.replace(target=jnp.repeat(jnp.arange(k, dtype=jnp.int32), n))
+    every = simulate(tiled, jax.random.key(0), jnp.float32(0.0), policy_index, budget)
+    return jax.tree_util.tree_map(lambda a: a.reshape(k, n, *a.shape[1:]), every)
+
+
+@check_args(policy=Choice(POLICIES), budget=Int())
 def expected_outcomes(episodes: Episodes, truth, policy: str,
                       budget: int = DEFAULT_BUDGET) -> tuple[Outcome, jnp.ndarray]:
     """Exact expectations over where the object hides, with a perfect detector.
@@ -294,26 +297,11 @@ def expected_outcomes(episodes: Episodes, truth, policy: str,
     posterior). ``search.scores.expected_scores`` averages any score with these weights;
     :func:`at_targets` picks each episode's own target (its ``run_episodes`` outcome).
     """
-    policy = check_policy(policy)
-    budget = check_int("budget", budget)
     episodes = check_episodes(episodes, policy)
     check_belief("truth", truth, episodes.valid, "episodes.valid")
     check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy,
                         copies=episodes.num_tables)
-    return expected_outcomes_core(episodes, truth, policy, budget)
-
-
-def expected_outcomes_core(episodes: Episodes, truth, policy: str,
-                           budget: int) -> tuple[Outcome, jnp.ndarray]:
-    """Core of :func:`expected_outcomes` (no checks: canonical episodes, as
-    :func:`check_episodes` returns them, and checked arguments)."""
-    k, n = episodes.num_tables, episodes.num_episodes
-    tiled = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k, *a.shape)).reshape(
-        k * n, *a.shape[1:]), episodes)
-    tiled = tiled.replace(target=jnp.repeat(jnp.arange(k, dtype=jnp.int32), n))
-    every = simulate(tiled, jax.random.key(0), jnp.float32(0.0),
-                     jnp.int32(POLICIES.index(policy)), budget)
-    every = jax.tree_util.tree_map(lambda a: a.reshape(k, n, *a.shape[1:]), every)
+    every = simulate_every_target(episodes, policy_index(policy), budget)
     return every, jnp.asarray(truth, jnp.float32).T
 
 

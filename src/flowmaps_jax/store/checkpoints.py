@@ -30,7 +30,8 @@ import orbax.checkpoint as ocp
 
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
 from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
-from flowmaps_jax.validation import check_choice, check_flag, check_int, check_path
+from flowmaps_jax.validation import check_args, check_path, prefix_errors
+from flowmaps_jax.validation.fields import Choice, Flag, Int, Optional
 
 LATEST = "latest"
 BEST = "best"
@@ -132,6 +133,7 @@ def _step_for(root: pathlib.Path, which: str) -> tuple[pathlib.Path, int]:
     return sub, step
 
 
+@check_args(which=Optional(Choice(WHICH)))
 def saved_steps(directory: str | pathlib.Path, which: str | None = None) -> list[int]:
     """The steps saved under ``directory`` (a checkpoint root or a run directory), ascending:
     every step (in last/ or best/) by default; with ``which`` ("latest" or "best") the one step
@@ -139,7 +141,6 @@ def saved_steps(directory: str | pathlib.Path, which: str | None = None) -> list
     root = resolve_checkpoint_dir(directory)
     if which is None:
         return sorted({step for step, _ in saved_copies(root)})
-    which = check_choice("which", which, WHICH)
     try:
         return [_step_for(root, which)[1]]
     except ValueError:
@@ -252,7 +253,6 @@ def _select(root: pathlib.Path, which: str, step: int | None) -> list[tuple[int,
     if step is None:
         sub, found = _step_for(root, which)
         return [(found, sub)]
-    step = check_int("step", step, minimum=0)
     copies = [(s, sub) for s, sub in saved_copies(root) if s == step]
     if not copies:
         steps = sorted({s for s, _ in saved_copies(root)})
@@ -260,6 +260,7 @@ def _select(root: pathlib.Path, which: str, step: int | None) -> list[tuple[int,
     return copies
 
 
+@check_args(which=Choice(WHICH), step=Optional(Int(0)))
 def restore(directory: str | pathlib.Path, target_state=None, *, which: str = LATEST,
             step: int | None = None, with_state: bool = True) -> Restored:
     """The verified :class:`Restored` checkpoint ``which`` ("latest" or "best") under
@@ -271,15 +272,12 @@ def restore(directory: str | pathlib.Path, target_state=None, *, which: str = LA
     ``ValueError`` for a missing, damaged or non-finite checkpoint, naming the newest intact
     step when there is one.
     """
-    which = check_choice("which", which, WHICH)
     root = resolve_checkpoint_dir(directory)
     copies = _select(root, which, step)
     if with_state:
         return _restore_copies(root, copies, target_state)
-    try:
+    with prefix_errors("cannot read the config: "):
         return _restore_copies(root, copies, None, with_state=False)
-    except ValueError as err:
-        raise ValueError(f"cannot read the config: {err}") from None
 
 
 class Weights(NamedTuple):
@@ -293,24 +291,20 @@ class Weights(NamedTuple):
     root: pathlib.Path
 
 
+@check_args(which=Choice(WHICH), use_ema=Flag(), step=Optional(Int(0)))
 def load_weights(directory: str | pathlib.Path, which: str = BEST, use_ema: bool = True,
                  step: int | None = None) -> Weights:
     """The weights of the ``which`` checkpoint under ``directory`` (or of the saved ``step``),
     checked against the model their config describes. ``which="best"`` falls back to the
     latest save when no validation has run yet; ``use_ema``: the EMA weights (default) or the
     raw training weights. ``ValueError`` for a missing, damaged or non-finite checkpoint."""
-    which = check_choice("which", which, WHICH)
-    use_ema = check_flag("use_ema", use_ema)
     root = resolve_checkpoint_dir(directory)
-    if step is not None:
-        step = check_int("step", step, minimum=0)
-    elif which == BEST and not saved_steps(root, which):
+    if step is None and which == BEST and not saved_steps(root, which):
         which = LATEST
-    restored = restore(root, which=which, step=step)
-    try:
+    restored = _restore_copies(root, _select(root, which, step), None)
+    with prefix_errors(f"checkpoint {restored.path}: cannot read the config: ",
+                       also=(TypeError,)):
         spec = model_spec(restored.config)
-    except (ValueError, TypeError) as err:
-        raise ValueError(f"checkpoint {restored.path}: cannot read the config: {err}") from None
     params = restored.state["ema_params" if use_ema else "params"]
     check_params(params, spec, f"checkpoint {restored.path}")
     return Weights(params=params, spec=spec, step=int(restored.state["step"]),

@@ -25,14 +25,16 @@ simulator are read by :func:`flowmaps_jax.homes.model.homes_spec`."""
 class ModelSpec(NamedTuple):
     """The part of a stored run config that inference needs."""
 
-    kind: str
-    """The model family's name (``TrainConfig.family``, stored as ``"model_kind"``)."""
+    family_name: str
+    """The model family's name (``TrainConfig.family``, ``Predictor.family_name``; a run config
+    stores it as ``"model_kind"``, a pretrained model's ``.json`` as ``"kind"``)."""
     model: ModelConfig
     flowsim: FlowSimConfig
 
     @property
     def family(self) -> ModelFamily:
-        return model_family(self.kind)
+        """The model family itself (:func:`flowmaps_jax.model.families.model_family`)."""
+        return model_family(self.family_name)
 
     def abstract_params(self):
         """Structure, shapes and dtypes of the params this model initialises (nothing
@@ -47,11 +49,11 @@ def model_spec(config: dict) -> ModelSpec:
     Raises ``ValueError`` naming what is wrong."""
     if not isinstance(config, dict):
         raise ValueError(f"the config must be a dict; got {type(config).__name__}")
-    kind = config.get("model_kind", DEFAULT_FAMILY)
-    if kind == HOMES_FAMILY:  # a spec of the same shape: kind, model, abstract_params()
+    family_name = config.get("model_kind", DEFAULT_FAMILY)  # the key run configs store it under
+    if family_name == HOMES_FAMILY:  # same shape: family_name, model, abstract_params()
         from flowmaps_jax.homes.model import homes_spec
         return homes_spec(config)
-    model_family(kind)  # ValueError listing the families
+    model_family(family_name)  # ValueError listing the families
     model = ModelConfig.from_dict(config["model"]) if "model" in config else ModelConfig()
     flowsim = FlowSimConfig.from_dict(config["flowsim"]) if "flowsim" in config \
         else FlowSimConfig()
@@ -61,7 +63,7 @@ def model_spec(config: dict) -> ModelSpec:
     if model.tau_max != flowsim.num_timesteps:
         raise ValueError(f"model.tau_max={model.tau_max} must equal "
                          f"flowsim.num_timesteps={flowsim.num_timesteps}")
-    return ModelSpec(kind=kind, model=model, flowsim=flowsim)
+    return ModelSpec(family_name=family_name, model=model, flowsim=flowsim)
 
 
 def check_params(params, spec: ModelSpec, where: str) -> None:
@@ -71,7 +73,7 @@ def check_params(params, spec: ModelSpec, where: str) -> None:
     got_tree, want_tree = jax.tree.structure(params), jax.tree.structure(expected)
     if got_tree != want_tree:
         raise ValueError(f"{where} holds parameters of another structure than the "
-                         f"{spec.kind!r} model its config describes")
+                         f"{spec.family_name!r} model its config describes")
     for (path, leaf), want in zip(jax.tree_util.tree_flatten_with_path(params)[0],
                                   jax.tree.leaves(expected), strict=True):
         if np.shape(leaf) != want.shape or leaf.dtype != want.dtype:

@@ -37,13 +37,14 @@ from flowmaps_jax.store import checkpoints
 from flowmaps_jax.store.checkpoints import WHICH
 from flowmaps_jax.store.model_spec import HOMES_FAMILY, ModelSpec, model_spec
 from flowmaps_jax.validation import (
-    check_choice,
-    check_no_links,
+    check_args,
     check_output_dir,
     make_output_dir,
+    prefix_errors,
     read_npz,
     write_file,
 )
+from flowmaps_jax.validation.fields import Choice, Instance
 
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[1] / "pretrained"
 """The package data folder holding the pretrained weights."""
@@ -64,14 +65,7 @@ MAX_META_BYTES = 1024 * 1024  # a .json larger than this is not one export_pretr
 UNKNOWN = "unknown"  # "which" of a .json written before it was recorded
 
 
-def check_name(name) -> str:
-    """``name`` if it is one of :data:`NAMES`, else ``ValueError`` listing them."""
-    if not isinstance(name, str) or name not in NAMES:
-        raise ValueError(f"name must be one of {list(NAMES)}; got {name!r}")
-    return name
-
-
-def _kind_of(name: str) -> str:
+def _family_of(name: str) -> str:
     """The model family the pretrained name ``name`` holds."""
     return "mlp" if name.startswith("mlp") else HOMES_FAMILY if name == HOMES_FAMILY \
         else "flowmaps"
@@ -118,10 +112,8 @@ def _read_meta(name: str, root: pathlib.Path) -> dict:
         raise ValueError(f"pretrained {name!r}: {meta_path.name} holds "
                          f"{meta_path.stat().st_size:,} bytes, more than the "
                          f"{MAX_META_BYTES:,} a pretrained model may have")
-    try:
+    with prefix_errors(f"pretrained {name!r}: unreadable {meta_path.name}: "):
         return _check_meta(name, json.loads(meta_path.read_text()), meta_path.name)
-    except ValueError as err:
-        raise ValueError(f"pretrained {name!r}: unreadable {meta_path.name}: {err}") from None
 
 
 def _check_present(name: str, root: pathlib.Path) -> None:
@@ -130,13 +122,13 @@ def _check_present(name: str, root: pathlib.Path) -> None:
                          f"{available(root) or 'none'})")
 
 
+@check_args(name=Choice(NAMES))
 def describe(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> dict:
     """What the pretrained model ``name`` is, from its ``.json`` only (no weights are read):
     ``{"name", "kind", "step", "which", "why", "source", "note"}``. ``which`` is "latest" (the
     run's last step), "best" (its best-by-validation step) or "unknown" for a .json written
     before exports recorded it; ``why`` is then "". ValueError when the files are missing or
     the .json is not one :func:`export_pretrained` wrote."""
-    name = check_name(name)
     root = pathlib.Path(directory)
     _check_present(name, root)
     meta = _read_meta(name, root)
@@ -156,27 +148,25 @@ class PretrainedWeights(NamedTuple):
     meta: dict
 
 
+@check_args(name=Choice(NAMES))
 def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> PretrainedWeights:
     """The pretrained weights ``name`` (one of :data:`NAMES`) in ``directory``, read and checked
     (see the module doc). Raises ``ValueError`` for an unknown name (listing the names), or
     weights that are missing, damaged (SHA-256 mismatch) or do not fit their config."""
-    name = check_name(name)
     root = pathlib.Path(directory)
     npz, meta_path = root / f"{name}.npz", root / f"{name}.json"
     _check_present(name, root)
-    for path, limit in ((meta_path, MAX_META_BYTES), (npz, 2 * MAX_BYTES)):
-        if path.stat().st_size > limit:
-            raise ValueError(f"pretrained {name!r}: {path.name} holds {path.stat().st_size:,} "
-                             f"bytes, more than the {limit:,} a pretrained model may have")
-    try:
-        meta = _check_meta(name, json.loads(meta_path.read_text()), meta_path.name)
+    if npz.stat().st_size > 2 * MAX_BYTES:
+        raise ValueError(f"pretrained {name!r}: {npz.name} holds {npz.stat().st_size:,} bytes, "
+                         f"more than the {2 * MAX_BYTES:,} a pretrained model may have")
+    meta = _read_meta(name, root)
+    with prefix_errors(f"pretrained {name!r}: unreadable {meta_path.name}: ",
+                       also=(KeyError, TypeError)):
         spec = model_spec(meta["config"])
-    except (ValueError, KeyError, TypeError) as err:
-        raise ValueError(f"pretrained {name!r}: unreadable {meta_path.name}: {err}") from None
-    if meta.get("kind", spec.kind) != spec.kind:
+    if meta.get("kind", spec.family_name) != spec.family_name:  # "kind": the family's name
         raise ValueError(f"pretrained {name!r}: {meta_path.name} names kind "
                          f"{str(meta.get('kind'))[:40]!r} but its config is a "
-                         f"{spec.kind!r} model")
+                         f"{spec.family_name!r} model")
     data = npz.read_bytes()
     if hashlib.sha256(data).hexdigest() != meta["sha256"]:
         raise ValueError(f"pretrained {name!r}: {npz.name} is damaged (SHA-256 does not match "
@@ -184,11 +174,10 @@ def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> P
     abstract = spec.abstract_params()
     expected = {key: (leaf.shape, leaf.dtype)
                 for key, leaf in traverse_util.flatten_dict(abstract, sep="/").items()}
-    try:  # members whitelisted and their sizes checked before anything is decompressed
+    # members whitelisted and their sizes checked before anything is decompressed
+    with prefix_errors(f"pretrained {name!r}: the weights do not match the model config in "
+                       f"{meta_path.name}: "):
         arrays = read_npz(npz.name, io.BytesIO(data), expected=expected, max_bytes=4 * MAX_BYTES)
-    except ValueError as err:
-        raise ValueError(f"pretrained {name!r}: the weights do not match the model config in "
-                         f"{meta_path.name} ({err})") from None
     bad = sorted(key for key, array in arrays.items() if not np.all(np.isfinite(array)))
     if bad:
         raise ValueError(f"pretrained {name!r}: {npz.name} holds NaN or inf in {bad[0]}"
@@ -221,6 +210,7 @@ def _default_why(which: str, step: int, best_step: int | None, latest_step: int 
     return f"step {step}, the run's last (the weights at the end of training); {best}"
 
 
+@check_args(name=Choice(NAMES), which=Choice(WHICH), why=Instance(str))
 def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
                       directory: str | pathlib.Path = PRETRAINED_DIR,
                       which: str = "best", note: str = "", why: str = "") -> pathlib.Path:
@@ -235,12 +225,8 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     is missing, holds a different model family than the name implies, or is too big. Returns
     the path of the .npz.
     """
-    name = check_name(name)
-    which = check_choice("which", which, WHICH)
-    if not isinstance(why, str):
-        raise ValueError(f"why must be text; got {type(why).__name__}")
-    check_output_dir("directory", directory)  # before anything is read or written
-    check_no_links("directory", directory, [f"{name}.npz", f"{name}.json"])
+    # before anything is read or written
+    check_output_dir("directory", directory, files=[f"{name}.npz", f"{name}.json"])
     ckpt_root = checkpoints.resolve_checkpoint_dir(checkpoint_dir)
     best_step = next(iter(checkpoints.saved_steps(ckpt_root, checkpoints.BEST)), None)
     latest_step = next(iter(checkpoints.saved_steps(ckpt_root, checkpoints.LATEST)), None)
@@ -248,13 +234,13 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     if fallback:  # as load() does: the latest save
         which = "latest"
     weights = checkpoints.load_weights(checkpoint_dir, which=which)
-    kind, model = weights.spec.kind, weights.spec.model
-    expected_kind = _kind_of(name)
-    if kind != expected_kind:
-        raise ValueError(f"checkpoint_dir holds a {kind!r} model; name {name!r} needs "
-                         f"a {expected_kind!r} model")
+    family_name, model = weights.spec.family_name, weights.spec.model
+    expected = _family_of(name)
+    if family_name != expected:
+        raise ValueError(f"checkpoint_dir holds a {family_name!r} model; name {name!r} needs "
+                         f"a {expected!r} model")
     variant = "learned" if name == "mlp-learned" else "mean"
-    if expected_kind == "mlp" and model.baseline_variance != variant:
+    if expected == "mlp" and model.baseline_variance != variant:
         raise ValueError(f"checkpoint_dir holds the MLP with baseline_variance="
                          f"{model.baseline_variance!r}; name {name!r} needs {variant!r}")
     data = _params_bytes(weights.params)
@@ -262,7 +248,7 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
         raise ValueError(f"{name}: {len(data) / 2**20:.1f} MB of weights, over the "
                          f"{MAX_BYTES / 2**20:.0f} MB budget")
     root = make_output_dir("directory", directory)
-    meta = {"name": name, "kind": kind, "step": weights.step,
+    meta = {"name": name, "kind": family_name, "step": weights.step,
             "source": str(checkpoint_dir), "which": which,
             "why": why or (("--which best, but " if fallback else "")
                            + _default_why(which, weights.step, best_step, latest_step)),

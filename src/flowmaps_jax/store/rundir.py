@@ -217,7 +217,9 @@ def move_aside(run_dir: pathlib.Path) -> pathlib.Path:
 
 
 def check_mode(resume: bool, overwrite: bool) -> None:
-    """ValueError if a run asks to both continue (``resume``) and replace (``overwrite``)."""
+    """ValueError if a run asks to both continue (``resume``) and replace (``overwrite``): the
+    command line's check, made before it reads the run directory (:func:`claim` applies
+    ``overwrite`` to a new run only)."""
     if resume and overwrite:
         raise ValueError("--resume and --overwrite exclude each other")
 
@@ -227,6 +229,8 @@ def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
           log: Callable[[str], None] = print) -> Iterator[RunLock | None]:
     """Hold ``run_dir`` for one run (see the module docstring); ValueError if it is not free.
     Yields the lock (None on the processes of a multi-host job other than the first).
+    ``overwrite`` moves an old run aside for a new one; a resumed run (``resume``) continues in
+    place, so it ignores ``overwrite`` (the command line refuses both, :func:`check_mode`).
 
     On a multi-host job the first process owns the run directory (lock, config, metrics; every
     process takes part in the checkpoint saves, which the checkpointer coordinates). The others
@@ -257,8 +261,7 @@ def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
                 log: Callable[[str], None]) -> Iterator[RunLock]:
     """:func:`claim` by this process alone."""
     run_dir = check_run_dir(run_dir)
-    check_mode(resume, overwrite)
-    if overwrite:
+    if overwrite and not resume:
         here = pathlib.Path.cwd().resolve()
         if run_dir.resolve() == here or run_dir.resolve() in here.parents:
             raise ValueError(f"--overwrite cannot move run_dir {str(run_dir)!r} aside: it is the "

@@ -121,8 +121,6 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
     overrides, world = split_world(args.overrides)
     if world is not None and args.resume:
         raise ValueError("--set world=... changes the data; it cannot change on --resume")
-    if args.from_step is not None and not args.resume:
-        raise ValueError("--from-step needs --resume")
     if args.resume:
         if args.run_dir is None:
             raise ValueError("--resume needs --run-dir (the run to continue)")

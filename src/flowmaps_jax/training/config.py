@@ -47,14 +47,21 @@ from flowmaps_jax.training.overrides import (
 )
 from flowmaps_jax.validation import (
     INT32_MAX,
-    check_int,
-    check_plain_name,
-    check_real,
     check_resources,
-    check_seed,
     embedding_bytes,
     network_flops,
     solver_evaluations,
+)
+from flowmaps_jax.validation.fields import (
+    Choice,
+    Instance,
+    Int,
+    Optional,
+    PlainName,
+    Real,
+    Seed,
+    Text,
+    check_fields,
 )
 
 DATA_SOURCES = ("train", "endless")
@@ -117,7 +124,7 @@ class TrainConfig:
         "flowmaps" (flow matching, CDiT) or "mlp" (Gaussian baseline; its variant is
         ``model.baseline_variance``, "mean" or "learned"). Stored in ``config.json`` under the
         key older versions wrote, ``"model_kind"`` (read back, and accepted by ``--set``, too),
-        so that every saved run and shipped model reads as before.
+        so that every saved run and pretrained model reads as before.
     flowsim: simulator settings for the generated train/validation splits.
     batch_size: scenes per step (B); queries_per_scene: queries sharing one encoder pass (Q).
     steps: total optimiser steps; the cosine schedule decays over exactly this many.
@@ -192,33 +199,7 @@ class TrainConfig:
     preset: str = _bookkeeping("cpu")
 
     def __post_init__(self):
-        _check_choice("family", self.family, tuple(MODEL_FAMILIES))
-        _check_choice("t_sampler", self.t_sampler, T_SAMPLERS)
-        _check_choice("data", self.data, DATA_SOURCES)
-        for name in ("batch_size", "queries_per_scene", "steps", "train_envs", "val_envs",
-                     "val_batches", "log_every", "val_every", "ckpt_every", "keep_last",
-                     "routine_samples", "short_horizon_max"):
-            check_int(name, getattr(self, name), maximum=INT32_MAX)
-        check_int("routine_envs", self.routine_envs, minimum=0, maximum=INT32_MAX)
-        check_seed("seed", self.seed)
-        check_plain_name("preset", self.preset)  # it names the default run directory
-        if self.init_from is not None and (not isinstance(self.init_from, str)
-                                           or not self.init_from.strip()):
-            raise ValueError(f"init_from must be a checkpoint directory or pretrained:NAME; "
-                             f"got {self.init_from!r}")
-        if self.devices is not None:
-            check_int("devices", self.devices, maximum=INT32_MAX)
-        check_int("warmup_steps", self.warmup_steps, minimum=0)
-        # Every float: a finite real number (not inf, NaN, a bool or a string) within its range.
-        check_real("lr", self.lr, 0.0, low_open=True)
-        for name in ("b1", "b2", "ema_decay"):
-            check_real(name, getattr(self, name), 0.0, 1.0, high_open=True)
-        check_real("weight_decay", self.weight_decay, 0.0)
-        if self.clip_norm is not None:
-            check_real("clip_norm", self.clip_norm, 0.0, low_open=True)
-        check_real("short_horizon_frac", self.short_horizon_frac, 0.0, 1.0)
-        check_real("target_noise", self.target_noise, 0.0, 10.0, high_open=True)
-        check_real("pointer_loss", self.pointer_loss, 0.0, 100.0, high_open=True)
+        check_fields(self, _RULES, store=False)
         # Then the checks that couple two fields: each field's own error is named first.
         if self.devices is not None and self.batch_size % self.devices:
             raise ValueError(
@@ -228,10 +209,6 @@ class TrainConfig:
         if self.warmup_steps >= self.steps:
             raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
                              f"got {self.warmup_steps!r}")
-        if not isinstance(self.model, ModelConfig):
-            raise ValueError(f"model must be a ModelConfig; got {type(self.model).__name__}")
-        if not isinstance(self.flowsim, FlowSimConfig):
-            raise ValueError(f"flowsim must be a FlowSimConfig; got {type(self.flowsim).__name__}")
         if self.pointer_loss > 0 and self.family == "flowmaps" and \
                 self.model.head not in ("pointer", "route", "mixture"):
             raise ValueError("pointer_loss > 0 needs model.head='pointer', 'route' or 'mixture' "
@@ -261,6 +238,30 @@ class TrainConfig:
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=False)
+
+
+_COUNT = Int(1, INT32_MAX)
+_DECAY = Real(0.0, 1.0, high_open=True)
+_RULES = {
+    "family": Choice(tuple(MODEL_FAMILIES)), "t_sampler": Choice(T_SAMPLERS),
+    "data": Choice(DATA_SOURCES),
+    **{name: _COUNT for name in ("batch_size", "queries_per_scene", "steps", "train_envs",
+                                 "val_envs", "val_batches", "log_every", "val_every",
+                                 "ckpt_every", "keep_last", "routine_samples",
+                                 "short_horizon_max")},
+    "routine_envs": Int(0, INT32_MAX), "seed": Seed(),
+    "preset": PlainName(),  # it names the default run directory
+    "init_from": Optional(Text("a checkpoint directory or pretrained:NAME")),
+    "devices": Optional(_COUNT), "warmup_steps": Int(0),
+    # Every float: a finite real number (not inf, NaN, a bool or a string) within its range.
+    "lr": Real(0.0, low_open=True), "b1": _DECAY, "b2": _DECAY, "ema_decay": _DECAY,
+    "weight_decay": Real(0.0), "clip_norm": Optional(Real(0.0, low_open=True)),
+    "short_horizon_frac": Real(0.0, 1.0), "target_noise": Real(0.0, 10.0, high_open=True),
+    "pointer_loss": Real(0.0, 100.0, high_open=True),
+    "model": Instance(ModelConfig), "flowsim": Instance(FlowSimConfig),
+}
+"""What each :class:`TrainConfig` field may hold on its own (checked, not converted); the
+checks that couple two fields follow in ``__post_init__``."""
 
 
 def _fields_whose_role(prop: str, value: bool) -> tuple[str, ...]:
@@ -362,11 +363,6 @@ def check_run_resources(cfg: TrainConfig, devices: int = 1) -> None:
         check_resources(what, num_bytes=num_bytes, flops=flops)
     check_resources("the run altogether (model, step, validation, data and routine "
                     "diagnostic)", num_bytes=sum(p[1] for p in parts))
-
-
-def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise ValueError(f"{name} must be one of {list(choices)}; got {value!r}")
 
 
 # --------------------------------------------------------------------------------------------

@@ -197,10 +197,10 @@ def _check_run(cfg: TrainConfig, run_dir, *, resume: bool, from_step: int | None
     their checks, resource bounds included (ValueError otherwise)."""
     check_instance("cfg", cfg, TrainConfig)
     run_dir = rundir.check_run_dir(run_dir)
-    if stop_at is not None and not check_int("stop_at", stop_at) <= cfg.steps:
-        raise ValueError(f"stop_at must lie in 1..steps={cfg.steps}; got {stop_at}")
+    if stop_at is not None:
+        check_int("stop_at", stop_at, 1, cfg.steps)
     if from_step is not None and not resume:
-        raise ValueError("from_step (--from-step) needs resume (--resume)")
+        raise ValueError("--from-step needs --resume (from_step needs resume=True)")
     mesh = distributed.training_mesh(cfg.devices)
     distributed.check_divides("batch_size", cfg.batch_size, mesh, "the scenes of a batch")
     data.host_train_part(cfg)  # a multi-host job: the data must divide over the hosts

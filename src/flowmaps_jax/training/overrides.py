@@ -23,6 +23,8 @@ import types
 import typing
 from typing import Any, Literal
 
+from flowmaps_jax.validation.fields import check_keys
+
 SHORTHANDS = {"precision": "model.precision"}
 """Top-level override keys that stand for a nested field (``--set precision=bf16``)."""
 
@@ -212,37 +214,28 @@ def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:
     built with their own ``from_dict`` when they have one; lists become tuples. Unknown keys
     (other than the removed fields that old configs still carry) raise ``ValueError`` naming
     ``where``. A field reads from its stored key or from its name (not both)."""
-    _check_dict(cls, data, where)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    data = {k: v for k, v in data.items() if k not in _REMOVED_KEYS.get(cls.__name__, ())}
+    removed = _REMOVED_KEYS.get(cls.__name__, ())
+    check_keys(where, data, [*_field_names(cls), *_field_of_key(cls), *removed],
+               what=f"has keys that are no field of {cls.__name__}:")
+    data = {k: v for k, v in data.items() if k not in removed}
     for key, name in _field_of_key(cls).items():
         if key in data and name in data:
             raise ValueError(f"{where} sets {name!r} twice (as {name!r} and as {key!r})")
         if key in data:
             data[name] = data.pop(key)
-    unknown = sorted(set(data) - set(fields))
-    if unknown:
-        raise ValueError(f"{where} has unknown keys {unknown} for {cls.__name__}")
     hints = typing.get_type_hints(cls)
     kwargs = {}
     for name, value in data.items():
         hint = hints[name]
         if isinstance(hint, type) and dataclasses.is_dataclass(hint):
             if hasattr(hint, "from_dict"):
-                _check_dict(hint, value, f"{where}.{name}")
-                value = hint.from_dict(value)
+                value = hint.from_dict(check_keys(f"{where}.{name}", value))
             else:
                 value = config_from_dict(hint, value, f"{where}.{name}")
         elif isinstance(value, list):
             value = tuple(value)
         kwargs[name] = value
     return cls(**kwargs)
-
-
-def _check_dict(cls: type, data: Any, where: str) -> None:
-    if not isinstance(data, dict):
-        raise ValueError(
-            f"{where} must be a dict to build {cls.__name__}; got {type(data).__name__}")
 
 
 def flatten(data: dict, prefix: str = "") -> dict[str, Any]:

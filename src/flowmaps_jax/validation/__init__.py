@@ -19,6 +19,13 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
   name, a metadata field: no path, no markup); :func:`read_npz` (an untrusted ``.npz``: member
   names whitelisted, declared sizes checked before anything is decompressed, no pickles).
+* :mod:`.fields`: :func:`check_fields` (a config's fields, from a ``{field: rule}`` table of
+  :class:`~.fields.Int`, :class:`~.fields.Real`, :class:`~.fields.Choice`, ... rules) and
+  :func:`check_keys` (the dict a ``from_dict`` reads); :func:`check_options` (a command line's
+  options, from the same kind of table); :func:`check_args` (a function's arguments, declared
+  beside its signature: ``@check_args(num_envs=Int(), key=Key())``).
+* :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
+  (the file or command they concern).
 * :mod:`.writes`: :func:`write_file`, :func:`make_output_dir`, :func:`save_figure`,
   :func:`check_no_links`: the one writer of every command's output files (a temporary file and
   a rename; a symbolic link at the target, or in a folder it creates, is refused).
@@ -42,6 +49,8 @@ from flowmaps_jax.validation.arrays import (
     check_shape,
     is_concrete,
 )
+from flowmaps_jax.validation.errors import prefix_errors
+from flowmaps_jax.validation.fields import check_args, check_fields, check_keys, check_options
 from flowmaps_jax.validation.files import (
     check_dir,
     check_file,
@@ -94,17 +103,21 @@ __all__ = [
     "SEED_MAX",
     "SEQUENTIAL_FLOPS",
     "array_bytes",
+    "check_args",
     "check_array",
     "check_choice",
     "check_dir",
+    "check_fields",
     "check_file",
     "check_flag",
     "check_instance",
     "check_int",
     "check_int_array",
     "check_key",
+    "check_keys",
     "check_mask",
     "check_no_links",
+    "check_options",
     "check_output_dir",
     "check_output_file",
     "check_path",
@@ -124,6 +137,7 @@ __all__ = [
     "make_output_dir",
     "memory_limit",
     "network_flops",
+    "prefix_errors",
     "read_npz",
     "save_figure",
     "solver_evaluations",

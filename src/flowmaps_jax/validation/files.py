@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from flowmaps_jax.validation.resources import array_bytes, memory_limit
+from flowmaps_jax.validation.writes import check_no_links
 
 # ------------------------------------------------------------------------------ files
 
@@ -85,9 +86,11 @@ def _existing_parent(path: str) -> str:
 
 def check_output_file(name: str, value: Any, *, overwrite: bool = True) -> str:
     """A file path that can be written now: its folder exists and is writable, the path is not a
-    directory, and (unless ``overwrite``) no file is there yet."""
+    directory nor a symbolic link (nor is its temporary ``<path>.tmp``), and (unless
+    ``overwrite``) no file is there yet."""
     path = check_path(name, value)
     _check_name_lengths(name, path)
+    check_no_links(name, os.path.dirname(os.path.abspath(path)), [os.path.basename(path)])
     if os.path.isdir(path):
         raise ValueError(f"{name} {path!r} is a directory; give a file path")
     folder = os.path.dirname(os.path.abspath(path))
@@ -104,12 +107,15 @@ def check_output_file(name: str, value: Any, *, overwrite: bool = True) -> str:
     return path
 
 
-def check_output_dir(name: str, value: Any, *, empty: bool = False) -> str:
+def check_output_dir(name: str, value: Any, *, empty: bool = False,
+                     files: Sequence[str] = ()) -> str:
     """A directory that exists (or can be created) and is writable; with ``empty``, one that
     holds nothing yet. A path that is a file, or lies under a file, is refused, and so is one
-    with a name longer than the file system allows."""
+    with a name longer than the file system allows, or one where a symbolic link sits at a name
+    of ``files`` (the files a command is about to write there: refused before it runs)."""
     path = check_path(name, value)
     _check_name_lengths(name, path)
+    check_no_links(name, path, files)
     if os.path.exists(path):
         if not os.path.isdir(path):
             raise ValueError(f"{name} {path!r} is a file, not a directory")

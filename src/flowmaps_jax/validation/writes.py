@@ -45,10 +45,12 @@ def check_no_links(name: str, folder: Any, filenames: Iterable[str]) -> None:
                 raise _link_error(name, candidate)
 
 
-def make_output_dir(name: str, path: Any) -> pathlib.Path:
+def make_output_dir(name: str, path: Any, files: Iterable[str] = ()) -> pathlib.Path:
     """The folder ``path``, created with the parents it lacks (each one by this call, with
     ``mkdir``, which never follows a link); ``ValueError`` naming ``name`` if a component it
-    creates is, or becomes, a symbolic link or a file. Returns it as a Path."""
+    creates is, or becomes, a symbolic link or a file, or if a symbolic link sits at a name of
+    ``files`` (the files about to be written there, so that none is written if one would be
+    refused). Returns it as a Path."""
     path = pathlib.Path(path)
     missing = []
     probe = path
@@ -71,6 +73,7 @@ def make_output_dir(name: str, path: Any) -> pathlib.Path:
             raise ValueError(f"{name} {os.fspath(component)!r} is a file, not a directory")
     if not os.path.isdir(path):
         raise ValueError(f"{name} {os.fspath(path)!r} is a file, not a directory")
+    check_no_links(name, path, files)
     return path
 
 

@@ -27,13 +27,19 @@ from flowmaps_jax.flowsim.homes.vocabulary import (
     ReceptacleClass,
     RoomType,
 )
-from flowmaps_jax.validation import (
-    check_choice,
-    check_instance,
-    check_int,
-    check_plain_name,
-    check_probabilities,
-    check_real,
+from flowmaps_jax.validation.fields import (
+    Choice,
+    Each,
+    Entries,
+    Int,
+    Members,
+    Pair,
+    PlainName,
+    Probabilities,
+    Real,
+    Text,
+    check_fields,
+    check_keys,
 )
 
 REGIMES = ("preferences", "balanced", "frequent", "routine")
@@ -53,19 +59,6 @@ HOURS_PER_WEEK = 24 * 7
 
 DEFAULT_ACTIVITY = tuple(0.2 if (h < 7 or h == 23) else 1.0 for h in range(24))
 """Hourly activity (multiplies every regime's move probability): low at night (23:00–07:00)."""
-
-
-def _pair(name: str, value: Any, low: float, *, integer: bool = False) -> tuple:
-    """A (lo, hi) pair with low <= lo <= hi, as a tuple of Python numbers."""
-    if not isinstance(value, (tuple, list)) or len(value) != 2:
-        raise ValueError(f"{name} must be a (lo, hi) pair; got {value!r}")
-    if integer:
-        lo, hi = (check_int(f"{name}[{i}]", v, int(low)) for i, v in enumerate(value))
-    else:
-        lo, hi = (check_real(f"{name}[{i}]", v, low, low_open=True) for i, v in enumerate(value))
-    if lo > hi:
-        raise ValueError(f"{name} must have lo <= hi; got {value!r}")
-    return (lo, hi)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,78 +122,42 @@ class HomesConfig:
     def __post_init__(self) -> None:
         self.validate()
 
-    def _store(self, name: str, value: Any) -> None:
-        object.__setattr__(self, name, value)
-
     def validate(self) -> None:
         """Raise ``ValueError`` naming the field if this config cannot make valid homes."""
+        check_fields(self, _RULES)
         self._check_vocabulary()
         self._check_rooms()
-        self._check_numbers()
         self._check_plan()
         self._check_budget()
 
     # ----------------------------------------------------------------- checks
     def _check_vocabulary(self) -> None:
-        for field, cls in (("room_types", RoomType), ("receptacle_classes", ReceptacleClass),
-                           ("object_classes", ObjectClass)):
-            entries = getattr(self, field)
-            if not isinstance(entries, tuple) or not entries:
-                raise ValueError(f"{field} must be a non-empty tuple of {cls.__name__}")
+        for field in ("room_types", "receptacle_classes", "object_classes"):
             names = set()
-            for entry in entries:
-                check_instance(f"{field} entries", entry, cls)
-                check_plain_name(f"{field}: name", entry.name)
+            for entry in getattr(self, field):
+                check_fields(entry, _ENTRY_RULES, prefix=f"{field}: ", store=False,
+                             labels={"text": f"{entry.name!r} text"})
                 if entry.name in names:
                     raise ValueError(f"{field}: name {entry.name!r} is used twice")
                 names.add(entry.name)
-                if not isinstance(entry.text, str) or not entry.text.strip():
-                    raise ValueError(f"{field}: {entry.name!r} text must be a non-empty string")
-        rooms = {r.name for r in self.room_types}
-        for rec in self.receptacle_classes:
-            self._check_size(f"receptacle_classes: {rec.name!r} size", rec.size)
-            self._check_names(f"receptacle_classes: {rec.name!r} rooms", rec.rooms, rooms,
-                              "room type")
-        receptacles = {r.name for r in self.receptacle_classes}
-        for obj in self.object_classes:
-            self._check_size(f"object_classes: {obj.name!r} size", obj.size)
-            self._check_names(f"object_classes: {obj.name!r} receptacles", obj.receptacles,
-                              receptacles, "receptacle class")
-
-    @staticmethod
-    def _check_size(name: str, size: Any) -> None:
-        if not isinstance(size, tuple) or len(size) != 3:
-            raise ValueError(f"{name} must be a (w, d, h) tuple in metres; got {size!r}")
-        for value in size:
-            check_real(name, value, 0.0, low_open=True)
-
-    @staticmethod
-    def _check_names(name: str, values: Any, known: set[str], what: str) -> None:
-        if not isinstance(values, tuple) or not values:
-            raise ValueError(f"{name} must be a non-empty tuple of {what} names; got {values!r}")
-        for value in values:
-            if value not in known:
-                raise ValueError(f"{name}: unknown {what} {value!r} (known: {sorted(known)})")
-        if len(set(values)) != len(values):
-            raise ValueError(f"{name} names a {what} twice: {values!r}")
+        rooms = frozenset(r.name for r in self.room_types)
+        receptacles = frozenset(r.name for r in self.receptacle_classes)
+        for field, entries, rules in (
+                ("receptacle_classes", self.receptacle_classes,
+                 {"size": _SIZE, "rooms": Members(rooms, "room type")}),
+                ("object_classes", self.object_classes,
+                 {"size": _SIZE, "receptacles": Members(receptacles, "receptacle class")})):
+            for entry in entries:
+                check_fields(entry, rules, prefix=f"{field}: {entry.name!r} ", store=False)
 
     def _check_rooms(self) -> None:
-        known = {r.name for r in self.room_types}
-        if not isinstance(self.rooms, tuple) or not self.rooms:
-            raise ValueError(f"rooms must be a non-empty tuple of room type names; got "
-                             f"{self.rooms!r}")
-        for room in self.rooms:  # a multiset: a home may have two bedrooms
-            if room not in known:
-                raise ValueError(f"rooms: unknown room type {room!r} (known: {sorted(known)})")
-        rows = check_int("grid_rows", self.grid_rows, 1)
-        if len(self.rooms) % rows:
+        # a multiset: a home may have two bedrooms
+        check_fields(self, {"rooms": Members(frozenset(r.name for r in self.room_types),
+                                             "room type", distinct=False)})
+        if len(self.rooms) % self.grid_rows:
             raise ValueError(f"rooms: {len(self.rooms)} rooms do not fill a grid of grid_rows="
-                             f"{rows} rows")
-        lo, hi = _pair("receptacles_per_room", self.receptacles_per_room, 1, integer=True)
-        self._store("receptacles_per_room", (lo, hi))
-        if hi > MAX_PER_ROOM:
-            raise ValueError(f"receptacles_per_room must be <= {MAX_PER_ROOM} (one per cell of "
-                             f"a 2 x 2 split of the room); got {self.receptacles_per_room}")
+                             f"{self.grid_rows} rows")
+        lo = self.receptacles_per_room[0]
         for room in set(self.rooms):
             count = sum(room in r.rooms for r in self.receptacle_classes)
             if count < lo:
@@ -211,38 +168,13 @@ class HomesConfig:
             if not set(obj.receptacles) & placed:
                 raise ValueError(f"object_classes: {obj.name!r} may stand on no receptacle class "
                                  f"that a room of rooms={self.rooms} holds")
-        olo, ohi = _pair("objects_per_home", self.objects_per_home, 1, integer=True)
-        self._store("objects_per_home", (olo, ohi))
+        ohi = self.objects_per_home[1]
         if ohi > min(MAX_OBJECTS, len(self.object_classes)):
             raise ValueError(f"objects_per_home[1] must be <= {MAX_OBJECTS} and <= the "
                              f"{len(self.object_classes)} object classes (one object per "
                              f"class); got {ohi}")
 
-    def _check_numbers(self) -> None:
-        self._store("num_hours", check_int("num_hours", self.num_hours, 2, 2**20))
-        check_choice("regime", self.regime, (*REGIMES, "mixed"))
-        probs = self.routine_probs
-        if not isinstance(probs, (tuple, list)) or len(probs) != 3:
-            raise ValueError(f"routine_probs must be 3 probabilities; got {probs!r}")
-        self._store("routine_probs",
-                    tuple(float(p) for p in check_probabilities("routine_probs", probs)))
-        for name in ("preference_move", "preference_mass", "balanced_move", "balanced_cycle",
-                     "frequent_move", "extra_door_prob"):
-            self._store(name, check_real(name, getattr(self, name), 0.0, 1.0))
-        self._store("frequent_length",
-                    check_real("frequent_length", self.frequent_length, 0.0, low_open=True))
-        for name in ("split_jitter", "size_jitter"):
-            self._store(name, check_real(name, getattr(self, name), 0.0, 1.0, high_open=True))
-        act = self.activity
-        if not isinstance(act, (tuple, list)) or len(act) != 24:
-            raise ValueError(f"activity must be 24 hourly values in [0, 1]; got {act!r}")
-        self._store("activity", tuple(check_real("activity", a, 0.0, 1.0) for a in act))
-
     def _check_plan(self) -> None:
-        self._store("home_width", _pair("home_width", self.home_width, 0.0))
-        self._store("home_depth", _pair("home_depth", self.home_depth, 0.0))
-        self._store("door_width", check_real("door_width", self.door_width, 0.0, low_open=True))
-        self._store("wall_margin", check_real("wall_margin", self.wall_margin, 0.0))
         door = self.door_width + 2 * self.wall_margin
         narrow_w, narrow_d = self.smallest_room
         if min(narrow_w, narrow_d) < door or min(narrow_w, narrow_d) / 2 <= 2 * self.wall_margin:
@@ -256,8 +188,6 @@ class HomesConfig:
                              f"{door} m (needs home_depth[0] >= {door * (2 * self.grid_rows - 1)})")
 
     def _check_budget(self) -> None:
-        self._store("max_tokens", check_int("max_tokens", self.max_tokens, 1))
-        self._store("max_vocabulary", check_int("max_vocabulary", self.max_vocabulary, 1))
         tokens = self.num_rooms + self.max_receptacles + self.max_objects
         if tokens > self.max_tokens:
             raise ValueError(f"max_tokens={self.max_tokens} is smaller than the {tokens} tokens "
@@ -348,11 +278,7 @@ class HomesConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> HomesConfig:
         """Inverse of ``to_dict``; unknown keys or bad entries raise ``ValueError``."""
-        if not isinstance(data, dict):
-            raise ValueError(f"HomesConfig.from_dict needs a dict; got {type(data).__name__}")
-        unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
-        if unknown:
-            raise ValueError(f"HomesConfig.from_dict: unknown fields {unknown}")
+        check_keys("HomesConfig.from_dict", data, [f.name for f in dataclasses.fields(cls)])
         kwargs = {k: _tuples(v) for k, v in data.items()}
         try:
             for field, entry in (("room_types", RoomType),
@@ -370,6 +296,32 @@ def _tuples(value: Any) -> Any:
     """Lists (from JSON) as tuples, recursively."""
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
+
+_UNIT = Real(0.0, 1.0)
+_JITTER = Real(0.0, 1.0, high_open=True)
+_RULES = {
+    "room_types": Entries(RoomType), "receptacle_classes": Entries(ReceptacleClass),
+    "object_classes": Entries(ObjectClass),
+    "grid_rows": Int(1),
+    # one receptacle per cell of a 2 x 2 split of the room
+    "receptacles_per_room": Pair(1, integer=True, high=MAX_PER_ROOM),
+    "objects_per_home": Pair(1, integer=True),
+    "num_hours": Int(2, 2**20),
+    "regime": Choice((*REGIMES, "mixed")),
+    "routine_probs": Probabilities(3),
+    **{name: _UNIT for name in ("preference_move", "preference_mass", "balanced_move",
+                                "balanced_cycle", "frequent_move", "extra_door_prob")},
+    "frequent_length": Real(0.0, low_open=True),
+    "split_jitter": _JITTER, "size_jitter": _JITTER,
+    "activity": Each(_UNIT, 24, "hourly values in [0, 1]"),
+    "home_width": Pair(0.0), "home_depth": Pair(0.0),
+    "door_width": Real(0.0, low_open=True), "wall_margin": Real(0.0),
+    "max_tokens": Int(1), "max_vocabulary": Int(1),
+}
+"""What each field of :class:`HomesConfig` may hold, on its own (numbers are stored as Python
+numbers); ``validate`` then checks the vocabulary's entries and how the fields fit together."""
+_ENTRY_RULES = {"name": PlainName(), "text": Text()}
+_SIZE = Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")
 
 DEFAULT_HOMES_CONFIG = HomesConfig()
 

@@ -28,9 +28,9 @@ from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
 from flowmaps_jax.validation import (
     check_file,
-    check_instance,
     check_no_links,
     check_output_file,
+    prefix_errors,
     read_npz,
     write_file,
 )
@@ -82,12 +82,10 @@ def save_homes(path, homes: Homes, config: HomesConfig) -> pathlib.Path:
     """Write ``homes`` (checked against ``config`` first) to ``path`` (.npz) and its schema to
     ``schema_path(path)``. Returns the schema's path."""
     path = check_output_file("path", path)
-    check_instance("config", config, HomesConfig)
-    validate_homes(homes, config)
+    validate_homes(homes, config)  # the config too
     schema = homes_schema(config, homes.num_homes)
     side = schema_path(path)
-    check_no_links("path", os.path.dirname(os.path.abspath(path)),
-                   [os.path.basename(path), side.name])
+    check_no_links("path", os.path.dirname(os.path.abspath(path)), [side.name])
     arrays = {name: np.asarray(value) for name, value in homes.as_dict().items()}
     buffer = io.BytesIO()
     np.savez_compressed(buffer, format_version=np.int64(SCHEMA_VERSION),
@@ -101,40 +99,24 @@ def load_homes(path) -> tuple[Homes, HomesConfig]:
     """Read a file written by ``save_homes``; ``ValueError`` naming it if it is not one (see
     the module's docstring). The file is untrusted: members are whitelisted and their declared
     sizes checked before anything is decompressed (``validation.read_npz``)."""
-    try:
+    with prefix_errors("load_homes: "):
         path = check_file("path", path)
-        contents = read_npz(repr(path), path, allowed=(*_META, *FIELDS))
-    except ValueError as err:
-        raise ValueError(f"load_homes: {err}") from None
-    where = f"load_homes: {path!r}"
-    missing = [name for name in (*_META, *FIELDS) if name not in contents]
-    if missing:
-        raise ValueError(f"{where} is missing arrays {missing}")
-    version = contents["format_version"]
-    if version.shape != () or version.dtype.kind not in "iu" or int(version) != SCHEMA_VERSION:
-        raise ValueError(f"{where} has format_version {version!r}; this code reads version "
-                         f"{SCHEMA_VERSION}")
-    try:
-        config = HomesConfig.from_dict(json.loads(str(contents["config_json"])))
-        schema = json.loads(str(contents["schema_json"]))
-    except (ValueError, TypeError) as err:
-        raise ValueError(f"{where} has an invalid config_json or schema_json: {err}") from None
-    if not isinstance(schema, dict) or schema.get("format") != FORMAT or schema.get(
-            "schema_version") != SCHEMA_VERSION:
-        raise ValueError(f"{where}: schema_json is not a {FORMAT} schema of version "
-                         f"{SCHEMA_VERSION}")
-    shape = contents["home_size"].shape
-    if len(shape) != 2 or shape[0] < 1:
-        raise ValueError(f"{where}: home_size has shape {shape}, expected (E, 2) with E >= 1")
-    dims = sizes(config, shape[0])
-    for name, (_, dtype, _, _) in FIELDS.items():
-        array = contents[name]
-        if array.shape != field_shape(name, dims) or array.dtype != np.dtype(dtype):
-            raise ValueError(f"{where}: {name} has shape {array.shape} and dtype {array.dtype}, "
-                             f"expected {field_shape(name, dims)} and {dtype}")
-    homes = Homes(**{name: contents[name] for name in FIELDS})
-    try:
-        validate_homes(homes, config)
-    except ValueError as err:
-        raise ValueError(f"{where}: {err}") from None
+        contents = read_npz(repr(path), path, allowed=(*_META, *FIELDS),
+                            required=(*_META, *FIELDS))
+    with prefix_errors(f"load_homes: {path!r}: "):
+        version = contents["format_version"]
+        if (version.shape != () or version.dtype.kind not in "iu"
+                or int(version) != SCHEMA_VERSION):
+            raise ValueError(f"it has format_version {version!r}; this code reads version "
+                             f"{SCHEMA_VERSION}")
+        with prefix_errors("it has an invalid config_json or schema_json: ", also=(TypeError,)):
+            config = HomesConfig.from_dict(json.loads(str(contents["config_json"])))
+            schema = json.loads(str(contents["schema_json"]))
+        if not isinstance(schema, dict) or schema.get("format") != FORMAT or schema.get(
+                "schema_version") != SCHEMA_VERSION:
+            raise ValueError(f"schema_json is not a {FORMAT} schema of version {SCHEMA_VERSION}")
+        shape = contents["home_size"].shape
+        if len(shape) != 2 or shape[0] < 1:
+            raise ValueError(f"home_size has shape {shape}, expected (E, 2) with E >= 1")
+        validate_homes(Homes(**{name: contents[name] for name in FIELDS}), config)
     return Homes(**{name: jnp.asarray(contents[name]) for name in FIELDS}), config

@@ -32,7 +32,7 @@ from flowmaps_jax.flowsim.homes import schedules
 from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.schedules import PREFERENCES
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
-from flowmaps_jax.validation import check_instance, check_int, check_int_array, is_concrete
+from flowmaps_jax.validation import check_int, check_int_array, is_concrete
 
 
 def object_law(home: Homes, object_index, config: HomesConfig) -> dict:
@@ -104,8 +104,7 @@ def _history_posterior(home: Homes, object_index, tau, tau_q, history, config: H
 
 
 def _check_query(home, object_index, tau, tau_q, config: HomesConfig) -> None:
-    check_instance("config", config, HomesConfig)
-    validate_homes(home, config, batched=False, values=False)
+    validate_homes(home, config, batched=False, values=False)  # the config too
     for name, value in (("object_index", object_index), ("tau", tau), ("tau_q", tau_q)):
         check_int_array(name, value, shape=())
     if not is_concrete(object_index, tau, tau_q):
@@ -150,8 +149,7 @@ def transition_matrix(home: Homes, object_index, hour,
                       config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """P_hour (R, R) float32 of one object: [i, j] = P(j at hour + 1 | i at hour); zero outside
     its allowed receptacles. A pure function of (home, object, hour of week)."""
-    check_instance("config", config, HomesConfig)
-    validate_homes(home, config, batched=False, values=False)
+    validate_homes(home, config, batched=False, values=False)  # the config too
     if is_concrete(object_index, hour):
         check_int("object_index", object_index, 0, config.max_objects - 1)
         check_int("hour", hour, 0, config.num_hours - 2)

@@ -27,13 +27,8 @@ from flowmaps_jax.flowsim.homes import floorplan, furnish, schedules
 from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.schedules import BALANCED, FREQUENT, PREFERENCES, ROUTINE
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
-from flowmaps_jax.validation import (
-    array_bytes,
-    check_instance,
-    check_int,
-    check_key,
-    check_request_size,
-)
+from flowmaps_jax.validation import array_bytes, check_args, check_int, check_request_size
+from flowmaps_jax.validation.fields import Instance, Int, Key
 
 
 def _uniform24(words: jnp.ndarray) -> jnp.ndarray:
@@ -199,6 +194,7 @@ def homes_bytes_per_home(config: HomesConfig) -> int:
     return sum(array_bytes(field_shape(f, dims), np.dtype(FIELDS[f][1])) for f in FIELDS)
 
 
+@check_args(key=Key(), config=Instance(HomesConfig), num_homes=Int())
 def generate_homes(key, config: HomesConfig = DEFAULT_HOMES_CONFIG, num_homes: int = 1) -> Homes:
     """Generate ``num_homes`` homes with ``config.num_hours`` hourly trajectories.
 
@@ -206,13 +202,11 @@ def generate_homes(key, config: HomesConfig = DEFAULT_HOMES_CONFIG, num_homes: i
     the same in any batch (it depends on its own key only). Raises ``ValueError`` naming the
     argument on bad input, or when the homes would not fit in memory.
     """
-    check_instance("config", config, HomesConfig)
-    num_homes = check_int("num_homes", num_homes, 1)
     # the trajectories' working set: a few (T, M) float/int arrays per home besides the output
     check_request_size(f"generate_homes({num_homes} homes)",
                        num_homes * (homes_bytes_per_home(config)
                                     + 8 * config.num_hours * config.max_objects * 4))
-    keys = jax.random.split(check_key(key), num_homes)
+    keys = jax.random.split(key, num_homes)
     return homes_from_keys(keys, config)
 
 
@@ -233,6 +227,7 @@ def _simulate(key, home: Homes, object_index, tau, steps: int, num_chains: int,
     return jax.vmap(chain)(jax.random.split(key, num_chains))
 
 
+@check_args(key=Key(), num_chains=Int())
 def simulate(key, home: Homes, object_index: int, tau: int, tau_q: int, num_chains: int,
              config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """Monte-Carlo check of the posterior: (num_chains,) int32 receptacles of object
@@ -242,5 +237,4 @@ def simulate(key, home: Homes, object_index: int, tau: int, tau_q: int, num_chai
     tau = check_int("tau", tau, 0, config.num_hours - 1)
     tau_q = check_int("tau_q", tau_q, tau + 1, config.num_hours - 1)
     object_index = check_int("object_index", object_index, 0, config.max_objects - 1)
-    num_chains = check_int("num_chains", num_chains, 1)
-    return _simulate(check_key(key), home, object_index, tau, tau_q - tau, num_chains, config)
+    return _simulate(key, home, object_index, tau, tau_q - tau, num_chains, config)

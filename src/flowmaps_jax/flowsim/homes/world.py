@@ -131,13 +131,11 @@ def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: 
     e = arrays["home_size"].shape[0] if batched and arrays["home_size"].ndim else None
     dims = sizes(config, e)
     for field, value in arrays.items():
-        expected = field_shape(field, dims, batched)
-        if tuple(value.shape) != expected:
-            raise ValueError(f"{name}.{field} has shape {tuple(value.shape)}, expected "
-                             f"{expected} ({', '.join(FIELDS[field][0])} of the config)")
-        if np.dtype(value.dtype) != np.dtype(FIELDS[field][1]):
-            raise ValueError(f"{name}.{field} has dtype {value.dtype}, expected "
-                             f"{FIELDS[field][1]}")
+        expected, dtype = field_shape(field, dims, batched), np.dtype(FIELDS[field][1])
+        if tuple(value.shape) != expected or np.dtype(value.dtype) != dtype:
+            raise ValueError(f"{name}.{field} has shape {tuple(value.shape)} and dtype "
+                             f"{value.dtype}, expected {expected} "
+                             f"({', '.join(FIELDS[field][0])} of the config) and {dtype}")
     if values and is_concrete(*arrays.values()):
         _check_values(name, {k: np.asarray(v) for k, v in arrays.items()}, config, batched)
 
