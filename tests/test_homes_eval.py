@@ -365,10 +365,8 @@ def test_the_command_names_a_bad_argument(args, named, tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
-def test_a_checkpoint_without_the_homes_model_names_the_flag(tmp_path, capsys):
-    import importlib.util
-
-    if importlib.util.find_spec("flowmaps_jax.homes.predictor") is not None:
-        pytest.skip("the FlowMaps homes model is installed")
-    code = ev.main(["--out", str(tmp_path / "x"), "--checkpoint", "flowmaps-homes"])
+def test_a_missing_checkpoint_names_the_flag(tmp_path, capsys):
+    code = ev.main(["--out", str(tmp_path / "x"), "--checkpoint", str(tmp_path / "nowhere"),
+                    "--no-progress"])
     assert code == ev.EXIT_USAGE and "--checkpoint" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()

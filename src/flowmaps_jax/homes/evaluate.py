@@ -264,13 +264,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_model(source: str):
-    """``homes.predictor.HomesPredictor.load(source)`` (imported only when asked for)."""
+    """``homes.predictor.HomesPredictor.load(source)``; a missing or unreadable source is a
+    ``ValueError`` naming ``--checkpoint``."""
+    from flowmaps_jax.homes.predictor import HomesPredictor  # the model only when asked for
+
     try:
-        from flowmaps_jax.homes.predictor import HomesPredictor
-    except ImportError as err:
-        raise ValueError(f"--checkpoint {source!r}: the FlowMaps homes model "
-                         f"(flowmaps_jax.homes.predictor) is not available: {err}") from None
-    return HomesPredictor.load(source)
+        return HomesPredictor.load(source)
+    except ValueError as err:
+        raise ValueError(f"--checkpoint {source!r}: {err}") from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:
