@@ -28,17 +28,27 @@ def _name(path: pathlib.Path) -> str:
 
 MODULES = {_name(path): path for path in sorted((SRC / PACKAGE).rglob("*.py"))}
 
+# The homes model family's modules (queries, tokens, the network and its loss): at the model
+# layer, below the store (which reads a stored homes config through homes.model.homes_spec, as
+# it reads the 2-D families' through model.families); the rest of homes/ sits above the store.
+HOMES_MODEL = (f"{PACKAGE}.homes", *(f"{PACKAGE}.homes.{m}" for m in ("queries", "tokens",
+                                                                     "model")))
+HOMES_ABOVE_STORE = tuple(f"{PACKAGE}.homes.{m}" for m in (
+    "predictor", "train", "priors", "scores", "navigation", "report", "evaluate"))
+
 # The modules that load, run and export a trained model: none may import flowmaps_jax.training,
 # not even lazily, so that sampling a pretrained model needs neither optax nor the training loop.
 INFERENCE = sorted(
     name for name in MODULES
     if name in (f"{PACKAGE}.{m}" for m in ("predictor", "export", "flow", "tokens", "boxes",
                                             "validation", "distributed", "tables"))
-    or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store")))
+    or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store"))
+    or name in HOMES_MODEL or name == f"{PACKAGE}.homes.predictor")
 STORE = sorted(name for name in MODULES if name.startswith(f"{PACKAGE}.store"))
 # What sits above the store: it may import none of them, lazily or not.
-ABOVE_STORE = tuple(f"{PACKAGE}.{m}" for m in ("training", "predictor", "evaluation", "search",
-                                                "export", "train", "evaluate"))
+ABOVE_STORE = (*(f"{PACKAGE}.{m}" for m in ("training", "predictor", "evaluation", "search",
+                                             "export", "train", "evaluate")),
+               *HOMES_ABOVE_STORE)
 
 
 def _known(target: str) -> str | None:
@@ -134,6 +144,9 @@ def test_the_graph_is_read():
     assert f"{PACKAGE}.predictor" in edges(f"{PACKAGE}.training.loop")
     assert {f"{PACKAGE}.store", f"{PACKAGE}.export"} <= set(INFERENCE)
     assert len(STORE) > 5
+    # the store reads stored homes configs through the homes family's module, lazily
+    assert f"{PACKAGE}.homes.model" in edges(f"{PACKAGE}.store.model_spec")
+    assert all(m in MODULES for m in HOMES_MODEL + HOMES_ABOVE_STORE)
 
 
 def test_no_import_circles():
