@@ -43,7 +43,8 @@ from flowmaps_jax.store import rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointSaveError
 from flowmaps_jax.training.runlog import RunBook
 from flowmaps_jax.training.state import TrainState, ema_update
-from flowmaps_jax.validation import check_instance, check_int, check_plain_name, check_real
+from flowmaps_jax.validation import check_instance, check_int
+from flowmaps_jax.validation.fields import Instance, Int, PlainName, Real, check_fields
 
 VAL_SEED = 0x40E5_0001
 """The fixed seed of the validation homes (distinct from every training key and from the
@@ -91,22 +92,8 @@ class HomesTrainConfig:
     preset: str = "homes"
 
     def __post_init__(self):
-        check_instance("model", self.model, HomesModelConfig)
-        check_instance("homes", self.homes, HomesConfig)
-        for name in ("batch_size", "queries_per_home", "steps", "chunk_homes", "chunk_steps",
-                     "max_horizon", "val_homes", "val_batches", "log_every", "val_every",
-                     "ckpt_every", "keep_last"):
-            check_int(name, getattr(self, name), 1, 1 << 30)
+        check_fields(self, _RULES, store=False)
         check_int("warmup_steps", self.warmup_steps, 0, self.steps - 1)
-        check_int("seed", self.seed, 0, 2**31 - 1)
-        check_real("lr", self.lr, 0.0, low_open=True)
-        for name in ("b1", "b2", "ema_decay"):
-            check_real(name, getattr(self, name), 0.0, 1.0, high_open=True)
-        for name in ("weight_decay", "cfm_weight"):
-            check_real(name, getattr(self, name), 0.0)
-        check_real("clip_norm", self.clip_norm, 0.0, low_open=True)
-        check_real("default_horizon_frac", self.default_horizon_frac, 0.0, 1.0)
-        check_plain_name("preset", self.preset)
         room = self.homes.num_hours - self.model.history - self.max_horizon
         if room < 0:
             raise ValueError(f"homes.num_hours={self.homes.num_hours} leaves no map hour with "
@@ -135,6 +122,20 @@ class HomesTrainConfig:
         if unknown:
             raise ValueError(f"the homes training config has unknown keys {unknown}")
         return cls(model=model, homes=homes, **data)
+
+
+_RULES = {
+    "model": Instance(HomesModelConfig), "homes": Instance(HomesConfig),
+    **{name: Int(1, 1 << 30) for name in (
+        "batch_size", "queries_per_home", "steps", "chunk_homes", "chunk_steps", "max_horizon",
+        "val_homes", "val_batches", "log_every", "val_every", "ckpt_every", "keep_last")},
+    "seed": Int(0, 2**31 - 1), "lr": Real(0.0, low_open=True),
+    **{name: Real(0.0, 1.0, high_open=True) for name in ("b1", "b2", "ema_decay")},
+    "weight_decay": Real(0.0), "cfm_weight": Real(0.0),
+    "clip_norm": Real(0.0, low_open=True), "default_horizon_frac": Real(0.0, 1.0),
+    "preset": PlainName(),
+}
+"""What each field of :class:`HomesTrainConfig` may hold (cross-field bounds: in the body)."""
 
 
 def homes_preset() -> HomesTrainConfig:
