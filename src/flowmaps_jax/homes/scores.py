@@ -1,7 +1,9 @@
 """Posterior scores of a prior against the exact posterior, per query, and their summaries.
 
 Per query (:func:`posterior_scores`; p, q (..., R) over receptacle slots, ``allowed`` (..., R)
-the object's allowed receptacles; docs/protocol.md's definitions on a finite support):
+the object's allowed receptacles; docs/protocol.md's definitions on a finite support; TV, top-1
+and rank cost are the 2-D slot metrics' kernels, :func:`flowmaps_jax.evaluation.slots.score_slots`,
+with the off bin 1 − Σ_r p_r):
 
 * ``kl``: KL(q ‖ p) = Σ_{q_r > 0} q_r log(q_r / p_r) in nats, sample-free for probability rows
   (p floored at ``KL_FLOOR`` so that a row putting no mass where q has some scores large, not
@@ -10,7 +12,7 @@ the object's allowed receptacles; docs/protocol.md's definitions on a finite sup
   receptacle (:func:`assign_samples`) counts fully.
 * ``top1``: is p's most probable receptacle a mode of q? Ties in q: any mode counts; ties in p:
   the fraction of p's tied best receptacles that are modes of q (the expectation of a uniform
-  tie break). Scores within ``TIE_ATOL`` tie.
+  tie break). Scores within ``evaluation.slots.TIE_ATOL`` tie.
 * ``rank_cost``: visit the allowed receptacles by decreasing p and pay the rank of the one the
   object is on, Σ_r rank_r q_r (tied receptacles share their group's mean rank), over the same
   sum visiting by decreasing q (the least possible): ≥ 1, 1 when p ranks them as q does.
@@ -27,14 +29,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.evaluation.slots import score_slots
 from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.world import Homes
 from flowmaps_jax.homes.priors import allowed_slots
 from flowmaps_jax.homes.queries import HomesQueries
 from flowmaps_jax.validation import check_array, check_shape
 
-TIE_ATOL = 1e-6
-"""Two probabilities closer than this are tied (top-1, rank cost), as in docs/protocol.md."""
 KL_FLOOR = 1e-9
 """KL(q ‖ p) reads max(p, KL_FLOOR): about 20.7 nats per unit of q's mass where p has none."""
 POSTERIOR_METRICS = ("kl", "tv", "top1", "rank_cost")
@@ -42,34 +43,19 @@ ASSIGN_MARGIN = 0.1
 """Metres: a sampled box counts for a receptacle within half its footprint diagonal plus this."""
 
 
-def _modes(scores, valid):
-    best = jnp.max(jnp.where(valid, scores, -jnp.inf), axis=-1, keepdims=True)
-    return valid & (scores >= best - TIE_ATOL)
-
-
-def visit_ranks(scores, valid):
-    """(..., R) mean rank (1 = first) of each valid slot visiting by decreasing ``scores``;
-    tied slots share their group's mean rank; invalid slots rank after all valid ones."""
-    s_i, s_j = scores[..., :, None], scores[..., None, :]
-    valid_j = valid[..., None, :]
-    higher = valid_j & (s_j > s_i + TIE_ATOL)
-    tied = valid_j & (jnp.abs(s_j - s_i) <= TIE_ATOL) & ~jnp.eye(scores.shape[-1], dtype=bool)
-    rank = 1.0 + jnp.sum(higher, axis=-1) + 0.5 * jnp.sum(tied, axis=-1)
-    return jnp.where(valid, rank, jnp.sum(valid, axis=-1, keepdims=True) + 1.0)
+@jax.jit
+def _kl(p, q, allowed):
+    p, q = jnp.where(allowed, p, 0.0), jnp.where(allowed, q, 0.0)
+    return jnp.sum(jnp.where(q > 0, q * (jnp.log(jnp.where(q > 0, q, 1.0))
+                                         - jnp.log(jnp.maximum(p, KL_FLOOR))), 0.0), axis=-1)
 
 
 @jax.jit
-def _posterior_scores(p, q, allowed):
-    p, q = jnp.where(allowed, p, 0.0), jnp.where(allowed, q, 0.0)
-    kl = jnp.sum(jnp.where(q > 0, q * (jnp.log(jnp.where(q > 0, q, 1.0))
-                                       - jnp.log(jnp.maximum(p, KL_FLOOR))), 0.0), axis=-1)
-    off = jnp.clip(1.0 - jnp.sum(p, axis=-1), 0.0, 1.0)
-    tv = 0.5 * jnp.sum(jnp.abs(p - q), axis=-1) + 0.5 * off
-    p_modes, q_modes = _modes(p, allowed), _modes(q, allowed)
-    top1 = jnp.sum(p_modes & q_modes, axis=-1) / jnp.maximum(jnp.sum(p_modes, axis=-1), 1)
-    cost = jnp.sum(visit_ranks(p, allowed) * q, axis=-1)
-    best = jnp.sum(visit_ranks(q, allowed) * q, axis=-1)
-    return {"kl": kl, "tv": tv, "top1": top1, "rank_cost": cost / best}
+def _with_off_bin(p, allowed):
+    """p (..., R) on the allowed receptacles, then its off mass: the 2-D slots' layout."""
+    p = jnp.where(allowed, p, 0.0)
+    return jnp.concatenate([p, jnp.clip(1.0 - jnp.sum(p, axis=-1, keepdims=True), 0.0, 1.0)],
+                           axis=-1)
 
 
 def posterior_scores(p, q, allowed) -> dict[str, jax.Array]:
@@ -78,8 +64,11 @@ def posterior_scores(p, q, allowed) -> dict[str, jax.Array]:
     shape = check_array("q", q, (..., None)).shape
     check_shape("p", tuple(np.shape(p)), shape)
     check_shape("allowed", tuple(np.shape(allowed)), shape)
-    return _posterior_scores(jnp.asarray(p, jnp.float32), jnp.asarray(q, jnp.float32),
-                             jnp.asarray(allowed, bool))
+    p, allowed = jnp.asarray(p, jnp.float32), jnp.asarray(allowed, bool)
+    q = jnp.where(allowed, jnp.asarray(q, jnp.float32), 0.0)
+    slots = score_slots(_with_off_bin(p, allowed), q, allowed)  # TV, top-1, rank cost
+    return {"kl": _kl(p, q, allowed), "tv": slots["tv"], "top1": slots["top1"],
+            "rank_cost": slots["search_cost_ratio"]}
 
 
 def object_positions(homes: Homes, queries: HomesQueries, config: HomesConfig) -> jax.Array:
