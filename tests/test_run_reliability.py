@@ -305,12 +305,12 @@ def test_a_ctrl_c_python_swallowed_before_the_steps_still_stops_the_run():
     ("Exception ignored in ... _xla_gc_callback"): seen once under load, when the run then
     trained to the end. The flag raises it again before the first step; in the step loop the
     first Ctrl-C only asks to stop, a second one raises."""
-    with loop._StopFlag() as stop:
+    with loop.StopFlag() as stop:
         with contextlib.suppress(KeyboardInterrupt):  # what Python does in a gc callback
             stop._handle(signal.SIGINT, None)
         with pytest.raises(KeyboardInterrupt):
             stop.start_steps()
-    with loop._StopFlag() as stop:
+    with loop.StopFlag() as stop:
         stop.start_steps()
         stop._handle(signal.SIGINT, None)
         assert stop.requested

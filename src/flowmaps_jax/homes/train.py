@@ -24,8 +24,6 @@ import functools
 import json
 import math
 import pathlib
-import signal
-import threading
 import time
 from collections.abc import Callable
 
@@ -41,8 +39,9 @@ from flowmaps_jax.homes.queries import DEFAULT_HORIZONS, HomesQueries
 from flowmaps_jax.homes.tokens import shared_tau_batch
 from flowmaps_jax.store import rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointSaveError
+from flowmaps_jax.training.loop import StopFlag
 from flowmaps_jax.training.runlog import RunBook
-from flowmaps_jax.training.state import TrainState, ema_update
+from flowmaps_jax.training.state import TrainState, ema_update, make_optimizer, make_schedule
 from flowmaps_jax.validation import check_instance, check_int
 from flowmaps_jax.validation.fields import Instance, Int, PlainName, Real, check_fields
 
@@ -206,16 +205,10 @@ def validation_batches(cfg: HomesTrainConfig):
 # --------------------------------------------------------------------------- the jitted step
 
 
-def make_optimizer(cfg: HomesTrainConfig) -> optax.GradientTransformation:
-    """Global-norm clipping, then AdamW on a linear warm-up + cosine decay to 0 at ``steps``."""
-    schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, cfg.warmup_steps, cfg.steps)
-    return optax.chain(optax.clip_by_global_norm(cfg.clip_norm),
-                       optax.adamw(schedule, b1=cfg.b1, b2=cfg.b2,
-                                   weight_decay=cfg.weight_decay))
-
-
 def init_state(cfg: HomesTrainConfig) -> TrainState:
-    """Step 0: fresh params (EMA = params), optimiser state and the two raw PRNG keys."""
+    """Step 0: fresh params (EMA = params), optimiser state and the two raw PRNG keys. The
+    optimiser and schedule are the 2-D recipe's (``training.state.make_optimizer``): they read
+    lr, warmup_steps, steps, b1, b2, weight_decay and clip_norm, which this config holds too."""
     param_key, rng, data_key = jax.random.split(jax.random.PRNGKey(cfg.seed), 3)
     params = init_params(param_key, cfg.model, cfg.homes)
     return TrainState(step=jnp.zeros((), jnp.int32), params=params,
@@ -228,7 +221,7 @@ def make_train_step(cfg: HomesTrainConfig):
     """Jitted ``(state, homes) -> (state, metrics)``: draws step i's batch from ``homes`` with
     ``fold_in(data_key, i)``, its noise with ``fold_in(rng, i)``; ``state`` is donated."""
     tx = make_optimizer(cfg)
-    schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, cfg.warmup_steps, cfg.steps)
+    schedule = make_schedule(cfg)
 
     def step(state: TrainState, homes):
         batch = draw_batch(jax.random.fold_in(state.data_key, state.step), homes, cfg)
@@ -268,34 +261,13 @@ def make_eval(cfg: HomesTrainConfig):
 # --------------------------------------------------------------------------- the loop
 
 
-class _StopFlag:
-    """The first Ctrl-C sets ``requested`` (the loop saves and stops); a second one raises."""
-
-    def __init__(self):
-        self.requested, self._previous = False, None
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handle)
-        return self
-
-    def _handle(self, signum, frame):
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-
-    def __exit__(self, *exc):
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
-
-
 def run(cfg: HomesTrainConfig, run_dir, *, overwrite: bool = False, progress: bool = True,
         log: Callable[[str], None] = print) -> dict:
     """Train ``cfg`` into ``run_dir`` (see the module docstring). Returns ``{"status": "done" |
     "interrupted" | "nan", "step", "best_step", "best_val_ce", "run_dir"}``."""
     check_instance("cfg", cfg, HomesTrainConfig)
     run_dir = rundir.check_run_dir(run_dir)
-    with rundir.claim(run_dir, resume=False, overwrite=overwrite, log=log), _StopFlag() as stop:
+    with rundir.claim(run_dir, resume=False, overwrite=overwrite, log=log), StopFlag() as stop:
         rundir.write_atomic(run_dir / "config.json", json.dumps(cfg.to_dict(), indent=2) + "\n")
         log(f"Run directory: {run_dir.absolute()} (config.json, metrics.jsonl, checkpoints/)")
         train_step, evaluate = make_train_step(cfg), make_eval(cfg)
@@ -305,6 +277,7 @@ def run(cfg: HomesTrainConfig, run_dir, *, overwrite: bool = False, progress: bo
         with RunBook(run_dir, cfg, kept=None, window=None) as book, tqdm(
                 total=cfg.steps, unit="step", disable=not progress, dynamic_ncols=True,
                 desc="train homes") as bar:
+            stop.start_steps()
             for i in range(cfg.steps):
                 if i % cfg.chunk_steps == 0:
                     homes = train_homes(cfg, i // cfg.chunk_steps)

@@ -86,7 +86,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     run_dir, mesh = _check_run(cfg, run_dir, resume=resume, from_step=from_step, stop_at=stop_at)
     start_params = None if resume else _start_params(cfg, log)
     primary = jax.process_index() == 0
-    with _StopFlag() as stop, rundir.claim(run_dir, resume=resume, overwrite=overwrite,
+    with StopFlag() as stop, rundir.claim(run_dir, resume=resume, overwrite=overwrite,
                                            log=log):
         resumed = restore_for_resume(cfg, run_dir, from_step, mesh, log) if resume else None
         kept = None  # a new run appends to metrics.jsonl; a resumed one first trims it
@@ -341,7 +341,7 @@ def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any],
 # Ctrl-C and the progress bar
 
 
-class _StopFlag:
+class StopFlag:
     """Ctrl-C during a run.
 
     Before the step loop (data, compilation) it raises ``KeyboardInterrupt`` as usual, and
