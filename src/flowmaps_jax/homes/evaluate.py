@@ -42,6 +42,7 @@ from flowmaps_jax.homes.queries import DEFAULT_HORIZONS, check_queries, draw_que
 from flowmaps_jax.homes.scores import (
     POSTERIOR_METRICS,
     assign_samples,
+    group_ids,
     posterior_scores,
     query_groups,
     stats,
@@ -124,9 +125,7 @@ def _ratio_summary(expected: np.ndarray, optimal: np.ndarray, groups: dict) -> d
 
     out = {"overall": ratio(np.ones(expected.shape, bool))}
     for name, labels in groups.items():
-        ids = [r for r in REGIMES if np.any(labels == r)] if name == "regime" else \
-            sorted(np.unique(labels).tolist())
-        out[f"by_{name}"] = {str(i): ratio(labels == i) for i in ids}
+        out[f"by_{name}"] = {str(i): ratio(labels == i) for i in group_ids(name, labels)}
     return out
 
 

@@ -139,7 +139,12 @@ def summarise(values, groups: dict[str, np.ndarray]) -> dict:
     out = {"overall": stats(v)}
     for name, labels in groups.items():
         labels = np.asarray(labels)
-        ids = [r for r in REGIMES if np.any(labels == r)] if name == "regime" else \
-            sorted(np.unique(labels).tolist())
-        out[f"by_{name}"] = {str(i): stats(v[labels == i]) for i in ids}
+        out[f"by_{name}"] = {str(i): stats(v[labels == i]) for i in group_ids(name, labels)}
     return out
+
+
+def group_ids(name: str, labels) -> list:
+    """The ids present in a group's labels: regimes in ``REGIMES`` order, others ascending."""
+    labels = np.asarray(labels)
+    return [r for r in REGIMES if np.any(labels == r)] if name == "regime" else \
+        sorted(np.unique(labels).tolist())
