@@ -365,3 +365,39 @@ def test_scene_file_paths(tmp_path, small_scenes, flowsim_config, saved):
     loaded, config = load_scenes(saved)
     assert config == flowsim_config and isinstance(loaded, Scenes)
     assert loaded.slot.dtype == jnp.int32 and loaded.object_boxes.dtype == jnp.float32
+
+
+def test_named_sizes_must_agree_across_the_arguments_of_one_check():
+    from flowmaps_jax.validation.fields import Distribution, Int, IntArray, Mask, check_args
+
+    @check_args(q=Distribution(("*B", "K")), p_hat=Distribution(("*B", "K+1"), support="mask"),
+                mask=Mask(("*B", "K")))
+    def score(q, mask, p_hat):
+        return q.shape
+
+    q = np.full((2, 3), 1 / 3)
+    mask = np.ones((2, 3), bool)
+    assert score(q, mask, np.full((2, 4), 0.25)) == (2, 3)
+    with pytest.raises(ValueError, match=r"p_hat must have shape \(\*B, K\+1\) with K = 3 "
+                                         r"\(from q\); got \(2, 3\)"):
+        score(q, mask, np.full((2, 3), 1 / 3))
+    with pytest.raises(ValueError, match=r"mask must have shape .* with \*B = \(2,\) \(from q\)"):
+        score(q, np.ones((1, 3), bool), np.full((2, 4), 0.25))
+    with pytest.raises(ValueError, match="p_hat puts probability where mask is False"):
+        score(q, np.array([[1, 1, 0], [1, 1, 1]], bool), np.full((2, 4), 0.25))
+
+    @check_args(num_slots=Int(size="K"), slot_now=IntArray(0, "K-1"))
+    def last_seen(slot_now, num_slots):
+        return num_slots
+
+    assert last_seen(np.array([0, 2]), 3) == 3
+    with pytest.raises(ValueError, match=r"slot_now must lie in 0..K-1; got values in 0..3"):
+        last_seen(np.array([0, 3]), 3)
+
+
+def test_real_array_bounds_name_the_argument_and_the_range():
+    from flowmaps_jax.validation import check_real_array
+
+    assert check_real_array("boxes", np.array([0.0, 1.0]), low=0, high=1).shape == (2,)
+    with pytest.raises(ValueError, match=r"boxes must lie in \[0, 1\] \(normalised\)"):
+        check_real_array("boxes", np.array([0.5, 1.5]), low=0, high=1, what="normalised")

@@ -14,7 +14,10 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   :func:`is_real_dtype`.
 * :mod:`.arrays`: :func:`check_array`, :func:`check_shape`, :func:`check_real_array`,
   :func:`check_int_array`, :func:`check_mask`, :func:`check_probabilities` (with
-  :data:`PROB_ATOL` for computed float32 distributions), :func:`is_concrete`.
+  :data:`PROB_ATOL` for computed float32 distributions), :func:`is_concrete`; named sizes
+  (:func:`named_sizes`, :func:`size`, :func:`bind_size`): a shape ``("*B", "K")`` and another
+  ``("*B", "K+1")`` checked in one scope must agree on B and K, so shape agreement between
+  arguments is declared in their shapes, not checked by hand.
 * :mod:`.files`: :func:`check_path`, :func:`check_file`, :func:`check_dir`,
   :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
   name, a metadata field: no path, no markup); :func:`read_npz` (an untrusted ``.npz``: member
@@ -41,6 +44,7 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
 
 from flowmaps_jax.validation.arrays import (
     PROB_ATOL,
+    bind_size,
     check_array,
     check_int_array,
     check_mask,
@@ -48,6 +52,8 @@ from flowmaps_jax.validation.arrays import (
     check_real_array,
     check_shape,
     is_concrete,
+    named_sizes,
+    size,
 )
 from flowmaps_jax.validation.errors import prefix_errors
 from flowmaps_jax.validation.fields import check_args, check_fields, check_keys, check_options
@@ -103,6 +109,7 @@ __all__ = [
     "SEED_MAX",
     "SEQUENTIAL_FLOPS",
     "array_bytes",
+    "bind_size",
     "check_args",
     "check_array",
     "check_choice",
@@ -136,10 +143,12 @@ __all__ = [
     "is_real_dtype",
     "make_output_dir",
     "memory_limit",
+    "named_sizes",
     "network_flops",
     "prefix_errors",
     "read_npz",
     "save_figure",
+    "size",
     "solver_evaluations",
     "write_file",
 ]

@@ -12,6 +12,8 @@ config's fields.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import functools
 import inspect
@@ -19,11 +21,14 @@ from collections.abc import Callable, Collection, Mapping
 from typing import Any
 
 from flowmaps_jax.validation.arrays import (
+    PROB_ATOL,
+    bind_size,
     check_array,
     check_int_array,
     check_mask,
     check_probabilities,
     check_real_array,
+    named_sizes,
 )
 from flowmaps_jax.validation.files import check_plain_name
 from flowmaps_jax.validation.scalars import (
@@ -49,14 +54,19 @@ class Int:
     minimum: int | None = 1
     maximum: int | None = None
     why: str = ""
+    size: str | None = None
+    """Binds the named size (``"K"``) of the check's :func:`~.arrays.named_sizes` scope."""
 
     def __call__(self, name: str, value: Any) -> int:
         if self.why and self.maximum is not None:
             number = check_int(name, value, self.minimum)
             if number > self.maximum:
                 raise ValueError(f"{name} must be <= {self.maximum} ({self.why}); got {number}")
-            return number
-        return check_int(name, value, self.minimum, self.maximum)
+        else:
+            number = check_int(name, value, self.minimum, self.maximum)
+        if self.size is not None:
+            bind_size(self.size, number, name)
+        return number
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,26 +122,50 @@ class Array:
 
 @dataclasses.dataclass(frozen=True)
 class RealArray:
-    """A real array of ``shape``, finite if ``finite``
-    (:func:`~flowmaps_jax.validation.check_real_array`)."""
+    """A real array of ``shape``, finite if ``finite``, within ``[low, high]`` if given
+    (:func:`~flowmaps_jax.validation.check_real_array`; ``what`` names the values)."""
 
     shape: tuple | None = None
     finite: bool = True
+    low: float | None = None
+    high: float | None = None
+    what: str = ""
 
     def __call__(self, name: str, value: Any):
-        return check_real_array(name, value, self.shape, finite=self.finite)
+        return check_real_array(name, value, self.shape, finite=self.finite, low=self.low,
+                                high=self.high, what=self.what)
 
 
 @dataclasses.dataclass(frozen=True)
 class IntArray:
-    """An integer array in ``low..high`` (:func:`~flowmaps_jax.validation.check_int_array`)."""
+    """An integer array in ``low..high`` (:func:`~flowmaps_jax.validation.check_int_array`;
+    a bound may be a named size, ``"K-1"``)."""
 
-    low: int | None = None
-    high: int | None = None
+    low: int | str | None = None
+    high: int | str | None = None
     shape: tuple | None = None
 
     def __call__(self, name: str, value: Any):
         return check_int_array(name, value, self.low, self.high, shape=self.shape)
+
+
+@dataclasses.dataclass(frozen=True)
+class Distribution:
+    """Probabilities over the last axis (:func:`~flowmaps_jax.validation.check_probabilities`)
+    of ``shape``, a computed float32 one by default (sums within ``atol``, round-off negatives
+    down to ``-atol``); ``support`` names an argument (or field) checked before it, a mask
+    marking where mass may lie."""
+
+    shape: tuple | None = None
+    atol: float = PROB_ATOL
+    support: str | None = None
+    normalised: bool = True
+
+    def __call__(self, name: str, value: Any):
+        support = None if self.support is None else (_CHECKED.get() or {})[self.support]
+        return check_probabilities(name, value, self.shape, atol=self.atol,
+                                   min_value=-self.atol, normalised=self.normalised,
+                                   support=support, support_name=self.support or "support")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -290,6 +324,21 @@ class Pair:
         return (lo, hi)
 
 
+_CHECKED: contextvars.ContextVar[Mapping[str, Any] | None] = contextvars.ContextVar(
+    "flowmaps_checked", default=None)
+
+
+@contextlib.contextmanager
+def _checked(values: Mapping[str, Any]):
+    """The arguments (or fields) of the running check, for a rule that reads another one's
+    checked value (:class:`Distribution`'s ``support``)."""
+    token = _CHECKED.set(values)
+    try:
+        yield
+    finally:
+        _CHECKED.reset(token)
+
+
 def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
                  store: bool = True, labels: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Check every field of ``obj`` named in ``rules`` against its rule, in the table's order;
@@ -297,11 +346,12 @@ def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
     values ``{field: value}``; with ``store``, also keeps the checked form (Python numbers,
     tuples) on ``obj``, a frozen dataclass included."""
     labels = labels or {}
-    checked = {}
-    for field, rule in rules.items():
-        checked[field] = value = rule(prefix + labels.get(field, field), getattr(obj, field))
-        if store:
-            object.__setattr__(obj, field, value)
+    checked: dict[str, Any] = {}
+    with named_sizes(), _checked(checked):
+        for field, rule in rules.items():
+            checked[field] = value = rule(prefix + labels.get(field, field), getattr(obj, field))
+            if store:
+                object.__setattr__(obj, field, value)
     return checked
 
 
@@ -321,8 +371,9 @@ def check_args(**rules: Rule) -> Callable[[Callable], Callable]:
         def checked(*args, **kwargs):
             bound = signature.bind(*args, **kwargs)
             bound.apply_defaults()
-            for name, rule in rules.items():
-                bound.arguments[name] = rule(name, bound.arguments[name])
+            with named_sizes(), _checked(bound.arguments):
+                for name, rule in rules.items():
+                    bound.arguments[name] = rule(name, bound.arguments[name])
             return function(*bound.args, **bound.kwargs)
 
         return checked
