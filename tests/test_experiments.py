@@ -102,6 +102,10 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         ["--envs", "1", "--draws", "2", "--midpoint", "3", "--accurate", "3"],
         rf"^pretrained:flowmaps \(step \d+\)\n.*\n^\s+midpoint\s+3\s+{NUM}.*\n^\s+accurate\s+3\s+"
         rf"{NUM}", []),
+    # ~0 s: the check sites outside validation/ (issue 34: at most half of the 616 it counted)
+    "count_checks.py": (
+        ["--files", "--at-most", "308"],
+        rf"^\| \*\*total\*\* \| {NUM} \| {NUM} \| \*\*{NUM}\*\* \|$", []),
     # ~15 s: 2 environments, 4 samples
     "compare_assignment.py": (
         ["--num-envs", "2", "--samples", "4"],
