@@ -62,7 +62,8 @@ from flowmaps_jax.flowsim.scenes import draw_query_times, normalise_boxes, scene
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tables import assign_slots, histogram
 from flowmaps_jax.tokens import Queries, SceneTokens
-from flowmaps_jax.validation import check_instance, check_int
+from flowmaps_jax.validation import check_args, check_int
+from flowmaps_jax.validation.fields import Each, Instance, Int, Optional
 
 DEFAULT_NUM_ENVS = 200
 DEFAULT_SAMPLES = (25, 100)
@@ -155,11 +156,23 @@ def _take(evalset: EvalSet, index: jnp.ndarray) -> EvalSet:
     return jax.tree_util.tree_map(lambda a: a[index], evalset)
 
 
+_COUNTS = Each(Int(), what="sample counts", index=True)
+
+
+def _sample_counts(name: str, value) -> tuple[int, ...]:
+    """The rule of ``sample_counts``: distinct positive ints (a tuple or list), sorted."""
+    counts = _COUNTS(name, value)
+    if len(set(counts)) != len(counts):
+        raise ValueError(f"{name} must not repeat values; got {counts}")
+    return tuple(sorted(counts))
+
+
 def history_row_names(history: int) -> tuple[str, ...]:
     """The extra reference rows of an eval set with ``history`` = H > 1 observations."""
     return (EXACT_H1_ROW, empirical_row(history)) if history > 1 else ()
 
 
+@check_args(config=Instance(FlowSimConfig), kl_draws=Int(2))
 def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
                        kl_draws: int = DEFAULT_KL_DRAWS, horizon: int | None = None,
                        history: int = 1) -> EvalSet:
@@ -174,15 +187,11 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     last min(H, τ + 1) observations and the EvalSet's ``habit``, ``history`` (and for H > 1
     ``exact_h1``, ``empirical``) are set; the times and draws do not depend on H.
     """
-    check_instance("config", config, FlowSimConfig)
-    kl_draws = check_int("kl_draws", kl_draws, 2)
     num_envs = scenes.num_envs
     t_max = config.num_timesteps
     history = check_int("history", history, 1, t_max)
-    if horizon is not None:
-        horizon = check_int("horizon", horizon, 1)
-        if horizon >= t_max:
-            raise ValueError(f"horizon must be < num_timesteps={t_max}; got {horizon}")
+    if horizon is not None:  # Δτ < num_timesteps
+        horizon = check_int("horizon", horizon, 1, t_max - 1)
     m = config.num_objects
     env = jnp.arange(num_envs, dtype=jnp.int32)
     tau, tau_q, kl_keys = _query_times_and_keys(key, num_envs, config, horizon)
@@ -297,26 +306,7 @@ def slot_shares(evalset: EvalSet, samples) -> jnp.ndarray:
                      evalset.num_slots_padded)
 
 
-def check_counts(sample_counts: Sequence[int]) -> tuple[int, ...]:
-    """Distinct positive sample counts, sorted."""
-    counts = tuple(sample_counts)
-    if not counts:
-        raise ValueError("sample_counts must hold at least one sample count")
-    for n in counts:
-        check_int("sample_counts entries", n, 1)
-    if len(set(counts)) != len(counts):
-        raise ValueError(f"sample_counts must not repeat values; got {counts}")
-    return tuple(sorted(int(n) for n in counts))
-
-
-def check_ode(num_steps, method, logp_steps) -> tuple[int, str, int]:
-    """Validated (num_steps, method, logp_steps); logp_steps defaults to num_steps."""
-    num_steps, method = flow.check_solver(num_steps, method)
-    if logp_steps is None:
-        return num_steps, method, num_steps
-    return num_steps, method, flow.check_solver(logp_steps, method, name="logp_steps")[0]
-
-
+@check_args(sample_counts=_sample_counts)
 def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMPLES,
                    key: jax.Array | None = None) -> list[RowResult]:
     """The reference rows: oracle (q itself), oracle samples (n draws from q: the finite-sample
@@ -333,7 +323,7 @@ def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMP
     density is q; only its slot histogram is noisy), as for smoothed-q samples.
     ``key``: the draws of "oracle samples" and "smoothed-q samples" (default ``key(0)``).
     """
-    counts = check_counts(sample_counts)
+    counts = sample_counts
     key = jax.random.key(0) if key is None else key
     exact = {"oracle": with_off_bin(evalset.slot_probs),
              "last-seen": one_hot_slots(evalset.slot_now, evalset.num_slots_padded),
@@ -369,6 +359,8 @@ def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMP
     return rows
 
 
+@check_args(sample_counts=_sample_counts, chunk_envs=Int(),
+            likelihood_steps=Optional(Int(3)), likelihood_draws=Int(2))
 def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
                        sample_counts: Sequence[int] = DEFAULT_SAMPLES,
                        chunk_envs: int = DEFAULT_CHUNK_ENVS, num_steps: int = DEFAULT_NUM_STEPS,
@@ -388,13 +380,10 @@ def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
     2·n − 1 points; None skips it (``kl`` is then the paper grid's). ``likelihood_draws``: the
     accurate likelihood uses the first this-many KL draws of each query (all when fewer).
     """
-    counts = check_counts(sample_counts)
-    chunk_envs = check_int("chunk_envs", chunk_envs, 1)
-    num_steps, method, logp_steps = check_ode(num_steps, method, logp_steps)
-    if likelihood_steps is not None:
-        likelihood_steps = flow.check_solver(likelihood_steps, "accurate",
-                                             name="likelihood_steps")[0]
-    likelihood_draws = check_int("likelihood_draws", likelihood_draws, 2)
+    counts = sample_counts
+    num_steps, method = flow.check_solver(num_steps, method)
+    logp_steps = num_steps if logp_steps is None else flow.check_solver(
+        logp_steps, method, name="logp_steps")[0]
     n_max = counts[-1]
     num_envs = evalset.num_envs
     chunk = min(chunk_envs, num_envs)

@@ -38,18 +38,15 @@ from flowmaps_jax.flowsim.scenes import check_history, scene_tokens
 from flowmaps_jax.flowsim.worlds import world_of
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tables import ASSIGN_RADIUS
-from flowmaps_jax.validation import (
-    check_int,
-    check_output_dir,
-    make_output_dir,
-    save_figure,
-)
+from flowmaps_jax.validation import check_args, check_output_dir, make_output_dir, save_figure
+from flowmaps_jax.validation.fields import Each, Instance
 
 REPORT_FILES = ("results.json", "results.md")
 FIGURES = ("kl.png", "by_horizon.png", "samples.png", "slots.png")
 """The files an evaluation writes into its ``out_dir`` (figures unless ``figures=False``)."""
 
 
+@check_args(predictors=Each(Instance(Predictor), what="Predictor objects"))
 def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfig,
                    out_dir: str | pathlib.Path | None = None, *, seed: int = 0,
                    sample_counts: Sequence[int] = DEFAULT_SAMPLES,
@@ -69,21 +66,17 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     reference rows, one table per habit, and the model rows are labelled with the maps each reads
     ("FlowMaps (H = 8)"); the routine world with H = 1 is the paper's report, unchanged.
 
-    The predictors, the history and ``out_dir`` are checked here before anything runs; the
-    sample counts and the solver settings by :func:`.protocol.reference_rows` and
-    :func:`.protocol.evaluate_predictor`, which score the rows (before any model runs). Returns
+    The predictors and ``out_dir`` are checked here before anything runs; the config, the
+    history and ``kl_draws`` by :func:`.protocol.build_eval_queries`, the sample counts and the
+    solver settings by :func:`.protocol.reference_rows` and :func:`.protocol.evaluate_predictor`,
+    which score the rows (before any model runs). Returns
     (results dict as written to results.json, the RowResults, the EvalSet).
     """
-    if not predictors:
-        raise ValueError("predictors must hold at least one Predictor")
     for p in predictors:
-        if not isinstance(p, Predictor):
-            raise ValueError(f"predictors must be Predictor objects; got {type(p).__name__}")
         if p.flowsim.map_size != config.map_size or p.flowsim.categories != config.categories:
             raise ValueError(f"predictor {p.name} ({p.source}) was trained on a different FlowSim "
                              "config (map size or categories) than the evaluation scenes")
-    history = (default_history(predictors, config) if history is None
-               else check_int("history", history, 1, config.num_timesteps))
+    history = default_history(predictors, config) if history is None else history
     for p in predictors:
         if p.model.history > 1:
             check_history(p.model.history, model_token_config(config, p))
@@ -119,7 +112,7 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
         "figures": [],
     }
     if with_history:  # only then: the paper's report keeps its exact keys
-        results["protocol"].update(world=world_of(config) or "custom", history=history,
+        results["protocol"].update(world=world_of(config) or "custom", history=evalset.history,
                                    habits=[list(h) for h in config.habits])
         results["by_habit"] = summarise_habits(rows, evalset)
     if out_dir is not None:

@@ -34,15 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.tables import histogram
-from flowmaps_jax.validation import (
-    PROB_ATOL,
-    check_array,
-    check_int,
-    check_int_array,
-    check_mask,
-    check_probabilities,
-    check_shape,
-)
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.fields import Array, Distribution, Int, IntArray, Mask
 
 TIE_ATOL = 1e-6
 """Two slot scores closer than this are tied."""
@@ -51,13 +44,6 @@ SLOT_METRICS = ("tv", "top1", "search_cost_ratio")
 ROUTE_OFFSET_LABELS = ("0", "+1", "+2", "+3", "beyond", "off")
 """The entries of :func:`route_offset_mass`: route offsets 0 (stays) to +3, larger ones, off."""
 _ROUTE_OFFSETS = 4  # offsets reported one by one: 0, +1, +2, +3
-
-
-def _check_distribution(name: str, probs, slot_mask=None) -> None:
-    """Values of a slot distribution over the last axis (float32 round-off allowed), no mass
-    where ``slot_mask`` is False (an off bin beyond the mask is free)."""
-    check_probabilities(name, probs, atol=PROB_ATOL, min_value=-PROB_ATOL, support=slot_mask,
-                        support_name="slot_mask")
 
 
 # --------------------------------------------------------------------------- scores against q
@@ -109,6 +95,8 @@ def score_slots(p_hat, q, slot_mask) -> dict[str, np.ndarray]:
             "search_cost_ratio": np.asarray(ratio)}
 
 
+@check_args(slot_mask=Mask(("*B", "K")), q=Distribution(("*B", "K"), support="slot_mask"),
+            p_hat=Distribution(("*B", "K+1"), support="slot_mask"))
 def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
                 ) -> dict[str, np.ndarray]:
     """The protocol's slot metrics of p̂ (..., K + 1) against q (..., K); slot_mask (..., K) bool.
@@ -121,12 +109,6 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
     * search_cost_ratio: Σ_k rank_k q_k visiting slots by decreasing p̂ (tied groups share their
       mean rank), over the same sum visiting by decreasing q (the least possible); ≥ 1.
     """
-    q_shape = check_array("q", q, (..., None)).shape
-    p_shape = check_array("p_hat", p_hat, (..., None)).shape
-    check_shape("p_hat", p_shape, (*q_shape[:-1], q_shape[-1] + 1), "q's K slots plus the off bin")
-    check_mask("slot_mask", slot_mask, q_shape)
-    _check_distribution("q", q, slot_mask)
-    _check_distribution("p_hat", p_hat, slot_mask)
     return score_slots(jnp.asarray(p_hat, jnp.float32), jnp.asarray(q, jnp.float32),
                        jnp.asarray(slot_mask, bool))
 
@@ -134,10 +116,9 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
 # --------------------------------------------------------------------------- reference predictors
 
 
+@check_args(q=Distribution((..., None)))
 def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
     """The oracle predictor: q itself. (..., K) → (..., K + 1) with an empty off bin."""
-    check_array("q", q, (..., None))
-    _check_distribution("q", q)
     return with_off_bin(jnp.asarray(q, jnp.float32))
 
 
@@ -155,15 +136,13 @@ def draw_slot_histogram(key, q, n):
     return histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
 
 
+@check_args(q=Distribution((..., None)), n=Int())
 def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:
     """A perfect sampler seen through n samples: slot counts / n of n draws from q itself.
 
     (..., K) → (..., K + 1) (off bin empty). Its slot scores are the best any sampler can expect
     from n samples: the gap to the exact oracle is pure finite-sample noise.
     """
-    check_array("q", q, (..., None))
-    _check_distribution("q", q)
-    n = check_int("n", n, 1)
     return draw_slot_histogram(key, jnp.asarray(q, jnp.float32), n)
 
 
@@ -173,13 +152,12 @@ def one_hot_slots(slot_now, num_slots: int):
     return jax.nn.one_hot(slot_now, num_slots + 1)
 
 
+@check_args(num_slots=Int(size="K"), slot_now=IntArray(0, "K-1"))
 def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     """Last-seen predictor: the object stays where it is. slot_now (...) ints → (..., K + 1).
 
     num_slots: K, the padded slot count. slot_now indexes the same slot axis as q.
     """
-    num_slots = check_int("num_slots", num_slots)
-    check_int_array("slot_now", slot_now, 0, num_slots - 1)
     return one_hot_slots(jnp.asarray(slot_now), num_slots)
 
 
@@ -191,13 +169,12 @@ def uniform_over_slots(count, num_slots: int):
     return jnp.concatenate([probs, jnp.zeros_like(probs[..., :1])], axis=-1)
 
 
+@check_args(num_slots=Int(size="K"), count=IntArray(1, "K"))
 def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     """Uniform predictor over the real slots. count (...) ints in 1..K → (..., K + 1).
 
     Real slots are the first ``count`` of the K padded ones (as in ``Scenes.visit_order``).
     """
-    num_slots = check_int("num_slots", num_slots)
-    check_int_array("count", count, 1, num_slots)
     return uniform_over_slots(jnp.asarray(count), num_slots)
 
 
@@ -217,6 +194,8 @@ def offset_mass(p_hat, slot_now, num_slots):
     return jnp.concatenate([mass, beyond, off], axis=-1)
 
 
+@check_args(p_hat=Array(("*B", "K+1")), slot_now=IntArray(0, "K-1", shape=("*B",)),
+            num_slots=IntArray(1, "K", shape=("*B",)))
 def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
                       num_slots: jnp.ndarray) -> jnp.ndarray:
     """Where along the visiting order a slot distribution puts its mass, relative to now.
@@ -228,9 +207,5 @@ def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
     (offsets ≥ the route length are not counted there), at every larger offset ("beyond"), and
     off every slot. One step ahead the exact posterior gives 0.2 / 0.7 / 0.1 / 0 / 0 / 0.
     """
-    shape = check_array("p_hat", p_hat, (..., None)).shape
-    k = shape[-1] - 1
-    check_int_array("slot_now", slot_now, 0, k - 1, shape=shape[:-1])
-    check_int_array("num_slots", num_slots, 1, k, shape=shape[:-1])
     return offset_mass(jnp.asarray(p_hat, jnp.float32), jnp.asarray(slot_now, jnp.int32),
                        jnp.asarray(num_slots, jnp.int32))
