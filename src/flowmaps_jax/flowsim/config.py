@@ -15,9 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from flowmaps_jax.validation import INT32_MAX
+from flowmaps_jax.validation import INT32_MAX, bind_size
 from flowmaps_jax.validation.fields import (
     Choice,
+    Instance,
     Int,
     Mixture,
     Probabilities,
@@ -307,6 +308,22 @@ the config stays JSON-able and hashes like one built from Python numbers)."""
 
 DEFAULT_CONFIG = FlowSimConfig()
 """The paper's configuration (used as the default argument everywhere)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfigArg:
+    """The rule of a ``config`` argument (``@check_args(config=CONFIG_ARG, ...)``): a
+    ``FlowSimConfig``, binding the named sizes F (furniture), M (objects) and T (timesteps) of
+    the check, so that the scenes and indices checked after it must agree with the config."""
+
+    def __call__(self, name: str, value: Any) -> FlowSimConfig:
+        config = Instance(FlowSimConfig)(name, value)
+        for size, field in (("F", "num_furniture"), ("M", "num_objects"), ("T", "num_timesteps")):
+            bind_size(size, getattr(config, field), f"{name}.{field}")
+        return config
+
+
+CONFIG_ARG = ConfigArg()
 
 
 @dataclasses.dataclass(frozen=True)
