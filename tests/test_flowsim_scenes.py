@@ -167,7 +167,7 @@ def test_npz_refuses_broken_files(tmp_path, small_scenes, flowsim_config):
         "old.npz": ({"format_version": np.int64(FORMAT_VERSION + 1)}, (), "format version"),
         "missing.npz": ({}, ("slot",), "missing arrays"),
         "noversion.npz": ({}, ("format_version",), "format_version"),
-        "shape.npz": ({"slot": np.zeros((3, 3), np.int32)}, (), "slot has shape"),
+        "shape.npz": ({"slot": np.zeros((3, 3), np.int32)}, (), "slot must have shape"),
         "config.npz": ({"config_json": np.asarray('{"map_size": -5}')}, (), "invalid config"),
     }
     for name, (replace, drop, match) in cases.items():

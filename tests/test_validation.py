@@ -327,7 +327,8 @@ TAMPERED = {
     "num_slots": ("num_slots", lambda a: _set(a, (0, 0), 11), "num_slots must lie in 1..10"),
     "zero size": ("object_size", lambda a: _set(a, (0, 0), 0.0), "object_size must be positive"),
     "redraws": ("layout_redraws", lambda a: _set(a, 0, -1), "layout_redraws must lie"),
-    "shape": ("object_kind", lambda a: a[:, :2], r"object_kind has shape \(256, 2\)"),
+    "shape": ("object_kind", lambda a: a[:, :2],
+              r"object_kind must have shape \(E, M\) with M = 3"),
     "version": ("format_version", lambda a: np.asarray("1"), "format_version must be an int"),
 }
 
@@ -401,3 +402,47 @@ def test_real_array_bounds_name_the_argument_and_the_range():
     assert check_real_array("boxes", np.array([0.0, 1.0]), low=0, high=1).shape == (2,)
     with pytest.raises(ValueError, match=r"boxes must lie in \[0, 1\] \(normalised\)"):
         check_real_array("boxes", np.array([0.5, 1.5]), low=0, high=1, what="normalised")
+
+
+def test_mixture_and_table_rules():
+    import dataclasses
+
+    from flowmaps_jax.validation.fields import Int, Mixture, Table, Text, check_fields
+
+    mix = Mixture(("a", "b"), "habit")
+    assert mix("habits", [("b", 0.25), ("a", 0.75)]) == (("b", 0.25), ("a", 0.75))
+    for bad, match in ((3, "pairs"), ((("c", 1.0),), "habit name"),
+                       ((("a", 0.5), ("a", 0.5)), "named twice"),
+                       ((("a", 0.5), ("b", 0.4)), " probabilities must sum")):
+        with pytest.raises(ValueError, match=f"^habits.*{match}"):
+            mix("habits", bad)
+
+    @dataclasses.dataclass(frozen=True)
+    class Kind:
+        name: str
+        descriptor: int
+
+    @dataclasses.dataclass(frozen=True)
+    class Cat:
+        name: str
+        descriptor: int
+        kind: str
+
+    @dataclasses.dataclass
+    class Cfg:
+        kinds: tuple
+        cats: tuple
+
+    entry = {"name": Text(), "descriptor": Int(0)}
+    rules = {"kinds": Table(Kind, entry, unique=("name", "descriptor")),
+             "cats": Table(Cat, entry, unique=("name", "descriptor"), after="kinds",
+                           refers=("kind",), labels={"kind": "sits on kind"})}
+    cfg = Cfg((Kind("k", np.int64(1)),), (Cat("c", 0, "k"),))
+    check_fields(cfg, rules)
+    assert type(cfg.kinds[0].descriptor) is int and cfg.cats == (Cat("c", 0, "k"),)
+    for cats, match in (((Cat("c", 1, "k"),), "cats: descriptor 1 is used twice"),
+                        ((Cat("k", 0, "k"),), "cats: name 'k' is used twice"),
+                        ((Cat("c", 0, "sofa"),), "cats: 'c' sits on kind must be one of"),
+                        ((Cat("c", -1, "k"),), "cats: 'c' descriptor must be"), ((), "cats")):
+        with pytest.raises(ValueError, match=match):
+            check_fields(Cfg((Kind("k", 1),), cats), rules)

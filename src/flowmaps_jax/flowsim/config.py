@@ -15,13 +15,15 @@ from typing import Any
 
 import numpy as np
 
-from flowmaps_jax.validation import INT32_MAX, check_choice, check_probabilities
+from flowmaps_jax.validation import INT32_MAX, bind_size
 from flowmaps_jax.validation.fields import (
     Choice,
-    Entries,
+    Instance,
     Int,
+    Mixture,
     Probabilities,
     Real,
+    Table,
     Text,
     check_fields,
     check_keys,
@@ -154,12 +156,10 @@ class FlowSimConfig:
         if self.table_min_frac > self.table_max_frac:
             raise ValueError(f"table_min_frac ({self.table_min_frac}) must be <= table_max_frac "
                              f"({self.table_max_frac})")
-        self._check_habits()
-        self._check_table()
-        self._check_sizes()
-
-    def _check_sizes(self) -> None:
-        """Refuse configs that cannot produce valid scenes."""
+        if self.has_habits and self.dynamics != "markov":
+            raise ValueError(f"habits other than the routine need dynamics='markov'; got "
+                             f"dynamics={self.dynamics!r} with habits={self.habits!r}")
+        # Refuse configs that cannot produce valid scenes (no field's rule can say these).
         lo, _ = self.table_side_range
         if lo < 1:
             raise ValueError(f"map_size {self.map_size} is too small: table_min_frac "
@@ -206,45 +206,6 @@ class FlowSimConfig:
         start = math.floor((self.table_max_frac if movable else self.table_min_frac) * map_size)
         side = np.floor(np.float32(self.object_frac) * np.float32(start))
         return max(self.min_object_px, int(side)), start
-
-    def _check_habits(self) -> None:
-        habits = self.habits
-        if (not isinstance(habits, (tuple, list)) or not habits
-                or not all(isinstance(h, (tuple, list)) and len(h) == 2 for h in habits)):
-            raise ValueError(f"habits must be (name, probability) pairs, e.g. "
-                             f"(('preferences', 1.0),); got {habits!r}")
-        names = [check_choice("habits: habit name", h[0], HABITS) for h in habits]
-        if len(set(names)) != len(names):
-            raise ValueError(f"habits: a habit is named twice; got {habits!r}")
-        probs = check_probabilities("habits probabilities", [h[1] for h in habits])
-        object.__setattr__(self, "habits", tuple((str(n), float(p))
-                                                 for n, p in zip(names, probs, strict=True)))
-        if self.has_habits and self.dynamics != "markov":
-            raise ValueError(f"habits other than the routine need dynamics='markov'; got "
-                             f"dynamics={self.dynamics!r} with habits={self.habits!r}")
-
-    def _check_table(self) -> None:
-        kind_names = tuple(k.name for k in self.furniture_kinds)
-        names: set[str] = set()
-        descriptors: set[int] = set()
-        for field, entry in [("furniture_kinds", k) for k in self.furniture_kinds] + [
-                ("categories", c) for c in self.categories]:
-            check_fields(entry, _ENTRY_RULES, prefix=f"{field}: {entry.name!r} ", store=False)
-            if entry.name in names:
-                raise ValueError(f"{field}: name {entry.name!r} is used twice")
-            if entry.descriptor in descriptors:
-                raise ValueError(f"{field}: descriptor {entry.descriptor} is used twice")
-            names.add(entry.name)
-            descriptors.add(entry.descriptor)
-        for field in ("furniture_kinds", "categories"):  # numpy ids -> int (JSON-able)
-            entries = getattr(self, field)
-            if any(type(e.descriptor) is not int for e in entries):
-                object.__setattr__(self, field, tuple(
-                    dataclasses.replace(e, descriptor=int(e.descriptor)) for e in entries))
-        rules = {**_CATEGORY_RULES, "furniture_kind": Choice(kind_names)}
-        for cat in self.categories:
-            check_fields(cat, rules, prefix=f"categories: {cat.name!r} ", store=False,
-                         labels={"furniture_kind": "sits on furniture kind"})
 
     # ----------------------------------------------------------------- derived quantities
     @property
@@ -320,6 +281,9 @@ class FlowSimConfig:
 
 
 _FRACTION = Real(0.0, 1.0, low_open=True)
+_ENTRY_RULES = {"name": Text(strip=False), "descriptor": Int(0, INT32_MAX),
+                "colour": Text(strip=False)}
+"""What each entry of the category table may hold (names and ids unique over the table)."""
 _RULES = {
     "map_size": Int(2, MAX_MAP_SIZE, why="positions are drawn from 16 random bits"),
     # every count becomes an int32 array somewhere
@@ -331,17 +295,35 @@ _RULES = {
     "dynamics": Choice(DYNAMICS),
     "preference_move": _FRACTION, "preference_mass": _FRACTION, "dynamic_length": _FRACTION,
     "dynamic_stay": Real(0.0, 1.0, high_open=True),  # < 1: a dynamic object moves
-    "furniture_kinds": Entries(FurnitureKind), "categories": Entries(ObjectCategory),
+    "habits": Mixture(HABITS, "habit"),
+    "furniture_kinds": Table(FurnitureKind, _ENTRY_RULES, unique=("name", "descriptor")),
+    "categories": Table(ObjectCategory, {**_ENTRY_RULES, "ordering": Choice(ORDERINGS),
+                                         "shape": Choice(SHAPES)},
+                        unique=("name", "descriptor"), after="furniture_kinds",
+                        refers=("furniture_kind",),
+                        labels={"furniture_kind": "sits on furniture kind"}),
 }
 """What each field of :class:`FlowSimConfig` may hold (numbers are stored as Python numbers, so
 the config stays JSON-able and hashes like one built from Python numbers)."""
-_ENTRY_RULES = {"name": Text(strip=False), "descriptor": Int(0, INT32_MAX),
-                "colour": Text(strip=False)}
-"""What each entry of the category table may hold."""
-_CATEGORY_RULES = {"ordering": Choice(ORDERINGS), "shape": Choice(SHAPES)}
 
 DEFAULT_CONFIG = FlowSimConfig()
 """The paper's configuration (used as the default argument everywhere)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfigArg:
+    """The rule of a ``config`` argument (``@check_args(config=CONFIG_ARG, ...)``): a
+    ``FlowSimConfig``, binding the named sizes F (furniture), M (objects) and T (timesteps) of
+    the check, so that the scenes and indices checked after it must agree with the config."""
+
+    def __call__(self, name: str, value: Any) -> FlowSimConfig:
+        config = Instance(FlowSimConfig)(name, value)
+        for size, field in (("F", "num_furniture"), ("M", "num_objects"), ("T", "num_timesteps")):
+            bind_size(size, getattr(config, field), f"{name}.{field}")
+        return config
+
+
+CONFIG_ARG = ConfigArg()
 
 
 @dataclasses.dataclass(frozen=True)

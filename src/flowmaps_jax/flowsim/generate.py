@@ -23,6 +23,7 @@ from jax.sharding import Mesh
 from flowmaps_jax import distributed
 from flowmaps_jax.flowsim import dynamics, habits, layout
 from flowmaps_jax.flowsim.config import (
+    CONFIG_ARG,
     DEFAULT_CONFIG,
     FlowSimConfig,
     SimShape,
@@ -33,13 +34,12 @@ from flowmaps_jax.validation import (
     array_bytes,
     check_args,
     check_array,
-    check_instance,
     check_int_array,
-    check_real_array,
     check_request_size,
     is_concrete,
+    named_sizes,
 )
-from flowmaps_jax.validation.fields import Instance, Int, Key, Optional
+from flowmaps_jax.validation.fields import Instance, Int, IntArray, Key, Optional, RealArray
 
 
 @struct.dataclass
@@ -79,11 +79,18 @@ _FIELDS = tuple(field.name for field in dataclasses.fields(Scenes))
 _FLOAT_FIELDS = ("furniture_boxes", "object_size", "object_boxes")
 
 
+_SHAPES = {"furniture_boxes": ("E", "F", 4), "furniture_kind": ("E", "F"),
+           "object_kind": ("E", "M"), "object_size": ("E", "M"), "visit_order": ("E", "M", "F"),
+           "num_slots": ("E", "M"), "slot": ("E", "T", "M"), "object_boxes": ("E", "T", "M", 4),
+           "layout_redraws": ("E",), "habit": ("E", "M")}
+"""Each field's shape in the named sizes E (environments), F, M, T (furniture, objects, steps)."""
+_SHAPE_RULES = {field: RealArray(shape, finite=False) if field in _FLOAT_FIELDS
+                else IntArray(shape=shape) for field, shape in _SHAPES.items()}
+
+
 def _field_shapes(e: int, f: int, m: int, t: int) -> dict[str, tuple[int, ...]]:
-    return {"furniture_boxes": (e, f, 4), "furniture_kind": (e, f), "object_kind": (e, m),
-            "object_size": (e, m), "visit_order": (e, m, f), "num_slots": (e, m),
-            "slot": (e, t, m), "object_boxes": (e, t, m, 4), "layout_redraws": (e,),
-            "habit": (e, m)}
+    sizes = {"E": e, "F": f, "M": m, "T": t}
+    return {field: tuple(sizes.get(d, d) for d in shape) for field, shape in _SHAPES.items()}
 
 
 def scenes_bytes_per_env(config: FlowSimConfig) -> int:
@@ -113,56 +120,61 @@ def validate_scenes(scenes, config: FlowSimConfig | None = None, *, values: bool
     exactly on the first num_slots places; num_slots in 1..F; slots in 0..num_slots − 1;
     redraw counts >= 0.
     """
-    check_instance(name, scenes, Scenes)
-    arrays = {field: check_array(f"{name}.{field}", getattr(scenes, field))
-              for field in _FIELDS}
-    check_array(f"{name}.furniture_boxes", arrays["furniture_boxes"], (None, None, 4))
-    e, f = arrays["furniture_boxes"].shape[:2]
-    if config is None:  # sizes from the arrays themselves
-        t, m = check_array(f"{name}.slot", arrays["slot"], (e, None, None)).shape[1:]
-        origin = "E, F from furniture_boxes and T, M from slot"
-    else:
-        f, m, t = config.num_furniture, config.num_objects, config.num_timesteps
-        origin = f"E from furniture_boxes; F={f}, M={m}, T={t} from the config"
-    for field, shape in _field_shapes(e, f, m, t).items():
-        if tuple(arrays[field].shape) != shape:
-            raise ValueError(f"{name}.{field} has shape {tuple(arrays[field].shape)}, expected "
-                             f"{shape} ({origin})")
-        if field in _FLOAT_FIELDS:
-            arrays[field] = check_real_array(f"{name}.{field}", arrays[field], finite=values)
-        else:
-            arrays[field] = check_int_array(f"{name}.{field}", arrays[field])
-    if values and is_concrete(*arrays.values()):
-        _check_scene_values(name, {k: np.asarray(v) for k, v in arrays.items()}, config)
+    with named_sizes():
+        if config is not None:
+            CONFIG_ARG("config", config)
+        ScenesArg(values, config)(name, scenes)
 
 
-def _check_scene_values(name: str, a: dict[str, np.ndarray], config: FlowSimConfig | None):
-    f = a["furniture_boxes"].shape[1]
-    top = np.inf if config is None else config.map_size
-    for field in ("furniture_boxes", "object_boxes"):
-        boxes = a[field]
-        if np.any(boxes < 0) or np.any(boxes > top):
-            raise ValueError(f"{name}.{field} must lie within the map [0, {top}] px")
-        if np.any(boxes[..., 2:] <= boxes[..., :2]):
-            raise ValueError(f"{name}.{field} must have y1 > y0 and x1 > x0 (y0, x0, y1, x1)")
-    if np.any(a["object_size"] <= 0):
-        raise ValueError(f"{name}.object_size must be positive")
-    if config is not None:
-        for field, entries in (("furniture_kind", config.furniture_kinds),
-                               ("object_kind", config.categories)):
+@dataclasses.dataclass(frozen=True)
+class ScenesArg:
+    """The rule of a ``scenes`` argument (``@check_args(config=CONFIG_ARG, scenes=SCENES_ARG)``):
+    a ``Scenes`` whose fields have the shapes of :data:`_SHAPES`, binding (or, after the config,
+    matching) the named sizes E, F, M, T; with ``values``, their values as ``validate_scenes``
+    says (map bounds and descriptor ids those of ``config``, if given)."""
+
+    values: bool = False
+    config: FlowSimConfig | None = None
+
+    def __call__(self, name: str, scenes):
+        Instance(Scenes)(name, scenes)
+        arrays = {field: check_array(f"{name}.{field}", getattr(scenes, field))
+                  for field in _FIELDS}
+        for field, rule in _SHAPE_RULES.items():
+            arrays[field] = rule(f"{name}.{field}", arrays[field])
+        if self.values and is_concrete(*arrays.values()):
+            self._values(name, {field: np.asarray(v) for field, v in arrays.items()})
+        return scenes
+
+    def _values(self, name: str, a: dict[str, np.ndarray]) -> None:
+        f = a["furniture_boxes"].shape[1]
+        box = RealArray(low=0, high=None if self.config is None else self.config.map_size,
+                        what="px, within the map")
+        rules = {"furniture_boxes": box, "object_boxes": box, "object_size": RealArray(),
+                 "num_slots": IntArray(1, f), "visit_order": IntArray(-1, f - 1),
+                 "layout_redraws": IntArray(0), "habit": IntArray(0, habits.num_hypotheses(f) - 1)}
+        for field, rule in rules.items():
+            rule(f"{name}.{field}", a[field])
+        for field in ("furniture_boxes", "object_boxes"):
+            if np.any(a[field][..., 2:] <= a[field][..., :2]):
+                raise ValueError(f"{name}.{field} must have y1 > y0 and x1 > x0 (y0, x0, y1, x1)")
+        if np.any(a["object_size"] <= 0):
+            raise ValueError(f"{name}.object_size must be positive")
+        for field, entries in (() if self.config is None else (
+                ("furniture_kind", self.config.furniture_kinds),
+                ("object_kind", self.config.categories))):
             known = [entry.descriptor for entry in entries]
             if not np.all(np.isin(a[field], known)):
                 raise ValueError(f"{name}.{field} holds descriptor ids outside {known}")
-    num_slots = check_int_array(f"{name}.num_slots", a["num_slots"], 1, f)
-    check_int_array(f"{name}.visit_order", a["visit_order"], -1, f - 1)
-    used = np.arange(f) < num_slots[..., None]
-    if np.any((a["visit_order"] >= 0) != used):
-        raise ValueError(f"{name}.visit_order must hold furniture indices on exactly the first "
-                         f"num_slots places and -1 after them")
-    check_int_array(f"{name}.slot", a["slot"], 0, num_slots[:, None, :] - 1,
-                    high_name="num_slots - 1")
-    check_int_array(f"{name}.layout_redraws", a["layout_redraws"], 0)
-    check_int_array(f"{name}.habit", a["habit"], 0, habits.num_hypotheses(f) - 1)
+        if np.any((a["visit_order"] >= 0) != (np.arange(f) < a["num_slots"][..., None])):
+            raise ValueError(f"{name}.visit_order must hold furniture indices on exactly the first "
+                             f"num_slots places and -1 after them")
+        check_int_array(f"{name}.slot", a["slot"], 0, a["num_slots"][:, None, :] - 1,
+                        high_name="num_slots - 1")
+
+
+SCENES_ARG = ScenesArg()
+"""A ``scenes`` argument checked in shapes and dtypes only (cheap, fine under jit)."""
 
 
 BLOCK = 512

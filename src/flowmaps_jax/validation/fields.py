@@ -400,3 +400,59 @@ def check_keys(name: str, data: Any, known: Collection[str] | None = None, *,
     if unknown:
         raise ValueError(f"{name}: {what} {unknown}")
     return data
+
+
+@dataclasses.dataclass(frozen=True)
+class Mixture:
+    """A mixture over named components: a non-empty tuple of (name, probability) pairs, each
+    name one of ``known`` at most once, the probabilities summing to 1; as (str, float) pairs.
+    ``what`` names a component in the messages (e.g. "habit")."""
+
+    known: tuple
+    what: str = "component"
+
+    def __call__(self, name: str, value: Any) -> tuple[tuple[str, float], ...]:
+        if (not isinstance(value, (tuple, list)) or not value
+                or not all(isinstance(p, (tuple, list)) and len(p) == 2 for p in value)):
+            raise ValueError(f"{name} must be ({self.what} name, probability) pairs, e.g. "
+                             f"(({self.known[0]!r}, 1.0),); got {value!r}")
+        names = [check_choice(f"{name}: {self.what} name", p[0], self.known) for p in value]
+        if len(set(names)) != len(names):
+            raise ValueError(f"{name}: a {self.what} is named twice; got {value!r}")
+        probs = check_probabilities(f"{name} probabilities", [p[1] for p in value])
+        return tuple((str(n), float(p)) for n, p in zip(names, probs, strict=True))
+
+
+@dataclasses.dataclass(frozen=True)
+class Table:
+    """A config's category table: a non-empty tuple of ``cls`` entries (each with a ``name``),
+    every entry's fields checked against ``rules`` (messages name ``table: 'entry' field``, or
+    the field's ``labels``), the ``unique`` fields distinct across this table and the ``after``
+    one (a field checked before it), and each ``refers`` field naming an entry of ``after``.
+    Returns the tuple, an entry rebuilt where a rule changed a value (a numpy id -> int)."""
+
+    cls: type
+    rules: Mapping[str, Rule]
+    unique: tuple[str, ...] = ()
+    after: str | None = None
+    refers: tuple[str, ...] = ()
+    labels: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+    def __call__(self, name: str, value: Any) -> tuple:
+        Entries(self.cls)(name, value)
+        earlier = () if self.after is None else (_CHECKED.get() or {})[self.after]
+        seen = {field: {getattr(e, field) for e in earlier} for field in self.unique}
+        rules = {**self.rules, **{field: Choice(tuple(e.name for e in earlier))
+                                  for field in self.refers}}
+        entries = []
+        for entry in value:
+            checked = check_fields(entry, rules, prefix=f"{name}: {entry.name!r} ",
+                                   store=False, labels=self.labels)
+            for field in self.unique:
+                key = checked.get(field, getattr(entry, field))
+                if key in seen[field]:
+                    raise ValueError(f"{name}: {field} {key!r} is used twice")
+                seen[field].add(key)
+            changed = {f: v for f, v in checked.items() if v is not getattr(entry, f)}
+            entries.append(dataclasses.replace(entry, **changed) if changed else entry)
+        return tuple(entries)
