@@ -446,3 +446,30 @@ def test_mixture_and_table_rules():
                         ((Cat("c", -1, "k"),), "cats: 'c' descriptor must be"), ((), "cats")):
         with pytest.raises(ValueError, match=match):
             check_fields(Cfg((Kind("k", 1),), cats), rules)
+
+
+def test_fields_checks_a_pytrees_fields_in_the_arguments_scope():
+    from flowmaps_jax.validation.fields import Fields, Int, IntArray, Mask, Optional, check_args
+
+    rules = {"mask": Mask(("*B", "S")), "kind": IntArray(0, "K-1", ("*B", "S")),
+             "tau": IntArray(0, "T", ("*B",))}
+
+    @check_args(num_kinds=Int(size="K"), horizon=Optional(Int(size="T")),
+                tokens=Fields(tokens.SceneTokens, rules, where="mask", padded=("kind",)))
+    def count(tokens, num_kinds, horizon=None):
+        return int(np.asarray(tokens.mask).sum())
+
+    mask = np.array([[True, False]])
+    good = tokens.SceneTokens(boxes=None, descriptor=None, kind=np.array([[1, 7]]), mask=mask,
+                              tau=np.array([5]))
+    assert count(good, 2) == 1  # kind 7 on padding is free; no horizon: tau unbounded
+    with pytest.raises(ValueError, match=r"tokens.kind must lie in 0..1; got values in 2..2"):
+        count(good.replace(kind=np.array([[2, 0]])), 2)
+    with pytest.raises(ValueError, match=r"tokens.tau must lie in 0..4"):
+        count(good, 2, horizon=4)
+    with pytest.raises(ValueError, match=r"tokens.tau must have shape \(\*B,\) with \*B = \(1,\)"):
+        count(good.replace(tau=np.array([1, 2])), 2)
+    with pytest.raises(ValueError, match=r"tokens\.kind must be an array"):
+        count(good.replace(kind=[[1, 0]]), 2)
+    with pytest.raises(ValueError, match="tokens must be a SceneTokens"):
+        count(mask, 2)

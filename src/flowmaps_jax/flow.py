@@ -82,7 +82,9 @@ def time_grid(num_steps: int, method: str = "midpoint") -> np.ndarray:
 
 def _odeint(fn, state, t_start: float, t_end: float, num_steps: int, method: str):
     """Integrate d state/dt = fn(state, t) (pytrees) over :func:`time_grid` mapped onto
-    [t_start, t_end] (visited backwards when t_start > t_end). ``"accurate"`` steps with RK4."""
+    [t_start, t_end] (visited backwards when t_start > t_end). ``"accurate"`` steps with RK4.
+    The one check of the public solvers' ``num_steps`` and ``method`` (:func:`check_solver`)."""
+    num_steps, method = check_solver(num_steps, method)
     lo, hi = min(t_start, t_end), max(t_start, t_end)
     grid = lo + (hi - lo) * time_grid(num_steps, method)
     if t_start > t_end:  # the same points, visited from t_start down to t_end
@@ -119,7 +121,6 @@ def integrate(velocity_fn: VelocityFn, x0: jnp.ndarray, num_steps: int = 10,
     once (9 evaluations), ``"accurate"`` four times (RK4) on the stiff grid of
     :func:`time_grid`. x0: any shape (..., 4) → x at t1, same shape.
     """
-    check_solver(num_steps, method)
     return _odeint(velocity_fn, x0, t0, t1, num_steps, method)
 
 
@@ -163,7 +164,6 @@ def log_prob(velocity_fn: VelocityFn, x1: jnp.ndarray, num_steps: int = 10,
     only error is the ODE discretisation (``num_steps`` grid points as in :func:`integrate`).
     x1 (..., d) → (...).
     """
-    check_solver(num_steps, method)
     state = (x1, jnp.zeros(x1.shape[:-1], x1.dtype))
     x0, delta = _odeint(_augmented(velocity_fn, 1.0), state, 1.0, 0.0, num_steps, method)
     return standard_normal_log_prob(x0) + delta
@@ -179,6 +179,5 @@ def sample_with_log_prob(velocity_fn: VelocityFn, x0: jnp.ndarray, num_steps: in
     the density is that of the discretised forward map (it agrees with :func:`log_prob` as the
     grid is refined).
     """
-    check_solver(num_steps, method)
     state = (x0, standard_normal_log_prob(x0))
     return _odeint(_augmented(velocity_fn, -1.0), state, 0.0, 1.0, num_steps, method)

@@ -54,7 +54,7 @@ from flowmaps_jax.model.flowmaps import check_inputs
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.store.model_spec import HOMES_FAMILY
-from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens, check_query_roles
+from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
     check_args,
     check_fields,
@@ -172,25 +172,27 @@ class Predictor:
         than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
         check_instance("queries", queries, Queries)  # check_inputs takes None for "no queries"
-        check_inputs(self.model, tokens, queries)  # every field: type, dtype, shape, range
+        check_inputs(self.model, tokens, queries,  # every field: type, dtype, shape, range, role
+                     object_descriptors=self.flowsim.object_descriptors)
         b, q = np.shape(queries.descriptor)
         slots = np.shape(tokens.boxes)[1]
         if slots > self.flowsim.max_tokens:
             raise ValueError(f"tokens has {slots} token slots, more than the "
                              f"max_tokens={self.flowsim.max_tokens} of the maps the model was "
                              "trained on (flowsim.max_tokens)")
-        check_query_roles(queries, self.flowsim.object_descriptors)
         if b < 1 or q < 1:
             raise ValueError(f"tokens/queries must hold at least one scene and one query; got "
                              f"B={b}, Q={q}")
         return b, q
 
     def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool,
-                       num_steps: int = 2, method: str = "midpoint", slots: int = 1) -> None:
-        """Refuse (ValueError) a request whose working memory or work would not fit the shared
+                       num_steps: int, method: str, slots: int) -> tuple[int, str]:
+        """The solver's (num_steps, method), checked (:func:`flowmaps_jax.flow.check_solver`);
+        refuse (ValueError) a request whose working memory or work would not fit the shared
         budget (:func:`flowmaps_jax.validation.check_resources`), before XLA tries: the rows'
         memory (``model.freq_bands`` included), the solver's ``num_steps`` (its time grid, and
         its evaluations one after another) and the FLOPs of every evaluation."""
+        num_steps, method = flow.check_solver(num_steps, method)
         rows = b * q * n
         factor = DENSITY_FACTOR if with_density else 1
         evaluations = solver_evaluations(num_steps, method) if self.family.uses_solver else 1
@@ -202,6 +204,7 @@ class Predictor:
             + rows * factor * embedding_bytes(self.model, 5) + 8 * num_steps,
             flops=rows * evaluations * factor * per_row + b * per_map,
             sequential=evaluations)
+        return num_steps, method
 
     # ----------------------------------------------------------------------- inference
 
@@ -223,9 +226,8 @@ class Predictor:
         tables' terms, so it solves backwards once more). Planners weigh samples with it.
         """
         b, q = self.validate(tokens, queries)
-        num_steps, method = flow.check_solver(num_steps, method)
-        self._check_request("sample", b, q, num_samples, return_log_prob, num_steps, method,
-                            np.shape(tokens.boxes)[1])
+        num_steps, method = self._check_request("sample", b, q, num_samples, return_log_prob,
+                                                num_steps, method, np.shape(tokens.boxes)[1])
         keys = scene_keys(key, b)
         tokens, queries, keys = self._on_mesh(*canonical_inputs(tokens, queries), keys)
         family = self.family
@@ -256,12 +258,11 @@ class Predictor:
         MLP: the closed-form diagonal Gaussian.
         """
         b, q = self.validate(tokens, queries)
-        num_steps, method = flow.check_solver(num_steps, method)
         x = jnp.asarray(check_real_array("x", x, (b, q, None, 4)), jnp.float32)
         if x.shape[2] < 1:
             raise ValueError("x must hold at least one box per query (N >= 1)")
-        self._check_request("log_prob", b, q, x.shape[2], True, num_steps, method,
-                            np.shape(tokens.boxes)[1])
+        num_steps, method = self._check_request("log_prob", b, q, x.shape[2], True, num_steps,
+                                                method, np.shape(tokens.boxes)[1])
         far = jnp.any(jnp.abs(x) > FAR_LIMIT, axis=-1)  # (B, Q, N): density 0, not NaN
         x = jnp.where(far[..., None], 0.5, x)
         tokens, queries, x = self._on_mesh(*canonical_inputs(tokens, queries), x)

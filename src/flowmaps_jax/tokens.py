@@ -26,15 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from flowmaps_jax.validation import (
-    check_array,
-    check_fields,
-    check_instance,
-    check_int,
-    check_int_array,
-    check_real_array,
-)
-from flowmaps_jax.validation.fields import IntArray, Mask
+from flowmaps_jax.validation import check_args, check_int, check_int_array
+from flowmaps_jax.validation.fields import Fields, Int, IntArray, Mask, Optional, RealArray
 
 FURNITURE = 0
 OBJECT = 1
@@ -92,70 +85,48 @@ class TrainBatch:
     target: jnp.ndarray
 
 
+TOKEN_RULES = {
+    "boxes": RealArray(("*B", "S", 4), low=0.0, high=1.0, what="normalised y, x, h, w"),
+    "descriptor": IntArray(0, "D-1", ("*B", "S")),
+    "kind": IntArray(FURNITURE, OBJECT, ("*B", "S")),
+    "mask": Mask(("*B", "S")),
+    "tau": IntArray(0, "T-2", ("*B",)),
+    "age": Optional(IntArray(0, None, ("*B", "S"))),
+}
+"""A SceneTokens' fields: D descriptors, T timesteps, S token slots (bounds of boxes,
+descriptor and kind on real tokens only; padding is masked out anyway)."""
+
+QUERY_RULES = {"descriptor": IntArray(0, "D-1", ("*B", "Q")),
+               "tau_q": IntArray(None, "T-1", ("*B", "Q"))}
+"""A Queries' fields: B the scenes' leading dims (tau's), D descriptors, T = tau_max."""
+
+
+@check_args(num_descriptors=Int(size="D"), max_tokens=Optional(Int(size="S")),
+            num_timesteps=Optional(Int(size="T")),
+            tokens=Fields(SceneTokens, TOKEN_RULES, where="mask",
+                          padded=("boxes", "descriptor", "kind")))
 def validate_tokens(tokens: SceneTokens, num_descriptors: int, max_tokens: int | None = None,
-                    name: str = "tokens", num_timesteps: int | None = None) -> None:
-    """Raise ``ValueError`` naming the field if ``tokens`` is malformed.
-
-    Every field must be an array (numpy or jax, not a list): boxes real and finite, in [0, 1] on
-    real tokens; descriptor, kind and tau integers; mask booleans (or 0/1 only). Shapes must
-    agree, descriptors be known (``0 <= id < num_descriptors``), kinds 0/1, every scene hold a
-    real token, the token axis equal ``max_tokens`` and, if ``num_timesteps`` is given, tau lie
-    in 0..num_timesteps − 2. Works on concrete (numpy or jax) arrays; call it at public API
-    boundaries, outside jit.
-    """
-    check_instance(name, tokens, SceneTokens)
-    fields = {field: check_array(f"{name}.{field}", getattr(tokens, field))
-              for field in ("boxes", "descriptor", "kind", "mask", "tau")}
-    boxes = check_real_array(f"{name}.boxes", fields["boxes"], (..., None, 4))
-    lead = boxes.shape[:-1]
-    rules = {"descriptor": IntArray(shape=lead), "kind": IntArray(shape=lead),
-             "mask": Mask(lead), "tau": IntArray(shape=lead[:-1])}
-    checked = check_fields(tokens, rules, prefix=f"{name}.", store=False)
-    desc, kind = np.asarray(checked["descriptor"]), np.asarray(checked["kind"])
-    real = checked["mask"]
-    if tokens.age is not None:
-        check_int_array(f"{name}.age", check_array(f"{name}.age", tokens.age), 0, None,
-                        shape=lead)
-    if max_tokens is not None and lead[-1] != max_tokens:
-        raise ValueError(
-            f"{name} has {lead[-1]} token slots but the model expects max_tokens={max_tokens}")
-    if np.any((boxes < 0.0)[real] | (boxes > 1.0)[real]):
-        raise ValueError(f"{name}.boxes must lie in [0, 1] (normalised y, x, h, w)")
-    unknown = real & ((desc < 0) | (desc >= num_descriptors))
-    if np.any(unknown):
-        raise ValueError(f"{name}.descriptor has unknown ids {np.unique(desc[unknown]).tolist()} "
-                         f"(known: 0..{num_descriptors - 1})")
-    if np.any(((kind != FURNITURE) & (kind != OBJECT))[real]):
-        raise ValueError(f"{name}.kind must be 0 (furniture) or 1 (object)")
-    if not np.all(real.any(axis=-1)):
-        raise ValueError(f"{name}.mask: every scene needs at least one real token")
-    if num_timesteps is not None:
-        check_int_array(f"{name}.tau", fields["tau"], 0, num_timesteps - 2)
+                    num_timesteps: int | None = None) -> None:
+    """Raise ``ValueError`` naming the field if ``tokens`` is malformed (:data:`TOKEN_RULES`):
+    arrays (not lists) of agreeing shapes, boxes in [0, 1], known descriptors and kinds 0/1 on
+    real tokens, ``max_tokens`` token slots and tau in 0..num_timesteps − 2 when given, and a
+    real token in every scene. Concrete arrays only: call it at public API boundaries."""
+    if not np.all(np.asarray(tokens.mask, bool).any(axis=-1)):
+        raise ValueError("tokens.mask: every scene needs at least one real token")
 
 
+@check_args(num_descriptors=Int(size="D"), tau_max=Int(size="T"), tau=IntArray(shape=("*B",)),
+            queries=Fields(Queries, QUERY_RULES))
 def validate_queries(queries: Queries, tau, num_descriptors: int, tau_max: int,
-                     name: str = "queries",
                      object_descriptors: Collection[int] | None = None) -> None:
-    """Raise ``ValueError`` if ``queries`` is malformed: fields not integer arrays, shapes that
-    do not match ``tau`` (the scenes' state times), a descriptor unknown or, when
-    ``object_descriptors`` is given, not one of them (a query names an object category, not a
-    furniture kind), or ``tau_q`` outside (tau, tau_max)."""
-    check_instance(name, queries, Queries)
-    desc = check_int_array(f"{name}.descriptor",
-                           check_array(f"{name}.descriptor", queries.descriptor),
-                           0, num_descriptors - 1)
-    tau_q = check_int_array(f"{name}.tau_q", check_array(f"{name}.tau_q", queries.tau_q),
-                            None, tau_max - 1)
-    tau = np.asarray(check_int_array("tau", tau))
-    if desc.shape != tau_q.shape:
-        raise ValueError(f"{name}.descriptor {desc.shape} and {name}.tau_q {tau_q.shape} differ")
-    if desc.shape[: tau.ndim] != tau.shape:
-        raise ValueError(f"{name} leading dims {desc.shape} do not match tau {tau.shape}")
+    """Raise ``ValueError`` if ``queries`` is malformed (:data:`QUERY_RULES`): not integer
+    arrays of shape (*B, Q) for ``tau`` (*B,) the scenes' state times, a descriptor unknown
+    or, when ``object_descriptors`` is given, not one of them (a query names an object
+    category, not a furniture kind), or ``tau_q`` outside (tau, tau_max)."""
     if object_descriptors is not None:
-        check_query_roles(queries, object_descriptors, name)
-    tau_b = np.reshape(tau, tau.shape + (1,) * (tau_q.ndim - tau.ndim))
-    if np.any(tau_q <= tau_b):
-        raise ValueError(f"{name}.tau_q must be strictly greater than tau")
+        check_query_roles(queries, object_descriptors)
+    if np.any(np.asarray(queries.tau_q) <= np.asarray(tau)[..., None]):
+        raise ValueError("queries.tau_q must be strictly greater than tau")
 
 
 def check_query_roles(queries: Queries, object_descriptors: Collection[int],

@@ -6,7 +6,7 @@
   x_t (B, Q, N, 4), t (B, Q), queries (B, Q) → v (B, Q, N, 4). The N rows of a query share its
   conditioning c = Embed(τ_q) + Embed(descriptor) + SinusoidalMLP(t), so N samples of one query are
   N rows of one cross-attention call (training uses N = 1).
-* ``forward(...)`` = ``velocity(encode(...))``; ``check_inputs(...)`` validates with ``ValueError``.
+* ``forward(...)`` = ``velocity(encode(...))``; ``check_inputs`` refuses bad inputs.
 
 ``dropout_key=None`` means deterministic (no dropout). ``config`` is a static jit argument.
 """
@@ -14,12 +14,11 @@
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from flowmaps_jax.model import mixture
@@ -30,7 +29,8 @@ from flowmaps_jax.model.encoder import EncoderLayer, MapEncoder, example_inputs
 from flowmaps_jax.model.readout import PointerReadout
 from flowmaps_jax.model.route import RouteReadout
 from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
-from flowmaps_jax.validation import check_array, check_real_array
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.fields import Array, Fields, Optional, RealArray
 
 
 @struct.dataclass
@@ -305,24 +305,20 @@ def make_velocity_fn(params, config: ModelConfig, context: Context,
     return velocity_fn
 
 
+@check_args(tokens=Fields(SceneTokens, {"mask": Array(("B", None))}),
+            queries=Optional(Fields(Queries, {"descriptor": Array(("B", "Q"))})),
+            x_t=Optional(RealArray(("B", "Q", None, 4))),
+            t=Optional(RealArray(("B", "Q"), low=0.0, high=1.0, what="flow time")))
 def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries | None = None,
-                 x_t=None, t=None) -> None:
+                 x_t=None, t=None, object_descriptors: Collection[int] | None = None) -> None:
     """Raise ``ValueError`` naming the argument if model inputs are malformed (call outside jit).
 
     tokens: SceneTokens (B, S), boxes in [0, 1], known descriptors,
     0 <= tau < tau_max - 1. queries: (B, Q) with known descriptors and tau < tau_q < tau_max.
-    x_t: (B, Q, N, 4) finite. t: (B, Q) in [0, 1].
+    x_t: (B, Q, N, 4) finite. t: (B, Q) in [0, 1]. ``object_descriptors``, if given: the
+    descriptors a query may name (an object category, not a furniture kind).
     """
-    validate_tokens(tokens, config.num_descriptors, name="tokens",
-                    num_timesteps=config.tau_max)
-    b = check_real_array("tokens.boxes", tokens.boxes, (None, None, 4)).shape[0]
-    if queries is None:
-        return
-    validate_queries(queries, tokens.tau, config.num_descriptors, config.tau_max, name="queries")
-    q = check_array("queries.descriptor", queries.descriptor, (b, None)).shape[1]
-    if x_t is not None:
-        check_real_array("x_t", x_t, (b, q, None, 4))
-    if t is not None:
-        t = np.asarray(check_real_array("t", t, (b, q)))
-        if not np.all((t >= 0.0) & (t <= 1.0)):
-            raise ValueError("t (flow time) must lie in [0, 1]")
+    validate_tokens(tokens, config.num_descriptors, num_timesteps=config.tau_max)
+    if queries is not None:
+        validate_queries(queries, tokens.tau, config.num_descriptors, config.tau_max,
+                         object_descriptors)

@@ -20,6 +20,8 @@ import inspect
 from collections.abc import Callable, Collection, Mapping
 from typing import Any
 
+import numpy as np
+
 from flowmaps_jax.validation.arrays import (
     PROB_ATOL,
     bind_size,
@@ -28,7 +30,9 @@ from flowmaps_jax.validation.arrays import (
     check_mask,
     check_probabilities,
     check_real_array,
+    is_concrete,
     named_sizes,
+    size,
 )
 from flowmaps_jax.validation.files import check_plain_name
 from flowmaps_jax.validation.scalars import (
@@ -456,3 +460,45 @@ class Table:
             changed = {f: v for f, v in checked.items() if v is not getattr(entry, f)}
             entries.append(dataclasses.replace(entry, **changed) if changed else entry)
         return tuple(entries)
+
+
+def _resolved(rule: Rule) -> Rule:
+    """``rule`` with its named-size bounds (``high="D-1"``) read from the current scope; a size
+    nothing bound (an optional argument left None) is no bound."""
+    bounds = {k: size(v) for k in ("low", "high") if isinstance(v := getattr(rule, k, None), str)}
+    return dataclasses.replace(rule, **bounds) if bounds else rule
+
+
+@dataclasses.dataclass(frozen=True)
+class Fields:
+    """An instance of ``cls`` (a pytree such as ``SceneTokens``) whose fields pass ``rules``
+    (``{field: rule}``, named ``name.field``), in the named-size scope of the enclosing
+    :func:`check_args`: a pytree argument's fields declared with the function's other arguments,
+    their shapes and bounds sharing its sizes (a bound naming a size nothing bound is no bound).
+    With ``arrays``, each field that is not None must be an array (numpy or jax, not a list).
+    The value bounds of the ``padded`` fields apply only where the mask field ``where`` is True
+    (padding may hold anything). Returns the object itself."""
+
+    cls: type
+    rules: Mapping[str, Rule]
+    arrays: bool = True
+    where: str | None = None
+    padded: tuple = ()
+
+    def __call__(self, name: str, value: Any) -> Any:
+        check_instance(name, value, self.cls)
+        checked: dict[str, Any] = {}
+        for field, rule in self.rules.items():
+            item = getattr(value, field)
+            if self.arrays and item is not None:
+                check_array(f"{name}.{field}", item)
+            whole = (dataclasses.replace(rule, low=None, high=None) if field in self.padded
+                     else _resolved(rule))
+            checked[field] = whole(f"{name}.{field}", item)
+        real = checked.get(self.where)
+        for field in self.padded:
+            if is_concrete(checked[field], real):
+                inside = np.asarray(checked[field])[np.asarray(real, bool)]
+                _resolved(dataclasses.replace(self.rules[field], shape=None))(
+                    f"{name}.{field}", inside)
+        return value
