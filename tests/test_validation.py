@@ -401,3 +401,15 @@ def test_real_array_bounds_name_the_argument_and_the_range():
     assert check_real_array("boxes", np.array([0.0, 1.0]), low=0, high=1).shape == (2,)
     with pytest.raises(ValueError, match=r"boxes must lie in \[0, 1\] \(normalised\)"):
         check_real_array("boxes", np.array([0.5, 1.5]), low=0, high=1, what="normalised")
+
+
+def test_pattern_rule_names_the_field_and_clips_the_value():
+    from flowmaps_jax.validation.fields import Pattern
+
+    rule = Pattern("[0-9a-f]{4}", "four hex digits")
+    assert rule("digest", "00af") == "00af"
+    for bad in ("00AF", "00af0", None, 7):
+        with pytest.raises(ValueError, match="digest must be four hex digits"):
+            rule("digest", bad)
+    with pytest.raises(ValueError, match=r"got 'xxxx+'$"):
+        rule("digest", "x" * 1000)

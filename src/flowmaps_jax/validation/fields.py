@@ -17,6 +17,7 @@ import contextvars
 import dataclasses
 import functools
 import inspect
+import re
 from collections.abc import Callable, Collection, Mapping
 from typing import Any
 
@@ -400,3 +401,17 @@ def check_keys(name: str, data: Any, known: Collection[str] | None = None, *,
     if unknown:
         raise ValueError(f"{name}: {what} {unknown}")
     return data
+
+
+@dataclasses.dataclass(frozen=True)
+class Pattern:
+    """A string matching the regular expression ``regex`` in full (``what`` names it in the
+    message, e.g. "a SHA-256 hex digest"); a value read from a file is shown clipped."""
+
+    regex: str
+    what: str
+
+    def __call__(self, name: str, value: Any) -> str:
+        if not (isinstance(value, str) and re.fullmatch(self.regex, value)):
+            raise ValueError(f"{name} must be {self.what}; got {str(value)[:40]!r}")
+        return value
