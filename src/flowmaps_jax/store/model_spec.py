@@ -4,7 +4,7 @@ stored weights fit it. Read from a checkpoint's ``config`` item or a pretrained 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import dataclasses
 
 import jax
 import numpy as np
@@ -22,8 +22,11 @@ HOMES_FAMILY = "flowmaps-homes"
 simulator are read by :func:`flowmaps_jax.homes.model.homes_spec`."""
 
 
-class ModelSpec(NamedTuple):
-    """The part of a stored run config that inference needs."""
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """The part of a stored run config that inference needs; made only for a model that fits
+    its simulator (ValueError otherwise: the one home of that check, ``TrainConfig`` makes one
+    too)."""
 
     family_name: str
     """The model family's name (``TrainConfig.family``, ``Predictor.family_name``; a run config
@@ -35,6 +38,15 @@ class ModelSpec(NamedTuple):
     def family(self) -> ModelFamily:
         """The model family itself (:func:`flowmaps_jax.model.families.model_family`)."""
         return model_family(self.family_name)
+
+    def __post_init__(self):
+        model, flowsim = self.model, self.flowsim
+        if model.num_descriptors < flowsim.num_descriptors:
+            raise ValueError(f"model.num_descriptors={model.num_descriptors} is smaller than the "
+                             f"simulator's {flowsim.num_descriptors} descriptor ids")
+        if model.tau_max != flowsim.num_timesteps:
+            raise ValueError(f"model.tau_max={model.tau_max} must equal "
+                             f"flowsim.num_timesteps={flowsim.num_timesteps}")
 
     def abstract_params(self):
         """Structure, shapes and dtypes of the params this model initialises (nothing
@@ -57,12 +69,6 @@ def model_spec(config: dict) -> ModelSpec:
     model = ModelConfig.from_dict(config["model"]) if "model" in config else ModelConfig()
     flowsim = FlowSimConfig.from_dict(config["flowsim"]) if "flowsim" in config \
         else FlowSimConfig()
-    if model.num_descriptors < flowsim.num_descriptors:
-        raise ValueError(f"model.num_descriptors={model.num_descriptors} is smaller than the "
-                         f"simulator's {flowsim.num_descriptors} descriptor ids")
-    if model.tau_max != flowsim.num_timesteps:
-        raise ValueError(f"model.tau_max={model.tau_max} must equal "
-                         f"flowsim.num_timesteps={flowsim.num_timesteps}")
     return ModelSpec(family_name=family_name, model=model, flowsim=flowsim)
 
 

@@ -38,6 +38,7 @@ from flowmaps_jax.flowsim.worlds import HABITS_HISTORY, world_config  # the habi
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
+from flowmaps_jax.store.model_spec import ModelSpec
 from flowmaps_jax.training.overrides import (
     SHORTHANDS,
     apply_overrides,
@@ -214,18 +215,13 @@ class TrainConfig:
             raise ValueError("pointer_loss > 0 needs model.head='pointer', 'route' or 'mixture' "
                              "(the MLP "
                              "baseline ignores it)")
+        ModelSpec(self.family, self.model, self.flowsim)  # the model fits the simulator
         sim, net = self.flowsim, self.model
-        if net.num_descriptors < sim.num_descriptors:
-            raise ValueError(f"model.num_descriptors={net.num_descriptors} is smaller than the "
-                             f"simulator's {sim.num_descriptors} descriptor ids")
         needed = sim.num_furniture + sim.num_objects * net.history
         if net.history > 1 and needed > sim.max_tokens:
             raise ValueError(f"model.history={net.history} reads {needed} tokens (F + M × "
                              f"history) but flowsim.max_tokens={sim.max_tokens}; raise "
                              f"flowsim.max_tokens to {needed}")
-        if net.tau_max != sim.num_timesteps:
-            raise ValueError(f"model.tau_max={net.tau_max} must equal "
-                             f"flowsim.num_timesteps={sim.num_timesteps}")
 
     def to_dict(self) -> dict:
         """A JSON-able dict (nested configs become nested dicts)."""
@@ -359,10 +355,10 @@ def check_run_resources(cfg: TrainConfig, devices: int = 1) -> None:
     :func:`~flowmaps_jax.validation.flops_limit`; environment variables FLOWMAPS_MAX_BYTES and
     FLOWMAPS_MAX_FLOPS raise them)."""
     parts = resource_estimate(cfg, devices)
-    for what, num_bytes, flops in parts:
+    total = ("the run altogether (model, step, validation, data and routine diagnostic)",
+             sum(p[1] for p in parts), 0)
+    for what, num_bytes, flops in [*parts, total]:
         check_resources(what, num_bytes=num_bytes, flops=flops)
-    check_resources("the run altogether (model, step, validation, data and routine "
-                    "diagnostic)", num_bytes=sum(p[1] for p in parts))
 
 
 # --------------------------------------------------------------------------------------------
