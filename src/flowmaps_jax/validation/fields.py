@@ -17,6 +17,7 @@ import contextvars
 import dataclasses
 import functools
 import inspect
+import pathlib
 import re
 from collections.abc import Callable, Collection, Mapping
 from typing import Any
@@ -31,7 +32,7 @@ from flowmaps_jax.validation.arrays import (
     check_real_array,
     named_sizes,
 )
-from flowmaps_jax.validation.files import check_plain_name
+from flowmaps_jax.validation.files import check_output_dir, check_plain_name
 from flowmaps_jax.validation.scalars import (
     check_choice,
     check_flag,
@@ -415,3 +416,28 @@ class Pattern:
         if not (isinstance(value, str) and re.fullmatch(self.regex, value)):
             raise ValueError(f"{name} must be {self.what}; got {str(value)[:40]!r}")
         return value
+
+
+@dataclasses.dataclass(frozen=True)
+class Fields:
+    """An instance of ``cls`` whose fields pass ``rules`` (each named ``name.field``; a rule may
+    be another :class:`Fields`), checked in the named-size scope of the enclosing call, so the
+    shapes of nested arrays agree (a batch's tokens and queries share B)."""
+
+    cls: type
+    rules: Mapping[str, Rule]
+
+    def __call__(self, name: str, value: Any) -> Any:
+        check_instance(name, value, self.cls)
+        for field, rule in self.rules.items():
+            rule(f"{name}.{field}", getattr(value, field))
+        return value
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputDir:
+    """A directory that is or can become a writable one
+    (:func:`~flowmaps_jax.validation.check_output_dir`), as a ``pathlib.Path``."""
+
+    def __call__(self, name: str, value: Any) -> pathlib.Path:
+        return pathlib.Path(check_output_dir(name, value))
