@@ -455,3 +455,18 @@ def test_output_dir_rule_gives_a_path_and_refuses_a_file(tmp_path):
         OutputDir()("run_dir", tmp_path / "f")
     with pytest.raises(ValueError, match="run_dir must be a non-empty path"):
         OutputDir()("run_dir", "")
+
+
+def test_int_below_is_bounded_by_a_field_checked_before_it():
+    from flowmaps_jax.validation.fields import Int, IntBelow, check_args
+
+    @check_args(steps=Int(), warmup=IntBelow("steps"))
+    def schedule(steps, warmup):
+        return warmup
+
+    assert schedule(10, 9) == 9
+    with pytest.raises(ValueError, match=r"warmup must be an int in 0\.\.steps-1 \(steps = 10\); "
+                                         r"got 10"):
+        schedule(10, 10)
+    with pytest.raises(ValueError, match="warmup must be an int >= 0"):
+        schedule(10, -1)

@@ -58,9 +58,8 @@ def model_spec(config: dict) -> ModelSpec:
     """The model family, model sizes and simulator of a stored run config (a checkpoint's
     ``config`` item or a pretrained model's ``.json`` ``config``; ``TrainConfig.to_dict()``).
     Checks them, and that the model fits the simulator; the training fields are not read.
-    Raises ``ValueError`` naming what is wrong."""
-    if not isinstance(config, dict):
-        raise ValueError(f"the config must be a dict; got {type(config).__name__}")
+    Raises ``ValueError`` naming what is wrong; ``config`` is a dict (its callers' checks:
+    a checkpoint's config item, :data:`~.pretrained._META_RULES`)."""
     family_name = config.get("model_kind", DEFAULT_FAMILY)  # the key run configs store it under
     if family_name == HOMES_FAMILY:  # same shape: family_name, model, abstract_params()
         from flowmaps_jax.homes.model import homes_spec

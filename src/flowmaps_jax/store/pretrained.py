@@ -85,7 +85,8 @@ def available(directory: str | pathlib.Path = PRETRAINED_DIR) -> list[str]:
 
 
 _META_RULES = {"step": Optional(Int(0)), "which": Choice((*WHICH, UNKNOWN)), "why": Instance(str),
-               "sha256": Pattern("[0-9a-f]{64}", "a SHA-256 hex digest")}
+               "sha256": Pattern("[0-9a-f]{64}", "a SHA-256 hex digest"),
+               "config": Instance(dict)}
 """The fields of a weights ``.json`` that the loader uses or reports (``name`` must also be
 the model's own)."""
 
@@ -111,7 +112,7 @@ def _read_meta(name: str, root: pathlib.Path) -> dict:
         meta = json.loads(text)
     check_keys(f"pretrained {name!r}: {file}", meta)  # a JSON object
     fields = types.SimpleNamespace(**{"step": None, "which": UNKNOWN, "why": "", "name": name,
-                                      "sha256": None, **meta})
+                                      "sha256": None, "config": None, **meta})
     check_fields(fields, {**_META_RULES, "name": Choice((name,))},
                  prefix=f"pretrained {name!r}: {file} ", store=False)
     return meta

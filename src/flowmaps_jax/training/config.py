@@ -57,6 +57,7 @@ from flowmaps_jax.validation.fields import (
     Choice,
     Instance,
     Int,
+    IntBelow,
     Optional,
     PlainName,
     Real,
@@ -207,9 +208,6 @@ class TrainConfig:
                 f"batch_size={self.batch_size} does not divide evenly over devices="
                 f"{self.devices} (each device takes batch_size / devices scenes): use a "
                 f"multiple of {self.devices}, or devices dividing {self.batch_size}")
-        if self.warmup_steps >= self.steps:
-            raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
-                             f"got {self.warmup_steps!r}")
         if self.pointer_loss > 0 and self.family == "flowmaps" and \
                 self.model.head not in ("pointer", "route", "mixture"):
             raise ValueError("pointer_loss > 0 needs model.head='pointer', 'route' or 'mixture' "
@@ -248,13 +246,14 @@ _RULES = {
     "routine_envs": Int(0, INT32_MAX), "seed": Seed(),
     "preset": PlainName(),  # it names the default run directory
     "init_from": Optional(Text("a checkpoint directory or pretrained:NAME")),
-    "devices": Optional(_COUNT), "warmup_steps": Int(0),
+    "devices": Optional(_COUNT),
     # Every float: a finite real number (not inf, NaN, a bool or a string) within its range.
     "lr": Real(0.0, low_open=True), "b1": _DECAY, "b2": _DECAY, "ema_decay": _DECAY,
     "weight_decay": Real(0.0), "clip_norm": Optional(Real(0.0, low_open=True)),
     "short_horizon_frac": Real(0.0, 1.0), "target_noise": Real(0.0, 10.0, high_open=True),
     "pointer_loss": Real(0.0, 100.0, high_open=True),
     "model": Instance(ModelConfig), "flowsim": Instance(FlowSimConfig),
+    "warmup_steps": IntBelow("steps"),  # last: each field's own error is named first
 }
 """What each :class:`TrainConfig` field may hold on its own (checked, not converted); the
 checks that couple two fields follow in ``__post_init__``."""

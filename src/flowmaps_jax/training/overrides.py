@@ -216,8 +216,8 @@ def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:
     for name, value in data.items():
         hint = hints[name]
         if isinstance(hint, type) and dataclasses.is_dataclass(hint):
-            if hasattr(hint, "from_dict"):
-                value = hint.from_dict(check_keys(f"{where}.{name}", value))
+            if hasattr(hint, "from_dict"):  # which checks its dict itself
+                value = hint.from_dict(value)
             else:
                 value = config_from_dict(hint, value, f"{where}.{name}")
         elif isinstance(value, list):

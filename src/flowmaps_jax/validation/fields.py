@@ -441,3 +441,20 @@ class OutputDir:
 
     def __call__(self, name: str, value: Any) -> pathlib.Path:
         return pathlib.Path(check_output_dir(name, value))
+
+
+@dataclasses.dataclass(frozen=True)
+class IntBelow:
+    """An int >= ``minimum`` and below the checked value of ``field``, an argument (or field)
+    checked before it (``warmup_steps`` below ``steps``)."""
+
+    field: str
+    minimum: int = 0
+
+    def __call__(self, name: str, value: Any) -> int:
+        bound = (_CHECKED.get() or {})[self.field]
+        number = check_int(name, value, self.minimum)
+        if number >= bound:
+            raise ValueError(f"{name} must be an int in {self.minimum}..{self.field}-1 "
+                             f"({self.field} = {bound}); got {number}")
+        return number
