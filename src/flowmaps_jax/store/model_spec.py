@@ -72,16 +72,18 @@ def model_spec(config: dict) -> ModelSpec:
 
 
 def check_params(params, spec: ModelSpec, where: str) -> None:
-    """``ValueError`` unless ``params`` has the structure, shapes and dtypes that ``spec``'s
-    family initialises (weights that do not fit their config)."""
-    expected = spec.abstract_params()
-    got_tree, want_tree = jax.tree.structure(params), jax.tree.structure(expected)
-    if got_tree != want_tree:
-        raise ValueError(f"{where} holds parameters of another structure than the "
-                         f"{spec.family_name!r} model its config describes")
-    for (path, leaf), want in zip(jax.tree_util.tree_flatten_with_path(params)[0],
-                                  jax.tree.leaves(expected), strict=True):
-        if np.shape(leaf) != want.shape or leaf.dtype != want.dtype:
-            raise ValueError(f"{where}: parameter {leaf_name(path)} is {np.shape(leaf)} "
-                             f"{leaf.dtype}; the model its config describes has "
-                             f"{want.shape} {want.dtype}")
+    """``ValueError`` unless ``params`` has the leaves (paths, shapes and dtypes) that
+    ``spec``'s family initialises (weights that do not fit their config), naming the first
+    leaf that differs."""
+    def leaves(tree) -> dict:
+        return {leaf_name(path): (tuple(np.shape(leaf)), np.dtype(leaf.dtype))
+                for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+    got, want = leaves(params), leaves(spec.abstract_params())
+    if got != want:
+        key = next(k for k in sorted(got.keys() | want.keys()) if got.get(k) != want.get(k))
+        def what(leaf):
+            return "absent" if leaf is None else f"{leaf[0]} {leaf[1]}"
+        raise ValueError(f"{where}: parameter {key} is {what(got.get(key))}; the "
+                         f"{spec.family_name!r} model its config describes has "
+                         f"{what(want.get(key))}")

@@ -132,16 +132,15 @@ def check_overlay(fresh: Params, start: Params, where: str = "init_from") -> Non
     ``fresh`` may be abstract (``jax.eval_shape``)."""
     fresh_shapes = {path: tuple(x.shape)
                     for path, x in jax.tree_util.tree_flatten_with_path(fresh)[0]}
-    name = jax.tree_util.keystr
     start_leaves = jax.tree_util.tree_flatten_with_path(start)[0]
-    unknown = sorted(name(path) for path, _ in start_leaves if path not in fresh_shapes)
-    if unknown:
-        raise ValueError(f"{where}: the model has no parameter {unknown[0]} "
-                         f"({len(unknown)} unmatched); the weights are another architecture")
-    for path, value in start_leaves:
-        if tuple(value.shape) != fresh_shapes[path]:
-            raise ValueError(f"{where}: parameter {name(path)} has shape {tuple(value.shape)}, "
-                             f"the model's is {fresh_shapes[path]}")
+    unfit = [(path, tuple(value.shape)) for path, value in start_leaves
+             if fresh_shapes.get(path) != tuple(value.shape)]
+    if unfit:
+        path, shape = unfit[0]
+        name, want = jax.tree_util.keystr(path), fresh_shapes.get(path)
+        raise ValueError(f"{where}: the model has no parameter {name} ({len(unfit)} unmatched); "
+                         f"the weights are another architecture" if want is None else
+                         f"{where}: parameter {name} has shape {shape}, the model's is {want}")
 
 
 def overlay_params(fresh: Params, start: Params, where: str = "init_from") -> Params:
