@@ -158,8 +158,8 @@ def test_coupled_overrides_are_validated_together():
 @pytest.mark.parametrize("override, fragment", [
     ("model.dimm=3", "model.dimm"),
     ("nonsense=1", "nonsense"),
-    ("lr=fast", "'lr'"),
-    ("steps=1.5", "integer"),
+    ("lr=fast", "lr must be a finite real number"),
+    ("steps=1.5", "steps must be an int"),
     ("family=transformer", "family"),
     ("model_kind=transformer", "model_kind"),  # the key config.json stores it under
     ("t_sampler=normal", "t_sampler"),

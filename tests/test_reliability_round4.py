@@ -438,8 +438,8 @@ def test_a_run_dir_that_cannot_be_created_is_a_usage_error(tmp_path, capsys, mon
 @pytest.mark.parametrize("overrides, words", [
     (["--steps", "2", "--set", "lr=inf"], "lr must be a finite"),
     (["--steps", "2", "--set", "b1=2"], "b1 must be"),
-    (["--set", "lr=１"], "ASCII digits"),
-    (["--set", "batch_size=８"], "ASCII digits"),
+    (["--set", "lr=１"], "lr must be a finite real number"),
+    (["--set", "batch_size=８"], "batch_size must be an int"),
 ])
 def test_minor_overrides_name_the_real_error(tmp_path, capsys, monkeypatch, overrides, words):
     monkeypatch.chdir(tmp_path)

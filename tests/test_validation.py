@@ -473,3 +473,72 @@ def test_fields_checks_a_pytrees_fields_in_the_arguments_scope():
         count(good.replace(kind=[[1, 0]]), 2)
     with pytest.raises(ValueError, match="tokens must be a SceneTokens"):
         count(mask, 2)
+
+
+def test_pattern_rule_names_the_field_and_clips_the_value():
+    from flowmaps_jax.validation.fields import Pattern
+
+    rule = Pattern("[0-9a-f]{4}", "four hex digits")
+    assert rule("digest", "00af") == "00af"
+    for bad in ("00AF", "00af0", None, 7):
+        with pytest.raises(ValueError, match="digest must be four hex digits"):
+            rule("digest", bad)
+    with pytest.raises(ValueError, match=r"got 'xxxx+'$"):
+        rule("digest", "x" * 1000)
+
+
+def test_fields_rule_checks_nested_shapes_in_one_scope():
+    import dataclasses as dc
+
+    from flowmaps_jax.validation.fields import Array, Fields, check_args
+
+    @dc.dataclass
+    class Inner:
+        a: object
+
+    @dc.dataclass
+    class Outer:
+        inner: Inner
+        b: object
+
+    @check_args(x=Fields(Outer, {"inner": Fields(Inner, {"a": Array(("B", 2))}),
+                                 "b": Array(("B",))}))
+    def f(x):
+        return x
+
+    ok = Outer(Inner(np.zeros((3, 2))), np.zeros(3))
+    assert f(ok) is ok
+    with pytest.raises(ValueError, match=r"x.b must have shape \(B,\) with B = 3 "
+                                         r"\(from x.inner.a\)"):
+        f(Outer(Inner(np.zeros((3, 2))), np.zeros(4)))
+    with pytest.raises(ValueError, match=r"x\.inner must be a Inner"):
+        f(Outer(np.zeros(3), np.zeros(3)))
+
+
+def test_output_dir_rule_gives_a_path_and_refuses_a_file(tmp_path):
+    import pathlib
+
+    from flowmaps_jax.validation.fields import OutputDir
+
+    assert OutputDir()("run_dir", str(tmp_path / "new")) == tmp_path / "new"
+    assert isinstance(OutputDir()("run_dir", str(tmp_path)), pathlib.Path)
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(ValueError, match=r"run_dir .* is a file, not a directory"):
+        OutputDir()("run_dir", tmp_path / "f")
+    with pytest.raises(ValueError, match="run_dir must be a non-empty path"):
+        OutputDir()("run_dir", "")
+
+
+def test_int_below_is_bounded_by_a_field_checked_before_it():
+    from flowmaps_jax.validation.fields import Int, IntBelow, check_args
+
+    @check_args(steps=Int(), warmup=IntBelow("steps"))
+    def schedule(steps, warmup):
+        return warmup
+
+    assert schedule(10, 9) == 9
+    with pytest.raises(ValueError, match=r"warmup must be an int in 0\.\.steps-1 \(steps = 10\); "
+                                         r"got 10"):
+        schedule(10, 10)
+    with pytest.raises(ValueError, match="warmup must be an int >= 0"):
+        schedule(10, -1)

@@ -30,7 +30,7 @@ import orbax.checkpoint as ocp
 
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
 from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
-from flowmaps_jax.validation import check_args, check_path, prefix_errors
+from flowmaps_jax.validation import check_args, check_dir, prefix_errors
 from flowmaps_jax.validation.fields import Choice, Flag, Int, Optional
 
 LATEST = "latest"
@@ -89,11 +89,7 @@ def _reader(sub: pathlib.Path):
 def resolve_checkpoint_dir(directory: str | pathlib.Path) -> pathlib.Path:
     """The checkpoint root for ``directory``: the root itself or a run directory holding
     ``checkpoints/``. Raises ValueError if neither exists."""
-    path = pathlib.Path(check_path("checkpoint_dir", directory)).absolute()
-    if not path.exists():
-        raise ValueError(f"checkpoint directory {path} does not exist")
-    if not path.is_dir():
-        raise ValueError(f"checkpoint path {path} is not a directory")
+    path = pathlib.Path(check_dir("checkpoint_dir", directory)).absolute()
     last, best = SUBDIRS[LATEST], SUBDIRS[BEST]
     if (path / "checkpoints").is_dir() and not (path / last).is_dir():
         path = path / "checkpoints"
@@ -119,17 +115,16 @@ def saved_copies(root: pathlib.Path) -> list[tuple[int, pathlib.Path]]:
 
 
 def _step_for(root: pathlib.Path, which: str) -> tuple[pathlib.Path, int]:
-    sub = root / SUBDIRS[which]
-    if not sub.is_dir():
-        raise ValueError(f"no {which!r} checkpoint in {root} ({sub} does not exist)")
-    manager = _reader(sub)
-    try:
-        step = manager.best_step() if which == BEST else manager.latest_step()
-    finally:
-        manager.close()
+    sub, step = root / SUBDIRS[which], None
+    if sub.is_dir():
+        manager = _reader(sub)
+        try:
+            step = manager.best_step() if which == BEST else manager.latest_step()
+        finally:
+            manager.close()
     if step is None:
-        raise ValueError(f"no {which!r} checkpoint in {sub} (the directory holds no finished "
-                         f"save)")
+        raise ValueError(f"no {which!r} checkpoint in {root} ({sub.name}/ is missing or holds "
+                         f"no finished save)")
     return sub, step
 
 

@@ -4,7 +4,7 @@ stored weights fit it. Read from a checkpoint's ``config`` item or a pretrained 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+import dataclasses
 
 import jax
 import numpy as np
@@ -22,8 +22,11 @@ HOMES_FAMILY = "flowmaps-homes"
 simulator are read by :func:`flowmaps_jax.homes.model.homes_spec`."""
 
 
-class ModelSpec(NamedTuple):
-    """The part of a stored run config that inference needs."""
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """The part of a stored run config that inference needs; made only for a model that fits
+    its simulator (ValueError otherwise: the one home of that check, ``TrainConfig`` makes one
+    too)."""
 
     family_name: str
     """The model family's name (``TrainConfig.family``, ``Predictor.family_name``; a run config
@@ -36,6 +39,15 @@ class ModelSpec(NamedTuple):
         """The model family itself (:func:`flowmaps_jax.model.families.model_family`)."""
         return model_family(self.family_name)
 
+    def __post_init__(self):
+        model, flowsim = self.model, self.flowsim
+        if model.num_descriptors < flowsim.num_descriptors:
+            raise ValueError(f"model.num_descriptors={model.num_descriptors} is smaller than the "
+                             f"simulator's {flowsim.num_descriptors} descriptor ids")
+        if model.tau_max != flowsim.num_timesteps:
+            raise ValueError(f"model.tau_max={model.tau_max} must equal "
+                             f"flowsim.num_timesteps={flowsim.num_timesteps}")
+
     def abstract_params(self):
         """Structure, shapes and dtypes of the params this model initialises (nothing
         computed)."""
@@ -46,9 +58,8 @@ def model_spec(config: dict) -> ModelSpec:
     """The model family, model sizes and simulator of a stored run config (a checkpoint's
     ``config`` item or a pretrained model's ``.json`` ``config``; ``TrainConfig.to_dict()``).
     Checks them, and that the model fits the simulator; the training fields are not read.
-    Raises ``ValueError`` naming what is wrong."""
-    if not isinstance(config, dict):
-        raise ValueError(f"the config must be a dict; got {type(config).__name__}")
+    Raises ``ValueError`` naming what is wrong; ``config`` is a dict (its callers' checks:
+    a checkpoint's config item, :data:`~.pretrained._META_RULES`)."""
     family_name = config.get("model_kind", DEFAULT_FAMILY)  # the key run configs store it under
     if family_name == HOMES_FAMILY:  # same shape: family_name, model, abstract_params()
         from flowmaps_jax.homes.model import homes_spec
@@ -57,26 +68,22 @@ def model_spec(config: dict) -> ModelSpec:
     model = ModelConfig.from_dict(config["model"]) if "model" in config else ModelConfig()
     flowsim = FlowSimConfig.from_dict(config["flowsim"]) if "flowsim" in config \
         else FlowSimConfig()
-    if model.num_descriptors < flowsim.num_descriptors:
-        raise ValueError(f"model.num_descriptors={model.num_descriptors} is smaller than the "
-                         f"simulator's {flowsim.num_descriptors} descriptor ids")
-    if model.tau_max != flowsim.num_timesteps:
-        raise ValueError(f"model.tau_max={model.tau_max} must equal "
-                         f"flowsim.num_timesteps={flowsim.num_timesteps}")
     return ModelSpec(family_name=family_name, model=model, flowsim=flowsim)
 
 
 def check_params(params, spec: ModelSpec, where: str) -> None:
-    """``ValueError`` unless ``params`` has the structure, shapes and dtypes that ``spec``'s
-    family initialises (weights that do not fit their config)."""
-    expected = spec.abstract_params()
-    got_tree, want_tree = jax.tree.structure(params), jax.tree.structure(expected)
-    if got_tree != want_tree:
-        raise ValueError(f"{where} holds parameters of another structure than the "
-                         f"{spec.family_name!r} model its config describes")
-    for (path, leaf), want in zip(jax.tree_util.tree_flatten_with_path(params)[0],
-                                  jax.tree.leaves(expected), strict=True):
-        if np.shape(leaf) != want.shape or leaf.dtype != want.dtype:
-            raise ValueError(f"{where}: parameter {leaf_name(path)} is {np.shape(leaf)} "
-                             f"{leaf.dtype}; the model its config describes has "
-                             f"{want.shape} {want.dtype}")
+    """``ValueError`` unless ``params`` has the leaves (paths, shapes and dtypes) that
+    ``spec``'s family initialises (weights that do not fit their config), naming the first
+    leaf that differs."""
+    def leaves(tree) -> dict:
+        return {leaf_name(path): (tuple(np.shape(leaf)), np.dtype(leaf.dtype))
+                for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+    got, want = leaves(params), leaves(spec.abstract_params())
+    if got != want:
+        key = next(k for k in sorted(got.keys() | want.keys()) if got.get(k) != want.get(k))
+        def what(leaf):
+            return "absent" if leaf is None else f"{leaf[0]} {leaf[1]}"
+        raise ValueError(f"{where}: parameter {key} is {what(got.get(key))}; the "
+                         f"{spec.family_name!r} model its config describes has "
+                         f"{what(want.get(key))}")

@@ -27,6 +27,7 @@ import hashlib
 import io
 import json
 import pathlib
+import types
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
@@ -38,13 +39,15 @@ from flowmaps_jax.store.checkpoints import WHICH
 from flowmaps_jax.store.model_spec import HOMES_FAMILY, ModelSpec, model_spec
 from flowmaps_jax.validation import (
     check_args,
+    check_fields,
+    check_keys,
     check_output_dir,
     make_output_dir,
     prefix_errors,
     read_npz,
     write_file,
 )
-from flowmaps_jax.validation.fields import Choice, Instance
+from flowmaps_jax.validation.fields import Choice, Instance, Int, Optional, Pattern
 
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[1] / "pretrained"
 """The package data folder holding the pretrained weights."""
@@ -81,45 +84,38 @@ def available(directory: str | pathlib.Path = PRETRAINED_DIR) -> list[str]:
 # Reading
 
 
-def _check_meta(name: str, meta, file: str) -> dict:
-    """The fields of a weights ``.json`` that the loader uses or reports, checked."""
-    if not isinstance(meta, dict):
-        raise ValueError(f"pretrained {name!r}: {file} is not a JSON object")
-    step = meta.get("step")
-    if step is not None and (isinstance(step, bool) or not isinstance(step, int) or step < 0):
-        raise ValueError(f"pretrained {name!r}: {file} has step {str(step)[:40]!r}; expected a "
-                         f"count of training steps")
-    which = meta.get("which", UNKNOWN)
-    if which not in (*WHICH, UNKNOWN):
-        raise ValueError(f"pretrained {name!r}: {file} has which {str(which)[:40]!r}; expected "
-                         f"one of {list(WHICH)}")
-    if not isinstance(meta.get("why", ""), str):
-        raise ValueError(f"pretrained {name!r}: {file} has a why that is not text")
-    if meta.get("name", name) != name:
-        raise ValueError(f"pretrained {name!r}: {file} is the .json of "
-                         f"{str(meta.get('name'))[:40]!r}")
-    digest = meta.get("sha256")
-    if not (isinstance(digest, str) and len(digest) == 64
-            and all(c in "0123456789abcdef" for c in digest)):
-        raise ValueError(f"pretrained {name!r}: {file} has no valid sha256 field")
-    return meta
+_META_RULES = {"step": Optional(Int(0)), "which": Choice((*WHICH, UNKNOWN)), "why": Instance(str),
+               "sha256": Pattern("[0-9a-f]{64}", "a SHA-256 hex digest"),
+               "config": Instance(dict)}
+"""The fields of a weights ``.json`` that the loader uses or reports (``name`` must also be
+the model's own)."""
+
+
+def _read_limited(name: str, path: pathlib.Path, limit: int) -> bytes:
+    """The bytes of the file ``path`` of the pretrained model ``name``, if it holds at most
+    ``limit`` bytes (a larger one is not one :func:`export_pretrained` wrote)."""
+    if path.stat().st_size > limit:
+        raise ValueError(f"pretrained {name!r}: {path.name} holds {path.stat().st_size:,} "
+                         f"bytes, more than the {limit:,} a pretrained model may have")
+    return path.read_bytes()
 
 
 def _read_meta(name: str, root: pathlib.Path) -> dict:
-    """The checked ``.json`` of the weights ``name`` in ``root`` (size first, then fields)."""
-    meta_path = root / f"{name}.json"
-    if meta_path.stat().st_size > MAX_META_BYTES:
-        raise ValueError(f"pretrained {name!r}: {meta_path.name} holds "
-                         f"{meta_path.stat().st_size:,} bytes, more than the "
-                         f"{MAX_META_BYTES:,} a pretrained model may have")
-    with prefix_errors(f"pretrained {name!r}: unreadable {meta_path.name}: "):
-        return _check_meta(name, json.loads(meta_path.read_text()), meta_path.name)
-
-
-def _check_present(name: str, root: pathlib.Path) -> None:
+    """The checked ``.json`` of the weights ``name`` in ``root``: both files present, its size
+    first, then its fields (:data:`_META_RULES`)."""
     if name not in available(root):
         raise ValueError(f"pretrained weights {name!r} are not in {root} (present: "
                          f"{available(root) or 'none'})")
+    file = f"{name}.json"
+    text = _read_limited(name, root / file, MAX_META_BYTES)
+    with prefix_errors(f"pretrained {name!r}: unreadable {file}: "):
+        meta = json.loads(text)
+    check_keys(f"pretrained {name!r}: {file}", meta)  # a JSON object
+    fields = types.SimpleNamespace(**{"step": None, "which": UNKNOWN, "why": "", "name": name,
+                                      "sha256": None, "config": None, **meta})
+    check_fields(fields, {**_META_RULES, "name": Choice((name,))},
+                 prefix=f"pretrained {name!r}: {file} ", store=False)
+    return meta
 
 
 @check_args(name=Choice(NAMES))
@@ -129,9 +125,7 @@ def describe(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> dict:
     run's last step), "best" (its best-by-validation step) or "unknown" for a .json written
     before exports recorded it; ``why`` is then "". ValueError when the files are missing or
     the .json is not one :func:`export_pretrained` wrote."""
-    root = pathlib.Path(directory)
-    _check_present(name, root)
-    meta = _read_meta(name, root)
+    meta = _read_meta(name, pathlib.Path(directory))
     return {"name": name, "kind": meta.get("kind"), "step": meta.get("step"),
             "which": meta.get("which", UNKNOWN), "why": meta.get("why", ""),
             "source": meta.get("source"), "note": meta.get("note", "")}
@@ -155,10 +149,6 @@ def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> P
     weights that are missing, damaged (SHA-256 mismatch) or do not fit their config."""
     root = pathlib.Path(directory)
     npz, meta_path = root / f"{name}.npz", root / f"{name}.json"
-    _check_present(name, root)
-    if npz.stat().st_size > 2 * MAX_BYTES:
-        raise ValueError(f"pretrained {name!r}: {npz.name} holds {npz.stat().st_size:,} bytes, "
-                         f"more than the {2 * MAX_BYTES:,} a pretrained model may have")
     meta = _read_meta(name, root)
     with prefix_errors(f"pretrained {name!r}: unreadable {meta_path.name}: ",
                        also=(KeyError, TypeError)):
@@ -167,7 +157,7 @@ def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> P
         raise ValueError(f"pretrained {name!r}: {meta_path.name} names kind "
                          f"{str(meta.get('kind'))[:40]!r} but its config is a "
                          f"{spec.family_name!r} model")
-    data = npz.read_bytes()
+    data = _read_limited(name, npz, 2 * MAX_BYTES)
     if hashlib.sha256(data).hexdigest() != meta["sha256"]:
         raise ValueError(f"pretrained {name!r}: {npz.name} is damaged (SHA-256 does not match "
                          f"{meta_path.name}); reinstall the package")
@@ -235,14 +225,15 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
         which = "latest"
     weights = checkpoints.load_weights(checkpoint_dir, which=which)
     family_name, model = weights.spec.family_name, weights.spec.model
-    expected = _family_of(name)
-    if family_name != expected:
-        raise ValueError(f"checkpoint_dir holds a {family_name!r} model; name {name!r} needs "
-                         f"a {expected!r} model")
-    variant = "learned" if name == "mlp-learned" else "mean"
-    if expected == "mlp" and model.baseline_variance != variant:
-        raise ValueError(f"checkpoint_dir holds the MLP with baseline_variance="
-                         f"{model.baseline_variance!r}; name {name!r} needs {variant!r}")
+    expected = _family_of(name)  # and for an MLP, its variance head
+    variant = ("learned" if name == "mlp-learned" else "mean") if expected == "mlp" else None
+    held = model.baseline_variance if family_name == "mlp" else None
+    if (family_name, held) != (expected, variant):
+        def what(family, variance):
+            return f"a {family!r} model" + (f" with baseline_variance={variance!r}"
+                                             if variance else "")
+        raise ValueError(f"checkpoint_dir holds {what(family_name, held)}; name {name!r} needs "
+                         f"{what(expected, variant)}")
     data = _params_bytes(weights.params)
     if len(data) > MAX_BYTES:
         raise ValueError(f"{name}: {len(data) / 2**20:.1f} MB of weights, over the "

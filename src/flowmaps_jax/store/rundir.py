@@ -36,7 +36,7 @@ import jax
 
 from flowmaps_jax import distributed
 from flowmaps_jax.store import checkpoints
-from flowmaps_jax.validation import check_output_dir, write_file
+from flowmaps_jax.validation import check_no_links, check_output_dir, write_file
 
 LOCK_NAME = ".lock"
 METRICS = "metrics.jsonl"
@@ -74,16 +74,6 @@ def open_append(path: pathlib.Path):
                              f"files") from None
         raise
     return os.fdopen(fd, "a")
-
-
-def check_no_links(run_dir: pathlib.Path) -> None:
-    """ValueError if a file the run writes (:data:`RUN_FILES`) is a symbolic link: writing
-    through it would change a file outside the run directory."""
-    for name in (*RUN_FILES, *_TEMPORARY):
-        if (run_dir / name).is_symlink():
-            raise ValueError(f"run directory {run_dir} holds a symbolic link {name} -> "
-                             f"{os.readlink(run_dir / name)}; a run writes only its own files "
-                             f"there: remove the link")
 
 
 def _saved_nothing(run_dir: pathlib.Path) -> list[str] | None:
@@ -216,21 +206,13 @@ def move_aside(run_dir: pathlib.Path) -> pathlib.Path:
     return target
 
 
-def check_mode(resume: bool, overwrite: bool) -> None:
-    """ValueError if a run asks to both continue (``resume``) and replace (``overwrite``): the
-    command line's check, made before it reads the run directory (:func:`claim` applies
-    ``overwrite`` to a new run only)."""
-    if resume and overwrite:
-        raise ValueError("--resume and --overwrite exclude each other")
-
-
 @contextlib.contextmanager
 def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
           log: Callable[[str], None] = print) -> Iterator[RunLock | None]:
     """Hold ``run_dir`` for one run (see the module docstring); ValueError if it is not free.
     Yields the lock (None on the processes of a multi-host job other than the first).
     ``overwrite`` moves an old run aside for a new one; a resumed run (``resume``) continues in
-    place, so it ignores ``overwrite`` (the command line refuses both, :func:`check_mode`).
+    place, so it ignores ``overwrite`` (the command line refuses both).
 
     On a multi-host job the first process owns the run directory (lock, config, metrics; every
     process takes part in the checkpoint saves, which the checkpointer coordinates). The others
@@ -259,8 +241,9 @@ def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
 @contextlib.contextmanager
 def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
                 log: Callable[[str], None]) -> Iterator[RunLock]:
-    """:func:`claim` by this process alone."""
-    run_dir = check_run_dir(run_dir)
+    """:func:`claim` by this process alone. ``run_dir`` was checked by the caller
+    (:func:`check_run_dir`: ``training.loop.run``, ``homes.train``), so it is not checked again."""
+    run_dir = pathlib.Path(run_dir)
     if overwrite and not resume:
         here = pathlib.Path.cwd().resolve()
         if run_dir.resolve() == here or run_dir.resolve() in here.parents:
@@ -297,7 +280,7 @@ def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
             run_dir.mkdir()
             created = True
             lock = RunLock(run_dir, log)
-        check_no_links(run_dir)
+        check_no_links("run directory file", run_dir, RUN_FILES)  # and their .tmp
         yield lock
     finally:
         lock.release()
@@ -323,13 +306,13 @@ def kept_records(run_dir: pathlib.Path, resumed_step: int | None,
     kept = []
     for n, line in numbered:
         try:
-            record = json.loads(line)
-            if not isinstance(record, dict) or not isinstance(record.get("step", 0), int):
-                raise ValueError("not a JSON object with an integer step")
+            record, why = json.loads(line), "not a JSON object with an integer step"
         except ValueError as err:
+            record, why = None, str(err)
+        if not isinstance(record, dict) or not isinstance(record.get("step", 0), int):
             if n != numbered[-1][0]:
-                raise ValueError(f"{path} line {n} is not a metrics record ({err}); repair or "
-                                 f"delete that line, then resume again") from None
+                raise ValueError(f"{path} line {n} is not a metrics record ({why}); repair or "
+                                 f"delete that line, then resume again")
             log(f"Dropped the half-written last line of {path} (line {n}: {_clip(line)})")
             continue
         if record.get("step", 0) <= resumed_step:

@@ -119,29 +119,26 @@ def split_world(overrides: typing.Iterable[str]) -> tuple[list[str], str | None]
 def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]:
     """The run's config and directory from parsed arguments (ValueError on bad input)."""
     overrides, world = split_world(args.overrides)
-    if world is not None and args.resume:
-        raise ValueError("--set world=... changes the data; it cannot change on --resume")
+    # '' is refused, not the default; a resumed run's directory is read, so checked first
+    run_dir = None if args.run_dir is None else rundir.check_run_dir(args.run_dir)
     if args.resume:
-        if args.run_dir is None:
+        if run_dir is None:
             raise ValueError("--resume needs --run-dir (the run to continue)")
-        if args.preset is not None or args.family is not None:
-            raise ValueError("--resume uses the run's saved config; change fields with --set, "
-                             "not --preset/--family")
-        rundir.check_mode(args.resume, args.overwrite)  # before the run directory is read
-        run_dir = rundir.check_run_dir(args.run_dir)
+        if args.preset is not None or args.family is not None or world is not None:
+            raise ValueError("--resume uses the run's saved config: --preset, --family and "
+                             "--set world=... (it changes the data) cannot change on --resume; "
+                             "change fields with --set")
+        if args.overwrite:  # before the run directory is read
+            raise ValueError("--resume and --overwrite exclude each other")
         cfg = resume.resume_config(run_dir, args.from_step)
     else:
         cfg = get_preset(args.preset or DEFAULT_PRESET)
-        run_dir = None
     if world is not None:
         cfg = with_world(cfg, world)
     typed = {name: value for name, value in (("family", args.family), ("steps", args.steps),
                                              ("init_from", args.init_from)) if value is not None}
     cfg = replace_fields(cfg, overrides, typed)
-    if run_dir is None:
-        run_dir = rundir.check_run_dir(args.run_dir if args.run_dir is not None
-                                       else default_run_dir(cfg))  # '' is refused, not default
-    return cfg, run_dir
+    return cfg, run_dir or default_run_dir(cfg)  # run() checks the default one
 
 
 def _one_line(err: OSError) -> str:

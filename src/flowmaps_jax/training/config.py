@@ -38,6 +38,7 @@ from flowmaps_jax.flowsim.worlds import HABITS_HISTORY, world_config  # the habi
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
+from flowmaps_jax.store.model_spec import ModelSpec
 from flowmaps_jax.training.overrides import (
     SHORTHANDS,
     apply_overrides,
@@ -56,6 +57,7 @@ from flowmaps_jax.validation.fields import (
     Choice,
     Instance,
     Int,
+    IntBelow,
     Optional,
     PlainName,
     Real,
@@ -206,26 +208,18 @@ class TrainConfig:
                 f"batch_size={self.batch_size} does not divide evenly over devices="
                 f"{self.devices} (each device takes batch_size / devices scenes): use a "
                 f"multiple of {self.devices}, or devices dividing {self.batch_size}")
-        if self.warmup_steps >= self.steps:
-            raise ValueError(f"warmup_steps must be an integer in [0, steps={self.steps}); "
-                             f"got {self.warmup_steps!r}")
         if self.pointer_loss > 0 and self.family == "flowmaps" and \
                 self.model.head not in ("pointer", "route", "mixture"):
             raise ValueError("pointer_loss > 0 needs model.head='pointer', 'route' or 'mixture' "
                              "(the MLP "
                              "baseline ignores it)")
+        ModelSpec(self.family, self.model, self.flowsim)  # the model fits the simulator
         sim, net = self.flowsim, self.model
-        if net.num_descriptors < sim.num_descriptors:
-            raise ValueError(f"model.num_descriptors={net.num_descriptors} is smaller than the "
-                             f"simulator's {sim.num_descriptors} descriptor ids")
         needed = sim.num_furniture + sim.num_objects * net.history
         if net.history > 1 and needed > sim.max_tokens:
             raise ValueError(f"model.history={net.history} reads {needed} tokens (F + M × "
                              f"history) but flowsim.max_tokens={sim.max_tokens}; raise "
                              f"flowsim.max_tokens to {needed}")
-        if net.tau_max != sim.num_timesteps:
-            raise ValueError(f"model.tau_max={net.tau_max} must equal "
-                             f"flowsim.num_timesteps={sim.num_timesteps}")
 
     def to_dict(self) -> dict:
         """A JSON-able dict (nested configs become nested dicts)."""
@@ -252,13 +246,14 @@ _RULES = {
     "routine_envs": Int(0, INT32_MAX), "seed": Seed(),
     "preset": PlainName(),  # it names the default run directory
     "init_from": Optional(Text("a checkpoint directory or pretrained:NAME")),
-    "devices": Optional(_COUNT), "warmup_steps": Int(0),
+    "devices": Optional(_COUNT),
     # Every float: a finite real number (not inf, NaN, a bool or a string) within its range.
     "lr": Real(0.0, low_open=True), "b1": _DECAY, "b2": _DECAY, "ema_decay": _DECAY,
     "weight_decay": Real(0.0), "clip_norm": Optional(Real(0.0, low_open=True)),
     "short_horizon_frac": Real(0.0, 1.0), "target_noise": Real(0.0, 10.0, high_open=True),
     "pointer_loss": Real(0.0, 100.0, high_open=True),
     "model": Instance(ModelConfig), "flowsim": Instance(FlowSimConfig),
+    "warmup_steps": IntBelow("steps"),  # last: each field's own error is named first
 }
 """What each :class:`TrainConfig` field may hold on its own (checked, not converted); the
 checks that couple two fields follow in ``__post_init__``."""
@@ -359,10 +354,10 @@ def check_run_resources(cfg: TrainConfig, devices: int = 1) -> None:
     :func:`~flowmaps_jax.validation.flops_limit`; environment variables FLOWMAPS_MAX_BYTES and
     FLOWMAPS_MAX_FLOPS raise them)."""
     parts = resource_estimate(cfg, devices)
-    for what, num_bytes, flops in parts:
+    total = ("the run altogether (model, step, validation, data and routine diagnostic)",
+             sum(p[1] for p in parts), 0)
+    for what, num_bytes, flops in [*parts, total]:
         check_resources(what, num_bytes=num_bytes, flops=flops)
-    check_resources("the run altogether (model, step, validation, data and routine "
-                    "diagnostic)", num_bytes=sum(p[1] for p in parts))
 
 
 # --------------------------------------------------------------------------------------------

@@ -130,51 +130,39 @@ _FALSE_WORDS = ("false", "0", "no", "off")
 
 
 def _convert(text: str, hint: Any, key: str) -> Any:
-    """Convert a command-line string to the annotated type ``hint``."""
+    """A command-line string as the annotated type ``hint``. Text that does not convert is
+    returned as it is: the config's own rule for the field (its ``check_fields`` table; every
+    field of a settable type has one) then refuses it, naming the key, so it is not checked
+    twice."""
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(hint)
         if type(None) in args and text.lower() in _NONE_WORDS:
             return None
-        errors = []
         for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _convert(text, arg, key)
-            except ValueError as err:
-                errors.append(str(err))
-        raise ValueError(f"bad value {text!r} for {key!r}: " + "; ".join(errors))
+            value = text if arg is type(None) else _convert(text, arg, key)
+            if value is not text:
+                return value
+        return text
     if origin is Literal:
-        choices = typing.get_args(hint)
-        for choice in choices:
-            if str(choice) == text:
-                return choice
-        raise ValueError(f"bad value {text!r} for {key!r}: must be one of {list(choices)}")
+        return next((choice for choice in typing.get_args(hint) if str(choice) == text), text)
     if hint is bool:
-        if text.lower() in _TRUE_WORDS:
-            return True
-        if text.lower() in _FALSE_WORDS:
-            return False
-        raise ValueError(f"bad value {text!r} for {key!r}: expected a boolean (true/false)")
-    if hint in (int, float) and not text.isascii():  # int("１") is 1 to Python
-        raise ValueError(f"bad value {text!r} for {key!r}: expected "
-                         f"{'an integer' if hint is int else 'a number'} in ASCII digits")
+        lower = text.lower()
+        return True if lower in _TRUE_WORDS else False if lower in _FALSE_WORDS else text
+    if hint in (int, float) and not text.isascii():  # int("１") is 1 to Python: left as text
+        return text
     if hint is int:
         with contextlib.suppress(ValueError):
             return int(text)
-        try:
+        with contextlib.suppress(ValueError):
             as_float = float(text)
-        except ValueError:
-            raise ValueError(f"bad value {text!r} for {key!r}: expected an integer") from None
-        if not as_float.is_integer():
-            raise ValueError(f"bad value {text!r} for {key!r}: expected an integer")
-        return int(as_float)
+            if as_float.is_integer():
+                return int(as_float)
+        return text
     if hint is float:
-        try:
+        with contextlib.suppress(ValueError):
             return float(text)
-        except ValueError:
-            raise ValueError(f"bad value {text!r} for {key!r}: expected a number") from None
+        return text
     if hint is str:
         return text
     raise ValueError(f"config key {key!r} (type {hint}) cannot be set from the command line")
@@ -228,8 +216,8 @@ def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:
     for name, value in data.items():
         hint = hints[name]
         if isinstance(hint, type) and dataclasses.is_dataclass(hint):
-            if hasattr(hint, "from_dict"):
-                value = hint.from_dict(check_keys(f"{where}.{name}", value))
+            if hasattr(hint, "from_dict"):  # which checks its dict itself
+                value = hint.from_dict(value)
             else:
                 value = config_from_dict(hint, value, f"{where}.{name}")
         elif isinstance(value, list):

@@ -33,17 +33,23 @@ def load_config(directory: str | pathlib.Path, which: str = checkpoints.LATEST,
 
 
 
-def check_resumable(saved: TrainConfig, cfg: TrainConfig) -> None:
+def check_resumable(saved: TrainConfig, cfg: TrainConfig, config_json: pathlib.Path | None = None
+                    ) -> None:
     """ValueError naming the first field where ``cfg`` differs from the checkpoint's ``saved``
-    config outside :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`."""
+    config outside :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`; with
+    ``config_json``, ``cfg`` was read from that file, and the message says it is not the run's."""
     old, new = flatten(saved.to_dict()), flatten(cfg.to_dict())
-    for key in sorted(set(old) | set(new)):
-        if key.split(".")[0] not in RESUMABLE_FIELDS and old.get(key) != new.get(key):
-            raise ValueError(
-                f"--resume cannot change {key} (the checkpoint has {old.get(key)!r}, this run "
-                f"asks for {new.get(key)!r}): it would change the model, its parameters, its "
-                f"optimiser or its data. Only {', '.join(RESUMABLE_FIELDS)} may change on "
-                f"resume; train with other settings in a new --run-dir")
+    changed = [key for key in sorted(set(old) | set(new))
+               if key.split(".")[0] not in RESUMABLE_FIELDS and old.get(key) != new.get(key)]
+    if changed:
+        key = changed[0]
+        raise ValueError(
+            f"--resume cannot change {key} (the checkpoint has {old.get(key)!r}, this run "
+            f"asks for {new.get(key)!r}): it would change the model, its parameters, its "
+            f"optimiser or its data. Only {', '.join(RESUMABLE_FIELDS)} may change on "
+            f"resume; train with other settings in a new --run-dir" if config_json is None
+            else f"{config_json} is not the config of the run's checkpoints (another model or "
+                 f"settings: {key} differs); restore or delete it, then resume")
 
 
 def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig | None:
@@ -62,14 +68,13 @@ def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig
         raise ValueError(f"--from-step {from_step}: the run in {run_dir} saved no checkpoint")
     try:
         return TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
-    except FileNotFoundError:
-        if only_best:
-            return load_config(run_dir / "checkpoints", checkpoints.BEST)
-        raise ValueError(f"run directory {run_dir} holds no checkpoint and no config.json: "
-                         f"nothing to resume; start a new run there") from None
     except (OSError, ValueError, TypeError) as err:
-        raise ValueError(f"run directory {run_dir} holds no checkpoint, and its config.json "
-                         f"is unreadable ({err}); start a new run there") from None
+        missing = isinstance(err, FileNotFoundError)
+        if missing and only_best:
+            return load_config(run_dir / "checkpoints", checkpoints.BEST)
+        why = "no config.json" if missing else f"an unreadable config.json ({err})"
+        raise ValueError(f"run directory {run_dir} holds no checkpoint and {why}: nothing to "
+                         f"resume; start a new run there") from None
 
 
 def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int | None,
@@ -78,13 +83,12 @@ def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int |
     saved from), after checking that ``cfg`` may resume it; None for a run that saved no
     checkpoint yet (it starts again from step 0 with its ``config.json``)."""
     unsaved = _unsaved_config(run_dir, from_step)
-    if unsaved is not None:
-        check_resumable(unsaved, cfg)
+    root = None if unsaved is not None else rundir.checkpoint_root(run_dir)
+    check_resumable(load_config(root, step=from_step) if root is not None else unsaved, cfg)
+    if root is None:
         log(f"No checkpoint of the state to continue was saved in {run_dir} yet: starting the "
             f"run again from step 0")
         return None
-    root = rundir.checkpoint_root(run_dir)
-    check_resumable(load_config(root, step=from_step), cfg)
     restored = checkpoints.restore(root, train_state.abstract_state(cfg, mesh=mesh),
                                   step=from_step)
     if int(restored.state.step) > cfg.steps:
@@ -105,11 +109,6 @@ def resume_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig:
         latest = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
     except (OSError, ValueError, TypeError):  # missing or unreadable: the checkpoint's config
         return saved
-    try:
-        check_resumable(saved, latest)
-    except ValueError:
-        raise ValueError(f"{run_dir / 'config.json'} is not the config of the run's "
-                         f"checkpoints (another model or settings); restore or delete it, then "
-                         f"resume") from None
+    check_resumable(saved, latest, run_dir / "config.json")
     return dataclasses.replace(saved, **{name: getattr(latest, name)
                                          for name in RESUMABLE_FIELDS})

@@ -37,11 +37,12 @@ from flax import struct
 from jax.sharding import Mesh
 
 from flowmaps_jax import distributed
-from flowmaps_jax.tokens import TrainBatch, assert_batch_shapes
+from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
 from flowmaps_jax.training.config import TrainConfig
 from flowmaps_jax.training.data import EVAL_KEY_SALT, BatchFn, default_batch_fn
 from flowmaps_jax.training.objectives import Objective, objective_for
-from flowmaps_jax.validation import check_instance
+from flowmaps_jax.validation import check_args, check_instance
+from flowmaps_jax.validation.fields import Array, Fields, Instance
 
 Params = Any
 
@@ -131,16 +132,15 @@ def check_overlay(fresh: Params, start: Params, where: str = "init_from") -> Non
     ``fresh`` may be abstract (``jax.eval_shape``)."""
     fresh_shapes = {path: tuple(x.shape)
                     for path, x in jax.tree_util.tree_flatten_with_path(fresh)[0]}
-    name = jax.tree_util.keystr
     start_leaves = jax.tree_util.tree_flatten_with_path(start)[0]
-    unknown = sorted(name(path) for path, _ in start_leaves if path not in fresh_shapes)
-    if unknown:
-        raise ValueError(f"{where}: the model has no parameter {unknown[0]} "
-                         f"({len(unknown)} unmatched); the weights are another architecture")
-    for path, value in start_leaves:
-        if tuple(value.shape) != fresh_shapes[path]:
-            raise ValueError(f"{where}: parameter {name(path)} has shape {tuple(value.shape)}, "
-                             f"the model's is {fresh_shapes[path]}")
+    unfit = [(path, tuple(value.shape)) for path, value in start_leaves
+             if fresh_shapes.get(path) != tuple(value.shape)]
+    if unfit:
+        path, shape = unfit[0]
+        name, want = jax.tree_util.keystr(path), fresh_shapes.get(path)
+        raise ValueError(f"{where}: the model has no parameter {name} ({len(unfit)} unmatched); "
+                         f"the weights are another architecture" if want is None else
+                         f"{where}: parameter {name} has shape {shape}, the model's is {want}")
 
 
 def overlay_params(fresh: Params, start: Params, where: str = "init_from") -> Params:
@@ -185,13 +185,23 @@ def step_keys(state: TrainState) -> tuple[jax.Array, jax.Array]:
 # Train step
 
 
+_BATCH = Fields(TrainBatch, {
+    "tokens": Fields(SceneTokens, {"mask": Array(("B", "S")), "boxes": Array(("B", "S", 4)),
+                                   "descriptor": Array(("B", "S")), "kind": Array(("B", "S")),
+                                   "tau": Array(("B",))}),
+    "queries": Fields(Queries, {"descriptor": Array(("B", "Q")), "tau_q": Array(("B", "Q"))}),
+    "target": Array(("B", "Q", 4))})
+"""A train step's batch: a TrainBatch whose arrays agree on B (scenes), S (tokens) and Q
+(queries per scene), so a wrong one is a ValueError naming the array, not an XLA error."""
+
+
 def _update_fn(cfg: TrainConfig, objective: Objective):
     """The un-jitted update ``(state, batch, key) -> (state, metrics)``."""
     tx = make_optimizer(cfg)
     schedule = make_schedule(cfg)
 
+    @check_args(state=Instance(TrainState), batch=_BATCH)  # trace time only: shapes are static
     def update(state: TrainState, batch: TrainBatch, key: jax.Array):
-        _check_step_inputs(state, batch)  # trace time only: shapes are static
         grad_fn = jax.value_and_grad(objective.loss, has_aux=True)
         (loss, aux), grads = grad_fn(state.params, batch, key, True)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
@@ -204,16 +214,6 @@ def _update_fn(cfg: TrainConfig, objective: Objective):
         return new_state, metrics
 
     return update
-
-
-def _check_step_inputs(state, batch) -> None:
-    """Raise ValueError (not an XLA error) for a wrong state type or inconsistent batch shapes."""
-    check_instance("state", state, TrainState)
-    check_instance("batch", batch, TrainBatch)
-    try:
-        assert_batch_shapes(batch)
-    except AssertionError as err:
-        raise ValueError(f"batch has inconsistent shapes: {err}") from None
 
 
 def make_train_step(cfg: TrainConfig, objective: Objective | None = None,

@@ -17,6 +17,8 @@ import contextvars
 import dataclasses
 import functools
 import inspect
+import pathlib
+import re
 from collections.abc import Callable, Collection, Mapping
 from typing import Any
 
@@ -34,7 +36,7 @@ from flowmaps_jax.validation.arrays import (
     named_sizes,
     size,
 )
-from flowmaps_jax.validation.files import check_plain_name
+from flowmaps_jax.validation.files import check_output_dir, check_plain_name
 from flowmaps_jax.validation.scalars import (
     check_choice,
     check_flag,
@@ -470,6 +472,20 @@ def _resolved(rule: Rule) -> Rule:
 
 
 @dataclasses.dataclass(frozen=True)
+class Pattern:
+    """A string matching the regular expression ``regex`` in full (``what`` names it in the
+    message, e.g. "a SHA-256 hex digest"); a value read from a file is shown clipped."""
+
+    regex: str
+    what: str
+
+    def __call__(self, name: str, value: Any) -> str:
+        if not (isinstance(value, str) and re.fullmatch(self.regex, value)):
+            raise ValueError(f"{name} must be {self.what}; got {str(value)[:40]!r}")
+        return value
+
+
+@dataclasses.dataclass(frozen=True)
 class Fields:
     """An instance of ``cls`` (a pytree such as ``SceneTokens``) whose fields pass ``rules``
     (``{field: rule}``, named ``name.field``), in the named-size scope of the enclosing
@@ -477,7 +493,8 @@ class Fields:
     their shapes and bounds sharing its sizes (a bound naming a size nothing bound is no bound).
     With ``arrays``, each field that is not None must be an array (numpy or jax, not a list).
     The value bounds of the ``padded`` fields apply only where the mask field ``where`` is True
-    (padding may hold anything). Returns the object itself."""
+    (padding may hold anything). A rule may be another :class:`Fields` (a nested pytree).
+    Returns the object itself."""
 
     cls: type
     rules: Mapping[str, Rule]
@@ -490,7 +507,7 @@ class Fields:
         checked: dict[str, Any] = {}
         for field, rule in self.rules.items():
             item = getattr(value, field)
-            if self.arrays and item is not None:
+            if self.arrays and item is not None and not isinstance(rule, Fields):
                 check_array(f"{name}.{field}", item)
             whole = (dataclasses.replace(rule, low=None, high=None) if field in self.padded
                      else _resolved(rule))
@@ -502,3 +519,29 @@ class Fields:
                 _resolved(dataclasses.replace(self.rules[field], shape=None))(
                     f"{name}.{field}", inside)
         return value
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputDir:
+    """A directory that is or can become a writable one
+    (:func:`~flowmaps_jax.validation.check_output_dir`), as a ``pathlib.Path``."""
+
+    def __call__(self, name: str, value: Any) -> pathlib.Path:
+        return pathlib.Path(check_output_dir(name, value))
+
+
+@dataclasses.dataclass(frozen=True)
+class IntBelow:
+    """An int >= ``minimum`` and below the checked value of ``field``, an argument (or field)
+    checked before it (``warmup_steps`` below ``steps``)."""
+
+    field: str
+    minimum: int = 0
+
+    def __call__(self, name: str, value: Any) -> int:
+        bound = (_CHECKED.get() or {})[self.field]
+        number = check_int(name, value, self.minimum)
+        if number >= bound:
+            raise ValueError(f"{name} must be an int in {self.minimum}..{self.field}-1 "
+                             f"({self.field} = {bound}); got {number}")
+        return number
