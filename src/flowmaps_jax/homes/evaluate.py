@@ -38,7 +38,7 @@ from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig, generate_homes
 from flowmaps_jax.flowsim.homes.rollout import homes_bytes_per_home
 from flowmaps_jax.homes import navigation as nav
 from flowmaps_jax.homes import priors as pr
-from flowmaps_jax.homes.queries import DEFAULT_HORIZONS, check_queries, draw_queries
+from flowmaps_jax.homes.queries import DEFAULT_HORIZONS, draw_queries
 from flowmaps_jax.homes.scores import (
     POSTERIOR_METRICS,
     assign_samples,
@@ -50,13 +50,12 @@ from flowmaps_jax.homes.scores import (
 )
 from flowmaps_jax.validation import (
     check_choice,
-    check_int,
     check_no_links,
     check_output_dir,
     check_request_size,
-    check_seed,
     make_output_dir,
 )
+from flowmaps_jax.validation.fields import Each, Int, Seed, check_fields
 
 EVAL_SEED = 35_000_002
 """Seed of the evaluation homes (``jax.random.key(EVAL_SEED)``); training uses other seeds."""
@@ -129,23 +128,10 @@ def _ratio_summary(expected: np.ndarray, optimal: np.ndarray, groups: dict) -> d
     return out
 
 
-def check_arguments(config: HomesConfig, num_homes, num_queries, seed, history, num_samples,
-                    horizons, budget) -> tuple:
-    """Validated arguments (``ValueError`` naming the command-line flag)."""
-    t = config.num_hours
-    num_homes = check_int("--homes", num_homes, 1)
-    num_queries = check_int("--queries", num_queries, 1)
-    seed = check_seed("--seed", seed)
-    history = check_int("--history", history, 1, t - 2)
-    num_samples = check_int("--samples", num_samples, 0)
-    horizons = tuple(check_int("--horizons", h, 1, t - history) for h in horizons)
-    if not horizons:
-        raise ValueError("--horizons must name at least one horizon")
-    budget = check_int("--budget", budget, max(nav.SR_LOOKS))
-    per_query = 4 * config.max_receptacles * (history + max(num_samples, 1) + 8 * budget)
-    check_request_size(f"--homes {num_homes} x --queries {num_queries}",
-                       num_homes * (homes_bytes_per_home(config) + num_queries * per_query))
-    return num_homes, num_queries, seed, history, num_samples, horizons, budget
+def _argument_rules(t: int) -> dict:
+    """The rules of :func:`run_evaluation`'s arguments, by command-line flag (T = ``t``)."""
+    return {"homes": Int(), "queries": Int(), "seed": Seed(), "history": Int(1, t - 2),
+            "samples": Int(0), "budget": Int(max(nav.SR_LOOKS))}
 
 
 def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
@@ -158,8 +144,15 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
     optionally ``sample(key, homes, queries, config, n) -> (E, Q, n, 6)``)."""
     from tqdm.auto import tqdm
 
-    num_homes, num_queries, seed, history, num_samples, horizons, budget = check_arguments(
-        config, num_homes, num_queries, seed, history, num_samples, horizons, budget)
+    t = config.num_hours
+    args = check_fields(argparse.Namespace(
+        homes=num_homes, queries=num_queries, seed=seed, history=history, samples=num_samples,
+        budget=budget), _argument_rules(t), prefix="--")  # ValueError naming the flag
+    num_homes, num_queries, seed, history, num_samples, budget = args.values()
+    horizons = Each(Int(1, t - history), what="horizons")("--horizons", horizons)
+    per_query = 4 * config.max_receptacles * (history + max(num_samples, 1) + 8 * budget)
+    check_request_size(f"--homes {num_homes} x --queries {num_queries}",
+                       num_homes * (homes_bytes_per_home(config) + num_queries * per_query))
     begin = time.perf_counter()
     key = jax.random.key(seed)
     rows = reference_rows(config, key, history, num_samples, model)
@@ -167,8 +160,8 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
     bar = tqdm(total=2 + len(rows) + len(navigated) * len(NAV_POLICIES) + 1,
                disable=not progress, desc="homes evaluation", unit="step")
     homes = evaluation_homes(config, num_homes)
-    queries = check_queries(draw_queries(jax.random.fold_in(key, 0), homes, config, num_queries,
-                                         history=history, horizons=horizons), homes, config)
+    queries = draw_queries(jax.random.fold_in(key, 0), homes, config, num_queries,
+                           history=history, horizons=horizons)
     groups = query_groups(homes, queries)
     allowed = pr.allowed_slots(homes, queries)
     _, start_distance = nav.start_points(homes, config)

@@ -33,15 +33,10 @@ from flowmaps_jax.homes.model import (
     sample_placements,
 )
 from flowmaps_jax.homes.queries import HomesQueries, check_queries
-from flowmaps_jax.homes.tokens import check_token_budget, denormalise_boxes, per_query_batch
+from flowmaps_jax.homes.tokens import denormalise_boxes, per_query_batch
 from flowmaps_jax.store import checkpoints, pretrained
-from flowmaps_jax.validation import (
-    check_choice,
-    check_instance,
-    check_int,
-    check_key,
-    check_request_size,
-)
+from flowmaps_jax.validation import check_request_size, prefix_errors
+from flowmaps_jax.validation.fields import Choice, Instance, Int, Key, check_args
 
 PRETRAINED_PREFIX = "pretrained:"
 COMPATIBLE_FIELDS = ("rooms", "receptacles_per_room", "objects_per_home", "max_tokens",
@@ -70,16 +65,19 @@ class HomesPredictor:
     """A trained homes model: ``params``, its ``model`` sizes, the ``homes`` config it was
     trained on, where it came from (``source``) and its training ``step``."""
 
+    @check_args(params=Instance(dict), model=Instance(HomesModelConfig),
+                homes=Instance(HomesConfig))
     def __init__(self, params, model: HomesModelConfig, homes: HomesConfig,
                  source: str = "params", step: int | None = None):
-        self.params = check_instance("params", params, dict)
-        self.model = check_instance("model", model, HomesModelConfig)
-        self.homes = check_token_budget(check_instance("homes", homes, HomesConfig))
+        with prefix_errors("homes."):
+            homes.validate()  # the token budget too, should a config have skipped its checks
+        self.params, self.model, self.homes = params, model, homes
         self.source, self.step = source, step
 
     # ------------------------------------------------------------------ loading
 
     @classmethod
+    @check_args(which=Choice(checkpoints.WHICH), source=Instance((str, pathlib.Path)))
     def load(cls, source, which: str = "best",
              directory: str | pathlib.Path = pretrained.PRETRAINED_DIR) -> HomesPredictor:
         """The model in ``source``: a run or checkpoint directory (its ``which`` step: "best",
@@ -87,23 +85,17 @@ class HomesPredictor:
         ``"flowmaps-homes"`` (also as ``"pretrained:flowmaps-homes"``), read from
         ``directory`` (the package's weights by default). ``ValueError`` naming ``source`` when
         it is missing, damaged or not a homes model."""
-        which = check_choice("which", which, checkpoints.WHICH)
-        if not isinstance(source, (str, pathlib.Path)):
-            raise ValueError(f"source must be a checkpoint directory or a packaged name; got "
-                             f"{type(source).__name__}")
         text = str(source)
         name = text[len(PRETRAINED_PREFIX):] if text.startswith(PRETRAINED_PREFIX) else text
         packaged = text.startswith(PRETRAINED_PREFIX) or (
             name in pretrained.NAMES and not pathlib.Path(name).exists())
-        try:
+        with prefix_errors(f"source {text!r}: "):
             if packaged:
                 weights = pretrained.read_weights(name, directory)
                 where, step = f"pretrained:{name}", weights.step
             else:
                 weights = checkpoints.load_weights(source, which)
                 where, step = str(weights.root), weights.step
-        except ValueError as err:
-            raise ValueError(f"source {text!r}: {err}") from None
         if weights.spec.family_name != FAMILY_NAME:
             raise ValueError(f"source {text!r} holds a {weights.spec.family_name!r} model, not a "
                              f"{FAMILY_NAME!r} one")
@@ -115,13 +107,12 @@ class HomesPredictor:
         """``ValueError`` naming the argument unless ``config`` agrees with the model's on the
         token layout and vocabulary (:data:`COMPATIBLE_FIELDS`) and ``homes`` / ``queries`` fit
         ``config``."""
-        check_instance("config", config, HomesConfig)
+        validate_homes(homes, config, values=False)  # config is a HomesConfig from here on
         for field in COMPATIBLE_FIELDS:
             if getattr(config, field) != getattr(self.homes, field):
                 raise ValueError(f"config.{field} differs from the model's (trained on "
                                  f"{field}={str(getattr(self.homes, field))[:80]}): the tokens "
                                  f"would mean something else")
-        validate_homes(homes, config, values=False)
         check_queries(queries, homes, config)
 
     def _batch(self, homes, queries):
@@ -155,6 +146,7 @@ class HomesPredictor:
 
         return self._chunked(run, queries, self.homes.max_receptacles)
 
+    @check_args(key=Key(), num_samples=Int(), num_steps=Int(2))
     def sample(self, key, homes: Homes, queries: HomesQueries, config: HomesConfig,
                num_samples: int, num_steps: int = DEFAULT_NUM_STEPS, *,
                return_receptacles: bool = False):
@@ -162,9 +154,6 @@ class HomesPredictor:
         the weights, then the placement flow on it (``num_steps`` midpoint grid points). With
         ``return_receptacles``: (boxes, receptacles (E, Q, N) int32)."""
         self.check(homes, queries, config)
-        key = check_key(key)
-        num_samples = check_int("num_samples", num_samples, 1)
-        num_steps = check_int("num_steps (ODE grid points)", num_steps, 2)
         e, q = queries.tau.shape
         check_request_size(f"sample({e} x {q} queries x {num_samples} samples)",
                            e * q * num_samples * 6 * 4 * 2)  # the boxes and receptacles
