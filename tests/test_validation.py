@@ -401,3 +401,18 @@ def test_real_array_bounds_name_the_argument_and_the_range():
     assert check_real_array("boxes", np.array([0.0, 1.0]), low=0, high=1).shape == (2,)
     with pytest.raises(ValueError, match=r"boxes must lie in \[0, 1\] \(normalised\)"):
         check_real_array("boxes", np.array([0.5, 1.5]), low=0, high=1, what="normalised")
+
+
+def test_table_checks_each_entry_and_distinct_names():
+    from flowmaps_jax.flowsim.homes.vocabulary import RoomType
+    from flowmaps_jax.validation.fields import PlainName, Table, Text
+
+    table = Table(RoomType, {"name": PlainName(), "text": Text()})
+    rooms = (RoomType("hall", "hall"), RoomType("den", "den"))
+    assert table("room_types", rooms) is rooms
+    with pytest.raises(ValueError, match="room_types: name 'den' is used twice"):
+        table("room_types", (*rooms, RoomType("den", "study")))
+    with pytest.raises(ValueError, match="room_types: 'den' text must be a non-empty string"):
+        table("room_types", (RoomType("den", " "),))
+    with pytest.raises(ValueError, match="room_types must be a non-empty tuple of RoomType"):
+        table("room_types", list(rooms))

@@ -400,3 +400,26 @@ def check_keys(name: str, data: Any, known: Collection[str] | None = None, *,
     if unknown:
         raise ValueError(f"{name}: {what} {unknown}")
     return data
+
+
+@dataclasses.dataclass(frozen=True)
+class Table:
+    """A config's table of categories: a non-empty tuple of ``cls`` entries (:class:`Entries`)
+    whose ``key`` fields (their names) are distinct, each entry's fields checked against
+    ``rules`` (``{field: rule}``, named ``"name: key"`` and ``"name: 'entry' field"``)."""
+
+    cls: type
+    rules: Mapping[str, Rule]
+    key: str = "name"
+
+    def __call__(self, name: str, value: Any) -> tuple:
+        Entries(self.cls)(name, value)
+        seen = set()
+        for entry in value:
+            for field, rule in self.rules.items():
+                label = field if field == self.key else f"{getattr(entry, self.key)!r} {field}"
+                rule(f"{name}: {label}", getattr(entry, field))
+            if getattr(entry, self.key) in seen:
+                raise ValueError(f"{name}: {self.key} {getattr(entry, self.key)!r} is used twice")
+            seen.add(getattr(entry, self.key))
+        return value
