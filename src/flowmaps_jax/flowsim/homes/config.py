@@ -30,13 +30,13 @@ from flowmaps_jax.flowsim.homes.vocabulary import (
 from flowmaps_jax.validation.fields import (
     Choice,
     Each,
-    Entries,
     Int,
     Members,
     Pair,
     PlainName,
     Probabilities,
     Real,
+    Table,
     Text,
     check_fields,
     check_keys,
@@ -125,35 +125,16 @@ class HomesConfig:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the field if this config cannot make valid homes."""
         check_fields(self, _RULES)
-        self._check_vocabulary()
-        self._check_rooms()
-        self._check_plan()
-        self._check_budget()
-
-    # ----------------------------------------------------------------- checks
-    def _check_vocabulary(self) -> None:
-        for field in ("room_types", "receptacle_classes", "object_classes"):
-            names = set()
-            for entry in getattr(self, field):
-                check_fields(entry, _ENTRY_RULES, prefix=f"{field}: ", store=False,
-                             labels={"text": f"{entry.name!r} text"})
-                if entry.name in names:
-                    raise ValueError(f"{field}: name {entry.name!r} is used twice")
-                names.add(entry.name)
-        rooms = frozenset(r.name for r in self.room_types)
-        receptacles = frozenset(r.name for r in self.receptacle_classes)
-        for field, entries, rules in (
-                ("receptacle_classes", self.receptacle_classes,
-                 {"size": _SIZE, "rooms": Members(rooms, "room type")}),
-                ("object_classes", self.object_classes,
-                 {"size": _SIZE, "receptacles": Members(receptacles, "receptacle class")})):
-            for entry in entries:
-                check_fields(entry, rules, prefix=f"{field}: {entry.name!r} ", store=False)
-
-    def _check_rooms(self) -> None:
-        # a multiset: a home may have two bedrooms
-        check_fields(self, {"rooms": Members(frozenset(r.name for r in self.room_types),
-                                             "room type", distinct=False)})
+        names = {f: frozenset(e.name for e in getattr(self, f))
+                 for f in ("room_types", "receptacle_classes")}
+        check_fields(self, {  # what the classes name must exist; a home may have two bedrooms
+            "rooms": Members(names["room_types"], "room type", distinct=False),
+            "receptacle_classes": Table(ReceptacleClass, {
+                "size": _SIZE, "rooms": Members(names["room_types"], "room type")}),
+            "object_classes": Table(ObjectClass, {
+                "size": _SIZE,
+                "receptacles": Members(names["receptacle_classes"], "receptacle class")})})
+        # how the fields fit together
         if len(self.rooms) % self.grid_rows:
             raise ValueError(f"rooms: {len(self.rooms)} rooms do not fill a grid of grid_rows="
                              f"{self.grid_rows} rows")
@@ -173,8 +154,6 @@ class HomesConfig:
             raise ValueError(f"objects_per_home[1] must be <= {MAX_OBJECTS} and <= the "
                              f"{len(self.object_classes)} object classes (one object per "
                              f"class); got {ohi}")
-
-    def _check_plan(self) -> None:
         door = self.door_width + 2 * self.wall_margin
         narrow_w, narrow_d = self.smallest_room
         if min(narrow_w, narrow_d) < door or min(narrow_w, narrow_d) / 2 <= 2 * self.wall_margin:
@@ -186,8 +165,6 @@ class HomesConfig:
             raise ValueError(f"home_depth[0]={self.home_depth[0]} m is too small: neighbouring "
                              f"columns may share no wall of door_width + 2 x wall_margin = "
                              f"{door} m (needs home_depth[0] >= {door * (2 * self.grid_rows - 1)})")
-
-    def _check_budget(self) -> None:
         tokens = self.num_rooms + self.max_receptacles + self.max_objects
         if tokens > self.max_tokens:
             raise ValueError(f"max_tokens={self.max_tokens} is smaller than the {tokens} tokens "
@@ -297,11 +274,14 @@ def _tuples(value: Any) -> Any:
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
 
+_ENTRY_RULES = {"name": PlainName(), "text": Text()}
+_SIZE = Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")
 _UNIT = Real(0.0, 1.0)
 _JITTER = Real(0.0, 1.0, high_open=True)
 _RULES = {
-    "room_types": Entries(RoomType), "receptacle_classes": Entries(ReceptacleClass),
-    "object_classes": Entries(ObjectClass),
+    "room_types": Table(RoomType, _ENTRY_RULES, unique=("name",)),
+    "receptacle_classes": Table(ReceptacleClass, _ENTRY_RULES, unique=("name",)),
+    "object_classes": Table(ObjectClass, _ENTRY_RULES, unique=("name",)),
     "grid_rows": Int(1),
     # one receptacle per cell of a 2 x 2 split of the room
     "receptacles_per_room": Pair(1, integer=True, high=MAX_PER_ROOM),
@@ -319,9 +299,8 @@ _RULES = {
     "max_tokens": Int(1), "max_vocabulary": Int(1),
 }
 """What each field of :class:`HomesConfig` may hold, on its own (numbers are stored as Python
-numbers); ``validate`` then checks the vocabulary's entries and how the fields fit together."""
-_ENTRY_RULES = {"name": PlainName(), "text": Text()}
-_SIZE = Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")
+numbers, names distinct); ``validate`` then checks what the classes name and how the fields
+fit together."""
 
 DEFAULT_HOMES_CONFIG = HomesConfig()
 
