@@ -57,7 +57,6 @@ from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the sim
     Outcome,
     at_targets,
     bayes_update,
-    check_belief,
     check_episodes,
     check_episodes_size,
     expected_outcomes,

@@ -13,7 +13,8 @@ Policies (``POLICIES``), each re-planned after every failed look:
   current belief, exact by dynamic programming over subsets (:func:`plan_costs`). With a perfect
   detector (p_miss = 0) this is the Bayes-optimal searcher for travel; with p_miss > 0 the plan
   assumes each table is looked at once, and re-planning after every look corrects it.
-  Refuses more than ``MAX_OPTIMAL_TABLES`` = 7 tables: its table has 2^K · K entries per look.
+  The simulator refuses more than ``MAX_OPTIMAL_TABLES`` = 7 tables: its table has 2^K · K
+  entries per look.
 * ``"nearest"``: travel only, no prior: the nearest table among those looked at least often
   (i.e. not yet looked at, with a perfect detector).
 
@@ -40,17 +41,6 @@ BELIEF_ATOL = 1e-6
 """Beliefs (and greedy ratios) closer than this are tied."""
 COST_RTOL = 1e-5
 """Plan costs within this relative tolerance are tied (float32 sums of up to 7 terms)."""
-
-
-def check_optimal_size(num_tables: int) -> None:
-    """``ValueError`` if the exact dynamic programme cannot take ``num_tables`` tables."""
-    if num_tables > MAX_OPTIMAL_TABLES:
-        raise ValueError(
-            f"policy='optimal' takes at most {MAX_OPTIMAL_TABLES} candidate tables per episode; "
-            f"got {num_tables}. Its exact dynamic programme over subsets holds 2^K · K values "
-            f"and does 2^K · K² work per look and episode (K = {num_tables}: "
-            f"{2 ** num_tables * num_tables ** 2:,}), which no longer fits a vectorised batch; "
-            "use 'greedy' or 'most-probable' for more tables")
 
 
 def distances(position: jnp.ndarray, centres: jnp.ndarray) -> jnp.ndarray:

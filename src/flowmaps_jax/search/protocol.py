@@ -37,7 +37,7 @@ from flowmaps_jax.flowsim import HABITS, FlowSimConfig, Scenes, world_of
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search import simulator as sim
-from flowmaps_jax.search.policies import POLICIES, check_optimal_size
+from flowmaps_jax.search.policies import POLICIES
 from flowmaps_jax.tables import ASSIGN_TOLERANCE, TABLE_METHODS
 from flowmaps_jax.validation import check_choice, check_int, check_real
 
@@ -142,9 +142,7 @@ def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowS
             for name, table_probs in priors.items()}
     made[NEAREST_ROW] = uniform_episodes, np.ones(uniform_episodes.num_episodes)
     n, k = uniform_episodes.num_episodes, uniform_episodes.num_tables
-    for policy in (*policies, "nearest"):  # the sizes, before any episode runs
-        if policy == "optimal":
-            check_optimal_size(int(np.asarray(uniform_episodes.valid).sum(-1).max()))
+    for policy in (*policies, "nearest"):  # the sizes, before any episode runs (K: real tables)
         sim.check_episodes_size(n, k, budget, policy, copies=k if p_miss == 0.0 else 1)
     jobs = [(name, policy) for name in priors for policy in policies] + [(NEAREST_ROW, "nearest")]
     runs: dict[tuple[str, str], RowRun] = {}

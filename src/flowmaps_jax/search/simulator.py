@@ -34,8 +34,8 @@ import numpy as np
 from flax import struct
 
 from flowmaps_jax.search.policies import (
+    MAX_OPTIMAL_TABLES,
     POLICIES,
-    check_optimal_size,
     choose_indexed,
     distances,
 )
@@ -43,10 +43,22 @@ from flowmaps_jax.validation import (
     PROB_ATOL,
     check_args,
     check_probabilities,
-    check_real,
+    check_real_array,
     check_resources,
 )
-from flowmaps_jax.validation.fields import Choice, Int, Key, Optional, Real
+from flowmaps_jax.validation.fields import (
+    Choice,
+    Distribution,
+    Instance,
+    Int,
+    IntArray,
+    Key,
+    Mask,
+    Optional,
+    Real,
+    RealArray,
+    check_fields,
+)
 
 DEFAULT_BUDGET = 10
 """Looks per episode (FlowSim has at most 4 tables of a kind: every policy finds the object
@@ -106,47 +118,39 @@ class Outcome:
 # --------------------------------------------------------------------------- validation
 
 
-def check_belief(name: str, belief, valid, valid_name: str = "valid") -> None:
-    """Concrete belief (..., K) of the shape of ``valid``: finite, ≥ 0, summing to 1 over the
-    ``valid`` tables and 0 elsewhere (float32 round-off allowed,
-    :data:`flowmaps_jax.validation.PROB_ATOL`)."""
-    v = np.asarray(valid, bool)
-    check_probabilities(name, belief, v.shape, atol=PROB_ATOL, min_value=-PROB_ATOL, support=v,
-                        support_name=valid_name)
+EPISODE_RULES = {
+    "valid": Mask(("N", "K")),
+    "belief": Distribution(("N", "K"), support="valid"),
+    "centres": RealArray(("N", "K", 2), finite=False),  # finite on the real tables (below)
+    "start": RealArray(("N", 2)),
+    "target": IntArray(shape=("N",)),
+}
+"""What each field of :class:`Episodes` may hold (``check_fields``; N, K the named sizes)."""
 
 
-def check_episodes(episodes: Episodes, policy: str | None = None) -> Episodes:
-    """Validate shapes and values (``ValueError`` naming the field); canonical dtypes, and 0 for
-    the centres of padded tables (the form :func:`run_episodes` computes on)."""
-    if not isinstance(episodes, Episodes):
-        raise ValueError(f"episodes must be an Episodes; got {type(episodes).__name__}")
-    shape = np.shape(episodes.valid)
-    if len(shape) != 2 or shape[0] < 1 or shape[1] < 1:
-        raise ValueError(f"episodes.valid must have shape (N, K) with N, K ≥ 1; got {shape}")
-    n, k = shape
-    for field, expected in (("belief", (n, k)), ("centres", (n, k, 2)), ("start", (n, 2)),
-                            ("target", (n,))):
-        got = np.shape(getattr(episodes, field))
-        if got != expected:
-            raise ValueError(f"episodes.{field} must have shape {expected}; got {got}")
-    valid = np.asarray(episodes.valid)
-    if valid.dtype != np.bool_:
-        raise ValueError(f"episodes.valid must be boolean; got {valid.dtype}")
-    if not np.all(valid.any(-1)):
-        raise ValueError("episodes.valid: every episode needs at least one real table")
-    check_belief("episodes.belief", episodes.belief, valid, "episodes.valid")
-    centres, start = np.asarray(episodes.centres), np.asarray(episodes.start)
-    if not np.all(np.isfinite(centres[valid])) or not np.all(np.isfinite(start)):
-        raise ValueError("episodes.centres / episodes.start contain NaN or inf")
-    target = np.asarray(episodes.target)
-    if not np.issubdtype(target.dtype, np.integer) or np.any((target < 0) | (target >= k)) \
-            or not np.all(valid[np.arange(n), np.clip(target, 0, k - 1)]):
+def check_episodes(episodes: Episodes, policy: str, budget: int,
+                   every_target: bool = False) -> Episodes:
+    """Validate the fields (``ValueError`` naming the field) and the size of the N episodes
+    (K · N with ``every_target``) of ``budget`` looks under ``policy``
+    (:func:`check_episodes_size`); returns them canonical: float32, int32, 0 for the centres of
+    padded tables (what :func:`simulate` takes)."""
+    fields = check_fields(episodes, EPISODE_RULES, prefix="episodes.", store=False)
+    valid = fields["valid"]
+    n, k = valid.shape
+    if n < 1 or not np.all(valid.any(-1)):
+        raise ValueError(f"episodes.valid must hold N ≥ 1 episodes, each with at least one real "
+                         f"table; got shape {valid.shape}")
+    centres = np.where(valid[..., None], np.asarray(fields["centres"]), 0.0)
+    check_real_array("episodes.centres", centres)  # NaN or inf on a real table
+    target = np.asarray(fields["target"])
+    if np.any((target < 0) | (target >= k)) or not np.all(
+            valid[np.arange(n), np.clip(target, 0, k - 1)]):
         raise ValueError(f"episodes.target must index a real table (0..{k - 1}, valid)")
-    if policy == "optimal":
-        check_optimal_size(int(valid.sum(-1).max()))
+    check_episodes_size(n, k, budget, policy, copies=k if every_target else 1,
+                        real_tables=int(valid.sum(-1).max()))
     return Episodes(belief=jnp.asarray(episodes.belief, jnp.float32),
-                    centres=jnp.asarray(np.where(valid[..., None], centres, 0.0), jnp.float32),
-                    valid=jnp.asarray(valid), start=jnp.asarray(start, jnp.float32),
+                    centres=jnp.asarray(centres, jnp.float32), valid=jnp.asarray(valid),
+                    start=jnp.asarray(fields["start"], jnp.float32),
                     target=jnp.asarray(target, jnp.int32))
 
 
@@ -161,10 +165,18 @@ def look_flops(num_tables: int, policy: str) -> int:
 
 
 def check_episodes_size(num_episodes: int, num_tables: int, budget: int, policy: str,
-                        copies: int = 1) -> None:
-    """``ValueError`` naming ``budget`` when ``copies`` × ``num_episodes`` episodes of
-    ``budget`` looks over ``num_tables`` tables would be over the memory or work budget
-    (:func:`flowmaps_jax.validation.check_resources`)."""
+                        copies: int = 1, real_tables: int | None = None) -> None:
+    """``ValueError`` when ``policy`` is "optimal" with more than ``MAX_OPTIMAL_TABLES`` real
+    tables in an episode (``real_tables``, default ``num_tables``), or naming ``budget`` when
+    ``copies`` × ``num_episodes`` episodes of ``budget`` looks over ``num_tables`` tables would
+    be over the memory or work budget (:func:`flowmaps_jax.validation.check_resources`)."""
+    k = num_tables if real_tables is None else real_tables
+    if policy == "optimal" and k > MAX_OPTIMAL_TABLES:
+        raise ValueError(
+            f"policy='optimal' takes at most {MAX_OPTIMAL_TABLES} candidate tables per episode; "
+            f"got {k}. Its exact dynamic programme over subsets holds 2^K · K values and does "
+            f"2^K · K² work per look and episode (K = {k}: {2 ** k * k ** 2:,}), which no longer "
+            "fits a vectorised batch; use 'greedy' or 'most-probable' for more tables")
     n = copies * num_episodes
     check_resources(f"budget={budget} looks for {n} episodes over {num_tables} tables",
                     num_bytes=outcome_bytes(n, num_tables, budget),
@@ -185,6 +197,9 @@ def _update(belief, looked, p_miss, valid, looks_at):
     return jnp.where(total > _TINY, b / jnp.where(total > _TINY, total, 1.0), fallback)
 
 
+@check_args(p_miss=Real(0.0, 1.0, high_open=True), valid=Optional(Mask(("*B", "K"))),
+            belief=Distribution(("*B", "K"), support="valid"),
+            looked=IntArray(0, "K-1", shape=("*B",)))
 def bayes_update(belief, looked, p_miss: float = 0.0, valid=None, looks_at=None) -> jnp.ndarray:
     """The belief (..., K) after a failed look at table ``looked`` (...) int.
 
@@ -193,19 +208,11 @@ def bayes_update(belief, looked, p_miss: float = 0.0, valid=None, looks_at=None)
     tables (default all) looked at least often, counting this look (``looks_at`` (..., K) int:
     looks so far *including* this one; default: only this one).
     """
-    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
-    b = np.asarray(belief)
-    valid = np.ones(b.shape, bool) if valid is None else np.asarray(valid, bool)
-    check_belief("belief", b, valid)
-    looked = np.asarray(looked)
-    if looked.shape != b.shape[:-1] or not np.issubdtype(looked.dtype, np.integer) \
-            or np.any((looked < 0) | (looked >= b.shape[-1])):
-        raise ValueError(f"looked must be integer table indices of shape {b.shape[:-1]} in "
-                         f"0..{b.shape[-1] - 1}")
+    valid = np.ones(belief.shape, bool) if valid is None else valid
     if looks_at is None:
-        looks_at = (np.arange(b.shape[-1]) == looked[..., None]).astype(np.int32)
-    return _update(jnp.asarray(b, jnp.float32), jnp.asarray(looked), p_miss, jnp.asarray(valid),
-                   jnp.asarray(looks_at, jnp.int32))
+        looks_at = (np.arange(belief.shape[-1]) == looked[..., None]).astype(np.int32)
+    return _update(jnp.asarray(belief, jnp.float32), jnp.asarray(looked), p_miss,
+                   jnp.asarray(valid), jnp.asarray(looks_at, jnp.int32))
 
 
 # --------------------------------------------------------------------------- running
@@ -251,8 +258,8 @@ def simulate(episodes: Episodes, key, p_miss, policy_index, budget: int) -> Outc
         keys, p_miss, policy_index)
 
 
-@check_args(policy=Choice(POLICIES), key=Optional(Key()), budget=Int(),
-            p_miss=Real(0.0, 1.0, high_open=True))
+@check_args(episodes=Instance(Episodes), policy=Choice(POLICIES), key=Optional(Key()),
+            budget=Int(), p_miss=Real(0.0, 1.0, high_open=True))
 def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
                  budget: int = DEFAULT_BUDGET, p_miss: float = 0.0) -> Outcome:
     """Run N episodes with ``policy`` (see :mod:`flowmaps_jax.search.policies`) → Outcome (N, ...).
@@ -262,8 +269,7 @@ def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
     episodes, an unknown policy, p_miss outside [0, 1), a budget < 1, or "optimal" with more than
     7 tables. Compiled once per (N, K, budget), shared by all policies.
     """
-    episodes = check_episodes(episodes, policy)
-    check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy)
+    episodes = check_episodes(episodes, policy, budget)
     key = jax.random.key(0) if key is None else key
     return simulate(episodes, key, jnp.float32(p_miss), policy_index(policy), budget)
 
@@ -286,7 +292,7 @@ def simulate_every_target(episodes: Episodes, policy_index, budget: int) -> Outc
     return jax.tree_util.tree_map(lambda a: a.reshape(k, n, *a.shape[1:]), every)
 
 
-@check_args(policy=Choice(POLICIES), budget=Int())
+@check_args(episodes=Instance(Episodes), policy=Choice(POLICIES), budget=Int())
 def expected_outcomes(episodes: Episodes, truth, policy: str,
                       budget: int = DEFAULT_BUDGET) -> tuple[Outcome, jnp.ndarray]:
     """Exact expectations over where the object hides, with a perfect detector.
@@ -297,10 +303,10 @@ def expected_outcomes(episodes: Episodes, truth, policy: str,
     posterior). ``search.scores.expected_scores`` averages any score with these weights;
     :func:`at_targets` picks each episode's own target (its ``run_episodes`` outcome).
     """
-    episodes = check_episodes(episodes, policy)
-    check_belief("truth", truth, episodes.valid, "episodes.valid")
-    check_episodes_size(episodes.num_episodes, episodes.num_tables, budget, policy,
-                        copies=episodes.num_tables)
+    episodes = check_episodes(episodes, policy, budget, every_target=True)
+    valid = np.asarray(episodes.valid)
+    check_probabilities("truth", truth, valid.shape, atol=PROB_ATOL, min_value=-PROB_ATOL,
+                        support=valid, support_name="episodes.valid")
     every = simulate_every_target(episodes, policy_index(policy), budget)
     return every, jnp.asarray(truth, jnp.float32).T
 
