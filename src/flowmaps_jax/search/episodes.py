@@ -69,14 +69,14 @@ from flowmaps_jax.tables import table_probabilities
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import (
     PROB_ATOL,
-    check_instance,
+    check_args,
     check_int,
-    check_key,
     check_probabilities,
     check_resources,
     network_flops,
     solver_evaluations,
 )
+from flowmaps_jax.validation.fields import Choice, Instance, Int, IntArray, Key, Optional
 
 STARTS = ("centre", "last-seen")
 _TINY = 1e-30
@@ -109,13 +109,12 @@ def check_search_size(config: FlowSimConfig, num_rows: int, *, budget: int,
     set_bytes = _set_bytes(config, rows)
     priors = 3 + int(extra_rows) + len(predictors)
     prior_bytes = 4 * n * (s + 1) * priors
-    check_resources(f"the search set of {rows_text}", num_bytes=set_bytes + prior_bytes)
     jobs = priors * len(policies) + 1
     kept = jobs * outcome_bytes(n, k, budget) // 2
     every = outcome_bytes(n * k, k, budget)  # expected_outcomes: every hiding place at once
     look = max(look_flops(k, p) for p in policies)
-    check_resources(f"budget={budget} looks x {len(policies)} policies x {priors} priors on "
-                    f"{n} episodes of {rows_text}",
+    check_resources(f"the search set of {rows_text} with budget={budget} looks x "
+                    f"{len(policies)} policies x {priors} priors on its {n} episodes",
                     num_bytes=set_bytes + prior_bytes + kept + every,
                     flops=jobs * k * n * budget * look)
     for predictor in predictors:
@@ -185,6 +184,8 @@ class SearchSet:
         return int(np.max(np.asarray(self.num_slots)))
 
 
+@check_args(scenes=Instance(Scenes), config=Instance(FlowSimConfig), key=Key(),
+            times_per_env=Int(), horizons=Optional(IntArray(1, shape=(None,))))
 def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
                      times_per_env: int = 1,
                      horizons: Sequence[int] | None = None, history: int = 1) -> SearchSet:
@@ -200,15 +201,12 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
     set carries ``habit`` and ``extra_slots`` (see :class:`SearchSet`); otherwise (the paper's
     world, H = 1) it is bit for bit the paper's protocol.
     """
-    check_instance("scenes", scenes, Scenes)
-    check_instance("config", config, FlowSimConfig)
-    key = check_key(key)
     t_max = config.num_timesteps
     history = check_int("history", history, maximum=t_max)
     if horizons is None:
-        per_env, fixed = check_int("times_per_env", times_per_env), None
+        per_env, fixed = times_per_env, None
     else:
-        fixed = [check_int("horizons entries", h) for h in horizons]
+        fixed = horizons.tolist()
         if not fixed or max(fixed) >= t_max:
             raise ValueError(f"horizons must be a non-empty list of Δτ in 1..{t_max - 1}; "
                              f"got {list(horizons)}")
@@ -295,12 +293,10 @@ def history_tokens(search_set: SearchSet, scenes: Scenes, config: FlowSimConfig,
 
 def pad_tables(table_probs, num_tokens: int) -> jnp.ndarray:
     """Table probabilities (..., S' + 1) over S' ≤ S tokens as (..., S + 1): the first S' tokens
-    are the same tokens (tables first), the rest get no mass, the off bin stays last."""
+    are the same tokens (tables first), the rest get no mass, the off bin stays last. Unchecked:
+    :func:`history_tokens` never gives a model more tokens than the set has (S' ≤ S)."""
     probs = jnp.asarray(table_probs)
     extra = num_tokens + 1 - probs.shape[-1]
-    if extra < 0:
-        raise ValueError(f"table_probs has {probs.shape[-1] - 1} tokens, more than "
-                         f"num_tokens={num_tokens}")
     if extra == 0:
         return probs
     zeros = jnp.zeros((*probs.shape[:-1], extra), probs.dtype)
@@ -314,6 +310,7 @@ def last_seen_tables(search_set: SearchSet) -> jnp.ndarray:
     return spread_over_tables(slots, s.visit_order, s.tokens.num_tokens)
 
 
+@check_args(key=Key(), chunk_rows=Int())
 def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, key: jax.Array,
                      chunk_rows: int = 50, progress: bool = True, desc: str | None = None,
                      **sample_kwargs) -> jnp.ndarray:
@@ -326,8 +323,7 @@ def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, ke
     are not finite is an error naming it.
     """
     s = search_set
-    key = check_key(key)
-    chunk = min(check_int("chunk_rows", chunk_rows), s.num_rows)
+    chunk = min(chunk_rows, s.num_rows)
     method = sample_kwargs.pop("method", "samples")
     predictor = _Finite(predictor)
     row_keys = jax.vmap(lambda r: jax.random.fold_in(jax.random.fold_in(key, _SALT_SAMPLES), r))(
@@ -388,6 +384,7 @@ def _candidates(table_probs, visit_order, num_slots, slot_now, furniture_px, num
     return belief, centres, valid, kind_mass, last_seen
 
 
+@check_args(start=Choice(STARTS))
 def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
                   ) -> tuple[Episodes, jnp.ndarray]:
     """Episodes (N = R · M) over the K tables of each object's kind, from a prior's table
@@ -404,14 +401,10 @@ def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
     the simulator's cores.
     """
     s = search_set
-    if start not in STARTS:
-        raise ValueError(f"start must be one of {STARTS}; got {start!r}")
+    check_probabilities("table_probs", table_probs, (*s.queries.descriptor.shape,
+                                                     s.tokens.num_tokens + 1),
+                        atol=PROB_ATOL, min_value=-PROB_ATOL)  # (R, M, S + 1)
     probs = jnp.asarray(table_probs, jnp.float32)
-    expected = (*s.queries.descriptor.shape, s.tokens.num_tokens + 1)
-    if probs.shape != expected:
-        raise ValueError(f"table_probs must have shape {expected} (R, M, S + 1); got "
-                         f"{probs.shape}")
-    check_probabilities("table_probs", table_probs, atol=PROB_ATOL, min_value=-PROB_ATOL)
     belief, centres, valid, kind_mass, last_seen = _candidates(
         probs, s.visit_order, s.num_slots, s.slot_now, s.furniture_px, s.num_tables)
     n, k = int(np.prod(belief.shape[:2])), belief.shape[-1]
