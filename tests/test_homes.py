@@ -398,7 +398,7 @@ def test_load_refuses_bad_files(homes, tmp_path):
                    "schema_json"),
         "nan": ({**arrays, "room_box": np.where(arrays["room_box"] > 5, np.nan,
                                                 arrays["room_box"]).astype(np.float32)},
-                "room_box must be finite"),
+                "room_box contains NaN"),
         "range": ({**arrays, "receptacle": np.where(arrays["receptacle"] >= 0, 17,
                                                     arrays["receptacle"]).astype(np.int32)},
                   "receptacle must be an allowed"),

@@ -16,7 +16,8 @@ from flax import struct
 
 from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.floorplan import door_pairs
-from flowmaps_jax.validation import check_array, check_instance, is_concrete
+from flowmaps_jax.validation import check_args, check_fields, is_concrete
+from flowmaps_jax.validation.fields import Instance, IntArray, RealArray
 
 FIELDS: dict[str, tuple[tuple[str, ...], str, str, str]] = {
     "home_size": (("E", "2"), "float32", "m", "footprint (width along x, depth along y)"),
@@ -114,6 +115,7 @@ def object_boxes(homes: Homes, hour, config: HomesConfig) -> jax.Array:
     return jnp.where(homes.object_valid[..., None], box, 0.0)
 
 
+@check_args(homes=Instance(Homes), config=Instance(HomesConfig))
 def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: bool = True,
                    name: str = "homes") -> None:
     """``ValueError`` naming the field unless ``homes`` is a well-formed ``Homes`` of ``config``.
@@ -121,45 +123,37 @@ def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: 
     Shapes and dtypes always (tracers too); with ``values`` on concrete arrays: finite boxes
     and distances, non-negative sizes, ids in range, masks consistent, every valid object on
     one of its allowed receptacles at every hour. ``batched``: fields carry the leading E axis
-    (False: one home, as ``Homes.home(i)`` gives).
+    (False: one home, as ``Homes.home(i)`` gives); ``name``: what the messages call ``homes``.
     """
-    check_instance(name, homes, Homes)
-    check_instance("config", config, HomesConfig)
     arrays = homes.as_dict()
-    for field, value in arrays.items():
-        check_array(f"{name}.{field}", value)
-    e = arrays["home_size"].shape[0] if batched and arrays["home_size"].ndim else None
-    dims = sizes(config, e)
+    first = arrays["home_size"]
+    dims = sizes(config, np.shape(first)[0] if batched and np.ndim(first) else 0)
     for field, value in arrays.items():
         expected, dtype = field_shape(field, dims, batched), np.dtype(FIELDS[field][1])
-        if tuple(value.shape) != expected or np.dtype(value.dtype) != dtype:
-            raise ValueError(f"{name}.{field} has shape {tuple(value.shape)} and dtype "
-                             f"{value.dtype}, expected {expected} "
+        array = isinstance(value, (np.ndarray, jax.Array))
+        if not array or tuple(value.shape) != expected or np.dtype(value.dtype) != dtype:
+            got = (f"has shape {tuple(value.shape)} and dtype {value.dtype}" if array
+                   else f"is a {type(value).__name__}, not an array")
+            raise ValueError(f"{name}.{field} {got}, expected {expected} "
                              f"({', '.join(FIELDS[field][0])} of the config) and {dtype}")
-    if values and is_concrete(*arrays.values()):
-        _check_values(name, {k: np.asarray(v) for k, v in arrays.items()}, config, batched)
-
-
-def _check_values(name: str, a: dict, config: HomesConfig, batched: bool) -> None:
-    if not batched:
-        a = {k: v[None] for k, v in a.items()}
-    for field in ("home_size", "room_box", "door_position", "receptacle_box",
-                  "receptacle_distance"):
-        if not np.all(np.isfinite(a[field])) or np.any(a[field] < 0):
-            raise ValueError(f"{name}.{field} must be finite and non-negative metres")
+    if not (values and is_concrete(*arrays.values())):
+        return
+    metres = RealArray(low=0.0, what="metres")
+    check_fields(homes, {
+        **{field: metres for field in ("home_size", "room_box", "door_position",
+                                       "receptacle_box", "receptacle_distance")},
+        "room_type": IntArray(0, len(config.room_types) - 1),
+        "receptacle_class": IntArray(-1, len(config.receptacle_classes) - 1),
+        "object_class": IntArray(-1, len(config.object_classes) - 1),
+        "regime": IntArray(0, len(REGIMES) - 1),
+        "receptacle_room": IntArray(0, config.num_rooms - 1)}, prefix=f"{name}.", store=False)
+    a = {k: np.asarray(v) if batched else np.asarray(v)[None] for k, v in arrays.items()}
     box = a["receptacle_box"]
     if np.any(box[..., 3:][a["receptacle_valid"]] <= 0):
         raise ValueError(f"{name}.receptacle_box: receptacle sizes (w, d, h) must be positive")
     room = a["room_box"]
     if np.any(room[..., 2:] <= room[..., :2]):
         raise ValueError(f"{name}.room_box must have x1 > x0 and y1 > y0")
-    for field, top in (("room_type", len(config.room_types)),
-                       ("receptacle_class", len(config.receptacle_classes)),
-                       ("object_class", len(config.object_classes)),
-                       ("regime", len(REGIMES)), ("receptacle_room", config.num_rooms)):
-        low = -1 if field in ("receptacle_class", "object_class") else 0
-        if np.any(a[field] < low) or np.any(a[field] >= top):
-            raise ValueError(f"{name}.{field} holds ids outside {low}..{top - 1}")
     if np.any(a["door_rooms"] != door_pairs(config)):
         raise ValueError(f"{name}.door_rooms must be the config's door slots (door_pairs)")
     if np.any((a["receptacle_class"] >= 0) != a["receptacle_valid"]):
