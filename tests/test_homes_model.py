@@ -162,9 +162,10 @@ def test_history_features_match_a_hand_computation(homes, queries):
 
 def test_queries_are_checked(homes, queries):
     with pytest.raises(ValueError, match=r"queries.tau"):
-        homes_tokens.history_features(homes, queries.replace(tau=queries.tau[:, :2]), CONFIG)
+        homes_tokens.history_features(homes, queries.replace(tau=queries.tau[:, :2]), CONFIG,
+                                      H)
     with pytest.raises(ValueError, match="tau_q"):
-        homes_tokens.history_features(homes, queries.replace(tau_q=queries.tau), CONFIG)
+        homes_tokens.history_features(homes, queries.replace(tau_q=queries.tau), CONFIG, H)
     with pytest.raises(ValueError, match="history"):
         homes_tokens.history_features(homes, queries, CONFIG, 0)
 

@@ -542,3 +542,25 @@ def test_int_below_is_bounded_by_a_field_checked_before_it():
         schedule(10, 10)
     with pytest.raises(ValueError, match="warmup must be an int >= 0"):
         schedule(10, -1)
+
+
+def test_a_rule_after_others_reads_their_checked_values():
+    import types
+
+    from flowmaps_jax.validation.fields import After, Each, Int, check_args, check_fields
+
+    @check_args(steps=Int(), warmup=After(lambda got: Int(0, got["steps"] - 1)))
+    def schedule(warmup, steps):
+        return warmup, steps
+
+    assert schedule(steps=10, warmup=9) == (9, 10)
+    with pytest.raises(ValueError, match=r"warmup must be an int in 0\.\.9"):
+        schedule(steps=10, warmup=10)
+    with pytest.raises(ValueError, match="steps"):
+        schedule(steps="10", warmup=0)  # checked before the rule that reads it
+    rules = {"history": Int(1, 10),
+             "horizons": After(lambda got: Each(Int(1, 12 - got["history"]), what="horizons"))}
+    assert check_fields(types.SimpleNamespace(history=4, horizons=[1, 8]), rules,
+                        store=False) == {"history": 4, "horizons": (1, 8)}
+    with pytest.raises(ValueError, match=r"horizons must be an int in 1\.\.8"):
+        check_fields(types.SimpleNamespace(history=4, horizons=[1, 9]), rules)

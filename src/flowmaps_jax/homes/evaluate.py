@@ -54,8 +54,9 @@ from flowmaps_jax.validation import (
     check_output_dir,
     check_request_size,
     make_output_dir,
+    prefix_errors,
 )
-from flowmaps_jax.validation.fields import Each, Int, Seed, check_fields
+from flowmaps_jax.validation.fields import After, Each, Int, Seed, check_fields
 
 EVAL_SEED = 35_000_002
 """Seed of the evaluation homes (``jax.random.key(EVAL_SEED)``); training uses other seeds."""
@@ -131,7 +132,8 @@ def _ratio_summary(expected: np.ndarray, optimal: np.ndarray, groups: dict) -> d
 def _argument_rules(t: int) -> dict:
     """The rules of :func:`run_evaluation`'s arguments, by command-line flag (T = ``t``)."""
     return {"homes": Int(), "queries": Int(), "seed": Seed(), "history": Int(1, t - 2),
-            "samples": Int(0), "budget": Int(max(nav.SR_LOOKS))}
+            "samples": Int(0), "budget": Int(max(nav.SR_LOOKS)),
+            "horizons": After(lambda got: Each(Int(1, t - got["history"]), what="horizons"))}
 
 
 def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
@@ -147,9 +149,8 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
     t = config.num_hours
     args = check_fields(argparse.Namespace(
         homes=num_homes, queries=num_queries, seed=seed, history=history, samples=num_samples,
-        budget=budget), _argument_rules(t), prefix="--")  # ValueError naming the flag
-    num_homes, num_queries, seed, history, num_samples, budget = args.values()
-    horizons = Each(Int(1, t - history), what="horizons")("--horizons", horizons)
+        budget=budget, horizons=horizons), _argument_rules(t), prefix="--")  # naming the flag
+    num_homes, num_queries, seed, history, num_samples, budget, horizons = args.values()
     per_query = 4 * config.max_receptacles * (history + max(num_samples, 1) + 8 * budget)
     check_request_size(f"--homes {num_homes} x --queries {num_queries}",
                        num_homes * (homes_bytes_per_home(config) + num_queries * per_query))
@@ -260,10 +261,8 @@ def load_model(source: str):
     ``ValueError`` naming ``--checkpoint``."""
     from flowmaps_jax.homes.predictor import HomesPredictor  # the model only when asked for
 
-    try:
+    with prefix_errors(f"--checkpoint {source!r}: "):
         return HomesPredictor.load(source)
-    except ValueError as err:
-        raise ValueError(f"--checkpoint {source!r}: {err}") from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -16,7 +16,16 @@ from flax import struct
 
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.homes.world import Homes
-from flowmaps_jax.validation import check_int, check_int_array, is_concrete
+from flowmaps_jax.validation import is_concrete
+from flowmaps_jax.validation.fields import (
+    After,
+    Each,
+    Instance,
+    Int,
+    IntArray,
+    check_args,
+    check_fields,
+)
 
 DEFAULT_HORIZONS = (1, 3, 6, 12, 24, 72, 168)
 """Query horizons τ_q − τ in hours: an hour, a morning, half a day, a day, three days, a week."""
@@ -36,6 +45,10 @@ class HomesQueries:
         return self.tau_q - self.tau
 
 
+@check_args(config=Instance(HomesConfig), num_queries=Int(),
+            history=After(lambda got: Int(1, got["config"].num_hours - 1)),
+            horizons=After(lambda got: Each(Int(1, got["config"].num_hours - got["history"]),
+                                            what="horizons")))
 def draw_queries(key, homes: Homes, config: HomesConfig, num_queries: int, *,
                  history: int = 168, horizons: tuple[int, ...] = DEFAULT_HORIZONS
                  ) -> HomesQueries:
@@ -43,9 +56,6 @@ def draw_queries(key, homes: Homes, config: HomesConfig, num_queries: int, *,
     τ uniformly from the hours that leave ``history`` hours before it and the horizon after it
     (τ ∈ [history − 1, T − 1 − Δ]). Pure given ``key``; jittable."""
     t = config.num_hours
-    num_queries = check_int("num_queries", num_queries, 1)
-    history = check_int("history", history, 1, t - 1)
-    horizons = tuple(check_int("horizons", h, 1, t - history) for h in horizons)
     e, m = homes.object_valid.shape
     k_obj, k_h, k_tau = jax.random.split(key, 3)
     logits = jnp.where(homes.object_valid, 0.0, -jnp.inf)[:, None, :]
@@ -61,26 +71,15 @@ def draw_queries(key, homes: Homes, config: HomesConfig, num_queries: int, *,
 def check_queries(queries: HomesQueries, homes: Homes, config: HomesConfig) -> HomesQueries:
     """``ValueError`` naming the field unless ``queries`` fits ``homes``: (E, Q) ints, objects
     valid, 0 <= τ < τ_q <= T − 1 (values checked when concrete)."""
-    e = homes.object_valid.shape[0]
-    fields = {}
-    for name in ("object_index", "tau", "tau_q"):
-        value = getattr(queries, name)
-        check_int_array(f"queries.{name}", value)
-        if np.ndim(value) != 2 or np.shape(value)[0] != e:
-            raise ValueError(f"queries.{name} must have shape (E={e}, Q); got {np.shape(value)}")
-        fields[name] = value
-    if len({np.shape(v) for v in fields.values()}) != 1:
-        raise ValueError("queries.object_index, queries.tau and queries.tau_q must share one "
-                         f"shape; got {[np.shape(v) for v in fields.values()]}")
+    e, t = homes.object_valid.shape[0], config.num_hours
+    fields = check_fields(queries, {
+        "object_index": IntArray(0, config.max_objects - 1, shape=(e, "Q")),
+        "tau": IntArray(0, t - 2, shape=(e, "Q")),
+        "tau_q": IntArray(1, t - 1, shape=(e, "Q"))}, prefix="queries.", store=False)
     if is_concrete(*fields.values(), homes.object_valid):
         obj, tau, tau_q = (np.asarray(fields[k]) for k in ("object_index", "tau", "tau_q"))
-        if np.any(obj < 0) or np.any(obj >= config.max_objects):
-            raise ValueError(f"queries.object_index must be in 0..{config.max_objects - 1}")
         if not np.all(np.take_along_axis(np.asarray(homes.object_valid), obj, axis=1)):
             raise ValueError("queries.object_index names a masked object slot")
-        if np.any(tau < 0) or np.any(tau_q <= tau):
-            raise ValueError("queries.tau_q must be > queries.tau >= 0")
-        if np.any(tau_q > config.num_hours - 1):
-            raise ValueError(f"queries.tau_q must be <= T - 1 = {config.num_hours - 1} (the "
-                             f"rollout's last hour)")
+        if np.any(tau_q <= tau):
+            raise ValueError("queries.tau_q must be > queries.tau")
     return queries

@@ -32,7 +32,8 @@ from flax import struct
 from flowmaps_jax.flowsim.homes.config import HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.world import Homes, object_boxes, validate_homes
 from flowmaps_jax.homes.queries import HomesQueries, check_queries
-from flowmaps_jax.validation import check_instance, check_int, check_int_array
+from flowmaps_jax.validation import prefix_errors
+from flowmaps_jax.validation.fields import After, Instance, Int, IntArray, check_args
 
 HEIGHT_SCALE = 2.5
 """Metres: token z and h are divided by this (the footprint scales x, y, w, d)."""
@@ -77,20 +78,6 @@ def token_layout(config: HomesConfig) -> tuple[int, int, int]:
     """(first receptacle token, first object token, S): rooms sit at 0 … NR − 1."""
     first_receptacle = config.num_rooms
     return first_receptacle, first_receptacle + config.max_receptacles, config.max_tokens
-
-
-def check_token_budget(config: HomesConfig) -> HomesConfig:
-    """``ValueError`` naming ``config.max_tokens`` / ``config.max_vocabulary`` when a home's
-    tokens or the class vocabulary do not fit them."""
-    check_instance("config", config, HomesConfig)
-    needed = config.num_rooms + config.max_receptacles + config.max_objects
-    if needed > config.max_tokens:
-        raise ValueError(f"config.max_tokens={config.max_tokens} is smaller than the {needed} "
-                         f"tokens of a home (rooms + receptacle slots + object slots)")
-    if config.vocabulary_size > config.max_vocabulary:
-        raise ValueError(f"config.max_vocabulary={config.max_vocabulary} is smaller than the "
-                         f"{config.vocabulary_size} classes of the vocabulary")
-    return config
 
 
 def _scale(home_size):
@@ -141,12 +128,14 @@ def _tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
                       kind=flat[1].astype(jnp.int32), mask=flat[2].astype(bool))
 
 
+@check_args(config=Instance(HomesConfig),
+            tau=After(lambda got: IntArray(0, got["config"].num_hours - 1)))
 def home_tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
     """Tokens of every home at hour ``tau``: (E,) ints → (E, S); (E, K) → (E, K, S)."""
-    check_token_budget(config)
+    with prefix_errors("config."):
+        config.validate()  # its token budget too, should it have skipped its own checks
     validate_homes(homes, config, values=False)
     e = homes.num_homes
-    tau = check_int_array("tau", tau, 0, config.num_hours - 1)
     if tau.ndim not in (1, 2) or tau.shape[0] != e:
         raise ValueError(f"tau must have shape (E={e},) or (E, K); got {tau.shape}")
     out = _tokens(homes, jnp.asarray(tau, jnp.int32).reshape(e, -1), config)
@@ -229,14 +218,16 @@ def _history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
     return jnp.where(keep, out, 0.0)
 
 
+@check_args(config=Instance(HomesConfig),
+            history=After(lambda got: Int(1, got["config"].num_hours)))
 def history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
                      history: int = DEFAULT_HISTORY) -> jax.Array:
     """(E, Q, R, len(HISTORY_FEATURES)) float32 history features of every query (see
     :data:`HISTORY_FEATURES`), over the ``history`` hours up to each query's τ."""
-    check_token_budget(config)
+    with prefix_errors("config."):
+        config.validate()  # its token budget too, should it have skipped its own checks
     validate_homes(homes, config, values=False)
     check_queries(queries, homes, config)
-    history = check_int("history", history, 1, config.num_hours)
     return _history_features(homes, queries, config, history)
 
 

@@ -545,3 +545,15 @@ class IntBelow:
             raise ValueError(f"{name} must be an int in {self.minimum}..{self.field}-1 "
                              f"({self.field} = {bound}); got {number}")
         return number
+
+
+@dataclasses.dataclass(frozen=True)
+class After:
+    """A rule made from the values checked before it in the same :func:`check_args` /
+    :func:`check_fields` call: ``make(checked) -> rule``, for a bound that depends on another
+    argument (``After(lambda got: Int(0, got["steps"] - 1))``); list it after those it reads."""
+
+    make: Callable[[Mapping[str, Any]], Rule]
+
+    def __call__(self, name: str, value: Any) -> Any:
+        return self.make(_CHECKED.get() or {})(name, value)
