@@ -27,15 +27,8 @@ import numpy as np
 
 from flowmaps_jax.boxes import from_centre, to_centre
 from flowmaps_jax.tables import CENTRE_SIGMA_SCALE  # the centre std, shared with the assignment
-from flowmaps_jax.validation import (
-    PROB_ATOL,
-    check_array,
-    check_int,
-    check_mask,
-    check_probabilities,
-    check_shape,
-    is_concrete,
-)
+from flowmaps_jax.validation import is_concrete
+from flowmaps_jax.validation.fields import Array, Distribution, Int, Mask, Optional, check_args
 
 SIZE_SIGMA_SCALE = 0.02
 """Size std of a mixture component as a fraction of the box side (h for h, w for w)."""
@@ -51,15 +44,14 @@ class Estimate(NamedTuple):
     stderr: jnp.ndarray
 
 
-def _check_mixture(slot_probs, slot_boxes, slot_mask) -> tuple[int, ...]:
-    """Shapes and values of (q, b, mask); returns the shape (..., K) of q."""
-    q_shape = check_array("slot_probs", slot_probs, (..., None)).shape
-    b_shape = check_array("slot_boxes", slot_boxes, (..., None, 4)).shape
-    check_shape("slot_boxes", b_shape, (*q_shape, 4), "slot_probs.shape + (4,)")
-    if slot_mask is not None:
-        check_mask("slot_mask", slot_mask, q_shape)
-    check_probabilities("slot_probs", slot_probs, atol=PROB_ATOL, min_value=-PROB_ATOL,
-                        support=slot_mask, support_name="slot_mask")
+_MIXTURE = {  # the arguments of the public functions, in this order; B and K shared
+    "slot_mask": Optional(Mask(("*B", "K"))),
+    "slot_probs": Distribution(("*B", "K"), support="slot_mask"),
+    "slot_boxes": Array(("*B", "K", 4))}
+
+
+def _check_real_boxes(slot_probs, slot_boxes, slot_mask) -> None:
+    """Finite boxes with positive h and w on the slots that carry mass (concrete arrays)."""
     if is_concrete(slot_probs, slot_boxes, slot_mask):
         active = np.asarray(slot_probs) > 0
         if slot_mask is not None:
@@ -70,7 +62,6 @@ def _check_mixture(slot_probs, slot_boxes, slot_mask) -> tuple[int, ...]:
         if np.any(boxes[:, 2:] <= 0.0):
             raise ValueError("slot_boxes must have positive h and w on real slots (boxes are "
                              "y, x, h, w)")
-    return q_shape
 
 
 def _full_mask(shape, slot_mask):
@@ -84,13 +75,13 @@ def _sigma(boxes):
                       SIZE_SIGMA_SCALE * h, SIZE_SIGMA_SCALE * w], axis=-1)
 
 
+@check_args(slot_boxes=Array((..., 4)))
 def gt_mixture_sigma(slot_boxes: jnp.ndarray) -> jnp.ndarray:
     """Per-slot std of the ground-truth mixture, in centre coordinates.
 
     slot_boxes: (..., K, 4) boxes b_k (y, x, h, w).
     Returns (..., K, 4) std of (cy, cx, h, w): (0.35 h, 0.35 w, 0.02 h, 0.02 w).
     """
-    check_array("slot_boxes", slot_boxes, (..., 4))
     return _sigma(jnp.asarray(slot_boxes, jnp.float32))
 
 
@@ -116,6 +107,7 @@ def mixture_log_prob(x, slot_probs, slot_boxes, slot_mask):
     return jax.nn.logsumexp(log_comp + log_w[..., None, :], axis=-1)
 
 
+@check_args(**_MIXTURE, x=Array(("*B", None, 4)))
 def gt_mixture_log_prob(x: jnp.ndarray, slot_probs: jnp.ndarray, slot_boxes: jnp.ndarray,
                         slot_mask: jnp.ndarray | None = None) -> jnp.ndarray:
     """log q(x) of boxes under the ground-truth mixture (see module doc).
@@ -125,11 +117,9 @@ def gt_mixture_log_prob(x: jnp.ndarray, slot_probs: jnp.ndarray, slot_boxes: jnp
     slot_boxes: (..., K, 4) b_k. slot_mask: optional (..., K) real slots (default: all).
     Returns (..., N) log-densities w.r.t. Lebesgue measure on (y, x, h, w).
     """
-    q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
-    x_shape = check_array("x", x, (..., None, 4)).shape
-    check_shape("x.shape[:-2]", x_shape[:-2], q_shape[:-1], "the leading dims of slot_probs")
+    _check_real_boxes(slot_probs, slot_boxes, slot_mask)
     return mixture_log_prob(jnp.asarray(x, jnp.float32), slot_probs, slot_boxes,
-                            _full_mask(q_shape, slot_mask))
+                            _full_mask(np.shape(slot_probs), slot_mask))
 
 
 @partial(jax.jit, static_argnames="n")
@@ -145,15 +135,16 @@ def mixture_samples(key, slot_probs, slot_boxes, slot_mask, n):
     return from_centre(mean + std * eps)
 
 
+@check_args(**_MIXTURE, n=Int())
 def sample_gt_mixture(key: jax.Array, slot_probs: jnp.ndarray, slot_boxes: jnp.ndarray, n: int,
                       slot_mask: jnp.ndarray | None = None) -> jnp.ndarray:
     """n draws from the ground-truth mixture q: pick slot k with prob q_k, then jitter.
 
     slot_probs: (..., K). slot_boxes: (..., K, 4). Returns (..., n, 4) boxes (y, x, h, w).
     """
-    q_shape = _check_mixture(slot_probs, slot_boxes, slot_mask)
-    n = check_int("n", n)
-    return mixture_samples(key, slot_probs, slot_boxes, _full_mask(q_shape, slot_mask), n)
+    _check_real_boxes(slot_probs, slot_boxes, slot_mask)
+    return mixture_samples(key, slot_probs, slot_boxes, _full_mask(np.shape(slot_probs), slot_mask),
+                           n)
 
 
 @jax.jit
@@ -168,14 +159,14 @@ def kl_estimate(log_q, log_p) -> Estimate:
     return _mean_and_stderr(jnp.asarray(log_q, jnp.float32) - jnp.asarray(log_p, jnp.float32))
 
 
+@check_args(log_q=Array(("*B", "N")), log_p=Array(("*B", "N")))
 def continuous_kl(log_q: jnp.ndarray, log_p: jnp.ndarray) -> Estimate:
     """KL(q‖p) ≈ mean over draws x_i ~ q of log q(x_i) − log p(x_i), with its standard error.
 
     log_q, log_p: (..., N) log-densities at the same N ≥ 2 draws from q (e.g. from
     :func:`sample_gt_mixture`; log p exact for the model). Returns Estimate (...).
     """
-    shape = check_array("log_q", log_q, (..., None)).shape
-    check_shape("log_p", np.shape(log_p), shape, "same as log_q")
-    if shape[-1] < 2:
-        raise ValueError(f"log_q needs at least 2 draws for a standard error; got {shape[-1]}")
+    if np.shape(log_q)[-1] < 2:
+        raise ValueError(f"log_q needs at least 2 draws for a standard error; got "
+                         f"{np.shape(log_q)[-1]}")
     return kl_estimate(log_q, log_p)
