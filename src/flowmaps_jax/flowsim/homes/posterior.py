@@ -32,7 +32,8 @@ from flowmaps_jax.flowsim.homes import schedules
 from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.schedules import PREFERENCES
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
-from flowmaps_jax.validation import check_int, check_int_array, is_concrete
+from flowmaps_jax.validation import check_args, is_concrete
+from flowmaps_jax.validation.fields import After, Instance, IntArray
 
 
 def object_law(home: Homes, object_index, config: HomesConfig) -> dict:
@@ -103,23 +104,31 @@ def _history_posterior(home: Homes, object_index, tau, tau_q, history, config: H
     return jnp.where(valid, p, jnp.nan)
 
 
-def _check_query(home, object_index, tau, tau_q, config: HomesConfig) -> None:
-    validate_homes(home, config, batched=False, values=False)  # the config too
-    for name, value in (("object_index", object_index), ("tau", tau), ("tau_q", tau_q)):
-        check_int_array(name, value, shape=())
-    if not is_concrete(object_index, tau, tau_q):
-        return
-    t = config.num_hours
-    object_index = check_int("object_index", object_index, 0, config.max_objects - 1)
-    tau = check_int("tau", tau, 0, t - 1)
-    if int(tau_q) <= tau:
-        raise ValueError(f"tau_q must be > tau={tau} (a later hour); got {int(tau_q)}")
-    check_int("tau_q", tau_q, tau + 1, t - 1)  # beyond the rollout: names the horizon
-    if is_concrete(home.object_valid) and not bool(home.object_valid[object_index]):
-        raise ValueError(f"object_index {object_index} is a masked object slot (unused, or "
+def _after(bound):
+    """``bound + 1`` for a concrete hour, else no bound (a traced τ checks under jit nothing)."""
+    return int(bound) + 1 if is_concrete(bound) else None
+
+
+_HOUR = After(lambda got: IntArray(0, got["config"].num_hours - 1, shape=()))
+_QUERY = {  # a query's arguments, bounds from the config and from τ; values checked if concrete
+    "config": Instance(HomesConfig),
+    "object_index": After(lambda got: IntArray(0, got["config"].max_objects - 1, shape=())),
+    "tau": _HOUR,
+    "tau_q": After(lambda got: IntArray(_after(got["tau"]), got["config"].num_hours - 1,
+                                        shape=()))}
+
+
+def _check_home(home, object_index, tau, tau_q, config: HomesConfig) -> None:
+    """``home`` one home of ``config``, and ``object_index`` (checked) not a masked slot when
+    the whole query is concrete."""
+    validate_homes(home, config, batched=False, values=False)
+    if is_concrete(home.object_valid, object_index, tau, tau_q) and not bool(
+            home.object_valid[int(object_index)]):
+        raise ValueError(f"object_index {int(object_index)} is a masked object slot (unused, or "
                          f"its class has no allowed receptacle in this home)")
 
 
+@check_args(**_QUERY)
 def homes_posterior(home: Homes, object_index, tau, tau_q,
                     config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """(R,) float32: P(object ``object_index`` on receptacle r at hour ``tau_q`` | where it is
@@ -128,31 +137,28 @@ def homes_posterior(home: Homes, object_index, tau, tau_q,
     home: one home (``Homes.home(i)``, fields without the E axis); object_index, tau, tau_q:
     int scalars (or traced ones, under jit / vmap), 0 <= tau < tau_q <= T − 1.
     """
-    _check_query(home, object_index, tau, tau_q, config)
+    _check_home(home, object_index, tau, tau_q, config)
     return _posterior(home, object_index, tau, tau_q, config)
 
 
+@check_args(**_QUERY, history=After(lambda got: IntArray(1, _after(got["tau"]), shape=())))
 def homes_history_posterior(home: Homes, object_index, tau, tau_q, history,
                             config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """(R,) float32: the posterior at ``tau_q`` given the object's receptacles at the
     ``history`` hours τ − history + 1 … τ, the preferences regime's favourites hidden (see the
     module's docstring); for the other regimes it equals ``homes_posterior``. 1 <= history
     <= tau + 1 (history 1: only where it is now)."""
-    _check_query(home, object_index, tau, tau_q, config)
-    check_int_array("history", history, shape=())
-    if is_concrete(history, tau):
-        check_int("history", history, 1, int(tau) + 1)
+    _check_home(home, object_index, tau, tau_q, config)
     return _history_posterior(home, object_index, tau, tau_q, history, config)
 
 
+@check_args(config=Instance(HomesConfig), object_index=_QUERY["object_index"],
+            hour=After(lambda got: IntArray(0, got["config"].num_hours - 2, shape=())))
 def transition_matrix(home: Homes, object_index, hour,
                       config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """P_hour (R, R) float32 of one object: [i, j] = P(j at hour + 1 | i at hour); zero outside
     its allowed receptacles. A pure function of (home, object, hour of week)."""
-    validate_homes(home, config, batched=False, values=False)  # the config too
-    if is_concrete(object_index, hour):
-        check_int("object_index", object_index, 0, config.max_objects - 1)
-        check_int("hour", hour, 0, config.num_hours - 2)
+    validate_homes(home, config, batched=False, values=False)
     return _transition_matrix(home, object_index, hour, config)
 
 
