@@ -340,9 +340,11 @@ def test_the_train_config_round_trips_and_refuses_bad_fields():
     with pytest.raises(ValueError, match="unknown keys"):
         homes_train.HomesTrainConfig.from_dict({**CFG.to_dict(), "colour": 1})
     assert homes_train.VAL_SEED != homes_train.TRAIN_SALT
-    assert homes_train._override(CFG, "model.dim=8").model.dim == 8
-    with pytest.raises(ValueError, match="unknown key"):
-        homes_train._override(CFG, "model.width=8")
+    from flowmaps_jax.training.overrides import apply_overrides
+
+    assert apply_overrides(CFG, ["model.dim=8"]).model.dim == 8
+    with pytest.raises(ValueError, match=r"unknown config key 'model\.width'"):
+        apply_overrides(CFG, ["model.width=8"])
 
 
 def test_large_requests_run_in_chunks_of_queries_with_the_same_answers(run_dir, homes, queries,

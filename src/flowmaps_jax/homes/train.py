@@ -40,10 +40,19 @@ from flowmaps_jax.homes.tokens import shared_tau_batch
 from flowmaps_jax.store import rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointSaveError
 from flowmaps_jax.training.loop import StopFlag
+from flowmaps_jax.training.overrides import apply_overrides
 from flowmaps_jax.training.runlog import RunBook
 from flowmaps_jax.training.state import TrainState, ema_update, make_optimizer, make_schedule
-from flowmaps_jax.validation import check_instance, check_int
-from flowmaps_jax.validation.fields import Instance, Int, PlainName, Real, check_fields
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.fields import (
+    Instance,
+    Int,
+    IntBelow,
+    OutputDir,
+    PlainName,
+    Real,
+    check_fields,
+)
 
 VAL_SEED = 0x40E5_0001
 """The fixed seed of the validation homes (distinct from every training key and from the
@@ -92,7 +101,6 @@ class HomesTrainConfig:
 
     def __post_init__(self):
         check_fields(self, _RULES, store=False)
-        check_int("warmup_steps", self.warmup_steps, 0, self.steps - 1)
         room = self.homes.num_hours - self.model.history - self.max_horizon
         if room < 0:
             raise ValueError(f"homes.num_hours={self.homes.num_hours} leaves no map hour with "
@@ -132,9 +140,10 @@ _RULES = {
     **{name: Real(0.0, 1.0, high_open=True) for name in ("b1", "b2", "ema_decay")},
     "weight_decay": Real(0.0), "cfm_weight": Real(0.0),
     "clip_norm": Real(0.0, low_open=True), "default_horizon_frac": Real(0.0, 1.0),
-    "preset": PlainName(),
+    "preset": PlainName(), "warmup_steps": IntBelow("steps"),
 }
-"""What each field of :class:`HomesTrainConfig` may hold (cross-field bounds: in the body)."""
+"""What each field of :class:`HomesTrainConfig` may hold (the bounds across the parts of the
+config: in the body)."""
 
 
 def homes_preset() -> HomesTrainConfig:
@@ -261,12 +270,11 @@ def make_eval(cfg: HomesTrainConfig):
 # --------------------------------------------------------------------------- the loop
 
 
+@check_args(cfg=Instance(HomesTrainConfig), run_dir=OutputDir())
 def run(cfg: HomesTrainConfig, run_dir, *, overwrite: bool = False, progress: bool = True,
         log: Callable[[str], None] = print) -> dict:
     """Train ``cfg`` into ``run_dir`` (see the module docstring). Returns ``{"status": "done" |
     "interrupted" | "nan", "step", "best_step", "best_val_ce", "run_dir"}``."""
-    check_instance("cfg", cfg, HomesTrainConfig)
-    run_dir = rundir.check_run_dir(run_dir)
     with rundir.claim(run_dir, resume=False, overwrite=overwrite, log=log), StopFlag() as stop:
         rundir.write_atomic(run_dir / "config.json", json.dumps(cfg.to_dict(), indent=2) + "\n")
         log(f"Run directory: {run_dir.absolute()} (config.json, metrics.jsonl, checkpoints/)")
@@ -320,34 +328,6 @@ def run(cfg: HomesTrainConfig, run_dir, *, overwrite: bool = False, progress: bo
 # --------------------------------------------------------------------------- the command line
 
 
-def _override(cfg: HomesTrainConfig, text: str) -> HomesTrainConfig:
-    """``cfg`` with one ``key=value`` (a top-level field, ``model.X`` or ``homes.X``; the value
-    read as the field's current type)."""
-    key, sep, value = text.partition("=")
-    key = key.strip()
-    parts = key.split(".")
-    if not sep or len(parts) > 2:
-        raise ValueError(f"--set needs KEY=VALUE with KEY a field, model.X or homes.X; got "
-                         f"{text!r}")
-    owner = getattr(cfg, parts[0]) if len(parts) == 2 and parts[0] in ("model", "homes") \
-        else cfg if len(parts) == 1 else None
-    field = parts[-1]
-    if owner is None or field not in {f.name for f in dataclasses.fields(owner)} or \
-            field in ("model", "homes"):
-        raise ValueError(f"--set: unknown key {key!r}")
-    old = getattr(owner, field)
-    if isinstance(old, tuple):
-        raise ValueError(f"--set {key}: tuples cannot be set from the command line")
-    try:
-        new = (value.strip().lower() in ("1", "true", "yes")) if isinstance(old, bool) \
-            else type(old)(value.strip())
-    except ValueError:
-        raise ValueError(f"--set {key}: {value!r} is not a {type(old).__name__}") from None
-    if owner is cfg:
-        return dataclasses.replace(cfg, **{field: new})
-    return dataclasses.replace(cfg, **{parts[0]: dataclasses.replace(owner, **{field: new})})
-
-
 def main_from_args(args) -> int:
     """``python -m flowmaps_jax.train --preset homes …`` (parsed by
     :mod:`flowmaps_jax.training.cli`): 0 done, 1 non-finite loss, 130 interrupted.
@@ -358,8 +338,7 @@ def main_from_args(args) -> int:
         if value not in (None, False):
             raise ValueError(f"{flag} is not supported with --preset {args.preset}")
     cfg = PRESETS[args.preset]()
-    for text in args.overrides:
-        cfg = _override(cfg, text)
+    cfg = apply_overrides(cfg, args.overrides)
     if args.steps is not None:
         cfg = dataclasses.replace(cfg, steps=args.steps,
                                   warmup_steps=min(cfg.warmup_steps, max(args.steps - 1, 0)))
