@@ -27,8 +27,8 @@ from flowmaps_jax.flowsim.homes import floorplan, furnish, schedules
 from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.schedules import BALANCED, FREQUENT, PREFERENCES, ROUTINE
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
-from flowmaps_jax.validation import array_bytes, check_args, check_int, check_request_size
-from flowmaps_jax.validation.fields import Instance, Int, Key
+from flowmaps_jax.validation import array_bytes, check_args, check_request_size
+from flowmaps_jax.validation.fields import After, Instance, Int, Key
 
 
 def _uniform24(words: jnp.ndarray) -> jnp.ndarray:
@@ -227,14 +227,14 @@ def _simulate(key, home: Homes, object_index, tau, steps: int, num_chains: int,
     return jax.vmap(chain)(jax.random.split(key, num_chains))
 
 
-@check_args(key=Key(), num_chains=Int())
+@check_args(key=Key(), num_chains=Int(), config=Instance(HomesConfig),
+            tau=After(lambda got: Int(0, got["config"].num_hours - 1)),
+            tau_q=After(lambda got: Int(got["tau"] + 1, got["config"].num_hours - 1)),
+            object_index=After(lambda got: Int(0, got["config"].max_objects - 1)))
 def simulate(key, home: Homes, object_index: int, tau: int, tau_q: int, num_chains: int,
              config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """Monte-Carlo check of the posterior: (num_chains,) int32 receptacles of object
     ``object_index`` at hour ``tau_q`` of independent chains started where it is at ``tau``
     in ``home`` (one home, ``Homes.home(i)``), by the sampler ``generate_homes`` uses."""
     validate_homes(home, config, batched=False, values=False)
-    tau = check_int("tau", tau, 0, config.num_hours - 1)
-    tau_q = check_int("tau_q", tau_q, tau + 1, config.num_hours - 1)
-    object_index = check_int("object_index", object_index, 0, config.max_objects - 1)
     return _simulate(key, home, object_index, tau, tau_q - tau, num_chains, config)
