@@ -39,7 +39,8 @@ from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.search.policies import POLICIES
 from flowmaps_jax.tables import ASSIGN_TOLERANCE, TABLE_METHODS
-from flowmaps_jax.validation import check_choice, check_int, check_real
+from flowmaps_jax.validation import check_args, check_choice
+from flowmaps_jax.validation.fields import Choice, Int, Real
 
 MAIN_POLICIES = ("most-probable", "greedy", "optimal")
 """The policies every prior is driven by (``"nearest"`` is the prior-free row)."""
@@ -118,6 +119,7 @@ def _check_policies(policies: Sequence[str]) -> tuple[str, ...]:
     return policies
 
 
+@check_args(budget=Int(), p_miss=Real(0.0, 1.0, high_open=True))
 def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowSimConfig, *,
                  policies: Sequence[str] = MAIN_POLICIES, budget: int = sim.DEFAULT_BUDGET,
                  p_miss: float = 0.0, start: str = "centre", key: jax.Array | None = None,
@@ -129,8 +131,6 @@ def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowS
     "expected", "expected_ratio", "curves"}}}}, runs: {(row, policy): RowRun}).
     """
     policies = _check_policies(policies)
-    budget = check_int("budget", budget)
-    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
     if EXACT_ROW not in priors:
         raise ValueError(f"priors must include the {EXACT_ROW!r} row (the reference)")
     key = jax.random.key(0) if key is None else key
@@ -201,6 +201,7 @@ def model_history(predictor) -> int:
     return int(getattr(getattr(predictor, "model", None), "history", 1) or 1)
 
 
+@check_args(seed=Int(None), num_samples=Int(), table_method=Choice(TABLE_METHODS))
 def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig, *,
                seed: int = 0, num_samples: int = DEFAULT_SAMPLES,
                times_per_env: int = DEFAULT_TIMES_PER_ENV, horizons: Sequence[int] | None = None,
@@ -223,11 +224,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     ``Predictor.table_weights``; models without them, such as the MLP baseline, are sampled) or
     "samples" (``num_samples`` per query).
     """
-    if table_method not in TABLE_METHODS:
-        raise ValueError(f"table_method must be one of {TABLE_METHODS}; got {table_method!r}")
     policies = tuple(policies)
-    check_int("seed", seed, minimum=None)
-    num_samples = check_int("num_samples", num_samples)
     for p in predictors:
         flowsim = getattr(p, "flowsim", None)
         if flowsim is not None and (flowsim.map_size != config.map_size
