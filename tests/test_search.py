@@ -333,7 +333,7 @@ def test_other_bad_inputs(search_set):
 
 def test_cli_rejects_bad_arguments_before_loading_models(capsys):
     assert cli.main(["--checkpoint", "pretrained:flowmaps", "--out", "x", "--p-miss", "1"]) == 2
-    assert "p_miss" in capsys.readouterr().err
+    assert "--p-miss" in capsys.readouterr().err
     assert cli.main(["--checkpoint", "pretrained:flowmaps", "--budget", "0"]) == 2
     assert "--budget" in capsys.readouterr().err
     assert cli.main(["--checkpoint", "pretrained:flowmaps"]) == 2  # --out needed

@@ -52,11 +52,10 @@ from flowmaps_jax.validation import (
     check_int,
     check_options,
     check_output_dir,
-    check_real,
     make_output_dir,
     save_figure,
 )
-from flowmaps_jax.validation.fields import Choice, Int, Optional, Seed
+from flowmaps_jax.validation.fields import Choice, Int, Optional, Real, Seed
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -167,7 +166,8 @@ def search_world(models: Sequence, world: str | None = None,
 
 _OPTIONS = {**{dest: Int() for dest in ("num_envs", "times_per_env", "samples", "budget",
                                          "chunk_rows")},
-            "seed": Seed(), "world": Optional(Choice(tuple(WORLDS))), "history": Optional(Int())}
+            "seed": Seed(), "world": Optional(Choice(tuple(WORLDS))), "history": Optional(Int()),
+            "p_miss": Real(0.0, 1.0, high_open=True)}  # the chance a look at the right table misses
 """What each option may hold, checked before any model is loaded."""
 
 
@@ -177,8 +177,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         check_options(args, _OPTIONS)
-        check_real("p_miss (the chance a look at the right table misses the object)",
-                   args.p_miss, 0.0, 1.0, high_open=True)
         if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         out = pathlib.Path(check_output_dir(
