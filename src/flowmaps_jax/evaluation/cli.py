@@ -181,6 +181,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = model.flowsim
         if args.world is not None:
             config = world_config(args.world, config)
+        scenes = None
         if args.scenes is not None:
             scenes, config = load_scenes(args.scenes)
             if args.world is not None and world_of(config) != args.world:
@@ -188,9 +189,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                                  f"are of the world {world_of(config) or 'custom'}")
             if args.num_envs < scenes.num_envs:
                 scenes = jax.tree_util.tree_map(lambda a: a[: args.num_envs], scenes)
-            check_size([*baselines, model], scenes.num_envs, config, args)
-        else:
-            check_size([*baselines, model], args.num_envs, config, args)
+        check_size([*baselines, model], args.num_envs if scenes is None else scenes.num_envs,
+                   config, args)  # before the scenes are made
+        if scenes is None:
             scenes = validation_split(config, num_envs=args.num_envs, mesh=mesh)
         print(f"Evaluating {model.name} ({model.source}, step {model.step})"
               + "".join(f" vs {b.name} ({b.source}, step {b.step})" for b in baselines)
