@@ -557,3 +557,17 @@ class After:
 
     def __call__(self, name: str, value: Any) -> Any:
         return self.make(_CHECKED.get() or {})(name, value)
+
+
+@dataclasses.dataclass(frozen=True)
+class Index:
+    """An int index below a named size of the check (``Index("E")``: 0..E−1), the size bound by
+    an argument checked before it (``config``, ``scenes``), as a Python int."""
+
+    size: str
+
+    def __call__(self, name: str, value: Any) -> int:
+        bound = size(self.size)
+        if bound is None:
+            raise TypeError(f"Index({self.size!r}) of {name}: the size is not bound yet")
+        return check_int(name, value, 0, bound - 1)
