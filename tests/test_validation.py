@@ -579,3 +579,13 @@ def test_index_rule_bounds_by_a_named_size():
             pick(np.zeros((3, 2), np.int32), env)
     with pytest.raises(TypeError, match="not bound"):
         check_args(env=Index("E"))(lambda env: env)(0)
+
+
+def test_positive_array_rule():
+    from flowmaps_jax.validation.fields import PositiveArray
+
+    rule = PositiveArray(what=" (sides)")
+    assert rule("size", np.array([1.0, 2.5])).shape == (2,)
+    for bad in (np.array([1.0, 0.0]), np.array([-1.0]), np.array([np.nan]), np.array([True])):
+        with pytest.raises(ValueError, match=r"^size (must|contains)"):
+            rule("size", bad)

@@ -312,7 +312,7 @@ DEFAULT_CONFIG = FlowSimConfig()
 
 @dataclasses.dataclass(frozen=True)
 class ConfigArg:
-    """The rule of a ``config`` argument (``@check_args(config=CONFIG_ARG, ...)``): a
+    """The rule of a ``config`` argument (``config=CONFIG_ARG`` in a ``check_args``): a
     ``FlowSimConfig``, binding the named sizes F (furniture), M (objects), T (timesteps) and S
     (max_tokens) of the check, so that the scenes and indices checked after it must agree."""
 

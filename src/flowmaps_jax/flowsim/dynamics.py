@@ -115,7 +115,7 @@ def _jitter_posterior(num_slots, slot_now, tau_q, config: FlowSimConfig):
 
 
 @check_args(config=CONFIG_ARG, num_slots=IntArray(1, "F"), horizon=IntArray(0, "T-1"),
-            dynamics=Optional(Choice(DYNAMICS)))
+            dynamics=Optional(Choice(DYNAMICS)), tau=Optional(IntArray(0, "T-1")))
 def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAULT_CONFIG,
                     dynamics: str | None = None, tau=None) -> jnp.ndarray:
     """Exact distribution (..., F) float32 of an object's slot ``horizon`` steps ahead.
@@ -145,7 +145,6 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
         raise ValueError("tau is required for dynamics='schedule_jitter' (its posterior depends "
                          "on the absolute query time tau + horizon)")
     if is_concrete(tau, horizon):
-        check_int_array("tau", tau, 0, max_h)
         check_int_array("tau + horizon", np.asarray(tau) + np.asarray(horizon), 0, max_h)
     now = jax.nn.one_hot(jnp.asarray(slot_now), config.num_furniture, dtype=jnp.float32)
     ahead = _jitter_posterior(num_slots, slot_now, jnp.asarray(tau) + jnp.asarray(horizon),
