@@ -480,14 +480,6 @@ def check_history_len(history_len, tau, num_timesteps: int) -> np.ndarray:
     """history_len (an int or (Q,) ints) in 1 … T and at most τ + 1 (the query's past)."""
     h = check_int_array("history_len", history_len, 1, num_timesteps,
                         high_name=f"T={num_timesteps}")
-    try:
-        h_all, tau_all = np.broadcast_arrays(h, np.asarray(tau))
-    except ValueError:
-        raise ValueError(f"history_len must be one int or one per query (shape "
-                         f"{np.shape(tau)}); got shape {np.shape(h)}") from None
-    too_long = (h_all > tau_all + 1).ravel()
-    if np.any(too_long):
-        raise ValueError(f"history_len={int(np.max(h))} is longer than the query's past: an "
-                         f"object seen up to tau={int(tau_all.ravel()[np.argmax(too_long)])} has "
-                         f"at most tau + 1 observations")
+    check_int_array("history_len", h, 1, np.asarray(tau) + 1,
+                    high_name="tau + 1 (no longer than the query's past)")
     return h
