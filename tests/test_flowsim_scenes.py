@@ -164,7 +164,8 @@ def test_npz_refuses_broken_files(tmp_path, small_scenes, flowsim_config):
     good = tmp_path / "good.npz"
     save_scenes(good, small_scenes, flowsim_config)
     cases = {
-        "old.npz": ({"format_version": np.int64(FORMAT_VERSION + 1)}, (), "format version"),
+        "old.npz": ({"format_version": np.int64(FORMAT_VERSION + 1)}, (),
+                    "format_version must be one of"),
         "missing.npz": ({}, ("slot",), "missing arrays"),
         "noversion.npz": ({}, ("format_version",), "format_version"),
         "shape.npz": ({"slot": np.zeros((3, 3), np.int32)}, (), "slot must have shape"),

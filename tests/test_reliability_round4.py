@@ -382,9 +382,9 @@ def test_history_posterior_names_the_shape_first(history_len):
 
     config = FlowSimConfig()
     scenes = validation_split(config, num_envs=1)
-    with pytest.raises(ValueError, match="1-D arrays") as info:
+    with pytest.raises(ValueError, match=r"env must have shape \(Q,\)") as info:
         habits.history_posterior(scenes, config, 0, 0, 5, 1, history_len)
-    _tally("8 order", "1-D" in str(info.value))
+    _tally("8 order", "shape (Q,)" in str(info.value))
     # a 1-D call with too long a history: the clear error, not an IndexError
     with pytest.raises(ValueError, match="longer than the query's past"):
         habits.history_posterior(scenes, config, [0], [0], [5], [1], 10)

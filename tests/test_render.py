@@ -215,7 +215,7 @@ def test_draw_posterior_shades_by_probability(scenes, config, tmp_path):
 
 
 @pytest.mark.parametrize("probs, match", [
-    (np.ones((2, 10)) / 20, "probs must be a 1-D"),
+    (np.ones((2, 10)) / 20, r"probs must have shape \(\*,\)"),
     (np.array([0.5]), "probs must be a 1-D"),
     (np.array([0.5, -0.1, 0.6, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]), "non-negative"),
     (np.array([0.5, 0.3, 0.1, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1]), "beyond"),

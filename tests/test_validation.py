@@ -564,3 +564,28 @@ def test_a_rule_after_others_reads_their_checked_values():
                         store=False) == {"history": 4, "horizons": (1, 8)}
     with pytest.raises(ValueError, match=r"horizons must be an int in 1\.\.8"):
         check_fields(types.SimpleNamespace(history=4, horizons=[1, 9]), rules)
+
+
+def test_index_rule_bounds_by_a_named_size():
+    from flowmaps_jax.validation.fields import Index, IntArray, check_args
+
+    @check_args(x=IntArray(shape=("E", 2)), env=Index("E"))
+    def pick(x, env):
+        return env
+
+    assert pick(np.zeros((3, 2), np.int32), np.int64(2)) == 2
+    for env in (3, -1, 0.5, True):
+        with pytest.raises(ValueError, match=r"env must be an int in 0\.\.2"):
+            pick(np.zeros((3, 2), np.int32), env)
+    with pytest.raises(TypeError, match="not bound"):
+        check_args(env=Index("E"))(lambda env: env)(0)
+
+
+def test_positive_array_rule():
+    from flowmaps_jax.validation.fields import PositiveArray
+
+    rule = PositiveArray(what=" (sides)")
+    assert rule("size", np.array([1.0, 2.5])).shape == (2,)
+    for bad in (np.array([1.0, 0.0]), np.array([-1.0]), np.array([np.nan]), np.array([True])):
+        with pytest.raises(ValueError, match=r"^size (must|contains)"):
+            rule("size", bad)

@@ -312,13 +312,14 @@ DEFAULT_CONFIG = FlowSimConfig()
 
 @dataclasses.dataclass(frozen=True)
 class ConfigArg:
-    """The rule of a ``config`` argument (``@check_args(config=CONFIG_ARG, ...)``): a
-    ``FlowSimConfig``, binding the named sizes F (furniture), M (objects) and T (timesteps) of
-    the check, so that the scenes and indices checked after it must agree with the config."""
+    """The rule of a ``config`` argument (``config=CONFIG_ARG`` in a ``check_args``): a
+    ``FlowSimConfig``, binding the named sizes F (furniture), M (objects), T (timesteps) and S
+    (max_tokens) of the check, so that the scenes and indices checked after it must agree."""
 
     def __call__(self, name: str, value: Any) -> FlowSimConfig:
         config = Instance(FlowSimConfig)(name, value)
-        for size, field in (("F", "num_furniture"), ("M", "num_objects"), ("T", "num_timesteps")):
+        for size, field in (("F", "num_furniture"), ("M", "num_objects"), ("T", "num_timesteps"),
+                            ("S", "max_tokens")):
             bind_size(size, getattr(config, field), f"{name}.{field}")
         return config
 

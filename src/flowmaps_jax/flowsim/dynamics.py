@@ -24,10 +24,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, DYNAMICS, FlowSimConfig, SimShape
+from flowmaps_jax.flowsim.config import (
+    CONFIG_ARG,
+    DEFAULT_CONFIG,
+    DYNAMICS,
+    FlowSimConfig,
+    SimShape,
+)
 from flowmaps_jax.flowsim.layout import uniform16
 from flowmaps_jax.validation import check_args, check_int_array, is_concrete
-from flowmaps_jax.validation.fields import Choice, Instance, Optional
+from flowmaps_jax.validation.fields import Choice, IntArray, Optional
 
 
 def _draw_offsets(u: jnp.ndarray, probs: jnp.ndarray) -> jnp.ndarray:
@@ -108,7 +114,8 @@ def _jitter_posterior(num_slots, slot_now, tau_q, config: FlowSimConfig):
     return jnp.where((tau_q == 0)[..., None], at_start, jittered)
 
 
-@check_args(config=Instance(FlowSimConfig), dynamics=Optional(Choice(DYNAMICS)))
+@check_args(config=CONFIG_ARG, num_slots=IntArray(1, "F"), horizon=IntArray(0, "T-1"),
+            dynamics=Optional(Choice(DYNAMICS)), tau=Optional(IntArray(0, "T-1")))
 def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAULT_CONFIG,
                     dynamics: str | None = None, tau=None) -> jnp.ndarray:
     """Exact distribution (..., F) float32 of an object's slot ``horizon`` steps ahead.
@@ -127,11 +134,9 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     dynamics = config.dynamics if dynamics is None else dynamics
     max_h = config.num_timesteps - 1
     concrete = is_concrete(num_slots, slot_now, horizon)
-    if concrete:
-        check_int_array("num_slots", num_slots, 1, config.num_furniture)
+    if concrete:  # num_slots and horizon: checked (values where concrete) by the rules
         check_int_array("slot_now", slot_now, 0, np.asarray(num_slots) - 1,
                         high_name="num_slots - 1")
-        check_int_array("horizon", horizon, 0, max_h)
     if dynamics == "markov":
         probs = _markov_posterior(num_slots, slot_now, horizon, config)
         return probs if concrete else _nan_outside(
@@ -140,7 +145,6 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
         raise ValueError("tau is required for dynamics='schedule_jitter' (its posterior depends "
                          "on the absolute query time tau + horizon)")
     if is_concrete(tau, horizon):
-        check_int_array("tau", tau, 0, max_h)
         check_int_array("tau + horizon", np.asarray(tau) + np.asarray(horizon), 0, max_h)
     now = jax.nn.one_hot(jnp.asarray(slot_now), config.num_furniture, dtype=jnp.float32)
     ahead = _jitter_posterior(num_slots, slot_now, jnp.asarray(tau) + jnp.asarray(horizon),
@@ -180,7 +184,7 @@ def _transition_matrix(num_slots, config: FlowSimConfig):
     return jnp.where((row < k)[..., None], matrix, 0.0)
 
 
-@check_args(config=Instance(FlowSimConfig))
+@check_args(config=CONFIG_ARG, num_slots=IntArray(1, "F"))
 def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Markov transition matrix (..., F, F) float32: entry [i, j] = P(slot j next | slot i now).
 
@@ -189,8 +193,7 @@ def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.
     ``exact_posterior(K, slot, h)``. A concrete ``num_slots`` out of 1..F is a ``ValueError``;
     a traced one (under ``jit``) gives an all-NaN matrix.
     """
-    if is_concrete(num_slots):
-        check_int_array("num_slots", num_slots, 1, config.num_furniture)
+    if is_concrete(num_slots):  # its values checked by the rule
         return _transition_matrix(num_slots, config)
     k = jnp.asarray(num_slots)
     return _nan_outside(_transition_matrix(num_slots, config),

@@ -39,7 +39,15 @@ from flowmaps_jax.validation import (
     is_concrete,
     named_sizes,
 )
-from flowmaps_jax.validation.fields import Instance, Int, IntArray, Key, Optional, RealArray
+from flowmaps_jax.validation.fields import (
+    Instance,
+    Int,
+    IntArray,
+    Key,
+    Optional,
+    PositiveArray,
+    RealArray,
+)
 
 
 @struct.dataclass
@@ -128,10 +136,10 @@ def validate_scenes(scenes, config: FlowSimConfig | None = None, *, values: bool
 
 @dataclasses.dataclass(frozen=True)
 class ScenesArg:
-    """The rule of a ``scenes`` argument (``@check_args(config=CONFIG_ARG, scenes=SCENES_ARG)``):
-    a ``Scenes`` whose fields have the shapes of :data:`_SHAPES`, binding (or, after the config,
-    matching) the named sizes E, F, M, T; with ``values``, their values as ``validate_scenes``
-    says (map bounds and descriptor ids those of ``config``, if given)."""
+    """The rule of a ``scenes`` argument (``scenes=SCENES_ARG`` in a ``check_args``, after
+    ``config=CONFIG_ARG``): a ``Scenes`` whose fields have the shapes of :data:`_SHAPES`, binding
+    (or, after the config, matching) the named sizes E, F, M, T; with ``values``, their values as
+    ``validate_scenes`` says (map bounds and descriptor ids those of ``config``, if given)."""
 
     values: bool = False
     config: FlowSimConfig | None = None
@@ -150,16 +158,14 @@ class ScenesArg:
         f = a["furniture_boxes"].shape[1]
         box = RealArray(low=0, high=None if self.config is None else self.config.map_size,
                         what="px, within the map")
-        rules = {"furniture_boxes": box, "object_boxes": box, "object_size": RealArray(),
+        rules = {"furniture_boxes": box, "object_boxes": box, "object_size": PositiveArray(),
                  "num_slots": IntArray(1, f), "visit_order": IntArray(-1, f - 1),
                  "layout_redraws": IntArray(0), "habit": IntArray(0, habits.num_hypotheses(f) - 1)}
         for field, rule in rules.items():
             rule(f"{name}.{field}", a[field])
+        extents = PositiveArray(what=" in y1 - y0 and x1 - x0 (y0, x0, y1, x1): y1 > y0, x1 > x0")
         for field in ("furniture_boxes", "object_boxes"):
-            if np.any(a[field][..., 2:] <= a[field][..., :2]):
-                raise ValueError(f"{name}.{field} must have y1 > y0 and x1 > x0 (y0, x0, y1, x1)")
-        if np.any(a["object_size"] <= 0):
-            raise ValueError(f"{name}.object_size must be positive")
+            extents(f"{name}.{field}", a[field][..., 2:] - a[field][..., :2])
         for field, entries in (() if self.config is None else (
                 ("furniture_kind", self.config.furniture_kinds),
                 ("object_kind", self.config.categories))):

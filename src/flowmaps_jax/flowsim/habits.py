@@ -36,15 +36,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig, sim_params
+from flowmaps_jax.flowsim.config import CONFIG_ARG, HABITS, sim_params
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
 from flowmaps_jax.validation import (
+    bind_size,
     check_args,
     check_int_array,
     check_probabilities,
-    is_concrete,
 )
-from flowmaps_jax.validation.fields import Instance, Int
+from flowmaps_jax.validation.fields import Int, IntArray
 
 ROUTINE, PREFERENCES, DYNAMIC = range(3)
 
@@ -80,7 +80,7 @@ def hypothesis_names(num_furniture: int) -> list[str]:
             for fam, fav in zip(family, favourites, strict=True)]
 
 
-@check_args(num_furniture=Int())
+@check_args(num_furniture=Int(size="F"), num_slots=IntArray(1, "F"))
 def habit_prior(num_slots, habit_probs, num_furniture: int) -> jnp.ndarray:
     """Prior (..., NH) float32 over the hypotheses of objects with ``num_slots`` (...) places.
 
@@ -90,8 +90,6 @@ def habit_prior(num_slots, habit_probs, num_furniture: int) -> jnp.ndarray:
     traced ones (under ``jit``) are used as given.
     """
     check_probabilities("habit_probs", habit_probs, (3,))
-    if is_concrete(num_slots):
-        check_int_array("num_slots", num_slots, 1, num_furniture)
     family, _, needs = (jnp.asarray(a) for a in hypothesis_table(num_furniture))
     k = jnp.asarray(num_slots, jnp.int32)[..., None]
     exists = needs <= k  # (..., NH)
@@ -360,7 +358,19 @@ def _observed_history(slot, env, obj, tau, h, width: int):
     return jnp.where(valid, slots, 0), valid
 
 
-@check_args(config=Instance(FlowSimConfig))
+def _scenes_envs(name: str, scenes):
+    """The ``scenes`` rule of :func:`history_posterior`: binds E (its environments) for the
+    ``env`` bound; its arrays are read as they are (``generate.SCENES_ARG`` imports this module)."""
+    bind_size("E", scenes.num_envs, f"{name}.num_envs")
+    return scenes
+
+
+_QUERY = ("Q",)
+
+
+@check_args(config=CONFIG_ARG, scenes=_scenes_envs, env=IntArray(0, "E-1", _QUERY),
+            obj=IntArray(0, "M-1", _QUERY), tau=IntArray(0, "T-1", _QUERY),
+            horizon=IntArray(0, "T-1", _QUERY))
 def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     """Exact posterior (Q, F) over the slot of object ``obj`` in ``env`` at τ + Δτ, given its
     slots at τ − H + 1 … τ (H = ``history_len``), under the habit mixture of ``config``.
@@ -371,14 +381,7 @@ def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     ``dynamics.exact_posterior``. Raises ``ValueError`` naming the argument on bad input.
     """
     t = config.num_timesteps
-    env = check_int_array("env", env, 0, scenes.num_envs - 1)
-    obj = check_int_array("obj", obj, 0, config.num_objects - 1)
-    tau = check_int_array("tau", tau, 0, t - 1)
-    horizon = check_int_array("horizon", horizon, 0, t - 1)
     check_int_array("tau + horizon", tau + horizon, 0, t - 1)
-    if not (env.shape == obj.shape == tau.shape == horizon.shape) or env.ndim != 1:
-        raise ValueError(f"env, obj, tau and horizon must be 1-D arrays of one length; got "
-                         f"shapes {env.shape}, {obj.shape}, {tau.shape}, {horizon.shape}")
     history_len = check_history_len(history_len, tau, t)
     width = int(np.max(history_len))
     history_len = np.broadcast_to(history_len, tau.shape).astype(np.int32)
@@ -477,14 +480,6 @@ def check_history_len(history_len, tau, num_timesteps: int) -> np.ndarray:
     """history_len (an int or (Q,) ints) in 1 … T and at most τ + 1 (the query's past)."""
     h = check_int_array("history_len", history_len, 1, num_timesteps,
                         high_name=f"T={num_timesteps}")
-    try:
-        h_all, tau_all = np.broadcast_arrays(h, np.asarray(tau))
-    except ValueError:
-        raise ValueError(f"history_len must be one int or one per query (shape "
-                         f"{np.shape(tau)}); got shape {np.shape(h)}") from None
-    too_long = (h_all > tau_all + 1).ravel()
-    if np.any(too_long):
-        raise ValueError(f"history_len={int(np.max(h))} is longer than the query's past: an "
-                         f"object seen up to tau={int(tau_all.ravel()[np.argmax(too_long)])} has "
-                         f"at most tau + 1 observations")
+    check_int_array("history_len", h, 1, np.asarray(tau) + 1,
+                    high_name="tau + 1 (no longer than the query's past)")
     return h

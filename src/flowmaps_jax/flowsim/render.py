@@ -30,9 +30,17 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, FancyArrowPatch, Patch, Polygon, Rectangle
 
 from flowmaps_jax.flowsim.config import FlowSimConfig
-from flowmaps_jax.flowsim.generate import Scenes, validate_scenes
-from flowmaps_jax.validation import check_args, check_int, check_probabilities
-from flowmaps_jax.validation.fields import Flag, Instance, Optional, RealArray
+from flowmaps_jax.flowsim.generate import SCENES_ARG, Scenes
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.fields import (
+    Distribution,
+    Flag,
+    Index,
+    Instance,
+    IntArray,
+    Optional,
+    RealArray,
+)
 
 # matplotlib marker used in legends for each object shape.
 _LEGEND_MARKERS = {"square": "s", "circle": "o", "triangle": "^", "diamond": "D",
@@ -50,18 +58,9 @@ _PANEL_SIZE = 4.0  # inches per map panel
 # --------------------------------------------------------------------------------------------
 
 _CONFIG = Instance(FlowSimConfig)
-"""Every figure's ``config``; its ``scenes`` are checked with ``validate_scenes(scenes,
-values=False)`` (shapes and dtypes; the scenes' own sizes, not the config's: a descriptor the
-config lacks is named when it is looked up)."""
-
-
-def _num_timesteps(scenes: Scenes) -> int:
-    return int(np.shape(scenes.slot)[1])
-
-
-def _check_env_tau(scenes: Scenes, env: Any, tau: Any) -> tuple[int, int]:
-    return (check_int("env", env, 0, scenes.num_envs - 1),
-            check_int("tau", tau, 0, _num_timesteps(scenes) - 1))
+"""Every figure's ``config``; its ``scenes`` are checked with ``SCENES_ARG`` (shapes and dtypes;
+the scenes' own sizes E, F, M, T, not the config's, bound the indices: a descriptor the config
+lacks is named when it is looked up)."""
 
 
 def _by_descriptor(entries: Sequence[Any]) -> dict[int, Any]:
@@ -248,8 +247,9 @@ def _draw_order_arrows(ax: Axes, view: _EnvView, obj: int, numbers: bool = True,
 # Public figures
 # --------------------------------------------------------------------------------------------
 
-@check_args(config=_CONFIG, ax=Optional(Instance(Axes)), show_orders=Flag(), legend=Flag(),
-            title=Optional(Instance(str)))
+@check_args(config=_CONFIG, scenes=SCENES_ARG, env=Index("E"), tau=Index("T"),
+            highlight=Optional(Index("M")), ax=Optional(Instance(Axes)), show_orders=Flag(),
+            legend=Flag(), title=Optional(Instance(str)))
 def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Axes | None = None,
                show_orders: bool = False, highlight: int | None = None, legend: bool = True,
                title: str | None = None) -> Figure:
@@ -261,11 +261,7 @@ def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Ax
     ``ax=None`` a new figure is made; otherwise the drawing goes into ``ax`` (e.g. a panel of a
     larger figure) and ``ax.figure`` is returned. ``legend`` adds a furniture/object legend.
     """
-    validate_scenes(scenes, values=False)
-    env, tau = _check_env_tau(scenes, env, tau)
     view = _EnvView(scenes, env, config)
-    if highlight is not None:
-        highlight = check_int("highlight", highlight, 0, view.num_objects - 1)
     return _draw_scene(view, env, tau, ax, show_orders, highlight, legend, title)
 
 
@@ -288,7 +284,8 @@ def _draw_scene(view: _EnvView, env: int, tau: int, ax: Axes | None, show_orders
     return ax.figure
 
 
-@check_args(config=_CONFIG)
+@check_args(config=_CONFIG, scenes=SCENES_ARG, env=Index("E"),
+            taus=IntArray(0, "T-1", shape=(None,)))
 def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSimConfig) -> Figure:
     """A row of panels showing environment ``env`` at the strictly increasing timesteps ``taus``.
 
@@ -296,14 +293,10 @@ def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSim
     ghost with an arrow to where it is now, and the panel's x-label lists how many places along its
     visiting order each object advanced (modulo the number of places K). Paper Fig. 1.
     """
-    validate_scenes(scenes, values=False)
-    flat = np.asarray(taus) if not isinstance(taus, (str, bytes)) else np.asarray(None)
-    if flat.ndim != 1 or flat.size == 0:
-        raise ValueError(f"taus must be a non-empty 1-D sequence of timestep indices; got {taus!r}")
-    env = check_int("env", env, 0, scenes.num_envs - 1)
-    taus = [check_int("taus", t, 0, _num_timesteps(scenes) - 1) for t in flat.tolist()]
-    if any(b <= a for a, b in itertools.pairwise(taus)):
-        raise ValueError(f"taus must be strictly increasing; got {taus}")
+    taus = [int(t) for t in np.asarray(taus).tolist()]
+    if not taus or any(b <= a for a, b in itertools.pairwise(taus)):
+        raise ValueError(f"taus must be a non-empty, strictly increasing sequence of timestep "
+                         f"indices; got {taus}")
     view = _EnvView(scenes, env, config)
     fig = Figure(figsize=(_PANEL_SIZE * len(taus), _PANEL_SIZE + 0.9), layout="constrained")
     axes = fig.subplots(1, len(taus), squeeze=False)[0]
@@ -337,7 +330,7 @@ def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSim
     return fig
 
 
-@check_args(config=_CONFIG)
+@check_args(config=_CONFIG, scenes=SCENES_ARG, env=Index("E"))
 def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure:
     """One panel per object category: its visiting order as numbered, cyclic arrows.
 
@@ -346,8 +339,6 @@ def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure
     The map centre (the pivot of the angular orderings) is marked with a cross; for angular
     orderings dotted rays join it to each table, and a short grey ray marks angle 0 (up).
     """
-    validate_scenes(scenes, values=False)
-    env = check_int("env", env, 0, scenes.num_envs - 1)
     view = _EnvView(scenes, env, config)
     m_count = view.num_objects
     fig = Figure(figsize=(_PANEL_SIZE * m_count, _PANEL_SIZE + 0.7), layout="constrained")
@@ -380,7 +371,8 @@ def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure
     return fig
 
 
-@check_args(config=_CONFIG, ax=Optional(Instance(Axes)))
+@check_args(config=_CONFIG, scenes=SCENES_ARG, env=Index("E"), obj=Index("M"), tau=Index("T"),
+            probs=Distribution((None,), atol=0.0, normalised=False), ax=Optional(Instance(Axes)))
 def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, config: FlowSimConfig,
                    ax: Axes | None = None) -> Figure:
     """Shade the places object ``obj`` could occupy by probability, over the scene at ``tau``.
@@ -390,17 +382,11 @@ def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, con
     to 1 (e.g. empirical slot frequencies). Each place is the object's box centred on that piece of
     furniture, filled with an opacity proportional to its probability and labelled with it.
     """
-    validate_scenes(scenes, values=False)
-    env, tau = _check_env_tau(scenes, env, tau)
     view = _EnvView(scenes, env, config)
-    obj = check_int("obj", obj, 0, view.num_objects - 1)
     k = int(view.num_slots[obj])
-    if np.ndim(probs) != 1 or np.shape(probs)[0] < k:
-        raise ValueError(f"probs must be a 1-D array over the {k} places of object {obj} "
-                         f"(optionally padded); got shape {np.shape(probs)}")
-    probs = check_probabilities("probs", probs, normalised=False)
-    if np.any(probs[k:] > 1e-6):
-        raise ValueError(f"probs has mass beyond the object's {k} places")
+    if len(probs) < k or np.any(probs[k:] > 1e-6):
+        raise ValueError(f"probs must be a 1-D array over the {k} places of object {obj}, "
+                         f"optionally padded with zeros (no mass beyond them); got {probs}")
     probs = probs[:k]
     fig = _draw_scene(view, env, tau, ax, False, obj, ax is None, None)
     ax = fig.axes[0] if ax is None else ax

@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import io
 import json
@@ -24,10 +25,11 @@ import numpy as np
 
 from flowmaps_jax import boxes as box_geometry
 from flowmaps_jax import tokens as tok
-from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, FlowSimConfig
+from flowmaps_jax.flowsim.config import CONFIG_ARG, DEFAULT_CONFIG, FlowSimConfig
 from flowmaps_jax.flowsim.generate import (
     _FIELDS,
     _FLOAT_FIELDS,
+    SCENES_ARG,
     Scenes,
     generate,
     validate_scenes,
@@ -35,17 +37,18 @@ from flowmaps_jax.flowsim.generate import (
 from flowmaps_jax.validation import (
     array_bytes,
     check_args,
+    check_choice,
     check_file,
     check_int,
-    check_int_array,
     check_output_file,
     check_request_size,
     check_seed,
     prefix_errors,
     read_npz,
+    size,
     write_file,
 )
-from flowmaps_jax.validation.fields import Instance, Int, Key, Real, RealArray
+from flowmaps_jax.validation.fields import Int, IntArray, Key, Real, RealArray
 
 FORMAT_VERSION = 2
 TRAIN_SEED = 0
@@ -53,36 +56,16 @@ VALIDATION_SEED = 1
 _TRAIN_TAG, _VALIDATION_TAG = 0, 1
 
 
-# ------------------------------------------------------------------------------ validation
-
-
-_CONFIG = Instance(FlowSimConfig)
-
-
-def _check_indices(**indices: tuple) -> tuple[jnp.ndarray, ...]:
-    """1-D integer index arrays of one length N, each in 0..high; as int32 jax arrays.
-
-    ``indices``: name -> (value, high).
-    """
-    checked = {name: check_int_array(name, value, 0, high, shape=(None,))
-               for name, (value, high) in indices.items()}
-    shapes = {name: tuple(np.shape(value)) for name, value in checked.items()}
-    if len(set(shapes.values())) > 1:
-        raise ValueError(f"{' and '.join(shapes)} must have the same shape (N,); got "
-                         f"{', '.join(f'{n} {s}' for n, s in shapes.items())}")
-    return tuple(jnp.asarray(value, jnp.int32) for value in checked.values())
-
-
 # ------------------------------------------------------------------------------ boxes
 
 
-@check_args(boxes_px=RealArray((..., 4)), config=_CONFIG)
+@check_args(boxes_px=RealArray((..., 4)), config=CONFIG_ARG)
 def normalise_boxes(boxes_px, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Pixel boxes (..., 4) (y0, x0, y1, x1) → normalised (y, x, h, w) / (map_size − 1)."""
     return box_geometry.normalise(jnp.asarray(boxes_px, jnp.float32), config.map_size)
 
 
-@check_args(boxes=RealArray((..., 4), finite=False), config=_CONFIG)
+@check_args(boxes=RealArray((..., 4), finite=False), config=CONFIG_ARG)
 def denormalise_boxes(boxes, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Inverse of ``normalise_boxes``: (..., 4) (y, x, h, w) → pixels (y0, x0, y1, x1).
 
@@ -138,19 +121,32 @@ def _tokens(scenes: Scenes, env, tau, config: FlowSimConfig, history: int = 1
                            tau=tau.astype(jnp.int32), age=age)
 
 
+@dataclasses.dataclass(frozen=True)
+class HistoryArg:
+    """The rule of a ``history`` argument checked after ``config=CONFIG_ARG`` (which binds the
+    sizes F, M, T, S): the maps read (the one at τ and the H − 1 before it) in 1 … T, and their
+    F + M·H tokens within S = ``config.max_tokens``."""
+
+    def __call__(self, name: str, value) -> int:
+        f, m, t, s = (size(n) for n in "FMTS")
+        h = check_int(name, value, 1, t)
+        if f + m * h > s:
+            raise ValueError(f"{name}={h} needs {f + m * h} tokens (F={f} + M={m} × {h}) but "
+                             f"max_tokens={s}; raise FlowSimConfig.max_tokens")
+        return h
+
+
+HISTORY_ARG = HistoryArg()
+
+
+@check_args(config=CONFIG_ARG, history=HISTORY_ARG)
 def check_history(history, config: FlowSimConfig) -> int:
-    """history (maps read: the one at τ and the H − 1 before it) in 1 … T, and its F + M·H
-    tokens within ``config.max_tokens``."""
-    h = check_int("history", history, 1, config.num_timesteps)
-    needed = config.num_furniture + config.num_objects * h
-    if needed > config.max_tokens:
-        raise ValueError(f"history={h} needs {needed} tokens (F={config.num_furniture} + "
-                         f"M={config.num_objects} × {h}) but max_tokens={config.max_tokens}; "
-                         f"raise FlowSimConfig.max_tokens")
-    return h
+    """``history`` checked against ``config`` (see :class:`HistoryArg`), as an int."""
+    return history
 
 
-@check_args(config=_CONFIG)
+@check_args(config=CONFIG_ARG, scenes=SCENES_ARG, env=IntArray(0, "E-1", shape=("N",)),
+            tau=IntArray(0, "T-1", shape=("N",)), history=HISTORY_ARG)
 def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFIG,
                  history: int = 1) -> tok.SceneTokens:
     """Tokens of environments ``env`` (N,) at state times ``tau`` (N,): SceneTokens (N, S).
@@ -161,10 +157,7 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
     t = 0 are masked out): furniture does not move in FlowSim, so the past maps add only their
     objects. Raises ``ValueError`` if the tokens exceed S. jit-able (a gather).
     """
-    validate_scenes(scenes, config, values=False)  # shapes and dtypes: cheap, fine under jit
-    history = check_history(history, config)
-    env, tau = _check_indices(env=(env, scenes.num_envs - 1),
-                              tau=(tau, config.num_timesteps - 1))
+    env, tau = jnp.asarray(env, jnp.int32), jnp.asarray(tau, jnp.int32)
     return _tokens_jit(scenes, env, tau, config, history)
 
 
@@ -173,14 +166,12 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
 _tokens_jit = jax.jit(_tokens, static_argnames=("config", "history"))
 
 
-@check_args(config=_CONFIG)
+@check_args(config=CONFIG_ARG, scenes=SCENES_ARG, env=IntArray(0, "E-1", shape=("N",)),
+            obj=IntArray(0, "M-1", shape=("N",)))
 def slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """(N, F, 4) normalised (y, x, h, w) box object ``obj`` (N,) of environment ``env`` (N,)
     would have at each position k of its visiting order (zeros for k >= num_slots)."""
-    validate_scenes(scenes, config, values=False)
-    env, obj = _check_indices(env=(env, scenes.num_envs - 1),
-                              obj=(obj, config.num_objects - 1))
-    return _slot_boxes(scenes, env, obj, config)
+    return _slot_boxes(scenes, jnp.asarray(env, jnp.int32), jnp.asarray(obj, jnp.int32), config)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -241,8 +232,8 @@ def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                           target=target)
 
 
-@check_args(key=Key(), batch_size=Int(), queries_per_scene=Int(), config=_CONFIG,
-            short_frac=Real(0.0, 1.0), short_max=Int())
+@check_args(key=Key(), batch_size=Int(), queries_per_scene=Int(), config=CONFIG_ARG,
+            scenes=SCENES_ARG, short_frac=Real(0.0, 1.0), short_max=Int(), history=HISTORY_ARG)
 def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                      config: FlowSimConfig = DEFAULT_CONFIG, short_frac: float = 0.0,
                      short_max: int = 3, history: int = 1) -> tok.TrainBatch:
@@ -252,11 +243,9 @@ def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: in
     (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config, short_*).
     ``history``: tokens of the last H maps (see ``scene_tokens``).
     """
-    validate_scenes(scenes, config, values=False)
     check_request_size(f"a batch of {batch_size} scenes x {queries_per_scene} queries",
                        array_bytes((batch_size, config.max_tokens, 7))
                        + array_bytes((batch_size, queries_per_scene, 6)))
-    history = check_history(history, config)
     return _train_batch(key, scenes, batch_size, queries_per_scene, config,
                         short_frac, short_max, history)
 
@@ -286,7 +275,7 @@ def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200
 
 # ------------------------------------------------------------------------------ .npz I/O
 
-@check_args(path=check_output_file, config=_CONFIG)
+@check_args(path=check_output_file, config=CONFIG_ARG, scenes=SCENES_ARG)
 def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) -> None:
     """Write scenes and their config to one ``.npz`` (with ``FORMAT_VERSION``) at ``path``.
 
@@ -311,20 +300,17 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
     (:func:`flowmaps_jax.validation.read_npz`)."""
     with prefix_errors("load_scenes: "):
         path = check_file("path", path)
-        contents = read_npz(repr(path), path, allowed=("format_version", "config_json", *_FIELDS))
+        contents = read_npz(repr(path), path, allowed=("format_version", "config_json", *_FIELDS),
+                            required=("format_version", "config_json",
+                                      *(n for n in _FIELDS if n != "habit")))
     with prefix_errors(f"load_scenes: {path!r}: ", also=(TypeError,)):
-        if "format_version" not in contents:
-            raise ValueError("it has no format_version; not a FlowSim file")
-        version = check_int("format_version", contents["format_version"], None)
-        if version not in (1, FORMAT_VERSION):
-            raise ValueError(f"it has format version {version}; this code reads versions 1 and "
-                             f"{FORMAT_VERSION}")
+        version = check_choice("format_version", check_int("format_version", contents[
+            "format_version"], None), (1, FORMAT_VERSION))  # 1: before habits (no habit array)
         if version == 1 and "habit" not in contents and "slot" in contents:  # routine only
             contents["habit"] = np.zeros((contents["slot"].shape[0], contents["slot"].shape[2]),
                                          np.int32)
-        missing = [n for n in ("config_json", *_FIELDS) if n not in contents]
-        if missing:
-            raise ValueError(f"it is missing arrays {missing}")
+        if "habit" not in contents:
+            raise ValueError("it is missing arrays ['habit']")
         with prefix_errors("it has an invalid config: ", also=(TypeError,)):
             config = FlowSimConfig.from_dict(json.loads(str(contents["config_json"])))
         validate_scenes(Scenes(**{name: contents[name] for name in _FIELDS}), config)

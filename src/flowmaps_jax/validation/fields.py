@@ -557,3 +557,33 @@ class After:
 
     def __call__(self, name: str, value: Any) -> Any:
         return self.make(_CHECKED.get() or {})(name, value)
+
+
+@dataclasses.dataclass(frozen=True)
+class Index:
+    """An int index below a named size of the check (``Index("E")``: 0..E−1), the size bound by
+    an argument checked before it (``config``, ``scenes``), as a Python int."""
+
+    size: str
+
+    def __call__(self, name: str, value: Any) -> int:
+        bound = size(self.size)
+        if bound is None:
+            raise TypeError(f"Index({self.size!r}) of {name}: the size is not bound yet")
+        return check_int(name, value, 0, bound - 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class PositiveArray:
+    """A finite real array of ``shape`` whose every value is > 0 (values of concrete arrays
+    only); ``what`` follows "must be positive" in the message (e.g. which differences)."""
+
+    shape: tuple | None = None
+    what: str = ""
+
+    def __call__(self, name: str, value: Any):
+        arr = check_real_array(name, value, self.shape)
+        if is_concrete(arr) and np.size(arr) and np.min(arr) <= 0:
+            raise ValueError(f"{name} must be positive{self.what}; got a minimum of "
+                             f"{np.min(arr)}")
+        return arr
