@@ -56,7 +56,7 @@ from flowmaps_jax.training.config import (
 )
 from flowmaps_jax.training.resume import restore_for_resume
 from flowmaps_jax.training.runlog import RunResult
-from flowmaps_jax.validation import check_args, check_int
+from flowmaps_jax.validation import check_args, check_int, prefix_errors
 from flowmaps_jax.validation.fields import Instance, OutputDir
 
 __all__ = ["Compiled", "RunResult", "compiled_functions", "run"]
@@ -215,10 +215,8 @@ def _start_params(cfg: TrainConfig, log: Callable[[str], None]):
     another model family or architecture."""
     if cfg.init_from is None:
         return None
-    try:
+    with prefix_errors(f"init_from={cfg.init_from!r}: "):
         source = load_model(cfg.init_from, devices=1)
-    except ValueError as err:
-        raise ValueError(f"init_from={cfg.init_from!r}: {err}") from None
     if source.family_name != cfg.family:
         raise ValueError(f"init_from={cfg.init_from!r} is a {source.family_name!r} model; this "
                          f"run trains {cfg.family!r}")
