@@ -589,3 +589,27 @@ def test_positive_array_rule():
     for bad in (np.array([1.0, 0.0]), np.array([-1.0]), np.array([np.nan]), np.array([True])):
         with pytest.raises(ValueError, match=r"^size (must|contains)"):
             rule("size", bad)
+
+
+def test_needs_refuses_a_value_given_without_or_with_another_argument():
+    import types
+
+    from flowmaps_jax.validation.fields import Needs, Optional, check_args, check_fields
+
+    @check_args(from_step=Needs("resume", "needs resume=True"))
+    def run(resume=False, from_step=None):
+        return from_step
+
+    assert run() is None and run(True, 0) == 0
+    with pytest.raises(ValueError, match="from_step needs resume=True"):
+        run(False, 0)  # 0 is given: only None (or False) is not
+    rules = {"resume": Optional(Needs("run_dir", "needs --run-dir")),
+             "overwrite": Needs("resume", "and --resume exclude each other", needs=False)}
+    check_fields(types.SimpleNamespace(run_dir=None, resume=False, overwrite=True), rules,
+                 store=False)
+    with pytest.raises(ValueError, match=r"^--overwrite and --resume exclude each other$"):
+        check_fields(types.SimpleNamespace(run_dir="r", resume=True, overwrite=True),
+                     {"run_dir": Optional(lambda n, v: v), **rules}, prefix="--", store=False)
+    with pytest.raises(ValueError, match=r"^resume needs --run-dir$"):
+        check_fields(types.SimpleNamespace(run_dir=None, resume=True, overwrite=False),
+                     {"run_dir": Optional(lambda n, v: v), **rules}, store=False)

@@ -14,6 +14,7 @@ from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import ModelFamily
 from flowmaps_jax.store.integrity import leaf_name
+from flowmaps_jax.validation.fields import After, Fields, Int, check_fields
 
 DEFAULT_FAMILY = "flowmaps"
 """The family of a stored config without ``model_kind`` (``TrainConfig``'s default)."""
@@ -40,18 +41,20 @@ class ModelSpec:
         return model_family(self.family_name)
 
     def __post_init__(self):
-        model, flowsim = self.model, self.flowsim
-        if model.num_descriptors < flowsim.num_descriptors:
-            raise ValueError(f"model.num_descriptors={model.num_descriptors} is smaller than the "
-                             f"simulator's {flowsim.num_descriptors} descriptor ids")
-        if model.tau_max != flowsim.num_timesteps:
-            raise ValueError(f"model.tau_max={model.tau_max} must equal "
-                             f"flowsim.num_timesteps={flowsim.num_timesteps}")
+        check_fields(self, _FITS, store=False)
 
     def abstract_params(self):
         """Structure, shapes and dtypes of the params this model initialises (nothing
         computed)."""
         return jax.eval_shape(lambda key: self.family.init(key, self.model), jax.random.key(0))
+
+
+_FITS = {"flowsim": Fields(FlowSimConfig, {"num_timesteps": Int(size="T")}, arrays=False),
+         "model": Fields(ModelConfig, {
+             "num_descriptors": After(lambda got: Int(got["flowsim"].num_descriptors)),
+             "tau_max": Int(size="T")}, arrays=False)}
+"""A model that fits its simulator: descriptor ids for all the simulator's descriptors, and
+``tau_max`` equal to ``flowsim.num_timesteps``."""
 
 
 def model_spec(config: dict) -> ModelSpec:

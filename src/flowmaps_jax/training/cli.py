@@ -41,12 +41,12 @@ import os
 import pathlib
 import sys
 import time
+import types
 import typing
 
 from flowmaps_jax import distributed
 from flowmaps_jax.homes import train as homes_train
 from flowmaps_jax.model.families import MODEL_FAMILIES
-from flowmaps_jax.store import rundir
 from flowmaps_jax.training import resume
 from flowmaps_jax.training.config import (
     DEFAULT_PRESET,
@@ -57,6 +57,7 @@ from flowmaps_jax.training.config import (
 )
 from flowmaps_jax.training.loop import run
 from flowmaps_jax.training.overrides import replace_fields
+from flowmaps_jax.validation.fields import Needs, Optional, OutputDir, check_fields
 
 EXIT_OK, EXIT_NAN, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 1, 74, 130
 
@@ -116,20 +117,26 @@ def split_world(overrides: typing.Iterable[str]) -> tuple[list[str], str | None]
     return rest, world
 
 
+_KEPT = ("cannot change on --resume: a resumed run uses the run's saved config (--preset, "
+         "--family and --set world=..., which changes the data, cannot change); change fields "
+         "with --set")
+_OPTION_RULES = {
+    "run_dir": Optional(OutputDir()),  # '' is refused, not the default; --resume reads it
+    "resume": Needs("run_dir", "needs --run-dir (the run to continue)"),
+    "preset": Needs("resume", _KEPT, needs=False), "family": Needs("resume", _KEPT, needs=False),
+    "world": Needs("resume", _KEPT, needs=False),
+    "overwrite": Needs("resume", "and --resume exclude each other", needs=False)}
+"""The options checked before any is used (in this order), each named as typed."""
+_LABELS = {"resume": "--resume", "preset": "--preset", "family": "--family",
+           "world": "--set world=...", "overwrite": "--overwrite"}
+
+
 def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]:
     """The run's config and directory from parsed arguments (ValueError on bad input)."""
     overrides, world = split_world(args.overrides)
-    # '' is refused, not the default; a resumed run's directory is read, so checked first
-    run_dir = None if args.run_dir is None else rundir.check_run_dir(args.run_dir)
+    options = types.SimpleNamespace(**vars(args), world=world)
+    run_dir = check_fields(options, _OPTION_RULES, store=False, labels=_LABELS)["run_dir"]
     if args.resume:
-        if run_dir is None:
-            raise ValueError("--resume needs --run-dir (the run to continue)")
-        if args.preset is not None or args.family is not None or world is not None:
-            raise ValueError("--resume uses the run's saved config: --preset, --family and "
-                             "--set world=... (it changes the data) cannot change on --resume; "
-                             "change fields with --set")
-        if args.overwrite:  # before the run directory is read
-            raise ValueError("--resume and --overwrite exclude each other")
         cfg = resume.resume_config(run_dir, args.from_step)
     else:
         cfg = get_preset(args.preset or DEFAULT_PRESET)

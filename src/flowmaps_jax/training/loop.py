@@ -56,13 +56,15 @@ from flowmaps_jax.training.config import (
 )
 from flowmaps_jax.training.resume import restore_for_resume
 from flowmaps_jax.training.runlog import RunResult
-from flowmaps_jax.validation import check_args, check_int
-from flowmaps_jax.validation.fields import Instance, OutputDir
+from flowmaps_jax.validation import check_args, prefix_errors
+from flowmaps_jax.validation.fields import After, Instance, Int, Needs, Optional, OutputDir
 
 __all__ = ["Compiled", "RunResult", "compiled_functions", "run"]
 
 
-@check_args(cfg=Instance(TrainConfig), run_dir=OutputDir())
+@check_args(cfg=Instance(TrainConfig), run_dir=OutputDir(),
+            stop_at=Optional(After(lambda got: Int(1, got["cfg"].steps))),
+            from_step=Needs("resume", "needs resume=True (--from-step needs --resume)"))
 def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         overwrite: bool = False, from_step: int | None = None, stop_at: int | None = None,
         progress: bool = True, on_step: Callable[[int, dict], None] | None = None,
@@ -85,7 +87,11 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     :class:`~flowmaps_jax.store.checkpoint_store.CheckpointSaveError`.
     """
     # ---- Prelude: every check, then the run's pieces; nothing is written before the last one.
-    mesh = _check_run(cfg, resume=resume, from_step=from_step, stop_at=stop_at)
+    # The arguments were checked by check_args; then those that depend on the devices.
+    mesh = distributed.training_mesh(cfg.devices)
+    distributed.check_divides("batch_size", cfg.batch_size, mesh, "the scenes of a batch")
+    data.host_train_part(cfg)  # a multi-host job: the data must divide over the hosts
+    check_run_resources(cfg, devices=1 if mesh is None else mesh.size)
     start_params = None if resume else _start_params(cfg, log)
     primary = jax.process_index() == 0
     with StopFlag() as stop, rundir.claim(run_dir, resume=resume, overwrite=overwrite,
@@ -193,32 +199,14 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         return result
 
 
-def _check_run(cfg: TrainConfig, *, resume: bool, from_step: int | None,
-               stop_at: int | None) -> typing.Any:
-    """The training mesh, once the arguments of :func:`run` that depend on each other and on the
-    devices have passed their checks, resource bounds included (ValueError otherwise); ``cfg``
-    and ``run_dir`` were checked by its ``check_args``."""
-    if stop_at is not None:
-        check_int("stop_at", stop_at, 1, cfg.steps)
-    if from_step is not None and not resume:
-        raise ValueError("--from-step needs --resume (from_step needs resume=True)")
-    mesh = distributed.training_mesh(cfg.devices)
-    distributed.check_divides("batch_size", cfg.batch_size, mesh, "the scenes of a batch")
-    data.host_train_part(cfg)  # a multi-host job: the data must divide over the hosts
-    check_run_resources(cfg, devices=1 if mesh is None else mesh.size)
-    return mesh
-
-
 def _start_params(cfg: TrainConfig, log: Callable[[str], None]):
     """The weights ``cfg.init_from`` names (their EMA params), checked against the model: None
     without ``init_from``; ValueError naming ``init_from`` when they cannot be read or belong to
     another model family or architecture."""
     if cfg.init_from is None:
         return None
-    try:
+    with prefix_errors(f"init_from={cfg.init_from!r}: "):
         source = load_model(cfg.init_from, devices=1)
-    except ValueError as err:
-        raise ValueError(f"init_from={cfg.init_from!r}: {err}") from None
     if source.family_name != cfg.family:
         raise ValueError(f"init_from={cfg.init_from!r} is a {source.family_name!r} model; this "
                          f"run trains {cfg.family!r}")

@@ -23,6 +23,7 @@ import types
 import typing
 from typing import Any, Literal
 
+from flowmaps_jax.validation.errors import prefix_errors
 from flowmaps_jax.validation.fields import check_keys
 
 SHORTHANDS = {"precision": "model.precision"}
@@ -63,11 +64,9 @@ def replace_fields(cfg, overrides: typing.Iterable[str] | dict[str, Any] = (),
         _set_path(cls, data, SHORTHANDS.get(key, key).split("."), value, key)
     for key, value in typed_items:
         _set_path(cls, data, SHORTHANDS.get(key, key).split("."), value, key, convert=False)
-    try:
+    keys = ", ".join(dict.fromkeys(k for k, _ in items + typed_items))
+    with prefix_errors(f"bad override ({keys}): ", also=(TypeError,)):
         return cls.from_dict(data)
-    except (ValueError, TypeError) as err:
-        keys = ", ".join(dict.fromkeys(k for k, _ in items + typed_items))
-        raise ValueError(f"bad override ({keys}): {err}") from err
 
 
 def _override_items(overrides: typing.Iterable[str] | dict[str, Any]) -> list[tuple[str, Any]]:

@@ -587,3 +587,23 @@ class PositiveArray:
             raise ValueError(f"{name} must be positive{self.what}; got a minimum of "
                              f"{np.min(arr)}")
         return arr
+
+
+def _given(value: Any) -> bool:
+    return value is not None and value is not False
+
+
+@dataclasses.dataclass(frozen=True)
+class Needs:
+    """A value given (not None or False) only while ``field``, an argument (or field) checked
+    before it, is given too (or, with ``needs=False``, is not); the message is the name and
+    ``why`` (``--resume needs --run-dir``, ``--overwrite and --resume exclude each other``)."""
+
+    field: str
+    why: str
+    needs: bool = True
+
+    def __call__(self, name: str, value: Any) -> Any:
+        if _given(value) and _given((_CHECKED.get() or {})[self.field]) != self.needs:
+            raise ValueError(f"{name} {self.why}")
+        return value
