@@ -58,7 +58,6 @@ from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
     check_args,
     check_fields,
-    check_instance,
     check_key,
     check_real_array,
     check_resources,
@@ -171,7 +170,6 @@ class Predictor:
         descriptors, a query that names a table instead of an object category, more token slots
         than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
-        check_instance("queries", queries, Queries)  # check_inputs takes None for "no queries"
         check_inputs(self.model, tokens, queries,  # every field: type, dtype, shape, range, role
                      object_descriptors=self.flowsim.object_descriptors)
         b, q = np.shape(queries.descriptor)
