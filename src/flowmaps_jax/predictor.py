@@ -59,15 +59,28 @@ from flowmaps_jax.validation import (
     check_args,
     check_fields,
     check_key,
-    check_real_array,
     check_resources,
     embedding_bytes,
     network_flops,
     solver_evaluations,
 )
-from flowmaps_jax.validation.fields import Flag, Instance, Int, Optional
+from flowmaps_jax.validation.fields import (
+    After,
+    Array,
+    Choice,
+    Fields,
+    Flag,
+    Instance,
+    Int,
+    Optional,
+    RealArray,
+)
 
 SOLVERS = flow.SOLVERS
+SOLVER_RULES = {"method": Choice(SOLVERS),
+                "num_steps": After(lambda got: Int(3 if got["method"] == "accurate" else 2))}
+"""The solver's arguments (as :func:`flowmaps_jax.flow.check_solver`): ``num_steps`` grid
+points, at least 2 (3 for ``"accurate"``), ``method`` one of :data:`SOLVERS`."""
 FAR_LIMIT = 1e3
 """Boxes with a number beyond ±this (normalised units; the map is [0, 1]) have log-density −inf:
 the noise prior alone puts exp(−5·10⁵) there, and the ODE would overflow to NaN."""
@@ -184,13 +197,12 @@ class Predictor:
         return b, q
 
     def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool,
-                       num_steps: int, method: str, slots: int) -> tuple[int, str]:
-        """The solver's (num_steps, method), checked (:func:`flowmaps_jax.flow.check_solver`);
-        refuse (ValueError) a request whose working memory or work would not fit the shared
+                       num_steps: int, method: str, slots: int) -> None:
+        """Refuse (ValueError) a request whose working memory or work would not fit the shared
         budget (:func:`flowmaps_jax.validation.check_resources`), before XLA tries: the rows'
         memory (``model.freq_bands`` included), the solver's ``num_steps`` (its time grid, and
-        its evaluations one after another) and the FLOPs of every evaluation."""
-        num_steps, method = flow.check_solver(num_steps, method)
+        its evaluations one after another) and the FLOPs of every evaluation. The solver's
+        arguments are checked already (:data:`SOLVER_RULES`)."""
         rows = b * q * n
         factor = DENSITY_FACTOR if with_density else 1
         evaluations = solver_evaluations(num_steps, method) if self.family.uses_solver else 1
@@ -202,11 +214,10 @@ class Predictor:
             + rows * factor * embedding_bytes(self.model, 5) + 8 * num_steps,
             flops=rows * evaluations * factor * per_row + b * per_map,
             sequential=evaluations)
-        return num_steps, method
 
     # ----------------------------------------------------------------------- inference
 
-    @check_args(num_samples=Int(), pixels=Flag(), return_log_prob=Flag())
+    @check_args(num_samples=Int(), pixels=Flag(), return_log_prob=Flag(), **SOLVER_RULES)
     def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
                num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
                pixels: bool = False, return_log_prob: bool = False):
@@ -224,8 +235,8 @@ class Predictor:
         tables' terms, so it solves backwards once more). Planners weigh samples with it.
         """
         b, q = self.validate(tokens, queries)
-        num_steps, method = self._check_request("sample", b, q, num_samples, return_log_prob,
-                                                num_steps, method, np.shape(tokens.boxes)[1])
+        self._check_request("sample", b, q, num_samples, return_log_prob, num_steps, method,
+                            np.shape(tokens.boxes)[1])
         keys = scene_keys(key, b)
         tokens, queries, keys = self._on_mesh(*canonical_inputs(tokens, queries), keys)
         family = self.family
@@ -247,6 +258,8 @@ class Predictor:
         return tables.table_probabilities(self, tokens, queries, num_samples, key,
                                           method=method, **sample_kwargs)
 
+    @check_args(queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),
+                x=RealArray(("B", "Q", None, 4)), **SOLVER_RULES)
     def log_prob(self, tokens: SceneTokens, queries: Queries, x,
                  num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
         """Exact log-density (B, Q, N) of normalised boxes x (B, Q, N, 4) (y, x, h, w).
@@ -256,11 +269,11 @@ class Predictor:
         MLP: the closed-form diagonal Gaussian.
         """
         b, q = self.validate(tokens, queries)
-        x = jnp.asarray(check_real_array("x", x, (b, q, None, 4)), jnp.float32)
+        x = jnp.asarray(x, jnp.float32)  # (B, Q, N, 4), checked
         if x.shape[2] < 1:
             raise ValueError("x must hold at least one box per query (N >= 1)")
-        num_steps, method = self._check_request("log_prob", b, q, x.shape[2], True, num_steps,
-                                                method, np.shape(tokens.boxes)[1])
+        self._check_request("log_prob", b, q, x.shape[2], True, num_steps, method,
+                            np.shape(tokens.boxes)[1])
         far = jnp.any(jnp.abs(x) > FAR_LIMIT, axis=-1)  # (B, Q, N): density 0, not NaN
         x = jnp.where(far[..., None], 0.5, x)
         tokens, queries, x = self._on_mesh(*canonical_inputs(tokens, queries), x)

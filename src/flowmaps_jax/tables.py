@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.tokens import FURNITURE, OBJECT, Queries, SceneTokens
-from flowmaps_jax.validation import check_args, check_int
-from flowmaps_jax.validation.fields import Array, Choice, Fields, Int, Mask, Real
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.fields import After, Array, Choice, Fields, Int, Mask, Real
 
 CENTRE_SIGMA_SCALE = 0.35
 """Centre std of a mixture component of the protocol's q as a fraction of the box side (h for
@@ -160,7 +160,8 @@ TABLE_METHODS = ("samples", "weights")
 """How :func:`table_probabilities` reads a model: by counting samples, or from explicit weights."""
 
 
-@check_args(method=Choice(TABLE_METHODS), num_samples=Int(0))
+@check_args(method=Choice(TABLE_METHODS),  # "weights" does not use num_samples: >= 0 will do
+            num_samples=After(lambda got: Int(0 if got["method"] == "weights" else 1)))
 def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
                         num_samples: int, key: jax.Array, method: str = "samples",
                         **sample_kwargs) -> jnp.ndarray:
@@ -182,7 +183,6 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
                          f"flowmaps_jax.predictor.Predictor); got {type(predictor).__name__}")
     if method == "weights":
         return predictor.table_weights(tokens, queries)
-    num_samples = check_int("num_samples", num_samples)  # sampling needs one (>= 1)
     boxes, mask = table_boxes(tokens, queries)  # every queried object is on its map
     if "solver" in sample_kwargs:
         sample_kwargs["method"] = sample_kwargs.pop("solver")
