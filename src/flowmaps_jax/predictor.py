@@ -58,12 +58,12 @@ from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
     check_args,
     check_fields,
-    check_key,
     check_resources,
     embedding_bytes,
     network_flops,
     solver_evaluations,
 )
+from flowmaps_jax.validation.arrays import size
 from flowmaps_jax.validation.fields import (
     After,
     Array,
@@ -72,6 +72,7 @@ from flowmaps_jax.validation.fields import (
     Flag,
     Instance,
     Int,
+    Key,
     Optional,
     RealArray,
 )
@@ -89,13 +90,11 @@ the noise prior alone puts exp(−5·10⁵) there, and the ODE would overflow to
 # --------------------------------------------------------------------------- validation helpers
 
 
-def scene_keys(key: Any, num_scenes: int) -> jax.Array:
-    """One typed PRNG key per scene from a single key (split) or a batch of B keys (as given):
-    the keys the family cores take. ``ValueError`` for anything else.
-
-    Raw uint32 keys (``jax.random.PRNGKey``) are wrapped, so both kinds share compiled code.
-    """
-    key = check_key(key, shapes=((), (num_scenes,)))
+def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
+    """One typed PRNG key per scene from a single typed key (split) or a batch of B keys (as
+    given): the keys the family cores take. ``key`` is checked by the caller
+    (:meth:`Predictor.sample`'s ``key`` rule, which also wraps raw ``jax.random.PRNGKey`` keys
+    so both kinds share compiled code)."""
     return jax.random.split(key, num_scenes) if key.shape == () else key
 
 
@@ -217,7 +216,9 @@ class Predictor:
 
     # ----------------------------------------------------------------------- inference
 
-    @check_args(num_samples=Int(), pixels=Flag(), return_log_prob=Flag(), **SOLVER_RULES)
+    @check_args(queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),  # B for the key
+                key=After(lambda got: Key(((), (size("B"),)))), num_samples=Int(),
+                pixels=Flag(), return_log_prob=Flag(), **SOLVER_RULES)
     def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
                num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
                pixels: bool = False, return_log_prob: bool = False):
