@@ -26,7 +26,7 @@ that built the arrays themselves run the jitted kernels, which check nothing:
 from __future__ import annotations
 
 from functools import partial
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
@@ -34,7 +34,7 @@ import numpy as np
 
 from flowmaps_jax.tokens import FURNITURE, OBJECT, Queries, SceneTokens
 from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.fields import After, Array, Choice, Fields, Int, Mask, Real
+from flowmaps_jax.validation.fields import After, Array, Choice, Fields, Instance, Int, Mask, Real
 
 CENTRE_SIGMA_SCALE = 0.35
 """Centre std of a mixture component of the protocol's q as a fraction of the box side (h for
@@ -160,27 +160,45 @@ TABLE_METHODS = ("samples", "weights")
 """How :func:`table_probabilities` reads a model: by counting samples, or from explicit weights."""
 
 
+@runtime_checkable
+class SamplingModel(Protocol):
+    """What ``method="samples"`` reads: a model with ``sample`` (a
+    :class:`flowmaps_jax.predictor.Predictor`: FlowMaps or the MLP baseline)."""
+
+    def sample(self, tokens, queries, num_samples, key, **kwargs): ...
+
+
+@runtime_checkable
+class WeightsModel(Protocol):
+    """What ``method="weights"`` reads: a model with ``table_weights`` (a FlowMaps
+    :class:`flowmaps_jax.predictor.Predictor` with a read-out head)."""
+
+    def table_weights(self, tokens, queries): ...
+
+
+_MODELS = {"samples": SamplingModel, "weights": WeightsModel}
+
+
 @check_args(method=Choice(TABLE_METHODS),  # "weights" does not use num_samples: >= 0 will do
-            num_samples=After(lambda got: Int(0 if got["method"] == "weights" else 1)))
+            num_samples=After(lambda got: Int(0 if got["method"] == "weights" else 1)),
+            predictor=After(lambda got: Instance(_MODELS[got["method"]])))
 def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
                         num_samples: int, key: jax.Array, method: str = "samples",
                         **sample_kwargs) -> jnp.ndarray:
     """Mass on each table of the map from a sampling model → (B, Q, S + 1) float32.
 
     predictor: anything with :meth:`flowmaps_jax.predictor.Predictor.sample` (FlowMaps or the MLP
-    baseline). tokens: SceneTokens (B, S). queries: Queries (B, Q). num_samples: N boxes per query.
+    baseline; :class:`SamplingModel`). tokens: SceneTokens (B, S). queries: Queries (B, Q).
+    num_samples: N boxes per query.
     key: one typed PRNG key (``jax.random.key``) or one per scene (B,), as ``Predictor.sample``.
     Entry s < S is the fraction of the N samples assigned to furniture token s (see the module
     doc: tolerance :data:`ASSIGN_TOLERANCE`), entry S the fraction on no table. Extra keyword
     arguments (``num_steps``, ``solver``) go to ``predictor.sample`` (``solver`` as its
     ``method``).
     ``method="weights"``: a read-out head's explicit mixture weights instead
-    (``predictor.table_weights``; ``num_samples`` and ``key`` unused), no sampling noise.
+    (``predictor.table_weights``, :class:`WeightsModel`; ``num_samples`` and ``key`` unused),
+    no sampling noise.
     """
-    needed = "table_weights" if method == "weights" else "sample"
-    if not callable(getattr(predictor, needed, None)):  # weights: a Predictor with a read-out head
-        raise ValueError(f"method={method!r} needs a predictor with a {needed} method (a "
-                         f"flowmaps_jax.predictor.Predictor); got {type(predictor).__name__}")
     if method == "weights":
         return predictor.table_weights(tokens, queries)
     boxes, mask = table_boxes(tokens, queries)  # every queried object is on its map
