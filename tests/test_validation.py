@@ -289,8 +289,6 @@ def test_a_query_names_an_object_not_a_table(good_tokens, flowsim_config):
     with pytest.raises(ValueError, match=r"must name object categories \[0, 1, 2\]; got \[3\]"):
         tokens.validate_queries(table, good_tokens.tau, 6, 20,
                                 object_descriptors=flowsim_config.object_descriptors)
-    with pytest.raises(ValueError, match="must name object categories"):
-        tokens.check_query_roles(table, flowsim_config.object_descriptors)
     with pytest.raises(ValueError, match=r"queries\.tau_q must hold integers"):
         tokens.validate_queries(table.replace(tau_q=np.full((3, 1), 19.0)), good_tokens.tau,
                                 6, 20)

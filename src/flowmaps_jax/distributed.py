@@ -135,10 +135,8 @@ def _first(devices: list, num_devices: int | None) -> list:
     """The first ``num_devices`` of ``devices`` (all for None); ValueError if there are fewer."""
     if num_devices is None:
         return devices
-    num_devices = check_int("devices", num_devices, 1)
-    if num_devices > len(devices):
-        raise ValueError(f"devices={num_devices} but JAX sees {len(devices)} device(s) "
-                         f"({devices[0].platform}); use devices <= {len(devices)} or none (all)")
+    num_devices = check_int(f"devices (JAX sees {len(devices)} {devices[0].platform} device(s); "
+                            "none: all)", num_devices, 1, len(devices))
     return devices[:num_devices]
 
 

@@ -58,17 +58,30 @@ from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
     check_args,
     check_fields,
-    check_instance,
-    check_key,
-    check_real_array,
     check_resources,
     embedding_bytes,
     network_flops,
     solver_evaluations,
 )
-from flowmaps_jax.validation.fields import Flag, Instance, Int, Optional
+from flowmaps_jax.validation.arrays import size
+from flowmaps_jax.validation.fields import (
+    After,
+    Array,
+    Choice,
+    Fields,
+    Flag,
+    Instance,
+    Int,
+    Key,
+    Optional,
+    RealArray,
+)
 
 SOLVERS = flow.SOLVERS
+SOLVER_RULES = {"method": Choice(SOLVERS),
+                "num_steps": After(lambda got: Int(3 if got["method"] == "accurate" else 2))}
+"""The solver's arguments (as :func:`flowmaps_jax.flow.check_solver`): ``num_steps`` grid
+points, at least 2 (3 for ``"accurate"``), ``method`` one of :data:`SOLVERS`."""
 FAR_LIMIT = 1e3
 """Boxes with a number beyond ±this (normalised units; the map is [0, 1]) have log-density −inf:
 the noise prior alone puts exp(−5·10⁵) there, and the ODE would overflow to NaN."""
@@ -77,13 +90,11 @@ the noise prior alone puts exp(−5·10⁵) there, and the ODE would overflow to
 # --------------------------------------------------------------------------- validation helpers
 
 
-def scene_keys(key: Any, num_scenes: int) -> jax.Array:
-    """One typed PRNG key per scene from a single key (split) or a batch of B keys (as given):
-    the keys the family cores take. ``ValueError`` for anything else.
-
-    Raw uint32 keys (``jax.random.PRNGKey``) are wrapped, so both kinds share compiled code.
-    """
-    key = check_key(key, shapes=((), (num_scenes,)))
+def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
+    """One typed PRNG key per scene from a single typed key (split) or a batch of B keys (as
+    given): the keys the family cores take. ``key`` is checked by the caller
+    (:meth:`Predictor.sample`'s ``key`` rule, which also wraps raw ``jax.random.PRNGKey`` keys
+    so both kinds share compiled code)."""
     return jax.random.split(key, num_scenes) if key.shape == () else key
 
 
@@ -171,7 +182,6 @@ class Predictor:
         descriptors, a query that names a table instead of an object category, more token slots
         than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
-        check_instance("queries", queries, Queries)  # check_inputs takes None for "no queries"
         check_inputs(self.model, tokens, queries,  # every field: type, dtype, shape, range, role
                      object_descriptors=self.flowsim.object_descriptors)
         b, q = np.shape(queries.descriptor)
@@ -186,13 +196,12 @@ class Predictor:
         return b, q
 
     def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool,
-                       num_steps: int, method: str, slots: int) -> tuple[int, str]:
-        """The solver's (num_steps, method), checked (:func:`flowmaps_jax.flow.check_solver`);
-        refuse (ValueError) a request whose working memory or work would not fit the shared
+                       num_steps: int, method: str, slots: int) -> None:
+        """Refuse (ValueError) a request whose working memory or work would not fit the shared
         budget (:func:`flowmaps_jax.validation.check_resources`), before XLA tries: the rows'
         memory (``model.freq_bands`` included), the solver's ``num_steps`` (its time grid, and
-        its evaluations one after another) and the FLOPs of every evaluation."""
-        num_steps, method = flow.check_solver(num_steps, method)
+        its evaluations one after another) and the FLOPs of every evaluation. The solver's
+        arguments are checked already (:data:`SOLVER_RULES`)."""
         rows = b * q * n
         factor = DENSITY_FACTOR if with_density else 1
         evaluations = solver_evaluations(num_steps, method) if self.family.uses_solver else 1
@@ -204,11 +213,12 @@ class Predictor:
             + rows * factor * embedding_bytes(self.model, 5) + 8 * num_steps,
             flops=rows * evaluations * factor * per_row + b * per_map,
             sequential=evaluations)
-        return num_steps, method
 
     # ----------------------------------------------------------------------- inference
 
-    @check_args(num_samples=Int(), pixels=Flag(), return_log_prob=Flag())
+    @check_args(queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),  # B for the key
+                key=After(lambda got: Key(((), (size("B"),)))), num_samples=Int(),
+                pixels=Flag(), return_log_prob=Flag(), **SOLVER_RULES)
     def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
                num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
                pixels: bool = False, return_log_prob: bool = False):
@@ -226,8 +236,8 @@ class Predictor:
         tables' terms, so it solves backwards once more). Planners weigh samples with it.
         """
         b, q = self.validate(tokens, queries)
-        num_steps, method = self._check_request("sample", b, q, num_samples, return_log_prob,
-                                                num_steps, method, np.shape(tokens.boxes)[1])
+        self._check_request("sample", b, q, num_samples, return_log_prob, num_steps, method,
+                            np.shape(tokens.boxes)[1])
         keys = scene_keys(key, b)
         tokens, queries, keys = self._on_mesh(*canonical_inputs(tokens, queries), keys)
         family = self.family
@@ -249,6 +259,8 @@ class Predictor:
         return tables.table_probabilities(self, tokens, queries, num_samples, key,
                                           method=method, **sample_kwargs)
 
+    @check_args(queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),
+                x=RealArray(("B", "Q", None, 4)), **SOLVER_RULES)
     def log_prob(self, tokens: SceneTokens, queries: Queries, x,
                  num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
         """Exact log-density (B, Q, N) of normalised boxes x (B, Q, N, 4) (y, x, h, w).
@@ -258,11 +270,11 @@ class Predictor:
         MLP: the closed-form diagonal Gaussian.
         """
         b, q = self.validate(tokens, queries)
-        x = jnp.asarray(check_real_array("x", x, (b, q, None, 4)), jnp.float32)
+        x = jnp.asarray(x, jnp.float32)  # (B, Q, N, 4), checked
         if x.shape[2] < 1:
             raise ValueError("x must hold at least one box per query (N >= 1)")
-        num_steps, method = self._check_request("log_prob", b, q, x.shape[2], True, num_steps,
-                                                method, np.shape(tokens.boxes)[1])
+        self._check_request("log_prob", b, q, x.shape[2], True, num_steps, method,
+                            np.shape(tokens.boxes)[1])
         far = jnp.any(jnp.abs(x) > FAR_LIMIT, axis=-1)  # (B, Q, N): density 0, not NaN
         x = jnp.where(far[..., None], 0.5, x)
         tokens, queries, x = self._on_mesh(*canonical_inputs(tokens, queries), x)

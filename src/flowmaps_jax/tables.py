@@ -26,21 +26,15 @@ that built the arrays themselves run the jitted kernels, which check nothing:
 from __future__ import annotations
 
 from functools import partial
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.tokens import FURNITURE, OBJECT, Queries, SceneTokens
-from flowmaps_jax.validation import (
-    check_array,
-    check_instance,
-    check_int,
-    check_mask,
-    check_shape,
-    is_concrete,
-)
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.fields import After, Array, Choice, Fields, Instance, Int, Mask, Real
 
 CENTRE_SIGMA_SCALE = 0.35
 """Centre std of a mixture component of the protocol's q as a fraction of the box side (h for
@@ -95,6 +89,9 @@ def histogram(assignment, num_slots):
     return jnp.mean(jax.nn.one_hot(assignment, num_slots + 1), axis=-2)
 
 
+@check_args(rule=Choice(ASSIGN_RULES), samples=Array(("*B", "N", 4)),
+            slot_boxes=Array(("*B", "K", 4)), slot_mask=Mask(("*B", "K")),
+            radius=Real(0.0, low_open=True))
 def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jnp.ndarray,
                     radius: float = ASSIGN_RADIUS, rule: str = "v2") -> jnp.ndarray:
     """p̂ of samples under the protocol's assignment (module doc), else off.
@@ -103,35 +100,13 @@ def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jn
     radius: the least radius (v2; the radius itself under ``rule="v1"``).
     Returns (..., K + 1) float32 counts / N: the K slots then the off bin.
     """
-    if rule not in ASSIGN_RULES:
-        raise ValueError(f"rule must be one of {ASSIGN_RULES}; got {rule!r}")
-    s_shape = check_array("samples", samples, (..., None, 4)).shape
-    b_shape = check_array("slot_boxes", slot_boxes, (..., None, 4)).shape
-    check_shape("samples.shape[:-2]", s_shape[:-2], b_shape[:-2], "the leading dims of slot_boxes")
-    check_mask("slot_mask", slot_mask, b_shape[:-1])
-    if is_concrete(radius) and not float(radius) > 0:
-        raise ValueError(f"radius must be positive; got {radius}")
     assignment = assign_slots(jnp.asarray(samples, jnp.float32),
                               jnp.asarray(slot_boxes, jnp.float32), jnp.asarray(slot_mask, bool),
                               radius, rule)
-    return histogram(assignment, b_shape[-2])
+    return histogram(assignment, np.shape(slot_boxes)[-2])
 
 
 # --------------------------------------------------------------------------- table masses
-
-
-def _check_pair(tokens: Any, queries: Any) -> tuple[int, int, int]:
-    """(B, S, Q) of SceneTokens (B, S) and Queries (B, Q), or ValueError naming the argument."""
-    check_instance("tokens", tokens, SceneTokens)
-    check_instance("queries", queries, Queries)
-    box_shape = np.shape(tokens.boxes)
-    if len(box_shape) != 3 or box_shape[-1] != 4:
-        raise ValueError(f"tokens.boxes must have shape (B, S, 4); got {box_shape}")
-    q_shape = np.shape(queries.descriptor)
-    if len(q_shape) != 2 or q_shape[0] != box_shape[0]:
-        raise ValueError(f"queries.descriptor must have shape (B={box_shape[0]}, Q); got "
-                         f"{q_shape}")
-    return box_shape[0], box_shape[1], q_shape[1]
 
 
 def _object_matches(tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
@@ -156,6 +131,8 @@ def _table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jn
     return jnp.where(mask[..., None], boxes, 0.0), mask
 
 
+@check_args(tokens=Fields(SceneTokens, {"boxes": Array(("B", "S", 4))}),
+            queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}))
 def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Where the queried object would be on each table: its box centred on every table.
 
@@ -165,7 +142,6 @@ def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp
     ``ValueError`` naming ``queries.descriptor`` unless a queried object has one token in its map
     (in the map at τ, for tokens of a history: ``age`` 0).
     """
-    _check_pair(tokens, queries)
     matches = _object_matches(tokens, queries)
     if tokens.age is not None:  # a history's past maps hold the object again: its map is age 0
         matches = matches & (jnp.asarray(tokens.age) == 0)[:, None, :]
@@ -184,44 +160,50 @@ TABLE_METHODS = ("samples", "weights")
 """How :func:`table_probabilities` reads a model: by counting samples, or from explicit weights."""
 
 
+@runtime_checkable
+class SamplingModel(Protocol):
+    """What ``method="samples"`` reads: a model with ``sample`` (a
+    :class:`flowmaps_jax.predictor.Predictor`: FlowMaps or the MLP baseline)."""
+
+    def sample(self, tokens, queries, num_samples, key, **kwargs): ...
+
+
+@runtime_checkable
+class WeightsModel(Protocol):
+    """What ``method="weights"`` reads: a model with ``table_weights`` (a FlowMaps
+    :class:`flowmaps_jax.predictor.Predictor` with a read-out head)."""
+
+    def table_weights(self, tokens, queries): ...
+
+
+_MODELS = {"samples": SamplingModel, "weights": WeightsModel}
+
+
+@check_args(method=Choice(TABLE_METHODS),  # "weights" does not use num_samples: >= 0 will do
+            num_samples=After(lambda got: Int(0 if got["method"] == "weights" else 1)),
+            predictor=After(lambda got: Instance(_MODELS[got["method"]])))
 def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
                         num_samples: int, key: jax.Array, method: str = "samples",
                         **sample_kwargs) -> jnp.ndarray:
     """Mass on each table of the map from a sampling model → (B, Q, S + 1) float32.
 
     predictor: anything with :meth:`flowmaps_jax.predictor.Predictor.sample` (FlowMaps or the MLP
-    baseline). tokens: SceneTokens (B, S). queries: Queries (B, Q). num_samples: N boxes per query.
+    baseline; :class:`SamplingModel`). tokens: SceneTokens (B, S). queries: Queries (B, Q).
+    num_samples: N boxes per query.
     key: one typed PRNG key (``jax.random.key``) or one per scene (B,), as ``Predictor.sample``.
     Entry s < S is the fraction of the N samples assigned to furniture token s (see the module
     doc: tolerance :data:`ASSIGN_TOLERANCE`), entry S the fraction on no table. Extra keyword
     arguments (``num_steps``, ``solver``) go to ``predictor.sample`` (``solver`` as its
     ``method``).
     ``method="weights"``: a read-out head's explicit mixture weights instead
-    (``predictor.table_weights``; ``num_samples`` and ``key`` unused), no sampling noise.
+    (``predictor.table_weights``, :class:`WeightsModel`; ``num_samples`` and ``key`` unused),
+    no sampling noise.
     """
-    num_samples = check_table_method(predictor, method, num_samples)
     if method == "weights":
         return predictor.table_weights(tokens, queries)
     boxes, mask = table_boxes(tokens, queries)  # every queried object is on its map
     if "solver" in sample_kwargs:
         sample_kwargs["method"] = sample_kwargs.pop("solver")
     samples = predictor.sample(tokens, queries, num_samples, key, **sample_kwargs)
-    return empirical_slots(samples, boxes, mask, ASSIGN_TOLERANCE)
-
-
-def check_table_method(predictor: Any, method: str, num_samples: int) -> int:
-    """``ValueError`` unless ``predictor`` can give table probabilities by ``method``
-    (:data:`TABLE_METHODS`); returns ``num_samples`` checked (≥ 1; "weights" does not use it,
-    but it must still be an int ≥ 0)."""
-    if method not in TABLE_METHODS:
-        raise ValueError(f"method must be one of {TABLE_METHODS}; got {method!r}")
-    if method == "weights":
-        if not callable(getattr(predictor, "table_weights", None)):
-            raise ValueError("method='weights' needs a predictor with table_weights (a FlowMaps "
-                             f"Predictor with a read-out head); got {type(predictor).__name__}")
-        return check_int("num_samples", num_samples, 0)
-    if not callable(getattr(predictor, "sample", None)):
-        raise ValueError(f"predictor must have a sample(tokens, queries, num_samples, key) method "
-                         f"(a flowmaps_jax.predictor.Predictor); got {type(predictor).__name__}")
-    return check_int("num_samples", num_samples)
+    return empirical_slots(samples, boxes, mask, ASSIGN_TOLERANCE)  # checks the model's samples
 

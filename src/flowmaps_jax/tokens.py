@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from flowmaps_jax.validation import check_args, check_int, check_int_array
+from flowmaps_jax.validation import check_args
 from flowmaps_jax.validation.fields import Fields, Int, IntArray, Mask, Optional, RealArray
 
 FURNITURE = 0
@@ -122,24 +122,17 @@ def validate_queries(queries: Queries, tau, num_descriptors: int, tau_max: int,
     """Raise ``ValueError`` if ``queries`` is malformed (:data:`QUERY_RULES`): not integer
     arrays of shape (*B, Q) for ``tau`` (*B,) the scenes' state times, a descriptor unknown
     or, when ``object_descriptors`` is given, not one of them (a query names an object
-    category, not a furniture kind), or ``tau_q`` outside (tau, tau_max)."""
+    category, not a furniture kind, e.g. ``FlowSimConfig.object_descriptors``), or ``tau_q``
+    outside (tau, tau_max)."""
     if object_descriptors is not None:
-        check_query_roles(queries, object_descriptors)
+        desc = np.asarray(queries.descriptor)
+        wrong = ~np.isin(desc, np.asarray(list(object_descriptors), np.int64))
+        if np.any(wrong):
+            raise ValueError(f"queries.descriptor must name object categories "
+                             f"{sorted(int(d) for d in object_descriptors)}; got "
+                             f"{np.unique(desc[wrong]).tolist()} (furniture or unknown)")
     if np.any(np.asarray(queries.tau_q) <= np.asarray(tau)[..., None]):
         raise ValueError("queries.tau_q must be strictly greater than tau")
-
-
-def check_query_roles(queries: Queries, object_descriptors: Collection[int],
-                      name: str = "queries") -> None:
-    """Raise ``ValueError`` unless every query descriptor is one of ``object_descriptors``
-    (e.g. ``FlowSimConfig.object_descriptors``): a query asks where an object is, so a
-    furniture kind's descriptor (a table) is not a query."""
-    desc = np.asarray(check_int_array(f"{name}.descriptor", queries.descriptor))
-    wrong = ~np.isin(desc, np.asarray(list(object_descriptors), np.int64))
-    if np.any(wrong):
-        raise ValueError(f"{name}.descriptor must name object categories "
-                         f"{sorted(int(d) for d in object_descriptors)}; got "
-                         f"{np.unique(desc[wrong]).tolist()} (furniture or unknown)")
 
 
 def assert_batch_shapes(batch: TrainBatch) -> None:
@@ -159,9 +152,10 @@ def trim_padding(tokens: SceneTokens, num_tokens: int) -> SceneTokens:
     Padding is masked out of every attention and pooling, so a model's output is unchanged as long
     as only padding is dropped (FlowSim scenes have F + M real tokens first). Training and
     inference call this with ``num_tokens = F + M`` to skip the attention work on empty slots.
-    ``num_tokens`` must be static (a Python int). Shapes: (..., S, ·) → (..., num_tokens, ·).
+    ``num_tokens`` must be static (a Python int in 1..S; its callers' configs ensure it:
+    ``FlowSimConfig``/``TrainConfig`` check max_tokens >= F + M·history). Shapes:
+    (..., S, ·) → (..., num_tokens, ·).
     """
-    check_int("num_tokens", num_tokens, 1, tokens.num_tokens)
     return tokens.replace(boxes=tokens.boxes[..., :num_tokens, :],
                           descriptor=tokens.descriptor[..., :num_tokens],
                           kind=tokens.kind[..., :num_tokens],

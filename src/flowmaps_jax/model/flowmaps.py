@@ -306,11 +306,11 @@ def make_velocity_fn(params, config: ModelConfig, context: Context,
 
 
 @check_args(tokens=Fields(SceneTokens, {"mask": Array(("B", None))}),
-            queries=Optional(Fields(Queries, {"descriptor": Array(("B", "Q"))})),
+            queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),
             x_t=Optional(RealArray(("B", "Q", None, 4))),
             t=Optional(RealArray(("B", "Q"), low=0.0, high=1.0, what="flow time")))
-def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries | None = None,
-                 x_t=None, t=None, object_descriptors: Collection[int] | None = None) -> None:
+def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries, x_t=None, t=None,
+                 object_descriptors: Collection[int] | None = None) -> None:
     """Raise ``ValueError`` naming the argument if model inputs are malformed (call outside jit).
 
     tokens: SceneTokens (B, S), boxes in [0, 1], known descriptors,
@@ -319,6 +319,5 @@ def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries | No
     descriptors a query may name (an object category, not a furniture kind).
     """
     validate_tokens(tokens, config.num_descriptors, num_timesteps=config.tau_max)
-    if queries is not None:
-        validate_queries(queries, tokens.tau, config.num_descriptors, config.tau_max,
-                         object_descriptors)
+    validate_queries(queries, tokens.tau, config.num_descriptors, config.tau_max,
+                     object_descriptors)
