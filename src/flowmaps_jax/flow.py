@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation.fields import After, Choice, Int
 
 T_SAMPLERS = ("uniform", "beta", "logit_normal")
 SOLVERS = ("midpoint", "euler", "accurate")
@@ -50,6 +51,13 @@ def sample_t(key: jax.Array, shape: tuple[int, ...], kind: str = "beta") -> jnp.
     if kind == "logit_normal":
         return jax.nn.sigmoid(jax.random.normal(key, shape))
     raise ValueError(f"t_sampler (kind) must be one of {T_SAMPLERS}; got {kind!r}")
+
+
+SOLVER_RULES = {"method": Choice(SOLVERS),
+                "num_steps": After(lambda got: Int(3 if got["method"] == "accurate" else 2))}
+""":func:`check_solver`'s rules as a ``check_args`` table (for entry points that declare
+their arguments): ``num_steps`` grid points, at least 2 (3 for ``"accurate"``), ``method``
+one of :data:`SOLVERS`."""
 
 
 def check_solver(num_steps, method, name: str = "num_steps") -> tuple[int, str]:

@@ -67,7 +67,6 @@ from flowmaps_jax.validation.arrays import size
 from flowmaps_jax.validation.fields import (
     After,
     Array,
-    Choice,
     Fields,
     Flag,
     Instance,
@@ -78,10 +77,7 @@ from flowmaps_jax.validation.fields import (
 )
 
 SOLVERS = flow.SOLVERS
-SOLVER_RULES = {"method": Choice(SOLVERS),
-                "num_steps": After(lambda got: Int(3 if got["method"] == "accurate" else 2))}
-"""The solver's arguments (as :func:`flowmaps_jax.flow.check_solver`): ``num_steps`` grid
-points, at least 2 (3 for ``"accurate"``), ``method`` one of :data:`SOLVERS`."""
+SOLVER_RULES = flow.SOLVER_RULES
 FAR_LIMIT = 1e3
 """Boxes with a number beyond ±this (normalised units; the map is [0, 1]) have log-density −inf:
 the noise prior alone puts exp(−5·10⁵) there, and the ODE would overflow to NaN."""
