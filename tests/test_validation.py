@@ -405,7 +405,8 @@ def test_real_array_bounds_name_the_argument_and_the_range():
 def test_mixture_and_table_rules():
     import dataclasses
 
-    from flowmaps_jax.validation.fields import Int, Mixture, Table, Text, check_fields
+    from flowmaps_jax.validation.composite import Mixture, Table
+    from flowmaps_jax.validation.fields import Int, Text, check_fields
 
     mix = Mixture(("a", "b"), "habit")
     assert mix("habits", [("b", 0.25), ("a", 0.75)]) == (("b", 0.25), ("a", 0.75))
@@ -447,7 +448,8 @@ def test_mixture_and_table_rules():
 
 
 def test_fields_checks_a_pytrees_fields_in_the_arguments_scope():
-    from flowmaps_jax.validation.fields import Fields, Int, IntArray, Mask, Optional, check_args
+    from flowmaps_jax.validation.composite import Fields
+    from flowmaps_jax.validation.fields import Int, IntArray, Mask, Optional, check_args
 
     rules = {"mask": Mask(("*B", "S")), "kind": IntArray(0, "K-1", ("*B", "S")),
              "tau": IntArray(0, "T", ("*B",))}
@@ -474,7 +476,7 @@ def test_fields_checks_a_pytrees_fields_in_the_arguments_scope():
 
 
 def test_pattern_rule_names_the_field_and_clips_the_value():
-    from flowmaps_jax.validation.fields import Pattern
+    from flowmaps_jax.validation.composite import Pattern
 
     rule = Pattern("[0-9a-f]{4}", "four hex digits")
     assert rule("digest", "00af") == "00af"
@@ -488,7 +490,8 @@ def test_pattern_rule_names_the_field_and_clips_the_value():
 def test_fields_rule_checks_nested_shapes_in_one_scope():
     import dataclasses as dc
 
-    from flowmaps_jax.validation.fields import Array, Fields, check_args
+    from flowmaps_jax.validation.composite import Fields
+    from flowmaps_jax.validation.fields import Array, check_args
 
     @dc.dataclass
     class Inner:
@@ -516,7 +519,7 @@ def test_fields_rule_checks_nested_shapes_in_one_scope():
 def test_output_dir_rule_gives_a_path_and_refuses_a_file(tmp_path):
     import pathlib
 
-    from flowmaps_jax.validation.fields import OutputDir
+    from flowmaps_jax.validation.composite import OutputDir
 
     assert OutputDir()("run_dir", str(tmp_path / "new")) == tmp_path / "new"
     assert isinstance(OutputDir()("run_dir", str(tmp_path)), pathlib.Path)
@@ -528,7 +531,8 @@ def test_output_dir_rule_gives_a_path_and_refuses_a_file(tmp_path):
 
 
 def test_int_below_is_bounded_by_a_field_checked_before_it():
-    from flowmaps_jax.validation.fields import Int, IntBelow, check_args
+    from flowmaps_jax.validation.composite import IntBelow
+    from flowmaps_jax.validation.fields import Int, check_args
 
     @check_args(steps=Int(), warmup=IntBelow("steps"))
     def schedule(steps, warmup):
@@ -545,7 +549,8 @@ def test_int_below_is_bounded_by_a_field_checked_before_it():
 def test_a_rule_after_others_reads_their_checked_values():
     import types
 
-    from flowmaps_jax.validation.fields import After, Each, Int, check_args, check_fields
+    from flowmaps_jax.validation.composite import After
+    from flowmaps_jax.validation.fields import Each, Int, check_args, check_fields
 
     @check_args(steps=Int(), warmup=After(lambda got: Int(0, got["steps"] - 1)))
     def schedule(warmup, steps):
@@ -565,7 +570,8 @@ def test_a_rule_after_others_reads_their_checked_values():
 
 
 def test_index_rule_bounds_by_a_named_size():
-    from flowmaps_jax.validation.fields import Index, IntArray, check_args
+    from flowmaps_jax.validation.composite import Index
+    from flowmaps_jax.validation.fields import IntArray, check_args
 
     @check_args(x=IntArray(shape=("E", 2)), env=Index("E"))
     def pick(x, env):
@@ -580,7 +586,7 @@ def test_index_rule_bounds_by_a_named_size():
 
 
 def test_positive_array_rule():
-    from flowmaps_jax.validation.fields import PositiveArray
+    from flowmaps_jax.validation.composite import PositiveArray
 
     rule = PositiveArray(what=" (sides)")
     assert rule("size", np.array([1.0, 2.5])).shape == (2,)
@@ -592,7 +598,8 @@ def test_positive_array_rule():
 def test_needs_refuses_a_value_given_without_or_with_another_argument():
     import types
 
-    from flowmaps_jax.validation.fields import Needs, Optional, check_args, check_fields
+    from flowmaps_jax.validation.composite import Needs
+    from flowmaps_jax.validation.fields import Optional, check_args, check_fields
 
     @check_args(from_step=Needs("resume", "needs resume=True"))
     def run(resume=False, from_step=None):

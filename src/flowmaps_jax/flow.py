@@ -18,7 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.validation import check_int
-from flowmaps_jax.validation.fields import After, Choice, Int
+from flowmaps_jax.validation.composite import After
+from flowmaps_jax.validation.fields import Choice, Int
 
 T_SAMPLERS = ("uniform", "beta", "logit_normal")
 SOLVERS = ("midpoint", "euler", "accurate")

@@ -64,17 +64,8 @@ from flowmaps_jax.validation import (
     solver_evaluations,
 )
 from flowmaps_jax.validation.arrays import size
-from flowmaps_jax.validation.fields import (
-    After,
-    Array,
-    Fields,
-    Flag,
-    Instance,
-    Int,
-    Key,
-    Optional,
-    RealArray,
-)
+from flowmaps_jax.validation.composite import After, Fields
+from flowmaps_jax.validation.fields import Array, Flag, Instance, Int, Key, Optional, RealArray
 
 SOLVERS = flow.SOLVERS
 SOLVER_RULES = flow.SOLVER_RULES

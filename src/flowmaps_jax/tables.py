@@ -34,7 +34,8 @@ import numpy as np
 
 from flowmaps_jax.tokens import FURNITURE, OBJECT, Queries, SceneTokens
 from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.fields import After, Array, Choice, Fields, Instance, Int, Mask, Real
+from flowmaps_jax.validation.composite import After, Fields
+from flowmaps_jax.validation.fields import Array, Choice, Instance, Int, Mask, Real
 
 CENTRE_SIGMA_SCALE = 0.35
 """Centre std of a mixture component of the protocol's q as a fraction of the box side (h for

@@ -27,7 +27,8 @@ import numpy as np
 from flax import struct
 
 from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.fields import Fields, Int, IntArray, Mask, Optional, RealArray
+from flowmaps_jax.validation.composite import Fields
+from flowmaps_jax.validation.fields import Int, IntArray, Mask, Optional, RealArray
 
 FURNITURE = 0
 OBJECT = 1

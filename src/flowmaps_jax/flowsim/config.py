@@ -16,14 +16,13 @@ from typing import Any
 import numpy as np
 
 from flowmaps_jax.validation import INT32_MAX, bind_size
+from flowmaps_jax.validation.composite import Mixture, Table
 from flowmaps_jax.validation.fields import (
     Choice,
     Instance,
     Int,
-    Mixture,
     Probabilities,
     Real,
-    Table,
     Text,
     check_fields,
     check_keys,

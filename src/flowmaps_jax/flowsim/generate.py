@@ -39,15 +39,8 @@ from flowmaps_jax.validation import (
     is_concrete,
     named_sizes,
 )
-from flowmaps_jax.validation.fields import (
-    Instance,
-    Int,
-    IntArray,
-    Key,
-    Optional,
-    PositiveArray,
-    RealArray,
-)
+from flowmaps_jax.validation.composite import PositiveArray
+from flowmaps_jax.validation.fields import Instance, Int, IntArray, Key, Optional, RealArray
 
 
 @struct.dataclass

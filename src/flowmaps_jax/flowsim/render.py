@@ -32,10 +32,10 @@ from matplotlib.patches import Circle, FancyArrowPatch, Patch, Polygon, Rectangl
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.generate import SCENES_ARG, Scenes
 from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.composite import Index
 from flowmaps_jax.validation.fields import (
     Distribution,
     Flag,
-    Index,
     Instance,
     IntArray,
     Optional,

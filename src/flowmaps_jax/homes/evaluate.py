@@ -56,7 +56,8 @@ from flowmaps_jax.validation import (
     make_output_dir,
     prefix_errors,
 )
-from flowmaps_jax.validation.fields import After, Each, Int, Seed, check_fields
+from flowmaps_jax.validation.composite import After
+from flowmaps_jax.validation.fields import Each, Int, Seed, check_fields
 
 EVAL_SEED = 35_000_002
 """Seed of the evaluation homes (``jax.random.key(EVAL_SEED)``); training uses other seeds."""

@@ -17,15 +17,8 @@ from flax import struct
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.homes.world import Homes
 from flowmaps_jax.validation import is_concrete
-from flowmaps_jax.validation.fields import (
-    After,
-    Each,
-    Instance,
-    Int,
-    IntArray,
-    check_args,
-    check_fields,
-)
+from flowmaps_jax.validation.composite import After
+from flowmaps_jax.validation.fields import Each, Instance, Int, IntArray, check_args, check_fields
 
 DEFAULT_HORIZONS = (1, 3, 6, 12, 24, 72, 168)
 """Query horizons τ_q − τ in hours: an hour, a morning, half a day, a day, three days, a week."""

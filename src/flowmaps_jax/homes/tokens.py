@@ -33,7 +33,8 @@ from flowmaps_jax.flowsim.homes.config import HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.world import Homes, object_boxes, validate_homes
 from flowmaps_jax.homes.queries import HomesQueries, check_queries
 from flowmaps_jax.validation import prefix_errors
-from flowmaps_jax.validation.fields import After, Instance, Int, IntArray, check_args
+from flowmaps_jax.validation.composite import After
+from flowmaps_jax.validation.fields import Instance, Int, IntArray, check_args
 
 HEIGHT_SCALE = 2.5
 """Metres: token z and h are divided by this (the footprint scales x, y, w, d)."""

@@ -44,15 +44,8 @@ from flowmaps_jax.training.overrides import apply_overrides
 from flowmaps_jax.training.runlog import RunBook
 from flowmaps_jax.training.state import TrainState, ema_update, make_optimizer, make_schedule
 from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.fields import (
-    Instance,
-    Int,
-    IntBelow,
-    OutputDir,
-    PlainName,
-    Real,
-    check_fields,
-)
+from flowmaps_jax.validation.composite import IntBelow, OutputDir
+from flowmaps_jax.validation.fields import Instance, Int, PlainName, Real, check_fields
 
 VAL_SEED = 0x40E5_0001
 """The fixed seed of the validation homes (distinct from every training key and from the

@@ -30,7 +30,8 @@ from flowmaps_jax.model.readout import PointerReadout
 from flowmaps_jax.model.route import RouteReadout
 from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
 from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.fields import Array, Fields, Optional, RealArray
+from flowmaps_jax.validation.composite import Fields
+from flowmaps_jax.validation.fields import Array, Optional, RealArray
 
 
 @struct.dataclass

@@ -14,7 +14,8 @@ from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import ModelFamily
 from flowmaps_jax.store.integrity import leaf_name
-from flowmaps_jax.validation.fields import After, Fields, Int, check_fields
+from flowmaps_jax.validation.composite import After, Fields
+from flowmaps_jax.validation.fields import Int, check_fields
 
 DEFAULT_FAMILY = "flowmaps"
 """The family of a stored config without ``model_kind`` (``TrainConfig``'s default)."""

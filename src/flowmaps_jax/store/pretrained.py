@@ -47,7 +47,8 @@ from flowmaps_jax.validation import (
     read_npz,
     write_file,
 )
-from flowmaps_jax.validation.fields import Choice, Instance, Int, Optional, Pattern
+from flowmaps_jax.validation.composite import Pattern
+from flowmaps_jax.validation.fields import Choice, Instance, Int, Optional
 
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[1] / "pretrained"
 """The package data folder holding the pretrained weights."""

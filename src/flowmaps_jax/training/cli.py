@@ -57,7 +57,8 @@ from flowmaps_jax.training.config import (
 )
 from flowmaps_jax.training.loop import run
 from flowmaps_jax.training.overrides import replace_fields
-from flowmaps_jax.validation.fields import Needs, Optional, OutputDir, check_fields
+from flowmaps_jax.validation.composite import Needs, OutputDir
+from flowmaps_jax.validation.fields import Optional, check_fields
 
 EXIT_OK, EXIT_NAN, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 1, 74, 130
 

@@ -53,11 +53,11 @@ from flowmaps_jax.validation import (
     network_flops,
     solver_evaluations,
 )
+from flowmaps_jax.validation.composite import IntBelow
 from flowmaps_jax.validation.fields import (
     Choice,
     Instance,
     Int,
-    IntBelow,
     Optional,
     PlainName,
     Real,

@@ -57,7 +57,8 @@ from flowmaps_jax.training.config import (
 from flowmaps_jax.training.resume import restore_for_resume
 from flowmaps_jax.training.runlog import RunResult
 from flowmaps_jax.validation import check_args, prefix_errors
-from flowmaps_jax.validation.fields import After, Instance, Int, Needs, Optional, OutputDir
+from flowmaps_jax.validation.composite import After, Needs, OutputDir
+from flowmaps_jax.validation.fields import Instance, Int, Optional
 
 __all__ = ["Compiled", "RunResult", "compiled_functions", "run"]
 

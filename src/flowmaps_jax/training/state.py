@@ -42,7 +42,8 @@ from flowmaps_jax.training.config import TrainConfig
 from flowmaps_jax.training.data import EVAL_KEY_SALT, BatchFn, default_batch_fn
 from flowmaps_jax.training.objectives import Objective, objective_for
 from flowmaps_jax.validation import check_args, check_instance
-from flowmaps_jax.validation.fields import Array, Fields, Instance
+from flowmaps_jax.validation.composite import Fields
+from flowmaps_jax.validation.fields import Array, Instance
 
 Params = Any
 

@@ -27,6 +27,9 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   :func:`check_keys` (the dict a ``from_dict`` reads); :func:`check_options` (a command line's
   options, from the same kind of table); :func:`check_args` (a function's arguments, declared
   beside its signature: ``@check_args(num_envs=Int(), key=Key())``).
+* :mod:`.composite`: the compound rules built on those: :class:`~.composite.Table` (a
+  category table), :class:`~.composite.Fields` (a pytree's fields), :class:`~.composite.After`,
+  :class:`~.composite.Needs`, :class:`~.composite.Index` (bounds read from another argument).
 * :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
   (the file or command they concern).
 * :mod:`.writes`: :func:`write_file`, :func:`make_output_dir`, :func:`save_figure`,

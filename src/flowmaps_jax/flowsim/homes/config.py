@@ -27,6 +27,7 @@ from flowmaps_jax.flowsim.homes.vocabulary import (
     ReceptacleClass,
     RoomType,
 )
+from flowmaps_jax.validation.composite import Table
 from flowmaps_jax.validation.fields import (
     Choice,
     Each,
@@ -36,7 +37,6 @@ from flowmaps_jax.validation.fields import (
     PlainName,
     Probabilities,
     Real,
-    Table,
     Text,
     check_fields,
     check_keys,

@@ -33,7 +33,8 @@ from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig,
 from flowmaps_jax.flowsim.homes.schedules import PREFERENCES
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
 from flowmaps_jax.validation import check_args, is_concrete
-from flowmaps_jax.validation.fields import After, Instance, IntArray
+from flowmaps_jax.validation.composite import After
+from flowmaps_jax.validation.fields import Instance, IntArray
 
 
 def object_law(home: Homes, object_index, config: HomesConfig) -> dict:

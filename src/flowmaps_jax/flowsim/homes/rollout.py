@@ -28,7 +28,8 @@ from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig,
 from flowmaps_jax.flowsim.homes.schedules import BALANCED, FREQUENT, PREFERENCES, ROUTINE
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
 from flowmaps_jax.validation import array_bytes, check_args, check_request_size
-from flowmaps_jax.validation.fields import After, Instance, Int, Key
+from flowmaps_jax.validation.composite import After
+from flowmaps_jax.validation.fields import Instance, Int, Key
 
 
 def _uniform24(words: jnp.ndarray) -> jnp.ndarray:
