@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from flowmaps_jax.validation import INT32_MAX, bind_size
-from flowmaps_jax.validation.composite import Mixture, Table
+from flowmaps_jax.validation.composite import After, Mixture, Table
 from flowmaps_jax.validation.fields import (
     Choice,
     Instance,
@@ -152,9 +152,6 @@ class FlowSimConfig:
 
     def __post_init__(self) -> None:
         check_fields(self, _RULES)
-        if self.table_min_frac > self.table_max_frac:
-            raise ValueError(f"table_min_frac ({self.table_min_frac}) must be <= table_max_frac "
-                             f"({self.table_max_frac})")
         if self.has_habits and self.dynamics != "markov":
             raise ValueError(f"habits other than the routine need dynamics='markov'; got "
                              f"dynamics={self.dynamics!r} with habits={self.habits!r}")
@@ -289,7 +286,9 @@ _RULES = {
     **{name: Int(low, INT32_MAX) for name, low in (
         ("num_furniture", 1), ("min_per_kind", 1), ("min_object_px", 1), ("num_timesteps", 2),
         ("max_tokens", 1), ("layout_budget", 1), ("layout_candidates", 1))},
-    "table_min_frac": _FRACTION, "table_max_frac": _FRACTION, "object_frac": _FRACTION,
+    "table_max_frac": _FRACTION,
+    "table_min_frac": After(lambda got: Real(0.0, got["table_max_frac"], low_open=True)),
+    "object_frac": _FRACTION,
     "transition_probs": Probabilities(3), "jitter_probs": Probabilities(3),
     "dynamics": Choice(DYNAMICS),
     "preference_move": _FRACTION, "preference_mass": _FRACTION, "dynamic_length": _FRACTION,

@@ -33,13 +33,12 @@ from flowmaps_jax.flowsim.config import (
 from flowmaps_jax.validation import (
     array_bytes,
     check_args,
-    check_array,
     check_int_array,
     check_request_size,
     is_concrete,
     named_sizes,
 )
-from flowmaps_jax.validation.composite import PositiveArray
+from flowmaps_jax.validation.composite import Fields, PositiveArray
 from flowmaps_jax.validation.fields import Instance, Int, IntArray, Key, Optional, RealArray
 
 
@@ -85,8 +84,9 @@ _SHAPES = {"furniture_boxes": ("E", "F", 4), "furniture_kind": ("E", "F"),
            "num_slots": ("E", "M"), "slot": ("E", "T", "M"), "object_boxes": ("E", "T", "M", 4),
            "layout_redraws": ("E",), "habit": ("E", "M")}
 """Each field's shape in the named sizes E (environments), F, M, T (furniture, objects, steps)."""
-_SHAPE_RULES = {field: RealArray(shape, finite=False) if field in _FLOAT_FIELDS
-                else IntArray(shape=shape) for field, shape in _SHAPES.items()}
+_SCENES_FIELDS = Fields(Scenes, {field: RealArray(shape, finite=False) if field in _FLOAT_FIELDS
+                                   else IntArray(shape=shape) for field, shape in _SHAPES.items()})
+"""A ``Scenes`` whose fields are arrays (numpy or jax) of those shapes, reals or integers."""
 
 
 def _field_shapes(e: int, f: int, m: int, t: int) -> dict[str, tuple[int, ...]]:
@@ -138,11 +138,8 @@ class ScenesArg:
     config: FlowSimConfig | None = None
 
     def __call__(self, name: str, scenes):
-        Instance(Scenes)(name, scenes)
-        arrays = {field: check_array(f"{name}.{field}", getattr(scenes, field))
-                  for field in _FIELDS}
-        for field, rule in _SHAPE_RULES.items():
-            arrays[field] = rule(f"{name}.{field}", arrays[field])
+        _SCENES_FIELDS(name, scenes)
+        arrays = {field: getattr(scenes, field) for field in _FIELDS}
         if self.values and is_concrete(*arrays.values()):
             self._values(name, {field: np.asarray(v) for field, v in arrays.items()})
         return scenes

@@ -477,9 +477,7 @@ def history_references(scenes, config, env, tau, horizon, history: int):
 
 
 def check_history_len(history_len, tau, num_timesteps: int) -> np.ndarray:
-    """history_len (an int or (Q,) ints) in 1 … T and at most τ + 1 (the query's past)."""
-    h = check_int_array("history_len", history_len, 1, num_timesteps,
-                        high_name=f"T={num_timesteps}")
-    check_int_array("history_len", h, 1, np.asarray(tau) + 1,
-                    high_name="tau + 1 (no longer than the query's past)")
-    return h
+    """history_len (an int or (Q,) ints) in 1 … τ + 1 (the query's past), so within 1 … T for
+    the τ in 0 … T − 1 that :func:`history_posterior` checked (``num_timesteps``, T)."""
+    return check_int_array("history_len", history_len, 1, np.asarray(tau) + 1,
+                           high_name="tau + 1 (no longer than the query's past)")
