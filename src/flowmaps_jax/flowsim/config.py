@@ -155,11 +155,9 @@ class FlowSimConfig:
         if self.has_habits and self.dynamics != "markov":
             raise ValueError(f"habits other than the routine need dynamics='markov'; got "
                              f"dynamics={self.dynamics!r} with habits={self.habits!r}")
-        # Refuse configs that cannot produce valid scenes (no field's rule can say these).
+        # Refuse configs that cannot produce valid scenes (no field's rule can say these); tables
+        # under one pixel (lo = 0) are smaller than any object (min_object_px >= 1), refused below.
         lo, _ = self.table_side_range
-        if lo < 1:
-            raise ValueError(f"map_size {self.map_size} is too small: table_min_frac "
-                             f"{self.table_min_frac} gives tables under one pixel")
         if self.num_furniture * lo * lo > self.map_size ** 2:
             raise ValueError(
                 f"map_size {self.map_size} is too small to place {self.num_furniture} tables of "
