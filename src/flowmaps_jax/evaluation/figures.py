@@ -117,6 +117,16 @@ def pick_queries(evalset: EvalSet, config: FlowSimConfig,
     return picks
 
 
+def _picks(evalset: EvalSet, config: FlowSimConfig,
+           picks: Sequence[tuple[int, int]] | None) -> list[tuple[int, int]]:
+    """The queries a figure draws: ``picks``, by default :func:`pick_queries`'s; none is a
+    ``ValueError``."""
+    picks = list(pick_queries(evalset, config) if picks is None else picks)
+    if not picks:
+        raise ValueError("picks is empty: no query to draw")
+    return picks
+
+
 def plot_samples(scenes, evalset: EvalSet, rows: Sequence[RowResult], config: FlowSimConfig,
                  picks: Sequence[tuple[int, int]] | None = None, num_shown: int = 25) -> Figure:
     """Paper Fig. 3: for each picked query (default: fork, remote, bottle), the map at τ with the
@@ -125,9 +135,7 @@ def plot_samples(scenes, evalset: EvalSet, rows: Sequence[RowResult], config: Fl
     rows = [r for r in rows if r.samples is not None]
     if not rows:
         raise ValueError("rows must include at least one model row with samples")
-    picks = list(pick_queries(evalset, config) if picks is None else picks)
-    if not picks:
-        raise ValueError("picks is empty: no query to draw")
+    picks = _picks(evalset, config, picks)
     fig = Figure(figsize=(4.3 * len(picks), 4.3 * len(rows)), layout="constrained")
     axes = fig.subplots(len(rows), len(picks), squeeze=False)
     for r, row in enumerate(rows):
@@ -153,9 +161,7 @@ def plot_slot_bars(evalset: EvalSet, rows: Sequence[RowResult], config: FlowSimC
     """Learned slot distributions p̂ (from num_samples samples, default the largest count) next to
     the exact q, one panel per picked query; slots in visiting order, then "off"."""
     rows = [r for r in rows if r.samples is not None] or list(rows)
-    picks = list(pick_queries(evalset, config) if picks is None else picks)
-    if not picks:
-        raise ValueError("picks is empty: no query to draw")
+    picks = _picks(evalset, config, picks)
     fig = Figure(figsize=(4.2 * len(picks), 3.4), layout="constrained")
     axes = fig.subplots(1, len(picks), squeeze=False)[0]
     series = len(rows) + 1

@@ -62,7 +62,8 @@ from flowmaps_jax.flowsim.scenes import draw_query_times, normalise_boxes, scene
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tables import assign_slots, histogram
 from flowmaps_jax.tokens import Queries, SceneTokens
-from flowmaps_jax.validation import check_args, check_int
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.composite import After
 from flowmaps_jax.validation.fields import Each, Instance, Int, Optional
 
 DEFAULT_NUM_ENVS = 200
@@ -172,7 +173,9 @@ def history_row_names(history: int) -> tuple[str, ...]:
     return (EXACT_H1_ROW, empirical_row(history)) if history > 1 else ()
 
 
-@check_args(config=Instance(FlowSimConfig), kl_draws=Int(2))
+@check_args(config=Instance(FlowSimConfig), kl_draws=Int(2),
+            history=After(lambda got: Int(1, got["config"].num_timesteps)),
+            horizon=Optional(After(lambda got: Int(1, got["config"].num_timesteps - 1))))
 def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
                        kl_draws: int = DEFAULT_KL_DRAWS, horizon: int | None = None,
                        history: int = 1) -> EvalSet:
@@ -188,10 +191,6 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     ``exact_h1``, ``empirical``) are set; the times and draws do not depend on H.
     """
     num_envs = scenes.num_envs
-    t_max = config.num_timesteps
-    history = check_int("history", history, 1, t_max)
-    if horizon is not None:  # Δτ < num_timesteps
-        horizon = check_int("horizon", horizon, 1, t_max - 1)
     m = config.num_objects
     env = jnp.arange(num_envs, dtype=jnp.int32)
     tau, tau_q, kl_keys = _query_times_and_keys(key, num_envs, config, horizon)

@@ -33,7 +33,8 @@ from flowmaps_jax.evaluation.protocol import (
 )
 from flowmaps_jax.evaluation.slots import ROUTE_OFFSET_LABELS, offset_mass
 from flowmaps_jax.flowsim.scenes import scene_tokens
-from flowmaps_jax.validation import check_args, check_int
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.composite import After
 from flowmaps_jax.validation.fields import Instance, Int
 
 EXACT_ONE_STEP = (0.2, 0.7, 0.1, 0.0, 0.0, 0.0)
@@ -48,6 +49,9 @@ class RoutineProbe:
     mixed: EvalSet
 
 
+@check_args(num_envs=After(lambda got: Int(1, got["scenes"].num_envs,
+                                           why="the environments in scenes")),
+            history=After(lambda got: Int(1, got["config"].num_timesteps)))
 def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
                 history: int = 1) -> RoutineProbe:
     """The probe from the first ``num_envs`` environments of ``scenes`` (3 queries each).
@@ -55,11 +59,6 @@ def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
     history: H of the model it scores. With H > 1 its tokens are the last H maps
     (``scene_tokens(..., history=H)``, within ``config.max_tokens``) and, as in the evaluation,
     the ground truth is the exact posterior given the last min(H, τ + 1) observations."""
-    num_envs = check_int("num_envs", num_envs, 1)
-    if num_envs > scenes.num_envs:
-        raise ValueError(f"num_envs={num_envs} is more than the {scenes.num_envs} environments "
-                         "in scenes")
-    history = check_int("history", history, 1, config.num_timesteps)
     part = jax.tree_util.tree_map(lambda a: a[:num_envs], scenes)
     key = jax.random.key(seed)
 

@@ -50,7 +50,6 @@ from flowmaps_jax.homes.scores import (
 )
 from flowmaps_jax.validation import (
     check_choice,
-    check_no_links,
     check_output_dir,
     check_request_size,
     make_output_dir,
@@ -273,8 +272,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         regime = check_choice("--regime", args.regime, REGIME_CHOICES)
-        out = pathlib.Path(check_output_dir("--out", args.out))
-        check_no_links("--out", out, [*REPORT_FILES, *(() if args.no_figures else FIGURES)])
+        out = pathlib.Path(check_output_dir(  # and no link at the names it will write
+            "--out", args.out, files=[*REPORT_FILES, *(() if args.no_figures else FIGURES)]))
         model = info = None
         config = HomesConfig(regime=regime)
         if args.checkpoint is not None:

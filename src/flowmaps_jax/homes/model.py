@@ -62,7 +62,8 @@ from flowmaps_jax.model import mixture
 from flowmaps_jax.model.cdit import CDiTBlock, FinalLayer
 from flowmaps_jax.model.embeddings import FlatDense, SinusoidalMLP
 from flowmaps_jax.model.encoder import EncoderLayer
-from flowmaps_jax.validation import check_int, check_real
+from flowmaps_jax.validation import check_keys
+from flowmaps_jax.validation.fields import Int, Real, check_fields
 
 FAMILY_NAME = "flowmaps-homes"
 """The family name stored with the model (``"model_kind"`` of its config)."""
@@ -98,13 +99,10 @@ class HomesModelConfig:
     history: int = DEFAULT_HISTORY
 
     def __post_init__(self):
-        for name in ("dim", "encoder_layers", "weight_blocks", "cdit_blocks", "heads",
-                     "mlp_ratio", "freq_bands", "history"):
-            check_int(f"model.{name}", getattr(self, name), 1, 1 << 16)
+        check_fields(self, _MODEL_RULES, prefix="model.", store=False)
         if self.dim % self.heads:
             raise ValueError(f"model.dim={self.dim} must be divisible by model.heads="
                              f"{self.heads}")
-        check_real("model.max_frequency", self.max_frequency, 1.0)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -112,12 +110,15 @@ class HomesModelConfig:
     @classmethod
     def from_dict(cls, data: dict) -> HomesModelConfig:
         """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError`` naming them."""
-        if not isinstance(data, dict):
-            raise ValueError(f"the homes model config must be a dict; got {type(data).__name__}")
-        unknown = sorted(set(data) - {f.name for f in dataclasses.fields(cls)})
-        if unknown:
-            raise ValueError(f"the homes model config has unknown keys {unknown}")
+        check_keys("the homes model config", data, [f.name for f in dataclasses.fields(cls)],
+                   what="unknown keys")
         return cls(**data)
+
+
+_MODEL_RULES = {**{name: Int(1, 1 << 16) for name in (
+    "dim", "encoder_layers", "weight_blocks", "cdit_blocks", "heads", "mlp_ratio", "freq_bands",
+    "history")}, "max_frequency": Real(1.0)}
+"""The rules of :class:`HomesModelConfig`'s fields (messages name ``model.<field>``)."""
 
 
 @struct.dataclass
