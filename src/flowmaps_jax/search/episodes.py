@@ -68,15 +68,21 @@ from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the sim
 from flowmaps_jax.tables import table_probabilities
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import (
-    PROB_ATOL,
     check_args,
-    check_int,
-    check_probabilities,
     check_resources,
     network_flops,
     solver_evaluations,
 )
-from flowmaps_jax.validation.fields import Choice, Instance, Int, IntArray, Key, Optional
+from flowmaps_jax.validation.composite import After
+from flowmaps_jax.validation.fields import (
+    Choice,
+    Distribution,
+    Instance,
+    Int,
+    IntArray,
+    Key,
+    Optional,
+)
 
 STARTS = ("centre", "last-seen")
 _TINY = 1e-30
@@ -185,7 +191,8 @@ class SearchSet:
 
 
 @check_args(scenes=Instance(Scenes), config=Instance(FlowSimConfig), key=Key(),
-            times_per_env=Int(), horizons=Optional(IntArray(1, shape=(None,))))
+            times_per_env=Int(), horizons=Optional(IntArray(1, shape=(None,))),
+            history=After(lambda got: Int(1, got["config"].num_timesteps)))
 def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
                      times_per_env: int = 1,
                      horizons: Sequence[int] | None = None, history: int = 1) -> SearchSet:
@@ -202,7 +209,6 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
     world, H = 1) it is bit for bit the paper's protocol.
     """
     t_max = config.num_timesteps
-    history = check_int("history", history, maximum=t_max)
     if horizons is None:
         per_env, fixed = times_per_env, None
     else:
@@ -384,7 +390,8 @@ def _candidates(table_probs, visit_order, num_slots, slot_now, furniture_px, num
     return belief, centres, valid, kind_mass, last_seen
 
 
-@check_args(start=Choice(STARTS))
+@check_args(start=Choice(STARTS), table_probs=After(lambda got: Distribution(
+    (*got["search_set"].queries.descriptor.shape, got["search_set"].tokens.num_tokens + 1))))
 def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
                   ) -> tuple[Episodes, jnp.ndarray]:
     """Episodes (N = R · M) over the K tables of each object's kind, from a prior's table
@@ -401,9 +408,6 @@ def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
     the simulator's cores.
     """
     s = search_set
-    check_probabilities("table_probs", table_probs, (*s.queries.descriptor.shape,
-                                                     s.tokens.num_tokens + 1),
-                        atol=PROB_ATOL, min_value=-PROB_ATOL)  # (R, M, S + 1)
     probs = jnp.asarray(table_probs, jnp.float32)
     belief, centres, valid, kind_mass, last_seen = _candidates(
         probs, s.visit_order, s.num_slots, s.slot_now, s.furniture_px, s.num_tables)

@@ -35,7 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.tokens import FURNITURE, SceneTokens
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_args
+from flowmaps_jax.validation.fields import Int, IntArray
 
 OFF = "off"
 """Key of the off-table mass in :func:`table_dict`."""
@@ -55,6 +56,7 @@ def spread_over_tables(slot_probs, visit_order, num_tokens: int):
     return jnp.einsum("...f,...fs->...s", slot_probs, onehot)
 
 
+@check_args(num_tokens=Int(size="num_tokens"), visit_order=IntArray(high="num_tokens-1"))
 def slots_to_tables(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
     """A slot distribution along a visiting order as table probabilities.
 
@@ -64,7 +66,6 @@ def slots_to_tables(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
     (token) index of each position, −1 padded (``Scenes.visit_order``). num_tokens: S.
     Returns (..., S + 1): slot k's mass on token ``visit_order[k]``, zeros elsewhere, off 0.
     """
-    num_tokens = check_int("num_tokens", num_tokens)
     probs = jnp.asarray(slot_probs, jnp.float32)
     order = np.shape(visit_order)
     if probs.shape[:-1] != order[:-1] or probs.shape[-1] not in (order[-1], order[-1] + 1):
@@ -72,11 +73,7 @@ def slots_to_tables(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
                          f"to match visit_order; got {probs.shape}")
     if probs.shape[-1] == order[-1] + 1 and not bool(jnp.all(probs[..., -1] == 0)):
         raise ValueError("slot_probs has off mass; an exact prior puts all mass on slots")
-    order_np = np.asarray(visit_order)
-    if not np.issubdtype(order_np.dtype, np.integer) or np.any(order_np >= num_tokens):
-        raise ValueError(f"visit_order must hold integer token indices < num_tokens={num_tokens} "
-                         "(−1 for padding)")
-    return spread_over_tables(probs, jnp.asarray(order_np, jnp.int32), num_tokens)
+    return spread_over_tables(probs, jnp.asarray(visit_order, jnp.int32), num_tokens)
 
 
 # --------------------------------------------------------------------------- plain dicts

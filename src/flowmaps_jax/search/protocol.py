@@ -37,10 +37,9 @@ from flowmaps_jax.flowsim import HABITS, FlowSimConfig, Scenes, world_of
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search import simulator as sim
-from flowmaps_jax.search.policies import POLICIES
 from flowmaps_jax.tables import ASSIGN_TOLERANCE, TABLE_METHODS
-from flowmaps_jax.validation import check_args, check_choice
-from flowmaps_jax.validation.fields import Choice, Int, Real
+from flowmaps_jax.validation import check_args, prefix_errors
+from flowmaps_jax.validation.fields import Choice, Each, Int, Real
 
 MAIN_POLICIES = ("most-probable", "greedy", "optimal")
 """The policies every prior is driven by (``"nearest"`` is the prior-free row)."""
@@ -108,18 +107,8 @@ def habit_sections(rows: dict) -> dict:
             for habit in HABITS if habit in present}
 
 
-def _check_policies(policies: Sequence[str]) -> tuple[str, ...]:
-    policies = tuple(policies)
-    if not policies or len(set(policies)) != len(policies):
-        raise ValueError(f"policies must be distinct names from {POLICIES}; got {policies}")
-    for p in policies:
-        if check_choice("policies", p, POLICIES) == "nearest":
-            raise ValueError("policies: 'nearest' is its own row (nearest table first), not a "
-                             "policy to drive the priors with")
-    return policies
-
-
-@check_args(budget=Int(), p_miss=Real(0.0, 1.0, high_open=True))
+@check_args(budget=Int(), p_miss=Real(0.0, 1.0, high_open=True),
+            policies=Each(Choice(MAIN_POLICIES), what="policy names"))
 def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowSimConfig, *,
                  policies: Sequence[str] = MAIN_POLICIES, budget: int = sim.DEFAULT_BUDGET,
                  p_miss: float = 0.0, start: str = "centre", key: jax.Array | None = None,
@@ -127,10 +116,14 @@ def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowS
     """Drive every prior in ``priors`` ({row name: table probabilities (R, M, S + 1)}; must
     include ``EXACT_ROW``) by every policy, plus the nearest-table-first row.
 
+    ``policies``: distinct names from ``MAIN_POLICIES`` ("nearest" is its own row, not a policy
+    to drive the priors with).
+
     Returns (rows: {row: {"kind_mass": stat, "policies": {policy: {"summary", "ratio",
     "expected", "expected_ratio", "curves"}}}}, runs: {(row, policy): RowRun}).
     """
-    policies = _check_policies(policies)
+    if len(set(policies)) != len(policies):
+        raise ValueError(f"policies must be distinct names from {MAIN_POLICIES}; got {policies}")
     if EXACT_ROW not in priors:
         raise ValueError(f"priors must include the {EXACT_ROW!r} row (the reference)")
     key = jax.random.key(0) if key is None else key
@@ -247,12 +240,11 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
         t0 = time.perf_counter()
         method = table_method if _has_weights(predictor) else "samples"
         flowsim = getattr(predictor, "flowsim", None)
-        try:  # a model reading H maps gets them all, each model no more tokens than it takes
+        # a model reading H maps gets them all, each model no more tokens than it takes
+        with prefix_errors(f"predictors: {name} reads {model_history(predictor)} maps, which do "
+                           "not fit its tokens: "):
             its_set = ep.history_tokens(search_set, scenes, config, model_history(predictor),
                                         None if flowsim is None else flowsim.max_tokens)
-        except ValueError as err:
-            raise ValueError(f"predictors: {name} reads {model_history(predictor)} maps, which "
-                             f"do not fit its tokens: {err}") from None
         priors[name] = ep.predictor_tables(predictor, its_set, num_samples,
                                            jax.random.fold_in(key, _SALT_MODELS), chunk_rows,
                                            progress, desc=f"{method} of {name}", method=method,
