@@ -1,7 +1,5 @@
 """A run directory belongs to one run, written by one process at a time.
 
-* :func:`check_run_dir`: the path must be (or become) a writable directory: a file, a path under
-  a file or a read-only place is a ``ValueError``.
 * :func:`claim` (a context manager) takes the directory for a run. A new run (no ``resume``)
   needs an empty or missing directory, or one whose run never saved a checkpoint (killed or
   interrupted before its first save: its leftovers are removed, with a message); ``overwrite``
@@ -11,7 +9,10 @@
   process out while the first one runs; a lock left by a process that no longer exists (kill -9,
   power loss) is taken over with a message. The lock is released on exit, and a directory the
   claim created is removed again if nothing was written. On a multi-host job process 0 holds
-  the directory and every process learns whether it could.
+  the directory and every process learns whether it could. The path itself is checked by the
+  public entry points that claim it (``run_dir=OutputDir()``: ``training.loop.run``,
+  ``homes.train.run``): a file, a path under a file or a read-only place is a ``ValueError``
+  there; one that still cannot be created (``/proc/x``) is one here.
 * :func:`write_atomic` writes a file through a temporary file and a rename, so a crash or a full
   disk never leaves it half-written (the shared writer,
   :func:`flowmaps_jax.validation.write_file`); :func:`open_append` opens a log for appending.
@@ -36,7 +37,7 @@ import jax
 
 from flowmaps_jax import distributed
 from flowmaps_jax.store import checkpoints
-from flowmaps_jax.validation import check_no_links, check_output_dir, write_file
+from flowmaps_jax.validation import check_no_links, write_file
 
 LOCK_NAME = ".lock"
 METRICS = "metrics.jsonl"
@@ -47,11 +48,6 @@ DISK_ERRNOS = frozenset(getattr(errno, name) for name in ("ENOSPC", "EDQUOT", "E
                         if hasattr(errno, name))
 """Failed writes that are the machine's state (a full disk, a quota, a file-size limit, an I/O
 error), not a bad argument: reported with exit code 74."""
-
-
-def check_run_dir(run_dir) -> pathlib.Path:
-    """``run_dir`` as a Path, if it is or can become a writable directory (else ValueError)."""
-    return pathlib.Path(check_output_dir("run_dir", run_dir))
 
 
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
@@ -242,7 +238,7 @@ def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
 def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
                 log: Callable[[str], None]) -> Iterator[RunLock]:
     """:func:`claim` by this process alone. ``run_dir`` was checked by the caller
-    (:func:`check_run_dir`: ``training.loop.run``, ``homes.train``), so it is not checked again."""
+    (``OutputDir()``: ``training.loop.run``, ``homes.train.run``), so it is not checked again."""
     run_dir = pathlib.Path(run_dir)
     if overwrite and not resume:
         here = pathlib.Path.cwd().resolve()

@@ -211,9 +211,9 @@ def _start_params(cfg: TrainConfig, log: Callable[[str], None]):
     if source.family_name != cfg.family:
         raise ValueError(f"init_from={cfg.init_from!r} is a {source.family_name!r} model; this "
                          f"run trains {cfg.family!r}")
-    objective = objectives.objective_for(cfg)
-    fresh = jax.eval_shape(objective.init, jax.random.PRNGKey(0))
-    train_state.check_overlay(fresh, source.params, f"init_from={cfg.init_from!r}")
+    fresh = jax.eval_shape(objectives.objective_for(cfg).init, jax.random.PRNGKey(0))
+    overlay = functools.partial(train_state.overlay_params, where=f"init_from={cfg.init_from!r}")
+    jax.eval_shape(overlay, fresh, source.params)  # init_state's overlay, traced: its check now
     log(f"Starting from the weights of {source.source} (step {source.step}); parameters they "
         f"lack keep their fresh init")
     return source.params

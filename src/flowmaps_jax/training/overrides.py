@@ -89,15 +89,14 @@ def _set_path(cls: type, data: dict, path: list[str], value: Any, full_key: str,
     stored key too (``model_kind`` for ``family``)."""
     names = _field_names(cls)
     head = _field_of_key(cls).get(path[0], path[0])
-    if head not in names:
-        raise ValueError(f"unknown config key {full_key!r} ({cls.__name__} has no field "
-                         f"{path[0]!r}; known: {sorted(names)})")
-    stored = _stored_keys(cls)[head]
-    hint = typing.get_type_hints(cls)[head]
+    hint = typing.get_type_hints(cls)[head] if head in names else None
     is_section = isinstance(hint, type) and dataclasses.is_dataclass(hint)
+    if hint is None or (len(path) > 1 and not is_section):  # the key names no field
+        why = (f"{cls.__name__} has no field {path[0]!r}; known: {sorted(names)}" if hint is None
+               else f"{head!r} has no sub-fields")
+        raise ValueError(f"unknown config key {full_key!r} ({why})")
+    stored = _stored_keys(cls)[head]
     if len(path) > 1:
-        if not is_section:
-            raise ValueError(f"unknown config key {full_key!r} ({head!r} has no sub-fields)")
         _set_path(hint, data[stored], path[1:], value, full_key, convert)
     elif is_section:
         raise ValueError(f"config key {full_key!r} is a section; set one of its fields, "

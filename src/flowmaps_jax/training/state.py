@@ -127,10 +127,14 @@ def init_state(cfg: TrainConfig, key: jax.Array | None = None,
     return distributed.replicate(state, mesh)
 
 
-def check_overlay(fresh: Params, start: Params, where: str = "init_from") -> None:
-    """ValueError naming ``where`` unless every leaf of ``start`` is a leaf of ``fresh`` (same
-    path in the tree, same shape): otherwise the weights belong to another architecture.
-    ``fresh`` may be abstract (``jax.eval_shape``)."""
+def overlay_params(fresh: Params, start: Params, where: str = "init_from") -> Params:
+    """``fresh`` with every leaf that ``start`` holds replaced by ``start``'s (a warm start).
+
+    Leaves are matched by their path in the tree. ``start`` may lack leaves of ``fresh`` (they
+    keep their fresh value: e.g. the age embedding a history model adds to a one-map model);
+    every leaf it holds must be one of ``fresh`` with the same shape, else ValueError naming
+    ``where`` (the weights belong to another architecture). Traceable: ``jax.eval_shape`` of it
+    is the check alone (``training.loop`` runs it before anything is written)."""
     fresh_shapes = {path: tuple(x.shape)
                     for path, x in jax.tree_util.tree_flatten_with_path(fresh)[0]}
     start_leaves = jax.tree_util.tree_flatten_with_path(start)[0]
@@ -142,19 +146,9 @@ def check_overlay(fresh: Params, start: Params, where: str = "init_from") -> Non
         raise ValueError(f"{where}: the model has no parameter {name} ({len(unfit)} unmatched); "
                          f"the weights are another architecture" if want is None else
                          f"{where}: parameter {name} has shape {shape}, the model's is {want}")
-
-
-def overlay_params(fresh: Params, start: Params, where: str = "init_from") -> Params:
-    """``fresh`` with every leaf that ``start`` holds replaced by ``start``'s (a warm start).
-
-    Leaves are matched by their path in the tree. ``start`` may lack leaves of ``fresh`` (they
-    keep their fresh value: e.g. the age embedding a history model adds to a one-map model);
-    anything else is :func:`check_overlay`'s ValueError naming ``where``."""
-    check_overlay(fresh, start, where)
-    start_leaves = dict(jax.tree_util.tree_flatten_with_path(start)[0])
+    by_path = dict(start_leaves)
     return jax.tree_util.tree_map_with_path(
-        lambda path, x: jnp.asarray(start_leaves[path], x.dtype) if path in start_leaves else x,
-        fresh)
+        lambda path, x: jnp.asarray(by_path[path], x.dtype) if path in by_path else x, fresh)
 
 
 def state_sharding(mesh: Mesh | None) -> jax.sharding.Sharding:
