@@ -224,7 +224,7 @@ def test_the_start_is_room_zero_and_distances_are_geodesic(homes, geometry):
     assert np.any(start_distance[valid & ~in_room] > straight[valid & ~in_room] + 0.1)
 
 
-def test_the_dynamic_programme_is_brute_force(homes, queries, exact, geometry):
+def test_the_dynamic_programme_is_brute_force(homes, queries, exact, geometry, monkeypatch):
     _, start_distance = geometry
     orders, values = nav.optimal_orders(exact, homes, queries, start_distance)
     allowed = np.asarray(pr.allowed_slots(homes, queries))
@@ -247,8 +247,9 @@ def test_the_dynamic_programme_is_brute_force(homes, queries, exact, geometry):
         o = nav.visit_orders(policy, uniform, homes, queries, start_distance)
         out = nav.walk_orders(jnp.asarray(o), homes, queries, exact, start_distance)
         assert np.all(np.asarray(out["expected_travel"]) >= values * (1 - 1e-5) - 1e-5)
-    with pytest.raises(ValueError, match="at most 12"):
-        nav.check_optimal_size(13)
+    monkeypatch.setattr(nav, "MAX_OPTIMAL_RECEPTACLES", 2)  # objects here allow 3 or more
+    with pytest.raises(ValueError, match="at most 2 allowed receptacles"):
+        nav.optimal_orders(uniform, homes, queries, start_distance)
 
 
 def test_orders_and_walks_by_hand(homes, queries, exact, geometry):

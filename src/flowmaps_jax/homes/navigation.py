@@ -195,17 +195,6 @@ def _optimal_batch(belief, allowed, distance, start_distance, a: int):
                                                           start_distance)
 
 
-def check_optimal_size(num_allowed: int) -> None:
-    """``ValueError`` if the exact dynamic programme cannot take ``num_allowed`` receptacles."""
-    if num_allowed > MAX_OPTIMAL_RECEPTACLES:
-        raise ValueError(
-            f"policy 'optimal' takes at most {MAX_OPTIMAL_RECEPTACLES} allowed receptacles per "
-            f"object; an object here has {num_allowed}. Its exact dynamic programme holds "
-            f"2^A · A values and does 2^A · A² work per episode (A = {num_allowed}: "
-            f"{2 ** num_allowed * num_allowed ** 2:,}); use 'most-probable' or 'nearest', or a "
-            "vocabulary with fewer receptacles per object")
-
-
 def optimal_orders(belief, homes: Homes, queries: HomesQueries, start_distance,
                    chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
     """Orders (E, Q, R) int32 of least expected travel under ``belief`` (E, Q, R), and that
@@ -214,7 +203,13 @@ def optimal_orders(belief, homes: Homes, queries: HomesQueries, start_distance,
     allowed = np.asarray(allowed_slots(homes, queries))
     e, q, r = allowed.shape
     count = allowed.sum(-1).reshape(-1)
-    check_optimal_size(int(count.max()))
+    if count.max() > MAX_OPTIMAL_RECEPTACLES:
+        a = int(count.max())
+        raise ValueError(
+            f"policy 'optimal' takes at most {MAX_OPTIMAL_RECEPTACLES} allowed receptacles per "
+            f"object; an object here has {a}. Its exact dynamic programme holds 2^A · A values "
+            f"and does 2^A · A² work per episode (A = {a}: {2 ** a * a ** 2:,}); use "
+            "'most-probable' or 'nearest', or a vocabulary with fewer receptacles per object")
     home = np.repeat(np.arange(e), q)
     flat_belief = np.asarray(belief, np.float32).reshape(e * q, r)
     flat_allowed = allowed.reshape(e * q, r)
