@@ -389,7 +389,7 @@ def test_history_posterior_names_the_shape_first(history_len):
     with pytest.raises(ValueError, match="longer than the query's past"):
         habits.history_posterior(scenes, config, [0], [0], [5], [1], 10)
     with pytest.raises(ValueError, match="longer than the query's past"):
-        habits.check_history_len(10, 5, 20)  # scalars
+        habits.history_posterior(scenes, config, [0], [0], [5], [1], np.array([7]))
 
 
 # ------------------------------------------------------------- class 7/9: usage errors

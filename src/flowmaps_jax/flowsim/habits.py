@@ -38,12 +38,9 @@ import numpy as np
 
 from flowmaps_jax.flowsim.config import CONFIG_ARG, HABITS, sim_params
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
-from flowmaps_jax.validation import (
-    bind_size,
-    check_args,
-    check_int_array,
-    check_probabilities,
-)
+from flowmaps_jax.validation import bind_size, check_args, check_probabilities
+from flowmaps_jax.validation.arrays import size
+from flowmaps_jax.validation.composite import After
 from flowmaps_jax.validation.fields import Int, IntArray
 
 ROUTINE, PREFERENCES, DYNAMIC = range(3)
@@ -370,7 +367,11 @@ _QUERY = ("Q",)
 
 @check_args(config=CONFIG_ARG, scenes=_scenes_envs, env=IntArray(0, "E-1", _QUERY),
             obj=IntArray(0, "M-1", _QUERY), tau=IntArray(0, "T-1", _QUERY),
-            horizon=IntArray(0, "T-1", _QUERY))
+            horizon=After(lambda got: IntArray(  # τ + Δτ within the T timesteps
+                0, size("T-1") - np.asarray(got["tau"]), _QUERY, high_name="T - 1 - tau")),
+            history_len=After(lambda got: IntArray(  # within the query's past
+                1, np.asarray(got["tau"]) + 1,
+                high_name="tau + 1 (no longer than the query's past)")))
 def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     """Exact posterior (Q, F) over the slot of object ``obj`` in ``env`` at τ + Δτ, given its
     slots at τ − H + 1 … τ (H = ``history_len``), under the habit mixture of ``config``.
@@ -380,9 +381,6 @@ def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     the finite hypothesis set. With history_len = 1 and the paper's world it equals
     ``dynamics.exact_posterior``. Raises ``ValueError`` naming the argument on bad input.
     """
-    t = config.num_timesteps
-    check_int_array("tau + horizon", tau + horizon, 0, t - 1)
-    history_len = check_history_len(history_len, tau, t)
     width = int(np.max(history_len))
     history_len = np.broadcast_to(history_len, tau.shape).astype(np.int32)
     return _history_posterior(scenes, config, env, obj, tau, horizon, history_len, width)
@@ -474,10 +472,3 @@ def history_references(scenes, config, env, tau, horizon, history: int):
     frequency = empirical_frequency(observed, valid, f).reshape(rows, m, f)
     return probs, habit, {EXACT_H1_ROW: posterior(np.ones_like(q_tau)),
                           empirical_row(history): jnp.asarray(frequency, jnp.float32)}
-
-
-def check_history_len(history_len, tau, num_timesteps: int) -> np.ndarray:
-    """history_len (an int or (Q,) ints) in 1 … τ + 1 (the query's past), so within 1 … T for
-    the τ in 0 … T − 1 that :func:`history_posterior` checked (``num_timesteps``, T)."""
-    return check_int_array("history_len", history_len, 1, np.asarray(tau) + 1,
-                           high_name="tau + 1 (no longer than the query's past)")

@@ -139,14 +139,16 @@ class RealArray:
 @dataclasses.dataclass(frozen=True)
 class IntArray:
     """An integer array in ``low..high`` (:func:`~flowmaps_jax.validation.check_int_array`;
-    a bound may be a named size, ``"K-1"``)."""
+    a bound may be a named size, ``"K-1"``, or an array, named by ``high_name``)."""
 
     low: int | str | None = None
-    high: int | str | None = None
+    high: Any = None
     shape: tuple | None = None
+    high_name: str | None = None
 
     def __call__(self, name: str, value: Any):
-        return check_int_array(name, value, self.low, self.high, shape=self.shape)
+        return check_int_array(name, value, self.low, self.high, shape=self.shape,
+                               high_name=self.high_name)
 
 
 @dataclasses.dataclass(frozen=True)
