@@ -33,6 +33,7 @@ from flowmaps_jax.flowsim.config import (
 )
 from flowmaps_jax.flowsim.layout import uniform16
 from flowmaps_jax.validation import check_args, check_int_array, is_concrete
+from flowmaps_jax.validation.composite import After
 from flowmaps_jax.validation.fields import Choice, IntArray, Optional
 
 
@@ -114,8 +115,11 @@ def _jitter_posterior(num_slots, slot_now, tau_q, config: FlowSimConfig):
     return jnp.where((tau_q == 0)[..., None], at_start, jittered)
 
 
-@check_args(config=CONFIG_ARG, num_slots=IntArray(1, "F"), horizon=IntArray(0, "T-1"),
-            dynamics=Optional(Choice(DYNAMICS)), tau=Optional(IntArray(0, "T-1")))
+@check_args(config=CONFIG_ARG, num_slots=IntArray(1, "F"),
+            slot_now=After(lambda got: IntArray(0, got["num_slots"] - 1,
+                                                high_name="num_slots - 1")),
+            horizon=IntArray(0, "T-1"), dynamics=Optional(Choice(DYNAMICS)),
+            tau=Optional(IntArray(0, "T-1")))
 def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAULT_CONFIG,
                     dynamics: str | None = None, tau=None) -> jnp.ndarray:
     """Exact distribution (..., F) float32 of an object's slot ``horizon`` steps ahead.
@@ -133,10 +137,7 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     """
     dynamics = config.dynamics if dynamics is None else dynamics
     max_h = config.num_timesteps - 1
-    concrete = is_concrete(num_slots, slot_now, horizon)
-    if concrete:  # num_slots and horizon: checked (values where concrete) by the rules
-        check_int_array("slot_now", slot_now, 0, np.asarray(num_slots) - 1,
-                        high_name="num_slots - 1")
+    concrete = is_concrete(num_slots, slot_now, horizon)  # then checked by the rules
     if dynamics == "markov":
         probs = _markov_posterior(num_slots, slot_now, horizon, config)
         return probs if concrete else _nan_outside(
