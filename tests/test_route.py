@@ -113,7 +113,7 @@ def test_accurate_grid_and_solver():
     x1 = flow.integrate(lambda x, t: -x / (1.0 - t + eps), jnp.ones(3), 48, "accurate")
     np.testing.assert_allclose(x1, eps / (1 + eps), rtol=1e-3)
     with pytest.raises(ValueError, match="num_steps"):
-        flow.check_solver(2, "accurate")
+        flow.integrate(lambda x, t: -x, jnp.ones(3), 2, "accurate")
 
 
 def test_table_weights_need_a_read_out_head(evalset):

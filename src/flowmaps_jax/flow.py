@@ -17,9 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.validation import check_int
 from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Choice, Int
+from flowmaps_jax.validation.fields import Choice, Int, check_args
 
 T_SAMPLERS = ("uniform", "beta", "logit_normal")
 SOLVERS = ("midpoint", "euler", "accurate")
@@ -54,21 +53,13 @@ def sample_t(key: jax.Array, shape: tuple[int, ...], kind: str = "beta") -> jnp.
     raise ValueError(f"t_sampler (kind) must be one of {T_SAMPLERS}; got {kind!r}")
 
 
-SOLVER_RULES = {"method": Choice(SOLVERS),
-                "num_steps": After(lambda got: Int(3 if got["method"] == "accurate" else 2))}
-""":func:`check_solver`'s rules as a ``check_args`` table (for entry points that declare
-their arguments): ``num_steps`` grid points, at least 2 (3 for ``"accurate"``), ``method``
-one of :data:`SOLVERS`."""
-
-
-def check_solver(num_steps, method, name: str = "num_steps") -> tuple[int, str]:
-    """(num_steps, method) validated: grid points an int >= 2 (>= 3 for ``"accurate"``), method
-    one of ``SOLVERS``."""
-    if method not in SOLVERS:
-        raise ValueError(f"method must be one of {SOLVERS}; got {method!r}")
-    num_steps = check_int(f"{name} (ODE grid points)", num_steps,
-                          minimum=3 if method == "accurate" else 2)
-    return num_steps, method
+GRID_POINTS = After(lambda got: Int(3 if got["method"] == "accurate" else 2))
+"""The rule of a solver's grid points, checked after its ``method``: an int >= 2 (>= 3 for
+``"accurate"``)."""
+SOLVER_RULES = {"method": Choice(SOLVERS), "num_steps": GRID_POINTS}
+"""The solver arguments as a ``check_args`` table (the public solvers and the entry points
+that take a solver): ``method`` one of :data:`SOLVERS`, then ``num_steps`` grid points
+(:data:`GRID_POINTS`)."""
 
 
 def time_grid(num_steps: int, method: str = "midpoint") -> np.ndarray:
@@ -89,11 +80,11 @@ def time_grid(num_steps: int, method: str = "midpoint") -> np.ndarray:
     return 1.0 - (1.0 - np.linspace(0.0, 1.0, num_steps)) ** STIFF_GRID_POWER
 
 
+@check_args(**SOLVER_RULES)
 def _odeint(fn, state, t_start: float, t_end: float, num_steps: int, method: str):
     """Integrate d state/dt = fn(state, t) (pytrees) over :func:`time_grid` mapped onto
     [t_start, t_end] (visited backwards when t_start > t_end). ``"accurate"`` steps with RK4.
-    The one check of the public solvers' ``num_steps`` and ``method`` (:func:`check_solver`)."""
-    num_steps, method = check_solver(num_steps, method)
+    The one check of the public solvers' ``num_steps`` and ``method`` (:data:`SOLVER_RULES`)."""
     lo, hi = min(t_start, t_end), max(t_start, t_end)
     grid = lo + (hi - lo) * time_grid(num_steps, method)
     if t_start > t_end:  # the same points, visited from t_start down to t_end

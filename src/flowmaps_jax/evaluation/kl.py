@@ -28,7 +28,16 @@ import numpy as np
 from flowmaps_jax.boxes import from_centre, to_centre
 from flowmaps_jax.tables import CENTRE_SIGMA_SCALE  # the centre std, shared with the assignment
 from flowmaps_jax.validation import is_concrete
-from flowmaps_jax.validation.fields import Array, Distribution, Int, Mask, Optional, check_args
+from flowmaps_jax.validation.composite import After
+from flowmaps_jax.validation.fields import (
+    Array,
+    Distribution,
+    Int,
+    Mask,
+    Optional,
+    Rule,
+    check_args,
+)
 
 SIZE_SIGMA_SCALE = 0.02
 """Size std of a mixture component as a fraction of the box side (h for h, w for w)."""
@@ -44,24 +53,30 @@ class Estimate(NamedTuple):
     stderr: jnp.ndarray
 
 
+def _real_boxes(got) -> Rule:
+    """The rule of ``slot_boxes`` (*B, K, 4), checked after ``slot_mask`` and ``slot_probs``:
+    finite boxes with positive h and w on the slots that carry mass (concrete arrays)."""
+    def rule(name, slot_boxes):
+        slot_boxes = Array(("*B", "K", 4))(name, slot_boxes)
+        slot_probs, slot_mask = got["slot_probs"], got["slot_mask"]
+        if is_concrete(slot_probs, slot_boxes, slot_mask):
+            active = np.asarray(slot_probs) > 0
+            if slot_mask is not None:
+                active &= np.asarray(slot_mask, bool)
+            boxes = np.asarray(slot_boxes, dtype=np.float64)[active]
+            if not np.all(np.isfinite(boxes)):
+                raise ValueError(f"{name} contains NaN or inf on real slots")
+            if np.any(boxes[:, 2:] <= 0.0):
+                raise ValueError(f"{name} must have positive h and w on real slots (boxes are "
+                                 "y, x, h, w)")
+        return slot_boxes
+    return rule
+
+
 _MIXTURE = {  # the arguments of the public functions, in this order; B and K shared
     "slot_mask": Optional(Mask(("*B", "K"))),
     "slot_probs": Distribution(("*B", "K"), support="slot_mask"),
-    "slot_boxes": Array(("*B", "K", 4))}
-
-
-def _check_real_boxes(slot_probs, slot_boxes, slot_mask) -> None:
-    """Finite boxes with positive h and w on the slots that carry mass (concrete arrays)."""
-    if is_concrete(slot_probs, slot_boxes, slot_mask):
-        active = np.asarray(slot_probs) > 0
-        if slot_mask is not None:
-            active &= np.asarray(slot_mask, bool)
-        boxes = np.asarray(slot_boxes, dtype=np.float64)[active]
-        if not np.all(np.isfinite(boxes)):
-            raise ValueError("slot_boxes contains NaN or inf on real slots")
-        if np.any(boxes[:, 2:] <= 0.0):
-            raise ValueError("slot_boxes must have positive h and w on real slots (boxes are "
-                             "y, x, h, w)")
+    "slot_boxes": After(_real_boxes)}
 
 
 def _full_mask(shape, slot_mask):
@@ -117,7 +132,6 @@ def gt_mixture_log_prob(x: jnp.ndarray, slot_probs: jnp.ndarray, slot_boxes: jnp
     slot_boxes: (..., K, 4) b_k. slot_mask: optional (..., K) real slots (default: all).
     Returns (..., N) log-densities w.r.t. Lebesgue measure on (y, x, h, w).
     """
-    _check_real_boxes(slot_probs, slot_boxes, slot_mask)
     return mixture_log_prob(jnp.asarray(x, jnp.float32), slot_probs, slot_boxes,
                             _full_mask(np.shape(slot_probs), slot_mask))
 
@@ -142,7 +156,6 @@ def sample_gt_mixture(key: jax.Array, slot_probs: jnp.ndarray, slot_boxes: jnp.n
 
     slot_probs: (..., K). slot_boxes: (..., K, 4). Returns (..., n, 4) boxes (y, x, h, w).
     """
-    _check_real_boxes(slot_probs, slot_boxes, slot_mask)
     return mixture_samples(key, slot_probs, slot_boxes, _full_mask(np.shape(slot_probs), slot_mask),
                            n)
 

@@ -359,7 +359,8 @@ def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMP
 
 
 @check_args(sample_counts=_sample_counts, chunk_envs=Int(),
-            likelihood_steps=Optional(Int(3)), likelihood_draws=Int(2))
+            likelihood_steps=Optional(Int(3)), likelihood_draws=Int(2), **flow.SOLVER_RULES,
+            logp_steps=Optional(flow.GRID_POINTS))
 def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
                        sample_counts: Sequence[int] = DEFAULT_SAMPLES,
                        chunk_envs: int = DEFAULT_CHUNK_ENVS, num_steps: int = DEFAULT_NUM_STEPS,
@@ -380,9 +381,7 @@ def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
     accurate likelihood uses the first this-many KL draws of each query (all when fewer).
     """
     counts = sample_counts
-    num_steps, method = flow.check_solver(num_steps, method)
-    logp_steps = num_steps if logp_steps is None else flow.check_solver(
-        logp_steps, method, name="logp_steps")[0]
+    logp_steps = num_steps if logp_steps is None else logp_steps
     n_max = counts[-1]
     num_envs = evalset.num_envs
     chunk = min(chunk_envs, num_envs)
