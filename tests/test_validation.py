@@ -618,3 +618,17 @@ def test_needs_refuses_a_value_given_without_or_with_another_argument():
     with pytest.raises(ValueError, match=r"^resume needs --run-dir$"):
         check_fields(types.SimpleNamespace(run_dir=None, resume=True, overwrite=False),
                      {"run_dir": Optional(lambda n, v: v), **rules}, store=False)
+
+
+def test_non_empty_rule():
+    from flowmaps_jax.validation.composite import NonEmpty
+    from flowmaps_jax.validation.fields import Array, Each, Int
+
+    rule = NonEmpty(Array((None, None)), "at least one query")
+    assert rule("q", np.zeros((2, 3))).shape == (2, 3)
+    with pytest.raises(ValueError, match=r"q must not be empty \(at least one query\); got "
+                                         r"shape \(2, 0\)"):
+        rule("q", np.zeros((2, 0)))
+    assert NonEmpty(Each(Int()))("sizes", [1, 2]) == (1, 2)
+    with pytest.raises(ValueError, match="sizes must not be empty"):  # a sequence: its length
+        NonEmpty(lambda name, value: value)("sizes", [])

@@ -64,7 +64,7 @@ from flowmaps_jax.validation import (
     solver_evaluations,
 )
 from flowmaps_jax.validation.arrays import size
-from flowmaps_jax.validation.composite import After, Fields
+from flowmaps_jax.validation.composite import After, Fields, NonEmpty
 from flowmaps_jax.validation.fields import Array, Flag, Instance, Int, Key, Optional, RealArray
 
 SOLVERS = flow.SOLVERS
@@ -177,9 +177,6 @@ class Predictor:
             raise ValueError(f"tokens has {slots} token slots, more than the "
                              f"max_tokens={self.flowsim.max_tokens} of the maps the model was "
                              "trained on (flowsim.max_tokens)")
-        if b < 1 or q < 1:
-            raise ValueError(f"tokens/queries must hold at least one scene and one query; got "
-                             f"B={b}, Q={q}")
         return b, q
 
     def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool,
@@ -247,7 +244,8 @@ class Predictor:
                                           method=method, **sample_kwargs)
 
     @check_args(queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),
-                x=RealArray(("B", "Q", None, 4)), **SOLVER_RULES)
+                x=NonEmpty(RealArray(("B", "Q", None, 4)), "at least one box per query"),
+                **SOLVER_RULES)
     def log_prob(self, tokens: SceneTokens, queries: Queries, x,
                  num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
         """Exact log-density (B, Q, N) of normalised boxes x (B, Q, N, 4) (y, x, h, w).
@@ -257,9 +255,7 @@ class Predictor:
         MLP: the closed-form diagonal Gaussian.
         """
         b, q = self.validate(tokens, queries)
-        x = jnp.asarray(x, jnp.float32)  # (B, Q, N, 4), checked
-        if x.shape[2] < 1:
-            raise ValueError("x must hold at least one box per query (N >= 1)")
+        x = jnp.asarray(x, jnp.float32)  # (B, Q, N, 4), checked: N >= 1
         self._check_request("log_prob", b, q, x.shape[2], True, num_steps, method,
                             np.shape(tokens.boxes)[1])
         far = jnp.any(jnp.abs(x) > FAR_LIMIT, axis=-1)  # (B, Q, N): density 0, not NaN

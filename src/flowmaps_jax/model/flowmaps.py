@@ -30,7 +30,7 @@ from flowmaps_jax.model.readout import PointerReadout
 from flowmaps_jax.model.route import RouteReadout
 from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
 from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import Fields
+from flowmaps_jax.validation.composite import Fields, NonEmpty
 from flowmaps_jax.validation.fields import Array, Optional, RealArray
 
 
@@ -307,15 +307,16 @@ def make_velocity_fn(params, config: ModelConfig, context: Context,
 
 
 @check_args(tokens=Fields(SceneTokens, {"mask": Array(("B", None))}),
-            queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),
+            queries=Fields(Queries, {"descriptor": NonEmpty(
+                Array(("B", "Q")), "at least one scene and one query")}),
             x_t=Optional(RealArray(("B", "Q", None, 4))),
             t=Optional(RealArray(("B", "Q"), low=0.0, high=1.0, what="flow time")))
 def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries, x_t=None, t=None,
                  object_descriptors: Collection[int] | None = None) -> None:
     """Raise ``ValueError`` naming the argument if model inputs are malformed (call outside jit).
 
-    tokens: SceneTokens (B, S), boxes in [0, 1], known descriptors,
-    0 <= tau < tau_max - 1. queries: (B, Q) with known descriptors and tau < tau_q < tau_max.
+    tokens: SceneTokens (B, S), boxes in [0, 1], known descriptors, 0 <= tau < tau_max - 1.
+    queries: (B, Q), B and Q >= 1, with known descriptors and tau < tau_q < tau_max.
     x_t: (B, Q, N, 4) finite. t: (B, Q) in [0, 1]. ``object_descriptors``, if given: the
     descriptors a query may name (an object category, not a furniture kind).
     """

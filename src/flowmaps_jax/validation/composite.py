@@ -2,9 +2,9 @@
 
 :class:`Table` (a config's category table), :class:`Fields` (a pytree argument's fields),
 :class:`After`, :class:`IntBelow`, :class:`Index` and :class:`Needs` (bounds that read another
-argument checked before), :class:`Mixture`, :class:`Pattern`, :class:`OutputDir` and
-:class:`PositiveArray`. They run inside :func:`~.fields.check_args` / :func:`~.fields.check_fields`
-and read the values checked so far from its scope.
+argument checked before), :class:`Mixture`, :class:`Pattern`, :class:`OutputDir`,
+:class:`PositiveArray` and :class:`NonEmpty`. They run inside :func:`~.fields.check_args` /
+:func:`~.fields.check_fields` and read the values checked so far from its scope.
 """
 
 from __future__ import annotations
@@ -139,6 +139,24 @@ class Fields:
                 inside = np.asarray(checked[field])[np.asarray(real, bool)]
                 _resolved(dataclasses.replace(self.rules[field], shape=None))(
                     f"{name}.{field}", inside)
+        return value
+
+
+@dataclasses.dataclass(frozen=True)
+class NonEmpty:
+    """``rule``'s value, which must hold something: an array with no axis of size 0 (a batch of
+    at least one scene, query, box), or a non-empty sequence; ``what`` follows the name in the
+    message (e.g. "at least one scene and one query")."""
+
+    rule: Rule
+    what: str = ""
+
+    def __call__(self, name: str, value: Any) -> Any:
+        value = self.rule(name, value)
+        shape = np.shape(value) if hasattr(value, "shape") else (len(value),)
+        if 0 in shape:
+            why = f" ({self.what})" if self.what else ""
+            raise ValueError(f"{name} must not be empty{why}; got shape {tuple(shape)}")
         return value
 
 
