@@ -152,6 +152,11 @@ class HomesConfig:
             raise ValueError(f"home_depth[0]={self.home_depth[0]} m is too small: neighbouring "
                              f"columns may share no wall of door_width + 2 x wall_margin = "
                              f"{door} m (needs home_depth[0] >= {door * (2 * self.grid_rows - 1)})")
+        tokens = self.num_rooms + self.max_receptacles + self.max_objects
+        if tokens > self.max_tokens:
+            raise ValueError(f"max_tokens={self.max_tokens} is smaller than the {tokens} tokens "
+                             f"of a home ({self.num_rooms} rooms + {self.max_receptacles} "
+                             f"receptacles + {self.max_objects} objects)")
 
     # ----------------------------------------------------------------- derived
     @property
@@ -255,12 +260,6 @@ def _names(entries) -> frozenset:
     return frozenset(e.name for e in entries)
 
 
-def _tokens(got) -> int:
-    """Tokens of a home: rooms + receptacle slots (rooms x hi) + object slots."""
-    rooms = len(got["rooms"])
-    return rooms + rooms * got["receptacles_per_room"][1] + got["objects_per_home"][1]
-
-
 _ENTRY_RULES = {"name": PlainName(), "text": Text()}
 _SIZE = Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")
 _UNIT = Real(0.0, 1.0)
@@ -294,8 +293,8 @@ _RULES = {
     "activity": Each(_UNIT, 24, "hourly values in [0, 1]"),
     "home_width": Pair(0.0), "home_depth": Pair(0.0),
     "door_width": Real(0.0, low_open=True), "wall_margin": Real(0.0),
-    # room, receptacle and object tokens; descriptors of every class
-    "max_tokens": After(lambda got: Int(_tokens(got))),
+    "max_tokens": Int(1),
+    # a descriptor for every class
     "max_vocabulary": After(lambda got: Int(sum(len(got[f]) for f in _CLASSES))),
 }
 """What each field of :class:`HomesConfig` may hold (numbers are stored as Python numbers,
