@@ -27,7 +27,8 @@ from flowmaps_jax.flowsim.homes.vocabulary import (
     ReceptacleClass,
     RoomType,
 )
-from flowmaps_jax.validation.composite import Table
+from flowmaps_jax.validation.composite import After, Table
+from flowmaps_jax.validation.errors import prefix_errors
 from flowmaps_jax.validation.fields import (
     Choice,
     Each,
@@ -125,15 +126,6 @@ class HomesConfig:
     def validate(self) -> None:
         """Raise ``ValueError`` naming the field if this config cannot make valid homes."""
         check_fields(self, _RULES)
-        names = {f: frozenset(e.name for e in getattr(self, f))
-                 for f in ("room_types", "receptacle_classes")}
-        check_fields(self, {  # what the classes name must exist; a home may have two bedrooms
-            "rooms": Members(names["room_types"], "room type", distinct=False),
-            "receptacle_classes": Table(ReceptacleClass, {
-                "size": _SIZE, "rooms": Members(names["room_types"], "room type")}),
-            "object_classes": Table(ObjectClass, {
-                "size": _SIZE,
-                "receptacles": Members(names["receptacle_classes"], "receptacle class")})})
         # how the fields fit together
         if len(self.rooms) % self.grid_rows:
             raise ValueError(f"rooms: {len(self.rooms)} rooms do not fill a grid of grid_rows="
@@ -149,11 +141,6 @@ class HomesConfig:
             if not set(obj.receptacles) & placed:
                 raise ValueError(f"object_classes: {obj.name!r} may stand on no receptacle class "
                                  f"that a room of rooms={self.rooms} holds")
-        ohi = self.objects_per_home[1]
-        if ohi > min(MAX_OBJECTS, len(self.object_classes)):
-            raise ValueError(f"objects_per_home[1] must be <= {MAX_OBJECTS} and <= the "
-                             f"{len(self.object_classes)} object classes (one object per "
-                             f"class); got {ohi}")
         door = self.door_width + 2 * self.wall_margin
         narrow_w, narrow_d = self.smallest_room
         if min(narrow_w, narrow_d) < door or min(narrow_w, narrow_d) / 2 <= 2 * self.wall_margin:
@@ -170,10 +157,6 @@ class HomesConfig:
             raise ValueError(f"max_tokens={self.max_tokens} is smaller than the {tokens} tokens "
                              f"of a home ({self.num_rooms} rooms + {self.max_receptacles} "
                              f"receptacles + {self.max_objects} objects)")
-        if self.vocabulary_size > self.max_vocabulary:
-            raise ValueError(f"max_vocabulary={self.max_vocabulary} is smaller than the "
-                             f"vocabulary's {self.vocabulary_size} classes (room types + "
-                             f"receptacle classes + object classes)")
 
     # ----------------------------------------------------------------- derived
     @property
@@ -257,15 +240,14 @@ class HomesConfig:
         """Inverse of ``to_dict``; unknown keys or bad entries raise ``ValueError``."""
         check_keys("HomesConfig.from_dict", data, [f.name for f in dataclasses.fields(cls)])
         kwargs = {k: _tuples(v) for k, v in data.items()}
-        try:
+        with prefix_errors("HomesConfig.from_dict: bad vocabulary entry: ",
+                           also=(TypeError, AttributeError)):
             for field, entry in (("room_types", RoomType),
                                  ("receptacle_classes", ReceptacleClass),
                                  ("object_classes", ObjectClass)):
                 if field in data:
                     kwargs[field] = tuple(entry(**{k: _tuples(v) for k, v in e.items()})
                                           for e in data[field])
-        except (TypeError, ValueError, AttributeError) as err:
-            raise ValueError(f"HomesConfig.from_dict: bad vocabulary entry: {err}") from err
         return cls(**kwargs)
 
 
@@ -274,18 +256,33 @@ def _tuples(value: Any) -> Any:
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
 
+def _names(entries) -> frozenset:
+    return frozenset(e.name for e in entries)
+
+
 _ENTRY_RULES = {"name": PlainName(), "text": Text()}
 _SIZE = Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")
 _UNIT = Real(0.0, 1.0)
 _JITTER = Real(0.0, 1.0, high_open=True)
+_CLASSES = ("room_types", "receptacle_classes", "object_classes")
 _RULES = {
     "room_types": Table(RoomType, _ENTRY_RULES, unique=("name",)),
-    "receptacle_classes": Table(ReceptacleClass, _ENTRY_RULES, unique=("name",)),
-    "object_classes": Table(ObjectClass, _ENTRY_RULES, unique=("name",)),
+    # what the classes name must exist
+    "receptacle_classes": After(lambda got: Table(ReceptacleClass, {
+        **_ENTRY_RULES, "size": _SIZE,
+        "rooms": Members(_names(got["room_types"]), "room type")}, unique=("name",))),
+    "object_classes": After(lambda got: Table(ObjectClass, {
+        **_ENTRY_RULES, "size": _SIZE,
+        "receptacles": Members(_names(got["receptacle_classes"]), "receptacle class")},
+        unique=("name",))),
+    # a home may have two bedrooms
+    "rooms": After(lambda got: Members(_names(got["room_types"]), "room type", distinct=False)),
     "grid_rows": Int(1),
     # one receptacle per cell of a 2 x 2 split of the room
     "receptacles_per_room": Pair(1, integer=True, high=MAX_PER_ROOM),
-    "objects_per_home": Pair(1, integer=True),
+    # one object per class
+    "objects_per_home": After(lambda got: Pair(1, integer=True, high=min(
+        MAX_OBJECTS, len(got["object_classes"])))),
     "num_hours": Int(2, 2**20),
     "regime": Choice((*REGIMES, "mixed")),
     "routine_probs": Probabilities(3),
@@ -296,11 +293,13 @@ _RULES = {
     "activity": Each(_UNIT, 24, "hourly values in [0, 1]"),
     "home_width": Pair(0.0), "home_depth": Pair(0.0),
     "door_width": Real(0.0, low_open=True), "wall_margin": Real(0.0),
-    "max_tokens": Int(1), "max_vocabulary": Int(1),
+    "max_tokens": Int(1),
+    # a descriptor for every class
+    "max_vocabulary": After(lambda got: Int(sum(len(got[f]) for f in _CLASSES))),
 }
-"""What each field of :class:`HomesConfig` may hold, on its own (numbers are stored as Python
-numbers, names distinct); ``validate`` then checks what the classes name and how the fields
-fit together."""
+"""What each field of :class:`HomesConfig` may hold (numbers are stored as Python numbers,
+names distinct, the names a class lists those of the classes before it); ``validate`` then
+checks how the fields fit together."""
 
 DEFAULT_HOMES_CONFIG = HomesConfig()
 

@@ -23,7 +23,10 @@ traced query out of range (τ_q ≤ τ, τ_q beyond the rollout, a masked object
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+from collections.abc import Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -110,23 +113,32 @@ def _after(bound):
     return int(bound) + 1 if is_concrete(bound) else None
 
 
+@dataclasses.dataclass(frozen=True)
+class _Home:
+    """The rule of a query's ``home``: one home of the query's ``config`` (shapes and dtypes),
+    in which ``object_index`` is not a masked slot when the whole query is concrete; ``query``
+    holds the arguments checked before it."""
+
+    query: Mapping[str, Any]
+
+    def __call__(self, name: str, home):
+        config, index = self.query["config"], self.query["object_index"]
+        validate_homes(home, config, batched=False, values=False)
+        concrete = is_concrete(home.object_valid, index, self.query["tau"], self.query["tau_q"])
+        if concrete and not bool(home.object_valid[int(index)]):
+            raise ValueError(f"object_index {int(index)} is a masked object slot (unused, or "
+                             f"its class has no allowed receptacle in this home)")
+        return home
+
+
 _HOUR = After(lambda got: IntArray(0, got["config"].num_hours - 1, shape=()))
 _QUERY = {  # a query's arguments, bounds from the config and from τ; values checked if concrete
     "config": Instance(HomesConfig),
     "object_index": After(lambda got: IntArray(0, got["config"].max_objects - 1, shape=())),
     "tau": _HOUR,
     "tau_q": After(lambda got: IntArray(_after(got["tau"]), got["config"].num_hours - 1,
-                                        shape=()))}
-
-
-def _check_home(home, object_index, tau, tau_q, config: HomesConfig) -> None:
-    """``home`` one home of ``config``, and ``object_index`` (checked) not a masked slot when
-    the whole query is concrete."""
-    validate_homes(home, config, batched=False, values=False)
-    if is_concrete(home.object_valid, object_index, tau, tau_q) and not bool(
-            home.object_valid[int(object_index)]):
-        raise ValueError(f"object_index {int(object_index)} is a masked object slot (unused, or "
-                         f"its class has no allowed receptacle in this home)")
+                                        shape=())),
+    "home": After(_Home)}  # after the others: it reads them
 
 
 @check_args(**_QUERY)
@@ -138,7 +150,6 @@ def homes_posterior(home: Homes, object_index, tau, tau_q,
     home: one home (``Homes.home(i)``, fields without the E axis); object_index, tau, tau_q:
     int scalars (or traced ones, under jit / vmap), 0 <= tau < tau_q <= T − 1.
     """
-    _check_home(home, object_index, tau, tau_q, config)
     return _posterior(home, object_index, tau, tau_q, config)
 
 
@@ -149,7 +160,6 @@ def homes_history_posterior(home: Homes, object_index, tau, tau_q, history,
     ``history`` hours τ − history + 1 … τ, the preferences regime's favourites hidden (see the
     module's docstring); for the other regimes it equals ``homes_posterior``. 1 <= history
     <= tau + 1 (history 1: only where it is now)."""
-    _check_home(home, object_index, tau, tau_q, config)
     return _history_posterior(home, object_index, tau, tau_q, history, config)
 
 
