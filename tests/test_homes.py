@@ -135,6 +135,11 @@ def test_shapes_determinism_and_validity(homes):
         np.testing.assert_array_equal(a, b)
     assert not np.array_equal(homes.receptacle, other.receptacle)
     assert set(np.unique(homes.regime[homes.object_valid])) == set(range(len(REGIMES)))
+    for field in ("favourite", "receptacle", "cycle"):  # an index past R: named, no IndexError
+        wrong = np.asarray(getattr(homes, field)).copy()
+        wrong.flat[0] = CONFIG.max_receptacles
+        with pytest.raises(ValueError, match=f"homes.{field} must lie"):
+            validate_homes(dataclasses.replace(homes, **{field: wrong}), CONFIG)
 
 
 def test_rooms_receptacles_and_doors(homes):

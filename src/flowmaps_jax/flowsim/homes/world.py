@@ -146,7 +146,9 @@ def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: 
         "receptacle_class": IntArray(-1, len(config.receptacle_classes) - 1),
         "object_class": IntArray(-1, len(config.object_classes) - 1),
         "regime": IntArray(0, len(REGIMES) - 1),
-        "receptacle_room": IntArray(0, config.num_rooms - 1)}, prefix=f"{name}.", store=False)
+        "receptacle_room": IntArray(0, config.num_rooms - 1),
+        **{field: IntArray(None, config.max_receptacles - 1)  # indices: below R
+           for field in ("favourite", "receptacle", "cycle")}}, prefix=f"{name}.", store=False)
     a = {k: np.asarray(v) if batched else np.asarray(v)[None] for k, v in arrays.items()}
     box = a["receptacle_box"]
     if np.any(box[..., 3:][a["receptacle_valid"]] <= 0):
