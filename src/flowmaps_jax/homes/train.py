@@ -44,7 +44,7 @@ from flowmaps_jax.training.overrides import apply_overrides
 from flowmaps_jax.training.runlog import RunBook
 from flowmaps_jax.training.state import TrainState, ema_update, make_optimizer, make_schedule
 from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import IntBelow, OutputDir
+from flowmaps_jax.validation.composite import After, IntBelow, OutputDir
 from flowmaps_jax.validation.fields import Instance, Int, PlainName, Real, check_fields
 
 VAL_SEED = 0x40E5_0001
@@ -94,14 +94,6 @@ class HomesTrainConfig:
 
     def __post_init__(self):
         check_fields(self, _RULES, store=False)
-        room = self.homes.num_hours - self.model.history - self.max_horizon
-        if room < 0:
-            raise ValueError(f"homes.num_hours={self.homes.num_hours} leaves no map hour with "
-                             f"model.history={self.model.history} hours before it and "
-                             f"max_horizon={self.max_horizon} after it")
-        if self.val_homes < self.val_batches * self.batch_size:
-            raise ValueError(f"val_homes={self.val_homes} must hold val_batches x batch_size = "
-                             f"{self.val_batches * self.batch_size} homes")
 
     def to_dict(self) -> dict:
         """JSON-able; ``model_kind`` names the family (what the store layer dispatches on)."""
@@ -127,16 +119,20 @@ class HomesTrainConfig:
 _RULES = {
     "model": Instance(HomesModelConfig), "homes": Instance(HomesConfig),
     **{name: Int(1, 1 << 30) for name in (
-        "batch_size", "queries_per_home", "steps", "chunk_homes", "chunk_steps", "max_horizon",
-        "val_homes", "val_batches", "log_every", "val_every", "ckpt_every", "keep_last")},
+        "batch_size", "queries_per_home", "steps", "chunk_homes", "chunk_steps",
+        "val_batches", "log_every", "val_every", "ckpt_every", "keep_last")},
+    "max_horizon": After(lambda got: Int(1, got["homes"].num_hours - got["model"].history, why=(
+        f"homes.num_hours={got['homes'].num_hours} - model.history={got['model'].history}: "
+        "a map hour needs model.history hours before it and max_horizon after it"))),
+    "val_homes": After(lambda got: Int(got["val_batches"] * got["batch_size"], 1 << 30)),
     "seed": Int(0, 2**31 - 1), "lr": Real(0.0, low_open=True),
     **{name: Real(0.0, 1.0, high_open=True) for name in ("b1", "b2", "ema_decay")},
     "weight_decay": Real(0.0), "cfm_weight": Real(0.0),
     "clip_norm": Real(0.0, low_open=True), "default_horizon_frac": Real(0.0, 1.0),
     "preset": PlainName(), "warmup_steps": IntBelow("steps"),
 }
-"""What each field of :class:`HomesTrainConfig` may hold (the bounds across the parts of the
-config: in the body)."""
+"""What each field of :class:`HomesTrainConfig` may hold; ``max_horizon`` and ``val_homes``
+are bounded by fields checked before them (``After``)."""
 
 
 def homes_preset() -> HomesTrainConfig:
