@@ -57,6 +57,7 @@ from flowmaps_jax.validation import (
 )
 from flowmaps_jax.validation.composite import After
 from flowmaps_jax.validation.fields import Each, Int, Seed, check_fields
+from flowmaps_jax.validation.scalars import int_list
 
 EVAL_SEED = 35_000_002
 """Seed of the evaluation homes (``jax.random.key(EVAL_SEED)``); training uses other seeds."""
@@ -221,15 +222,6 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
 # --------------------------------------------------------------------------- command line
 
 
-def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers; got {text!r}") \
-            from None
-    return values
-
-
 def build_parser() -> argparse.ArgumentParser:
     cli = argparse.ArgumentParser(
         prog="python -m flowmaps_jax.homes.evaluate",
@@ -248,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="hours of the object's past the exact posterior and the frequency prior read")
     add("--samples", type=int, default=DEFAULT_SAMPLES,
         help="samples per query of the sample rows (0: none)")
-    add("--horizons", type=_int_list, default=list(DEFAULT_HORIZONS),
+    add("--horizons", type=int_list, default=list(DEFAULT_HORIZONS),
         help="query horizons τ_q − τ in hours, comma-separated")
     add("--budget", type=int, default=nav.LOOK_BUDGET, help="looks per navigation episode")
     add("--no-figures", action="store_true", help="skip the PNG figures")

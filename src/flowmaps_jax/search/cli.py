@@ -56,22 +56,12 @@ from flowmaps_jax.validation import (
     save_figure,
 )
 from flowmaps_jax.validation.fields import Choice, Int, Optional, Real, Seed
+from flowmaps_jax.validation.scalars import int_list
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
 FIGURES = ("episodes.png", "success_vs_looks.png", "success_vs_distance.png")
 REPORT_FILES = ("search.json", "search.md")
-
-
-def _int_list(text: str) -> list[int]:
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers; got {text!r}") \
-            from None
-    if not values:
-        raise argparse.ArgumentTypeError(f"expected at least one integer; got {text!r}")
-    return values
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -88,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     add("--num-envs", type=int, default=pr.DEFAULT_NUM_ENVS, help="validation environments")
     add("--times-per-env", type=int, default=pr.DEFAULT_TIMES_PER_ENV,
         help="(τ, τ_q) draws per environment; every object is searched for in each")
-    add("--horizons", type=_int_list, default=None,
+    add("--horizons", type=int_list, default=None,
         help="instead of random draws: fixed horizons Δτ, e.g. 1,2,4,8 (one row each)")
     add("--world", default=None, metavar="NAME",
         help=f"FlowSim world of the searched scenes ({', '.join(WORLDS)}; default: the world "

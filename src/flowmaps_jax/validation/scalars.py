@@ -6,6 +6,7 @@ the form the caller should go on with (a Python ``int``/``float``/``bool``, a ty
 
 from __future__ import annotations
 
+import argparse
 import math
 import numbers
 import operator
@@ -135,3 +136,16 @@ def check_key(key: Any, name: str = "key", shapes: Sequence[tuple[int, ...]] = (
         raise ValueError(f"{name} must be a key array of shape {allowed}; got shape "
                          f"{tuple(typed.shape)}")
     return typed
+
+
+def int_list(text: str) -> list[int]:
+    """An ``argparse`` type: comma-separated integers (``"1,4,16"`` -> [1, 4, 16]), at least
+    one; ``argparse.ArgumentTypeError`` otherwise, which argparse reports with the flag."""
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers; got {text!r}") \
+            from None
+    if not values:
+        raise argparse.ArgumentTypeError(f"expected at least one integer; got {text!r}")
+    return values
