@@ -68,7 +68,6 @@ from flowmaps_jax.validation.composite import After, Fields, NonEmpty
 from flowmaps_jax.validation.fields import Array, Flag, Instance, Int, Key, Optional, RealArray
 
 SOLVERS = flow.SOLVERS
-SOLVER_RULES = flow.SOLVER_RULES
 FAR_LIMIT = 1e3
 """Boxes with a number beyond ±this (normalised units; the map is [0, 1]) have log-density −inf:
 the noise prior alone puts exp(−5·10⁵) there, and the ODE would overflow to NaN."""
@@ -185,7 +184,7 @@ class Predictor:
         budget (:func:`flowmaps_jax.validation.check_resources`), before XLA tries: the rows'
         memory (``model.freq_bands`` included), the solver's ``num_steps`` (its time grid, and
         its evaluations one after another) and the FLOPs of every evaluation. The solver's
-        arguments are checked already (:data:`SOLVER_RULES`)."""
+        arguments are checked already (:data:`flowmaps_jax.flow.SOLVER_RULES`)."""
         rows = b * q * n
         factor = DENSITY_FACTOR if with_density else 1
         evaluations = solver_evaluations(num_steps, method) if self.family.uses_solver else 1
@@ -202,7 +201,7 @@ class Predictor:
 
     @check_args(queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),  # B for the key
                 key=After(lambda got: Key(((), (size("B"),)))), num_samples=Int(),
-                pixels=Flag(), return_log_prob=Flag(), **SOLVER_RULES)
+                pixels=Flag(), return_log_prob=Flag(), **flow.SOLVER_RULES)
     def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
                num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
                pixels: bool = False, return_log_prob: bool = False):
@@ -245,7 +244,7 @@ class Predictor:
 
     @check_args(queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),
                 x=NonEmpty(RealArray(("B", "Q", None, 4)), "at least one box per query"),
-                **SOLVER_RULES)
+                **flow.SOLVER_RULES)
     def log_prob(self, tokens: SceneTokens, queries: Queries, x,
                  num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
         """Exact log-density (B, Q, N) of normalised boxes x (B, Q, N, 4) (y, x, h, w).

@@ -203,8 +203,8 @@ def optimal_orders(belief, homes: Homes, queries: HomesQueries, start_distance,
     allowed = np.asarray(allowed_slots(homes, queries))
     e, q, r = allowed.shape
     count = allowed.sum(-1).reshape(-1)
-    if count.max() > MAX_OPTIMAL_RECEPTACLES:
-        a = int(count.max())
+    a = int(count.max())  # the most allowed receptacles of one object
+    if a > MAX_OPTIMAL_RECEPTACLES:
         raise ValueError(
             f"policy 'optimal' takes at most {MAX_OPTIMAL_RECEPTACLES} allowed receptacles per "
             f"object; an object here has {a}. Its exact dynamic programme holds 2^A · A values "

@@ -185,7 +185,7 @@ class HomesConfig:
 
     @property
     def vocabulary_size(self) -> int:
-        return len(self.room_types) + len(self.receptacle_classes) + len(self.object_classes)
+        return sum(len(getattr(self, f)) for f in _CLASSES)
 
     @property
     def descriptor_offsets(self) -> tuple[int, int, int]:
@@ -265,6 +265,7 @@ _SIZE = Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")
 _UNIT = Real(0.0, 1.0)
 _JITTER = Real(0.0, 1.0, high_open=True)
 _CLASSES = ("room_types", "receptacle_classes", "object_classes")
+"""The class tables, whose entries together are the vocabulary (one descriptor each)."""
 _RULES = {
     "room_types": Table(RoomType, _ENTRY_RULES, unique=("name",)),
     # what the classes name must exist
