@@ -51,7 +51,7 @@ def _child(preset: str, parts: list[str]) -> dict[str, tuple[float, float]]:
     from flowmaps_jax.model.flowmaps_family import flow_log_prob, flow_sample
     from flowmaps_jax.training import state as train_state
     from flowmaps_jax.training.config import get_preset
-    from flowmaps_jax.training.data import default_batch_fn
+    from flowmaps_jax.worlds.flowsim import default_batch_fn
 
     cfg = get_preset(preset)
     scenes = generate(jax.random.key(0), max(cfg.batch_size, 8), cfg.flowsim)

@@ -13,6 +13,7 @@ from flowmaps_jax.training.config import (
     TrainConfig,
     apply_overrides,
     compile_key,
+    config_from_stored,
     format_config,
     get_preset,
 )
@@ -65,8 +66,9 @@ def test_unknown_preset():
 @pytest.mark.parametrize("name", sorted(PRESETS))
 def test_json_round_trip(name):
     cfg = get_preset(name)
-    back = TrainConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    back = type(cfg).from_dict(json.loads(json.dumps(cfg.to_dict())))
     assert back == cfg
+    assert config_from_stored(json.loads(json.dumps(cfg.to_dict()))) == cfg  # by its family
     assert "model.dim" in format_config(cfg)
 
 

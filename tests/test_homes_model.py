@@ -18,13 +18,15 @@ from support import perturb, run_python_in_process
 from flowmaps_jax.flowsim.homes import context_of, generate_homes, object_boxes
 from flowmaps_jax.homes import model as homes_model
 from flowmaps_jax.homes import tokens as homes_tokens
-from flowmaps_jax.homes import train as homes_train
 from flowmaps_jax.homes.predictor import HomesPredictor
 from flowmaps_jax.homes.queries import HomesQueries
 from flowmaps_jax.predictor import load_model, load_pretrained
 from flowmaps_jax.store import model_spec, pretrained
+from flowmaps_jax.training import state as train_state
+from flowmaps_jax.training.config import HomesTrainConfig, get_preset
+from flowmaps_jax.worlds import homes as homes_world
 
-CFG = homes_train.homes_smoke_preset()
+CFG = get_preset("homes-smoke")
 CONFIG, MODEL = CFG.homes, CFG.model
 H = MODEL.history
 
@@ -225,9 +227,9 @@ def test_a_few_dozen_steps_lower_the_loss(homes):
     """The loss, its gradients and the run's optimiser on one fixed batch (the train step on
     fresh homes runs in the training CLI's test below)."""
     cfg = dataclasses.replace(CFG, steps=40, lr=3e-3, warmup_steps=2)
-    state = homes_train.init_state(cfg)
-    batch = jax.jit(lambda key: homes_train.draw_batch(key, homes, cfg))(jax.random.key(0))
-    tx = homes_train.make_optimizer(cfg)
+    state = train_state.init_state(cfg)
+    batch = jax.jit(lambda key: homes_world.draw_batch(key, homes, cfg))(jax.random.key(0))
+    tx = train_state.make_optimizer(cfg)
 
     @jax.jit
     def step(params, opt_state):
@@ -251,10 +253,10 @@ def test_the_train_cli_trains_the_smoke_preset_and_the_predictor_loads_its_best(
                                                                                 queries):
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     vals = [r for r in records if r["kind"] == "val"]
-    assert [r["step"] for r in vals] == [3, 6] and any(r["kind"] == "train" for r in records)
+    assert [r["step"] for r in vals] == [0, 3, 6] and any(r["kind"] == "train" for r in records)
     config = json.loads((run_dir / "config.json").read_text())
     assert config["model_kind"] == homes_model.FAMILY_NAME
-    assert homes_train.HomesTrainConfig.from_dict(config) == CFG
+    assert HomesTrainConfig.from_dict(config) == CFG
     predictor = HomesPredictor.load(run_dir)
     best = min(vals, key=lambda r: r["val_loss"])["step"]
     assert predictor.step == best  # the default load is the best validation CE
@@ -272,6 +274,31 @@ def test_the_train_cli_trains_the_smoke_preset_and_the_predictor_loads_its_best(
     assert np.all(np.abs(np.asarray(boxes)[..., :2] - rec[..., :2]) < rec[..., 3:5] * 1.6)
     with pytest.raises(ValueError, match="homes model"):
         load_model(str(run_dir))  # the 2-D CLIs refuse it with a message
+
+
+def _untimed(path) -> list[dict]:
+    """A run's metrics.jsonl records without their timings (steps/s, samples/s)."""
+    return [{k: v for k, v in json.loads(line).items() if not k.endswith("_per_sec")}
+            for line in path.read_text().splitlines()]
+
+
+def test_a_homes_run_stopped_and_resumed_writes_the_records_of_one_never_stopped(run_dir,
+                                                                                tmp_path):
+    """The homes world enters the one training loop: --stop-at, then --resume, continue the
+    run exactly (the same data chunks, batches, noise and records as the uninterrupted run)."""
+    split = tmp_path / "split"
+    args = ["-m", "flowmaps_jax.train", "--run-dir", str(split), "--no-progress"]
+    code, out = run_python_in_process([*args, "--preset", "homes-smoke", "--stop-at", "4"],
+                                      tmp_path)
+    assert code == 0, out
+    assert [(r["kind"], r["step"]) for r in _untimed(split / "metrics.jsonl")] == [
+        ("val", 0), ("train", 2), ("val", 3), ("train", 4)]
+    code, out = run_python_in_process([*args, "--resume"], tmp_path)
+    assert code == 0 and "Resumed from" in out, out
+    assert _untimed(split / "metrics.jsonl") == _untimed(run_dir / "metrics.jsonl")
+    code, out = run_python_in_process([*args, "--resume", "--set", "homes.num_hours=120"],
+                                      tmp_path)
+    assert code == 2 and "cannot change homes.num_hours" in out, out
 
 
 def test_export_and_load_by_name_round_trip_with_integrity_checks(run_dir, homes, queries,
@@ -332,14 +359,13 @@ def test_the_store_reads_both_families():
 
 
 def test_the_train_config_round_trips_and_refuses_bad_fields():
-    assert homes_train.HomesTrainConfig.from_dict(CFG.to_dict()) == CFG
-    assert homes_train.HomesTrainConfig.from_dict(
-        json.loads(json.dumps(homes_train.homes_preset().to_dict()))) == homes_train.homes_preset()
+    assert HomesTrainConfig.from_dict(CFG.to_dict()) == CFG
+    assert HomesTrainConfig.from_dict(
+        json.loads(json.dumps(get_preset("homes").to_dict()))) == get_preset("homes")
     with pytest.raises(ValueError, match="max_horizon"):
         dataclasses.replace(CFG, max_horizon=200)
-    with pytest.raises(ValueError, match="unknown keys"):
-        homes_train.HomesTrainConfig.from_dict({**CFG.to_dict(), "colour": 1})
-    assert homes_train.VAL_SEED != homes_train.TRAIN_SALT
+    with pytest.raises(ValueError, match="colour"):
+        HomesTrainConfig.from_dict({**CFG.to_dict(), "colour": 1})
     from flowmaps_jax.training.overrides import apply_overrides
 
     assert apply_overrides(CFG, ["model.dim=8"]).model.dim == 8

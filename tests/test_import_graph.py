@@ -34,7 +34,7 @@ MODULES = {_name(path): path for path in sorted((SRC / PACKAGE).rglob("*.py"))}
 HOMES_MODEL = (f"{PACKAGE}.homes", *(f"{PACKAGE}.homes.{m}" for m in ("queries", "tokens",
                                                                      "model")))
 HOMES_ABOVE_STORE = tuple(f"{PACKAGE}.homes.{m}" for m in (
-    "predictor", "train", "priors", "scores", "navigation", "report", "evaluate"))
+    "predictor", "priors", "scores", "navigation", "report", "evaluate"))
 
 # The modules that load, run and export a trained model: none may import flowmaps_jax.training,
 # not even lazily, so that sampling a pretrained model needs neither optax nor the training loop.
@@ -42,7 +42,8 @@ INFERENCE = sorted(
     name for name in MODULES
     if name in (f"{PACKAGE}.{m}" for m in ("predictor", "export", "flow", "tokens", "boxes",
                                             "validation", "distributed", "tables"))
-    or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store"))
+    or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store",
+                        f"{PACKAGE}.worlds"))
     or name in HOMES_MODEL or name == f"{PACKAGE}.homes.predictor")
 STORE = sorted(name for name in MODULES if name.startswith(f"{PACKAGE}.store"))
 # What sits above the store: it may import none of them, lazily or not.
@@ -151,6 +152,39 @@ def test_the_graph_is_read():
 
 def test_no_import_circles():
     assert _cycles() == []
+
+
+LAYERS = (
+    ("validation", "boxes", "distributed"),
+    ("tokens", "flow", "tables"),
+    ("flowsim", "model", "homes.queries", "homes.tokens", "homes.model"),
+    ("worlds",),
+    ("store",),
+    ("predictor", "export", "homes.predictor"),
+    ("evaluation", "search", "homes"),
+    ("training",),
+    ("train", "evaluate"),
+)
+"""The layers, bottom up, each a list of module-name prefixes under the package (the longest
+prefix decides: ``homes.model`` is at the model layer, the rest of ``homes`` above the
+predictor)."""
+
+
+def _layer(name: str) -> int:
+    rest = name[len(PACKAGE) + 1:]
+    best = max(((len(p), i) for i, layer in enumerate(LAYERS) for p in layer
+                if rest == p or rest.startswith(p + ".")), default=None)
+    assert best is not None, f"{name} is in no layer of LAYERS"
+    return best[1]
+
+
+def test_no_module_imports_a_higher_layer():
+    """Every import, lazy ones included, points to the module's own layer or one below."""
+    upward = [f"{name} (layer {_layer(name)}) -> {target} (layer {_layer(target)})"
+              for name in sorted(MODULES) if name != PACKAGE
+              for target in sorted(edges(name)) if target != PACKAGE
+              and _layer(target) > _layer(name)]
+    assert upward == []
 
 
 @pytest.mark.parametrize("module", INFERENCE)

@@ -133,8 +133,9 @@ def test_default_load_picks_the_lowest_validation_table_cross_entropy(tmp_path):
     import json
 
     from flowmaps_jax.predictor import load
-    from flowmaps_jax.training import data, loop, objectives
+    from flowmaps_jax.training import loop, objectives
     from flowmaps_jax.training.config import get_preset
+    from flowmaps_jax.worlds import flowsim as data
 
     base = get_preset("smoke")
     cfg = dataclasses.replace(base, model=dataclasses.replace(base.model, head="mixture",

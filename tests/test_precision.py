@@ -21,9 +21,10 @@ from support import TINY, perturb, synthetic_queries, synthetic_tokens
 from flowmaps_jax.model import ModelConfig, forward, init_params
 from flowmaps_jax.model.config import PRECISIONS
 from flowmaps_jax.model.precision import compute_dtype, dot, einsum
-from flowmaps_jax.training import data, objectives
+from flowmaps_jax.training import objectives
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import apply_overrides, get_preset
+from flowmaps_jax.worlds import flowsim as data
 
 SMOKE = get_preset("smoke")
 BF16 = dataclasses.replace(TINY, precision="bf16")

@@ -30,12 +30,11 @@ def test_shipped_homes_model_loads_by_name_and_gives_posteriors():
     from flowmaps_jax.flowsim.homes import generate_homes
     from flowmaps_jax.homes import draw_queries
     from flowmaps_jax.homes.predictor import HomesPredictor
-    from flowmaps_jax.homes.train import homes_preset
 
     predictor = load_pretrained("flowmaps-homes")
     assert isinstance(predictor, HomesPredictor)
-    assert predictor.model == homes_preset().model
-    config = homes_preset().homes
+    assert predictor.model == get_preset("homes").model
+    config = get_preset("homes").homes
     homes = generate_homes(jax.random.key(5), config, 2)
     queries = draw_queries(jax.random.key(6), homes, config, 3)
     p = np.asarray(predictor.probabilities(homes, queries, config))

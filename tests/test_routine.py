@@ -20,8 +20,8 @@ from flowmaps_jax.model import ModelConfig, encode, init_params, velocity
 from flowmaps_jax.model.readout import mixture_velocity
 from flowmaps_jax.predictor import Predictor
 from flowmaps_jax.tokens import Queries
-from flowmaps_jax.training import objectives
 from flowmaps_jax.training.config import get_preset
+from flowmaps_jax.worlds import flowsim as flowsim_world
 
 POINTER = ModelConfig(dim=32, encoder_layers=1, cdit_blocks=1, heads=2, mlp_ratio=2,
                       freq_bands=8, baseline_hidden=32, head="pointer", condition_on_dtau=True)
@@ -160,7 +160,7 @@ def test_short_horizons_are_oversampled(small_scenes, flowsim_config):
 def test_target_jitter_has_the_protocol_std():
     box = jnp.array([0.3, 0.4, 0.05, 0.08])
     boxes = jnp.broadcast_to(box, (20000, 4))
-    out = objectives.jitter_targets(jax.random.key(0), boxes, 1.0)
+    out = flowsim_world.jitter_targets(jax.random.key(0), boxes, 1.0)
     spread = np.asarray(to_centre(out)).std(axis=0)
     expected = np.asarray(gt_mixture_sigma(box[None]))[0]
     np.testing.assert_allclose(spread, expected, rtol=0.05)

@@ -19,9 +19,10 @@ import pytest
 from flowmaps_jax.predictor import load
 from flowmaps_jax.store import checkpoints
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
-from flowmaps_jax.training import cli, data, loop, objectives
+from flowmaps_jax.training import cli, loop, objectives
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import apply_overrides, get_preset
+from flowmaps_jax.worlds import flowsim as data
 
 SMOKE = get_preset("smoke")
 

@@ -347,8 +347,7 @@ def load_pretrained(name: str, directory: str | pathlib.Path = pretrained.PRETRA
                      source=f"pretrained:{weights.name}", step=weights.step)
 
 
-PRETRAINED_PREFIX = "pretrained:"
-"""A model spec starting with this names pretrained weights (``pretrained:flowmaps``)."""
+PRETRAINED_PREFIX = pretrained.PREFIX
 
 
 def load_model(spec: str, which: str = "best", devices: int | None = None) -> Predictor:

@@ -40,6 +40,8 @@ from flowmaps_jax.validation.fields import Array, Choice, Instance, Int, Mask, R
 CENTRE_SIGMA_SCALE = 0.35
 """Centre std of a mixture component of the protocol's q as a fraction of the box side (h for
 cy, w for cx); the assignment radius grows with it."""
+SIZE_SIGMA_SCALE = 0.02
+"""Size std of a mixture component of the protocol's q as a fraction of the box side (h, w)."""
 ASSIGN_RADIUS = 0.05
 """The least assignment radius (normalised units): a sample whose centre lies this close to a slot's
 centre always counts for the nearest slot."""
@@ -52,6 +54,15 @@ ASSIGN_TOLERANCE = ASSIGN_RADIUS
 """The least assignment radius of table masses (normalised units; the evaluation protocol's): a
 sample whose centre is this close to a table's centre counts for the nearest table. On a 256 px
 map 0.05 is 12.75 px."""
+
+
+@jax.jit
+def protocol_sigma(boxes: jnp.ndarray) -> jnp.ndarray:
+    """Boxes (..., 4) (y, x, h, w) → (..., 4) std of (cy, cx, h, w) of the protocol's smoothed q
+    around each: (0.35 h, 0.35 w, 0.02 h, 0.02 w). Unchecked."""
+    h, w = boxes[..., 2], boxes[..., 3]
+    return jnp.stack([CENTRE_SIGMA_SCALE * h, CENTRE_SIGMA_SCALE * w,
+                      SIZE_SIGMA_SCALE * h, SIZE_SIGMA_SCALE * w], axis=-1)
 
 
 # --------------------------------------------------------------------------- the assignment

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.boxes import from_centre, to_centre
-from flowmaps_jax.tables import CENTRE_SIGMA_SCALE  # the centre std, shared with the assignment
+from flowmaps_jax.tables import protocol_sigma  # the stds, shared with the assignment
 from flowmaps_jax.validation import is_concrete
 from flowmaps_jax.validation.composite import After
 from flowmaps_jax.validation.fields import (
@@ -38,9 +38,6 @@ from flowmaps_jax.validation.fields import (
     Rule,
     check_args,
 )
-
-SIZE_SIGMA_SCALE = 0.02
-"""Size std of a mixture component as a fraction of the box side (h for h, w for w)."""
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _DUMMY_BOX = (0.0, 0.0, 1.0, 1.0)  # stands in for padded slots so no NaN appears (masked anyway)
@@ -83,11 +80,7 @@ def _full_mask(shape, slot_mask):
     return jnp.ones(shape, bool) if slot_mask is None else jnp.asarray(slot_mask, bool)
 
 
-@jax.jit
-def _sigma(boxes):
-    h, w = boxes[..., 2], boxes[..., 3]
-    return jnp.stack([CENTRE_SIGMA_SCALE * h, CENTRE_SIGMA_SCALE * w,
-                      SIZE_SIGMA_SCALE * h, SIZE_SIGMA_SCALE * w], axis=-1)
+_sigma = protocol_sigma
 
 
 @check_args(slot_boxes=Array((..., 4)))

@@ -38,7 +38,7 @@ from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.validation import check_request_size, prefix_errors
 from flowmaps_jax.validation.fields import Choice, Instance, Int, Key, check_args
 
-PRETRAINED_PREFIX = "pretrained:"
+PRETRAINED_PREFIX = pretrained.PREFIX
 COMPATIBLE_FIELDS = ("rooms", "receptacles_per_room", "objects_per_home", "max_tokens",
                      "max_vocabulary", "room_types", "receptacle_classes", "object_classes")
 """The config fields a model's token layout and vocabulary depend on: a config given to the

@@ -51,6 +51,8 @@ from flowmaps_jax.validation.composite import Pattern
 from flowmaps_jax.validation.fields import Choice, Instance, Int, Optional
 
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[1] / "pretrained"
+PREFIX = "pretrained:"
+"""A model spec starting with this names pretrained weights (``pretrained:flowmaps``)."""
 """The package data folder holding the pretrained weights."""
 NAMES = ("flowmaps", "mlp", "mlp-learned",
          "flowmaps-preferences", "flowmaps-dynamic", "flowmaps-mixed",

@@ -1,4 +1,5 @@
-"""``python -m flowmaps_jax.train``: train FlowMaps (or the MLP baseline) on FlowSim.
+"""``python -m flowmaps_jax.train``: train FlowMaps (or the MLP baseline) on a world (2-D
+FlowSim, or FlowSim homes with ``--preset homes``).
 
 Examples::
 
@@ -10,7 +11,7 @@ Examples::
     python -m flowmaps_jax.train --resume --run-dir runs/flowmaps-cpu-20250101-120000
     python -m flowmaps_jax.train --resume --run-dir runs/X --from-step 500   # an older save
     python -m flowmaps_jax.train --overwrite --run-dir runs/X   # old run moved to X.old-<time>
-    python -m flowmaps_jax.train --preset homes --run-dir runs/homes   # FlowSim homes (homes.train)
+    python -m flowmaps_jax.train --preset homes --run-dir runs/homes   # FlowSim homes
 
 A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` (one JSON record
 per log interval: ``"kind": "train"`` with mean loss/grad_norm/lr and steps/s and samples/s over
@@ -45,12 +46,11 @@ import types
 import typing
 
 from flowmaps_jax import distributed
-from flowmaps_jax.homes import train as homes_train
-from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.training import resume
 from flowmaps_jax.training.config import (
     DEFAULT_PRESET,
     PRESETS,
+    RUN_CONFIGS,
     TrainConfig,
     get_preset,
     with_world,
@@ -59,18 +59,22 @@ from flowmaps_jax.training.loop import run
 from flowmaps_jax.training.overrides import replace_fields
 from flowmaps_jax.validation.composite import Needs, OutputDir
 from flowmaps_jax.validation.fields import Optional, check_fields
+from flowmaps_jax.worlds import world
 
 EXIT_OK, EXIT_NAN, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 1, 74, 130
+_FAMILIES = tuple(dict.fromkeys(f for cls in RUN_CONFIGS for f in world(cls.world).families))
+"""Every model family some world trains (its run config's ``family``)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m flowmaps_jax.train",
-        description="Train FlowMaps (flow matching) or the MLP baseline on FlowSim.")
-    parser.add_argument("--preset", choices=sorted({*PRESETS, *homes_train.PRESETS}), default=None,
-                        help=f"named configuration (default {DEFAULT_PRESET})")
-    parser.add_argument("--family", "--model", dest="family", choices=tuple(MODEL_FAMILIES),
-                        default=None,
+        description="Train FlowMaps (flow matching) or the MLP baseline on FlowSim, or the "
+                    "homes model on FlowSim homes (--preset homes).")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
+                        help=f"named configuration (default {DEFAULT_PRESET}; homes and "
+                             "homes-smoke train on FlowSim homes)")
+    parser.add_argument("--family", "--model", dest="family", choices=_FAMILIES, default=None,
                         help="the model family: flowmaps (default) or mlp (Gaussian baseline); "
                              "--model is its older spelling")
     parser.add_argument("--run-dir", default=None,
@@ -169,8 +173,6 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        if args.preset in homes_train.PRESETS:  # the homes model (flowmaps_jax.homes.train)
-            return homes_train.main_from_args(args)
         distributed.initialize()  # a multi-host job: connect the processes first
         cfg, run_dir = resolve_config(args)
         result = run(cfg, run_dir, resume=args.resume, overwrite=args.overwrite,

@@ -33,11 +33,12 @@ from typing import Any
 
 from flowmaps_jax.flow import T_SAMPLERS
 from flowmaps_jax.flowsim.config import FlowSimConfig
-from flowmaps_jax.flowsim.generate import layout_bytes
+from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY, world_config  # the habits preset's H
+from flowmaps_jax.homes.model import FAMILY_NAME as HOMES_FAMILY
+from flowmaps_jax.homes.model import HomesModelConfig
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
-from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
+from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.store.model_spec import ModelSpec
 from flowmaps_jax.training.overrides import (
     SHORTHANDS,
@@ -46,13 +47,7 @@ from flowmaps_jax.training.overrides import (
     config_to_dict,
     flatten,
 )
-from flowmaps_jax.validation import (
-    INT32_MAX,
-    check_resources,
-    embedding_bytes,
-    network_flops,
-    solver_evaluations,
-)
+from flowmaps_jax.validation import INT32_MAX, check_resources
 from flowmaps_jax.validation.composite import IntBelow
 from flowmaps_jax.validation.fields import (
     Choice,
@@ -65,13 +60,14 @@ from flowmaps_jax.validation.fields import (
     Text,
     check_fields,
 )
+from flowmaps_jax.worlds import world, world_of_family
 
 DATA_SOURCES = ("train", "endless")
 
-__all__ = ["DATA_SOURCES", "DEFAULT_PRESET", "PRESETS", "RESUMABLE_FIELDS", "ROLES", "SHORTHANDS",
-           "Role", "TrainConfig", "apply_overrides", "check_run_resources", "compile_key",
-           "cpu_preset", "format_config", "get_preset", "paper_preset", "resource_estimate",
-           "smoke_preset"]
+__all__ = ["DATA_SOURCES", "DEFAULT_PRESET", "PRESETS", "RESUMABLE_FIELDS", "ROLES", "RUN_CONFIGS",
+           "SHORTHANDS", "HomesTrainConfig", "Role", "TrainConfig", "apply_overrides",
+           "check_run_resources", "compile_key", "config_from_stored", "cpu_preset",
+           "format_config", "get_preset", "paper_preset", "resumable_fields", "smoke_preset"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -167,6 +163,9 @@ class TrainConfig:
     ``bookkeeping``.
     """
 
+    world: typing.ClassVar[str] = "flowsim"
+    """The world this config trains on (:func:`flowmaps_jax.worlds.world`)."""
+
     model: ModelConfig = dataclasses.field(default_factory=ModelConfig, metadata=_AS_RECIPE)
     family: str = _recipe("flowmaps", stored_as="model_kind")
     flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig, metadata=_AS_RECIPE)
@@ -259,102 +258,162 @@ _RULES = {
 checks that couple two fields follow in ``__post_init__``."""
 
 
-def _fields_whose_role(prop: str, value: bool) -> tuple[str, ...]:
-    """The :class:`TrainConfig` fields whose role has ``prop`` equal to ``value``."""
+@dataclasses.dataclass(frozen=True)
+class HomesTrainConfig:
+    """A training run on FlowSim homes (the world ``"homes"``, :mod:`flowmaps_jax.worlds.homes`).
+
+    model: the homes network's sizes; family: ``"flowmaps-homes"`` (stored as ``"model_kind"``);
+    homes: the homes world (regime ``"mixed"``: one model for all four regimes);
+    ``batch_size`` homes per step × ``queries_per_scene`` queries (stored as
+    ``"queries_per_home"``); the optimiser as :class:`TrainConfig`'s (``lr``, ``warmup_steps``,
+    ``b1``, ``b2``, ``weight_decay``, ``clip_norm``, ``ema_decay``); fresh data
+    (``chunk_homes`` new homes every ``chunk_steps`` steps); horizons
+    (``default_horizon_frac`` of the queries from ``DEFAULT_HORIZONS`` up to ``max_horizon``,
+    the rest log-uniform in 1 … ``max_horizon``); ``cfm_weight`` of the placement loss;
+    validation (``val_homes`` fixed homes, ``val_batches`` batches of ``batch_size`` of them);
+    ``init_from``, ``seed``, the intervals, ``keep_last``, ``devices`` and ``preset`` as
+    :class:`TrainConfig`'s. Each field declares its role (:data:`ROLES`).
+    """
+
+    world: typing.ClassVar[str] = "homes"
+    """The world this config trains on (:func:`flowmaps_jax.worlds.world`)."""
+
+    model: HomesModelConfig = dataclasses.field(default_factory=HomesModelConfig,
+                                                metadata=_AS_RECIPE)
+    family: str = _recipe(HOMES_FAMILY, stored_as="model_kind")
+    homes: HomesConfig = dataclasses.field(default_factory=lambda: HomesConfig(regime="mixed"),
+                                           metadata=_AS_RECIPE)
+    batch_size: int = _recipe(32)
+    queries_per_scene: int = _recipe(8, stored_as="queries_per_home")
+    steps: int = _extent(5000)
+    lr: float = _recipe(1e-3)
+    warmup_steps: int = _recipe(200)
+    b1: float = _recipe(0.9)
+    b2: float = _recipe(0.999)
+    weight_decay: float = _recipe(0.01)
+    clip_norm: float | None = _recipe(1.0)
+    ema_decay: float = _recipe(0.998)
+    chunk_homes: int = _recipe(256)
+    chunk_steps: int = _recipe(32)
+    default_horizon_frac: float = _recipe(0.5)
+    max_horizon: int = _recipe(168)
+    cfm_weight: float = _recipe(1.0)
+    val_homes: int = _recipe(256)
+    val_batches: int = _recipe(8)
+    init_from: str | None = _source(None)
+    seed: int = _recipe(0)
+    log_every: int = _bookkeeping(50)
+    val_every: int = _bookkeeping(250)
+    ckpt_every: int = _bookkeeping(500)
+    keep_last: int = _bookkeeping(2)
+    devices: int | None = _extent(None)
+    preset: str = _bookkeeping("homes")
+
+    def __post_init__(self):
+        check_fields(self, _HOMES_RULES, store=False)
+        # Then the checks that couple two fields: each field's own error is named first.
+        most = self.homes.num_hours - self.model.history
+        if self.max_horizon > most:
+            raise ValueError(
+                f"max_horizon must be <= {most} (homes.num_hours={self.homes.num_hours} - "
+                f"model.history={self.model.history}: a map hour needs model.history hours "
+                f"before it and max_horizon after it); got {self.max_horizon}")
+        if self.val_homes < self.val_batches * self.batch_size:
+            raise ValueError(f"val_homes must be an int in {self.val_batches * self.batch_size}"
+                             f".. (val_batches x batch_size); got {self.val_homes}")
+        if self.devices is not None and self.batch_size % self.devices:
+            raise ValueError(f"batch_size={self.batch_size} does not divide evenly over "
+                             f"devices={self.devices}: use a multiple of {self.devices}")
+
+    def to_dict(self) -> dict:
+        """A JSON-able dict (nested configs become nested dicts)."""
+        return config_to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> HomesTrainConfig:
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
+        return config_from_dict(cls, data, "config")
+
+
+_HOMES_RULES = {
+    "model": Instance(HomesModelConfig), "homes": Instance(HomesConfig),
+    "family": Choice((HOMES_FAMILY,)),
+    **{name: _COUNT for name in ("batch_size", "queries_per_scene", "steps", "chunk_homes",
+                                 "chunk_steps", "val_batches", "log_every", "val_every",
+                                 "ckpt_every", "keep_last", "max_horizon", "val_homes")},
+    "seed": Seed(), "preset": PlainName(),
+    "init_from": Optional(Text("a checkpoint directory or pretrained:NAME")),
+    "devices": Optional(_COUNT),
+    "lr": Real(0.0, low_open=True), "b1": _DECAY, "b2": _DECAY, "ema_decay": _DECAY,
+    "weight_decay": Real(0.0), "clip_norm": Optional(Real(0.0, low_open=True)),
+    "cfm_weight": Real(0.0), "default_horizon_frac": Real(0.0, 1.0),
+    "warmup_steps": IntBelow("steps"),
+}
+"""What each :class:`HomesTrainConfig` field may hold on its own; the checks that couple two
+fields follow in ``__post_init__``."""
+
+RUN_CONFIGS = (TrainConfig, HomesTrainConfig)
+"""The run config classes, one per world (each names its world: ``cls.world``)."""
+
+
+def config_from_stored(data: dict, where: str = "config") -> TrainConfig | HomesTrainConfig:
+    """The run config a stored dict describes (``config.json``, a checkpoint's ``config``
+    item): the class whose world trains the stored family (``"model_kind"``)."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where} must be a JSON object; got {type(data).__name__}")
+    family = data.get("model_kind", data.get("family", TrainConfig().family))
+    if not isinstance(family, str):
+        raise ValueError(f"{where}: model_kind must be a string; got {family!r}")
+    family_world = world_of_family(family).name
+    cls = next(c for c in RUN_CONFIGS if c.world == family_world)
+    return config_from_dict(cls, data, where)
+
+
+def _fields_whose_role(cls: type, prop: str, value: bool) -> tuple[str, ...]:
+    """The fields of the run config class ``cls`` whose role has ``prop`` equal to ``value``."""
     names = []
-    for field in dataclasses.fields(TrainConfig):
+    for field in dataclasses.fields(cls):
         role = field.metadata.get("role")
         if role not in ROLES:
-            raise TypeError(f"TrainConfig.{field.name} declares no role (one of {list(ROLES)})")
+            raise TypeError(f"{cls.__name__}.{field.name} declares no role (one of "
+                            f"{list(ROLES)})")
         if getattr(ROLES[role], prop) == value:
             names.append(field.name)
     return tuple(names)
 
 
-RESUMABLE_FIELDS = _fields_whose_role("resumable", True)
-"""Fields that ``--resume`` may change; every other field would change the model, its
-parameters, its optimiser or its data, i.e. mix two runs in one directory."""
-_NOT_COMPILED = _fields_whose_role("compiled", False)
+def resumable_fields(cfg) -> tuple[str, ...]:
+    """The fields of ``cfg``'s class that ``--resume`` may change; every other field would
+    change the model, its parameters, its optimiser or its data, i.e. mix two runs in one
+    directory."""
+    return _fields_whose_role(type(cfg), "resumable", True)
 
 
-def compile_key(cfg: TrainConfig) -> TrainConfig:
+RESUMABLE_FIELDS = _fields_whose_role(TrainConfig, "resumable", True)
+""":func:`resumable_fields` of a :class:`TrainConfig`."""
+
+
+def compile_key(cfg):
     """``cfg`` with the fields that the compiled functions do not depend on reset to their
     defaults: the key of the compile cache, so that runs differing only there compile once."""
-    base = TrainConfig()
-    return dataclasses.replace(cfg, **{name: getattr(base, name) for name in _NOT_COMPILED})
+    base = type(cfg)()
+    return dataclasses.replace(cfg, **{name: getattr(base, name)
+                                       for name in _fields_whose_role(type(cfg), "compiled",
+                                                                      False)})
 
 
 # --------------------------------------------------------------------------------------------
 # Resource bounds
 
 
-_ROUTINE_QUERIES = 3 * 2  # the routine probe: 3 objects per environment, at two horizon laws
-
-
-def resource_estimate(cfg: TrainConfig, devices: int = 1) -> list[tuple[str, int, int]]:
-    """What a run of ``cfg`` needs, part by part, on each of ``devices`` data-parallel devices:
-    ``[(what, bytes, FLOPs), ...]`` where ``what`` names the fields that set the part's size.
-    FLOPs are those of one uninterruptible call (a train step, a val pass); ``steps`` is not
-    bounded (a run stops and resumes between steps). A rough, generous estimate
-    (:func:`flowmaps_jax.validation.network_flops`)."""
-    net, sim = cfg.model, cfg.flowsim
-    tokens = sim.num_furniture + sim.num_objects
-    b, q = cfg.batch_size, cfg.queries_per_scene
-    per_layer = net.dim * net.dim * (4 + 2 * net.mlp_ratio)
-    params = (net.encoder_layers * per_layer + net.cdit_blocks * (per_layer + 6 * net.dim ** 2)
-              + 2 * net.dim * net.baseline_hidden + net.baseline_hidden ** 2
-              + 2 * net.freq_bands * net.dim * (4 + 4 + 1)  # the box, query and time embeddings
-              + 2 * net.num_descriptors * net.dim  # the descriptor embeddings
-              + (net.weight_blocks * (per_layer + 6 * net.dim ** 2)
-                 if net.head == "mixture" else 0))  # the mixture head's weight rows
-    query_flops, scene_flops = network_flops(net, cfg.family, tokens)
-    # activations kept for the backward pass: per query row and per scene token, every layer
-    row = 4 * net.dim * (net.mlp_ratio + 8) * net.cdit_blocks * 2 + 2 * embedding_bytes(net, 5)
-    token = (4 * (net.dim * (net.mlp_ratio + 8) + tokens * net.heads) * net.encoder_layers * 2
-             + 2 * embedding_bytes(net, 4))
-    shard = max(1, int(devices))
-    step_bytes = -(-b // shard) * (q * row + tokens * token)
-    batch_bytes = 4 * (b * sim.max_tokens * 7 + b * q * 6)
-    envs = cfg.train_envs + cfg.val_envs
-    env_bytes = 4 * (sim.num_furniture * 5 + sim.num_objects * (3 + sim.num_furniture)
-                     + sim.num_timesteps * sim.num_objects * 5 + 1)
-    routine_envs = min(cfg.routine_envs, cfg.val_envs)
-    routine_rows = routine_envs * _ROUTINE_QUERIES * cfg.routine_samples
-    uses_solver = model_family(cfg.family).uses_solver
-    evaluations = solver_evaluations(DEFAULT_NUM_STEPS) if uses_solver else 1
-    return [
-        (f"the model (model.dim={net.dim}, model.encoder_layers={net.encoder_layers}, "
-         f"model.cdit_blocks={net.cdit_blocks}, model.mlp_ratio={net.mlp_ratio}, "
-         f"model.freq_bands={net.freq_bands}, model.baseline_hidden={net.baseline_hidden}, "
-         f"model.num_descriptors={net.num_descriptors}: about "
-         f"{params:,} parameters, with EMA, optimiser state and gradients)",
-         4 * 5 * params, 0),
-        (f"a train step (batch_size={b} x queries_per_scene={q} at model.dim={net.dim}, "
-         f"model.freq_bands={net.freq_bands})",
-         step_bytes, 3 * (b * q * query_flops + b * scene_flops)),
-        (f"the validation batches (val_batches={cfg.val_batches} of batch_size={b} x "
-         f"queries_per_scene={q}, flowsim.max_tokens={sim.max_tokens})",
-         cfg.val_batches * batch_bytes + step_bytes // 2,
-         cfg.val_batches * (b * q * query_flops + b * scene_flops)),
-        (f"the data (train_envs={cfg.train_envs} + val_envs={cfg.val_envs} environments, "
-         f"flowsim.layout_candidates={sim.layout_candidates})",
-         envs * env_bytes + layout_bytes(sim, envs), 0),
-        (f"the routine diagnostic (routine_envs={routine_envs} environments x "
-         f"{_ROUTINE_QUERIES} queries x routine_samples={cfg.routine_samples} samples, "
-         f"model.freq_bands={net.freq_bands})",
-         routine_rows * (4 * net.dim * (net.mlp_ratio + 4) + 4 * (4 + sim.num_furniture)
-                         + embedding_bytes(net, 5)),
-         routine_rows * evaluations * query_flops + routine_envs * 2 * scene_flops),
-    ]
-
-
-def check_run_resources(cfg: TrainConfig, devices: int = 1) -> None:
-    """``ValueError`` naming the fields when a part of :func:`resource_estimate`, or all of it
+def check_run_resources(cfg: TrainConfig | HomesTrainConfig, devices: int = 1) -> None:
+    """``ValueError`` naming the fields when a part of the run's resource estimate (its
+    world's ``resources``, e.g. :func:`flowmaps_jax.worlds.flowsim.resource_estimate`), or all of it
     together, is over the memory or work budget (:func:`flowmaps_jax.validation.memory_limit`,
     :func:`~flowmaps_jax.validation.flops_limit`; environment variables FLOWMAPS_MAX_BYTES and
     FLOWMAPS_MAX_FLOPS raise them)."""
-    parts = resource_estimate(cfg, devices)
-    total = ("the run altogether (model, step, validation, data and routine diagnostic)",
+    parts = world(cfg.world).resources(cfg, devices)
+    total = ("the run altogether (model, step, validation, data and diagnostics)",
              sum(p[1] for p in parts), 0)
     for what, num_bytes, flops in [*parts, total]:
         check_resources(what, num_bytes=num_bytes, flops=flops)
@@ -440,28 +499,54 @@ def habits_preset() -> TrainConfig:
         steps=3000, short_horizon_frac=0.25, data="endless", preset="habits")
 
 
-def with_world(cfg: TrainConfig, world: str) -> TrainConfig:
-    """``cfg`` on the FlowSim world ``world`` (a ``flowsim.WORLDS`` name; ValueError naming
-    ``world`` otherwise): only ``flowsim.habits`` changes (``--set world=dynamic``)."""
-    return dataclasses.replace(cfg, flowsim=world_config(world, cfg.flowsim))
+def homes_preset() -> HomesTrainConfig:
+    """The shipped homes model's recipe: D = 64, 2 encoder layers, 2 weight block pairs, 2
+    placement blocks (0.6M parameters); 32 homes × 8 queries per step, 5,000 steps (about 25
+    minutes on an idle 2-core CPU)."""
+    return HomesTrainConfig(steps=5000)
+
+
+def homes_smoke_preset() -> HomesTrainConfig:
+    """A tiny homes model on short homes: trains in seconds (tests)."""
+    return HomesTrainConfig(
+        model=HomesModelConfig(dim=16, encoder_layers=1, weight_blocks=1, cdit_blocks=1,
+                               heads=2, mlp_ratio=2, freq_bands=4, history=24),
+        homes=HomesConfig(regime="mixed", num_hours=96), batch_size=4, queries_per_scene=2,
+        steps=6, warmup_steps=1, chunk_homes=8, chunk_steps=3, max_horizon=24, val_homes=8,
+        val_batches=2, log_every=2, val_every=3, ckpt_every=3, preset="homes-smoke")
+
+
+def with_world(cfg: TrainConfig, habits: str) -> TrainConfig:
+    """``cfg`` on the FlowSim habit world ``habits`` (a ``flowsim.WORLDS`` name; ValueError
+    naming ``world`` otherwise): only ``flowsim.habits`` changes (``--set world=dynamic``)."""
+    if not hasattr(cfg, "flowsim"):
+        raise ValueError(f"world={habits!r}: --set world=... chooses a habit world of the 2-D "
+                         f"FlowSim presets; preset {cfg.preset!r} trains on another world")
+    return dataclasses.replace(cfg, flowsim=world_config(habits, cfg.flowsim))
 
 
 PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "cpu-pointer": pointer_cpu_preset,
-           "smoke": smoke_preset, "habits": habits_preset}
+           "smoke": smoke_preset, "habits": habits_preset, "homes": homes_preset,
+           "homes-smoke": homes_smoke_preset}
 DEFAULT_PRESET = "cpu"
 
 
-def get_preset(name: str = DEFAULT_PRESET) -> TrainConfig:
-    """The named preset (``paper``, ``cpu``, ``smoke`` or ``habits``) as a fresh
-    ``TrainConfig``."""
+def get_preset(name: str = DEFAULT_PRESET) -> TrainConfig | HomesTrainConfig:
+    """The named preset (``paper``, ``cpu``, ``smoke``, ``habits``, ``homes``,
+    ``homes-smoke``) as a fresh run config."""
     if name not in PRESETS:
         raise ValueError(f"preset must be one of {sorted(PRESETS)}; got {name!r}")
     return PRESETS[name]()
 
 
-def format_config(cfg: TrainConfig) -> str:
+_UNPRINTED = ("flowsim.furniture_kinds", "flowsim.categories", "homes.room_types",
+              "homes.receptacle_classes", "homes.object_classes")
+"""The class tables of the worlds' configs, left out of the run's printed config."""
+
+
+def format_config(cfg: TrainConfig | HomesTrainConfig) -> str:
     """Human-readable multi-line dump of the resolved config (printed at the start of a run)."""
     flat = flatten(cfg.to_dict())
     width = max(len(k) for k in flat)
     return "\n".join(f"  {k:<{width}} = {v}" for k, v in flat.items()
-                     if not k.startswith(("flowsim.furniture_kinds", "flowsim.categories")))
+                     if not k.startswith(_UNPRINTED))

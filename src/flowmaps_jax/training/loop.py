@@ -1,4 +1,4 @@
-"""The training loop: :func:`run` trains FlowMaps (or the MLP baseline) on FlowSim.
+"""The training loop: :func:`run` trains a model on its world (2-D FlowSim or FlowSim homes).
 
 :func:`run` reads top to bottom, as flax's ``examples/imagenet/train.py`` does:
 
@@ -18,9 +18,12 @@ A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` a
 and belongs to one run (:mod:`flowmaps_jax.store.rundir`). The batch and noise of step i
 depend only on the state's keys and i, so a resumed run continues exactly, and the metrics of
 the steps since the last train record travel in the checkpoint, so the records of a resumed run
-are those of a run never stopped. Ctrl-C saves a checkpoint and returns; a NaN/inf loss, or a
-state with NaN/inf that a save refuses, stops the run without saving the bad state (the last
-good checkpoint stays). The command line is :mod:`flowmaps_jax.training.cli`.
+are those of a run never stopped. Everything that depends on the world (its data, batches,
+objective, resource estimate) comes from the run config's world
+(:func:`flowmaps_jax.worlds.world`); the loop itself is the same for every world. Ctrl-C
+saves a checkpoint and returns; a NaN/inf loss, or a state with NaN/inf that a save refuses,
+stops the run without saving the bad state (the last good checkpoint stays). The command line
+is :mod:`flowmaps_jax.training.cli`.
 """
 
 from __future__ import annotations
@@ -42,13 +45,14 @@ from tqdm import tqdm
 
 from flowmaps_jax import distributed
 from flowmaps_jax.evaluation import routine
-from flowmaps_jax.predictor import Predictor, load_model
-from flowmaps_jax.store import checkpoints, rundir
+from flowmaps_jax.predictor import Predictor
+from flowmaps_jax.store import checkpoints, pretrained, rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointSaveError
 from flowmaps_jax.store.integrity import NonFiniteStateError
-from flowmaps_jax.training import data, objectives, runlog
+from flowmaps_jax.training import objectives, runlog
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import (
+    RUN_CONFIGS,
     TrainConfig,
     check_run_resources,
     compile_key,
@@ -56,21 +60,19 @@ from flowmaps_jax.training.config import (
 )
 from flowmaps_jax.training.resume import restore_for_resume
 from flowmaps_jax.training.runlog import RunResult
-from flowmaps_jax.validation import check_args, prefix_errors
-from flowmaps_jax.validation.composite import After, Needs, OutputDir
-from flowmaps_jax.validation.fields import Instance, Int, Optional
+from flowmaps_jax.validation import check_instance, check_int, check_output_dir, prefix_errors
+from flowmaps_jax.worlds import world
 
 __all__ = ["Compiled", "RunResult", "compiled_functions", "run"]
 
 
-@check_args(cfg=Instance(TrainConfig), run_dir=OutputDir(),
-            stop_at=Optional(After(lambda got: Int(1, got["cfg"].steps))),
-            from_step=Needs("resume", "needs resume=True (--from-step needs --resume)"))
 def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         overwrite: bool = False, from_step: int | None = None, stop_at: int | None = None,
         progress: bool = True, on_step: Callable[[int, dict], None] | None = None,
         log: Callable[[str], None] = print) -> RunResult:
-    """Train per ``cfg`` into ``run_dir``; see the module docstring for what is written.
+    """Train per ``cfg`` (a :data:`~flowmaps_jax.training.config.RUN_CONFIGS` instance: its
+    world says where the data comes from) into ``run_dir``; see the module docstring for what is
+    written.
 
     resume: continue from the latest checkpoint in ``run_dir`` (or the saved step
         ``from_step``); ValueError if there is none, if it is damaged (the message names the
@@ -88,10 +90,17 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     :class:`~flowmaps_jax.store.checkpoint_store.CheckpointSaveError`.
     """
     # ---- Prelude: every check, then the run's pieces; nothing is written before the last one.
-    # The arguments were checked by check_args; then those that depend on the devices.
+    check_instance("cfg", cfg, RUN_CONFIGS)
+    run_dir = pathlib.Path(check_output_dir("run_dir", run_dir))
+    if stop_at is not None:
+        check_int("stop_at", stop_at, 1, cfg.steps)
+    if from_step is not None and not resume:
+        raise ValueError("from_step needs resume=True (--from-step needs --resume)")
+    data = world(cfg.world)  # the world: data, batches, objective, resources
+    # Then the checks that depend on the devices.
     mesh = distributed.training_mesh(cfg.devices)
     distributed.check_divides("batch_size", cfg.batch_size, mesh, "the scenes of a batch")
-    data.host_train_part(cfg)  # a multi-host job: the data must divide over the hosts
+    data.host_part(cfg)  # a multi-host job: the data must divide over the hosts
     check_run_resources(cfg, devices=1 if mesh is None else mesh.size)
     start_params = None if resume else _start_params(cfg, log)
     primary = jax.process_index() == 0
@@ -106,11 +115,12 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         log(f"Run directory: {run_dir.absolute()} (config.json, metrics.jsonl, checkpoints/)")
         log(f"Devices: {distributed.describe(mesh)}")
         compiled = compiled_functions(cfg, mesh)
-        train_scenes, val_scenes = data.load_splits(cfg, log, mesh=_generation_mesh(mesh))
+        train_scenes, val_scenes = data.splits(cfg, log, mesh=_generation_mesh(mesh))
         train_scenes = _place_scenes(train_scenes, mesh)
-        val_batches = distributed.replicate(data.make_val_batches(cfg, val_scenes), mesh)
+        val_batches = distributed.replicate(data.val_batches(cfg, val_scenes), mesh)
         probe = _routine_probe(cfg, val_scenes, mesh)
         take_step = _step_taker(cfg, compiled.train_step, mesh)
+        endless = data.is_endless(cfg)
         # Every check has passed: from here on the run directory is written.
         if resumed is None:
             state, window = train_state.init_state(cfg, objective=compiled.objective, mesh=mesh,
@@ -149,9 +159,8 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
                     if stop.requested:  # Ctrl-C: the state after the last step is saved below
                         status = "interrupted"
                         break
-                    if cfg.data == "endless" and (
-                            train_scenes is None or step % data.endless_chunk_steps(cfg) == 0):
-                        train_scenes = _place_scenes(data.endless_scenes(
+                    if endless and (train_scenes is None or step % data.chunk_steps(cfg) == 0):
+                        train_scenes = _place_scenes(data.endless(
                             cfg, state.data_key, step, mesh=_generation_mesh(mesh)), mesh)
                     step_start = time.perf_counter()
                     state, metrics = take_step(state, train_scenes, step)
@@ -196,25 +205,29 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
                            best_val_loss=book.best_loss, best_step=book.best_step)
         if probe is not None and primary:
             runlog.write_routine_curve(run_dir, log)
-        runlog.print_summary(result, cfg.steps, latest, log)
+        runlog.print_summary(result, cfg.steps, latest, log, data.evaluate_command)
         return result
 
 
-def _start_params(cfg: TrainConfig, log: Callable[[str], None]):
+def _start_params(cfg, log: Callable[[str], None]):
     """The weights ``cfg.init_from`` names (their EMA params), checked against the model: None
     without ``init_from``; ValueError naming ``init_from`` when they cannot be read or belong to
     another model family or architecture."""
     if cfg.init_from is None:
         return None
     with prefix_errors(f"init_from={cfg.init_from!r}: "):
-        source = load_model(cfg.init_from, devices=1)
-    if source.family_name != cfg.family:
-        raise ValueError(f"init_from={cfg.init_from!r} is a {source.family_name!r} model; this "
-                         f"run trains {cfg.family!r}")
+        if cfg.init_from.startswith(pretrained.PREFIX):
+            source = pretrained.read_weights(cfg.init_from[len(pretrained.PREFIX):])
+        else:
+            source = checkpoints.load_weights(cfg.init_from)
+    family = source.spec.family_name
+    if family != cfg.family:
+        raise ValueError(f"init_from={cfg.init_from!r} is a {family!r} model; this run trains "
+                         f"{cfg.family!r}")
     fresh = jax.eval_shape(objectives.objective_for(cfg).init, jax.random.PRNGKey(0))
     overlay = functools.partial(train_state.overlay_params, where=f"init_from={cfg.init_from!r}")
     jax.eval_shape(overlay, fresh, source.params)  # init_state's overlay, traced: its check now
-    log(f"Starting from the weights of {source.source} (step {source.step}); parameters they "
+    log(f"Starting from the weights of {cfg.init_from} (step {source.step}); parameters they "
         f"lack keep their fresh init")
     return source.params
 
@@ -273,7 +286,7 @@ def _step_taker(cfg: TrainConfig, step_fn: Callable, mesh) -> Callable:
     if jax.process_count() == 1:
         return lambda state, scenes, step: step_fn(state, scenes)
     hosts, index = jax.process_count(), jax.process_index()
-    local_batch = jax.jit(data.default_batch_fn(
+    local_batch = jax.jit(world(cfg.world).batch_fn(
         dataclasses.replace(cfg, batch_size=cfg.batch_size // hosts, devices=None)))
 
     def take(state, scenes, step):
@@ -307,8 +320,9 @@ def _place_scenes(scenes, mesh):
 
 def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any], dict] | None:
     """``probe(state) -> metrics``: the routine diagnostic of every val pass, on
-    ``cfg.routine_envs`` validation environments with the state's EMA weights; None when off."""
-    if cfg.routine_envs <= 0:
+    ``cfg.routine_envs`` validation environments with the state's EMA weights; None when off,
+    or for a run config without the diagnostic (``routine_envs``)."""
+    if getattr(cfg, "routine_envs", 0) <= 0:
         return None
     probe = routine.build_probe(val_scenes, cfg.flowsim,
                                 min(cfg.routine_envs, val_scenes.num_envs), cfg.seed,

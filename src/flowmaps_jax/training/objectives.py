@@ -1,12 +1,11 @@
-"""Training objectives: a run config's model family bound into an :class:`Objective`.
+"""Training objectives: a run config's world and model family bound into an :class:`Objective`.
 
-Each model family brings its own loss (``ModelFamily.loss``, in the family's module under
-:mod:`flowmaps_jax.model`: FlowMaps' :func:`~flowmaps_jax.model.flowmaps_family.flowmaps_loss`,
-the MLP baseline's :func:`~flowmaps_jax.model.baseline.mlp_loss`); :func:`objective_for` binds it
-with the family's init and the run's recipe (:class:`~flowmaps_jax.model.family.LossOptions`).
-Adding a model is a family module, not an ``if family ==`` branch here.
-
-:func:`jitter_targets` smooths training targets with the evaluation protocol's σ.
+Each world brings the objective of the models it trains (``World.objective``): the 2-D FlowSim
+world binds the run's model family (``ModelFamily.loss``, in the family's module under
+:mod:`flowmaps_jax.model`: FlowMaps' flow-matching loss, the MLP baseline's Gaussian
+negative log-likelihood) to the run's recipe; the homes world the homes network's loss.
+:func:`objective_for` asks the run's world for it. Adding a model is a family module, adding a
+world a world module, not an ``if`` branch here.
 """
 
 from __future__ import annotations
@@ -18,29 +17,16 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from flowmaps_jax.boxes import from_centre, to_centre
-from flowmaps_jax.evaluation.kl import gt_mixture_sigma
-from flowmaps_jax.model.families import model_family
-from flowmaps_jax.model.family import LossOptions
-from flowmaps_jax.tokens import TrainBatch
-from flowmaps_jax.training.config import TrainConfig
+from flowmaps_jax.worlds import world
 
 Params = Any
 # loss(params, batch, key, train) -> (scalar loss, dict of scalar diagnostics)
-LossFn = Callable[[Params, TrainBatch, jax.Array, bool], tuple[jax.Array, dict]]
-
-
-def jitter_targets(key: jax.Array, boxes: jnp.ndarray, scale: float) -> jnp.ndarray:
-    """Boxes (..., 4) moved by ``scale`` × the evaluation protocol's ground-truth std
-    (``gt_mixture_sigma``): at scale 1, a draw from the smoothed q around each box."""
-    centres = to_centre(boxes)
-    noise = jax.random.normal(key, boxes.shape, boxes.dtype)
-    return from_centre(centres + scale * gt_mixture_sigma(boxes) * noise)
+LossFn = Callable[[Params, Any, jax.Array, bool], tuple[jax.Array, dict]]
 
 
 @dataclasses.dataclass(frozen=True)
 class Objective:
-    """How to initialise and score one model family.
+    """How to initialise and score one model.
 
     init(key) -> params.
     loss(params, batch, key, train) -> (loss, aux): scalar training loss and a dict of scalar
@@ -51,24 +37,13 @@ class Objective:
     loss: LossFn
 
 
-def loss_options(cfg: TrainConfig) -> LossOptions:
-    """The recipe fields of ``cfg`` that a family's loss reads."""
-    return LossOptions(t_sampler=cfg.t_sampler, pointer_loss=cfg.pointer_loss,
-                       num_objects=cfg.flowsim.num_objects)
-
-
-def objective_for(cfg: TrainConfig) -> Objective:
-    """The training objective of the model family ``cfg.family`` bound to ``cfg``: the family's
-    init and its loss (``ModelFamily.loss``: FlowMaps' flow-matching loss or the MLP baseline's
-    Gaussian negative log-likelihood) with the run's :func:`loss_options`."""
-    family = model_family(cfg.family)
-    options = loss_options(cfg)
-
-    def init(key):
-        return family.init(key, cfg.model)
+def objective_for(cfg) -> Objective:
+    """The training objective of the run config ``cfg``: its world's
+    (``World.objective(cfg)``), with the loss's per-query diagnostics dropped."""
+    init, family_loss = world(cfg.world).objective(cfg)
 
     def loss(params, batch, key, train):
-        value, aux = family.loss(params, cfg.model, batch, key, train, options)
+        value, aux = family_loss(params, batch, key, train)
         return value, _scalars(aux)
 
     return Objective(init=init, loss=loss)

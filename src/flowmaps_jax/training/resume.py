@@ -1,8 +1,8 @@
 """Resume policy: which checkpoint ``--resume`` continues and with which config.
 
-* :func:`load_config`: the :class:`~flowmaps_jax.training.config.TrainConfig` stored with a
+* :func:`load_config`: the run config (``TrainConfig``, ``HomesTrainConfig``) stored with a
   checkpoint.
-* :func:`check_resumable`: only :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS` may change
+* :func:`check_resumable`: only the config's ``resumable_fields`` may change
   on resume.
 * :func:`restore_for_resume`: the verified checkpoint a resumed run continues (None for a run
   that saved none yet: it starts again from step 0).
@@ -20,33 +20,40 @@ from collections.abc import Callable
 
 from flowmaps_jax.store import checkpoints, rundir
 from flowmaps_jax.training import state as train_state
-from flowmaps_jax.training.config import RESUMABLE_FIELDS, TrainConfig
+from flowmaps_jax.training.config import TrainConfig, config_from_stored, resumable_fields
 from flowmaps_jax.training.overrides import flatten
 
 
 def load_config(directory: str | pathlib.Path, which: str = checkpoints.LATEST,
                 step: int | None = None) -> TrainConfig:
-    """The :class:`~flowmaps_jax.training.config.TrainConfig` stored with the ``which``
-    checkpoint ("latest" or "best"), or with the saved ``step`` when given."""
-    return TrainConfig.from_dict(checkpoints.restore(directory, which=which, step=step,
-                                                     with_state=False).config)
+    """The run config (a :class:`~flowmaps_jax.training.config.TrainConfig` or another world's)
+    stored with the ``which`` checkpoint ("latest" or "best"), or with the saved ``step``."""
+    return config_from_stored(checkpoints.restore(directory, which=which, step=step,
+                                                  with_state=False).config)
 
 
 
 def check_resumable(saved: TrainConfig, cfg: TrainConfig, config_json: pathlib.Path | None = None
                     ) -> None:
     """ValueError naming the first field where ``cfg`` differs from the checkpoint's ``saved``
-    config outside :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`; with
+    config outside its :func:`~flowmaps_jax.training.config.resumable_fields`; with
     ``config_json``, ``cfg`` was read from that file, and the message says it is not the run's."""
     old, new = flatten(saved.to_dict()), flatten(cfg.to_dict())
+    if type(saved) is not type(cfg):
+        raise ValueError(f"--resume cannot change the world (the checkpoint trains on "
+                         f"{saved.world!r}, this run asks for {cfg.world!r}): train it in a new "
+                         f"--run-dir" if config_json is None else
+                         f"{config_json} is not the config of the run's checkpoints (another "
+                         f"world); restore or delete it, then resume")
+    resumable = resumable_fields(cfg)
     changed = [key for key in sorted(set(old) | set(new))
-               if key.split(".")[0] not in RESUMABLE_FIELDS and old.get(key) != new.get(key)]
+               if key.split(".")[0] not in resumable and old.get(key) != new.get(key)]
     if changed:
         key = changed[0]
         raise ValueError(
             f"--resume cannot change {key} (the checkpoint has {old.get(key)!r}, this run "
             f"asks for {new.get(key)!r}): it would change the model, its parameters, its "
-            f"optimiser or its data. Only {', '.join(RESUMABLE_FIELDS)} may change on "
+            f"optimiser or its data. Only {', '.join(resumable)} may change on "
             f"resume; train with other settings in a new --run-dir" if config_json is None
             else f"{config_json} is not the config of the run's checkpoints (another model or "
                  f"settings: {key} differs); restore or delete it, then resume")
@@ -67,7 +74,7 @@ def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig
     if from_step is not None:
         raise ValueError(f"--from-step {from_step}: the run in {run_dir} saved no checkpoint")
     try:
-        return TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+        return config_from_stored(json.loads((run_dir / "config.json").read_text()))
     except (OSError, ValueError, TypeError) as err:
         missing = isinstance(err, FileNotFoundError)
         if missing and only_best:
@@ -106,9 +113,9 @@ def resume_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig:
         return unsaved
     saved = load_config(rundir.checkpoint_root(run_dir), step=from_step)
     try:
-        latest = TrainConfig.from_dict(json.loads((run_dir / "config.json").read_text()))
+        latest = config_from_stored(json.loads((run_dir / "config.json").read_text()))
     except (OSError, ValueError, TypeError):  # missing or unreadable: the checkpoint's config
         return saved
     check_resumable(saved, latest, run_dir / "config.json")
     return dataclasses.replace(saved, **{name: getattr(latest, name)
-                                         for name in RESUMABLE_FIELDS})
+                                         for name in resumable_fields(saved)})

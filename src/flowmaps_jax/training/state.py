@@ -10,8 +10,8 @@ Everything here is a pure function of explicit pytrees:
   metrics)`` doing loss, gradients, the optax update and the EMA update, with the state donated.
 * :func:`make_fused_train_step` additionally draws the batch inside the same compiled function
   from the scenes arrays (no host round trip): ``(state, scenes) -> (state, metrics)``. With
-  ``data="endless"`` the scenes argument is swapped for fresh environments every few steps
-  (:func:`flowmaps_jax.training.data.endless_scenes`).
+  endless data the scenes argument is swapped for fresh environments every few steps
+  (the run's world's ``endless`` hook, :mod:`flowmaps_jax.worlds`).
 * :func:`make_eval_loss` scores EMA params on fixed validation batches with a fixed key and no
   dropout, so values are comparable across evaluations.
 
@@ -37,13 +37,16 @@ from flax import struct
 from jax.sharding import Mesh
 
 from flowmaps_jax import distributed
-from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
-from flowmaps_jax.training.config import TrainConfig
-from flowmaps_jax.training.data import EVAL_KEY_SALT, BatchFn, default_batch_fn
+from flowmaps_jax.training.config import RUN_CONFIGS, TrainConfig
 from flowmaps_jax.training.objectives import Objective, objective_for
-from flowmaps_jax.validation import check_args, check_instance
-from flowmaps_jax.validation.composite import Fields
-from flowmaps_jax.validation.fields import Array, Instance
+from flowmaps_jax.validation import check_instance
+from flowmaps_jax.worlds import world
+
+# batch_fn(key, data) -> batch, traceable (the run's world's ``batch_fn``)
+BatchFn = Any
+
+_EVAL_NOISE_SALT = 0x5EED + 1
+"""The validation passes' flow noise: ``PRNGKey(seed + _EVAL_NOISE_SALT)``, fixed for a run."""
 
 Params = Any
 
@@ -108,7 +111,7 @@ def init_state(cfg: TrainConfig, key: jax.Array | None = None,
     start_params: weights to start from (``cfg.init_from``), laid over the fresh params by
     :func:`overlay_params`. The arrays are committed to the first device, or replicated over
     ``mesh``."""
-    check_instance("cfg", cfg, TrainConfig)
+    check_instance("cfg", cfg, RUN_CONFIGS)
     objective = objective or objective_for(cfg)
     if key is None:
         key = jax.random.PRNGKey(cfg.seed)
@@ -180,23 +183,16 @@ def step_keys(state: TrainState) -> tuple[jax.Array, jax.Array]:
 # Train step
 
 
-_BATCH = Fields(TrainBatch, {
-    "tokens": Fields(SceneTokens, {"mask": Array(("B", "S")), "boxes": Array(("B", "S", 4)),
-                                   "descriptor": Array(("B", "S")), "kind": Array(("B", "S")),
-                                   "tau": Array(("B",))}),
-    "queries": Fields(Queries, {"descriptor": Array(("B", "Q")), "tau_q": Array(("B", "Q"))}),
-    "target": Array(("B", "Q", 4))})
-"""A train step's batch: a TrainBatch whose arrays agree on B (scenes), S (tokens) and Q
-(queries per scene), so a wrong one is a ValueError naming the array, not an XLA error."""
-
-
 def _update_fn(cfg: TrainConfig, objective: Objective):
     """The un-jitted update ``(state, batch, key) -> (state, metrics)``."""
     tx = make_optimizer(cfg)
     schedule = make_schedule(cfg)
+    check_batch = world(cfg.world).check_batch
 
-    @check_args(state=Instance(TrainState), batch=_BATCH)  # trace time only: shapes are static
-    def update(state: TrainState, batch: TrainBatch, key: jax.Array):
+    def update(state: TrainState, batch, key: jax.Array):
+        # At trace time (shapes are static): a wrong batch is a ValueError naming the array.
+        check_instance("state", state, TrainState)
+        check_batch(batch)
         grad_fn = jax.value_and_grad(objective.loss, has_aux=True)
         (loss, aux), grads = grad_fn(state.params, batch, key, True)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
@@ -238,7 +234,7 @@ def make_fused_train_step(cfg: TrainConfig, objective: Objective | None = None,
     devices by scenes (one host; multi-host runs use :func:`make_train_step`).
     """
     update = _update_fn(cfg, objective or objective_for(cfg))
-    batch_fn = batch_fn or default_batch_fn(cfg)
+    batch_fn = batch_fn or world(cfg.world).batch_fn(cfg)
 
     def fused(state: TrainState, scenes):
         batch_key, noise_key = step_keys(state)
@@ -269,9 +265,9 @@ def make_eval_loss(cfg: TrainConfig, objective: Objective | None = None,
     With ``mesh``, params are replicated and each batch is split over the devices by scenes.
     """
     objective = objective or objective_for(cfg)
-    eval_key = jax.random.PRNGKey(cfg.seed + EVAL_KEY_SALT + 1)
+    eval_key = jax.random.PRNGKey(cfg.seed + _EVAL_NOISE_SALT)
 
-    def eval_loss(params, batches: TrainBatch):
+    def eval_loss(params, batches):
         num = jax.tree.leaves(batches)[0].shape[0]
         keys = jax.vmap(lambda j: jax.random.fold_in(eval_key, j))(jnp.arange(num))
 
