@@ -6,8 +6,9 @@ homes and the queries, jitted and vmapped over homes and queries (no Python loop
 
 * :func:`exact_prior` — the exact posterior given the map at τ and the object's last
   ``history`` hours (``flowsim.homes.homes_history_posterior``: the preferences regime's hidden
-  favourites marginalised; for the other regimes the plain posterior). The window is
-  min(history, τ + 1) hours. ``history=1`` is "what one map can give".
+  favourites marginalised, the window's first state included; for the other regimes the plain
+  posterior). The window is min(history, τ + 1) hours. ``history=1`` is "what one map can
+  give": where the object stands at τ also weighs the current contexts' favourites.
 * :func:`uniform_prior` — 1/n on each of the object's n allowed receptacles.
 * :func:`last_seen_prior` — "nothing moves": 1 − ε where the object is at τ, ε spread evenly
   over its other allowed receptacles, so that KL(q ‖ p) is finite. ε = ``LAST_SEEN_EPS`` = 0.01

@@ -59,7 +59,8 @@ NUM_CONTEXTS = 8
 HOURS_PER_WEEK = 24 * 7
 
 DEFAULT_ACTIVITY = tuple(0.2 if (h < 7 or h == 23) else 1.0 for h in range(24))
-"""Hourly activity (multiplies every regime's move probability): low at night (23:00–07:00)."""
+"""Hourly activity (multiplies the move probability of every regime but the routine, which
+moves every hour): low at night (23:00–07:00)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,10 +84,11 @@ class HomesConfig:
     preference_move, preference_mass: preferences move with ρ · activity per hour to a place
         drawn from π_c, with this mass on the context's favourite.
     balanced_move, balanced_cycle: balanced moves with ρ · activity, to the next place of its
-        cycle with this probability, else to one of the other places uniformly.
+        cycle with this probability, else to one of all n − 1 other places uniformly (the next
+        one included).
     frequent_move, frequent_length: frequent moves with ρ · activity to another place j with
         weight exp(−geodesic distance / length), metres.
-    activity: 24 hourly multipliers in [0, 1].
+    activity: 24 hourly multipliers in [0, 1] (of every regime's move but the routine's).
     size_jitter: receptacle sizes are the class's × (1 + s·U[−1, 1]).
     max_tokens: scene token budget, >= rooms + max receptacles + max objects.
     max_vocabulary: descriptor budget, >= room types + receptacle classes + object classes.

@@ -5,16 +5,31 @@ receptacle at τ_q given where it is at τ and its law (:mod:`.schedules`), comp
 ``lax.fori_loop`` over the hours (each step p ← (1 − m_t) p + m_t p B_{c(t)}, R² work).
 
 ``homes_history_posterior(home, i, τ, τ_q, history)`` is the posterior given the object's last
-``history`` observations s_{τ−H+1} … s_τ when the preferences regime's favourites are hidden
-(uniform over the allowed receptacles, independently per context). The likelihood of favourite
-f_c factorises over contexts, so the favourite of context c has weights
+``history`` observations s_a … s_τ (a = τ − history + 1) when the preferences regime's
+favourites f = (f_1 … f_C) are hidden (uniform over the n allowed receptacles, independently
+per context). The weight of an assignment f is p(s_a | f) Π_c L_c(f_c), with the window's
+transitions grouped by context,
 
-    w_c(f) ∝ Π_{t in the window, c(t) = c} [(1 − m_t) δ(s_t, s_{t+1}) + m_t π(s_{t+1}; f)],
+    L_c(k) = Π_{a ≤ t < τ, c(t) = c} [(1 − m_t) δ(s_t, s_{t+1}) + m_t π_k(s_{t+1})],
 
-and because a preferences step maps p to (1 − m_t) p + m_t π_{c(t)} (linear in one π at a
-time), the posterior is the same forward pass with π_c replaced by its posterior mean
-π̄_c = mass · w_c + b (1 − w_c) — exact, not an approximation. The other regimes' laws are seen
-on the map (cycle, distances), so for them the history changes nothing: the chain is Markov.
+π_k the targets with favourite k, and the probability of the window's first state: the object
+starts uniformly at hour 0 and each step maps p to (1 − m_t) p + m_t π_{c(t)}, so
+
+    p(s_a | f) = α / n + Σ_c W_c π_{f_c}(s_a),   α = Π_{t<a} (1 − m_t),
+    W_c = Σ_{t<a, c(t)=c} m_t Π_{t<u<a} (1 − m_u)
+
+(α + Σ_c W_c = 1). That term ties the contexts before a, so the weight does *not* factorise
+over contexts. The forward pass from τ is affine in each π_c, so the posterior is that pass
+with π_c replaced by its posterior mean, i.e. with the exact marginal w_c of f_c
+(``favourite_weights``): with ℓ_c ∝ L_c (normalised), μ_c(j) = E_ℓc[π_{f_c}(j)] and
+Z = α / n + Σ_d W_d μ_d(s_a),
+
+    w_c(k) = ℓ_c(k) · [1 + W_c (π_k(s_a) − μ_c(s_a)) / Z]
+
+— O(C · n), exact, not an approximation (tested against enumeration of the whole process from
+hour 0). With history = τ + 1 (a = 0) the term is 1 / n; with history = 1 it is what the map
+at τ alone says about the favourites. The other regimes' laws are seen on the map (cycle,
+distances), so for them the history changes nothing: the chain is Markov.
 
 ``home`` is one home (``Homes.home(i)``); every function is jittable and vmappable (over
 homes, objects, hours). Concrete inputs are checked (``ValueError`` naming the argument); a
@@ -72,26 +87,44 @@ def _posterior(home: Homes, object_index, tau, tau_q, config: HomesConfig):
 
 
 def favourite_weights(home: Homes, object_index, tau, history, config: HomesConfig):
-    """(C, R) float32: the posterior over each context's favourite of a preferences object
-    given its receptacles at hours τ − history + 1 … τ (uniform over allowed receptacles for
-    a context the window does not inform)."""
+    """(C, R) float32: the posterior marginal of each context's favourite of a preferences
+    object given its receptacles at hours a … τ (a = τ − history + 1), exact: the window's
+    transitions and its first state s_a, whose probability depends on the favourites of the
+    contexts before a (module docstring). Uniform over the allowed receptacles for a context
+    neither informs."""
     law = object_law(home, object_index, config)
     allowed, num = law["allowed"], home.num_allowed[object_index]
     s = home.receptacle[:, object_index]
-    t = jnp.arange(s.shape[0] - 1)
+    hours = jnp.arange(s.shape[0])
+    t = hours[:-1]
     here, there = s[:-1], s[1:]
     m = law["move"][t % 24][:, None]  # (T − 1, 1)
-    r = allowed.shape[0]
+    r, c = allowed.shape[0], law["targets"].shape[0]
     f = jnp.arange(r)
     mass = jnp.where(num > 1, config.preference_mass, 1.0)
     rest = jnp.where(num > 1, (1.0 - config.preference_mass) / jnp.maximum(num - 1, 1), 0.0)
     pi = jnp.where(there[:, None] == f[None, :], mass, rest)  # π(s_{t+1}; f) (T − 1, R)
     lik = (1.0 - m) * (here == there)[:, None] + m * pi
-    window = (t >= tau - history + 1) & (t < tau)
+    first = tau - history + 1  # a
+    window = (t >= first) & (t < tau)
     loglik = jnp.where(window[:, None], jnp.log(lik), 0.0)
-    per_context = jax.nn.one_hot(context_of(t), law["targets"].shape[0], dtype=jnp.float32)
+    per_context = jax.nn.one_hot(context_of(t), c, dtype=jnp.float32)
     total = per_context.T @ loglik  # (C, R)
-    return jax.nn.softmax(jnp.where(allowed[None, :], total, -jnp.inf), axis=-1)
+    ell = jax.nn.softmax(jnp.where(allowed[None, :], total, -jnp.inf), axis=-1)  # ℓ_c
+    # p(s_a | f) = α / n + Σ_c W_c π_c(s_a): the uniform start pushed through hours 0 … a − 1
+    move = law["move"][hours % 24]
+    before = hours < first
+    keep = jnp.where(before, 1.0 - move, 1.0)
+    from_here = jnp.cumprod(keep[::-1])[::-1]  # Π_{u ≥ t, u < a} (1 − m_u)
+    later = jnp.concatenate([from_here[1:], jnp.ones((1,), from_here.dtype)])
+    alpha = from_here[0]
+    w_hour = jnp.where(before, move * later, 0.0)  # m_t Π_{t < u < a} (1 − m_u)
+    w_ctx = jax.nn.one_hot(context_of(hours), c, dtype=jnp.float32).T @ w_hour  # W_c (C,)
+    s_a = s[jnp.clip(first, 0, s.shape[0] - 1)]
+    ell_a = ell[:, s_a]  # ℓ_c(s_a) (C,)
+    z = alpha / jnp.maximum(num, 1) + jnp.sum(w_ctx * (rest + (mass - rest) * ell_a))
+    shift = (mass - rest) * ((f == s_a)[None, :] - ell_a[:, None])  # π_k(s_a) − E_c[π_c(s_a)]
+    return ell * (1.0 + w_ctx[:, None] * shift / z)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))

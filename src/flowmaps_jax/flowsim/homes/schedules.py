@@ -15,12 +15,14 @@ week). The regimes (``REGIMES``; activity a_h = ``HomesConfig.activity``):
   favourites are drawn once per object, uniformly over A for each context: they are the hidden
   part of the law (``posterior.homes_history_posterior`` marginalises them).
 * **balanced** — m = ρ_b · a_h; B = c S + (1 − c)(J − I)/(n − 1): to the next place of the
-  object's cycle with c = ``balanced_cycle``, else to another place uniformly. B is doubly
+  object's cycle with c = ``balanced_cycle``, else to one of all n − 1 other places uniformly
+  (the next one included). B is doubly
   stochastic, so occupancy stays spread uniformly over A.
 * **frequent** — m = ρ_f · a_h (ρ_f = ``frequent_move``, high); B(i, j) ∝ exp(−g(i, j) / L)
   over allowed j ≠ i, g the geodesic distance through doors, L = ``frequent_length``.
 * **routine** — FlowSim's chain on the cycle: m = 1, B = p₀ I + p₁ S + p₂ S²
-  (``routine_probs``, stay 0.2 / advance 0.7 / skip 0.1), time-homogeneous.
+  (``routine_probs``, stay 0.2 / advance 0.7 / skip 0.1), time-homogeneous: it moves at every
+  hour, night included (activity does not apply).
 
 With n = 1 every kernel is the identity (the object never moves). The cycle (``furnish.cycles``)
 and the distances are seen on the map; only the favourites are hidden.
