@@ -49,6 +49,7 @@ from flowmaps_jax.flowsim.homes import HomesConfig, geodesic_distances
 from flowmaps_jax.flowsim.homes.world import Homes
 from flowmaps_jax.homes.priors import allowed_slots, receptacle_at
 from flowmaps_jax.homes.queries import HomesQueries
+from flowmaps_jax.search.policies import BELIEF_ATOL, COST_RTOL, pick, subset_values
 from flowmaps_jax.validation import check_choice, check_int
 
 POLICIES = ("most-probable", "optimal", "nearest")
@@ -59,8 +60,6 @@ STEP_LENGTH = 0.25
 MAX_OPTIMAL_RECEPTACLES = 12
 DP_SIZES = (4, 8, MAX_OPTIMAL_RECEPTACLES)
 """The dynamic programme pads each episode's A allowed receptacles to the first size ≥ A."""
-BELIEF_ATOL = 1e-6
-COST_RTOL = 1e-5
 FAR = 1e4
 """Metres to and from a padded receptacle of the dynamic programme (visited only once no
 belief mass is left, when every leg is free)."""
@@ -94,26 +93,16 @@ def start_points(homes: Homes, config: HomesConfig) -> tuple[jax.Array, jax.Arra
 # --------------------------------------------------------------------------- greedy orders
 
 
-def _pick(candidates, *criteria):
-    """Index maximising the criteria (values, tolerance) lexicographically among candidates,
-    then the lowest index."""
-    keep = candidates
-    for values, tol in criteria:
-        v = jnp.where(keep, values, -jnp.inf)
-        keep = keep & (v >= jnp.max(v) - tol)
-    return jnp.argmax(keep).astype(jnp.int32)
-
-
 def _greedy_order(belief, allowed, distance, start_distance):
     """(R,) order of one episode (−1 after the allowed ones): the highest belief first, ties to
     the nearest from where the searcher stands (a constant belief: nearest first)."""
     def step(carry, _):
         visited, here = carry
         candidates = allowed & ~visited
-        pick = _pick(candidates, (belief, BELIEF_ATOL), (-here, 0.0))
+        chosen = pick(candidates, (belief, BELIEF_ATOL), (-here, 0.0))
         left = jnp.any(candidates)
-        visited = visited | (left & (jnp.arange(allowed.shape[0]) == pick))
-        return (visited, jnp.where(left, distance[pick], here)), jnp.where(left, pick, -1)
+        visited = visited | (left & (jnp.arange(allowed.shape[0]) == chosen))
+        return (visited, jnp.where(left, distance[chosen], here)), jnp.where(left, chosen, -1)
 
     init = (jnp.zeros_like(allowed), start_distance)
     return jax.lax.scan(step, init, None, length=allowed.shape[0])[1]
@@ -130,33 +119,6 @@ def greedy_orders(belief, homes: Homes, queries: HomesQueries, start_distance):
 # --------------------------------------------------------------------------- exact DP
 
 
-@functools.cache
-def _layers(a: int) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], ...]:
-    """Static tables of the subset DP over a receptacles, one per subset size a − 1 … 1: the
-    subsets' masks (n,), "not looked at" rows (n, a) float, S ∪ {j} masks (n, a), j ∉ S (n, a)."""
-    masks = np.arange(2 ** a)
-    bits = (masks[:, None] >> np.arange(a)) & 1
-    layers = []
-    for size in range(a - 1, 0, -1):
-        rows = masks[bits.sum(-1) == size]
-        out = 1 - bits[rows]
-        layers.append((rows, out.astype(np.float32), rows[:, None] | (1 << np.arange(a)),
-                       out.astype(bool)))
-    return tuple(layers)
-
-
-def _dp_table(belief, distance, a: int):
-    """V (2^a, a): least expected travel from receptacle i having looked at the subset S,
-    V(S, i) = min_{j ∉ S} d(i, j) · m(S) + V(S ∪ {j}, j), m(S) the belief not yet looked at."""
-    table = jnp.zeros((2 ** a, a), belief.dtype)
-    for rows, out, nxt, free in _layers(a):
-        remaining = out @ belief  # (n,)
-        after = table[nxt, np.arange(a)]  # (n, a_j): V(S ∪ {j}, j)
-        cost = distance[None] * remaining[:, None, None] + after[:, None, :]
-        table = table.at[rows].set(jnp.min(jnp.where(free[:, None, :], cost, jnp.inf), -1))
-    return table
-
-
 def _optimal_one(belief, allowed, distance, start_distance, a: int):
     """(order (R,), least expected travel ()) of one episode, its allowed receptacles padded
     to ``a``."""
@@ -168,7 +130,7 @@ def _optimal_one(belief, allowed, distance, start_distance, a: int):
     pair = valid[:, None] & valid[None, :]
     d = jnp.where(pair, distance[index][:, index], FAR)
     here = jnp.where(valid, start_distance[index], FAR)
-    table = _dp_table(b, d, a)
+    table = subset_values(b, d)
     bit = 1 << jnp.arange(a)
     mask, order, value = jnp.int32(0), [], None
     for _ in range(a):  # follow the plan, re-reading the table
@@ -178,10 +140,10 @@ def _optimal_one(belief, allowed, distance, start_distance, a: int):
         if value is None:
             value = jnp.min(jnp.where(free, cost, jnp.inf))
         tol = COST_RTOL * jnp.maximum(1.0, jnp.min(jnp.where(free, cost, jnp.inf)))
-        pick = _pick(free, (-cost, tol), (valid.astype(jnp.float32), 0.5), (-here, 0.0))
-        order.append(pick)
-        mask = mask | (1 << pick)
-        here = d[pick]
+        chosen = pick(free, (-cost, tol), (valid.astype(jnp.float32), 0.5), (-here, 0.0))
+        order.append(chosen)
+        mask = mask | (1 << chosen)
+        here = d[chosen]
     order = jnp.stack(order)
     real = valid[order]
     order = jnp.where(real, index[order], -1)

@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.evaluation import report
 from flowmaps_jax.evaluation.slots import score_slots
 from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.world import Homes
@@ -118,12 +119,20 @@ def _json(x: float) -> float | None:
     return float(f"{x:.6g}") if math.isfinite(x) else None
 
 
+def _rounded(summary: dict) -> dict:
+    """A :func:`flowmaps_jax.evaluation.report.summarise` entry, JSON-safe (6 digits; NaN →
+    None)."""
+    return {"mean": _json(summary["mean"]), "stderr": _json(summary["stderr"]),
+            "count": int(summary["count"])}
+
+
 def stats(values) -> dict:
-    """{mean, stderr, count} of per-query values (stderr None for fewer than two; JSON-safe)."""
+    """{mean, stderr, count} of per-query values (stderr None for fewer than two; JSON-safe):
+    the one summary (:func:`flowmaps_jax.evaluation.report.summarise`), rounded."""
     v = np.asarray(values, np.float64).ravel()
-    stderr = float(v.std(ddof=1) / math.sqrt(v.size)) if v.size > 1 else float("nan")
-    return {"mean": _json(float(v.mean())) if v.size else None, "stderr": _json(stderr),
-            "count": int(v.size)}
+    if v.size == 0:
+        return {"mean": None, "stderr": None, "count": 0}
+    return _rounded(report.summarise(v)["overall"])
 
 
 def query_groups(homes: Homes, queries: HomesQueries) -> dict[str, np.ndarray]:
@@ -138,8 +147,8 @@ def summarise(values, groups: dict[str, np.ndarray]) -> dict:
     v = np.asarray(values, np.float64)
     out = {"overall": stats(v)}
     for name, labels in groups.items():
-        labels = np.asarray(labels)
-        out[f"by_{name}"] = {str(i): stats(v[labels == i]) for i in group_ids(name, labels)}
+        by_group = report.summarise(v, np.asarray(labels))["by_group"]
+        out[f"by_{name}"] = {str(i): _rounded(by_group[i]) for i in group_ids(name, labels)}
     return out
 
 

@@ -52,25 +52,37 @@ def distances(position: jnp.ndarray, centres: jnp.ndarray) -> jnp.ndarray:
 
 
 @functools.cache
-def _layers(k: int) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]:
-    """Static tables of the subset DP, one entry per subset size s = k − 1 down to 0: the size-s
-    subsets' membership bits (n_s, k) bool, their "not yet looked at" 0/1 rows (n_s, k) float
-    (for m(S)), and the selection tensor (k, n_s, n_{s+1}) with [j, a, b] = 1 iff subset a plus
-    table j is subset b of the next layer (j ∉ a)."""
+def _layers(k: int) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], ...]:
+    """Static tables of the subset DP over k places, one per subset size k − 1 down to 1: the
+    size-s subsets' masks (n,), their "not yet looked at" 0/1 rows (n, k) float (for m(S)), the
+    masks of S ∪ {j} (n, k) and whether j ∉ S (n, k) bool. Built once per k, at trace time."""
     masks = np.arange(2 ** k)
-    bits = ((masks[:, None] >> np.arange(k)) & 1).astype(bool)
-    by_size = [masks[bits.sum(-1) == s] for s in range(k + 1)]
+    bits = (masks[:, None] >> np.arange(k)) & 1
     layers = []
-    for s in range(k - 1, -1, -1):
-        rows, above = by_size[s], by_size[s + 1]
-        position = {int(m): i for i, m in enumerate(above)}
-        select = np.zeros((k, rows.size, above.size), np.float32)
-        for a, m in enumerate(rows):  # static tables, built once per k at trace time
-            for j in range(k):
-                if not m >> j & 1:
-                    select[j, a, position[int(m | 1 << j)]] = 1.0
-        layers.append((bits[rows], (~bits[rows]).astype(np.float32), select))
+    for size in range(k - 1, 0, -1):
+        rows = masks[bits.sum(-1) == size]
+        out = 1 - bits[rows]
+        layers.append((rows, out.astype(np.float32), rows[:, None] | (1 << np.arange(k)),
+                       out.astype(bool)))
     return tuple(layers)
+
+
+def subset_values(belief: jnp.ndarray, legs: jnp.ndarray) -> jnp.ndarray:
+    """V (2^K, K): the least expected travel of the rest of a search that has looked at the
+    subset S (a bit mask) and stands at place i: V(S, i) = min_{j ∉ S} d(i, j) · m(S) +
+    V(S ∪ {j}, j), m(S) = Σ_{t ∉ S} b_t the belief not yet looked at, V(all, ·) = 0.
+
+    belief: (K,) probabilities; legs: (K, K) distances between the places. The exact dynamic
+    programme over subsets, its K − 1 layers (subset sizes) unrolled (K is static): 2^K · K
+    values, 2^K · K² work. The one DP of the search policies and the homes navigation."""
+    k = belief.shape[-1]
+    table = jnp.zeros((2 ** k, k), belief.dtype)
+    for rows, out, nxt, free in _layers(k):
+        remaining = out @ belief  # (n,) m(S)
+        after = table[nxt, np.arange(k)]  # (n, K_j): V(S ∪ {j}, j)
+        cost = legs[None] * remaining[:, None, None] + after[:, None, :]  # (n, K_i, K_j)
+        table = table.at[rows].set(jnp.min(jnp.where(free[:, None, :], cost, jnp.inf), -1))
+    return table
 
 
 def plan_costs(belief: jnp.ndarray, centres: jnp.ndarray, position: jnp.ndarray) -> jnp.ndarray:
@@ -78,23 +90,12 @@ def plan_costs(belief: jnp.ndarray, centres: jnp.ndarray, position: jnp.ndarray)
 
     belief: (K,) probabilities (zero on padding); centres: (K, 2) table centres; position: (2,).
     A plan visits every table once and stops when the object is found (perfect detector); its
-    expected travel is Σ_legs (leg length) · (mass not yet looked at). Exact dynamic programme
-    over subsets S of looked-at tables: V(S, i) = min_{j ∉ S} d(i, j) · m(S) + V(S ∪ {j}, j),
-    m(S) = Σ_{t ∉ S} b_t, V(all, ·) = 0. The K layers (subset sizes) are unrolled (K is static);
-    V(S ∪ {j}, j) is read from the layer above with a static 0/1 selection tensor (a matrix
-    product: fast under ``vmap``). Tables with zero belief (padding, searched tables) are
-    visited last at no cost.
+    expected travel is Σ_legs (leg length) · (mass not yet looked at): the distance to j times
+    the whole belief, plus V({j}, j) of :func:`subset_values`. Tables with zero belief
+    (padding, searched tables) are visited last at no cost.
     """
     k = belief.shape[-1]
-    layers = _layers(k)
-    legs = distances(centres, centres)  # (K, K)
-    above = jnp.zeros((1, k), belief.dtype)  # V(all tables, ·) = 0
-    for inside, outside, select in layers[:-1]:  # static unroll over subset sizes K−1..1
-        remaining = outside @ belief  # (n,) m(S)
-        after = jnp.einsum("jab,bj->aj", select, above)  # (n, K_j): V(S ∪ {j}, j)
-        cost = legs[None] * remaining[:, None, None] + after[:, None, :]  # (n, K_i, K_j)
-        above = jnp.min(jnp.where(inside[:, None, :], jnp.inf, cost), axis=-1)  # (n, K_i)
-    first = jnp.einsum("jab,bj->aj", layers[-1][2], above)[0]  # V({j}, j)
+    first = subset_values(belief, distances(centres, centres))[1 << np.arange(k), np.arange(k)]
     return distances(position, centres) * jnp.sum(belief) + first
 
 
@@ -109,7 +110,7 @@ def optimal_expected_travel(belief: jnp.ndarray, centres: jnp.ndarray, valid: jn
 # --------------------------------------------------------------------------- one decision
 
 
-def _pick(allowed: jnp.ndarray, *criteria: tuple[jnp.ndarray, jnp.ndarray | float]) -> jnp.ndarray:
+def pick(allowed: jnp.ndarray, *criteria: tuple[jnp.ndarray, jnp.ndarray | float]) -> jnp.ndarray:
     """Index of the allowed entry that maximises the criteria lexicographically; each criterion
     is (values (K,), tolerance): entries within tolerance of the best stay tied. Then lowest index.
     """
@@ -132,16 +133,16 @@ def choose(policy: str, belief: jnp.ndarray, centres: jnp.ndarray, position: jnp
     dist = distances(position, centres)
     nearer = (-dist, 0.0)
     if policy == "most-probable":
-        return _pick(allowed, (belief, BELIEF_ATOL), nearer)
+        return pick(allowed, (belief, BELIEF_ATOL), nearer)
     if policy == "greedy":
-        return _pick(allowed, (belief / jnp.maximum(dist, MIN_DISTANCE), BELIEF_ATOL), nearer)
+        return pick(allowed, (belief / jnp.maximum(dist, MIN_DISTANCE), BELIEF_ATOL), nearer)
     if policy == "optimal":
         cost = plan_costs(belief, centres, position)
         tol = COST_RTOL * jnp.maximum(1.0, jnp.min(jnp.where(allowed, cost, jnp.inf)))
-        return _pick(allowed, (-cost, tol), (belief, BELIEF_ATOL), nearer)
+        return pick(allowed, (-cost, tol), (belief, BELIEF_ATOL), nearer)
     if policy == "nearest":
         fewest = jnp.min(jnp.where(allowed, looks_at, jnp.iinfo(jnp.int32).max))
-        return _pick(allowed & (looks_at == fewest), nearer)
+        return pick(allowed & (looks_at == fewest), nearer)
     raise ValueError(f"policy must be one of {POLICIES}; got {policy!r}")
 
 
