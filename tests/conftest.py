@@ -29,9 +29,10 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 # Workers, subprocesses and notebook kernels inherit it; a user's own setting wins.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "true")
 # XLA:CPU's newer fusion emitters take about twice as long to compile as the classic elemental
-# emitter (experiments/bench_compile.py; docs/results.md, "Test suite time"). Same programs,
-# rounded differently in places (tests/test_distributed.py keeps the default emitter for the
-# two-device comparison its tolerances were measured with). Appended unless XLA_FLAGS chooses.
+# emitter (docs/results.md, "Test suite time", measured by bench_compile.py before issue 49).
+# Same programs, rounded differently in places (tests/test_distributed.py keeps the default
+# emitter for the two-device comparison its tolerances were measured with). Appended unless
+# XLA_FLAGS chooses.
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()

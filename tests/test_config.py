@@ -42,12 +42,12 @@ def test_default_is_cpu_and_smoke_is_tiny():
     assert cpu.model.head == "mixture" and cpu.pointer_loss > 0
     # issue 33: the table-weight rows attend to each other and know their table's geometry
     assert (cpu.model.weight_attention, cpu.model.weight_geometry) == ("self", "relative")
-    # issue 33: fresh homes every chunk by default; the paper's recipe keeps the fixed split, and
-    # the previous default (pointer head, fixed split) stays as cpu-pointer, the habits' base
+    # issue 33: fresh homes every chunk by default; the paper's recipe keeps the fixed split; the
+    # habits keep the previous default's pointer recipe (its cpu-pointer preset went in issue 49)
     assert cpu.data == "endless" and get_preset("paper").data == "train"
-    old = get_preset("cpu-pointer")
-    assert (old.model.head, old.data, old.steps) == ("pointer", "train", 8500)
-    assert get_preset("habits").model.head == "pointer"
+    habits = get_preset("habits")
+    assert (habits.model.head, habits.model.pointer_widths) == ("pointer", "relative")
+    assert "cpu-pointer" not in PRESETS
 
 
 def test_pointer_loss_needs_the_pointer_head_but_the_mlp_ignores_it():

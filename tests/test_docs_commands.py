@@ -36,7 +36,6 @@ The rules (what runs, what is shortened, what is skipped and why):
     likelihood on its smallest grid (3 points; its 48-point RK4 solve, run without most of XLA's
     optimisations, was about a sixth of an evaluation of the shipped models);
   - ``python -m flowmaps_jax.search``: 2 environments, 8 samples;
-  - ``python experiments/diagnose_precision.py``: 2 + 4 environments, 8 samples;
   - commands that write into the repository or the installed package by default get an output
     directory in the temporary one: ``python -m flowmaps_jax.export`` (``--out exported``, never
     the packaged weights) and ``experiments/render_docs_figures.py`` (``--out figures``).
@@ -93,7 +92,6 @@ SHORTEN: dict[str, dict[str, str | None]] = {
     "flowmaps_jax.evaluate": {"--num-envs": "2", "--samples": "4", "--kl-draws": "4",
                               "--likelihood-steps": "3", "--no-progress": None},
     "flowmaps_jax.search": {"--num-envs": "2", "--samples": "8", "--no-progress": None},
-    "diagnose_precision.py": {"--num-envs": "2", "--ranking-envs": "4", "--samples": "8"},
 }
 DEFAULT_OUT = {"flowmaps_jax.export": "exported", "render_docs_figures.py": "figures"}
 
@@ -407,7 +405,7 @@ def test_commands_are_shortened_or_dropped_by_the_rules():
     assert export[-2:] == ["--out", "exported"]
     for dropped in ("pip install -e .", ". .venv/bin/activate", "pytest",
                     "python -m venv .venv", "python experiments/bench_train.py --steps 10",
-                    "python experiments/sweep_queries.py --steps 800"):
+                    "python experiments/sweep_settings.py --steps 800"):
         assert rewrite(shlex.split(dropped))[0] is None, dropped
     chain = _split_commands("python -m venv .venv && . .venv/bin/activate && pip install -e .")
     assert [c[0] for c in chain] == ["python", ".", "pip"]

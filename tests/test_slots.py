@@ -71,18 +71,6 @@ def test_assignment_v2_nearest_centre_within_three_centre_sigmas():
     np.testing.assert_allclose(A.empirical_slots(moved, tiny, np.ones(1, bool)), [1.0, 0.0])
 
 
-def test_assignment_v1_kept_for_comparison():
-    samples = np.array([
-        BOXES[0] + [0.049, 0.0, 0.0, 0.0],          # inside the 0.05 L2 radius of slot 0
-        BOXES[0] + [0.0, 0.051, 0.0, 0.0],          # just outside → off
-        [0.15, 0.25, 0.2, 0.2],                     # slot 0's centre, another size: off in v1
-    ], np.float32)
-    np.testing.assert_allclose(A.empirical_slots(samples, BOXES, MASK, rule="v1"),
-                               [1 / 3, 0.0, 0.0, 2 / 3], rtol=1e-6)
-    with pytest.raises(ValueError, match="rule"):
-        A.empirical_slots(samples, BOXES, MASK, rule="v3")
-
-
 def test_histogram_counts_over_n():
     samples = np.stack([BOXES[0], BOXES[0], BOXES[1], BOXES[2] + 0.5])
     np.testing.assert_allclose(A.empirical_slots(samples, BOXES, MASK), [0.5, 0.25, 0.0, 0.25])

@@ -6,10 +6,9 @@ Below the predictor and the evaluation, so that both, and the search, share one 
   object *centre* (y + h/2, x + w/2 of b_k) is nearest to the box's centre, and to "off" when
   that distance exceeds the slot's radius max(:data:`ASSIGN_RADIUS`, :data:`ASSIGN_SIGMAS` · σ_c),
   σ_c = :data:`CENTRE_SIGMA_SCALE` × the object's longer side (the centre std of the protocol's
-  smoothed q, :mod:`flowmaps_jax.evaluation.kl`). ``rule="v1"``, kept for comparison: L2 over
-  the four numbers below ``ASSIGN_RADIUS``. :func:`empirical_slots` gives the share (..., K + 1)
-  of samples (..., N, 4) on each of K slots, then off; the evaluation's slots are the K places of
-  the object's kind (:mod:`flowmaps_jax.evaluation.slots`).
+  smoothed q, :mod:`flowmaps_jax.evaluation.kl`). :func:`empirical_slots` gives the share
+  (..., K + 1) of samples (..., N, 4) on each of K slots, then off; the evaluation's slots are
+  the K places of the object's kind (:mod:`flowmaps_jax.evaluation.slots`).
 * **Table masses** (:func:`table_probabilities`, what ``Predictor.table_probabilities`` and
   the search's priors call): the slots are every table of the map, ``probs`` (B, Q, S + 1) with
   entry ``[b, q, s]`` the mass on furniture token s (zero on object tokens and padding) and the
@@ -33,9 +32,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.tokens import FURNITURE, OBJECT, Queries, SceneTokens
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import After, Fields
-from flowmaps_jax.validation.fields import Array, Choice, Instance, Int, Mask, Real
+from flowmaps_jax.validation import (
+    check_array,
+    check_choice,
+    check_instance,
+    check_int,
+    check_mask,
+    check_real,
+)
 
 CENTRE_SIGMA_SCALE = 0.35
 """Centre std of a mixture component of the protocol's q as a fraction of the box side (h for
@@ -47,9 +51,6 @@ ASSIGN_RADIUS = 0.05
 centre always counts for the nearest slot."""
 ASSIGN_SIGMAS = 3.0
 """The radius grows to this many centre stds σ_c of the smoothed q (0.35 × the longer side)."""
-ASSIGN_RULES = ("v2", "v1")
-"""``"v2"``: nearest centre, radius max(0.05, 3 σ_c) (the protocol); ``"v1"``: the old L2 < 0.05
-over the four numbers, kept to compare the two once."""
 ASSIGN_TOLERANCE = ASSIGN_RADIUS
 """The least assignment radius of table masses (normalised units; the evaluation protocol's): a
 sample whose centre is this close to a table's centre counts for the nearest table. On a 256 px
@@ -69,24 +70,20 @@ def protocol_sigma(boxes: jnp.ndarray) -> jnp.ndarray:
 
 
 def assign_radius(slot_boxes: jnp.ndarray) -> jnp.ndarray:
-    """Per-slot radius of the v2 rule: max(ASSIGN_RADIUS, ASSIGN_SIGMAS · 0.35 · max(h, w)).
+    """Per-slot radius of the assignment: max(ASSIGN_RADIUS, ASSIGN_SIGMAS · 0.35 · max(h, w)).
 
     slot_boxes (..., K, 4) (y, x, h, w) → (..., K)."""
     side = jnp.maximum(slot_boxes[..., 2], slot_boxes[..., 3])
     return jnp.maximum(ASSIGN_RADIUS, ASSIGN_SIGMAS * CENTRE_SIGMA_SCALE * side)
 
 
-@partial(jax.jit, static_argnames="rule")
-def assign_slots(samples, slot_boxes, slot_mask, radius=ASSIGN_RADIUS, rule="v2"):
-    """(..., N) int slot index of each sample, K for "off" (the rules of the module doc); no
+@jax.jit
+def assign_slots(samples, slot_boxes, slot_mask, radius=ASSIGN_RADIUS):
+    """(..., N) int slot index of each sample, K for "off" (the rule of the module doc); no
     checks (samples and slot_boxes float32, slot_mask bool)."""
-    if rule == "v1":
-        diff = samples[..., :, None, :] - slot_boxes[..., None, :, :]  # (..., N, K, 4)
-        limit = jnp.broadcast_to(radius, slot_boxes.shape[:-1])
-    else:
-        centre = lambda b: b[..., :2] + 0.5 * b[..., 2:]  # noqa: E731
-        diff = centre(samples)[..., :, None, :] - centre(slot_boxes)[..., None, :, :]
-        limit = jnp.maximum(radius, assign_radius(slot_boxes))  # (..., K)
+    centre = lambda b: b[..., :2] + 0.5 * b[..., 2:]  # noqa: E731
+    diff = centre(samples)[..., :, None, :] - centre(slot_boxes)[..., None, :, :]  # (..., N, K, 2)
+    limit = jnp.maximum(radius, assign_radius(slot_boxes))  # (..., K)
     dist = jnp.sqrt(jnp.sum(diff**2, axis=-1))
     dist = jnp.where(slot_mask[..., None, :], dist, jnp.inf)
     nearest = jnp.argmin(dist, axis=-1)
@@ -101,21 +98,24 @@ def histogram(assignment, num_slots):
     return jnp.mean(jax.nn.one_hot(assignment, num_slots + 1), axis=-2)
 
 
-@check_args(rule=Choice(ASSIGN_RULES), samples=Array(("*B", "N", 4)),
-            slot_boxes=Array(("*B", "K", 4)), slot_mask=Mask(("*B", "K")),
-            radius=Real(0.0, low_open=True))
 def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jnp.ndarray,
-                    radius: float = ASSIGN_RADIUS, rule: str = "v2") -> jnp.ndarray:
+                    radius: float = ASSIGN_RADIUS) -> jnp.ndarray:
     """p̂ of samples under the protocol's assignment (module doc), else off.
 
-    samples: (..., N, 4). slot_boxes: (..., K, 4). slot_mask: (..., K) bool.
-    radius: the least radius (v2; the radius itself under ``rule="v1"``).
+    samples: (..., N, 4). slot_boxes: (..., K, 4), the same leading dims. slot_mask: (..., K)
+    bool (or 0/1). radius: the least radius, > 0.
     Returns (..., K + 1) float32 counts / N: the K slots then the off bin.
     """
+    check_array("samples", samples, (..., None, 4))
+    lead = tuple(samples.shape[:-2])
+    check_array("slot_boxes", slot_boxes, (*lead, None, 4))
+    num_slots = slot_boxes.shape[-2]
+    slot_mask = check_mask("slot_mask", slot_mask, (*lead, num_slots))
+    radius = check_real("radius", radius, 0.0, low_open=True)
     assignment = assign_slots(jnp.asarray(samples, jnp.float32),
                               jnp.asarray(slot_boxes, jnp.float32), jnp.asarray(slot_mask, bool),
-                              radius, rule)
-    return histogram(assignment, np.shape(slot_boxes)[-2])
+                              radius)
+    return histogram(assignment, num_slots)
 
 
 # --------------------------------------------------------------------------- table masses
@@ -143,8 +143,6 @@ def _table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jn
     return jnp.where(mask[..., None], boxes, 0.0), mask
 
 
-@check_args(tokens=Fields(SceneTokens, {"boxes": Array(("B", "S", 4))}),
-            queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}))
 def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
     """Where the queried object would be on each table: its box centred on every table.
 
@@ -154,6 +152,10 @@ def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp
     ``ValueError`` naming ``queries.descriptor`` unless a queried object has one token in its map
     (in the map at τ, for tokens of a history: ``age`` 0).
     """
+    check_instance("tokens", tokens, SceneTokens)
+    check_array("tokens.boxes", tokens.boxes, (None, None, 4))
+    check_instance("queries", queries, Queries)
+    check_array("queries.descriptor", queries.descriptor, (tokens.boxes.shape[0], None))
     matches = _object_matches(tokens, queries)
     if tokens.age is not None:  # a history's past maps hold the object again: its map is age 0
         matches = matches & (jnp.asarray(tokens.age) == 0)[:, None, :]
@@ -191,9 +193,6 @@ class WeightsModel(Protocol):
 _MODELS = {"samples": SamplingModel, "weights": WeightsModel}
 
 
-@check_args(method=Choice(TABLE_METHODS),  # "weights" does not use num_samples: >= 0 will do
-            num_samples=After(lambda got: Int(0 if got["method"] == "weights" else 1)),
-            predictor=After(lambda got: Instance(_MODELS[got["method"]])))
 def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
                         num_samples: int, key: jax.Array, method: str = "samples",
                         **sample_kwargs) -> jnp.ndarray:
@@ -211,6 +210,10 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
     (``predictor.table_weights``, :class:`WeightsModel`; ``num_samples`` and ``key`` unused),
     no sampling noise.
     """
+    method = check_choice("method", method, TABLE_METHODS)
+    # "weights" does not use num_samples: >= 0 will do
+    num_samples = check_int("num_samples", num_samples, 0 if method == "weights" else 1)
+    check_instance("predictor", predictor, _MODELS[method])
     if method == "weights":
         return predictor.table_weights(tokens, queries)
     boxes, mask = table_boxes(tokens, queries)  # every queried object is on its map

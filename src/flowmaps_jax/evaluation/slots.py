@@ -5,9 +5,9 @@ the predictor, which the search's table masses share): a sample goes to the slot
 *centre* (y + h/2, x + w/2 of b_k) is nearest to the sample's centre, and to the "off" bin when that
 distance exceeds the slot's radius max(``ASSIGN_RADIUS``, ``ASSIGN_SIGMAS`` · σ_c), with
 σ_c = 0.35 × the object's longer side (the centre std of the smoothed q of :mod:`.kl`). Draws from
-that q land off about 1 % of the time, so a model that matches q is not punished. (v1, kept as
-``rule="v1"`` for comparison: L2 over the four numbers (y, x, h, w) below ``ASSIGN_RADIUS``; it
-put 6.7 % of q's own draws off.) A slot distribution p̂ has
+that q land off about 1 % of the time, so a model that matches q is not punished. (The first
+rule, v1: L2 over the four numbers (y, x, h, w) below ``ASSIGN_RADIUS``, put 6.7 % of q's own
+draws off; docs/results.md, issue 21.) A slot distribution p̂ has
 ``K + 1`` entries: the K slots, then "off". Against the exact posterior q (K entries) the protocol
 scores total variation, top-1 and the search-cost ratio (:func:`slot_scores`). The reference
 predictors (oracle, oracle samples, last-seen, uniform) and the route-offset mass of the routine

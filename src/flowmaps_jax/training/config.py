@@ -457,19 +457,6 @@ def cpu_preset() -> TrainConfig:
         ckpt_every=500, preset="cpu")
 
 
-def pointer_cpu_preset() -> TrainConfig:
-    """The ``cpu`` preset as it was before the mixture head (issue 21's recipe): the pointer
-    read-out with relative widths and its auxiliary pointer loss, 8,500 steps on the fixed
-    2,500-home split. The habit worlds' models were trained from it; the ablation compares
-    against it."""
-    return dataclasses.replace(
-        cpu_preset(),
-        model=ModelConfig(dim=128, encoder_layers=4, cdit_blocks=4, heads=4, dropout=0.0,
-                          baseline_hidden=256, head="pointer", condition_on_dtau=True,
-                          pointer_widths="relative", pointer_width_scale=10.0),
-        steps=8500, data="train", preset="cpu-pointer")
-
-
 def smoke_preset() -> TrainConfig:
     """A tiny model on a tiny dataset: trains in seconds (tests, CI)."""
     return TrainConfig(
@@ -483,7 +470,8 @@ def smoke_preset() -> TrainConfig:
 
 
 def habits_preset() -> TrainConfig:
-    """The pointer ``cpu`` recipe (:func:`pointer_cpu_preset`) on the preferences world
+    """The ``cpu`` preset as it was before the mixture head (issue 21's recipe: the pointer
+    read-out with relative widths and its auxiliary pointer loss) on the preferences world
     (``flowsim.worlds``), reading the last ``HABITS_HISTORY`` maps so that it can learn which
     places each object favours.
 
@@ -491,7 +479,11 @@ def habits_preset() -> TrainConfig:
     the validation loss rose after 2,000 of 4,000 steps (each object's hidden favourites are
     fixed per environment, so a fixed split can be memorised; docs/results.md, issue 18).
     3,000 steps, about 16 minutes on 2 cores."""
-    base = pointer_cpu_preset()
+    base = dataclasses.replace(
+        cpu_preset(),
+        model=ModelConfig(dim=128, encoder_layers=4, cdit_blocks=4, heads=4, dropout=0.0,
+                          baseline_hidden=256, head="pointer", condition_on_dtau=True,
+                          pointer_widths="relative", pointer_width_scale=10.0))
     sim = world_config("preferences", FlowSimConfig(
         max_tokens=FlowSimConfig().num_furniture + FlowSimConfig().num_objects * HABITS_HISTORY))
     return dataclasses.replace(
@@ -525,9 +517,8 @@ def with_world(cfg: TrainConfig, habits: str) -> TrainConfig:
     return dataclasses.replace(cfg, flowsim=world_config(habits, cfg.flowsim))
 
 
-PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "cpu-pointer": pointer_cpu_preset,
-           "smoke": smoke_preset, "habits": habits_preset, "homes": homes_preset,
-           "homes-smoke": homes_smoke_preset}
+PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "smoke": smoke_preset,
+           "habits": habits_preset, "homes": homes_preset, "homes-smoke": homes_smoke_preset}
 DEFAULT_PRESET = "cpu"
 
 
