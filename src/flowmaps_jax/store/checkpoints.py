@@ -19,7 +19,6 @@ describes (what :func:`flowmaps_jax.predictor.load` and the exporter read).
 
 from __future__ import annotations
 
-import json
 import logging
 import pathlib
 import time
@@ -30,7 +29,7 @@ import orbax.checkpoint as ocp
 
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
 from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
-from flowmaps_jax.validation import check_args, check_dir, prefix_errors
+from flowmaps_jax.validation import check_args, check_dir, parse_json, prefix_errors
 from flowmaps_jax.validation.fields import Choice, Flag, Int, Optional
 
 LATEST = "latest"
@@ -150,7 +149,8 @@ def _saved_items(step_dir: pathlib.Path) -> list[str]:
     """The items orbax recorded for this step (``meta`` is absent from steps saved before
     checksums existed)."""
     try:
-        handlers = json.loads((step_dir / _STEP_METADATA).read_text())["item_handlers"]
+        raw = (step_dir / _STEP_METADATA).read_bytes()
+        handlers = parse_json(_STEP_METADATA, raw)["item_handlers"]
         return [item for item in ITEMS if item in handlers]
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise Damaged(f"is incomplete or corrupt: cannot read {_STEP_METADATA} "

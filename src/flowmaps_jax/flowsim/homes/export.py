@@ -30,6 +30,7 @@ from flowmaps_jax.validation import (
     check_file,
     check_no_links,
     check_output_file,
+    parse_json,
     prefix_errors,
     read_npz,
     write_file,
@@ -110,8 +111,9 @@ def load_homes(path) -> tuple[Homes, HomesConfig]:
             raise ValueError(f"it has format_version {version!r}; this code reads version "
                              f"{SCHEMA_VERSION}")
         with prefix_errors("it has an invalid config_json or schema_json: ", also=(TypeError,)):
-            config = HomesConfig.from_dict(json.loads(str(contents["config_json"])))
-            schema = json.loads(str(contents["schema_json"]))
+            config = HomesConfig.from_dict(parse_json("config_json",
+                                                       str(contents["config_json"])))
+            schema = parse_json("schema_json", str(contents["schema_json"]))
         if not isinstance(schema, dict) or schema.get("format") != FORMAT or schema.get(
                 "schema_version") != SCHEMA_VERSION:
             raise ValueError(f"schema_json is not a {FORMAT} schema of version {SCHEMA_VERSION}")
