@@ -33,6 +33,7 @@ from flowmaps_jax.store.checkpoint_store import CheckpointSaveError, CheckpointS
 from flowmaps_jax.store.rundir import METRICS
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import TrainConfig
+from flowmaps_jax.validation import read_json
 
 # --------------------------------------------------------------------------------------------
 # metrics.jsonl and the checkpoints
@@ -217,8 +218,24 @@ def print_summary(result: RunResult, total_steps: int, latest: int | None,
         log(f"  (the best step is the last, {latest}: evaluate and search load it)")
     else:  # no val pass since step 0: the best falls back to the latest save
         log(f"  (no best-by-validation step yet: evaluate and search load step {latest})")
+    log(f"Export it:    python -m flowmaps_jax.export --checkpoint {result.run_dir} --name "
+        f"{_export_name(result.run_dir)}   (into {result.run_dir / 'export'}; the packaged "
+        f"weights change only if --out names their folder)")
     if status != "done":
         log(f"Resume it:    python -m flowmaps_jax.train --resume --run-dir {result.run_dir}")
+
+
+def _export_name(run_dir: pathlib.Path) -> str:
+    """The pretrained name a run's model family exports as (from its config.json; "flowmaps"
+    when that cannot be read)."""
+    try:
+        config = read_json("", run_dir / "config.json")
+        kind, model = config.get("model_kind", "flowmaps"), config.get("model", {})
+    except (OSError, ValueError, AttributeError):
+        return "flowmaps"
+    if kind == "mlp":
+        return "mlp-learned" if model.get("baseline_variance") == "learned" else "mlp"
+    return "flowmaps"
 
 
 def write_routine_curve(run_dir: pathlib.Path, log: Callable[[str], None]) -> None:
