@@ -12,9 +12,9 @@ written before seals existed). Files written before ``which`` was recorded lack 
 :func:`describe` reports ``"unknown"`` for them. A plain ``pip install .`` carries them; nothing
 is downloaded. Reading trusts neither file: the ``.json`` is size-limited and its fields are
 checked (a name, a model family, a step that is a count, ``which`` if present), nothing in it
-is used and the ``.npz`` is not parsed before the seal matches; then the ``.npz`` is read with its members whitelisted (exactly the model's
-parameters, their declared shapes checked before anything is decompressed) and every weight
-finite.
+is used and the ``.npz`` is not parsed before the seal matches; then the ``.npz`` is read with
+its members whitelisted (exactly the model's parameters, their declared shapes checked before
+anything is decompressed) and every weight finite.
 
     from flowmaps_jax.predictor import load_pretrained
     predictor = load_pretrained("flowmaps")      # or "mlp", "mlp-learned"
