@@ -466,7 +466,7 @@ def test_evaluate_of_a_damaged_step_prints_one_line(at12, capfd):
     lambda: HomesTrainConfig(lr=np.float32(1e-3), steps=np.int32(1000)),
     lambda: HomesModelConfig(dim=np.int64(32), max_frequency=np.float32(8.0)),
     lambda: ModelConfig(dim=np.array(16), heads=np.int8(2), condition_on_dtau=np.bool_(True)),
-    lambda: FlowSimConfig(num_furniture=np.int64(10), object_frac=np.float32(0.5)),
+    lambda: FlowSimConfig(num_furniture=np.int64(10), object_frac=np.float32(0.375)),
     lambda: HomesConfig(num_hours=np.int64(48)),
 ])
 def test_config_dataclasses_hold_python_numbers(make):
