@@ -143,14 +143,23 @@ def test_the_checkpoint_writer_and_a_new_run_refuse_a_link_inside(tmp_path):
     (root / "last").mkdir(parents=True)
     _elsewhere(tmp_path)
     (root / "last" / "3").symlink_to(tmp_path / "someone-else" / "3")
-    with pytest.raises(ValueError, match=r"symbolic link at .*last/3"):
+    with pytest.raises(ValueError, match=r"last/3' is a symbolic link"):
         CheckpointStore(root, keep_last=1)
     run_dir = tmp_path / "run"
     (run_dir / "checkpoints").mkdir(parents=True)
     (run_dir / "checkpoints" / "best").symlink_to(tmp_path / "someone-else")
-    with pytest.raises(ValueError, match=r"symbolic link at .*checkpoints/best"):
+    with pytest.raises(ValueError, match=r"checkpoints/best' is a symbolic link"):
+        with rundir.claim(run_dir, resume=True, log=lambda _: None):
+            pass
+    with pytest.raises(ValueError, match="not empty"):  # a new run is refused there anyway
         with rundir.claim(run_dir, resume=False, log=lambda _: None):
             pass
+    (run_dir / "checkpoints" / "best").unlink()  # leftovers of a run that saved nothing
+    (run_dir / "checkpoints" / "last").mkdir()
+    (run_dir / "config.json").symlink_to(tmp_path / "someone-else" / "3" / "data")
+    said = []
+    with rundir.claim(run_dir, resume=False, log=said.append):  # removed as links, then used
+        assert not (run_dir / "config.json").exists() and "saved no checkpoint" in said[0]
     assert sorted(p.name for p in (tmp_path / "someone-else").iterdir()) == ["3", "7"]
 
 

@@ -6,7 +6,8 @@
   first moves an old run aside to ``<dir>.old-<timestamp>``. Nothing in the directory, at any
   depth, may be a symbolic link (:func:`check_own_files`: ``checkpoints/last``, a step folder,
   ``metrics.jsonl`` ...), so nothing is read, written or cleaned up (orbax's keep-last deletes
-  old steps) outside the directory: such a directory is refused before anything is done. The
+  old steps) outside the directory: such a directory is refused before anything is done (the
+  leftovers of a run that saved nothing are removed first, links as links). The
   lock file ``<dir>/.lock`` (created with ``O_EXCL``, holding ``<pid> <host>``) keeps a second
   process out while the first one runs; a lock left by a process that no longer exists (kill -9,
   power loss) is taken over with a message. The lock is released on exit, and a directory the
@@ -82,7 +83,7 @@ def check_own_files(run_dir: pathlib.Path) -> None:
     """``ValueError`` naming the path if anything in ``run_dir`` (at any depth) is a symbolic
     link: a run follows none (see the module docstring)."""
     if pathlib.Path(run_dir).is_dir():
-        check_tree_no_links(f"run directory {str(run_dir)!r}", run_dir)
+        check_tree_no_links("run directory file", run_dir)
 
 
 def _saved_nothing(run_dir: pathlib.Path) -> list[str] | None:
@@ -270,7 +271,7 @@ def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
         raise ValueError(f"run_dir {str(run_dir)!r} cannot be created ({err.strerror})") from None
     lock = RunLock(run_dir, log)
     try:
-        if resume or not overwrite:  # (an old run moved aside by --overwrite is not read)
+        if resume:  # before anything in it is read
             check_own_files(run_dir)
         held = _entries(run_dir)
         unsaved = _saved_nothing(run_dir) if held and not resume and not overwrite else None
@@ -292,6 +293,7 @@ def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
             created = True
             lock = RunLock(run_dir, log)
         check_no_links("run directory file", run_dir, RUN_FILES)  # and their .tmp
+        check_own_files(run_dir)  # a new run: what is left after the leftovers were cleared
         yield lock
     finally:
         lock.release()

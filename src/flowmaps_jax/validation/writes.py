@@ -50,8 +50,9 @@ def check_no_links(name: str, folder: Any, filenames: Iterable[str]) -> None:
 
 
 def check_tree_no_links(name: str, folder: Any) -> None:
-    """``ValueError`` naming the path if anything under ``folder`` (at any depth, ``folder``
-    itself excluded) is a symbolic link; links are never followed while looking."""
+    """``ValueError`` naming the path (``"<name> '<path>' is a symbolic link"``) if anything
+    under ``folder`` (at any depth, ``folder`` itself excluded) is a symbolic link; links are
+    never followed while looking."""
     for here, dirs, files in os.walk(folder, followlinks=False):
         for entry in sorted(dirs) + sorted(files):
             path = os.path.join(here, entry)
@@ -60,9 +61,9 @@ def check_tree_no_links(name: str, folder: Any) -> None:
                     target = os.readlink(path)
                 except OSError:
                     target = "?"
-                raise ValueError(f"{name} holds a symbolic link at {path!r} (-> {target}); "
-                                 f"a run reads, writes and cleans up only its own files: "
-                                 f"replace the link by the folder or file itself, or remove it")
+                raise ValueError(f"{name} {path!r} is a symbolic link (-> {target}); nothing "
+                                 f"is read, written or deleted through one: replace the link "
+                                 f"by the folder or file itself, or remove it")
 
 
 def make_output_dir(name: str, path: Any, files: Iterable[str] = ()) -> pathlib.Path:
