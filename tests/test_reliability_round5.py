@@ -138,6 +138,18 @@ def test_resume_refuses_a_link_anywhere_in_the_run(at12, tmp_path, capsys, name)
     assert (_tree(target) if target.is_dir() else target.read_bytes()) == before
 
 
+def test_loading_and_exporting_refuse_a_linked_step(at12, tmp_path, capsys):
+    target = tmp_path / "target"
+    shutil.move(at12 / "checkpoints" / "last" / "12", target)
+    (at12 / "checkpoints" / "last" / "12").symlink_to(target)
+    with pytest.raises(ValueError, match=r"last/12' is a symbolic link"):
+        checkpoints.restore(at12, which="latest")
+    code, _, err = _cli(export_cli.main, ["--checkpoint", str(at12), "--name", "flowmaps"],
+                        capsys)
+    assert code == 2 and "is a symbolic link" in _error_line(err)
+    assert not (at12 / "export").exists()
+
+
 def test_the_checkpoint_writer_and_a_new_run_refuse_a_link_inside(tmp_path):
     root = tmp_path / "ckpt"
     (root / "last").mkdir(parents=True)
@@ -359,15 +371,16 @@ def test_export_with_a_directory_at_its_json_leaves_nothing(at12, tmp_path, caps
     assert sorted(p.name for p in out.iterdir()) == ["flowmaps.json"]
 
 
+@pytest.mark.parametrize("out", ["/proc/x", "/proc"])
 @pytest.mark.parametrize("command", ["export", "evaluate", "search"])
-def test_an_output_that_cannot_be_created_is_refused_up_front(at12, capsys, command):
+def test_an_output_that_cannot_be_created_is_refused_up_front(at12, capsys, command, out):
     main = {"export": export_cli.main, "evaluate": eval_cli.main, "search": search_cli.main}
     argv = {"export": ["--checkpoint", str(at12), "--name", "flowmaps"],
             "evaluate": ["--checkpoint", "pretrained:flowmaps", "--num-envs", "1"],
             "search": ["--checkpoint", "pretrained:flowmaps", "--num-envs", "1"]}[command]
-    code, out, err = _cli(main[command], [*argv, "--out", "/proc/x"], capsys)
-    assert code == 2 and "/proc/x" in _error_line(err) and "cannot be created" in err, err
-    assert "Evaluating" not in out and not (at12 / "export").exists()
+    code, printed, err = _cli(main[command], [*argv, "--out", out], capsys)
+    assert code == 2 and repr(out) in _error_line(err) and "cannot be" in err, err
+    assert "Evaluating" not in printed and not (at12 / "export").exists()
 
 
 @pytest.mark.parametrize("command,name", [("evaluate", "results.json"),

@@ -34,7 +34,13 @@ import orbax.checkpoint as ocp
 
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
 from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
-from flowmaps_jax.validation import check_args, check_dir, parse_json, prefix_errors
+from flowmaps_jax.validation import (
+    check_args,
+    check_dir,
+    check_tree_no_links,
+    parse_json,
+    prefix_errors,
+)
 from flowmaps_jax.validation.fields import Choice, Flag, Int, Optional
 
 LATEST = "latest"
@@ -94,7 +100,8 @@ def _reader(sub: pathlib.Path):
 
 def resolve_checkpoint_dir(directory: str | pathlib.Path) -> pathlib.Path:
     """The checkpoint root for ``directory``: the root itself or a run directory holding
-    ``checkpoints/``. Raises ValueError if neither exists."""
+    ``checkpoints/``. Raises ValueError if neither exists, or if anything in the root is a
+    symbolic link (a step is read, set aside or cleaned up only where the run wrote it)."""
     path = pathlib.Path(check_dir("checkpoint_dir", directory)).absolute()
     last, best = SUBDIRS[LATEST], SUBDIRS[BEST]
     if (path / "checkpoints").is_dir() and not (path / last).is_dir():
@@ -102,6 +109,7 @@ def resolve_checkpoint_dir(directory: str | pathlib.Path) -> pathlib.Path:
     if not (path / last).is_dir() and not (path / best).is_dir():
         raise ValueError(f"{path} is not a checkpoint directory (expected {last}/ or {best}/ "
                          f"inside; was it written by python -m flowmaps_jax.train?)")
+    check_tree_no_links("checkpoint directory file", path)
     return path
 
 

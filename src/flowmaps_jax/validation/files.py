@@ -13,6 +13,7 @@ import json
 import math
 import os
 import re
+import tempfile
 import zipfile
 from collections.abc import Sequence
 from typing import Any
@@ -103,6 +104,7 @@ def check_output_file(name: str, value: Any, *, overwrite: bool = True) -> str:
         raise ValueError(f"{name} {path!r}: its folder {folder!r} {what}")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise ValueError(f"{name} {path!r}: its folder {folder!r} is not writable")
+    _probe_write(name, path, folder)
     if os.path.exists(path):
         if not overwrite:
             raise ValueError(f"{name} {path!r} already exists")
@@ -134,6 +136,7 @@ def check_output_dir(name: str, value: Any, *, empty: bool = False,
                 raise ValueError(f"{name} {path!r}: {file!r} there is a directory, where the "
                                  f"command writes a file; move it away or choose another "
                                  f"{name}")
+        _probe_write(name, path, path)
         return path
     parent = _existing_parent(path)
     if not os.path.isdir(parent):
@@ -146,6 +149,22 @@ def check_output_dir(name: str, value: Any, *, empty: bool = False,
 
 _DISK_ERRNOS = frozenset(getattr(errno, code) for code in ("ENOSPC", "EDQUOT", "EIO")
                          if hasattr(errno, code))
+
+
+def _probe_write(name: str, path: str, folder: str) -> None:
+    """``ValueError`` if no file can be created in the existing ``folder`` (``/proc``, ``/sys``:
+    permissions say yes to root, the file system says no): a hidden file is created there and
+    removed again. A full disk is the machine's state: its ``OSError`` propagates."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=folder)
+    except OSError as err:
+        if err.errno in _DISK_ERRNOS:
+            raise
+        raise ValueError(f"{name} {path!r} cannot be written: no file can be created in "
+                         f"{folder!r} ({err.strerror})") from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
 
 
 def _probe_create(name: str, path: str, parent: str) -> None:
