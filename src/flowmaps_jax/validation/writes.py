@@ -124,8 +124,9 @@ def _write_temporary(path: pathlib.Path, raw: bytes, name: str) -> pathlib.Path:
 def write_files(files: dict[Any, str | bytes], *, name: str = "output file") -> None:
     """Write several files as one output (a model's ``.npz`` and ``.json``): every one first to
     its ``<path>.tmp`` (as :func:`write_file`), then all renamed into place, so a refusal (a
-    link or a directory at one of the names) or a failed write (a full disk) leaves none of
-    them new and no temporary file behind."""
+    link or a directory at one of the names) or a failed write of the data (a full disk)
+    leaves none of them new and no temporary file behind (only the renames, which write no
+    data, come after the first file is in place)."""
     paths = [pathlib.Path(path) for path in files]
     for path in paths:  # every refusal before anything is written
         if path.is_symlink():
