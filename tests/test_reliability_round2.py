@@ -361,7 +361,7 @@ def test_run_episodes_budget_is_bounded(search_set):
 
 def _copy_weights(tmp_path, name="mlp", edit=None, meta_edit=None):
     """A copy of the shipped weights ``name`` in tmp_path, its arrays changed by ``edit`` and
-    its .json by ``meta_edit``, resealed (the SHA-256 updated) as an attacker would."""
+    its .json by ``meta_edit``, resealed (the SHA-256 and the seal updated) as an attacker would."""
     src = pretrained.PRETRAINED_DIR
     with np.load(src / f"{name}.npz") as data:
         arrays = {k: data[k] for k in data.files}
@@ -374,6 +374,7 @@ def _copy_weights(tmp_path, name="mlp", edit=None, meta_edit=None):
     meta["sha256"] = __import__("hashlib").sha256(raw).hexdigest()
     if meta_edit:
         meta_edit(meta)
+    meta["seal"] = pretrained.seal(meta, raw)
     (tmp_path / f"{name}.npz").write_bytes(raw)
     (tmp_path / f"{name}.json").write_text(json.dumps(meta))
     return tmp_path

@@ -382,7 +382,8 @@ def test_pretrained_json_without_which_still_loads(tmp_path):
     for name in ("mlp",):
         shutil.copy(pretrained.PRETRAINED_DIR / f"{name}.npz", tmp_path)
         meta = json.loads((pretrained.PRETRAINED_DIR / f"{name}.json").read_text())
-        meta.pop("which", None)
+        meta.pop("which", None)  # as written before "which" existed (then sealed)
+        meta["seal"] = pretrained.seal(meta, (tmp_path / f"{name}.npz").read_bytes())
         (tmp_path / f"{name}.json").write_text(json.dumps(meta))
         assert pretrained.describe(name, tmp_path)["which"] == "unknown"
         assert load_pretrained(name, tmp_path).step == meta["step"]

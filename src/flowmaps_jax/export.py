@@ -2,24 +2,37 @@
 
 A thin command over :func:`flowmaps_jax.store.pretrained.export_pretrained`, which writes
 ``<name>.npz`` and ``<name>.json`` (atomically: temporary files, then renames), e.g.
-``python -m flowmaps_jax.export --checkpoint runs/X/checkpoints --name mlp`` (the
-best-by-validation step, the one evaluate and search load by default: one default path;
-``--which latest`` exports the last step instead).
+``python -m flowmaps_jax.export --checkpoint runs/X --name mlp`` (the best-by-validation
+step, the one evaluate and search load by default: one default path; ``--which latest`` exports
+the last step instead).
+
+The files go into the run's own ``export/`` folder (``runs/X/export/``, next to its
+``checkpoints/``) unless ``--out`` names another folder: the packaged weights
+(``flowmaps_jax/pretrained/``) are replaced only when ``--out`` names that folder.
 """
 
 from __future__ import annotations
 
 import argparse
+import pathlib
 import sys
 from collections.abc import Sequence
 
-from flowmaps_jax.store.checkpoints import WHICH
+from flowmaps_jax.store.checkpoints import WHICH, resolve_checkpoint_dir
 from flowmaps_jax.store.pretrained import NAMES, PRETRAINED_DIR, describe, export_pretrained
 from flowmaps_jax.validation import check_output_dir
 
-__all__ = ["EXIT_USAGE", "EXIT_WRITE_FAILED", "export_pretrained", "main"]
+__all__ = ["EXIT_USAGE", "EXIT_WRITE_FAILED", "default_out", "export_pretrained", "main"]
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
+
+
+def default_out(checkpoint: str | pathlib.Path) -> pathlib.Path:
+    """Where an export of ``checkpoint`` (a run or its checkpoint directory) goes without
+    ``--out``: the run's own ``export/`` folder, next to its ``checkpoints/`` (never the
+    package's pretrained/ folder). ``ValueError`` if ``checkpoint`` holds no checkpoints."""
+    root = resolve_checkpoint_dir(checkpoint)
+    return (root.parent if root.name == "checkpoints" else root) / "export"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -31,14 +44,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--which", choices=WHICH, default="best",
                         help="the run's best-by-validation step (best, default: the step "
                              "evaluate and search load) or its last step (latest)")
-    parser.add_argument("--out", default=str(PRETRAINED_DIR), help="target directory")
+    parser.add_argument("--out", default=None,
+                        help="target directory (default: the run's own export/ folder, next "
+                             "to its checkpoints/; the packaged weights are replaced only if "
+                             f"this names their folder, {PRETRAINED_DIR})")
     parser.add_argument("--note", default="", help="provenance note stored in the .json")
     parser.add_argument("--why", default="",
                         help="why this checkpoint was chosen, stored in the .json (default: "
                              "what the step is within its run)")
     args = parser.parse_args(argv)
     try:
-        check_output_dir("--out", args.out)
+        if args.out is None:
+            args.out = str(default_out(args.checkpoint))
+        check_output_dir("--out", args.out, files=[f"{args.name}.npz", f"{args.name}.json"])
         path = export_pretrained(args.checkpoint, args.name, args.out, args.which, args.note,
                                  args.why)
         info = describe(args.name, args.out)
@@ -50,6 +68,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_WRITE_FAILED
     print(f"wrote {path} ({path.stat().st_size / 2**20:.2f} MB) and {path.with_suffix('.json')}: "
           f"step {info['step']} ({info['which']}: {info['why']})")
+    print(f"Load it: flowmaps_jax.predictor.load_pretrained({args.name!r}, "
+          f"{str(path.parent)!r})")
     return 0
 
 

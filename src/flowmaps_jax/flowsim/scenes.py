@@ -43,6 +43,7 @@ from flowmaps_jax.validation import (
     check_output_file,
     check_request_size,
     check_seed,
+    parse_json,
     prefix_errors,
     read_npz,
     size,
@@ -312,7 +313,8 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
         if "habit" not in contents:
             raise ValueError("it is missing arrays ['habit']")
         with prefix_errors("it has an invalid config: ", also=(TypeError,)):
-            config = FlowSimConfig.from_dict(json.loads(str(contents["config_json"])))
+            config = FlowSimConfig.from_dict(parse_json("config_json",
+                                                         str(contents["config_json"])))
         validate_scenes(Scenes(**{name: contents[name] for name in _FIELDS}), config)
     scenes = Scenes(**{name: jnp.asarray(contents[name],
                                          jnp.float32 if name in _FLOAT_FIELDS else jnp.int32)

@@ -25,7 +25,7 @@ import orbax.checkpoint as ocp
 
 from flowmaps_jax.store.checkpoints import BEST, LATEST, SUBDIRS, best_manager, last_manager
 from flowmaps_jax.store.integrity import describe_state, shorten
-from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation import check_int, check_tree_no_links
 
 
 class CheckpointSaveError(OSError):
@@ -78,7 +78,8 @@ def _save_error(err: BaseException, step: int, sub: pathlib.Path) -> CheckpointS
 class CheckpointStore:
     """Writes checkpoints of one run: ``save`` (last k) and ``save_if_best`` (best by val loss).
 
-    directory: checkpoint root (created if needed); keep_last: recent checkpoints kept (k >= 1).
+    directory: checkpoint root (created if needed; ``ValueError`` if anything in it is a
+    symbolic link); keep_last: recent checkpoints kept (k >= 1).
     Both saves raise :class:`~.integrity.NonFiniteStateError` (nothing written) for a state
     holding NaN or inf, and :class:`CheckpointSaveError` when the write fails (the partial save
     is removed).
@@ -88,6 +89,8 @@ class CheckpointStore:
         keep_last = check_int("keep_last", keep_last)
         self.directory = pathlib.Path(directory).absolute()
         self.directory.mkdir(parents=True, exist_ok=True)
+        # orbax's keep-last deletes old steps: only the run's own, never through a link
+        check_tree_no_links(f"checkpoint directory {str(self.directory)!r}", self.directory)
         self._last = last_manager(self.directory / SUBDIRS[LATEST], keep_last)
         self._best = best_manager(self.directory / SUBDIRS[BEST])
 

@@ -19,9 +19,13 @@ describes (what :func:`flowmaps_jax.predictor.load` and the exporter read).
 
 from __future__ import annotations
 
-import json
+import contextlib
+import gc
 import logging
+import os
 import pathlib
+import sys
+import tempfile
 import time
 from typing import Any, NamedTuple
 
@@ -30,7 +34,13 @@ import orbax.checkpoint as ocp
 
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
 from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
-from flowmaps_jax.validation import check_args, check_dir, prefix_errors
+from flowmaps_jax.validation import (
+    check_args,
+    check_dir,
+    check_tree_no_links,
+    parse_json,
+    prefix_errors,
+)
 from flowmaps_jax.validation.fields import Choice, Flag, Int, Optional
 
 LATEST = "latest"
@@ -39,7 +49,9 @@ WHICH = (BEST, LATEST)
 SUBDIRS = {LATEST: "last", BEST: "best"}
 """On disk the recent saves live in last/ (k of them), the best one in best/."""
 ITEMS = ("state", "config", "meta")
-# Files orbax (OCDBT format) always writes for a pytree item; checked before restoring.
+# Files orbax (OCDBT format) always writes for a pytree item; checked before restoring. Each
+# process that wrote part of the state (array_metadatas/process_<i>) has its data folder
+# ocdbt.process_<i>/ holding d/ (its data files); the top-level d/ holds the index.
 _STATE_FILES = ("_METADATA", "manifest.ocdbt")
 _STEP_METADATA = "_CHECKPOINT_METADATA"  # orbax's per-step file; lists the saved items
 
@@ -88,7 +100,8 @@ def _reader(sub: pathlib.Path):
 
 def resolve_checkpoint_dir(directory: str | pathlib.Path) -> pathlib.Path:
     """The checkpoint root for ``directory``: the root itself or a run directory holding
-    ``checkpoints/``. Raises ValueError if neither exists."""
+    ``checkpoints/``. Raises ValueError if neither exists, or if anything in the root is a
+    symbolic link (a step is read, set aside or cleaned up only where the run wrote it)."""
     path = pathlib.Path(check_dir("checkpoint_dir", directory)).absolute()
     last, best = SUBDIRS[LATEST], SUBDIRS[BEST]
     if (path / "checkpoints").is_dir() and not (path / last).is_dir():
@@ -96,6 +109,7 @@ def resolve_checkpoint_dir(directory: str | pathlib.Path) -> pathlib.Path:
     if not (path / last).is_dir() and not (path / best).is_dir():
         raise ValueError(f"{path} is not a checkpoint directory (expected {last}/ or {best}/ "
                          f"inside; was it written by python -m flowmaps_jax.train?)")
+    check_tree_no_links("checkpoint directory file", path)
     return path
 
 
@@ -150,11 +164,75 @@ def _saved_items(step_dir: pathlib.Path) -> list[str]:
     """The items orbax recorded for this step (``meta`` is absent from steps saved before
     checksums existed)."""
     try:
-        handlers = json.loads((step_dir / _STEP_METADATA).read_text())["item_handlers"]
+        raw = (step_dir / _STEP_METADATA).read_bytes()
+        handlers = parse_json(_STEP_METADATA, raw)["item_handlers"]
         return [item for item in ITEMS if item in handlers]
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise Damaged(f"is incomplete or corrupt: cannot read {_STEP_METADATA} "
                       f"({type(err).__name__})") from None
+
+
+def _missing_state_files(state_dir: pathlib.Path) -> list[str]:
+    """What a saved state lacks of the files and folders orbax writes (``state/...`` names):
+    checked before tensorstore reads it, which on a missing data file prints thousands of
+    lines."""
+    missing = [f"state/{name}" for name in _STATE_FILES if not (state_dir / name).is_file()]
+    processes = state_dir / "array_metadatas"
+    names = sorted(p.name for p in processes.iterdir()) if processes.is_dir() else []
+    for name in names:
+        if not name.startswith("process_"):
+            continue
+        data = state_dir / f"ocdbt.{name}" / "d"
+        if not data.is_dir() or not any(data.iterdir()):
+            missing.append(f"state/ocdbt.{name}" + ("/d" if data.parent.is_dir() else ""))
+    if (state_dir / "d").exists() and not any((state_dir / "d").iterdir()):
+        missing.append("state/d")
+    return missing
+
+
+class _TextSink(list):
+    """A write-only text stream that keeps what it is given."""
+
+    def write(self, text: str) -> int:
+        self.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        pass
+
+    def getvalue(self) -> str:
+        return "".join(self)
+
+
+@contextlib.contextmanager
+def _silenced():
+    """Nothing orbax and tensorstore print reaches the terminal while a step is read: a damaged
+    step makes them print thousands of lines (tracebacks from their threads, "Exception ignored
+    ... Event loop is closed", the TensorStore spec), which :class:`Damaged` sums up in one.
+    The process's stderr (file descriptor 2) goes to a temporary file meanwhile and the
+    unraisable-exception hook is a no-op; what was printed is shown again after a read that
+    succeeded, and dropped after one that failed."""
+    sys.stderr.flush()
+    saved_fd, saved_hook, text = os.dup(2), sys.unraisablehook, _TextSink()
+    failed = True
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        sys.unraisablehook = lambda _: None
+        try:
+            with contextlib.redirect_stderr(text):
+                yield
+            failed = False
+        finally:
+            gc.collect()  # the un-awaited coroutines of a failed read report here, unheard
+            sys.stderr.flush()
+            os.dup2(saved_fd, 2)
+            os.close(saved_fd)
+            sys.unraisablehook = saved_hook
+            if not failed:
+                sink.seek(0)
+                shown = sink.read().decode(errors="replace") + text.getvalue()
+                if shown:
+                    sys.stderr.write(shown)
 
 
 def _saved_structure(state_dir: pathlib.Path):
@@ -174,25 +252,27 @@ def _read_step(sub: pathlib.Path, step: int, target_state=None, *,
     items = _saved_items(step_dir)
     missing = [item for item in ITEMS if item not in items and item != "meta"]
     missing += [item for item in items if not (step_dir / item).is_dir()]
-    missing += [f"state/{name}" for name in _STATE_FILES
-                if "state" not in missing and not (step_dir / "state" / name).is_file()]
+    if "state" not in missing:
+        missing += _missing_state_files(step_dir / "state")
     if missing:
         raise Damaged(f"is incomplete or corrupt: missing {missing}")
     args = {"config": ocp.args.JsonRestore()}
     if "meta" in items:
         args["meta"] = ocp.args.JsonRestore()
-    manager = _reader(sub)
     try:
-        if with_state:
-            target = _saved_structure(step_dir / "state") if target_state is None \
-                else target_state
-            args["state"] = ocp.args.StandardRestore(target)
-        restored = manager.restore(step, args=ocp.args.Composite(**args))
+        with _silenced():
+            manager = _reader(sub)
+            try:
+                if with_state:
+                    target = _saved_structure(step_dir / "state") if target_state is None \
+                        else target_state
+                    args["state"] = ocp.args.StandardRestore(target)
+                restored = manager.restore(step, args=ocp.args.Composite(**args))
+            finally:
+                manager.close()
     except Exception as err:  # orbax/tensorstore raise many types; report them uniformly
         raise Damaged(f"is corrupt, incomplete or does not match the model "
-                      f"({type(err).__name__}: {shorten(err)})") from err
-    finally:
-        manager.close()
+                      f"({type(err).__name__}: {_first_line(err)})") from None
     config, meta = restored["config"], restored["meta"] if "meta" in items else None
     if not isinstance(config, dict):
         raise Damaged("has no config")
@@ -202,6 +282,15 @@ def _read_step(sub: pathlib.Path, step: int, target_state=None, *,
         verify_config(config, meta)
     return Restored(state=restored["state"] if with_state else None, config=config, meta=meta,
                     step=step, path=step_dir)
+
+
+def _first_line(err: Exception) -> str:
+    """The first line of an orbax or tensorstore error, short (not the TensorStore spec it
+    embeds)."""
+    text = str(err).strip().splitlines()
+    line = text[0] if text else ""
+    line = line.split(" See full TensorStore details")[0]
+    return shorten(line, 200)
 
 
 def _run_dir_of(root: pathlib.Path) -> pathlib.Path | None:

@@ -4,14 +4,17 @@ writing them from a checkpoint.
 The EMA weights of the `cpu`-preset runs documented in docs/results.md ("Shipped weights") live in
 the data folder ``flowmaps_jax/pretrained/``: ``<name>.npz`` (float32 parameter arrays keyed by
 their path in the params pytree) next to ``<name>.json`` (the run's config, model family, step,
-source, which checkpoint of the run it is, ``"which": "best"`` or ``"latest"``, and why, and the
-SHA-256 of the .npz, checked on load). Files written before ``which`` was recorded lack it:
+source, which checkpoint of the run it is, ``"which": "best"`` or ``"latest"``, and why, the
+SHA-256 of the .npz, and its ``seal``: one SHA-256 over the whole ``.json`` (every field but the
+seal, in a canonical form) and the ``.npz`` bytes together, so a changed config is refused as a
+changed weight is; :func:`seal` computes it, :mod:`flowmaps_jax.store.reseal` adds it to files
+written before seals existed). Files written before ``which`` was recorded lack it:
 :func:`describe` reports ``"unknown"`` for them. A plain ``pip install .`` carries them; nothing
 is downloaded. Reading trusts neither file: the ``.json`` is size-limited and its fields are
-checked (a name, a model family, a step that is a count, ``which`` if present), the ``.npz`` is
-read only after its SHA-256 matches, with its members whitelisted (exactly the model's
-parameters, their declared shapes checked before anything is decompressed) and every weight
-finite.
+checked (a name, a model family, a step that is a count, ``which`` if present), nothing in it
+is used and the ``.npz`` is not parsed before the seal matches; then the ``.npz`` is read with
+its members whitelisted (exactly the model's parameters, their declared shapes checked before
+anything is decompressed) and every weight finite.
 
     from flowmaps_jax.predictor import load_pretrained
     predictor = load_pretrained("flowmaps")      # or "mlp", "mlp-learned"
@@ -43,9 +46,10 @@ from flowmaps_jax.validation import (
     check_keys,
     check_output_dir,
     make_output_dir,
+    parse_json,
     prefix_errors,
     read_npz,
-    write_file,
+    write_files,
 )
 from flowmaps_jax.validation.composite import Pattern
 from flowmaps_jax.validation.fields import Choice, Instance, Int, Optional
@@ -69,6 +73,8 @@ MAX_BYTES = 12 * 1024 * 1024  # size budget per model: issue 8 set 10 MB; issue 
 # (two more CDiT blocks for the table weights, 0.66M parameters) needs 11.3 MB
 MAX_META_BYTES = 1024 * 1024  # a .json larger than this is not one export_pretrained wrote
 UNKNOWN = "unknown"  # "which" of a .json written before it was recorded
+SEAL_FORMAT = 1
+"""The version of the ``seal`` field (:func:`seal`) this code writes and reads."""
 
 
 def _family_of(name: str) -> str:
@@ -89,9 +95,43 @@ def available(directory: str | pathlib.Path = PRETRAINED_DIR) -> list[str]:
 
 _META_RULES = {"step": Optional(Int(0)), "which": Choice((*WHICH, UNKNOWN)), "why": Instance(str),
                "sha256": Pattern("[0-9a-f]{64}", "a SHA-256 hex digest"),
-               "config": Instance(dict)}
+               "config": Instance(dict), "seal": Optional(Instance(dict))}
 """The fields of a weights ``.json`` that the loader uses or reports (``name`` must also be
 the model's own)."""
+
+
+def seal(meta: dict, npz_bytes: bytes) -> dict:
+    """The ``seal`` field of a weights ``.json`` whose other fields are ``meta`` and whose
+    ``.npz`` holds ``npz_bytes``: ``{"format": SEAL_FORMAT, "sha256": ...}``, the SHA-256 of
+    the canonical JSON of ``meta`` (sorted keys, no spaces, ASCII; a ``seal`` in it is
+    ignored) followed by the ``.npz`` bytes. Any change to a field's value, name or type, or to
+    a weight byte, changes it."""
+    fields = {key: value for key, value in meta.items() if key != "seal"}
+    canonical = json.dumps(fields, sort_keys=True, separators=(",", ":"), ensure_ascii=True,
+                           allow_nan=False)
+    digest = hashlib.sha256(f"flowmaps-jax pretrained seal {SEAL_FORMAT}\n".encode())
+    digest.update(canonical.encode() + b"\n")
+    digest.update(npz_bytes)
+    return {"format": SEAL_FORMAT, "sha256": digest.hexdigest()}
+
+
+def check_seal(name: str, meta: dict, npz_bytes: bytes) -> None:
+    """``ValueError`` unless ``meta`` (a weights ``.json``) carries the :func:`seal` of itself
+    and ``npz_bytes``: a ``.json`` or ``.npz`` changed after the export is refused, naming the
+    file that changed (the ``.npz`` when its own SHA-256 no longer matches)."""
+    held = meta.get("seal")
+    if held is None:
+        raise ValueError(f"pretrained {name!r}: {name}.json is not sealed (written before its "
+                         f"config was sealed with its weights); re-seal it once with python -m "
+                         f"flowmaps_jax.store.reseal DIRECTORY (or export it again)")
+    if not isinstance(held, dict) or held.get("format") != SEAL_FORMAT:
+        raise ValueError(f"pretrained {name!r}: {name}.json has a seal of an unknown format "
+                         f"({str(held)[:60]}); this code reads format {SEAL_FORMAT}")
+    if held != seal(meta, npz_bytes):
+        damaged = f"{name}.npz" if hashlib.sha256(npz_bytes).hexdigest() != meta["sha256"] \
+            else f"{name}.json"
+        raise ValueError(f"pretrained {name!r}: {damaged} is damaged (the seal over the "
+                         f"config and the weights does not match); reinstall the package")
 
 
 def _read_limited(name: str, path: pathlib.Path, limit: int) -> bytes:
@@ -111,11 +151,11 @@ def _read_meta(name: str, root: pathlib.Path) -> dict:
                          f"{available(root) or 'none'})")
     file = f"{name}.json"
     text = _read_limited(name, root / file, MAX_META_BYTES)
-    with prefix_errors(f"pretrained {name!r}: unreadable {file}: "):
-        meta = json.loads(text)
+    meta = parse_json(f"pretrained {name!r}: {file}", text)  # its depth bounded
     check_keys(f"pretrained {name!r}: {file}", meta)  # a JSON object
     fields = types.SimpleNamespace(**{"step": None, "which": UNKNOWN, "why": "", "name": name,
-                                      "sha256": None, "config": None, **meta})
+                                      "sha256": None, "config": None, "seal": None,
+                                      **meta})
     check_fields(fields, {**_META_RULES, "name": Choice((name,))},
                  prefix=f"pretrained {name!r}: {file} ", store=False)
     return meta
@@ -149,10 +189,13 @@ class PretrainedWeights(NamedTuple):
 def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> PretrainedWeights:
     """The pretrained weights ``name`` (one of :data:`NAMES`) in ``directory``, read and checked
     (see the module doc). Raises ``ValueError`` for an unknown name (listing the names), or
-    weights that are missing, damaged (SHA-256 mismatch) or do not fit their config."""
+    weights that are missing, damaged (the seal over the .json and the .npz does not match) or
+    do not fit their config."""
     root = pathlib.Path(directory)
     npz, meta_path = root / f"{name}.npz", root / f"{name}.json"
     meta = _read_meta(name, root)
+    data = _read_limited(name, npz, 2 * MAX_BYTES)
+    check_seal(name, meta, data)  # the config is trusted from here on, as the weights are
     with prefix_errors(f"pretrained {name!r}: unreadable {meta_path.name}: ",
                        also=(KeyError, TypeError)):
         spec = model_spec(meta["config"])
@@ -160,10 +203,6 @@ def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> P
         raise ValueError(f"pretrained {name!r}: {meta_path.name} names kind "
                          f"{str(meta.get('kind'))[:40]!r} but its config is a "
                          f"{spec.family_name!r} model")
-    data = _read_limited(name, npz, 2 * MAX_BYTES)
-    if hashlib.sha256(data).hexdigest() != meta["sha256"]:
-        raise ValueError(f"pretrained {name!r}: {npz.name} is damaged (SHA-256 does not match "
-                         f"{meta_path.name}); reinstall the package")
     abstract = spec.abstract_params()
     expected = {key: (leaf.shape, leaf.dtype)
                 for key, leaf in traverse_util.flatten_dict(abstract, sep="/").items()}
@@ -205,10 +244,11 @@ def _default_why(which: str, step: int, best_step: int | None, latest_step: int 
 
 @check_args(name=Choice(NAMES), which=Choice(WHICH), why=Instance(str))
 def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
-                      directory: str | pathlib.Path = PRETRAINED_DIR,
+                      directory: str | pathlib.Path,
                       which: str = "best", note: str = "", why: str = "") -> pathlib.Path:
-    """Copy a checkpoint's EMA weights into ``directory`` as ``name`` (.npz + .json, each
-    written through a temporary file and a rename).
+    """Copy a checkpoint's EMA weights into ``directory`` as ``name`` (.npz + .json, both
+    written to temporary files, then renamed: never one without the other). ``directory`` has
+    no default: the package's own :data:`PRETRAINED_DIR` is written only when it is named.
 
     which: "best" (default: the step evaluate and search load by default, lowest validation
     score; a run without one exports its latest step, and the .json says so) or "latest" (the
@@ -248,7 +288,8 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
                            + _default_why(which, weights.step, best_step, latest_step)),
             "note": note,
             "sha256": hashlib.sha256(data).hexdigest(), "config": weights.restored.config}
+    meta["seal"] = seal(meta, data)
     text = json.dumps(meta, indent=2) + "\n"
-    write_file(root / f"{name}.npz", data, name="directory file")  # a temporary file, a rename
-    write_file(root / f"{name}.json", text, name="directory file")
+    write_files({root / f"{name}.npz": data, root / f"{name}.json": text},
+                name="directory file")  # temporary files, then the renames
     return root / f"{name}.npz"

@@ -3,8 +3,11 @@
 * :func:`claim` (a context manager) takes the directory for a run. A new run (no ``resume``)
   needs an empty or missing directory, or one whose run never saved a checkpoint (killed or
   interrupted before its first save: its leftovers are removed, with a message); ``overwrite``
-  first moves an old run aside to ``<dir>.old-<timestamp>``. The files a run writes there must
-  not be symbolic links (:data:`RUN_FILES`), so nothing is written outside the directory. The
+  first moves an old run aside to ``<dir>.old-<timestamp>``. Nothing in the directory, at any
+  depth, may be a symbolic link (:func:`check_own_files`: ``checkpoints/last``, a step folder,
+  ``metrics.jsonl`` ...), so nothing is read, written or cleaned up (orbax's keep-last deletes
+  old steps) outside the directory: such a directory is refused before anything is done (the
+  leftovers of a run that saved nothing are removed first, links as links). The
   lock file ``<dir>/.lock`` (created with ``O_EXCL``, holding ``<pid> <host>``) keeps a second
   process out while the first one runs; a lock left by a process that no longer exists (kill -9,
   power loss) is taken over with a message. The lock is released on exit, and a directory the
@@ -25,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import json
 import os
 import pathlib
 import shutil
@@ -37,7 +39,12 @@ import jax
 
 from flowmaps_jax import distributed
 from flowmaps_jax.store import checkpoints
-from flowmaps_jax.validation import check_no_links, write_file
+from flowmaps_jax.validation import (
+    check_no_links,
+    check_tree_no_links,
+    parse_json,
+    write_file,
+)
 
 LOCK_NAME = ".lock"
 METRICS = "metrics.jsonl"
@@ -70,6 +77,13 @@ def open_append(path: pathlib.Path):
                              f"files") from None
         raise
     return os.fdopen(fd, "a")
+
+
+def check_own_files(run_dir: pathlib.Path) -> None:
+    """``ValueError`` naming the path if anything in ``run_dir`` (at any depth) is a symbolic
+    link: a run follows none (see the module docstring)."""
+    if pathlib.Path(run_dir).is_dir():
+        check_tree_no_links("run directory file", run_dir)
 
 
 def _saved_nothing(run_dir: pathlib.Path) -> list[str] | None:
@@ -257,6 +271,8 @@ def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
         raise ValueError(f"run_dir {str(run_dir)!r} cannot be created ({err.strerror})") from None
     lock = RunLock(run_dir, log)
     try:
+        if resume:  # before anything in it is read
+            check_own_files(run_dir)
         held = _entries(run_dir)
         unsaved = _saved_nothing(run_dir) if held and not resume and not overwrite else None
         if unsaved:
@@ -277,6 +293,7 @@ def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
             created = True
             lock = RunLock(run_dir, log)
         check_no_links("run directory file", run_dir, RUN_FILES)  # and their .tmp
+        check_own_files(run_dir)  # a new run: what is left after the leftovers were cleared
         yield lock
     finally:
         lock.release()
@@ -302,7 +319,8 @@ def kept_records(run_dir: pathlib.Path, resumed_step: int | None,
     kept = []
     for n, line in numbered:
         try:
-            record, why = json.loads(line), "not a JSON object with an integer step"
+            record, why = parse_json(f"line {n}", line),\
+                "not a JSON object with an integer step"
         except ValueError as err:
             record, why = None, str(err)
         if not isinstance(record, dict) or not isinstance(record.get("step", 0), int):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import decimal
 import types
 import typing
 from typing import Any, Literal
@@ -152,11 +153,12 @@ def _convert(text: str, hint: Any, key: str) -> Any:
     if hint is int:
         with contextlib.suppress(ValueError):
             return int(text)
-        with contextlib.suppress(ValueError):
-            as_float = float(text)
-            if as_float.is_integer():
-                return int(as_float)
-        return text
+        with contextlib.suppress(ArithmeticError, ValueError):  # "1e4", "8.0": exact integers
+            exact = decimal.Decimal(text.strip())
+            if exact.is_finite() and abs(exact.adjusted()) <= 30 \
+                    and exact == exact.to_integral_value():
+                return int(exact)
+        return text  # "1.0000000000000001" is no integer: the field's rule refuses it
     if hint is float:
         with contextlib.suppress(ValueError):
             return float(text)

@@ -14,7 +14,6 @@ Reading and verifying the checkpoints is :mod:`flowmaps_jax.store.checkpoints`.
 from __future__ import annotations
 
 import dataclasses
-import json
 import pathlib
 from collections.abc import Callable
 
@@ -22,6 +21,7 @@ from flowmaps_jax.store import checkpoints, rundir
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import TrainConfig, config_from_stored, resumable_fields
 from flowmaps_jax.training.overrides import flatten
+from flowmaps_jax.validation import read_json
 
 
 def load_config(directory: str | pathlib.Path, which: str = checkpoints.LATEST,
@@ -67,6 +67,7 @@ def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig
     A run killed between its first ``best/N`` save and its ``last/N`` save holds only a best
     checkpoint: without ``from_step`` it too starts again from step 0 (it saved no state to
     continue; the replay saves the same best again)."""
+    rundir.check_own_files(run_dir)  # before anything in it is read
     only_best = from_step is None and rundir.only_best_saved(run_dir)
     if not run_dir.is_dir() or (rundir.has_checkpoint(run_dir) and not only_best):
         rundir.checkpoint_root(run_dir)  # a checkpoint directory given as the run: refused
@@ -74,7 +75,7 @@ def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig
     if from_step is not None:
         raise ValueError(f"--from-step {from_step}: the run in {run_dir} saved no checkpoint")
     try:
-        return config_from_stored(json.loads((run_dir / "config.json").read_text()))
+        return config_from_stored(read_json("", run_dir / "config.json"))
     except (OSError, ValueError, TypeError) as err:
         missing = isinstance(err, FileNotFoundError)
         if missing and only_best:
@@ -113,7 +114,7 @@ def resume_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig:
         return unsaved
     saved = load_config(rundir.checkpoint_root(run_dir), step=from_step)
     try:
-        latest = config_from_stored(json.loads((run_dir / "config.json").read_text()))
+        latest = config_from_stored(read_json("", run_dir / "config.json"))
     except (OSError, ValueError, TypeError):  # missing or unreadable: the checkpoint's config
         return saved
     check_resumable(saved, latest, run_dir / "config.json")

@@ -28,11 +28,13 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
+from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.store import rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointSaveError, CheckpointStore
 from flowmaps_jax.store.rundir import METRICS
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import TrainConfig
+from flowmaps_jax.validation import read_json
 
 # --------------------------------------------------------------------------------------------
 # metrics.jsonl and the checkpoints
@@ -218,8 +220,25 @@ def print_summary(result: RunResult, total_steps: int, latest: int | None,
         log(f"  (the best step is the last, {latest}: evaluate and search load it)")
     else:  # no val pass since step 0: the best falls back to the latest save
         log(f"  (no best-by-validation step yet: evaluate and search load step {latest})")
+    log(f"Export it:    python -m flowmaps_jax.export --checkpoint {result.run_dir} --name "
+        f"{_export_name(result.run_dir)}   (into {result.run_dir / 'export'}; the packaged "
+        f"weights change only if --out names their folder)")
     if status != "done":
         log(f"Resume it:    python -m flowmaps_jax.train --resume --run-dir {result.run_dir}")
+
+
+def _export_name(run_dir: pathlib.Path) -> str:
+    """The pretrained name a run's model exports as (from its config.json): its family's name,
+    with "-learned" for a Gaussian family whose variance is learned ("mlp-learned");
+    "flowmaps" when the config cannot be read."""
+    try:
+        config = read_json("", run_dir / "config.json")
+        kind, model = str(config.get("model_kind", "flowmaps")), config.get("model", {})
+        learned = model.get("baseline_variance") == "learned"
+    except (OSError, ValueError, AttributeError):
+        return "flowmaps"
+    gaussian = kind in MODEL_FAMILIES and MODEL_FAMILIES[kind].gaussian is not None
+    return f"{kind}-learned" if gaussian and learned else kind
 
 
 def write_routine_curve(run_dir: pathlib.Path, log: Callable[[str], None]) -> None:

@@ -67,6 +67,8 @@ from flowmaps_jax.validation.files import (
     check_output_file,
     check_path,
     check_plain_name,
+    parse_json,
+    read_json,
     read_npz,
 )
 from flowmaps_jax.validation.resources import (
@@ -98,9 +100,11 @@ from flowmaps_jax.validation.scalars import (
 )
 from flowmaps_jax.validation.writes import (
     check_no_links,
+    check_tree_no_links,
     make_output_dir,
     save_figure,
     write_file,
+    write_files,
 )
 
 __all__ = [
@@ -139,6 +143,7 @@ __all__ = [
     "check_resources",
     "check_seed",
     "check_shape",
+    "check_tree_no_links",
     "embedding_bytes",
     "embedding_flops",
     "flops_limit",
@@ -148,10 +153,13 @@ __all__ = [
     "memory_limit",
     "named_sizes",
     "network_flops",
+    "parse_json",
     "prefix_errors",
+    "read_json",
     "read_npz",
     "save_figure",
     "size",
     "solver_evaluations",
     "write_file",
+    "write_files",
 ]

@@ -346,15 +346,23 @@ def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
     """Check every field of ``obj`` named in ``rules`` against its rule, in the table's order;
     the message names ``prefix + field`` (or ``prefix + labels[field]``). Returns the checked
     values ``{field: value}``; with ``store``, also keeps the checked form (Python numbers,
-    tuples) on ``obj``, a frozen dataclass included."""
+    tuples) on ``obj``, a frozen dataclass included. Without ``store``, a number given as a
+    numpy or JAX scalar (``np.int64(8)``, ``np.float32(1e-3)``, a 0-d array) is still replaced
+    by the Python number its rule returned, so a config never holds one (``to_dict`` and JSON
+    would fail on it later); Python values are kept as given."""
     labels = labels or {}
     checked: dict[str, Any] = {}
     with named_sizes(), _checked(checked):
         for field, rule in rules.items():
-            checked[field] = value = rule(prefix + labels.get(field, field), getattr(obj, field))
-            if store:
+            given = getattr(obj, field)
+            checked[field] = value = rule(prefix + labels.get(field, field), given)
+            if store or (type(value) in _PYTHON_NUMBERS
+                         and type(given) not in _PYTHON_NUMBERS):
                 object.__setattr__(obj, field, value)
     return checked
+
+
+_PYTHON_NUMBERS = (int, float, bool)
 
 
 def check_args(**rules: Rule) -> Callable[[Callable], Callable]:

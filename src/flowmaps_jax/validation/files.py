@@ -1,14 +1,19 @@
 """File, name and untrusted-file checks: paths, readable files and folders, writable outputs,
-plain names, and :func:`read_npz` (an untrusted ``.npz`` read without trusting its sizes).
+plain names, :func:`read_npz` (an untrusted ``.npz`` read without trusting its sizes) and
+:func:`read_json` / :func:`parse_json` (untrusted JSON, its size and nesting depth bounded).
 
 Each raises ``ValueError`` whose message starts with the argument's name.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import json
 import math
 import os
 import re
+import tempfile
 import zipfile
 from collections.abc import Sequence
 from typing import Any
@@ -99,6 +104,7 @@ def check_output_file(name: str, value: Any, *, overwrite: bool = True) -> str:
         raise ValueError(f"{name} {path!r}: its folder {folder!r} {what}")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise ValueError(f"{name} {path!r}: its folder {folder!r} is not writable")
+    _probe_write(name, path, folder)
     if os.path.exists(path):
         if not overwrite:
             raise ValueError(f"{name} {path!r} already exists")
@@ -111,8 +117,9 @@ def check_output_dir(name: str, value: Any, *, empty: bool = False,
                      files: Sequence[str] = ()) -> str:
     """A directory that exists (or can be created) and is writable; with ``empty``, one that
     holds nothing yet. A path that is a file, or lies under a file, is refused, and so is one
-    with a name longer than the file system allows, or one where a symbolic link sits at a name
-    of ``files`` (the files a command is about to write there: refused before it runs)."""
+    with a name longer than the file system allows, one that cannot be created (``/proc/x``:
+    tried, then removed again), or one where a symbolic link or a directory sits at a name of
+    ``files`` (the files a command is about to write there: refused before it runs)."""
     path = check_path(name, value)
     _check_name_lengths(name, path)
     check_no_links(name, path, files)
@@ -124,13 +131,60 @@ def check_output_dir(name: str, value: Any, *, empty: bool = False,
         if empty and os.listdir(path):
             raise ValueError(f"{name} {path!r} is not empty (it holds "
                              f"{', '.join(sorted(os.listdir(path))[:5])}...)")
+        for file in files:
+            if os.path.isdir(os.path.join(path, file)):
+                raise ValueError(f"{name} {path!r}: {file!r} there is a directory, where the "
+                                 f"command writes a file; move it away or choose another "
+                                 f"{name}")
+        _probe_write(name, path, path)
         return path
     parent = _existing_parent(path)
     if not os.path.isdir(parent):
         raise ValueError(f"{name} {path!r} lies under {parent!r}, which is a file")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise ValueError(f"{name} {path!r} cannot be created: {parent!r} is not writable")
+    _probe_create(name, path, parent)
     return path
+
+
+_DISK_ERRNOS = frozenset(getattr(errno, code) for code in ("ENOSPC", "EDQUOT", "EIO")
+                         if hasattr(errno, code))
+
+
+def _probe_write(name: str, path: str, folder: str) -> None:
+    """``ValueError`` if no file can be created in the existing ``folder`` (``/proc``, ``/sys``:
+    permissions say yes to root, the file system says no): a hidden file is created there and
+    removed again. A full disk is the machine's state: its ``OSError`` propagates."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=folder)
+    except OSError as err:
+        if err.errno in _DISK_ERRNOS:
+            raise
+        raise ValueError(f"{name} {path!r} cannot be written: no file can be created in "
+                         f"{folder!r} ({err.strerror})") from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
+
+
+def _probe_create(name: str, path: str, parent: str) -> None:
+    """``ValueError`` if the first missing folder of ``path`` (under the existing ``parent``)
+    cannot be created (``/proc/x``: permissions say yes, the file system says no); it is
+    created and removed again, so nothing is left. A full disk is the machine's state: its
+    ``OSError`` propagates."""
+    first = os.path.abspath(path)
+    while os.path.dirname(first) != os.path.abspath(parent):
+        first = os.path.dirname(first)
+    try:
+        os.mkdir(first)
+    except FileExistsError:
+        return  # made meanwhile
+    except OSError as err:
+        if err.errno in _DISK_ERRNOS:
+            raise
+        raise ValueError(f"{name} {path!r} cannot be created ({err.strerror})") from None
+    with contextlib.suppress(OSError):
+        os.rmdir(first)
 
 
 # ------------------------------------------------------------------------------ names
@@ -225,3 +279,53 @@ def _read_npy(member, declared: int, expected) -> np.ndarray:
         raise ValueError(f"it holds {len(data)} bytes of data where its header says {size}")
     array = np.frombuffer(data, dtype=dtype, count=math.prod(shape) if shape else 1)
     return array.reshape(shape, order="F" if fortran else "C").copy()
+
+
+MAX_JSON_DEPTH = 64
+"""The deepest nesting of arrays and objects accepted in a JSON file read from disk (a config is
+about 4 deep); deeper text is refused before it is parsed (Python's parser would recurse)."""
+MAX_JSON_BYTES = 16 * 1024 * 1024
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"', re.DOTALL)
+
+
+def json_depth(text: str) -> int:
+    """The deepest nesting of ``[`` / ``{`` in the JSON ``text``, strings skipped (a malformed
+    text gets some count; the parser refuses it anyway)."""
+    brackets = np.frombuffer(_JSON_STRING.sub("", text).encode(), np.uint8)
+    steps = (np.isin(brackets, (ord("["), ord("{"))).astype(np.int64)
+             - np.isin(brackets, (ord("]"), ord("}"))))
+    return int(np.cumsum(steps).max(initial=0))
+
+
+def parse_json(name: str, text: str | bytes, *, max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """The value of the untrusted JSON ``text``; ``ValueError`` naming ``name`` (the file) if it
+    is not UTF-8, not JSON, or nested deeper than ``max_depth`` (never a ``RecursionError``)."""
+    if isinstance(text, bytes):
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{name} is not UTF-8 text ({err.reason} at byte {err.start})"
+                             ) from None
+    depth = json_depth(text)
+    if depth > max_depth:
+        raise ValueError(f"{name} is nested {depth} levels deep, more than the {max_depth} "
+                         f"a file of this project has; not reading it")
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError(f"{name} is nested too deeply to read") from None
+    except ValueError as err:
+        raise ValueError(f"{name} is not valid JSON ({err})") from None
+
+
+def read_json(name: str, path: Any, *, max_bytes: int = MAX_JSON_BYTES,
+              max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """The value of the untrusted JSON file ``path`` (at most ``max_bytes``, nested at most
+    ``max_depth``); ``ValueError`` naming ``name`` and the file for any failure but a missing
+    or unreadable file (its ``OSError`` propagates)."""
+    label = f"{name} {os.fspath(path)!r}" if name else repr(os.fspath(path))
+    size = os.stat(path).st_size
+    if size > max_bytes:
+        raise ValueError(f"{label} holds {size:,} bytes, more than the {max_bytes:,} allowed")
+    with open(path, "rb") as file:
+        return parse_json(label, file.read(max_bytes + 1), max_depth=max_depth)

@@ -10,6 +10,7 @@ import argparse
 import math
 import numbers
 import operator
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -19,6 +20,9 @@ import numpy as np
 
 INT32_MAX = 2**31 - 1
 """Largest value an int32 array (every integer the simulator and the model use) can hold."""
+
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+"""The smallest normal float32 (about 1.18e-38): a real that must be > 0 is refused below it."""
 
 SEED_MAX = 2**32 - 1
 """JAX seeds are 32-bit: ``jax.random.key(2**32)`` is the same key as ``key(0)``."""
@@ -64,7 +68,9 @@ def check_real(name: str, value: Any, low: float | None = None, high: float | No
     """``value`` as a finite Python float within the bounds, else ``ValueError``.
 
     Python and numpy real numbers (and 0-d real arrays) pass; booleans, complex numbers,
-    strings, NaN and ±inf do not. ``low_open``/``high_open`` exclude the bound itself.
+    strings, NaN and ±inf do not. ``low_open``/``high_open`` exclude the bound itself; a value
+    that must be > 0 must also be at least :data:`FLOAT32_TINY` (a subnormal one is 0 to the
+    float32 computation).
     """
     where = "" if low is None and high is None else " " + _interval(low, high, low_open,
                                                                        high_open)
@@ -79,6 +85,10 @@ def check_real(name: str, value: Any, low: float | None = None, high: float | No
         number = math.inf
     if not math.isfinite(number):
         raise ValueError(f"{name} must be a finite real number{where}; got {value!r}")
+    if low == 0 and low_open and 0 < number < FLOAT32_TINY:  # a positive scale, 0 in float32
+        raise ValueError(f"{name} must be{where} and at least {FLOAT32_TINY:.3g} (the smallest "
+                         f"normal float32; smaller ones underflow to 0 in computation); got "
+                         f"{number!r}")
     too_low = low is not None and (number <= low if low_open else number < low)
     too_high = high is not None and (number >= high if high_open else number > high)
     if too_low or too_high:
@@ -138,14 +148,18 @@ def check_key(key: Any, name: str = "key", shapes: Sequence[tuple[int, ...]] = (
     return typed
 
 
+_ASCII_INT = re.compile(r"[+-]?[0-9]+")
+
+
 def int_list(text: str) -> list[int]:
     """An ``argparse`` type: comma-separated integers (``"1,4,16"`` -> [1, 4, 16]), at least
-    one; ``argparse.ArgumentTypeError`` otherwise, which argparse reports with the flag."""
-    try:
-        values = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers; got {text!r}") \
-            from None
-    if not values:
+    one, each written with ASCII digits (as ``--set`` reads them; spaces around one are
+    allowed); an empty item (``"1,,2"``, a trailing comma) is refused, not skipped.
+    ``argparse.ArgumentTypeError`` otherwise, which argparse reports with the flag."""
+    items = [item.strip() for item in text.split(",")]
+    if not text.strip():
         raise argparse.ArgumentTypeError(f"expected at least one integer; got {text!r}")
-    return values
+    if not all(_ASCII_INT.fullmatch(item) for item in items):
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers (ASCII digits, no "
+                                         f"empty item); got {text!r}")
+    return [int(item) for item in items]

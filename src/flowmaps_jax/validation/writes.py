@@ -4,14 +4,18 @@ weights, a run's config and metrics): nothing is ever written through a symbolic
 * :func:`write_file` writes bytes or text to a path: a symbolic link at the path is refused
   (``ValueError`` naming it), the data goes to ``<path>.tmp`` (created exclusively, never
   following a link; a leftover there is removed first) and is renamed into place, so a crash or
-  a full disk never leaves a half-written file and no file outside the output folder changes.
+  a full disk never leaves a half-written file and no file outside the output folder changes;
+  :func:`write_files` writes several files as one output (all temporaries, then the renames).
 * :func:`make_output_dir` creates an output folder and the parents it lacks, one by one; a
   component that turns out to be a symbolic link (planted while it was being created) is
   refused. An existing folder given by the caller (``--out``) is used as it is.
 * :func:`save_figure` renders a matplotlib figure in memory and writes it with
   :func:`write_file`.
 * :func:`check_no_links` refuses, up front, links at the names a command is about to write, so
-  that a command refuses before it runs for minutes rather than after.
+  that a command refuses before it runs for minutes rather than after;
+  :func:`check_tree_no_links` refuses a link anywhere under a folder a command owns (a run
+  directory: its checkpoints, their steps, its logs), so that nothing is read, written or
+  deleted through one.
 """
 
 from __future__ import annotations
@@ -43,6 +47,23 @@ def check_no_links(name: str, folder: Any, filenames: Iterable[str]) -> None:
         for candidate in (folder / filename, folder / f"{filename}.tmp"):
             if candidate.is_symlink():
                 raise _link_error(name, candidate)
+
+
+def check_tree_no_links(name: str, folder: Any) -> None:
+    """``ValueError`` naming the path (``"<name> '<path>' is a symbolic link"``) if anything
+    under ``folder`` (at any depth, ``folder`` itself excluded) is a symbolic link; links are
+    never followed while looking."""
+    for here, dirs, files in os.walk(folder, followlinks=False):
+        for entry in sorted(dirs) + sorted(files):
+            path = os.path.join(here, entry)
+            if os.path.islink(path):
+                try:
+                    target = os.readlink(path)
+                except OSError:
+                    target = "?"
+                raise ValueError(f"{name} {path!r} is a symbolic link (-> {target}); nothing "
+                                 f"is read, written or deleted through one: replace the link "
+                                 f"by the folder or file itself, or remove it")
 
 
 def make_output_dir(name: str, path: Any, files: Iterable[str] = ()) -> pathlib.Path:
@@ -77,6 +98,56 @@ def make_output_dir(name: str, path: Any, files: Iterable[str] = ()) -> pathlib.
     return path
 
 
+def _write_temporary(path: pathlib.Path, raw: bytes, name: str) -> pathlib.Path:
+    """``raw`` written and synced to ``<path>.tmp`` (created exclusively, never through a link);
+    returns that temporary path. A symbolic link at ``path`` or a directory there is a
+    ``ValueError`` naming ``name`` (nothing is written)."""
+    if path.is_symlink():
+        raise _link_error(name, path)
+    if path.is_dir():
+        raise ValueError(f"{name} {os.fspath(path)!r} is a directory; refusing to write there")
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.unlink(missing_ok=True)  # a leftover (or a planted link): removed, never followed
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
+        with os.fdopen(fd, "wb") as file:
+            file.write(raw)
+            file.flush()
+            os.fsync(file.fileno())
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
+    return tmp
+
+
+def write_files(files: dict[Any, str | bytes], *, name: str = "output file") -> None:
+    """Write several files as one output (a model's ``.npz`` and ``.json``): every one first to
+    its ``<path>.tmp`` (as :func:`write_file`), then all renamed into place, so a refusal (a
+    link or a directory at one of the names) or a failed write of the data (a full disk)
+    leaves none of them new and no temporary file behind (only the renames, which write no
+    data, come after the first file is in place)."""
+    paths = [pathlib.Path(path) for path in files]
+    for path in paths:  # every refusal before anything is written
+        if path.is_symlink():
+            raise _link_error(name, path)
+        if path.is_dir():
+            raise ValueError(f"{name} {os.fspath(path)!r} is a directory; refusing to write "
+                             f"there")
+    written = []
+    try:
+        for path, data in zip(paths, files.values(), strict=True):
+            raw = data.encode() if isinstance(data, str) else bytes(data)
+            written.append((_write_temporary(path, raw, name), path))
+        for tmp, path in written:
+            os.replace(tmp, path)  # replaces the name itself: a link planted meanwhile goes
+    except BaseException:
+        for tmp, _ in written:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+        raise
+
+
 def write_file(path: Any, data: str | bytes, *, name: str = "output file") -> pathlib.Path:
     """Write ``data`` (text as UTF-8, or bytes) to ``path`` through ``<path>.tmp`` and a rename.
 
@@ -85,22 +156,7 @@ def write_file(path: Any, data: str | bytes, *, name: str = "output file") -> pa
     (``O_EXCL | O_NOFOLLOW``), synced, then renamed over ``path``. An ``OSError`` (a full disk)
     removes the temporary file and propagates. Returns ``path`` as a Path."""
     path = pathlib.Path(path)
-    if path.is_symlink():
-        raise _link_error(name, path)
-    tmp = path.with_name(path.name + ".tmp")
-    raw = data.encode() if isinstance(data, str) else bytes(data)
-    try:
-        tmp.unlink(missing_ok=True)  # a leftover (or a planted link): removed, never followed
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW, 0o644)
-        with os.fdopen(fd, "wb") as file:
-            file.write(raw)
-            file.flush()
-            os.fsync(file.fileno())
-        os.replace(tmp, path)  # replaces the name itself: a link planted meanwhile goes
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise
+    write_files({path: data}, name=name)
     return path
 
 

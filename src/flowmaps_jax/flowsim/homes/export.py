@@ -7,7 +7,7 @@ strings)) and, beside it, ``<stem>.schema.json``: the same schema, for tools tha
 arrays without this package (numpy, or any zip + .npy reader). The schema names every field's
 shape (symbols and sizes), dtype, unit and meaning, the vocabulary (class names and text
 descriptors, in id order), the regimes and the time convention. Both files are written aside
-and renamed into place (``validation.write_file``), never through a symbolic link.
+and renamed into place together (``validation.write_files``), never through a symbolic link.
 
 ``load_homes(path)`` returns (homes, config) and raises ``ValueError`` naming the file for
 anything ``save_homes`` could not have written: another format or schema version, missing or
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import io
 import json
-import os
 import pathlib
 
 import jax.numpy as jnp
@@ -28,11 +27,11 @@ from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
 from flowmaps_jax.validation import (
     check_file,
-    check_no_links,
     check_output_file,
+    parse_json,
     prefix_errors,
     read_npz,
-    write_file,
+    write_files,
 )
 
 FORMAT = "flowmaps-homes"
@@ -82,17 +81,21 @@ def save_homes(path, homes: Homes, config: HomesConfig) -> pathlib.Path:
     """Write ``homes`` (checked against ``config`` first) to ``path`` (.npz) and its schema to
     ``schema_path(path)``. Returns the schema's path."""
     path = check_output_file("path", path)
+    side = schema_path(path)
+    check_output_file("path's schema file", side)  # no link nor directory there: nothing half
+    if isinstance(homes, Homes) and np.shape(homes.home_size)[:1] == (0,):
+        raise ValueError("homes holds 0 homes; save_homes writes at least one (load_homes "
+                         "refuses a file of none)")
     validate_homes(homes, config)  # the config too
     schema = homes_schema(config, homes.num_homes)
-    side = schema_path(path)
-    check_no_links("path", os.path.dirname(os.path.abspath(path)), [side.name])
     arrays = {name: np.asarray(value) for name, value in homes.as_dict().items()}
     buffer = io.BytesIO()
     np.savez_compressed(buffer, format_version=np.int64(SCHEMA_VERSION),
                         config_json=np.asarray(json.dumps(config.to_dict())),
                         schema_json=np.asarray(json.dumps(schema)), **arrays)
-    write_file(path, buffer.getvalue(), name="path")
-    return write_file(side, json.dumps(schema, indent=1) + "\n", name="schema file")
+    write_files({path: buffer.getvalue(), side: json.dumps(schema, indent=1) + "\n"},
+                name="path")  # both written aside, then renamed: never one without the other
+    return side
 
 
 def load_homes(path) -> tuple[Homes, HomesConfig]:
@@ -110,8 +113,9 @@ def load_homes(path) -> tuple[Homes, HomesConfig]:
             raise ValueError(f"it has format_version {version!r}; this code reads version "
                              f"{SCHEMA_VERSION}")
         with prefix_errors("it has an invalid config_json or schema_json: ", also=(TypeError,)):
-            config = HomesConfig.from_dict(json.loads(str(contents["config_json"])))
-            schema = json.loads(str(contents["schema_json"]))
+            config = HomesConfig.from_dict(parse_json("config_json",
+                                                       str(contents["config_json"])))
+            schema = parse_json("schema_json", str(contents["schema_json"]))
         if not isinstance(schema, dict) or schema.get("format") != FORMAT or schema.get(
                 "schema_version") != SCHEMA_VERSION:
             raise ValueError(f"schema_json is not a {FORMAT} schema of version {SCHEMA_VERSION}")
