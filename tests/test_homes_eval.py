@@ -58,6 +58,7 @@ class StandIn:
 
     def __init__(self, config, history):
         self.exact = pr.exact_prior(config, history)
+        self.homes, self.step = config, None
 
     def probabilities(self, homes, queries, config):
         return self.exact(homes, queries)
@@ -337,37 +338,67 @@ def test_bad_arguments_are_value_errors_naming_them(kwargs, named):
         ev.run_evaluation(CONFIG, **{"history": HISTORY, "horizons": HORIZONS, **kwargs})
 
 
-def test_the_command_writes_its_files(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(ev, "load_model", lambda source: StandIn(HomesConfig(), 24))
+def _homes_cli(monkeypatch):
+    """The evaluate and search commands with a stand-in homes model (the exact posterior)."""
+    from flowmaps_jax.evaluation import cli as evaluate_cli
+    from flowmaps_jax.search import cli as search_cli
+
+    for cli in (evaluate_cli, search_cli):
+        monkeypatch.setattr(cli, "stored_family", lambda spec, which: "flowmaps-homes")
+    monkeypatch.setattr(ev, "load_model",
+                        lambda source, which="best": StandIn(HomesConfig(), 24))
+    return evaluate_cli.main, search_cli.main
+
+
+def test_evaluate_and_search_run_the_homes_protocol_for_a_homes_model(tmp_path, monkeypatch,
+                                                                       capsys):
+    """One evaluate and one search command for every world: a homes model gets the homes
+    posterior tables from evaluate and the navigation table from search, from the same
+    queries."""
+    evaluate, search = _homes_cli(monkeypatch)
     out = tmp_path / "eval"
-    code = ev.main(["--out", str(out), "--homes", "4", "--queries", "2", "--samples", "10",
-                    "--history", "24", "--horizons", "1,6", "--checkpoint", "stand-in",
-                    "--no-progress"])
-    printed = capsys.readouterr().out
-    assert code == 0, printed
+    common = ["--out", str(out), "--num-envs", "4", "--queries", "2", "--history", "24",
+              "--horizons", "1,6", "--checkpoint", "stand-in", "--no-progress"]
+    assert evaluate([*common, "--samples", "10"]) == 0, capsys.readouterr()
     results = json.loads((out / "results.json").read_text())
     assert results["protocol"]["homes"] == 4 and results["protocol"]["model"] == "stand-in"
-    assert results["navigation"]["FlowMaps, optimal"]["travel_ratio"]["overall"] == \
-        pytest.approx(1.0, abs=1e-4)
+    assert "navigation" not in results and "FlowMaps" in results["posterior"]
     md = (out / "results.md").read_text()
-    assert "| row | SR@1 | SR@5 | SR@10 | mSR | SPL@1 | mSPL | steps | E[travel] ÷ exact |" in md
     assert "| row | KL (nats) | TV | top-1 | rank cost |" in md and "### routine" in md
-    for name in ev.FIGURES:
-        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "## Navigation" not in md
+    assert (out / "rank_cost_by_horizon.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert search(common) == 0
+    printed = capsys.readouterr().out
+    found = json.loads((out / "search.json").read_text())
+    assert "posterior" not in found and found["protocol"] == {**results["protocol"],
+                                                              "samples": 100}
+    assert found["navigation"]["FlowMaps, optimal"]["travel_ratio"]["overall"] == \
+        pytest.approx(1.0, abs=1e-4)
+    md = (out / "search.md").read_text()
+    assert "| row | SR@1 | SR@5 | SR@10 | mSR | SPL@1 | mSPL | steps | E[travel] ÷ exact |" in md
+    assert (out / "success_vs_looks.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "| nearest first |" in printed
 
 
-@pytest.mark.parametrize("args, named", [
-    (["--regime", "weekly"], "--regime"), (["--homes", "0"], "--homes"),
-    (["--horizons", "1,700"], "--horizons")])
-def test_the_command_names_a_bad_argument(args, named, tmp_path, capsys):
-    assert ev.main(["--out", str(tmp_path / "x"), *args, "--no-progress"]) == ev.EXIT_USAGE
+@pytest.mark.parametrize("command, args, named", [
+    (0, ["--regime", "weekly"], "--regime"), (0, ["--num-envs", "0"], "--homes"),
+    (1, ["--horizons", "1,700"], "--horizons"), (0, ["--kl-draws", "8"], "--kl-draws"),
+    (1, ["--p-miss", "0.1"], "--p-miss"), (0, ["--samples", "4,8"], "--samples"),
+    (0, ["--baseline", "pretrained:mlp"], "--baseline")])
+def test_the_homes_commands_name_a_bad_or_foreign_argument(command, args, named, tmp_path,
+                                                            monkeypatch, capsys):
+    main = _homes_cli(monkeypatch)[command]
+    assert main(["--checkpoint", "stand-in", "--out", str(tmp_path / "x"), *args,
+                 "--no-progress"]) == 2
     assert named in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
 
 
 def test_a_missing_checkpoint_names_the_flag(tmp_path, capsys):
-    code = ev.main(["--out", str(tmp_path / "x"), "--checkpoint", str(tmp_path / "nowhere"),
-                    "--no-progress"])
-    assert code == ev.EXIT_USAGE and "--checkpoint" in capsys.readouterr().err
+    from flowmaps_jax.evaluation.cli import main
+
+    code = main(["--out", str(tmp_path / "x"), "--checkpoint", str(tmp_path / "nowhere"),
+                 "--no-progress"])
+    assert code == 2 and "--checkpoint" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+

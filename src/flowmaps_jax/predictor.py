@@ -364,6 +364,15 @@ def load_model(spec: str, which: str = "best", devices: int | None = None) -> Pr
     return predictor.sharded(devices)
 
 
+def stored_family(spec: str, which: str = "best") -> str:
+    """The model family of what a CLI's ``--checkpoint`` names (a run or checkpoint directory,
+    or ``pretrained:NAME``), read from its stored config and verified like a load: the CLIs
+    find the model's world from it (``flowmaps_jax.worlds.world_of_family``) before loading."""
+    if spec.startswith(PRETRAINED_PREFIX):
+        return pretrained.read_weights(spec[len(PRETRAINED_PREFIX):]).spec.family_name
+    return checkpoints.load_weights(spec, which).spec.family_name
+
+
 def _homes_predictor(weights, source: str):
     """The homes model's :class:`flowmaps_jax.homes.predictor.HomesPredictor`."""
     from flowmaps_jax.homes.predictor import HomesPredictor

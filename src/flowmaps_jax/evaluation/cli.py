@@ -9,6 +9,14 @@ route-offset mass one step ahead: the routine diagnostic) and the figures ``kl.p
 Fig. 2), ``by_horizon.png``, ``samples.png`` (paper Fig. 3) and ``slots.png``.
 ``--checkpoint``/``--baseline`` take run or checkpoint directories, or ``pretrained:NAME``.
 
+A FlowSim homes model (``--checkpoint pretrained:flowmaps-homes`` or a homes run) is scored by
+the homes protocol instead (every prior against the exact posterior over receptacles: KL, TV,
+top-1, rank cost, overall, by regime and by horizon; ``results.md``, ``results.json``,
+``rank_cost_by_horizon.png``), with the homes options ``--queries`` (per home), ``--regime`` and
+``--horizons``; ``--num-envs`` counts homes, ``--samples`` is one count. The CLI finds the
+model's world from its stored family (:data:`flowmaps_jax.worlds.WORLDS`), and refuses the
+options that do not apply to it.
+
 ``--world`` (a ``flowsim.WORLDS`` name; default the world of ``--checkpoint``'s config) picks the
 habits the validation scenes are generated with (``flowsim.world_config``), so a model can be
 scored on another world than its own. ``--history`` H: the observations the exact posterior is
@@ -41,7 +49,13 @@ from flowmaps_jax.flowsim.scenes import load_scenes, validation_split
 from flowmaps_jax.flowsim.worlds import WORLDS, world_config, world_of
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR
-from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, PRETRAINED_PREFIX, SOLVERS, load_model
+from flowmaps_jax.predictor import (
+    DEFAULT_NUM_STEPS,
+    PRETRAINED_PREFIX,
+    SOLVERS,
+    load_model,
+    stored_family,
+)
 from flowmaps_jax.validation import (
     check_options,
     check_output_dir,
@@ -50,6 +64,8 @@ from flowmaps_jax.validation import (
     solver_evaluations,
 )
 from flowmaps_jax.validation.fields import Choice, Int, Optional, Seed
+from flowmaps_jax.validation.scalars import int_list
+from flowmaps_jax.worlds import world_of_family
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -147,6 +163,14 @@ def build_parser() -> argparse.ArgumentParser:
                         help="observations the exact posterior is given (default: the most maps "
                              "any evaluated model reads, at least 8 in a world with habits "
                              "other than the routine)")
+    parser.add_argument("--queries", type=int, default=None, metavar="Q",
+                        help="FlowSim homes: queries per home (default 3)")
+    parser.add_argument("--regime", default=None,
+                        help="FlowSim homes: the schedule regime of the evaluation homes "
+                             "(preferences, balanced, frequent, routine or mixed; default mixed)")
+    parser.add_argument("--horizons", type=int_list, default=None,
+                        help="FlowSim homes: query horizons in hours, comma-separated (default "
+                             "1,3,6,12,24,72,168)")
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
@@ -161,10 +185,38 @@ _OPTIONS = {"num_envs": Int(1), "kl_draws": Int(2), "num_steps": Int(2), "chunk_
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI entry point; returns the exit code (0 on success, 2 on a bad argument)."""
+    """CLI entry point; returns the exit code (0 on success, 2 on a bad argument, 74 on a failed
+    write). The protocol is the one of ``--checkpoint``'s world (:data:`_BY_WORLD`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        family = stored_family(args.checkpoint, args.which)
+    except ValueError as err:
+        print(f"error: --checkpoint {args.checkpoint!r}: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    return _BY_WORLD[world_of_family(family).name](parser, args, argv)
+
+
+def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                argv: Sequence[str] | None) -> int:
+    """The homes protocol's posterior part (:func:`flowmaps_jax.homes.evaluate.run_command`)."""
+    from flowmaps_jax.homes import evaluate as homes_evaluate
+
+    return homes_evaluate.run_command(
+        parser, args, "posterior", "python -m flowmaps_jax.evaluate", argv,
+        flowsim_only=("baseline", "scenes", "world", "devices", "kl_draws", "num_steps",
+                      "logp_steps", "likelihood_steps", "likelihood_draws", "method",
+                      "chunk_envs"))
+
+
+def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                  argv: Sequence[str] | None) -> int:
+    """The 2-D FlowSim protocol (:func:`flowmaps_jax.evaluation.run.run_evaluation`)."""
+    try:
+        for name in ("queries", "regime", "horizons"):
+            if getattr(args, name) is not None:
+                raise ValueError(f"--{name} applies to FlowSim homes models; "
+                                 f"{args.checkpoint} is a 2-D FlowSim model")
         check_options(args, _OPTIONS)
         likelihood_steps = args.likelihood_steps or None  # 0: only the paper's grid
         if args.out:
@@ -219,4 +271,8 @@ def main(argv: Sequence[str] | None = None) -> int:
           + "".join(f", {out / f}" for f in results["figures"])
           + f" in {results['seconds']:.1f} s")
     return 0
+
+
+_BY_WORLD = {"flowsim": _main_flowsim, "homes": _main_homes}
+"""The evaluation protocol of each world, by :data:`flowmaps_jax.worlds.WORLDS` name."""
 

@@ -1,6 +1,10 @@
-"""``python -m flowmaps_jax.homes.evaluate``: the homes posterior and navigation tables.
+"""The homes protocol: the posterior and navigation tables of a FlowSim homes model.
 
-    python -m flowmaps_jax.homes.evaluate --out runs/homes-eval [--checkpoint flowmaps-homes]
+    python -m flowmaps_jax.evaluate --checkpoint pretrained:flowmaps-homes --out runs/homes-eval
+    python -m flowmaps_jax.search --checkpoint pretrained:flowmaps-homes --out runs/homes-eval
+
+The one ``evaluate`` and ``search`` commands run it for a homes model (:func:`run_command`):
+``evaluate`` the posterior part, ``search`` the navigation part, each from the same queries.
 
 Evaluation homes are ``generate_homes(jax.random.key(EVAL_SEED), config, --homes)``: a fixed
 set, the same for every run, apart from the training homes (which use other seeds). Each home
@@ -15,9 +19,9 @@ same given the map alone (H = 1); oracle samples (``--samples`` draws from it); 
 the frequency prior; last-seen; uniform. Navigation (:mod:`.navigation`): every prior row
 drives the Bayes-optimal-travel planner and most-probable-first, plus nearest first.
 
-Writes ``results.md``, ``results.json`` and the figures ``success_vs_looks.png`` and
-``rank_cost_by_horizon.png`` into ``--out``. Exit status 0; 2 on a bad argument (one line
-naming it); 74 when the files cannot be written.
+``evaluate`` writes ``results.md``, ``results.json`` and ``rank_cost_by_horizon.png`` into
+``--out``; ``search`` writes ``search.md``, ``search.json`` and ``success_vs_looks.png``. Exit
+status 0; 2 on a bad argument (one line naming it); 74 when the files cannot be written.
 """
 
 from __future__ import annotations
@@ -57,14 +61,15 @@ from flowmaps_jax.validation import (
 )
 from flowmaps_jax.validation.composite import After
 from flowmaps_jax.validation.fields import Each, Int, Seed, check_fields
-from flowmaps_jax.validation.scalars import int_list
 
 EVAL_SEED = 35_000_002
 """Seed of the evaluation homes (``jax.random.key(EVAL_SEED)``); training uses other seeds."""
 DEFAULT_NUM_HOMES, DEFAULT_QUERIES, DEFAULT_SAMPLES = 200, 3, 100
 REGIME_CHOICES = (*REGIMES, "mixed")
-REPORT_FILES = ("results.json", "results.md")
-FIGURES = ("success_vs_looks.png", "rank_cost_by_horizon.png")
+PARTS = ("posterior", "navigation")
+REPORT_STEM = {"posterior": "results", "navigation": "search"}
+"""The report files of each part: ``<stem>.json`` and ``<stem>.md``."""
+FIGURE_OF = {"posterior": "rank_cost_by_horizon.png", "navigation": "success_vs_looks.png"}
 EXACT, NEAREST = "exact posterior", "nearest first"
 NAV_POLICIES = ("optimal", "most-probable")
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
@@ -141,10 +146,13 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
                    num_queries: int = DEFAULT_QUERIES, seed: int = 0,
                    history: int = pr.DEFAULT_HISTORY, num_samples: int = DEFAULT_SAMPLES,
                    horizons: Sequence[int] = DEFAULT_HORIZONS, budget: int = nav.LOOK_BUDGET,
-                   model=None, model_info: str | None = None, progress: bool = False) -> dict:
+                   model=None, model_info: str | None = None, progress: bool = False,
+                   parts: Sequence[str] = PARTS) -> dict:
     """The posterior and navigation results (JSON-able) on the evaluation homes of ``config``;
     ``model``: anything with ``probabilities(homes, queries, config) -> (E, Q, R)`` (and
-    optionally ``sample(key, homes, queries, config, n) -> (E, Q, n, 6)``)."""
+    optionally ``sample(key, homes, queries, config, n) -> (E, Q, n, 6)``). ``parts``: which of
+    :data:`PARTS` to compute; each part's numbers are the same whether or not the other is
+    computed (the queries and every row's key do not depend on it)."""
     from tqdm.auto import tqdm
 
     t = config.num_hours
@@ -159,7 +167,11 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
     key = jax.random.key(seed)
     rows = reference_rows(config, key, history, num_samples, model)
     navigated = [r for r in rows if r.navigate]
-    bar = tqdm(total=2 + len(rows) + len(navigated) * len(NAV_POLICIES) + 1,
+    if "posterior" not in parts:  # navigation alone: only the priors it drives
+        rows = navigated
+    plans = [(f"{r.name}, {policy}", r.name, policy) for r in navigated for policy in
+             NAV_POLICIES] + [(NEAREST, None, "nearest")] if "navigation" in parts else []
+    bar = tqdm(total=2 + len(rows) + len(plans),
                disable=not progress, desc="homes evaluation", unit="step")
     homes = evaluation_homes(config, num_homes)
     queries = draw_queries(jax.random.fold_in(key, 0), homes, config, num_queries,
@@ -181,11 +193,10 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
                         if not (row.samples and m == "kl")}}
         bar.update(1)
     exact = beliefs[EXACT]
-    _, optimal_travel = nav.optimal_orders(exact, homes, queries, start_distance)
+    if plans:
+        _, optimal_travel = nav.optimal_orders(exact, homes, queries, start_distance)
     bar.update(1)
     navigation = {}
-    plans = [(f"{r.name}, {policy}", r.name, policy) for r in navigated for policy in
-             NAV_POLICIES] + [(NEAREST, None, "nearest")]
     for name, prior_name, policy in plans:
         bar.set_postfix_str(name)
         belief = exact if prior_name is None else beliefs[prior_name]
@@ -205,7 +216,7 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
         bar.update(1)
     bar.close()
     counts = {r: int(np.sum(groups["regime"] == r)) for r in REGIMES}
-    return {
+    results = {
         "protocol": {
             "eval_seed": EVAL_SEED, "homes": num_homes, "queries_per_home": num_queries,
             "seed": seed, "regime": config.regime, "history": history, "samples": num_samples,
@@ -213,84 +224,85 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
             "queries_by_regime": counts, "step_length_m": nav.STEP_LENGTH,
             "last_seen_eps": pr.LAST_SEEN_EPS, "start": "centre of room 0",
             "model": model_info},
-        "posterior": posterior, "navigation": navigation,
-        "bayes_optimal_travel": summarise(np.asarray(optimal_travel, np.float64), groups),
-        "num_allowed": stats(np.asarray(allowed).sum(-1)),
-        "seconds": round(time.perf_counter() - begin, 1)}
+        "num_allowed": stats(np.asarray(allowed).sum(-1))}
+    if "posterior" in parts:
+        results["posterior"] = posterior
+    if plans:
+        results["navigation"] = navigation
+        results["bayes_optimal_travel"] = summarise(np.asarray(optimal_travel, np.float64),
+                                                    groups)
+    results["seconds"] = round(time.perf_counter() - begin, 1)
+    return results
 
 
 # --------------------------------------------------------------------------- command line
 
 
-def build_parser() -> argparse.ArgumentParser:
-    cli = argparse.ArgumentParser(
-        prog="python -m flowmaps_jax.homes.evaluate",
-        description="FlowSim homes: every prior against the exact posterior (KL, TV, top-1, "
-                    "rank cost) and in object navigation (SR@k, mSR, SPL, steps, E[travel] "
-                    "÷ exact), overall, by regime and by horizon.")
-    add = cli.add_argument
-    add("--out", required=True, help="output directory")
-    add("--homes", type=int, default=DEFAULT_NUM_HOMES, help="evaluation homes")
-    add("--queries", type=int, default=DEFAULT_QUERIES, help="queries per home")
-    add("--regime", default="mixed", help=f"schedule regime: {', '.join(REGIME_CHOICES)}")
-    add("--seed", type=int, default=0, help="seed of the queries and the samples")
-    add("--checkpoint", default=None, metavar="SOURCE",
-        help="a FlowMaps homes model (a run's checkpoints directory or a packaged name)")
-    add("--history", type=int, default=pr.DEFAULT_HISTORY,
-        help="hours of the object's past the exact posterior and the frequency prior read")
-    add("--samples", type=int, default=DEFAULT_SAMPLES,
-        help="samples per query of the sample rows (0: none)")
-    add("--horizons", type=int_list, default=list(DEFAULT_HORIZONS),
-        help="query horizons τ_q − τ in hours, comma-separated")
-    add("--budget", type=int, default=nav.LOOK_BUDGET, help="looks per navigation episode")
-    add("--no-figures", action="store_true", help="skip the PNG figures")
-    add("--no-progress", action="store_true", help="no progress bar")
-    return cli
-
-
-def load_model(source: str):
-    """``homes.predictor.HomesPredictor.load(source)``; a missing or unreadable source is a
-    ``ValueError`` naming ``--checkpoint``."""
+def load_model(source: str, which: str = "best"):
+    """``homes.predictor.HomesPredictor.load(source, which)``; a missing or unreadable source
+    is a ``ValueError`` naming ``--checkpoint``."""
     from flowmaps_jax.homes.predictor import HomesPredictor  # the model only when asked for
 
     with prefix_errors(f"--checkpoint {source!r}: "):
-        return HomesPredictor.load(source)
+        return HomesPredictor.load(source, which=which)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """CLI entry point (see the module's docstring)."""
+def _one_count(samples) -> int:
+    """``--samples`` as one count (evaluate parses a list of counts)."""
+    counts = tuple(samples) if isinstance(samples, (list, tuple)) else (samples,)
+    if len(counts) != 1:
+        raise ValueError(f"--samples takes one count for a FlowSim homes model; got "
+                         f"{','.join(map(str, counts))}")
+    return counts[0]
+
+
+def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part: str,
+                prog: str, argv: Sequence[str] | None, flowsim_only: Sequence[str] = ()) -> int:
+    """The ``part`` (``"posterior"`` for ``evaluate``, ``"navigation"`` for ``search``) of the
+    homes protocol for ``--checkpoint``, from the parsed ``args`` of ``prog``. Options in
+    ``flowsim_only`` that differ from their defaults are refused (they apply to 2-D FlowSim
+    models); so is an ``--out`` left to its default. Returns the exit code (0, 2 on a bad
+    argument, 74 on a failed write), one line on stderr."""
     from flowmaps_jax.homes import report
 
-    args = build_parser().parse_args(argv)
+    stem, figure = REPORT_STEM[part], FIGURE_OF[part]
     try:
-        regime = check_choice("--regime", args.regime, REGIME_CHOICES)
+        for name in flowsim_only:
+            if getattr(args, name) != parser.get_default(name):
+                raise ValueError(f"--{name.replace('_', '-')} applies to 2-D FlowSim models; "
+                                 f"{args.checkpoint} is a FlowSim homes model")
+        if args.out is None:
+            raise ValueError("--out is required for a FlowSim homes model")
+        regime = check_choice("--regime", "mixed" if args.regime is None else args.regime,
+                              REGIME_CHOICES)
         out = pathlib.Path(check_output_dir(  # and no link at the names it will write
-            "--out", args.out, files=[*REPORT_FILES, *(() if args.no_figures else FIGURES)]))
-        model = info = None
-        config = HomesConfig(regime=regime)
-        if args.checkpoint is not None:
-            model = load_model(args.checkpoint)
-            base = getattr(model, "config", None)
-            if isinstance(base, HomesConfig):
-                config = dataclasses.replace(base, regime=regime)
-            step = getattr(model, "step", None)
-            info = args.checkpoint + ("" if step is None else f" (step {step})")
-        print(f"Homes evaluation: {args.homes} homes x {args.queries} queries, regime {regime}"
-              + (f", FlowMaps {info}" if info else "") + f" -> {out}", flush=True)
-        results = run_evaluation(config, num_homes=args.homes, num_queries=args.queries,
-                                 seed=args.seed, history=args.history,
-                                 num_samples=args.samples, horizons=args.horizons,
-                                 budget=args.budget, model=model, model_info=info,
-                                 progress=not args.no_progress)
+            "--out", args.out, files=[f"{stem}.json", f"{stem}.md",
+                                      *(() if args.no_figures else (figure,))]))
+        samples = args.samples
+        num_samples = DEFAULT_SAMPLES if samples == parser.get_default("samples") \
+            else _one_count(samples)
+        budget = getattr(args, "budget", nav.LOOK_BUDGET)
+        model = load_model(args.checkpoint, args.which)
+        config = dataclasses.replace(model.homes, regime=regime)
+        info = args.checkpoint + ("" if model.step is None else f" (step {model.step})")
+        queries = DEFAULT_QUERIES if args.queries is None else args.queries
+        print(f"Homes {part}: {args.num_envs} homes x {queries} queries, regime {regime}, "
+              f"FlowMaps {info} -> {out}", flush=True)
+        results = run_evaluation(
+            config, num_homes=args.num_envs, num_queries=queries, seed=args.seed,
+            history=pr.DEFAULT_HISTORY if args.history is None else args.history,
+            num_samples=num_samples,
+            horizons=DEFAULT_HORIZONS if args.horizons is None else args.horizons,
+            budget=budget, model=model, model_info=info, progress=not args.no_progress,
+            parts=(part,))
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
-    results["command"] = "python -m flowmaps_jax.homes.evaluate " + shlex.join(
-        sys.argv[1:] if argv is None else list(argv))
+    results["command"] = f"{prog} " + shlex.join(sys.argv[1:] if argv is None else list(argv))
     try:
         make_output_dir("--out", out)
         results["figures"] = [] if args.no_figures else report.write_figures(results, out)
-        paths = report.write_report(results, out)
+        paths = report.write_report(results, out, stem)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
@@ -298,12 +310,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: could not write the results into {out}: {err.strerror or err}",
               file=sys.stderr)
         return EXIT_WRITE_FAILED
-    print(report.navigation_table(results))
+    print(report.navigation_table(results) if part == "navigation"
+          else report.posterior_table(results))
     print(f"wrote {', '.join(str(p) for p in paths)}"
           + "".join(f", {out / f}" for f in results["figures"])
           + f" ({results['seconds']:.0f} s)")
     return 0
 
 
-if __name__ == "__main__":
-    sys.exit(main())

@@ -70,28 +70,33 @@ def navigation_table(results: dict, part: str = "overall", key: str | None = Non
 
 
 def markdown(results: dict) -> str:
-    """The whole ``results.md``."""
+    """The whole report of the parts ``results`` holds (``posterior``, ``navigation``)."""
     p = results["protocol"]
+    parts = [part for part in ("posterior", "navigation") if part in results]
     regimes = [r for r in REGIMES if p["queries_by_regime"].get(r)]
     counts = ", ".join(f"{r} {p['queries_by_regime'][r]}" for r in regimes)
     out = [
-        "# FlowSim homes: posterior and navigation", "",
-        f"`{results.get('command', 'python -m flowmaps_jax.homes.evaluate')}`", "",
+        f"# FlowSim homes: {' and '.join(parts)}", "",
+        f"`{results.get('command', 'python -m flowmaps_jax.evaluate')}`", "",
         f"{p['homes']} evaluation homes (seed {p['eval_seed']}) × {p['queries_per_home']} "
         f"queries, regime {p['regime']} (queries: {counts}); horizons "
         f"{', '.join(map(str, p['horizons']))} h; the exact posterior reads the last "
         f"{p['history']} hours; {p['samples']} samples per sample row; seed {p['seed']}"
         + (f"; FlowMaps: {p['model']}" if p.get("model") else "") + ". Mean ± standard "
-        f"error over queries. {results['seconds']:.0f} s.", "",
-        "## Posterior", "",
-        "KL(q ‖ p) in nats, TV, top-1 and rank cost against the exact posterior q "
-        "(docs/protocol.md's definitions on the object's allowed receptacles; sample rows "
-        "have no KL).", "", "### All regimes", "", posterior_table(results), ""]
-    for r in regimes:
-        out += [f"### {r}", "", posterior_table(results, "by_regime", r), ""]
-    out += ["## By horizon", "", "### Rank cost", "", horizon_table(results, "rank_cost"), "",
-            "### KL (nats)", "", horizon_table(results, "kl"), "",
-            "## Navigation", "",
+        f"error over queries. {results['seconds']:.0f} s.", ""]
+    if "posterior" in results:
+        out += ["## Posterior", "",
+                "KL(q ‖ p) in nats, TV, top-1 and rank cost against the exact posterior q "
+                "(docs/protocol.md's definitions on the object's allowed receptacles; sample "
+                "rows have no KL).", "", "### All regimes", "", posterior_table(results), ""]
+        for r in regimes:
+            out += [f"### {r}", "", posterior_table(results, "by_regime", r), ""]
+        out += ["## By horizon", "", "### Rank cost", "",
+                horizon_table(results, "rank_cost"), "", "### KL (nats)", "",
+                horizon_table(results, "kl"), ""]
+    if "navigation" not in results:
+        return "\n".join(out)
+    out += ["## Navigation", "",
             f"Start: the centre of room 0; geodesic travel through doors; a perfect detector; "
             f"SR@k: found within k looks; mSR: mean SR@k over k = 1 … {p['budget']}; SPL@1 and "
             f"mSPL (within {p['budget']} looks) in %; steps: metres walked / "
@@ -105,19 +110,31 @@ def markdown(results: dict) -> str:
     return "\n".join(out)
 
 
-def write_report(results: dict, out: pathlib.Path) -> list[pathlib.Path]:
-    """``results.json`` and ``results.md`` into ``out``."""
+def write_report(results: dict, out: pathlib.Path, stem: str = "results"
+                 ) -> list[pathlib.Path]:
+    """``<stem>.json`` and ``<stem>.md`` into ``out``."""
     out = pathlib.Path(out)
-    return [write_file(out / "results.json", json.dumps(results, indent=1, ensure_ascii=False),
+    return [write_file(out / f"{stem}.json", json.dumps(results, indent=1, ensure_ascii=False),
                        name="--out file"),
-            write_file(out / "results.md", markdown(results), name="--out file")]
+            write_file(out / f"{stem}.md", markdown(results), name="--out file")]
 
 
 def write_figures(results: dict, out: pathlib.Path) -> list[str]:
-    """``success_vs_looks.png`` (SR@k per navigation row) and ``rank_cost_by_horizon.png``."""
+    """``success_vs_looks.png`` (SR@k per navigation row) and ``rank_cost_by_horizon.png``
+    (rank cost per posterior row), of the parts ``results`` holds; returns their names."""
     from matplotlib.figure import Figure
 
-    out = pathlib.Path(out)
+    out, written = pathlib.Path(out), []
+    if "navigation" in results:
+        _success_figure(results, out, Figure)
+        written.append("success_vs_looks.png")
+    if "posterior" in results:
+        _rank_cost_figure(results, out, Figure)
+        written.append("rank_cost_by_horizon.png")
+    return written
+
+
+def _success_figure(results: dict, out: pathlib.Path, Figure) -> None:
     fig = Figure(figsize=(7, 4.5))
     ax = fig.subplots()
     for name, row in results["navigation"].items():
@@ -127,6 +144,9 @@ def write_figures(results: dict, out: pathlib.Path) -> list[str]:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6)
     save_figure(fig, out / "success_vs_looks.png", name="--out file", dpi=100)
+
+
+def _rank_cost_figure(results: dict, out: pathlib.Path, Figure) -> None:
     fig = Figure(figsize=(7, 4.5))
     ax = fig.subplots()
     horizons = [str(h) for h in results["protocol"]["horizons"]]
@@ -139,4 +159,3 @@ def write_figures(results: dict, out: pathlib.Path) -> list[str]:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6)
     save_figure(fig, out / "rank_cost_by_horizon.png", name="--out file", dpi=100)
-    return ["success_vs_looks.png", "rank_cost_by_horizon.png"]

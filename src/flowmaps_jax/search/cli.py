@@ -21,6 +21,15 @@ paper's protocol, unchanged.
 
     python -m flowmaps_jax.search --checkpoint pretrained:flowmaps-preferences \\
         --baseline runs/habits-pref-h1-endless --world preferences --out /tmp/search-prefs
+
+A FlowSim homes model (``--checkpoint pretrained:flowmaps-homes`` or a homes run) drives the
+homes navigation instead (start at the centre of room 0, geodesic travel through doors, a
+perfect detector; every prior by the optimal and most-probable-first policies, plus nearest
+first; SR@k, mSR, SPL@1, mSPL, steps, E[travel] ÷ the Bayes-optimal searcher's; ``search.md``,
+``search.json``, ``success_vs_looks.png``), with the homes options ``--queries`` (per home) and
+``--regime``; ``--num-envs`` counts homes and ``--horizons`` are the query horizons in hours.
+The CLI finds the model's world from its stored family and refuses the options that do not
+apply to it.
 """
 
 from __future__ import annotations
@@ -41,7 +50,7 @@ from flowmaps_jax.flowsim import (
 )
 from flowmaps_jax.flowsim.habits import default_history
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
-from flowmaps_jax.predictor import PRETRAINED_PREFIX, load_model
+from flowmaps_jax.predictor import PRETRAINED_PREFIX, load_model, stored_family
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import figures as fg
 from flowmaps_jax.search import protocol as pr
@@ -57,6 +66,7 @@ from flowmaps_jax.validation import (
 )
 from flowmaps_jax.validation.fields import Choice, Int, Optional, Real, Seed
 from flowmaps_jax.validation.scalars import int_list
+from flowmaps_jax.worlds import world_of_family
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -103,6 +113,11 @@ def build_parser() -> argparse.ArgumentParser:
     add("--chunk-rows", type=int, default=50, help="scene rows per model call")
     add("--devices", type=int, default=None, metavar="N",
         help="split the model calls over N devices (default: every device JAX sees)")
+    add("--queries", type=int, default=None, metavar="Q",
+        help="FlowSim homes: queries (episodes) per home (default 3)")
+    add("--regime", default=None,
+        help="FlowSim homes: the schedule regime of the homes (preferences, balanced, frequent, "
+             "routine or mixed; default mixed)")
     add("--no-figures", action="store_true", help="skip the PNG figures")
     add("--no-progress", action="store_true", help="no progress bars")
     return cli
@@ -163,9 +178,37 @@ _OPTIONS = {**{dest: Int() for dest in ("num_envs", "times_per_env", "samples", 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; 0 on success, 2 on a bad argument, 74 on a failed write (a full disk);
-    one line on stderr. Every argument, ``--out`` and the run's size are checked first."""
-    args = build_parser().parse_args(argv)
+    one line on stderr. Every argument, ``--out`` and the run's size are checked first. The
+    protocol is the one of ``--checkpoint``'s world (:data:`_BY_WORLD`)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
     try:
+        family = stored_family(args.checkpoint, args.which)
+    except ValueError as err:
+        print(f"error: --checkpoint {args.checkpoint!r}: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    return _BY_WORLD[world_of_family(family).name](parser, args, argv)
+
+
+def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                argv: Sequence[str] | None) -> int:
+    """The homes navigation (:func:`flowmaps_jax.homes.evaluate.run_command`)."""
+    from flowmaps_jax.homes import evaluate as homes_evaluate
+
+    return homes_evaluate.run_command(
+        parser, args, "navigation", "python -m flowmaps_jax.search", argv,
+        flowsim_only=("baseline", "times_per_env", "world", "table_method", "policies",
+                      "p_miss", "start", "chunk_rows", "devices"))
+
+
+def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                  argv: Sequence[str] | None) -> int:
+    """The 2-D FlowSim search (:func:`flowmaps_jax.search.protocol.run_search`)."""
+    try:
+        for name in ("queries", "regime"):
+            if getattr(args, name) is not None:
+                raise ValueError(f"--{name} applies to FlowSim homes models; "
+                                 f"{args.checkpoint} is a 2-D FlowSim model")
         check_options(args, _OPTIONS)
         if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
@@ -215,3 +258,7 @@ def main(argv: Sequence[str] | None = None) -> int:
           + "".join(f", {out / f}" for f in results["figures"])
           + f" ({results['seconds']:.0f} s of search)")
     return 0
+
+
+_BY_WORLD = {"flowsim": _main_flowsim, "homes": _main_homes}
+"""The search protocol of each world, by :data:`flowmaps_jax.worlds.WORLDS` name."""

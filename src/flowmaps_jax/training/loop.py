@@ -205,7 +205,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
                            best_val_loss=book.best_loss, best_step=book.best_step)
         if probe is not None and primary:
             runlog.write_routine_curve(run_dir, log)
-        runlog.print_summary(result, cfg.steps, latest, log, data.evaluate_command)
+        runlog.print_summary(result, cfg.steps, latest, log)
         return result
 
 

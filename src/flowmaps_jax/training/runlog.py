@@ -195,10 +195,9 @@ class RunResult:
 
 
 def print_summary(result: RunResult, total_steps: int, latest: int | None,
-                  log: Callable[[str], None],
-                  evaluate: str = "python -m flowmaps_jax.evaluate") -> None:
+                  log: Callable[[str], None]) -> None:
     """How the run ended, where its checkpoints are (``latest``: the last saved step) and the
-    commands that evaluate (``evaluate``: the run's world's command) or resume it."""
+    commands that evaluate, export or resume it (the same for every world)."""
     status, step, ckpt_dir = result.status, result.step, result.checkpoint_dir
     best, best_step = result.best_val_loss, result.best_step
     headline = {"done": f"Finished {step} steps.",
@@ -212,7 +211,7 @@ def print_summary(result: RunResult, total_steps: int, latest: int | None,
     has_best = best is not None and best_step is not None
     best_text = f"; best validation loss {best:.5f} at step {best_step}" if has_best else ""
     log(f"Checkpoint: {ckpt_dir.absolute()} (latest step {latest}{best_text})")
-    log(f"Evaluate it:  {evaluate} --checkpoint {ckpt_dir}")
+    log(f"Evaluate it:  python -m flowmaps_jax.evaluate --checkpoint {ckpt_dir}")
     if has_best and best_step != latest:
         log(f"  (evaluate and search load the best step, {best_step}, by default; "
             f"--which latest loads step {latest}, the last)")

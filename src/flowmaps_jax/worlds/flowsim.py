@@ -266,5 +266,5 @@ WORLD = World(
     chunk_steps=endless_chunk_steps, is_endless=lambda cfg: cfg.data == "endless",
     batch_fn=default_batch_fn, val_batches=make_val_batches, objective=objective,
     check_batch=check_batch, resources=resource_estimate, host_part=host_train_part,
-    families=tuple(MODEL_FAMILIES), evaluate_command="python -m flowmaps_jax.evaluate")
+    families=tuple(MODEL_FAMILIES))
 """The 2-D FlowSim world."""

@@ -157,6 +157,5 @@ WORLD = World(
     chunk_steps=lambda cfg: cfg.chunk_steps, is_endless=lambda cfg: True,
     batch_fn=lambda cfg: lambda key, homes: draw_batch(key, homes, cfg),
     val_batches=validation_batches, objective=objective, check_batch=check_batch,
-    resources=resource_estimate, host_part=host_part, families=(FAMILY_NAME,),
-    evaluate_command="python -m flowmaps_jax.homes.evaluate")
+    resources=resource_estimate, host_part=host_part, families=(FAMILY_NAME,))
 """The FlowSim homes world."""

@@ -24,7 +24,6 @@ class World:
     resources(cfg, devices) -> ``[(what, bytes, FLOPs), ...]``: what a run needs, part by part.
     host_part(cfg) -> this host's share of the training data on a multi-host job (None on one).
     families: the model families that train on this world.
-    evaluate_command: the command that scores a run of this world.
     """
 
     name: str
@@ -39,4 +38,3 @@ class World:
     resources: Callable[[Any, int], list]
     host_part: Callable[[Any], slice | None]
     families: tuple[str, ...]
-    evaluate_command: str
