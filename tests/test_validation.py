@@ -326,7 +326,7 @@ TAMPERED = {
     "zero size": ("object_size", lambda a: _set(a, (0, 0), 0.0), "object_size must be positive"),
     "redraws": ("layout_redraws", lambda a: _set(a, 0, -1), "layout_redraws must lie"),
     "shape": ("object_kind", lambda a: a[:, :2],
-              r"object_kind must have shape \(E, M\) with M = 3"),
+              r"object_kind must have shape \(\d+, 3\); got \(\d+, 2\)"),
     "version": ("format_version", lambda a: np.asarray("1"), "format_version must be an int"),
 }
 

@@ -17,8 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.validation import check_choice, check_int
 from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Choice, Int, check_args
+from flowmaps_jax.validation.fields import Choice, Int
 
 T_SAMPLERS = ("uniform", "beta", "logit_normal")
 SOLVERS = ("midpoint", "euler", "accurate")
@@ -53,13 +54,23 @@ def sample_t(key: jax.Array, shape: tuple[int, ...], kind: str = "beta") -> jnp.
     raise ValueError(f"t_sampler (kind) must be one of {T_SAMPLERS}; got {kind!r}")
 
 
+def check_solver_args(num_steps: int, method: str) -> tuple[int, str]:
+    """A solver's arguments, as ``(num_steps, method)``: ``method`` one of :data:`SOLVERS`, then
+    ``num_steps`` grid points, an int >= 2 (>= 3 for ``"accurate"``). The one check of every
+    entry point that takes a solver."""
+    method = check_choice("method", method, SOLVERS)
+    num_steps = check_int("num_steps", num_steps, 3 if method == "accurate" else 2)
+    return num_steps, method
+
+
+# The same checks as ``check_args`` rules, for the entry points not converted to
+# :func:`check_solver_args` yet (evaluation.protocol, predictor); to go with ``check_args``.
 GRID_POINTS = After(lambda got: Int(3 if got["method"] == "accurate" else 2))
 """The rule of a solver's grid points, checked after its ``method``: an int >= 2 (>= 3 for
 ``"accurate"``)."""
 SOLVER_RULES = {"method": Choice(SOLVERS), "num_steps": GRID_POINTS}
-"""The solver arguments as a ``check_args`` table (the public solvers and the entry points
-that take a solver): ``method`` one of :data:`SOLVERS`, then ``num_steps`` grid points
-(:data:`GRID_POINTS`)."""
+"""The solver arguments as a ``check_args`` table: ``method`` one of :data:`SOLVERS`, then
+``num_steps`` grid points (:data:`GRID_POINTS`); :func:`check_solver_args` in plain code."""
 
 
 def time_grid(num_steps: int, method: str = "midpoint") -> np.ndarray:
@@ -80,11 +91,11 @@ def time_grid(num_steps: int, method: str = "midpoint") -> np.ndarray:
     return 1.0 - (1.0 - np.linspace(0.0, 1.0, num_steps)) ** STIFF_GRID_POWER
 
 
-@check_args(**SOLVER_RULES)
 def _odeint(fn, state, t_start: float, t_end: float, num_steps: int, method: str):
     """Integrate d state/dt = fn(state, t) (pytrees) over :func:`time_grid` mapped onto
     [t_start, t_end] (visited backwards when t_start > t_end). ``"accurate"`` steps with RK4.
-    The one check of the public solvers' ``num_steps`` and ``method`` (:data:`SOLVER_RULES`)."""
+    The public solvers' ``num_steps`` and ``method`` are checked here."""
+    num_steps, method = check_solver_args(num_steps, method)
     lo, hi = min(t_start, t_end), max(t_start, t_end)
     grid = lo + (hi - lo) * time_grid(num_steps, method)
     if t_start > t_end:  # the same points, visited from t_start down to t_end

@@ -26,9 +26,15 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import Fields
-from flowmaps_jax.validation.fields import Int, IntArray, Mask, Optional, RealArray
+from flowmaps_jax.validation import (
+    check_array,
+    check_instance,
+    check_int,
+    check_int_array,
+    check_mask,
+    check_real_array,
+    is_concrete,
+)
 
 FURNITURE = 0
 OBJECT = 1
@@ -86,45 +92,65 @@ class TrainBatch:
     target: jnp.ndarray
 
 
-TOKEN_RULES = {
-    "boxes": RealArray(("*B", "S", 4), low=0.0, high=1.0, what="normalised y, x, h, w"),
-    "descriptor": IntArray(0, "D-1", ("*B", "S")),
-    "kind": IntArray(FURNITURE, OBJECT, ("*B", "S")),
-    "mask": Mask(("*B", "S")),
-    "tau": IntArray(0, "T-2", ("*B",)),
-    "age": Optional(IntArray(0, None, ("*B", "S"))),
-}
-"""A SceneTokens' fields: D descriptors, T timesteps, S token slots (bounds of boxes,
-descriptor and kind on real tokens only; padding is masked out anyway)."""
-
-QUERY_RULES = {"descriptor": IntArray(0, "D-1", ("*B", "Q")),
-               "tau_q": IntArray(None, "T-1", ("*B", "Q"))}
-"""A Queries' fields: B the scenes' leading dims (tau's), D descriptors, T = tau_max."""
+def _array(name: str, value):
+    """``value`` itself, an array (numpy or jax, not a list) unless it is None (then the check
+    of its kind names it)."""
+    return value if value is None else check_array(name, value)
 
 
-@check_args(num_descriptors=Int(size="D"), max_tokens=Optional(Int(size="S")),
-            num_timesteps=Optional(Int(size="T")),
-            tokens=Fields(SceneTokens, TOKEN_RULES, where="mask",
-                          padded=("boxes", "descriptor", "kind")))
 def validate_tokens(tokens: SceneTokens, num_descriptors: int, max_tokens: int | None = None,
                     num_timesteps: int | None = None) -> None:
-    """Raise ``ValueError`` naming the field if ``tokens`` is malformed (:data:`TOKEN_RULES`):
-    arrays (not lists) of agreeing shapes, boxes in [0, 1], known descriptors and kinds 0/1 on
-    real tokens, ``max_tokens`` token slots and tau in 0..num_timesteps − 2 when given, and a
-    real token in every scene. Concrete arrays only: call it at public API boundaries."""
+    """Raise ``ValueError`` naming the field if ``tokens`` is malformed: arrays (not lists) of
+    shapes (*B, S, 4) boxes and (*B, S) descriptor, kind, mask (and age) for the boxes' *B and
+    S (``max_tokens`` when given), (*B,) tau; boxes in [0, 1] (finite everywhere), descriptors
+    in 0..num_descriptors − 1 and kinds 0/1 on real tokens (padding is masked out anyway), tau
+    in 0..num_timesteps − 2 when given, and a real token in every scene. Concrete arrays only:
+    call it at public API boundaries."""
+    num_descriptors = check_int("num_descriptors", num_descriptors)
+    if max_tokens is not None:
+        max_tokens = check_int("max_tokens", max_tokens)
+    if num_timesteps is not None:
+        num_timesteps = check_int("num_timesteps", num_timesteps)
+    check_instance("tokens", tokens, SceneTokens)
+    boxes = check_real_array("tokens.boxes", _array("tokens.boxes", tokens.boxes),
+                             (..., max_tokens, 4))
+    *lead, s = boxes.shape[:-1]
+    per_token = (*lead, s)
+    descriptor = check_int_array("tokens.descriptor",
+                                 _array("tokens.descriptor", tokens.descriptor), shape=per_token)
+    kind = check_int_array("tokens.kind", _array("tokens.kind", tokens.kind), shape=per_token)
+    mask = check_mask("tokens.mask", _array("tokens.mask", tokens.mask), per_token)
+    check_int_array("tokens.tau", _array("tokens.tau", tokens.tau), 0,
+                    None if num_timesteps is None else num_timesteps - 2, shape=tuple(lead))
+    if tokens.age is not None:
+        check_int_array("tokens.age", _array("tokens.age", tokens.age), 0, shape=per_token)
+    if is_concrete(boxes, descriptor, kind, mask):  # the bounds hold on real tokens only
+        real = np.asarray(mask, bool)
+        check_real_array("tokens.boxes", np.asarray(boxes)[real], low=0.0, high=1.0,
+                         what="normalised y, x, h, w")
+        check_int_array("tokens.descriptor", np.asarray(descriptor)[real], 0,
+                        num_descriptors - 1)
+        check_int_array("tokens.kind", np.asarray(kind)[real], FURNITURE, OBJECT)
     if not np.all(np.asarray(tokens.mask, bool).any(axis=-1)):
         raise ValueError("tokens.mask: every scene needs at least one real token")
 
 
-@check_args(num_descriptors=Int(size="D"), tau_max=Int(size="T"), tau=IntArray(shape=("*B",)),
-            queries=Fields(Queries, QUERY_RULES))
 def validate_queries(queries: Queries, tau, num_descriptors: int, tau_max: int,
                      object_descriptors: Collection[int] | None = None) -> None:
-    """Raise ``ValueError`` if ``queries`` is malformed (:data:`QUERY_RULES`): not integer
-    arrays of shape (*B, Q) for ``tau`` (*B,) the scenes' state times, a descriptor unknown
-    or, when ``object_descriptors`` is given, not one of them (a query names an object
-    category, not a furniture kind, e.g. ``FlowSimConfig.object_descriptors``), or ``tau_q``
-    outside (tau, tau_max)."""
+    """Raise ``ValueError`` if ``queries`` is malformed: not integer arrays of shape (*B, Q) for
+    ``tau`` (*B,) the scenes' state times, a descriptor outside 0..num_descriptors − 1 or, when
+    ``object_descriptors`` is given, not one of them (a query names an object category, not a
+    furniture kind, e.g. ``FlowSimConfig.object_descriptors``), or ``tau_q`` outside
+    (tau, tau_max)."""
+    num_descriptors = check_int("num_descriptors", num_descriptors)
+    tau_max = check_int("tau_max", tau_max)
+    tau = check_int_array("tau", tau)
+    check_instance("queries", queries, Queries)
+    descriptor = check_int_array("queries.descriptor",
+                                 _array("queries.descriptor", queries.descriptor), 0,
+                                 num_descriptors - 1, shape=(*np.shape(tau), None))
+    check_int_array("queries.tau_q", _array("queries.tau_q", queries.tau_q), None, tau_max - 1,
+                    shape=np.shape(descriptor))
     if object_descriptors is not None:
         desc = np.asarray(queries.descriptor)
         wrong = ~np.isin(desc, np.asarray(list(object_descriptors), np.int64))

@@ -15,11 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from flowmaps_jax.validation import INT32_MAX, bind_size
-from flowmaps_jax.validation.composite import After, Mixture, Table
+from flowmaps_jax.validation import INT32_MAX, check_real
+from flowmaps_jax.validation.composite import Mixture, Table
 from flowmaps_jax.validation.fields import (
     Choice,
-    Instance,
     Int,
     Probabilities,
     Real,
@@ -152,6 +151,8 @@ class FlowSimConfig:
 
     def __post_init__(self) -> None:
         check_fields(self, _RULES)
+        object.__setattr__(self, "table_min_frac", check_real(
+            "table_min_frac", self.table_min_frac, 0.0, self.table_max_frac, low_open=True))
         if self.has_habits and self.dynamics != "markov":
             raise ValueError(f"habits other than the routine need dynamics='markov'; got "
                              f"dynamics={self.dynamics!r} with habits={self.habits!r}")
@@ -284,8 +285,7 @@ _RULES = {
     **{name: Int(low, INT32_MAX) for name, low in (
         ("num_furniture", 1), ("min_per_kind", 1), ("min_object_px", 1), ("num_timesteps", 2),
         ("max_tokens", 1), ("layout_budget", 1), ("layout_candidates", 1))},
-    "table_max_frac": _FRACTION,
-    "table_min_frac": After(lambda got: Real(0.0, got["table_max_frac"], low_open=True)),
+    "table_max_frac": _FRACTION,  # table_min_frac, in (0, table_max_frac], in __post_init__
     "object_frac": _FRACTION,
     "transition_probs": Probabilities(3), "jitter_probs": Probabilities(3),
     "dynamics": Choice(DYNAMICS),
@@ -304,23 +304,6 @@ the config stays JSON-able and hashes like one built from Python numbers)."""
 
 DEFAULT_CONFIG = FlowSimConfig()
 """The paper's configuration (used as the default argument everywhere)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class ConfigArg:
-    """The rule of a ``config`` argument (``config=CONFIG_ARG`` in a ``check_args``): a
-    ``FlowSimConfig``, binding the named sizes F (furniture), M (objects), T (timesteps) and S
-    (max_tokens) of the check, so that the scenes and indices checked after it must agree."""
-
-    def __call__(self, name: str, value: Any) -> FlowSimConfig:
-        config = Instance(FlowSimConfig)(name, value)
-        for size, field in (("F", "num_furniture"), ("M", "num_objects"), ("T", "num_timesteps"),
-                            ("S", "max_tokens")):
-            bind_size(size, getattr(config, field), f"{name}.{field}")
-        return config
-
-
-CONFIG_ARG = ConfigArg()
 
 
 @dataclasses.dataclass(frozen=True)

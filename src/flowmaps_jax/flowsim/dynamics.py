@@ -25,16 +25,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.flowsim.config import (
-    CONFIG_ARG,
     DEFAULT_CONFIG,
     DYNAMICS,
     FlowSimConfig,
     SimShape,
 )
 from flowmaps_jax.flowsim.layout import uniform16
-from flowmaps_jax.validation import check_args, check_int_array, is_concrete
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Choice, IntArray, Optional
+from flowmaps_jax.validation import check_choice, check_instance, check_int_array, is_concrete
 
 
 def _draw_offsets(u: jnp.ndarray, probs: jnp.ndarray) -> jnp.ndarray:
@@ -115,11 +112,6 @@ def _jitter_posterior(num_slots, slot_now, tau_q, config: FlowSimConfig):
     return jnp.where((tau_q == 0)[..., None], at_start, jittered)
 
 
-@check_args(config=CONFIG_ARG, num_slots=IntArray(1, "F"),
-            slot_now=After(lambda got: IntArray(0, got["num_slots"] - 1,
-                                                high_name="num_slots - 1")),
-            horizon=IntArray(0, "T-1"), dynamics=Optional(Choice(DYNAMICS)),
-            tau=Optional(IntArray(0, "T-1")))
 def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAULT_CONFIG,
                     dynamics: str | None = None, tau=None) -> jnp.ndarray:
     """Exact distribution (..., F) float32 of an object's slot ``horizon`` steps ahead.
@@ -135,9 +127,17 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     ``jit``) cannot be: a row whose num_slots, slot_now, horizon (or tau, tau + horizon) is out
     of range is all NaN, never the answer of another, in-range input.
     """
-    dynamics = config.dynamics if dynamics is None else dynamics
+    check_instance("config", config, FlowSimConfig)
     max_h = config.num_timesteps - 1
-    concrete = is_concrete(num_slots, slot_now, horizon)  # then checked by the rules
+    num_slots = check_int_array("num_slots", num_slots, 1, config.num_furniture)
+    slot_now = check_int_array("slot_now", slot_now, 0, num_slots - 1, high_name="num_slots - 1")
+    horizon = check_int_array("horizon", horizon, 0, max_h)
+    if dynamics is not None:
+        check_choice("dynamics", dynamics, DYNAMICS)
+    if tau is not None:
+        tau = check_int_array("tau", tau, 0, max_h)
+    dynamics = config.dynamics if dynamics is None else dynamics
+    concrete = is_concrete(num_slots, slot_now, horizon)  # then checked above
     if dynamics == "markov":
         probs = _markov_posterior(num_slots, slot_now, horizon, config)
         return probs if concrete else _nan_outside(
@@ -185,7 +185,6 @@ def _transition_matrix(num_slots, config: FlowSimConfig):
     return jnp.where((row < k)[..., None], matrix, 0.0)
 
 
-@check_args(config=CONFIG_ARG, num_slots=IntArray(1, "F"))
 def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Markov transition matrix (..., F, F) float32: entry [i, j] = P(slot j next | slot i now).
 
@@ -194,7 +193,9 @@ def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.
     ``exact_posterior(K, slot, h)``. A concrete ``num_slots`` out of 1..F is a ``ValueError``;
     a traced one (under ``jit``) gives an all-NaN matrix.
     """
-    if is_concrete(num_slots):  # its values checked by the rule
+    check_instance("config", config, FlowSimConfig)
+    num_slots = check_int_array("num_slots", num_slots, 1, config.num_furniture)
+    if is_concrete(num_slots):  # its values checked above
         return _transition_matrix(num_slots, config)
     k = jnp.asarray(num_slots)
     return _nan_outside(_transition_matrix(num_slots, config),

@@ -23,7 +23,6 @@ from jax.sharding import Mesh
 from flowmaps_jax import distributed
 from flowmaps_jax.flowsim import dynamics, habits, layout
 from flowmaps_jax.flowsim.config import (
-    CONFIG_ARG,
     DEFAULT_CONFIG,
     FlowSimConfig,
     SimShape,
@@ -32,14 +31,15 @@ from flowmaps_jax.flowsim.config import (
 )
 from flowmaps_jax.validation import (
     array_bytes,
-    check_args,
+    check_array,
+    check_instance,
+    check_int,
     check_int_array,
+    check_key,
+    check_real_array,
     check_request_size,
     is_concrete,
-    named_sizes,
 )
-from flowmaps_jax.validation.composite import Fields, PositiveArray
-from flowmaps_jax.validation.fields import Instance, Int, IntArray, Key, Optional, RealArray
 
 
 @struct.dataclass
@@ -79,19 +79,12 @@ _FIELDS = tuple(field.name for field in dataclasses.fields(Scenes))
 _FLOAT_FIELDS = ("furniture_boxes", "object_size", "object_boxes")
 
 
-_SHAPES = {"furniture_boxes": ("E", "F", 4), "furniture_kind": ("E", "F"),
-           "object_kind": ("E", "M"), "object_size": ("E", "M"), "visit_order": ("E", "M", "F"),
-           "num_slots": ("E", "M"), "slot": ("E", "T", "M"), "object_boxes": ("E", "T", "M", 4),
-           "layout_redraws": ("E",), "habit": ("E", "M")}
-"""Each field's shape in the named sizes E (environments), F, M, T (furniture, objects, steps)."""
-_SCENES_FIELDS = Fields(Scenes, {field: RealArray(shape, finite=False) if field in _FLOAT_FIELDS
-                                   else IntArray(shape=shape) for field, shape in _SHAPES.items()})
-"""A ``Scenes`` whose fields are arrays (numpy or jax) of those shapes, reals or integers."""
-
-
 def _field_shapes(e: int, f: int, m: int, t: int) -> dict[str, tuple[int, ...]]:
-    sizes = {"E": e, "F": f, "M": m, "T": t}
-    return {field: tuple(sizes.get(d, d) for d in shape) for field, shape in _SHAPES.items()}
+    """Each field's shape for E environments, F furniture pieces, M objects, T timesteps."""
+    return {"furniture_boxes": (e, f, 4), "furniture_kind": (e, f), "object_kind": (e, m),
+            "object_size": (e, m), "visit_order": (e, m, f), "num_slots": (e, m),
+            "slot": (e, t, m), "object_boxes": (e, t, m, 4), "layout_redraws": (e,),
+            "habit": (e, m)}
 
 
 def scenes_bytes_per_env(config: FlowSimConfig) -> int:
@@ -114,63 +107,75 @@ def validate_scenes(scenes, config: FlowSimConfig | None = None, *, values: bool
     """Raise ``ValueError`` naming the field if ``scenes`` is not a well-formed ``Scenes``.
 
     Always (also on tracers, no device transfer): every field is an array of the right kind
-    (float boxes and sizes, integer ids, orders and slots) and of shapes consistent with each
-    other and with ``config`` (F, M, T) when given. With ``values`` (concrete arrays): boxes
-    finite, non-negative and, with ``config``, within the map, with positive sides; object
-    sizes positive; descriptor ids those of the config; visit orders valid furniture indices
-    exactly on the first num_slots places; num_slots in 1..F; slots in 0..num_slots − 1;
-    redraw counts >= 0.
+    (float boxes and sizes, integer ids, orders and slots) and of the shapes of ``Scenes``,
+    with F, M, T those of ``config`` when given (else those of the first field that has them).
+    With ``values`` (concrete arrays): boxes finite, non-negative and, with ``config``, within
+    the map, with positive sides; object sizes positive; descriptor ids those of the config;
+    visit orders valid furniture indices exactly on the first num_slots places; num_slots in
+    1..F; slots in 0..num_slots − 1; redraw counts >= 0.
     """
-    with named_sizes():
-        if config is not None:
-            CONFIG_ARG("config", config)
-        ScenesArg(values, config)(name, scenes)
+    if config is not None:
+        check_instance("config", config, FlowSimConfig)
+    check_instance(name, scenes, Scenes)
+    f, m, t = ((None, None, None) if config is None
+               else (config.num_furniture, config.num_objects, config.num_timesteps))
+
+    def field(key: str, shape: tuple) -> tuple[int, ...]:
+        value, where = getattr(scenes, key), f"{name}.{key}"
+        if value is not None:
+            check_array(where, value)
+        if key in _FLOAT_FIELDS:
+            return check_real_array(where, value, shape, finite=False).shape
+        return check_int_array(where, value, shape=shape).shape
+
+    e, f = field("furniture_boxes", (None, f, 4))[:2]
+    field("furniture_kind", (e, f))
+    m = field("object_kind", (e, m))[1]
+    field("object_size", (e, m))
+    field("visit_order", (e, m, f))
+    field("num_slots", (e, m))
+    t = field("slot", (e, t, m))[1]
+    field("object_boxes", (e, t, m, 4))
+    field("layout_redraws", (e,))
+    field("habit", (e, m))
+    arrays = [getattr(scenes, key) for key in _FIELDS]
+    if values and is_concrete(*arrays):
+        _check_values(name, {key: np.asarray(v) for key, v in zip(_FIELDS, arrays, strict=True)},
+                      config)
 
 
-@dataclasses.dataclass(frozen=True)
-class ScenesArg:
-    """The rule of a ``scenes`` argument (``scenes=SCENES_ARG`` in a ``check_args``, after
-    ``config=CONFIG_ARG``): a ``Scenes`` whose fields have the shapes of :data:`_SHAPES`, binding
-    (or, after the config, matching) the named sizes E, F, M, T; with ``values``, their values as
-    ``validate_scenes`` says (map bounds and descriptor ids those of ``config``, if given)."""
-
-    values: bool = False
-    config: FlowSimConfig | None = None
-
-    def __call__(self, name: str, scenes):
-        _SCENES_FIELDS(name, scenes)
-        arrays = {field: getattr(scenes, field) for field in _FIELDS}
-        if self.values and is_concrete(*arrays.values()):
-            self._values(name, {field: np.asarray(v) for field, v in arrays.items()})
-        return scenes
-
-    def _values(self, name: str, a: dict[str, np.ndarray]) -> None:
-        f = a["furniture_boxes"].shape[1]
-        box = RealArray(low=0, high=None if self.config is None else self.config.map_size,
-                        what="px, within the map")
-        rules = {"furniture_boxes": box, "object_boxes": box, "object_size": PositiveArray(),
-                 "num_slots": IntArray(1, f), "visit_order": IntArray(-1, f - 1),
-                 "layout_redraws": IntArray(0), "habit": IntArray(0, habits.num_hypotheses(f) - 1)}
-        for field, rule in rules.items():
-            rule(f"{name}.{field}", a[field])
-        extents = PositiveArray(what=" in y1 - y0 and x1 - x0 (y0, x0, y1, x1): y1 > y0, x1 > x0")
-        for field in ("furniture_boxes", "object_boxes"):
-            extents(f"{name}.{field}", a[field][..., 2:] - a[field][..., :2])
-        for field, entries in (() if self.config is None else (
-                ("furniture_kind", self.config.furniture_kinds),
-                ("object_kind", self.config.categories))):
-            known = [entry.descriptor for entry in entries]
-            if not np.all(np.isin(a[field], known)):
-                raise ValueError(f"{name}.{field} holds descriptor ids outside {known}")
-        if np.any((a["visit_order"] >= 0) != (np.arange(f) < a["num_slots"][..., None])):
-            raise ValueError(f"{name}.visit_order must hold furniture indices on exactly the first "
-                             f"num_slots places and -1 after them")
-        check_int_array(f"{name}.slot", a["slot"], 0, a["num_slots"][:, None, :] - 1,
-                        high_name="num_slots - 1")
+def _check_values(name: str, a: dict[str, np.ndarray], config: FlowSimConfig | None) -> None:
+    """The values part of :func:`validate_scenes`, on numpy arrays ``a`` of checked shapes."""
+    f = a["furniture_boxes"].shape[1]
+    for key in ("furniture_boxes", "object_boxes"):
+        check_real_array(f"{name}.{key}", a[key], low=0,
+                         high=None if config is None else config.map_size,
+                         what="px, within the map")
+    _check_positive(f"{name}.object_size", a["object_size"])
+    check_int_array(f"{name}.num_slots", a["num_slots"], 1, f)
+    check_int_array(f"{name}.visit_order", a["visit_order"], -1, f - 1)
+    check_int_array(f"{name}.layout_redraws", a["layout_redraws"], 0)
+    check_int_array(f"{name}.habit", a["habit"], 0, habits.num_hypotheses(f) - 1)
+    for key in ("furniture_boxes", "object_boxes"):
+        _check_positive(f"{name}.{key}", a[key][..., 2:] - a[key][..., :2],
+                        " in y1 - y0 and x1 - x0 (y0, x0, y1, x1): y1 > y0, x1 > x0")
+    for key, entries in (() if config is None else (
+            ("furniture_kind", config.furniture_kinds), ("object_kind", config.categories))):
+        known = [entry.descriptor for entry in entries]
+        if not np.all(np.isin(a[key], known)):
+            raise ValueError(f"{name}.{key} holds descriptor ids outside {known}")
+    if np.any((a["visit_order"] >= 0) != (np.arange(f) < a["num_slots"][..., None])):
+        raise ValueError(f"{name}.visit_order must hold furniture indices on exactly the first "
+                         f"num_slots places and -1 after them")
+    check_int_array(f"{name}.slot", a["slot"], 0, a["num_slots"][:, None, :] - 1,
+                    high_name="num_slots - 1")
 
 
-SCENES_ARG = ScenesArg()
-"""A ``scenes`` argument checked in shapes and dtypes only (cheap, fine under jit)."""
+def _check_positive(name: str, values: np.ndarray, what: str = "") -> None:
+    """Every value of the finite real array ``values`` > 0 (``what`` follows "positive")."""
+    check_real_array(name, values)
+    if values.size and np.min(values) <= 0:
+        raise ValueError(f"{name} must be positive{what}; got a minimum of {np.min(values)}")
 
 
 BLOCK = 512
@@ -282,8 +287,6 @@ def _habit_rollouts(env_keys, boxes, order, num_slots, params, shape: SimShape):
     return jnp.transpose(slot, (2, 1, 0)), habit.T
 
 
-@check_args(key=Key(), num_envs=Int(), config=Instance(FlowSimConfig),
-            mesh=Optional(Instance(Mesh)), part=Optional(Instance(slice)))
 def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh=None,
              part: slice | None = None) -> Scenes:
     """Generate ``num_envs`` FlowSim environments (layouts, visiting orders, T-step rollouts).
@@ -299,6 +302,13 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh
     (the config is too crowded). Not for use
     inside ``jit`` (it checks the layouts on the host); there, call ``scenes_from_env_keys``.
     """
+    key = check_key(key)
+    num_envs = check_int("num_envs", num_envs)
+    check_instance("config", config, FlowSimConfig)
+    if mesh is not None:
+        check_instance("mesh", mesh, Mesh)
+    if part is not None:
+        check_instance("part", part, slice)
     count = num_envs
     if part is not None:
         count = len(range(num_envs)[part])

@@ -36,12 +36,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.flowsim.config import CONFIG_ARG, HABITS, sim_params
+from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig, sim_params
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
-from flowmaps_jax.validation import bind_size, check_args, check_probabilities
-from flowmaps_jax.validation.arrays import size
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Int, IntArray
+from flowmaps_jax.validation import (
+    check_instance,
+    check_int,
+    check_int_array,
+    check_probabilities,
+)
 
 ROUTINE, PREFERENCES, DYNAMIC = range(3)
 
@@ -77,7 +79,6 @@ def hypothesis_names(num_furniture: int) -> list[str]:
             for fam, fav in zip(family, favourites, strict=True)]
 
 
-@check_args(num_furniture=Int(size="F"), num_slots=IntArray(1, "F"))
 def habit_prior(num_slots, habit_probs, num_furniture: int) -> jnp.ndarray:
     """Prior (..., NH) float32 over the hypotheses of objects with ``num_slots`` (...) places.
 
@@ -86,6 +87,8 @@ def habit_prior(num_slots, habit_probs, num_furniture: int) -> jnp.ndarray:
     3 finite, non-negative probabilities summing to 1, ``num_slots`` in 1..``num_furniture``);
     traced ones (under ``jit``) are used as given.
     """
+    num_furniture = check_int("num_furniture", num_furniture)
+    num_slots = check_int_array("num_slots", num_slots, 1, num_furniture)
     check_probabilities("habit_probs", habit_probs, (3,))
     family, _, needs = (jnp.asarray(a) for a in hypothesis_table(num_furniture))
     k = jnp.asarray(num_slots, jnp.int32)[..., None]
@@ -355,23 +358,17 @@ def _observed_history(slot, env, obj, tau, h, width: int):
     return jnp.where(valid, slots, 0), valid
 
 
-def _scenes_envs(name: str, scenes):
-    """The ``scenes`` rule of :func:`history_posterior`: binds E (its environments) for the
-    ``env`` bound; its arrays are read as they are (``generate.SCENES_ARG`` imports this module)."""
-    bind_size("E", scenes.num_envs, f"{name}.num_envs")
-    return scenes
+def _check_query(name: str, value, q: int | None, low: int, high, high_name: str | None = None):
+    """A query argument of :func:`history_posterior`: (Q,) integers (Q set by ``env``, the
+    first; ``q`` None), then their values in ``low..high`` (concrete ones only)."""
+    value = check_int_array(name, value)
+    if np.ndim(value) != 1 or (q is not None and np.shape(value)[0] != q):
+        count = "" if q is None else f" with Q = {q} (env's queries)"
+        raise ValueError(f"{name} must have shape (Q,){count}, one entry per query; got "
+                         f"{tuple(np.shape(value))}")
+    return check_int_array(name, value, low, high, high_name=high_name)
 
 
-_QUERY = ("Q",)
-
-
-@check_args(config=CONFIG_ARG, scenes=_scenes_envs, env=IntArray(0, "E-1", _QUERY),
-            obj=IntArray(0, "M-1", _QUERY), tau=IntArray(0, "T-1", _QUERY),
-            horizon=After(lambda got: IntArray(  # τ + Δτ within the T timesteps
-                0, size("T-1") - np.asarray(got["tau"]), _QUERY, high_name="T - 1 - tau")),
-            history_len=After(lambda got: IntArray(  # within the query's past
-                1, np.asarray(got["tau"]) + 1,
-                high_name="tau + 1 (no longer than the query's past)")))
 def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     """Exact posterior (Q, F) over the slot of object ``obj`` in ``env`` at τ + Δτ, given its
     slots at τ − H + 1 … τ (H = ``history_len``), under the habit mixture of ``config``.
@@ -381,6 +378,16 @@ def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
     the finite hypothesis set. With history_len = 1 and the paper's world it equals
     ``dynamics.exact_posterior``. Raises ``ValueError`` naming the argument on bad input.
     """
+    check_instance("config", config, FlowSimConfig)
+    t = config.num_timesteps
+    env = _check_query("env", env, None, 0, scenes.num_envs - 1)
+    q = env.shape[0]
+    obj = _check_query("obj", obj, q, 0, config.num_objects - 1)
+    tau = _check_query("tau", tau, q, 0, t - 1)
+    horizon = _check_query("horizon", horizon, q, 0, t - 1 - np.asarray(tau),  # τ + Δτ < T
+                           "T - 1 - tau")
+    history_len = check_int_array("history_len", history_len, 1, np.asarray(tau) + 1,
+                                  high_name="tau + 1 (no longer than the query's past)")
     width = int(np.max(history_len))
     history_len = np.broadcast_to(history_len, tau.shape).astype(np.int32)
     return _history_posterior(scenes, config, env, obj, tau, horizon, history_len, width)

@@ -30,16 +30,14 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, FancyArrowPatch, Patch, Polygon, Rectangle
 
 from flowmaps_jax.flowsim.config import FlowSimConfig
-from flowmaps_jax.flowsim.generate import SCENES_ARG, Scenes
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import Index
-from flowmaps_jax.validation.fields import (
-    Distribution,
-    Flag,
-    Instance,
-    IntArray,
-    Optional,
-    RealArray,
+from flowmaps_jax.flowsim.generate import Scenes, validate_scenes
+from flowmaps_jax.validation import (
+    check_flag,
+    check_instance,
+    check_int,
+    check_int_array,
+    check_probabilities,
+    check_real_array,
 )
 
 # matplotlib marker used in legends for each object shape.
@@ -57,10 +55,13 @@ _PANEL_SIZE = 4.0  # inches per map panel
 # Validation and config look-ups
 # --------------------------------------------------------------------------------------------
 
-_CONFIG = Instance(FlowSimConfig)
-"""Every figure's ``config``; its ``scenes`` are checked with ``SCENES_ARG`` (shapes and dtypes;
-the scenes' own sizes E, F, M, T, not the config's, bound the indices: a descriptor the config
-lacks is named when it is looked up)."""
+def _check_scene_env(scenes: Scenes, env: int, config: FlowSimConfig) -> int:
+    """Every figure's ``config``, ``scenes`` (shapes and dtypes; the scenes' own sizes, not the
+    config's, bound the indices: a descriptor the config lacks is named when it is looked up)
+    and ``env`` (an environment of the scenes), as an int."""
+    check_instance("config", config, FlowSimConfig)
+    validate_scenes(scenes, values=False)
+    return check_int("env", env, 0, scenes.num_envs - 1)
 
 
 def _by_descriptor(entries: Sequence[Any]) -> dict[int, Any]:
@@ -247,9 +248,6 @@ def _draw_order_arrows(ax: Axes, view: _EnvView, obj: int, numbers: bool = True,
 # Public figures
 # --------------------------------------------------------------------------------------------
 
-@check_args(config=_CONFIG, scenes=SCENES_ARG, env=Index("E"), tau=Index("T"),
-            highlight=Optional(Index("M")), ax=Optional(Instance(Axes)), show_orders=Flag(),
-            legend=Flag(), title=Optional(Instance(str)))
 def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Axes | None = None,
                show_orders: bool = False, highlight: int | None = None, legend: bool = True,
                title: str | None = None) -> Figure:
@@ -261,6 +259,16 @@ def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Ax
     ``ax=None`` a new figure is made; otherwise the drawing goes into ``ax`` (e.g. a panel of a
     larger figure) and ``ax.figure`` is returned. ``legend`` adds a furniture/object legend.
     """
+    env = _check_scene_env(scenes, env, config)
+    tau = check_int("tau", tau, 0, scenes.slot.shape[1] - 1)
+    if highlight is not None:
+        highlight = check_int("highlight", highlight, 0, scenes.object_kind.shape[1] - 1)
+    if ax is not None:
+        check_instance("ax", ax, Axes)
+    show_orders = check_flag("show_orders", show_orders)
+    legend = check_flag("legend", legend)
+    if title is not None:
+        check_instance("title", title, str)
     view = _EnvView(scenes, env, config)
     return _draw_scene(view, env, tau, ax, show_orders, highlight, legend, title)
 
@@ -284,8 +292,6 @@ def _draw_scene(view: _EnvView, env: int, tau: int, ax: Axes | None, show_orders
     return ax.figure
 
 
-@check_args(config=_CONFIG, scenes=SCENES_ARG, env=Index("E"),
-            taus=IntArray(0, "T-1", shape=(None,)))
 def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSimConfig) -> Figure:
     """A row of panels showing environment ``env`` at the strictly increasing timesteps ``taus``.
 
@@ -293,6 +299,8 @@ def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSim
     ghost with an arrow to where it is now, and the panel's x-label lists how many places along its
     visiting order each object advanced (modulo the number of places K). Paper Fig. 1.
     """
+    env = _check_scene_env(scenes, env, config)
+    taus = check_int_array("taus", taus, 0, scenes.slot.shape[1] - 1, shape=(None,))
     taus = [int(t) for t in np.asarray(taus).tolist()]
     if not taus or any(b <= a for a, b in itertools.pairwise(taus)):
         raise ValueError(f"taus must be a non-empty, strictly increasing sequence of timestep "
@@ -330,7 +338,6 @@ def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSim
     return fig
 
 
-@check_args(config=_CONFIG, scenes=SCENES_ARG, env=Index("E"))
 def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure:
     """One panel per object category: its visiting order as numbered, cyclic arrows.
 
@@ -339,6 +346,7 @@ def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure
     The map centre (the pivot of the angular orderings) is marked with a cross; for angular
     orderings dotted rays join it to each table, and a short grey ray marks angle 0 (up).
     """
+    env = _check_scene_env(scenes, env, config)
     view = _EnvView(scenes, env, config)
     m_count = view.num_objects
     fig = Figure(figsize=(_PANEL_SIZE * m_count, _PANEL_SIZE + 0.7), layout="constrained")
@@ -371,8 +379,6 @@ def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure
     return fig
 
 
-@check_args(config=_CONFIG, scenes=SCENES_ARG, env=Index("E"), obj=Index("M"), tau=Index("T"),
-            probs=Distribution((None,), atol=0.0, normalised=False), ax=Optional(Instance(Axes)))
 def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, config: FlowSimConfig,
                    ax: Axes | None = None) -> Figure:
     """Shade the places object ``obj`` could occupy by probability, over the scene at ``tau``.
@@ -382,6 +388,13 @@ def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, con
     to 1 (e.g. empirical slot frequencies). Each place is the object's box centred on that piece of
     furniture, filled with an opacity proportional to its probability and labelled with it.
     """
+    env = _check_scene_env(scenes, env, config)
+    obj = check_int("obj", obj, 0, scenes.object_kind.shape[1] - 1)
+    tau = check_int("tau", tau, 0, scenes.slot.shape[1] - 1)
+    probs = check_probabilities("probs", probs, (None,), atol=0.0, min_value=-0.0,
+                                normalised=False)
+    if ax is not None:
+        check_instance("ax", ax, Axes)
     view = _EnvView(scenes, env, config)
     k = int(view.num_slots[obj])
     if len(probs) < k or np.any(probs[k:] > 1e-6):
@@ -420,8 +433,6 @@ def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, con
     return fig
 
 
-@check_args(ax=Instance(Axes), boxes_norm=RealArray(), config=_CONFIG,
-            label=Optional(Instance(str)))
 def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig, label: str | None = None,
                   **style: Any) -> PatchCollection:
     """Draw normalised (y, x, h, w) boxes (e.g. model samples) over a map drawn in ``ax``.
@@ -431,6 +442,11 @@ def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig, label: str |
     PatchCollection defaults (unfilled black outlines). ``label``: an entry for the boxes in the
     map's legend (added beside the map if it has none). Returns the added collection.
     """
+    check_instance("ax", ax, Axes)
+    boxes_norm = check_real_array("boxes_norm", boxes_norm)
+    check_instance("config", config, FlowSimConfig)
+    if label is not None:
+        check_instance("label", label, str)
     boxes = np.asarray(boxes_norm, dtype=float)
     if boxes.ndim == 1:
         boxes = boxes[None]

@@ -14,7 +14,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import io
 import json
@@ -25,31 +24,26 @@ import numpy as np
 
 from flowmaps_jax import boxes as box_geometry
 from flowmaps_jax import tokens as tok
-from flowmaps_jax.flowsim.config import CONFIG_ARG, DEFAULT_CONFIG, FlowSimConfig
-from flowmaps_jax.flowsim.generate import (
-    _FIELDS,
-    _FLOAT_FIELDS,
-    SCENES_ARG,
-    Scenes,
-    generate,
-    validate_scenes,
-)
+from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, FlowSimConfig
+from flowmaps_jax.flowsim.generate import _FIELDS, _FLOAT_FIELDS, Scenes, generate, validate_scenes
 from flowmaps_jax.validation import (
     array_bytes,
-    check_args,
     check_choice,
     check_file,
+    check_instance,
     check_int,
+    check_int_array,
+    check_key,
     check_output_file,
+    check_real,
+    check_real_array,
     check_request_size,
     check_seed,
     parse_json,
     prefix_errors,
     read_npz,
-    size,
     write_file,
 )
-from flowmaps_jax.validation.fields import Int, IntArray, Key, Real, RealArray
 
 FORMAT_VERSION = 2
 TRAIN_SEED = 0
@@ -60,18 +54,20 @@ _TRAIN_TAG, _VALIDATION_TAG = 0, 1
 # ------------------------------------------------------------------------------ boxes
 
 
-@check_args(boxes_px=RealArray((..., 4)), config=CONFIG_ARG)
 def normalise_boxes(boxes_px, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Pixel boxes (..., 4) (y0, x0, y1, x1) → normalised (y, x, h, w) / (map_size − 1)."""
+    boxes_px = check_real_array("boxes_px", boxes_px, (..., 4))
+    check_instance("config", config, FlowSimConfig)
     return box_geometry.normalise(jnp.asarray(boxes_px, jnp.float32), config.map_size)
 
 
-@check_args(boxes=RealArray((..., 4), finite=False), config=CONFIG_ARG)
 def denormalise_boxes(boxes, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """Inverse of ``normalise_boxes``: (..., 4) (y, x, h, w) → pixels (y0, x0, y1, x1).
 
     NaN or inf pass through (model samples are converted as they are; check them separately).
     """
+    boxes = check_real_array("boxes", boxes, (..., 4), finite=False)
+    check_instance("config", config, FlowSimConfig)
     return box_geometry.denormalise(jnp.asarray(boxes, jnp.float32), config.map_size)
 
 
@@ -122,32 +118,26 @@ def _tokens(scenes: Scenes, env, tau, config: FlowSimConfig, history: int = 1
                            tau=tau.astype(jnp.int32), age=age)
 
 
-@dataclasses.dataclass(frozen=True)
-class HistoryArg:
-    """The rule of a ``history`` argument checked after ``config=CONFIG_ARG`` (which binds the
-    sizes F, M, T, S): the maps read (the one at τ and the H − 1 before it) in 1 … T, and their
-    F + M·H tokens within S = ``config.max_tokens``."""
-
-    def __call__(self, name: str, value) -> int:
-        f, m, t, s = (size(n) for n in "FMTS")
-        h = check_int(name, value, 1, t)
-        if f + m * h > s:
-            raise ValueError(f"{name}={h} needs {f + m * h} tokens (F={f} + M={m} × {h}) but "
-                             f"max_tokens={s}; raise FlowSimConfig.max_tokens")
-        return h
-
-
-HISTORY_ARG = HistoryArg()
-
-
-@check_args(config=CONFIG_ARG, history=HISTORY_ARG)
 def check_history(history, config: FlowSimConfig) -> int:
-    """``history`` checked against ``config`` (see :class:`HistoryArg`), as an int."""
-    return history
+    """``history`` as an int: the maps read (the one at τ and the H − 1 before it) in 1 … T, and
+    their F + M·H tokens within ``config.max_tokens``."""
+    check_instance("config", config, FlowSimConfig)
+    f, m, s = config.num_furniture, config.num_objects, config.max_tokens
+    h = check_int("history", history, 1, config.num_timesteps)
+    if f + m * h > s:
+        raise ValueError(f"history={h} needs {f + m * h} tokens (F={f} + M={m} × {h}) but "
+                         f"max_tokens={s}; raise FlowSimConfig.max_tokens")
+    return h
 
 
-@check_args(config=CONFIG_ARG, scenes=SCENES_ARG, env=IntArray(0, "E-1", shape=("N",)),
-            tau=IntArray(0, "T-1", shape=("N",)), history=HISTORY_ARG)
+def _check_env_rows(scenes: Scenes, env, config: FlowSimConfig):
+    """The config and scenes of :func:`scene_tokens` and :func:`slot_boxes` (shapes and dtypes:
+    fine under jit), and ``env`` (N,) environments of the scenes, as checked."""
+    check_instance("config", config, FlowSimConfig)
+    validate_scenes(scenes, config, values=False)
+    return check_int_array("env", env, 0, scenes.num_envs - 1, shape=(None,))
+
+
 def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFIG,
                  history: int = 1) -> tok.SceneTokens:
     """Tokens of environments ``env`` (N,) at state times ``tau`` (N,): SceneTokens (N, S).
@@ -158,6 +148,9 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
     t = 0 are masked out): furniture does not move in FlowSim, so the past maps add only their
     objects. Raises ``ValueError`` if the tokens exceed S. jit-able (a gather).
     """
+    env = _check_env_rows(scenes, env, config)
+    tau = check_int_array("tau", tau, 0, config.num_timesteps - 1, shape=env.shape)
+    history = check_history(history, config)
     env, tau = jnp.asarray(env, jnp.int32), jnp.asarray(tau, jnp.int32)
     return _tokens_jit(scenes, env, tau, config, history)
 
@@ -167,11 +160,11 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
 _tokens_jit = jax.jit(_tokens, static_argnames=("config", "history"))
 
 
-@check_args(config=CONFIG_ARG, scenes=SCENES_ARG, env=IntArray(0, "E-1", shape=("N",)),
-            obj=IntArray(0, "M-1", shape=("N",)))
 def slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
     """(N, F, 4) normalised (y, x, h, w) box object ``obj`` (N,) of environment ``env`` (N,)
     would have at each position k of its visiting order (zeros for k >= num_slots)."""
+    env = _check_env_rows(scenes, env, config)
+    obj = check_int_array("obj", obj, 0, config.num_objects - 1, shape=env.shape)
     return _slot_boxes(scenes, jnp.asarray(env, jnp.int32), jnp.asarray(obj, jnp.int32), config)
 
 
@@ -233,8 +226,6 @@ def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                           target=target)
 
 
-@check_args(key=Key(), batch_size=Int(), queries_per_scene=Int(), config=CONFIG_ARG,
-            scenes=SCENES_ARG, short_frac=Real(0.0, 1.0), short_max=Int(), history=HISTORY_ARG)
 def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                      config: FlowSimConfig = DEFAULT_CONFIG, short_frac: float = 0.0,
                      short_max: int = 3, history: int = 1) -> tok.TrainBatch:
@@ -244,6 +235,14 @@ def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: in
     (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config, short_*).
     ``history``: tokens of the last H maps (see ``scene_tokens``).
     """
+    key = check_key(key)
+    batch_size = check_int("batch_size", batch_size)
+    queries_per_scene = check_int("queries_per_scene", queries_per_scene)
+    check_instance("config", config, FlowSimConfig)
+    validate_scenes(scenes, config, values=False)
+    short_frac = check_real("short_frac", short_frac, 0.0, 1.0)
+    short_max = check_int("short_max", short_max)
+    history = check_history(history, config)
     check_request_size(f"a batch of {batch_size} scenes x {queries_per_scene} queries",
                        array_bytes((batch_size, config.max_tokens, 7))
                        + array_bytes((batch_size, queries_per_scene, 6)))
@@ -276,13 +275,14 @@ def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200
 
 # ------------------------------------------------------------------------------ .npz I/O
 
-@check_args(path=check_output_file, config=CONFIG_ARG, scenes=SCENES_ARG)
 def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) -> None:
     """Write scenes and their config to one ``.npz`` (with ``FORMAT_VERSION``) at ``path``.
 
     Everything is checked first (the path's folder exists and is writable, the scenes match the
     config in every array); the file appears whole or not at all (written aside, then renamed).
     """
+    path = check_output_file("path", path)
+    check_instance("config", config, FlowSimConfig)
     validate_scenes(scenes, config)
     arrays = {name: np.asarray(getattr(scenes, name)) for name in _FIELDS}
     buffer = io.BytesIO()

@@ -10,8 +10,7 @@ from __future__ import annotations
 import dataclasses
 
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, PAPER_HABITS, FlowSimConfig
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.fields import Choice, Instance
+from flowmaps_jax.validation import check_choice, check_instance
 
 WORLDS: dict[str, tuple[tuple[str, float], ...]] = {
     "routine": PAPER_HABITS,
@@ -26,9 +25,10 @@ HABITS_HISTORY = 8
 reference posterior of the evaluate and search CLIs uses by default in a world with habits."""
 
 
-@check_args(world=Choice(tuple(WORLDS)), base=Instance(FlowSimConfig))
 def world_config(world: str, base: FlowSimConfig = DEFAULT_CONFIG) -> FlowSimConfig:
-    """``base`` with the habits of ``world`` (a ``WORLDS`` name; ValueError names it otherwise)."""
+    """``base`` with the habits of ``world`` (a ``WORLDS`` name)."""
+    check_choice("world", world, tuple(WORLDS))
+    check_instance("base", base, FlowSimConfig)
     return dataclasses.replace(base, habits=WORLDS[world])
 
 

@@ -29,9 +29,7 @@ from flowmaps_jax.model.encoder import EncoderLayer, MapEncoder, example_inputs
 from flowmaps_jax.model.readout import PointerReadout
 from flowmaps_jax.model.route import RouteReadout
 from flowmaps_jax.tokens import Queries, SceneTokens, validate_queries, validate_tokens
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import Fields, NonEmpty
-from flowmaps_jax.validation.fields import Array, Optional, RealArray
+from flowmaps_jax.validation import check_array, check_instance, check_real_array
 
 
 @struct.dataclass
@@ -306,11 +304,6 @@ def make_velocity_fn(params, config: ModelConfig, context: Context,
     return velocity_fn
 
 
-@check_args(tokens=Fields(SceneTokens, {"mask": Array(("B", None))}),
-            queries=Fields(Queries, {"descriptor": NonEmpty(
-                Array(("B", "Q")), "at least one scene and one query")}),
-            x_t=Optional(RealArray(("B", "Q", None, 4))),
-            t=Optional(RealArray(("B", "Q"), low=0.0, high=1.0, what="flow time")))
 def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries, x_t=None, t=None,
                  object_descriptors: Collection[int] | None = None) -> None:
     """Raise ``ValueError`` naming the argument if model inputs are malformed (call outside jit).
@@ -320,6 +313,17 @@ def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries, x_t
     x_t: (B, Q, N, 4) finite. t: (B, Q) in [0, 1]. ``object_descriptors``, if given: the
     descriptors a query may name (an object category, not a furniture kind).
     """
+    check_instance("tokens", tokens, SceneTokens)
+    b = check_array("tokens.mask", tokens.mask, (None, None)).shape[0]
+    check_instance("queries", queries, Queries)
+    q = check_array("queries.descriptor", queries.descriptor, (b, None)).shape[1]
+    if b == 0 or q == 0:
+        raise ValueError(f"queries.descriptor must not be empty (at least one scene and one "
+                         f"query); got shape {(b, q)}")
+    if x_t is not None:
+        check_real_array("x_t", x_t, (b, q, None, 4))
+    if t is not None:
+        check_real_array("t", t, (b, q), low=0.0, high=1.0, what="flow time")
     validate_tokens(tokens, config.num_descriptors, num_timesteps=config.tau_max)
     validate_queries(queries, tokens.tau, config.num_descriptors, config.tau_max,
                      object_descriptors)

@@ -14,7 +14,8 @@ from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import ModelFamily
 from flowmaps_jax.store.integrity import leaf_name
-from flowmaps_jax.validation.composite import After, Fields
+from flowmaps_jax.validation import check_int
+from flowmaps_jax.validation.composite import Fields
 from flowmaps_jax.validation.fields import Int, check_fields
 
 DEFAULT_FAMILY = "flowmaps"
@@ -43,6 +44,9 @@ class ModelSpec:
 
     def __post_init__(self):
         check_fields(self, _FITS, store=False)
+        # descriptor ids for all the simulator's descriptors
+        check_int("model.num_descriptors", self.model.num_descriptors,
+                  self.flowsim.num_descriptors)
 
     def abstract_params(self):
         """Structure, shapes and dtypes of the params this model initialises (nothing
@@ -51,11 +55,9 @@ class ModelSpec:
 
 
 _FITS = {"flowsim": Fields(FlowSimConfig, {"num_timesteps": Int(size="T")}, arrays=False),
-         "model": Fields(ModelConfig, {
-             "num_descriptors": After(lambda got: Int(got["flowsim"].num_descriptors)),
-             "tau_max": Int(size="T")}, arrays=False)}
-"""A model that fits its simulator: descriptor ids for all the simulator's descriptors, and
-``tau_max`` equal to ``flowsim.num_timesteps``."""
+         "model": Fields(ModelConfig, {"tau_max": Int(size="T")}, arrays=False)}
+"""A model that fits its simulator: ``tau_max`` equal to ``flowsim.num_timesteps`` (and, in
+``ModelSpec.__post_init__``, descriptor ids for all the simulator's descriptors)."""
 
 
 def model_spec(config: dict) -> ModelSpec:
