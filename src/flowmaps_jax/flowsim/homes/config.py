@@ -127,7 +127,7 @@ class HomesConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the field if this config cannot make valid homes."""
-        check_fields(self, _RULES)  # each field on its own
+        check_fields(self, _CLASS_RULES)  # the vocabulary's tables on their own
         # what the classes name must exist
         room_types = _names(self.room_types)
         for entry in self.receptacle_classes:
@@ -138,10 +138,12 @@ class HomesConfig:
             _check_names(f"object_classes: {entry.name!r} receptacles", entry.receptacles,
                          receptacle_classes, "receptacle class")
         _check_names("rooms", self.rooms, room_types, "room type", distinct=False)  # two bedrooms
-        # one object per class; a descriptor for every class
+        check_fields(self, _RULES)  # the other fields on their own
+        # one object per class (with fewer than MAX_OBJECTS classes); a descriptor for each class
         check_int("objects_per_home[1]", self.objects_per_home[1], 1,
                   min(MAX_OBJECTS, len(self.object_classes)))
-        check_int("max_vocabulary", self.max_vocabulary, self.vocabulary_size)
+        object.__setattr__(self, "max_vocabulary", check_int(
+            "max_vocabulary", self.max_vocabulary, self.vocabulary_size))  # as a Python int
         # how the fields fit together
         if len(self.rooms) % self.grid_rows:
             raise ValueError(f"rooms: {len(self.rooms)} rooms do not fill a grid of grid_rows="
@@ -294,11 +296,15 @@ _UNIT = Real(0.0, 1.0)
 _JITTER = Real(0.0, 1.0, high_open=True)
 _CLASSES = ("room_types", "receptacle_classes", "object_classes")
 """The class tables, whose entries together are the vocabulary (one descriptor each)."""
-_RULES = {
+_CLASS_RULES = {
     "room_types": Table(RoomType, _ENTRY_RULES, unique=("name",)),
     "receptacle_classes": Table(ReceptacleClass, {**_ENTRY_RULES, "size": _SIZE},
                                 unique=("name",)),
     "object_classes": Table(ObjectClass, {**_ENTRY_RULES, "size": _SIZE}, unique=("name",)),
+}
+"""What the vocabulary's tables hold on their own (names distinct); ``validate`` then checks
+the names each class lists."""
+_RULES = {
     "grid_rows": Int(1),
     # one receptacle per cell of a 2 x 2 split of the room
     "receptacles_per_room": Pair(1, integer=True, high=MAX_PER_ROOM),
@@ -314,11 +320,10 @@ _RULES = {
     "home_width": Pair(0.0), "home_depth": Pair(0.0),
     "door_width": Real(0.0, low_open=True), "wall_margin": Real(0.0),
     "max_tokens": Int(1),
-    "max_vocabulary": Int(1),
 }
-"""What each field of :class:`HomesConfig` may hold on its own (numbers are stored as Python
-numbers, class names distinct); ``validate`` then checks the names the classes and ``rooms``
-list, the bounds one field sets another, and how the fields fit together."""
+"""What the other fields of :class:`HomesConfig` may hold on their own (numbers are stored as
+Python numbers); ``validate`` then checks ``rooms``, the bounds the vocabulary sets
+(``objects_per_home``, ``max_vocabulary``) and how the fields fit together."""
 
 DEFAULT_HOMES_CONFIG = HomesConfig()
 
