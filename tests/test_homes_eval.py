@@ -329,7 +329,7 @@ def test_the_evaluation_scores_every_row_by_regime_and_horizon(results):
 
 
 @pytest.mark.parametrize("kwargs, named", [
-    ({"num_homes": 0}, "--homes"), ({"num_queries": 0}, "--queries"),
+    ({"num_homes": 0}, "--num-envs"), ({"num_queries": 0}, "--queries"),
     ({"horizons": (1, 200)}, "--horizons"), ({"history": 191}, "--history"),
     ({"num_samples": -1}, "--samples"), ({"budget": 5}, "--budget"),
     ({"seed": -1}, "--seed")])
@@ -381,7 +381,7 @@ def test_evaluate_and_search_run_the_homes_protocol_for_a_homes_model(tmp_path, 
 
 
 @pytest.mark.parametrize("command, args, named", [
-    (0, ["--regime", "weekly"], "--regime"), (0, ["--num-envs", "0"], "--homes"),
+    (0, ["--regime", "weekly"], "--regime"), (0, ["--num-envs", "0"], "--num-envs"),
     (1, ["--horizons", "1,700"], "--horizons"), (0, ["--kl-draws", "8"], "--kl-draws"),
     (1, ["--p-miss", "0.1"], "--p-miss"), (0, ["--samples", "4,8"], "--samples"),
     (0, ["--baseline", "pretrained:mlp"], "--baseline")])

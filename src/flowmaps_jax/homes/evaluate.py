@@ -42,7 +42,7 @@ from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig, generate_homes
 from flowmaps_jax.flowsim.homes.rollout import homes_bytes_per_home
 from flowmaps_jax.homes import navigation as nav
 from flowmaps_jax.homes import priors as pr
-from flowmaps_jax.homes.queries import DEFAULT_HORIZONS, draw_queries
+from flowmaps_jax.homes.queries import DEFAULT_HORIZONS, check_horizons, draw_queries
 from flowmaps_jax.homes.scores import (
     POSTERIOR_METRICS,
     assign_samples,
@@ -54,13 +54,13 @@ from flowmaps_jax.homes.scores import (
 )
 from flowmaps_jax.validation import (
     check_choice,
+    check_int,
     check_output_dir,
     check_request_size,
+    check_seed,
     make_output_dir,
     prefix_errors,
 )
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Each, Int, Seed, check_fields
 
 EVAL_SEED = 35_000_002
 """Seed of the evaluation homes (``jax.random.key(EVAL_SEED)``); training uses other seeds."""
@@ -135,13 +135,6 @@ def _ratio_summary(expected: np.ndarray, optimal: np.ndarray, groups: dict) -> d
     return out
 
 
-def _argument_rules(t: int) -> dict:
-    """The rules of :func:`run_evaluation`'s arguments, by command-line flag (T = ``t``)."""
-    return {"homes": Int(), "queries": Int(), "seed": Seed(), "history": Int(1, t - 2),
-            "samples": Int(0), "budget": Int(max(nav.SR_LOOKS)),
-            "horizons": After(lambda got: Each(Int(1, t - got["history"]), what="horizons"))}
-
-
 def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
                    num_queries: int = DEFAULT_QUERIES, seed: int = 0,
                    history: int = pr.DEFAULT_HISTORY, num_samples: int = DEFAULT_SAMPLES,
@@ -155,13 +148,16 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
     computed (the queries and every row's key do not depend on it)."""
     from tqdm.auto import tqdm
 
-    t = config.num_hours
-    args = check_fields(argparse.Namespace(
-        homes=num_homes, queries=num_queries, seed=seed, history=history, samples=num_samples,
-        budget=budget, horizons=horizons), _argument_rules(t), prefix="--")  # naming the flag
-    num_homes, num_queries, seed, history, num_samples, budget, horizons = args.values()
+    t = config.num_hours  # the messages name the command's flags
+    num_homes = check_int("--num-envs", num_homes)  # homes
+    num_queries = check_int("--queries", num_queries)
+    seed = check_seed("--seed", seed)
+    history = check_int("--history", history, 1, t - 2)
+    num_samples = check_int("--samples", num_samples, 0)
+    budget = check_int("--budget", budget, max(nav.SR_LOOKS))
+    horizons = check_horizons("--horizons", horizons, t - history)
     per_query = 4 * config.max_receptacles * (history + max(num_samples, 1) + 8 * budget)
-    check_request_size(f"--homes {num_homes} x --queries {num_queries}",
+    check_request_size(f"--num-envs {num_homes} x --queries {num_queries}",
                        num_homes * (homes_bytes_per_home(config) + num_queries * per_query))
     begin = time.perf_counter()
     key = jax.random.key(seed)

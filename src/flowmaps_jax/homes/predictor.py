@@ -35,8 +35,14 @@ from flowmaps_jax.homes.model import (
 from flowmaps_jax.homes.queries import HomesQueries, check_queries
 from flowmaps_jax.homes.tokens import denormalise_boxes, per_query_batch
 from flowmaps_jax.store import checkpoints, pretrained
-from flowmaps_jax.validation import check_request_size, prefix_errors
-from flowmaps_jax.validation.fields import Choice, Instance, Int, Key, check_args
+from flowmaps_jax.validation import (
+    check_choice,
+    check_instance,
+    check_int,
+    check_key,
+    check_request_size,
+    prefix_errors,
+)
 
 PRETRAINED_PREFIX = pretrained.PREFIX
 COMPATIBLE_FIELDS = ("rooms", "receptacles_per_room", "objects_per_home", "max_tokens",
@@ -65,10 +71,11 @@ class HomesPredictor:
     """A trained homes model: ``params``, its ``model`` sizes, the ``homes`` config it was
     trained on, where it came from (``source``) and its training ``step``."""
 
-    @check_args(params=Instance(dict), model=Instance(HomesModelConfig),
-                homes=Instance(HomesConfig))
     def __init__(self, params, model: HomesModelConfig, homes: HomesConfig,
                  source: str = "params", step: int | None = None):
+        check_instance("params", params, dict)
+        check_instance("model", model, HomesModelConfig)
+        check_instance("homes", homes, HomesConfig)
         with prefix_errors("homes."):
             homes.validate()  # the token budget too, should a config have skipped its checks
         self.params, self.model, self.homes = params, model, homes
@@ -77,7 +84,6 @@ class HomesPredictor:
     # ------------------------------------------------------------------ loading
 
     @classmethod
-    @check_args(which=Choice(checkpoints.WHICH), source=Instance((str, pathlib.Path)))
     def load(cls, source, which: str = "best",
              directory: str | pathlib.Path = pretrained.PRETRAINED_DIR) -> HomesPredictor:
         """The model in ``source``: a run or checkpoint directory (its ``which`` step: "best",
@@ -85,6 +91,8 @@ class HomesPredictor:
         ``"flowmaps-homes"`` (also as ``"pretrained:flowmaps-homes"``), read from
         ``directory`` (the package's weights by default). ``ValueError`` naming ``source`` when
         it is missing, damaged or not a homes model."""
+        which = check_choice("which", which, checkpoints.WHICH)
+        check_instance("source", source, (str, pathlib.Path))
         text = str(source)
         name = text[len(PRETRAINED_PREFIX):] if text.startswith(PRETRAINED_PREFIX) else text
         packaged = text.startswith(PRETRAINED_PREFIX) or (
@@ -146,13 +154,15 @@ class HomesPredictor:
 
         return self._chunked(run, queries, self.homes.max_receptacles)
 
-    @check_args(key=Key(), num_samples=Int(), num_steps=Int(2))
     def sample(self, key, homes: Homes, queries: HomesQueries, config: HomesConfig,
                num_samples: int, num_steps: int = DEFAULT_NUM_STEPS, *,
                return_receptacles: bool = False):
         """(E, Q, N, 6) float32 boxes (cx, cy, cz, w, d, h) in metres: a receptacle drawn from
         the weights, then the placement flow on it (``num_steps`` midpoint grid points). With
         ``return_receptacles``: (boxes, receptacles (E, Q, N) int32)."""
+        key = check_key(key)
+        num_samples = check_int("num_samples", num_samples)
+        num_steps = check_int("num_steps", num_steps, 2)
         self.check(homes, queries, config)
         e, q = queries.tau.shape
         check_request_size(f"sample({e} x {q} queries x {num_samples} samples)",

@@ -36,9 +36,7 @@ import jax.numpy as jnp
 from flowmaps_jax.flowsim.homes import HomesConfig, homes_history_posterior
 from flowmaps_jax.flowsim.homes.world import Homes
 from flowmaps_jax.homes.queries import HomesQueries
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Instance, Int, Key, Real
+from flowmaps_jax.validation import check_instance, check_int, check_key, check_real
 
 LAST_SEEN_EPS = 0.01
 """Mass last-seen leaves to the object's other allowed receptacles (KL stays finite)."""
@@ -75,10 +73,10 @@ def _exact(homes: Homes, queries: HomesQueries, config: HomesConfig, history: in
     return _per_query(one)(homes, queries.object_index, queries.tau, queries.tau_q)
 
 
-@check_args(config=Instance(HomesConfig),
-            history=After(lambda got: Int(1, got["config"].num_hours)))
 def exact_prior(config: HomesConfig, history: int = DEFAULT_HISTORY) -> Prior:
     """The exact posterior given the map at τ and the last min(history, τ + 1) hours."""
+    check_instance("config", config, HomesConfig)
+    history = check_int("history", history, 1, config.num_hours)
     return functools.partial(_exact, config=config, history=history)
 
 
@@ -100,9 +98,9 @@ def _last_seen(homes: Homes, queries: HomesQueries, eps: float):
     return jnp.where(allowed, here * stay + (1.0 - here) * spread, 0.0)
 
 
-@check_args(eps=Real(0.0, 1.0, high_open=True))
 def last_seen_prior(eps: float = LAST_SEEN_EPS) -> Prior:
     """All mass but ε where the object is at τ; ε evenly over its other allowed receptacles."""
+    eps = check_real("eps", eps, 0.0, 1.0, high_open=True)
     return functools.partial(_last_seen, eps=eps)
 
 
@@ -121,9 +119,9 @@ def _frequency(homes: Homes, queries: HomesQueries, history: int):
     return counts / counts.sum(-1, keepdims=True)
 
 
-@check_args(history=Int())
 def frequency_prior(history: int = DEFAULT_HISTORY) -> Prior:
     """Add-one counts of where the object stood over the window of ``history`` hours up to τ."""
+    history = check_int("history", history)
     return functools.partial(_frequency, history=history)
 
 
@@ -136,11 +134,12 @@ def histogram_draws(key, probs, num_samples: int) -> jax.Array:
     return jnp.mean(hits, axis=-2, dtype=jnp.float32)
 
 
-@check_args(key=Key(), num_samples=Int())
 def oracle_samples_prior(config: HomesConfig, key, num_samples: int = 100,
                          history: int = DEFAULT_HISTORY) -> Prior:
     """``num_samples`` draws from the exact posterior (``exact_prior(config, history)``,
     which checks ``config`` and ``history``), histogrammed; ``key`` fixes the draws."""
+    key = check_key(key)
+    num_samples = check_int("num_samples", num_samples)
     exact = exact_prior(config, history)
 
     def prior(homes: Homes, queries: HomesQueries) -> jax.Array:

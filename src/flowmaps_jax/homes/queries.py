@@ -16,9 +16,7 @@ from flax import struct
 
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.homes.world import Homes
-from flowmaps_jax.validation import is_concrete
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Each, Instance, Int, IntArray, check_args, check_fields
+from flowmaps_jax.validation import check_instance, check_int, check_int_array, is_concrete
 
 DEFAULT_HORIZONS = (1, 3, 6, 12, 24, 72, 168)
 """Query horizons τ_q − τ in hours: an hour, a morning, half a day, a day, three days, a week."""
@@ -38,17 +36,25 @@ class HomesQueries:
         return self.tau_q - self.tau
 
 
-@check_args(config=Instance(HomesConfig), num_queries=Int(),
-            history=After(lambda got: Int(1, got["config"].num_hours - 1)),
-            horizons=After(lambda got: Each(Int(1, got["config"].num_hours - got["history"]),
-                                            what="horizons")))
+def check_horizons(name: str, horizons, most: int) -> tuple[int, ...]:
+    """``horizons`` as a tuple: a non-empty tuple (or list) of ints in 1..``most``; the
+    messages name ``name``."""
+    if not isinstance(horizons, (tuple, list)) or not horizons:
+        raise ValueError(f"{name} must be a tuple of horizons; got {horizons!r}")
+    return tuple(check_int(name, h, 1, most) for h in horizons)
+
+
 def draw_queries(key, homes: Homes, config: HomesConfig, num_queries: int, *,
                  history: int = 168, horizons: tuple[int, ...] = DEFAULT_HORIZONS
                  ) -> HomesQueries:
     """Q queries per home: a valid object uniformly, a horizon uniformly from ``horizons``, and
     τ uniformly from the hours that leave ``history`` hours before it and the horizon after it
     (τ ∈ [history − 1, T − 1 − Δ]). Pure given ``key``; jittable."""
+    check_instance("config", config, HomesConfig)
+    num_queries = check_int("num_queries", num_queries)
     t = config.num_hours
+    history = check_int("history", history, 1, t - 1)
+    horizons = check_horizons("horizons", horizons, t - history)
     e, m = homes.object_valid.shape
     k_obj, k_h, k_tau = jax.random.split(key, 3)
     logits = jnp.where(homes.object_valid, 0.0, -jnp.inf)[:, None, :]
@@ -65,12 +71,13 @@ def check_queries(queries: HomesQueries, homes: Homes, config: HomesConfig) -> H
     """``ValueError`` naming the field unless ``queries`` fits ``homes``: (E, Q) ints, objects
     valid, 0 <= τ < τ_q <= T − 1 (values checked when concrete)."""
     e, t = homes.object_valid.shape[0], config.num_hours
-    fields = check_fields(queries, {
-        "object_index": IntArray(0, config.max_objects - 1, shape=(e, "Q")),
-        "tau": IntArray(0, t - 2, shape=(e, "Q")),
-        "tau_q": IntArray(1, t - 1, shape=(e, "Q"))}, prefix="queries.", store=False)
-    if is_concrete(*fields.values(), homes.object_valid):
-        obj, tau, tau_q = (np.asarray(fields[k]) for k in ("object_index", "tau", "tau_q"))
+    obj = check_int_array("queries.object_index", queries.object_index, 0,
+                          config.max_objects - 1, shape=(e, None))
+    q = obj.shape[1]
+    tau = check_int_array("queries.tau", queries.tau, 0, t - 2, shape=(e, q))
+    tau_q = check_int_array("queries.tau_q", queries.tau_q, 1, t - 1, shape=(e, q))
+    if is_concrete(obj, tau, tau_q, homes.object_valid):
+        obj, tau, tau_q = np.asarray(obj), np.asarray(tau), np.asarray(tau_q)
         if not np.all(np.take_along_axis(np.asarray(homes.object_valid), obj, axis=1)):
             raise ValueError("queries.object_index names a masked object slot")
         if np.any(tau_q <= tau):

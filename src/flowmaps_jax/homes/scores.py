@@ -35,9 +35,7 @@ from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.world import Homes
 from flowmaps_jax.homes.priors import allowed_slots
 from flowmaps_jax.homes.queries import HomesQueries
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import Fields
-from flowmaps_jax.validation.fields import Array
+from flowmaps_jax.validation import check_array, check_instance
 
 KL_FLOOR = 1e-9
 """KL(q ‖ p) reads max(p, KL_FLOOR): about 20.7 nats per unit of q's mass where p has none."""
@@ -61,10 +59,12 @@ def _with_off_bin(p, allowed):
                            axis=-1)
 
 
-@check_args(q=Array(("*B", "R")), p=Array(("*B", "R")), allowed=Array(("*B", "R")))
 def posterior_scores(p, q, allowed) -> dict[str, jax.Array]:
     """{``kl``, ``tv``, ``top1``, ``rank_cost``} (...) of p (..., R) against q (..., R) on the
     ``allowed`` (..., R) receptacles (see the module's docstring)."""
+    shape = tuple(check_array("q", q, (..., None)).shape)  # (..., R): the others' shape
+    check_array("p", p, shape)
+    check_array("allowed", allowed, shape)
     p, allowed = jnp.asarray(p, jnp.float32), jnp.asarray(allowed, bool)
     q = jnp.where(allowed, jnp.asarray(q, jnp.float32), 0.0)
     slots = score_slots(_with_off_bin(p, allowed), q, allowed)  # TV, top-1, rank cost
@@ -98,14 +98,15 @@ def _assign(samples, positions, allowed, footprint):
     return jnp.mean(hits, axis=-2, dtype=jnp.float32)
 
 
-@check_args(queries=Fields(HomesQueries, {"object_index": Array(("E", "Q"))}),
-            samples=Array(("E", "Q", None, 6)))
 def assign_samples(samples, homes: Homes, queries: HomesQueries,
                    config: HomesConfig) -> jax.Array:
     """(E, Q, R) fractions of sampled boxes (E, Q, N, 6) (cx, cy, cz, w, d, h) on each allowed
     receptacle: a sample counts for the allowed receptacle whose object position
     (:func:`object_positions`) is nearest to its centre, unless farther than half that
     receptacle's footprint diagonal plus ``ASSIGN_MARGIN``; then it is off (1 − the sum)."""
+    check_instance("queries", queries, HomesQueries)
+    e, q = check_array("queries.object_index", queries.object_index, (None, None)).shape
+    check_array("samples", samples, (e, q, None, 6))
     box = homes.receptacle_box
     footprint = 0.5 * jnp.hypot(box[..., 3], box[..., 4]) + ASSIGN_MARGIN  # (E, R)
     return _assign(jnp.asarray(samples, jnp.float32), object_positions(homes, queries, config),

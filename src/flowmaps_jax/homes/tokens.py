@@ -32,9 +32,7 @@ from flax import struct
 from flowmaps_jax.flowsim.homes.config import HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.world import Homes, object_boxes, validate_homes
 from flowmaps_jax.homes.queries import HomesQueries, check_queries
-from flowmaps_jax.validation import prefix_errors
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Instance, Int, IntArray, check_args
+from flowmaps_jax.validation import check_instance, check_int, check_int_array, prefix_errors
 
 HEIGHT_SCALE = 2.5
 """Metres: token z and h are divided by this (the footprint scales x, y, w, d)."""
@@ -129,10 +127,10 @@ def _tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
                       kind=flat[1].astype(jnp.int32), mask=flat[2].astype(bool))
 
 
-@check_args(config=Instance(HomesConfig),
-            tau=After(lambda got: IntArray(0, got["config"].num_hours - 1)))
 def home_tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
     """Tokens of every home at hour ``tau``: (E,) ints → (E, S); (E, K) → (E, K, S)."""
+    check_instance("config", config, HomesConfig)
+    tau = check_int_array("tau", tau, 0, config.num_hours - 1)
     with prefix_errors("config."):
         config.validate()  # its token budget too, should it have skipped its own checks
     validate_homes(homes, config, values=False)
@@ -219,12 +217,12 @@ def _history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
     return jnp.where(keep, out, 0.0)
 
 
-@check_args(config=Instance(HomesConfig),
-            history=After(lambda got: Int(1, got["config"].num_hours)))
 def history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
                      history: int = DEFAULT_HISTORY) -> jax.Array:
     """(E, Q, R, len(HISTORY_FEATURES)) float32 history features of every query (see
     :data:`HISTORY_FEATURES`), over the ``history`` hours up to each query's τ."""
+    check_instance("config", config, HomesConfig)
+    history = check_int("history", history, 1, config.num_hours)
     with prefix_errors("config."):
         config.validate()  # its token budget too, should it have skipped its own checks
     validate_homes(homes, config, values=False)

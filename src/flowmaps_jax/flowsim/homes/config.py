@@ -27,13 +27,12 @@ from flowmaps_jax.flowsim.homes.vocabulary import (
     ReceptacleClass,
     RoomType,
 )
-from flowmaps_jax.validation.composite import After, Table
+from flowmaps_jax.validation.composite import Table
 from flowmaps_jax.validation.errors import prefix_errors
 from flowmaps_jax.validation.fields import (
     Choice,
     Each,
     Int,
-    Members,
     Pair,
     PlainName,
     Probabilities,
@@ -42,6 +41,7 @@ from flowmaps_jax.validation.fields import (
     check_fields,
     check_keys,
 )
+from flowmaps_jax.validation.scalars import check_int
 
 REGIMES = ("preferences", "balanced", "frequent", "routine")
 """Schedule regimes (index = the ``regime`` id stored per object). ``HomesConfig.regime`` may
@@ -127,7 +127,23 @@ class HomesConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the field if this config cannot make valid homes."""
-        check_fields(self, _RULES)
+        check_fields(self, _CLASS_RULES)  # the vocabulary's tables on their own
+        # what the classes name must exist
+        room_types = _names(self.room_types)
+        for entry in self.receptacle_classes:
+            _check_names(f"receptacle_classes: {entry.name!r} rooms", entry.rooms, room_types,
+                         "room type")
+        receptacle_classes = _names(self.receptacle_classes)
+        for entry in self.object_classes:
+            _check_names(f"object_classes: {entry.name!r} receptacles", entry.receptacles,
+                         receptacle_classes, "receptacle class")
+        _check_names("rooms", self.rooms, room_types, "room type", distinct=False)  # two bedrooms
+        check_fields(self, _RULES)  # the other fields on their own
+        # one object per class (with fewer than MAX_OBJECTS classes); a descriptor for each class
+        check_int("objects_per_home[1]", self.objects_per_home[1], 1,
+                  min(MAX_OBJECTS, len(self.object_classes)))
+        object.__setattr__(self, "max_vocabulary", check_int(
+            "max_vocabulary", self.max_vocabulary, self.vocabulary_size))  # as a Python int
         # how the fields fit together
         if len(self.rooms) % self.grid_rows:
             raise ValueError(f"rooms: {len(self.rooms)} rooms do not fill a grid of grid_rows="
@@ -262,30 +278,37 @@ def _names(entries) -> frozenset:
     return frozenset(e.name for e in entries)
 
 
+def _check_names(name: str, value: Any, known: frozenset, what: str, distinct: bool = True):
+    """``value`` must be a non-empty tuple of names, each one of ``known`` (``what`` says what
+    they name, e.g. "room type"), each at most once if ``distinct``."""
+    if not isinstance(value, tuple) or not value:
+        raise ValueError(f"{name} must be a non-empty tuple of {what} names; got {value!r}")
+    for entry in value:
+        if entry not in known:
+            raise ValueError(f"{name}: unknown {what} {entry!r} (known: {sorted(known)})")
+    if distinct and len(set(value)) != len(value):
+        raise ValueError(f"{name} names a {what} twice: {value!r}")
+
+
 _ENTRY_RULES = {"name": PlainName(), "text": Text()}
 _SIZE = Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")
 _UNIT = Real(0.0, 1.0)
 _JITTER = Real(0.0, 1.0, high_open=True)
 _CLASSES = ("room_types", "receptacle_classes", "object_classes")
 """The class tables, whose entries together are the vocabulary (one descriptor each)."""
-_RULES = {
+_CLASS_RULES = {
     "room_types": Table(RoomType, _ENTRY_RULES, unique=("name",)),
-    # what the classes name must exist
-    "receptacle_classes": After(lambda got: Table(ReceptacleClass, {
-        **_ENTRY_RULES, "size": _SIZE,
-        "rooms": Members(_names(got["room_types"]), "room type")}, unique=("name",))),
-    "object_classes": After(lambda got: Table(ObjectClass, {
-        **_ENTRY_RULES, "size": _SIZE,
-        "receptacles": Members(_names(got["receptacle_classes"]), "receptacle class")},
-        unique=("name",))),
-    # a home may have two bedrooms
-    "rooms": After(lambda got: Members(_names(got["room_types"]), "room type", distinct=False)),
+    "receptacle_classes": Table(ReceptacleClass, {**_ENTRY_RULES, "size": _SIZE},
+                                unique=("name",)),
+    "object_classes": Table(ObjectClass, {**_ENTRY_RULES, "size": _SIZE}, unique=("name",)),
+}
+"""What the vocabulary's tables hold on their own (names distinct); ``validate`` then checks
+the names each class lists."""
+_RULES = {
     "grid_rows": Int(1),
     # one receptacle per cell of a 2 x 2 split of the room
     "receptacles_per_room": Pair(1, integer=True, high=MAX_PER_ROOM),
-    # one object per class
-    "objects_per_home": After(lambda got: Pair(1, integer=True, high=min(
-        MAX_OBJECTS, len(got["object_classes"])))),
+    "objects_per_home": Pair(1, integer=True, high=MAX_OBJECTS),
     "num_hours": Int(2, 2**20),
     "regime": Choice((*REGIMES, "mixed")),
     "routine_probs": Probabilities(3),
@@ -297,12 +320,10 @@ _RULES = {
     "home_width": Pair(0.0), "home_depth": Pair(0.0),
     "door_width": Real(0.0, low_open=True), "wall_margin": Real(0.0),
     "max_tokens": Int(1),
-    # a descriptor for every class
-    "max_vocabulary": After(lambda got: Int(sum(len(got[f]) for f in _CLASSES))),
 }
-"""What each field of :class:`HomesConfig` may hold (numbers are stored as Python numbers,
-names distinct, the names a class lists those of the classes before it); ``validate`` then
-checks how the fields fit together."""
+"""What the other fields of :class:`HomesConfig` may hold on their own (numbers are stored as
+Python numbers); ``validate`` then checks ``rooms``, the bounds the vocabulary sets
+(``objects_per_home``, ``max_vocabulary``) and how the fields fit together."""
 
 DEFAULT_HOMES_CONFIG = HomesConfig()
 

@@ -38,10 +38,7 @@ traced query out of range (τ_q ≤ τ, τ_q beyond the rollout, a masked object
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-from collections.abc import Mapping
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -50,9 +47,7 @@ from flowmaps_jax.flowsim.homes import schedules
 from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.schedules import PREFERENCES
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
-from flowmaps_jax.validation import check_args, is_concrete
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Instance, IntArray
+from flowmaps_jax.validation import check_instance, check_int_array, is_concrete
 
 
 def object_law(home: Homes, object_index, config: HomesConfig) -> dict:
@@ -146,35 +141,24 @@ def _after(bound):
     return int(bound) + 1 if is_concrete(bound) else None
 
 
-@dataclasses.dataclass(frozen=True)
-class _Home:
-    """The rule of a query's ``home``: one home of the query's ``config`` (shapes and dtypes),
-    in which ``object_index`` is not a masked slot when the whole query is concrete; ``query``
-    holds the arguments checked before it."""
-
-    query: Mapping[str, Any]
-
-    def __call__(self, name: str, home):
-        config, index = self.query["config"], self.query["object_index"]
-        validate_homes(home, config, batched=False, values=False)
-        concrete = is_concrete(home.object_valid, index, self.query["tau"], self.query["tau_q"])
-        if concrete and not bool(home.object_valid[int(index)]):
-            raise ValueError(f"object_index {int(index)} is a masked object slot (unused, or "
-                             f"its class has no allowed receptacle in this home)")
-        return home
-
-
-_HOUR = After(lambda got: IntArray(0, got["config"].num_hours - 1, shape=()))
-_QUERY = {  # a query's arguments, bounds from the config and from τ; values checked if concrete
-    "config": Instance(HomesConfig),
-    "object_index": After(lambda got: IntArray(0, got["config"].max_objects - 1, shape=())),
-    "tau": _HOUR,
-    "tau_q": After(lambda got: IntArray(_after(got["tau"]), got["config"].num_hours - 1,
-                                        shape=())),
-    "home": After(_Home)}  # after the others: it reads them
+def _check_query(home: Homes, object_index, tau, tau_q, config: HomesConfig):
+    """A query's arguments (values checked when concrete), in the form to go on with: ints as
+    0-d numpy arrays when concrete. ``home`` must be one home of ``config`` (shapes and dtypes),
+    in which ``object_index`` is not a masked slot when the whole query is concrete."""
+    check_instance("config", config, HomesConfig)
+    t = config.num_hours
+    object_index = check_int_array("object_index", object_index, 0, config.max_objects - 1,
+                                   shape=())
+    tau = check_int_array("tau", tau, 0, t - 1, shape=())
+    tau_q = check_int_array("tau_q", tau_q, _after(tau), t - 1, shape=())
+    validate_homes(home, config, batched=False, values=False)
+    if (is_concrete(home.object_valid, object_index, tau, tau_q)
+            and not bool(home.object_valid[int(object_index)])):
+        raise ValueError(f"object_index {int(object_index)} is a masked object slot (unused, or "
+                         f"its class has no allowed receptacle in this home)")
+    return object_index, tau, tau_q
 
 
-@check_args(**_QUERY)
 def homes_posterior(home: Homes, object_index, tau, tau_q,
                     config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """(R,) float32: P(object ``object_index`` on receptacle r at hour ``tau_q`` | where it is
@@ -183,25 +167,29 @@ def homes_posterior(home: Homes, object_index, tau, tau_q,
     home: one home (``Homes.home(i)``, fields without the E axis); object_index, tau, tau_q:
     int scalars (or traced ones, under jit / vmap), 0 <= tau < tau_q <= T − 1.
     """
+    object_index, tau, tau_q = _check_query(home, object_index, tau, tau_q, config)
     return _posterior(home, object_index, tau, tau_q, config)
 
 
-@check_args(**_QUERY, history=After(lambda got: IntArray(1, _after(got["tau"]), shape=())))
 def homes_history_posterior(home: Homes, object_index, tau, tau_q, history,
                             config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """(R,) float32: the posterior at ``tau_q`` given the object's receptacles at the
     ``history`` hours τ − history + 1 … τ, the preferences regime's favourites hidden (see the
     module's docstring); for the other regimes it equals ``homes_posterior``. 1 <= history
     <= tau + 1 (history 1: only where it is now)."""
+    object_index, tau, tau_q = _check_query(home, object_index, tau, tau_q, config)
+    history = check_int_array("history", history, 1, _after(tau), shape=())
     return _history_posterior(home, object_index, tau, tau_q, history, config)
 
 
-@check_args(config=Instance(HomesConfig), object_index=_QUERY["object_index"],
-            hour=After(lambda got: IntArray(0, got["config"].num_hours - 2, shape=())))
 def transition_matrix(home: Homes, object_index, hour,
                       config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """P_hour (R, R) float32 of one object: [i, j] = P(j at hour + 1 | i at hour); zero outside
     its allowed receptacles. A pure function of (home, object, hour of week)."""
+    check_instance("config", config, HomesConfig)
+    object_index = check_int_array("object_index", object_index, 0, config.max_objects - 1,
+                                   shape=())
+    hour = check_int_array("hour", hour, 0, config.num_hours - 2, shape=())
     validate_homes(home, config, batched=False, values=False)
     return _transition_matrix(home, object_index, hour, config)
 

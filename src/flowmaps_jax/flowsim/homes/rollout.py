@@ -27,9 +27,13 @@ from flowmaps_jax.flowsim.homes import floorplan, furnish, schedules
 from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.schedules import BALANCED, FREQUENT, PREFERENCES, ROUTINE
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
-from flowmaps_jax.validation import array_bytes, check_args, check_request_size
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Instance, Int, Key
+from flowmaps_jax.validation import (
+    array_bytes,
+    check_instance,
+    check_int,
+    check_key,
+    check_request_size,
+)
 
 
 def _uniform24(words: jnp.ndarray) -> jnp.ndarray:
@@ -195,7 +199,6 @@ def homes_bytes_per_home(config: HomesConfig) -> int:
     return sum(array_bytes(field_shape(f, dims), np.dtype(FIELDS[f][1])) for f in FIELDS)
 
 
-@check_args(key=Key(), config=Instance(HomesConfig), num_homes=Int())
 def generate_homes(key, config: HomesConfig = DEFAULT_HOMES_CONFIG, num_homes: int = 1) -> Homes:
     """Generate ``num_homes`` homes with ``config.num_hours`` hourly trajectories.
 
@@ -203,6 +206,9 @@ def generate_homes(key, config: HomesConfig = DEFAULT_HOMES_CONFIG, num_homes: i
     the same in any batch (it depends on its own key only). Raises ``ValueError`` naming the
     argument on bad input, or when the homes would not fit in memory.
     """
+    key = check_key(key)
+    check_instance("config", config, HomesConfig)
+    num_homes = check_int("num_homes", num_homes)
     # the trajectories' working set: a few (T, M) float/int arrays per home besides the output
     check_request_size(f"generate_homes({num_homes} homes)",
                        num_homes * (homes_bytes_per_home(config)
@@ -228,14 +234,17 @@ def _simulate(key, home: Homes, object_index, tau, steps: int, num_chains: int,
     return jax.vmap(chain)(jax.random.split(key, num_chains))
 
 
-@check_args(key=Key(), num_chains=Int(), config=Instance(HomesConfig),
-            tau=After(lambda got: Int(0, got["config"].num_hours - 1)),
-            tau_q=After(lambda got: Int(got["tau"] + 1, got["config"].num_hours - 1)),
-            object_index=After(lambda got: Int(0, got["config"].max_objects - 1)))
 def simulate(key, home: Homes, object_index: int, tau: int, tau_q: int, num_chains: int,
              config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """Monte-Carlo check of the posterior: (num_chains,) int32 receptacles of object
     ``object_index`` at hour ``tau_q`` of independent chains started where it is at ``tau``
     in ``home`` (one home, ``Homes.home(i)``), by the sampler ``generate_homes`` uses."""
+    key = check_key(key)
+    num_chains = check_int("num_chains", num_chains)
+    check_instance("config", config, HomesConfig)
+    t = config.num_hours
+    tau = check_int("tau", tau, 0, t - 1)
+    tau_q = check_int("tau_q", tau_q, tau + 1, t - 1)
+    object_index = check_int("object_index", object_index, 0, config.max_objects - 1)
     validate_homes(home, config, batched=False, values=False)
     return _simulate(key, home, object_index, tau, tau_q - tau, num_chains, config)

@@ -16,8 +16,12 @@ from flax import struct
 
 from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.floorplan import door_pairs
-from flowmaps_jax.validation import check_args, check_fields, is_concrete
-from flowmaps_jax.validation.fields import Instance, IntArray, RealArray
+from flowmaps_jax.validation import (
+    check_instance,
+    check_int_array,
+    check_real_array,
+    is_concrete,
+)
 
 FIELDS: dict[str, tuple[tuple[str, ...], str, str, str]] = {
     "home_size": (("E", "2"), "float32", "m", "footprint (width along x, depth along y)"),
@@ -115,7 +119,6 @@ def object_boxes(homes: Homes, hour, config: HomesConfig) -> jax.Array:
     return jnp.where(homes.object_valid[..., None], box, 0.0)
 
 
-@check_args(homes=Instance(Homes), config=Instance(HomesConfig))
 def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: bool = True,
                    name: str = "homes") -> None:
     """``ValueError`` naming the field unless ``homes`` is a well-formed ``Homes`` of ``config``.
@@ -125,6 +128,8 @@ def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: 
     one of its allowed receptacles at every hour. ``batched``: fields carry the leading E axis
     (False: one home, as ``Homes.home(i)`` gives); ``name``: what the messages call ``homes``.
     """
+    check_instance(name, homes, Homes)
+    check_instance("config", config, HomesConfig)
     arrays = homes.as_dict()
     first = arrays["home_size"]
     dims = sizes(config, np.shape(first)[0] if batched and np.ndim(first) else 0)
@@ -138,17 +143,18 @@ def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: 
                              f"({', '.join(FIELDS[field][0])} of the config) and {dtype}")
     if not (values and is_concrete(*arrays.values())):
         return
-    metres = RealArray(low=0.0, what="metres")
-    check_fields(homes, {
-        **{field: metres for field in ("home_size", "room_box", "door_position",
-                                       "receptacle_box", "receptacle_distance")},
-        "room_type": IntArray(0, len(config.room_types) - 1),
-        "receptacle_class": IntArray(-1, len(config.receptacle_classes) - 1),
-        "object_class": IntArray(-1, len(config.object_classes) - 1),
-        "regime": IntArray(0, len(REGIMES) - 1),
-        "receptacle_room": IntArray(0, config.num_rooms - 1),
-        **{field: IntArray(None, config.max_receptacles - 1)  # indices: below R
-           for field in ("favourite", "receptacle", "cycle")}}, prefix=f"{name}.", store=False)
+    for field in ("home_size", "room_box", "door_position", "receptacle_box",
+                  "receptacle_distance"):
+        check_real_array(f"{name}.{field}", arrays[field], low=0.0, what="metres")
+    r = config.max_receptacles
+    for field, low, high in (("room_type", 0, len(config.room_types) - 1),
+                             ("receptacle_class", -1, len(config.receptacle_classes) - 1),
+                             ("object_class", -1, len(config.object_classes) - 1),
+                             ("regime", 0, len(REGIMES) - 1),
+                             ("receptacle_room", 0, config.num_rooms - 1),
+                             ("favourite", None, r - 1),  # indices: below R
+                             ("receptacle", None, r - 1), ("cycle", None, r - 1)):
+        check_int_array(f"{name}.{field}", arrays[field], low, high)
     a = {k: np.asarray(v) if batched else np.asarray(v)[None] for k, v in arrays.items()}
     box = a["receptacle_box"]
     if np.any(box[..., 3:][a["receptacle_valid"]] <= 0):
