@@ -31,7 +31,6 @@ import sys
 import jax
 import numpy as np
 import pytest
-from flowmaps_jax.homes.train import HomesTrainConfig
 
 from flowmaps_jax import export as export_cli
 from flowmaps_jax.evaluation import cli as eval_cli
@@ -45,7 +44,7 @@ from flowmaps_jax.store import checkpoints, pretrained, reseal, rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointStore
 from flowmaps_jax.training import cli as train_cli
 from flowmaps_jax.training import loop, resume, runlog
-from flowmaps_jax.training.config import TrainConfig, apply_overrides, get_preset
+from flowmaps_jax.training.config import HomesTrainConfig, TrainConfig, apply_overrides, get_preset
 from flowmaps_jax.validation import parse_json, read_json, write_files
 from flowmaps_jax.validation.scalars import int_list
 
