@@ -113,11 +113,12 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
     * search_cost_ratio: Σ_k rank_k q_k visiting slots by decreasing p̂ (tied groups share their
       mean rank), over the same sum visiting by decreasing q (the least possible); ≥ 1.
     """
-    slot_mask = check_mask("slot_mask", slot_mask, (..., None))
-    shape = tuple(slot_mask.shape)  # (..., K)
-    q = check_probabilities("q", q, shape, atol=PROB_ATOL, min_value=-PROB_ATOL,
-                            support=slot_mask, support_name="slot_mask")
-    p_hat = check_probabilities("p_hat", p_hat, (*shape[:-1], shape[-1] + 1), atol=PROB_ATOL,
+    q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
+    *batch, k = q.shape
+    slot_mask = check_mask("slot_mask", slot_mask, (*batch, k))
+    check_probabilities("q", q, atol=PROB_ATOL, min_value=-PROB_ATOL, support=slot_mask,
+                        support_name="slot_mask")
+    p_hat = check_probabilities("p_hat", p_hat, (*batch, k + 1), atol=PROB_ATOL,
                                 min_value=-PROB_ATOL, support=slot_mask,
                                 support_name="slot_mask")
     return score_slots(jnp.asarray(p_hat, jnp.float32), jnp.asarray(q, jnp.float32),
