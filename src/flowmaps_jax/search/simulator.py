@@ -52,13 +52,6 @@ from flowmaps_jax.validation import (
     check_real_array,
     check_resources,
 )
-from flowmaps_jax.validation.fields import (
-    Distribution,
-    IntArray,
-    Mask,
-    RealArray,
-    check_fields,
-)
 
 DEFAULT_BUDGET = 10
 """Looks per episode (FlowSim has at most 4 tables of a kind: every policy finds the object
@@ -118,31 +111,25 @@ class Outcome:
 # --------------------------------------------------------------------------- validation
 
 
-EPISODE_RULES = {
-    "valid": Mask(("N", "K")),
-    "belief": Distribution(("N", "K"), support="valid"),
-    "centres": RealArray(("N", "K", 2), finite=False),  # finite on the real tables (below)
-    "start": RealArray(("N", 2)),
-    "target": IntArray(shape=("N",)),
-}
-"""What each field of :class:`Episodes` may hold (``check_fields``; N, K the named sizes)."""
-
-
 def check_episodes(episodes: Episodes, policy: str, budget: int,
                    every_target: bool = False) -> Episodes:
     """Validate the fields (``ValueError`` naming the field) and the size of the N episodes
     (K · N with ``every_target``) of ``budget`` looks under ``policy``
     (:func:`check_episodes_size`); returns them canonical: float32, int32, 0 for the centres of
     padded tables (what :func:`simulate` takes)."""
-    fields = check_fields(episodes, EPISODE_RULES, prefix="episodes.", store=False)
-    valid = fields["valid"]
+    valid = check_mask("episodes.valid", episodes.valid, (None, None))
     n, k = valid.shape
+    check_probabilities("episodes.belief", episodes.belief, (n, k), atol=PROB_ATOL,
+                        min_value=-PROB_ATOL, support=valid, support_name="episodes.valid")
+    centres = check_real_array("episodes.centres", episodes.centres, (n, k, 2), finite=False)
+    start = check_real_array("episodes.start", episodes.start, (n, 2))
+    target = check_int_array("episodes.target", episodes.target, shape=(n,))
     if n < 1 or not np.all(valid.any(-1)):
         raise ValueError(f"episodes.valid must hold N ≥ 1 episodes, each with at least one real "
                          f"table; got shape {valid.shape}")
-    centres = np.where(valid[..., None], np.asarray(fields["centres"]), 0.0)
+    centres = np.where(valid[..., None], np.asarray(centres), 0.0)
     check_real_array("episodes.centres", centres)  # NaN or inf on a real table
-    target = np.asarray(fields["target"])
+    target = np.asarray(target)
     if np.any((target < 0) | (target >= k)) or not np.all(
             valid[np.arange(n), np.clip(target, 0, k - 1)]):
         raise ValueError(f"episodes.target must index a real table (0..{k - 1}, valid)")
@@ -150,7 +137,7 @@ def check_episodes(episodes: Episodes, policy: str, budget: int,
                         real_tables=int(valid.sum(-1).max()))
     return Episodes(belief=jnp.asarray(episodes.belief, jnp.float32),
                     centres=jnp.asarray(centres, jnp.float32), valid=jnp.asarray(valid),
-                    start=jnp.asarray(fields["start"], jnp.float32),
+                    start=jnp.asarray(start, jnp.float32),
                     target=jnp.asarray(target, jnp.int32))
 
 
