@@ -61,7 +61,7 @@ def _check_mixture(slot_probs, slot_boxes, slot_mask):
     if slot_mask is not None:
         slot_mask = check_mask("slot_mask", slot_mask, tuple(slot_probs.shape))
         check_probabilities("slot_probs", slot_probs, atol=PROB_ATOL, min_value=-PROB_ATOL,
-                            support=slot_mask, support_name="slot_mask")
+                            support=slot_mask, support_name="slot_mask")  # none outside it
     slot_boxes = check_array("slot_boxes", slot_boxes)
     check_shape("slot_boxes", tuple(slot_boxes.shape), (*slot_probs.shape, 4),
                 "a box per entry of slot_probs")

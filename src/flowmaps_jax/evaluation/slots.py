@@ -114,9 +114,10 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
       mean rank), over the same sum visiting by decreasing q (the least possible); ≥ 1.
     """
     q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
-    *batch, k = q.shape
+    *batch, k = q.shape  # the queries' dims, the K slots
     slot_mask = check_mask("slot_mask", slot_mask, (*batch, k))
-    check_probabilities("q", q, atol=PROB_ATOL, min_value=-PROB_ATOL, support=slot_mask,
+    check_probabilities("q", q,  # no mass where slot_mask is False
+                        atol=PROB_ATOL, min_value=-PROB_ATOL, support=slot_mask,
                         support_name="slot_mask")
     p_hat = check_probabilities("p_hat", p_hat, (*batch, k + 1), atol=PROB_ATOL,
                                 min_value=-PROB_ATOL, support=slot_mask,

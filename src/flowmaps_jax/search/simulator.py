@@ -199,7 +199,7 @@ def bayes_update(belief, looked, p_miss: float = 0.0, valid=None, looks_at=None)
     if valid is not None:
         valid = check_mask("valid", valid, (*batch, k))
         check_probabilities("belief", belief, atol=PROB_ATOL, min_value=-PROB_ATOL,
-                            support=valid, support_name="valid")
+                            support=valid, support_name="valid")  # none on invalid tables
     looked = check_int_array("looked", looked, 0, k - 1, shape=tuple(batch))
     valid = np.ones(belief.shape, bool) if valid is None else valid
     if looks_at is None:
