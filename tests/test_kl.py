@@ -139,7 +139,7 @@ def test_jit_and_vmap_match_the_batched_call():
 @pytest.mark.parametrize("call, match", [
     (lambda: kl.gt_mixture_log_prob(np.zeros((4, 3)), Q, BOXES), "x must have shape"),
     (lambda: kl.gt_mixture_log_prob(np.zeros((2, 4, 4)), Q, BOXES),
-     r"x must have shape \(\*B, \*, 4\) with \*B = \(\)"),
+     r"x must have shape \(\*, 4\) \(leading dims as in slot_probs\)"),
     (lambda: kl.gt_mixture_log_prob(np.zeros((4, 4)), Q, BOXES[:2]), "slot_boxes must have shape"),
     (lambda: kl.gt_mixture_log_prob(np.zeros((4, 4)), Q, BOXES, MASK[:2]), "slot_mask"),
     (lambda: kl.gt_mixture_log_prob(np.zeros((4, 4)), np.array([0.5, 0.0, 0.5]), BOXES),

@@ -27,16 +27,14 @@ import numpy as np
 
 from flowmaps_jax.boxes import from_centre, to_centre
 from flowmaps_jax.tables import protocol_sigma  # the stds, shared with the assignment
-from flowmaps_jax.validation import is_concrete
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import (
-    Array,
-    Distribution,
-    Int,
-    Mask,
-    Optional,
-    Rule,
-    check_args,
+from flowmaps_jax.validation import (
+    PROB_ATOL,
+    check_array,
+    check_int,
+    check_mask,
+    check_probabilities,
+    check_shape,
+    is_concrete,
 )
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -50,30 +48,31 @@ class Estimate(NamedTuple):
     stderr: jnp.ndarray
 
 
-def _real_boxes(got) -> Rule:
-    """The rule of ``slot_boxes`` (*B, K, 4), checked after ``slot_mask`` and ``slot_probs``:
-    finite boxes with positive h and w on the slots that carry mass (concrete arrays)."""
-    def rule(name, slot_boxes):
-        slot_boxes = Array(("*B", "K", 4))(name, slot_boxes)
-        slot_probs, slot_mask = got["slot_probs"], got["slot_mask"]
-        if is_concrete(slot_probs, slot_boxes, slot_mask):
-            active = np.asarray(slot_probs) > 0
-            if slot_mask is not None:
-                active &= np.asarray(slot_mask, bool)
-            boxes = np.asarray(slot_boxes, dtype=np.float64)[active]
-            if not np.all(np.isfinite(boxes)):
-                raise ValueError(f"{name} contains NaN or inf on real slots")
-            if np.any(boxes[:, 2:] <= 0.0):
-                raise ValueError(f"{name} must have positive h and w on real slots (boxes are "
-                                 "y, x, h, w)")
-        return slot_boxes
-    return rule
-
-
-_MIXTURE = {  # the arguments of the public functions, in this order; B and K shared
-    "slot_mask": Optional(Mask(("*B", "K"))),
-    "slot_probs": Distribution(("*B", "K"), support="slot_mask"),
-    "slot_boxes": After(_real_boxes)}
+def _check_mixture(slot_probs, slot_boxes, slot_mask):
+    """The mixture arguments of the public functions: ``slot_probs`` (..., K) slot weights;
+    ``slot_mask`` (..., K) if given, no weight outside it; ``slot_boxes`` (..., K, 4), finite
+    with positive h and w on the slots that carry weight (values of concrete arrays). Returns
+    them checked (``slot_probs`` float64 and ``slot_mask`` bool when concrete)."""
+    slot_probs = check_probabilities("slot_probs", slot_probs, (..., None), atol=PROB_ATOL,
+                                     min_value=-PROB_ATOL)
+    if slot_mask is not None:
+        slot_mask = check_mask("slot_mask", slot_mask, tuple(slot_probs.shape))
+        check_probabilities("slot_probs", slot_probs, atol=PROB_ATOL, min_value=-PROB_ATOL,
+                            support=slot_mask, support_name="slot_mask")  # none outside it
+    slot_boxes = check_array("slot_boxes", slot_boxes)
+    check_shape("slot_boxes", tuple(slot_boxes.shape), (*slot_probs.shape, 4),
+                "a box per entry of slot_probs")
+    if is_concrete(slot_probs, slot_boxes, slot_mask):
+        active = np.asarray(slot_probs) > 0
+        if slot_mask is not None:
+            active &= np.asarray(slot_mask, bool)
+        boxes = np.asarray(slot_boxes, dtype=np.float64)[active]
+        if not np.all(np.isfinite(boxes)):
+            raise ValueError("slot_boxes contains NaN or inf on real slots")
+        if np.any(boxes[:, 2:] <= 0.0):
+            raise ValueError("slot_boxes must have positive h and w on real slots (boxes are "
+                             "y, x, h, w)")
+    return slot_probs, slot_boxes, slot_mask
 
 
 def _full_mask(shape, slot_mask):
@@ -83,13 +82,13 @@ def _full_mask(shape, slot_mask):
 _sigma = protocol_sigma
 
 
-@check_args(slot_boxes=Array((..., 4)))
 def gt_mixture_sigma(slot_boxes: jnp.ndarray) -> jnp.ndarray:
     """Per-slot std of the ground-truth mixture, in centre coordinates.
 
     slot_boxes: (..., K, 4) boxes b_k (y, x, h, w).
     Returns (..., K, 4) std of (cy, cx, h, w): (0.35 h, 0.35 w, 0.02 h, 0.02 w).
     """
+    slot_boxes = check_array("slot_boxes", slot_boxes, (..., 4))
     return _sigma(jnp.asarray(slot_boxes, jnp.float32))
 
 
@@ -115,7 +114,6 @@ def mixture_log_prob(x, slot_probs, slot_boxes, slot_mask):
     return jax.nn.logsumexp(log_comp + log_w[..., None, :], axis=-1)
 
 
-@check_args(**_MIXTURE, x=Array(("*B", None, 4)))
 def gt_mixture_log_prob(x: jnp.ndarray, slot_probs: jnp.ndarray, slot_boxes: jnp.ndarray,
                         slot_mask: jnp.ndarray | None = None) -> jnp.ndarray:
     """log q(x) of boxes under the ground-truth mixture (see module doc).
@@ -125,6 +123,10 @@ def gt_mixture_log_prob(x: jnp.ndarray, slot_probs: jnp.ndarray, slot_boxes: jnp
     slot_boxes: (..., K, 4) b_k. slot_mask: optional (..., K) real slots (default: all).
     Returns (..., N) log-densities w.r.t. Lebesgue measure on (y, x, h, w).
     """
+    slot_probs, slot_boxes, slot_mask = _check_mixture(slot_probs, slot_boxes, slot_mask)
+    x = check_array("x", x)
+    check_shape("x", tuple(x.shape), (*slot_probs.shape[:-1], None, 4),
+                "leading dims as in slot_probs")
     return mixture_log_prob(jnp.asarray(x, jnp.float32), slot_probs, slot_boxes,
                             _full_mask(np.shape(slot_probs), slot_mask))
 
@@ -142,13 +144,14 @@ def mixture_samples(key, slot_probs, slot_boxes, slot_mask, n):
     return from_centre(mean + std * eps)
 
 
-@check_args(**_MIXTURE, n=Int())
 def sample_gt_mixture(key: jax.Array, slot_probs: jnp.ndarray, slot_boxes: jnp.ndarray, n: int,
                       slot_mask: jnp.ndarray | None = None) -> jnp.ndarray:
     """n draws from the ground-truth mixture q: pick slot k with prob q_k, then jitter.
 
     slot_probs: (..., K). slot_boxes: (..., K, 4). Returns (..., n, 4) boxes (y, x, h, w).
     """
+    slot_probs, slot_boxes, slot_mask = _check_mixture(slot_probs, slot_boxes, slot_mask)
+    n = check_int("n", n)
     return mixture_samples(key, slot_probs, slot_boxes, _full_mask(np.shape(slot_probs), slot_mask),
                            n)
 
@@ -165,13 +168,14 @@ def kl_estimate(log_q, log_p) -> Estimate:
     return _mean_and_stderr(jnp.asarray(log_q, jnp.float32) - jnp.asarray(log_p, jnp.float32))
 
 
-@check_args(log_q=Array(("*B", "N")), log_p=Array(("*B", "N")))
 def continuous_kl(log_q: jnp.ndarray, log_p: jnp.ndarray) -> Estimate:
     """KL(q‖p) ≈ mean over draws x_i ~ q of log q(x_i) − log p(x_i), with its standard error.
 
     log_q, log_p: (..., N) log-densities at the same N ≥ 2 draws from q (e.g. from
     :func:`sample_gt_mixture`; log p exact for the model). Returns Estimate (...).
     """
+    log_q = check_array("log_q", log_q, (..., None))
+    log_p = check_array("log_p", log_p, tuple(log_q.shape))
     if np.shape(log_q)[-1] < 2:
         raise ValueError(f"log_q needs at least 2 draws for a standard error; got "
                          f"{np.shape(log_q)[-1]}")

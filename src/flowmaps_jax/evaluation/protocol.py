@@ -62,9 +62,7 @@ from flowmaps_jax.flowsim.scenes import draw_query_times, normalise_boxes, scene
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tables import assign_slots, histogram
 from flowmaps_jax.tokens import Queries, SceneTokens
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Each, Instance, Int, Optional
+from flowmaps_jax.validation import check_choice, check_instance, check_int
 
 DEFAULT_NUM_ENVS = 200
 DEFAULT_SAMPLES = (25, 100)
@@ -157,14 +155,13 @@ def _take(evalset: EvalSet, index: jnp.ndarray) -> EvalSet:
     return jax.tree_util.tree_map(lambda a: a[index], evalset)
 
 
-_COUNTS = Each(Int(), what="sample counts", index=True)
-
-
-def _sample_counts(name: str, value) -> tuple[int, ...]:
-    """The rule of ``sample_counts``: distinct positive ints (a tuple or list), sorted."""
-    counts = _COUNTS(name, value)
+def _check_sample_counts(sample_counts) -> tuple[int, ...]:
+    """``sample_counts`` as distinct positive ints (from a non-empty tuple or list), sorted."""
+    if not isinstance(sample_counts, (tuple, list)) or not sample_counts:
+        raise ValueError(f"sample_counts must be a tuple of sample counts; got {sample_counts!r}")
+    counts = tuple(check_int(f"sample_counts[{i}]", n) for i, n in enumerate(sample_counts))
     if len(set(counts)) != len(counts):
-        raise ValueError(f"{name} must not repeat values; got {counts}")
+        raise ValueError(f"sample_counts must not repeat values; got {counts}")
     return tuple(sorted(counts))
 
 
@@ -173,9 +170,6 @@ def history_row_names(history: int) -> tuple[str, ...]:
     return (EXACT_H1_ROW, empirical_row(history)) if history > 1 else ()
 
 
-@check_args(config=Instance(FlowSimConfig), kl_draws=Int(2),
-            history=After(lambda got: Int(1, got["config"].num_timesteps)),
-            horizon=Optional(After(lambda got: Int(1, got["config"].num_timesteps - 1))))
 def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
                        kl_draws: int = DEFAULT_KL_DRAWS, horizon: int | None = None,
                        history: int = 1) -> EvalSet:
@@ -190,6 +184,11 @@ def build_eval_queries(scenes, config: FlowSimConfig, key: jax.Array,
     last min(H, τ + 1) observations and the EvalSet's ``habit``, ``history`` (and for H > 1
     ``exact_h1``, ``empirical``) are set; the times and draws do not depend on H.
     """
+    check_instance("config", config, FlowSimConfig)
+    kl_draws = check_int("kl_draws", kl_draws, 2)
+    history = check_int("history", history, 1, config.num_timesteps)
+    if horizon is not None:
+        horizon = check_int("horizon", horizon, 1, config.num_timesteps - 1)
     num_envs = scenes.num_envs
     m = config.num_objects
     env = jnp.arange(num_envs, dtype=jnp.int32)
@@ -305,7 +304,6 @@ def slot_shares(evalset: EvalSet, samples) -> jnp.ndarray:
                      evalset.num_slots_padded)
 
 
-@check_args(sample_counts=_sample_counts)
 def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMPLES,
                    key: jax.Array | None = None) -> list[RowResult]:
     """The reference rows: oracle (q itself), oracle samples (n draws from q: the finite-sample
@@ -322,7 +320,7 @@ def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMP
     density is q; only its slot histogram is noisy), as for smoothed-q samples.
     ``key``: the draws of "oracle samples" and "smoothed-q samples" (default ``key(0)``).
     """
-    counts = sample_counts
+    counts = _check_sample_counts(sample_counts)
     key = jax.random.key(0) if key is None else key
     exact = {"oracle": with_off_bin(evalset.slot_probs),
              "last-seen": one_hot_slots(evalset.slot_now, evalset.num_slots_padded),
@@ -358,9 +356,6 @@ def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMP
     return rows
 
 
-@check_args(sample_counts=_sample_counts, chunk_envs=Int(),
-            likelihood_steps=Optional(Int(3)), likelihood_draws=Int(2), **flow.SOLVER_RULES,
-            logp_steps=Optional(flow.GRID_POINTS))
 def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
                        sample_counts: Sequence[int] = DEFAULT_SAMPLES,
                        chunk_envs: int = DEFAULT_CHUNK_ENVS, num_steps: int = DEFAULT_NUM_STEPS,
@@ -380,7 +375,16 @@ def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
     2·n − 1 points; None skips it (``kl`` is then the paper grid's). ``likelihood_draws``: the
     accurate likelihood uses the first this-many KL draws of each query (all when fewer).
     """
-    counts = sample_counts
+    counts = _check_sample_counts(sample_counts)
+    chunk_envs = check_int("chunk_envs", chunk_envs)
+    if likelihood_steps is not None:
+        likelihood_steps = check_int("likelihood_steps", likelihood_steps, 3)
+    likelihood_draws = check_int("likelihood_draws", likelihood_draws, 2)
+    method = check_choice("method", method, flow.SOLVERS)
+    fewest_points = 3 if method == "accurate" else 2  # the solver's grid points
+    num_steps = check_int("num_steps", num_steps, fewest_points)
+    if logp_steps is not None:
+        logp_steps = check_int("logp_steps", logp_steps, fewest_points)
     logp_steps = num_steps if logp_steps is None else logp_steps
     n_max = counts[-1]
     num_envs = evalset.num_envs

@@ -33,9 +33,7 @@ from flowmaps_jax.evaluation.protocol import (
 )
 from flowmaps_jax.evaluation.slots import ROUTE_OFFSET_LABELS, offset_mass
 from flowmaps_jax.flowsim.scenes import scene_tokens
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Instance, Int
+from flowmaps_jax.validation import check_instance, check_int
 
 EXACT_ONE_STEP = (0.2, 0.7, 0.1, 0.0, 0.0, 0.0)
 """The exact posterior's route-offset mass one step ahead (FlowSim's Markov dynamics)."""
@@ -49,9 +47,6 @@ class RoutineProbe:
     mixed: EvalSet
 
 
-@check_args(num_envs=After(lambda got: Int(1, got["scenes"].num_envs,
-                                           why="the environments in scenes")),
-            history=After(lambda got: Int(1, got["config"].num_timesteps)))
 def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
                 history: int = 1) -> RoutineProbe:
     """The probe from the first ``num_envs`` environments of ``scenes`` (3 queries each).
@@ -59,6 +54,11 @@ def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
     history: H of the model it scores. With H > 1 its tokens are the last H maps
     (``scene_tokens(..., history=H)``, within ``config.max_tokens``) and, as in the evaluation,
     the ground truth is the exact posterior given the last min(H, τ + 1) observations."""
+    num_envs = check_int("num_envs", num_envs)
+    if num_envs > scenes.num_envs:
+        raise ValueError(f"num_envs must be <= {scenes.num_envs} (the environments in scenes); "
+                         f"got {num_envs}")
+    history = check_int("history", history, 1, config.num_timesteps)
     part = jax.tree_util.tree_map(lambda a: a[:num_envs], scenes)
     key = jax.random.key(seed)
 
@@ -73,7 +73,6 @@ def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
     return RoutineProbe(one_step=query_set(1, 1), mixed=query_set(2, None))
 
 
-@check_args(probe=Instance(RoutineProbe), num_samples=Int())
 def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None,
                     num_samples: int = 32) -> dict[str, float]:
     """Sample ``predictor`` on the probe; a flat dict of floats (JSON-ready).
@@ -82,6 +81,8 @@ def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None
     ``offset_off`` (one step ahead, mean over queries); ``one_step_tv``, ``one_step_top1``,
     ``one_step_search_cost_ratio``; ``tv``, ``top1``, ``search_cost_ratio`` (horizon mixture).
     """
+    check_instance("probe", probe, RoutineProbe)
+    num_samples = check_int("num_samples", num_samples)
     key = jax.random.key(0) if key is None else key
     out: dict[str, float] = {}
     for i, (label, evalset) in enumerate((("one_step", probe.one_step), ("mixed", probe.mixed))):

@@ -38,15 +38,18 @@ from flowmaps_jax.flowsim.scenes import check_history, scene_tokens
 from flowmaps_jax.flowsim.worlds import world_of
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tables import ASSIGN_RADIUS
-from flowmaps_jax.validation import check_args, check_output_dir, make_output_dir, save_figure
-from flowmaps_jax.validation.fields import Each, Instance
+from flowmaps_jax.validation import (
+    check_instance,
+    check_output_dir,
+    make_output_dir,
+    save_figure,
+)
 
 REPORT_FILES = ("results.json", "results.md")
 FIGURES = ("kl.png", "by_horizon.png", "samples.png", "slots.png")
 """The files an evaluation writes into its ``out_dir`` (figures unless ``figures=False``)."""
 
 
-@check_args(predictors=Each(Instance(Predictor), what="Predictor objects"))
 def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfig,
                    out_dir: str | pathlib.Path | None = None, *, seed: int = 0,
                    sample_counts: Sequence[int] = DEFAULT_SAMPLES,
@@ -72,6 +75,9 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
     which score the rows (before any model runs). Returns
     (results dict as written to results.json, the RowResults, the EvalSet).
     """
+    if not isinstance(predictors, (tuple, list)) or not predictors:
+        raise ValueError(f"predictors must be a tuple of Predictor objects; got {predictors!r}")
+    predictors = tuple(check_instance("predictors", p, Predictor) for p in predictors)
     for p in predictors:
         if p.flowsim.map_size != config.map_size or p.flowsim.categories != config.categories:
             raise ValueError(f"predictor {p.name} ({p.source}) was trained on a different FlowSim "

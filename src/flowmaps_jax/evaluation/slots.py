@@ -34,8 +34,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.tables import histogram
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.fields import Array, Distribution, Int, IntArray, Mask
+from flowmaps_jax.validation import (
+    PROB_ATOL,
+    check_array,
+    check_int,
+    check_int_array,
+    check_mask,
+    check_probabilities,
+)
 
 TIE_ATOL = 1e-6
 """Two slot scores closer than this are tied."""
@@ -95,8 +101,6 @@ def score_slots(p_hat, q, slot_mask) -> dict[str, np.ndarray]:
             "search_cost_ratio": np.asarray(ratio)}
 
 
-@check_args(slot_mask=Mask(("*B", "K")), q=Distribution(("*B", "K"), support="slot_mask"),
-            p_hat=Distribution(("*B", "K+1"), support="slot_mask"))
 def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
                 ) -> dict[str, np.ndarray]:
     """The protocol's slot metrics of p̂ (..., K + 1) against q (..., K); slot_mask (..., K) bool.
@@ -109,6 +113,15 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
     * search_cost_ratio: Σ_k rank_k q_k visiting slots by decreasing p̂ (tied groups share their
       mean rank), over the same sum visiting by decreasing q (the least possible); ≥ 1.
     """
+    q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
+    *batch, k = q.shape  # the queries' dims, the K slots
+    slot_mask = check_mask("slot_mask", slot_mask, (*batch, k))
+    check_probabilities("q", q,  # no mass where slot_mask is False
+                        atol=PROB_ATOL, min_value=-PROB_ATOL, support=slot_mask,
+                        support_name="slot_mask")
+    p_hat = check_probabilities("p_hat", p_hat, (*batch, k + 1), atol=PROB_ATOL,
+                                min_value=-PROB_ATOL, support=slot_mask,
+                                support_name="slot_mask")
     return score_slots(jnp.asarray(p_hat, jnp.float32), jnp.asarray(q, jnp.float32),
                        jnp.asarray(slot_mask, bool))
 
@@ -116,9 +129,9 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
 # --------------------------------------------------------------------------- reference predictors
 
 
-@check_args(q=Distribution((..., None)))
 def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
     """The oracle predictor: q itself. (..., K) → (..., K + 1) with an empty off bin."""
+    q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
     return with_off_bin(jnp.asarray(q, jnp.float32))
 
 
@@ -136,13 +149,14 @@ def draw_slot_histogram(key, q, n):
     return histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
 
 
-@check_args(q=Distribution((..., None)), n=Int())
 def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:
     """A perfect sampler seen through n samples: slot counts / n of n draws from q itself.
 
     (..., K) → (..., K + 1) (off bin empty). Its slot scores are the best any sampler can expect
     from n samples: the gap to the exact oracle is pure finite-sample noise.
     """
+    q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
+    n = check_int("n", n)
     return draw_slot_histogram(key, jnp.asarray(q, jnp.float32), n)
 
 
@@ -152,12 +166,13 @@ def one_hot_slots(slot_now, num_slots: int):
     return jax.nn.one_hot(slot_now, num_slots + 1)
 
 
-@check_args(num_slots=Int(size="K"), slot_now=IntArray(0, "K-1"))
 def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     """Last-seen predictor: the object stays where it is. slot_now (...) ints → (..., K + 1).
 
     num_slots: K, the padded slot count. slot_now indexes the same slot axis as q.
     """
+    num_slots = check_int("num_slots", num_slots)
+    slot_now = check_int_array("slot_now", slot_now, 0, num_slots - 1)
     return one_hot_slots(jnp.asarray(slot_now), num_slots)
 
 
@@ -169,12 +184,13 @@ def uniform_over_slots(count, num_slots: int):
     return jnp.concatenate([probs, jnp.zeros_like(probs[..., :1])], axis=-1)
 
 
-@check_args(num_slots=Int(size="K"), count=IntArray(1, "K"))
 def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
     """Uniform predictor over the real slots. count (...) ints in 1..K → (..., K + 1).
 
     Real slots are the first ``count`` of the K padded ones (as in ``Scenes.visit_order``).
     """
+    num_slots = check_int("num_slots", num_slots)
+    count = check_int_array("count", count, 1, num_slots)
     return uniform_over_slots(jnp.asarray(count), num_slots)
 
 
@@ -194,8 +210,6 @@ def offset_mass(p_hat, slot_now, num_slots):
     return jnp.concatenate([mass, beyond, off], axis=-1)
 
 
-@check_args(p_hat=Array(("*B", "K+1")), slot_now=IntArray(0, "K-1", shape=("*B",)),
-            num_slots=IntArray(1, "K", shape=("*B",)))
 def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
                       num_slots: jnp.ndarray) -> jnp.ndarray:
     """Where along the visiting order a slot distribution puts its mass, relative to now.
@@ -207,5 +221,9 @@ def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
     (offsets ≥ the route length are not counted there), at every larger offset ("beyond"), and
     off every slot. One step ahead the exact posterior gives 0.2 / 0.7 / 0.1 / 0 / 0 / 0.
     """
+    p_hat = check_array("p_hat", p_hat, (..., None))
+    batch, k = tuple(p_hat.shape[:-1]), p_hat.shape[-1] - 1
+    slot_now = check_int_array("slot_now", slot_now, 0, k - 1, shape=batch)
+    num_slots = check_int_array("num_slots", num_slots, 1, k, shape=batch)
     return offset_mass(jnp.asarray(p_hat, jnp.float32), jnp.asarray(slot_now, jnp.int32),
                        jnp.asarray(num_slots, jnp.int32))

@@ -68,20 +68,16 @@ from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the sim
 from flowmaps_jax.tables import table_probabilities
 from flowmaps_jax.tokens import Queries, SceneTokens
 from flowmaps_jax.validation import (
-    check_args,
+    PROB_ATOL,
+    check_choice,
+    check_instance,
+    check_int,
+    check_int_array,
+    check_key,
+    check_probabilities,
     check_resources,
     network_flops,
     solver_evaluations,
-)
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import (
-    Choice,
-    Distribution,
-    Instance,
-    Int,
-    IntArray,
-    Key,
-    Optional,
 )
 
 STARTS = ("centre", "last-seen")
@@ -190,9 +186,6 @@ class SearchSet:
         return int(np.max(np.asarray(self.num_slots)))
 
 
-@check_args(scenes=Instance(Scenes), config=Instance(FlowSimConfig), key=Key(),
-            times_per_env=Int(), horizons=Optional(IntArray(1, shape=(None,))),
-            history=After(lambda got: Int(1, got["config"].num_timesteps)))
 def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
                      times_per_env: int = 1,
                      horizons: Sequence[int] | None = None, history: int = 1) -> SearchSet:
@@ -208,6 +201,13 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
     set carries ``habit`` and ``extra_slots`` (see :class:`SearchSet`); otherwise (the paper's
     world, H = 1) it is bit for bit the paper's protocol.
     """
+    check_instance("scenes", scenes, Scenes)
+    check_instance("config", config, FlowSimConfig)
+    key = check_key(key, "key")
+    times_per_env = check_int("times_per_env", times_per_env)
+    if horizons is not None:
+        horizons = check_int_array("horizons", horizons, 1, shape=(None,))
+    history = check_int("history", history, 1, config.num_timesteps)
     t_max = config.num_timesteps
     if horizons is None:
         per_env, fixed = times_per_env, None
@@ -316,7 +316,6 @@ def last_seen_tables(search_set: SearchSet) -> jnp.ndarray:
     return spread_over_tables(slots, s.visit_order, s.tokens.num_tokens)
 
 
-@check_args(key=Key(), chunk_rows=Int())
 def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, key: jax.Array,
                      chunk_rows: int = 50, progress: bool = True, desc: str | None = None,
                      **sample_kwargs) -> jnp.ndarray:
@@ -328,6 +327,8 @@ def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, ke
     default "samples") and the other keywords go to it. A model whose samples or table weights
     are not finite is an error naming it.
     """
+    key = check_key(key, "key")
+    chunk_rows = check_int("chunk_rows", chunk_rows)
     s = search_set
     chunk = min(chunk_rows, s.num_rows)
     method = sample_kwargs.pop("method", "samples")
@@ -390,8 +391,6 @@ def _candidates(table_probs, visit_order, num_slots, slot_now, furniture_px, num
     return belief, centres, valid, kind_mass, last_seen
 
 
-@check_args(start=Choice(STARTS), table_probs=After(lambda got: Distribution(
-    (*got["search_set"].queries.descriptor.shape, got["search_set"].tokens.num_tokens + 1))))
 def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
                   ) -> tuple[Episodes, jnp.ndarray]:
     """Episodes (N = R · M) over the K tables of each object's kind, from a prior's table
@@ -408,6 +407,10 @@ def make_episodes(search_set: SearchSet, table_probs, start: str = "centre"
     the simulator's cores.
     """
     s = search_set
+    start = check_choice("start", start, STARTS)
+    table_probs = check_probabilities(
+        "table_probs", table_probs, (*s.queries.descriptor.shape, s.tokens.num_tokens + 1),
+        atol=PROB_ATOL, min_value=-PROB_ATOL)
     probs = jnp.asarray(table_probs, jnp.float32)
     belief, centres, valid, kind_mass, last_seen = _candidates(
         probs, s.visit_order, s.num_slots, s.slot_now, s.furniture_px, s.num_tables)

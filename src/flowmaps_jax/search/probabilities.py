@@ -35,8 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.tokens import FURNITURE, SceneTokens
-from flowmaps_jax.validation import check_args
-from flowmaps_jax.validation.fields import Int, IntArray
+from flowmaps_jax.validation import check_int, check_int_array
 
 OFF = "off"
 """Key of the off-table mass in :func:`table_dict`."""
@@ -56,7 +55,6 @@ def spread_over_tables(slot_probs, visit_order, num_tokens: int):
     return jnp.einsum("...f,...fs->...s", slot_probs, onehot)
 
 
-@check_args(num_tokens=Int(size="num_tokens"), visit_order=IntArray(high="num_tokens-1"))
 def slots_to_tables(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
     """A slot distribution along a visiting order as table probabilities.
 
@@ -66,6 +64,8 @@ def slots_to_tables(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
     (token) index of each position, −1 padded (``Scenes.visit_order``). num_tokens: S.
     Returns (..., S + 1): slot k's mass on token ``visit_order[k]``, zeros elsewhere, off 0.
     """
+    num_tokens = check_int("num_tokens", num_tokens)
+    visit_order = check_int_array("visit_order", visit_order, None, num_tokens - 1)
     probs = jnp.asarray(slot_probs, jnp.float32)
     order = np.shape(visit_order)
     if probs.shape[:-1] != order[:-1] or probs.shape[-1] not in (order[-1], order[-1] + 1):

@@ -38,8 +38,7 @@ from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import scores as sc
 from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.tables import ASSIGN_TOLERANCE, TABLE_METHODS
-from flowmaps_jax.validation import check_args, prefix_errors
-from flowmaps_jax.validation.fields import Choice, Each, Int, Real
+from flowmaps_jax.validation import check_choice, check_int, check_real, prefix_errors
 
 MAIN_POLICIES = ("most-probable", "greedy", "optimal")
 """The policies every prior is driven by (``"nearest"`` is the prior-free row)."""
@@ -107,8 +106,6 @@ def habit_sections(rows: dict) -> dict:
             for habit in HABITS if habit in present}
 
 
-@check_args(budget=Int(), p_miss=Real(0.0, 1.0, high_open=True),
-            policies=Each(Choice(MAIN_POLICIES), what="policy names"))
 def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowSimConfig, *,
                  policies: Sequence[str] = MAIN_POLICIES, budget: int = sim.DEFAULT_BUDGET,
                  p_miss: float = 0.0, start: str = "centre", key: jax.Array | None = None,
@@ -122,6 +119,11 @@ def score_priors(search_set: ep.SearchSet, priors: dict[str, Any], config: FlowS
     Returns (rows: {row: {"kind_mass": stat, "policies": {policy: {"summary", "ratio",
     "expected", "expected_ratio", "curves"}}}}, runs: {(row, policy): RowRun}).
     """
+    budget = check_int("budget", budget)
+    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
+    if not isinstance(policies, (tuple, list)) or not policies:
+        raise ValueError(f"policies must be a tuple of policy names; got {policies!r}")
+    policies = tuple(check_choice("policies", p, MAIN_POLICIES) for p in policies)
     if len(set(policies)) != len(policies):
         raise ValueError(f"policies must be distinct names from {MAIN_POLICIES}; got {policies}")
     if EXACT_ROW not in priors:
@@ -194,7 +196,6 @@ def model_history(predictor) -> int:
     return int(getattr(getattr(predictor, "model", None), "history", 1) or 1)
 
 
-@check_args(seed=Int(None), num_samples=Int(), table_method=Choice(TABLE_METHODS))
 def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig, *,
                seed: int = 0, num_samples: int = DEFAULT_SAMPLES,
                times_per_env: int = DEFAULT_TIMES_PER_ENV, horizons: Sequence[int] | None = None,
@@ -217,6 +218,9 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     ``Predictor.table_weights``; models without them, such as the MLP baseline, are sampled) or
     "samples" (``num_samples`` per query).
     """
+    seed = check_int("seed", seed, None)
+    num_samples = check_int("num_samples", num_samples)
+    table_method = check_choice("table_method", table_method, TABLE_METHODS)
     policies = tuple(policies)
     for p in predictors:
         flowsim = getattr(p, "flowsim", None)

@@ -41,23 +41,16 @@ from flowmaps_jax.search.policies import (
 )
 from flowmaps_jax.validation import (
     PROB_ATOL,
-    check_args,
+    check_choice,
+    check_instance,
+    check_int,
+    check_int_array,
+    check_key,
+    check_mask,
     check_probabilities,
+    check_real,
     check_real_array,
     check_resources,
-)
-from flowmaps_jax.validation.fields import (
-    Choice,
-    Distribution,
-    Instance,
-    Int,
-    IntArray,
-    Key,
-    Mask,
-    Optional,
-    Real,
-    RealArray,
-    check_fields,
 )
 
 DEFAULT_BUDGET = 10
@@ -118,31 +111,25 @@ class Outcome:
 # --------------------------------------------------------------------------- validation
 
 
-EPISODE_RULES = {
-    "valid": Mask(("N", "K")),
-    "belief": Distribution(("N", "K"), support="valid"),
-    "centres": RealArray(("N", "K", 2), finite=False),  # finite on the real tables (below)
-    "start": RealArray(("N", 2)),
-    "target": IntArray(shape=("N",)),
-}
-"""What each field of :class:`Episodes` may hold (``check_fields``; N, K the named sizes)."""
-
-
 def check_episodes(episodes: Episodes, policy: str, budget: int,
                    every_target: bool = False) -> Episodes:
     """Validate the fields (``ValueError`` naming the field) and the size of the N episodes
     (K · N with ``every_target``) of ``budget`` looks under ``policy``
     (:func:`check_episodes_size`); returns them canonical: float32, int32, 0 for the centres of
     padded tables (what :func:`simulate` takes)."""
-    fields = check_fields(episodes, EPISODE_RULES, prefix="episodes.", store=False)
-    valid = fields["valid"]
+    valid = check_mask("episodes.valid", episodes.valid, (None, None))
     n, k = valid.shape
+    check_probabilities("episodes.belief", episodes.belief, (n, k), atol=PROB_ATOL,
+                        min_value=-PROB_ATOL, support=valid, support_name="episodes.valid")
+    centres = check_real_array("episodes.centres", episodes.centres, (n, k, 2), finite=False)
+    start = check_real_array("episodes.start", episodes.start, (n, 2))
+    target = check_int_array("episodes.target", episodes.target, shape=(n,))
     if n < 1 or not np.all(valid.any(-1)):
         raise ValueError(f"episodes.valid must hold N ≥ 1 episodes, each with at least one real "
                          f"table; got shape {valid.shape}")
-    centres = np.where(valid[..., None], np.asarray(fields["centres"]), 0.0)
+    centres = np.where(valid[..., None], np.asarray(centres), 0.0)
     check_real_array("episodes.centres", centres)  # NaN or inf on a real table
-    target = np.asarray(fields["target"])
+    target = np.asarray(target)
     if np.any((target < 0) | (target >= k)) or not np.all(
             valid[np.arange(n), np.clip(target, 0, k - 1)]):
         raise ValueError(f"episodes.target must index a real table (0..{k - 1}, valid)")
@@ -150,7 +137,7 @@ def check_episodes(episodes: Episodes, policy: str, budget: int,
                         real_tables=int(valid.sum(-1).max()))
     return Episodes(belief=jnp.asarray(episodes.belief, jnp.float32),
                     centres=jnp.asarray(centres, jnp.float32), valid=jnp.asarray(valid),
-                    start=jnp.asarray(fields["start"], jnp.float32),
+                    start=jnp.asarray(start, jnp.float32),
                     target=jnp.asarray(target, jnp.int32))
 
 
@@ -197,9 +184,6 @@ def _update(belief, looked, p_miss, valid, looks_at):
     return jnp.where(total > _TINY, b / jnp.where(total > _TINY, total, 1.0), fallback)
 
 
-@check_args(p_miss=Real(0.0, 1.0, high_open=True), valid=Optional(Mask(("*B", "K"))),
-            belief=Distribution(("*B", "K"), support="valid"),
-            looked=IntArray(0, "K-1", shape=("*B",)))
 def bayes_update(belief, looked, p_miss: float = 0.0, valid=None, looks_at=None) -> jnp.ndarray:
     """The belief (..., K) after a failed look at table ``looked`` (...) int.
 
@@ -208,6 +192,15 @@ def bayes_update(belief, looked, p_miss: float = 0.0, valid=None, looks_at=None)
     tables (default all) looked at least often, counting this look (``looks_at`` (..., K) int:
     looks so far *including* this one; default: only this one).
     """
+    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
+    belief = check_probabilities("belief", belief, (..., None), atol=PROB_ATOL,
+                                 min_value=-PROB_ATOL)
+    *batch, k = belief.shape
+    if valid is not None:
+        valid = check_mask("valid", valid, (*batch, k))
+        check_probabilities("belief", belief, atol=PROB_ATOL, min_value=-PROB_ATOL,
+                            support=valid, support_name="valid")  # none on invalid tables
+    looked = check_int_array("looked", looked, 0, k - 1, shape=tuple(batch))
     valid = np.ones(belief.shape, bool) if valid is None else valid
     if looks_at is None:
         looks_at = (np.arange(belief.shape[-1]) == looked[..., None]).astype(np.int32)
@@ -258,8 +251,6 @@ def simulate(episodes: Episodes, key, p_miss, policy_index, budget: int) -> Outc
         keys, p_miss, policy_index)
 
 
-@check_args(episodes=Instance(Episodes), policy=Choice(POLICIES), key=Optional(Key()),
-            budget=Int(), p_miss=Real(0.0, 1.0, high_open=True))
 def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
                  budget: int = DEFAULT_BUDGET, p_miss: float = 0.0) -> Outcome:
     """Run N episodes with ``policy`` (see :mod:`flowmaps_jax.search.policies`) → Outcome (N, ...).
@@ -269,6 +260,12 @@ def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
     episodes, an unknown policy, p_miss outside [0, 1), a budget < 1, or "optimal" with more than
     7 tables. Compiled once per (N, K, budget), shared by all policies.
     """
+    check_instance("episodes", episodes, Episodes)
+    policy = check_choice("policy", policy, POLICIES)
+    if key is not None:
+        key = check_key(key, "key")
+    budget = check_int("budget", budget)
+    p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
     episodes = check_episodes(episodes, policy, budget)
     key = jax.random.key(0) if key is None else key
     return simulate(episodes, key, jnp.float32(p_miss), policy_index(policy), budget)
@@ -292,7 +289,6 @@ def simulate_every_target(episodes: Episodes, policy_index, budget: int) -> Outc
     return jax.tree_util.tree_map(lambda a: a.reshape(k, n, *a.shape[1:]), every)
 
 
-@check_args(episodes=Instance(Episodes), policy=Choice(POLICIES), budget=Int())
 def expected_outcomes(episodes: Episodes, truth, policy: str,
                       budget: int = DEFAULT_BUDGET) -> tuple[Outcome, jnp.ndarray]:
     """Exact expectations over where the object hides, with a perfect detector.
@@ -303,6 +299,9 @@ def expected_outcomes(episodes: Episodes, truth, policy: str,
     posterior). ``search.scores.expected_scores`` averages any score with these weights;
     :func:`at_targets` picks each episode's own target (its ``run_episodes`` outcome).
     """
+    check_instance("episodes", episodes, Episodes)
+    policy = check_choice("policy", policy, POLICIES)
+    budget = check_int("budget", budget)
     episodes = check_episodes(episodes, policy, budget, every_target=True)
     valid = np.asarray(episodes.valid)
     check_probabilities("truth", truth, valid.shape, atol=PROB_ATOL, min_value=-PROB_ATOL,
