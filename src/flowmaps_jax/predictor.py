@@ -56,16 +56,17 @@ from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.store.model_spec import HOMES_FAMILY
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
-    check_args,
-    check_fields,
+    check_array,
+    check_flag,
+    check_instance,
+    check_int,
+    check_key,
+    check_real_array,
     check_resources,
     embedding_bytes,
     network_flops,
     solver_evaluations,
 )
-from flowmaps_jax.validation.arrays import size
-from flowmaps_jax.validation.composite import After, Fields, NonEmpty
-from flowmaps_jax.validation.fields import Array, Flag, Instance, Int, Key, Optional, RealArray
 
 SOLVERS = flow.SOLVERS
 FAR_LIMIT = 1e3
@@ -74,6 +75,14 @@ the noise prior alone puts exp(−5·10⁵) there, and the ODE would overflow to
 
 
 # --------------------------------------------------------------------------- validation helpers
+
+
+def _query_shape(queries: Queries) -> tuple[int, int]:
+    """(B, Q) of ``queries`` (a :class:`~flowmaps_jax.tokens.Queries` whose ``descriptor`` is a
+    (B, Q) array), read before the sizes that depend on it are checked."""
+    check_instance("queries", queries, Queries)
+    check_array("queries.descriptor", queries.descriptor, (None, None))
+    return np.shape(queries.descriptor)
 
 
 def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
@@ -113,7 +122,10 @@ class Predictor:
 
     def __post_init__(self):
         model_family(self.family_name)  # ValueError listing the families
-        check_fields(self, _FIELDS, store=False)
+        check_instance("model", self.model, ModelConfig)
+        check_instance("flowsim", self.flowsim, FlowSimConfig)
+        if self.mesh is not None:
+            check_instance("mesh", self.mesh, Mesh)
         if self.mesh is not None:
             # Replicate once, not at every call (a frozen dataclass: set the field directly).
             object.__setattr__(self, "params", distributed.replicate(self.params, self.mesh))
@@ -184,7 +196,7 @@ class Predictor:
         budget (:func:`flowmaps_jax.validation.check_resources`), before XLA tries: the rows'
         memory (``model.freq_bands`` included), the solver's ``num_steps`` (its time grid, and
         its evaluations one after another) and the FLOPs of every evaluation. The solver's
-        arguments are checked already (:data:`flowmaps_jax.flow.SOLVER_RULES`)."""
+        arguments are checked already (:func:`flowmaps_jax.flow.check_solver_args`)."""
         rows = b * q * n
         factor = DENSITY_FACTOR if with_density else 1
         evaluations = solver_evaluations(num_steps, method) if self.family.uses_solver else 1
@@ -199,9 +211,6 @@ class Predictor:
 
     # ----------------------------------------------------------------------- inference
 
-    @check_args(queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),  # B for the key
-                key=After(lambda got: Key(((), (size("B"),)))), num_samples=Int(),
-                pixels=Flag(), return_log_prob=Flag(), **flow.SOLVER_RULES)
     def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
                num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
                pixels: bool = False, return_log_prob: bool = False):
@@ -218,6 +227,12 @@ class Predictor:
         the boxes equal those without it, to float rounding; the mixture head sums the near
         tables' terms, so it solves backwards once more). Planners weigh samples with it.
         """
+        scenes, _ = _query_shape(queries)
+        key = check_key(key, "key", ((), (scenes,)))  # one key, or one per scene
+        num_samples = check_int("num_samples", num_samples)
+        pixels = check_flag("pixels", pixels)
+        return_log_prob = check_flag("return_log_prob", return_log_prob)
+        num_steps, method = flow.check_solver_args(num_steps, method)
         b, q = self.validate(tokens, queries)
         self._check_request("sample", b, q, num_samples, return_log_prob, num_steps, method,
                             np.shape(tokens.boxes)[1])
@@ -242,9 +257,6 @@ class Predictor:
         return tables.table_probabilities(self, tokens, queries, num_samples, key,
                                           method=method, **sample_kwargs)
 
-    @check_args(queries=Fields(Queries, {"descriptor": Array(("B", "Q"))}),
-                x=NonEmpty(RealArray(("B", "Q", None, 4)), "at least one box per query"),
-                **flow.SOLVER_RULES)
     def log_prob(self, tokens: SceneTokens, queries: Queries, x,
                  num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint") -> jnp.ndarray:
         """Exact log-density (B, Q, N) of normalised boxes x (B, Q, N, 4) (y, x, h, w).
@@ -253,6 +265,12 @@ class Predictor:
         from t = 1 to 0 on ``num_steps`` grid points (the only error is the ODE discretisation).
         MLP: the closed-form diagonal Gaussian.
         """
+        scenes, per_scene = _query_shape(queries)
+        x = check_real_array("x", x, (scenes, per_scene, None, 4))
+        if 0 in np.shape(x):
+            raise ValueError(f"x must not be empty (at least one box per query); got shape "
+                             f"{tuple(np.shape(x))}")
+        num_steps, method = flow.check_solver_args(num_steps, method)
         b, q = self.validate(tokens, queries)
         x = jnp.asarray(x, jnp.float32)  # (B, Q, N, 4), checked: N >= 1
         self._check_request("log_prob", b, q, x.shape[2], True, num_steps, method,
@@ -303,11 +321,6 @@ class Predictor:
 
 
 # --------------------------------------------------------------------------- loading
-
-
-_FIELDS = {"model": Instance(ModelConfig), "flowsim": Instance(FlowSimConfig),
-           "mesh": Optional(Instance(Mesh))}
-"""What each field of a :class:`Predictor` may hold (``family_name``: a family's name)."""
 
 
 def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
