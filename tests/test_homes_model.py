@@ -18,9 +18,8 @@ from support import perturb, run_python_in_process
 from flowmaps_jax.flowsim.homes import context_of, generate_homes, object_boxes
 from flowmaps_jax.homes import model as homes_model
 from flowmaps_jax.homes import tokens as homes_tokens
-from flowmaps_jax.homes.predictor import HomesPredictor
 from flowmaps_jax.homes.queries import HomesQueries
-from flowmaps_jax.predictor import load_model, load_pretrained
+from flowmaps_jax.predictor import Predictor, load, load_model, load_pretrained
 from flowmaps_jax.store import model_spec, pretrained
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import HomesTrainConfig, get_preset
@@ -257,10 +256,11 @@ def test_the_train_cli_trains_the_smoke_preset_and_the_predictor_loads_its_best(
     config = json.loads((run_dir / "config.json").read_text())
     assert config["model_kind"] == homes_model.FAMILY_NAME
     assert HomesTrainConfig.from_dict(config) == CFG
-    predictor = HomesPredictor.load(run_dir)
+    predictor = load(run_dir)  # the one Predictor, for every world's models
+    assert isinstance(predictor, Predictor) and predictor.family_name == "flowmaps-homes"
     best = min(vals, key=lambda r: r["val_loss"])["step"]
     assert predictor.step == best  # the default load is the best validation CE
-    assert HomesPredictor.load(run_dir / "checkpoints", which="latest").step == 6
+    assert load(run_dir / "checkpoints", which="latest").step == 6
     p = np.asarray(predictor.probabilities(homes, queries, CONFIG))
     assert p.shape == (homes.num_homes, 3, CONFIG.max_receptacles)
     np.testing.assert_allclose(p.sum(-1), 1.0, atol=1e-5)
@@ -272,8 +272,11 @@ def test_the_train_cli_trains_the_smoke_preset_and_the_predictor_loads_its_best(
     rec = np.take_along_axis(np.asarray(homes.receptacle_box)[:, None],
                              np.asarray(table)[..., None], axis=2)  # (E, Q, N, 6)
     assert np.all(np.abs(np.asarray(boxes)[..., :2] - rec[..., :2]) < rec[..., 3:5] * 1.6)
-    with pytest.raises(ValueError, match="homes model"):
-        load_model(str(run_dir))  # the 2-D CLIs refuse it with a message
+    assert load_model(str(run_dir)).step == best  # what the CLIs load
+    for call in (lambda: predictor.table_weights(None, None),
+                 lambda: predictor.log_prob(None, None, None)):
+        with pytest.raises(ValueError, match="2-D FlowSim scene tokens"):
+            call()  # a 2-D method names the homes methods
 
 
 def _untimed(path) -> list[dict]:
@@ -308,33 +311,32 @@ def test_export_and_load_by_name_round_trip_with_integrity_checks(run_dir, homes
         ["-m", "flowmaps_jax.export", "--checkpoint", str(run_dir / "checkpoints"), "--name",
          "flowmaps-homes", "--out", str(out)], tmp_path)
     assert code == 0, text
-    loaded = HomesPredictor.load("flowmaps-homes", directory=out)
-    trained = HomesPredictor.load(run_dir)
+    loaded = load_pretrained("flowmaps-homes", out)
+    trained = load(run_dir)
     assert loaded.source == "pretrained:flowmaps-homes" and loaded.step == trained.step
     np.testing.assert_array_equal(loaded.probabilities(homes, queries, CONFIG),
                                   trained.probabilities(homes, queries, CONFIG))
-    assert isinstance(load_pretrained("flowmaps-homes", out), HomesPredictor)
     npz = out / "flowmaps-homes.npz"
     data = bytearray(npz.read_bytes())
     data[len(data) // 2] ^= 0xFF
     npz.write_bytes(bytes(data))
-    with pytest.raises(ValueError, match=r"source 'flowmaps-homes'.*damaged"):
-        HomesPredictor.load("flowmaps-homes", directory=out)
+    with pytest.raises(ValueError, match=r"flowmaps-homes.*damaged"):
+        load_pretrained("flowmaps-homes", out)
 
 
-def test_loading_refuses_missing_and_foreign_sources(tmp_path):
-    with pytest.raises(ValueError, match=r"source .*does not exist"):
-        HomesPredictor.load(tmp_path / "nothing")
-    with pytest.raises(ValueError, match=r"source .*not a checkpoint directory"):
-        HomesPredictor.load(tmp_path)
-    with pytest.raises(ValueError, match="source 'mlp' holds a 'mlp' model"):
-        HomesPredictor.load("mlp")
+def test_loading_refuses_missing_sources(tmp_path):
+    with pytest.raises(ValueError, match=r"does not exist"):
+        load(tmp_path / "nothing")
+    with pytest.raises(ValueError, match=r"not a checkpoint directory"):
+        load(tmp_path)
     with pytest.raises(ValueError, match="which"):
-        HomesPredictor.load(tmp_path, which="first")
+        load(tmp_path, which="first")
+    with pytest.raises(ValueError, match="take homes"):  # a 2-D model has no receptacles
+        load_pretrained("mlp").probabilities(None, None)
 
 
 def test_the_predictor_checks_its_inputs(run_dir, homes, queries):
-    predictor = HomesPredictor.load(run_dir)
+    predictor = load(run_dir)
     with pytest.raises(ValueError, match=r"queries.tau_q"):
         predictor.probabilities(homes, queries.replace(tau_q=queries.tau), CONFIG)
     with pytest.raises(ValueError, match=r"queries.object_index"):
@@ -345,6 +347,10 @@ def test_the_predictor_checks_its_inputs(run_dir, homes, queries):
         predictor.probabilities(homes, queries, other)
     with pytest.raises(ValueError, match="num_samples"):
         predictor.sample(jax.random.key(0), homes, queries, CONFIG, 0)
+    with pytest.raises(ValueError, match="num_steps"):  # bounded work, refused up front
+        predictor.sample(jax.random.key(0), homes, queries, CONFIG, 2, num_steps=10 ** 7)
+    with pytest.raises(ValueError, match="return_receptacles"):
+        predictor.sample(jax.random.key(0), homes, queries, CONFIG, 2, return_receptacles=1)
 
 
 def test_the_store_reads_both_families():
@@ -377,7 +383,7 @@ def test_large_requests_run_in_chunks_of_queries_with_the_same_answers(run_dir, 
                                                                        monkeypatch):
     from flowmaps_jax.homes import predictor as homes_predictor
 
-    predictor = HomesPredictor.load(run_dir)
+    predictor = load(run_dir)
     whole = np.asarray(predictor.probabilities(homes, queries, CONFIG))
     monkeypatch.setattr(homes_predictor, "ROWS_PER_CALL",
                         homes.num_homes * CONFIG.max_receptacles * 2)  # 2 of the 3 queries

@@ -37,7 +37,8 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-from typing import Any
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -46,14 +47,15 @@ from jax.sharding import Mesh
 
 from flowmaps_jax import distributed, flow, tables
 from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
+from flowmaps_jax.homes import predictor as homes_inference
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
 from flowmaps_jax.model.flowmaps import check_inputs
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.store import checkpoints, pretrained
-from flowmaps_jax.store.model_spec import HOMES_FAMILY
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
     check_array,
@@ -67,6 +69,7 @@ from flowmaps_jax.validation import (
     network_flops,
     solver_evaluations,
 )
+from flowmaps_jax.worlds import world_of_family
 
 SOLVERS = flow.SOLVERS
 FAR_LIMIT = 1e3
@@ -98,48 +101,71 @@ def scene_keys(key: jax.Array, num_scenes: int) -> jax.Array:
 
 @dataclasses.dataclass(frozen=True)
 class Predictor:
-    """A trained (or freshly initialised) FlowMaps or MLP-baseline model, ready for inference.
+    """A trained (or freshly initialised) model of any world, ready for inference: FlowMaps or
+    the MLP baseline on 2-D FlowSim maps, or FlowMaps on FlowSim homes.
 
     params: the model's parameter pytree (EMA weights when loaded with ``use_ema=True``).
-    model: its :class:`~flowmaps_jax.model.ModelConfig` (static: defines the compiled functions).
-    family_name: the name of its model family (:data:`flowmaps_jax.model.MODEL_FAMILIES`, as
-        ``TrainConfig.family``): "flowmaps" (flow matching) or "mlp" (Gaussian baseline;
-        variant in ``model.baseline_variance``). :attr:`family` is the family itself.
-    flowsim: the simulator config the model was trained on (map size for pixel boxes).
+    model: its config (static: defines the compiled functions): a
+        :class:`~flowmaps_jax.model.ModelConfig` on 2-D maps, a
+        :class:`~flowmaps_jax.homes.model.HomesModelConfig` on homes.
+    family_name: the name of its model family, as its run config's ``family``: "flowmaps"
+        (flow matching) or "mlp" (Gaussian baseline; variant in ``model.baseline_variance``)
+        on 2-D maps (:attr:`family` is the family itself), "flowmaps-homes" on homes. Its world
+        (:func:`flowmaps_jax.worlds.world_of_family`) says how it runs (:data:`_INFERENCE`).
+    flowsim: the 2-D simulator config the model was trained on (map size for pixel boxes).
+    homes: a homes model's :class:`~flowmaps_jax.flowsim.homes.HomesConfig` (None on 2-D).
     source: where the params came from (checkpoint path) and step, for reports.
     mesh: a 1-D device mesh (:mod:`flowmaps_jax.distributed`) to split the scenes of every call
         over, params replicated; None (default) runs on one device. Results do not depend on
         it: scene b's samples come from its own key. See :meth:`sharded`.
+
+    On 2-D maps: :meth:`sample`, :meth:`log_prob`, :meth:`table_weights`,
+    :meth:`table_probabilities`, :meth:`gaussian` take scene tokens and queries. On homes:
+    :meth:`probabilities` (receptacle weights), :meth:`sample` (boxes in metres) and
+    :meth:`as_prior` take homes and queries (:mod:`flowmaps_jax.homes.predictor`).
     """
 
     params: Any = dataclasses.field(repr=False)  # a pytree of arrays: too long to print
-    model: ModelConfig
+    model: Any
     family_name: str = "flowmaps"
     flowsim: FlowSimConfig = dataclasses.field(default_factory=FlowSimConfig)
     source: str | None = None
     step: int | None = None
     mesh: Mesh | None = dataclasses.field(default=None, repr=False)
+    homes: HomesConfig | None = None
 
     def __post_init__(self):
-        model_family(self.family_name)  # ValueError listing the families
-        check_instance("model", self.model, ModelConfig)
-        check_instance("flowsim", self.flowsim, FlowSimConfig)
+        self._inference.check(self)  # ValueError naming the field (or listing the families)
         if self.mesh is not None:
             check_instance("mesh", self.mesh, Mesh)
-        if self.mesh is not None:
             # Replicate once, not at every call (a frozen dataclass: set the field directly).
             object.__setattr__(self, "params", distributed.replicate(self.params, self.mesh))
+
+    @property
+    def _inference(self) -> _WorldInference:
+        """How this model's world runs (:data:`_INFERENCE`, by the family's world)."""
+        return _INFERENCE[world_of_family(self.family_name).name]
+
+    def _scenes_only(self, method: str) -> None:
+        """ValueError unless this model reads 2-D scene tokens (``method`` names the call)."""
+        if not self._inference.scenes:
+            raise ValueError(f"{method} takes 2-D FlowSim scene tokens; this is a "
+                             f"{self.family_name!r} model of FlowSim homes: use "
+                             "probabilities(homes, queries, config) or sample(key, homes, "
+                             "queries, config, num_samples)")
 
     def sharded(self, devices: int | None = None) -> Predictor:
         """This predictor with every call split over ``devices`` of this host's devices (None:
         all of them) by scenes; with one device, itself. Same results, faster on several
-        accelerators. (On a multi-host job each host samples on its own devices.)"""
-        mesh = distributed.local_mesh(devices)
+        accelerators. (On a multi-host job each host samples on its own devices.) A homes
+        model runs on one device: itself."""
+        mesh = distributed.local_mesh(devices) if self._inference.scenes else None
         return self if mesh is None else dataclasses.replace(self, mesh=mesh)
 
     def with_precision(self, precision: str) -> Predictor:
         """This predictor computing in ``precision`` ("float32" or "bf16" matmuls; the params
         stay float32). A model keeps the precision it was trained with unless changed here."""
+        self._scenes_only("with_precision")
         return dataclasses.replace(self, model=dataclasses.replace(self.model,
                                                                    precision=precision))
 
@@ -169,7 +195,7 @@ class Predictor:
     @property
     def name(self) -> str:
         """Row label for reports: "FlowMaps", "MLP (mean)" or "MLP (learned)"."""
-        return self.family.label(self.model)
+        return self._inference.label(self)
 
     # ----------------------------------------------------------------------- validation
 
@@ -180,6 +206,7 @@ class Predictor:
         descriptors, a query that names a table instead of an object category, more token slots
         than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
+        self._scenes_only("validate")
         check_inputs(self.model, tokens, queries,  # every field: type, dtype, shape, range, role
                      object_descriptors=self.flowsim.object_descriptors)
         b, q = np.shape(queries.descriptor)
@@ -211,9 +238,32 @@ class Predictor:
 
     # ----------------------------------------------------------------------- inference
 
-    def sample(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
-               num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
-               pixels: bool = False, return_log_prob: bool = False):
+    def sample(self, *args, **kwargs):
+        """Samples of the model, in its world's inputs:
+
+        * 2-D maps: ``sample(tokens, queries, num_samples, key, num_steps=10,
+          method="midpoint", pixels=False, return_log_prob=False)`` → boxes (B, Q, N, 4)
+          (:meth:`_sample_scenes`);
+        * homes: ``sample(key, homes, queries, config, num_samples, num_steps=10, *,
+          return_receptacles=False)`` → boxes (E, Q, N, 6) in metres
+          (:func:`flowmaps_jax.homes.predictor.sample`).
+        """
+        return self._inference.sample(self, *args, **kwargs)
+
+    def probabilities(self, homes, queries, config=None) -> jnp.ndarray:
+        """A homes model's receptacle weights (E, Q, R) for ``homes`` and ``queries`` (``config``:
+        the homes' config, default the model's), read without sampling
+        (:func:`flowmaps_jax.homes.predictor.probabilities`); a 2-D model's are
+        :meth:`table_weights`."""
+        return self._inference.probabilities(self, homes, queries, config)
+
+    def as_prior(self, config=None):
+        """A homes model as a prior ``(homes, queries) -> (E, Q, R)`` (:meth:`probabilities`)."""
+        return self._inference.as_prior(self, config)
+
+    def _sample_scenes(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
+                       num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",
+                       pixels: bool = False, return_log_prob: bool = False):
         """Draw num_samples boxes per query → (B, Q, num_samples, 4).
 
         Normalised (y, x, h, w) by default; ``pixels=True`` gives pixel corners (y0, x0, y1, x1).
@@ -254,6 +304,7 @@ class Predictor:
         "samples" counts ``num_samples`` samples per query; "weights" reads the route head's
         mixture weights (:meth:`table_weights`, no sampling noise). See
         :func:`flowmaps_jax.tables.table_probabilities` (also ``search.table_probabilities``)."""
+        self._scenes_only("table_probabilities")
         return tables.table_probabilities(self, tokens, queries, num_samples, key,
                                           method=method, **sample_kwargs)
 
@@ -265,6 +316,7 @@ class Predictor:
         from t = 1 to 0 on ``num_steps`` grid points (the only error is the ODE discretisation).
         MLP: the closed-form diagonal Gaussian.
         """
+        self._scenes_only("log_prob")
         scenes, per_scene = _query_shape(queries)
         x = check_real_array("x", x, (scenes, per_scene, None, 4))
         if 0 in np.shape(x):
@@ -285,8 +337,8 @@ class Predictor:
     @property
     def has_table_weights(self) -> bool:
         """Whether :meth:`table_weights` applies: FlowMaps with a mixture, pointer or route
-        read-out."""
-        return self.family.has_table_weights(self.model)
+        read-out (on 2-D maps)."""
+        return self._inference.scenes and self.family.has_table_weights(self.model)
 
     def table_weights(self, tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
         """FlowMaps with a read-out head (``model.head`` "mixture", "pointer" or "route"): the
@@ -297,6 +349,7 @@ class Predictor:
         samples follow them while its residual is zero; the pointer head's are its weights at
         t = 0.
         """
+        self._scenes_only("table_weights")
         if not self.has_table_weights:
             raise ValueError("table_weights needs a FlowMaps model with model.head 'mixture', "
                              f"'pointer' or 'route' (explicit mixture weights); this one is "
@@ -313,6 +366,7 @@ class Predictor:
 
     def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
         """MLP baseline only: (mean, log_var), each (B, Q, 4), of the predicted Gaussian."""
+        self._scenes_only("gaussian")
         if self.family.gaussian is None:
             raise ValueError("gaussian() is only defined for the MLP baseline (family_name='mlp')")
         b, _ = self.validate(tokens, queries)
@@ -323,6 +377,15 @@ class Predictor:
 # --------------------------------------------------------------------------- loading
 
 
+def _from_weights(weights, source: str) -> Predictor:
+    """The predictor of verified weights (a checkpoint's or a pretrained model's): their
+    family, model config and the world config their spec holds (``flowsim`` or ``homes``)."""
+    spec = weights.spec
+    world = {name: getattr(spec, name) for name in ("flowsim", "homes") if hasattr(spec, name)}
+    return Predictor(params=weights.params, model=spec.model, family_name=spec.family_name,
+                     source=source, step=weights.step, **world)
+
+
 def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
          use_ema: bool = True, step: int | None = None) -> Predictor:
     """Load a trained model from a checkpoint directory (or a run directory holding one).
@@ -330,34 +393,26 @@ def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
     which: "best" (lowest validation loss; falls back to the latest save when no validation
     has run yet) or "latest". step: load this saved step instead (from last/ or best/), e.g.
     the older intact step that the error about a damaged newest step names. use_ema: the EMA
-    weights (default) or the raw training weights. The model family (FlowMaps or MLP baseline)
-    and sizes come from the config saved with the checkpoint. Every array is checked against
-    the checksums saved with it and for NaN/inf. Raises ``ValueError`` for a missing, empty,
-    damaged or non-finite checkpoint (naming the newest intact step when there is one).
+    weights (default) or the raw training weights. The model family (FlowMaps, the MLP
+    baseline, the homes model) and sizes come from the config saved with the checkpoint. Every
+    array is checked against the checksums saved with it and for NaN/inf. Raises
+    ``ValueError`` for a missing, empty, damaged or non-finite checkpoint (naming the newest
+    intact step when there is one).
     """
     weights = checkpoints.load_weights(checkpoint_dir, which, use_ema, step)
-    spec = weights.spec
-    if spec.family_name == HOMES_FAMILY:  # the homes model has its own predictor
-        return _homes_predictor(weights, str(weights.root))
-    return Predictor(params=weights.params, model=spec.model, family_name=spec.family_name,
-                     flowsim=spec.flowsim, source=str(weights.root), step=weights.step)
+    return _from_weights(weights, str(weights.root))
 
 
 def load_pretrained(name: str, directory: str | pathlib.Path = pretrained.PRETRAINED_DIR
                     ) -> Predictor:
-    """A trained default model packaged with flowmaps-jax: ``"flowmaps"``, ``"mlp"`` or
-    ``"mlp-learned"`` (the EMA weights of the `cpu`-preset runs in docs/results.md), the same
-    :class:`Predictor` as :func:`load` of that run. ``directory``: where the weights are (the
-    package's ``pretrained/`` folder by default). Raises ``ValueError`` for an unknown name
+    """A trained model packaged with flowmaps-jax (:data:`flowmaps_jax.store.pretrained.NAMES`:
+    ``"flowmaps"``, ``"mlp"``, ``"mlp-learned"``, the habit worlds' models, ``"flowmaps-homes"``),
+    the same :class:`Predictor` as :func:`load` of its run. ``directory``: where the weights are
+    (the package's ``pretrained/`` folder by default). Raises ``ValueError`` for an unknown name
     (listing the names), or weights that are missing, damaged (SHA-256 mismatch) or do not fit
-    their config. See :mod:`flowmaps_jax.store.pretrained`. ``"flowmaps-homes"`` (and
-    :func:`load` of a homes run) gives a :class:`flowmaps_jax.homes.predictor.HomesPredictor`."""
+    their config. See :mod:`flowmaps_jax.store.pretrained`."""
     weights = pretrained.read_weights(name, directory)
-    if weights.spec.family_name == HOMES_FAMILY:  # "flowmaps-homes": a HomesPredictor
-        return _homes_predictor(weights, f"pretrained:{weights.name}")
-    return Predictor(params=weights.params, model=weights.spec.model,
-                     family_name=weights.spec.family_name, flowsim=weights.spec.flowsim,
-                     source=f"pretrained:{weights.name}", step=weights.step)
+    return _from_weights(weights, f"pretrained:{weights.name}")
 
 
 PRETRAINED_PREFIX = pretrained.PREFIX
@@ -371,9 +426,6 @@ def load_model(spec: str, which: str = "best", devices: int | None = None) -> Pr
         predictor = load_pretrained(spec[len(PRETRAINED_PREFIX):])
     else:
         predictor = load(spec, which=which)
-    if not isinstance(predictor, Predictor):
-        raise ValueError(f"{spec} is a FlowSim homes model: load it with "
-                         f"flowmaps_jax.homes.predictor.HomesPredictor.load")
     return predictor.sharded(devices)
 
 
@@ -386,9 +438,51 @@ def stored_family(spec: str, which: str = "best") -> str:
     return checkpoints.load_weights(spec, which).spec.family_name
 
 
-def _homes_predictor(weights, source: str):
-    """The homes model's :class:`flowmaps_jax.homes.predictor.HomesPredictor`."""
-    from flowmaps_jax.homes.predictor import HomesPredictor
+# --------------------------------------------------------------------------- the worlds
 
-    return HomesPredictor(weights.params, weights.spec.model, weights.spec.homes, source,
-                          weights.step)
+
+class _WorldInference(NamedTuple):
+    """How a :class:`Predictor` runs the models of one world (:data:`_INFERENCE`).
+
+    check(predictor): its fields, at construction (ValueError naming the field).
+    sample(predictor, *args, **kwargs): :meth:`Predictor.sample` in the world's inputs.
+    probabilities(predictor, homes, queries, config), as_prior(predictor, config): the
+        receptacle weights of a world that has them.
+    scenes: whether the model reads 2-D scene tokens (the 2-D methods apply).
+    label(predictor): the row name in reports.
+    """
+
+    check: Callable
+    sample: Callable
+    probabilities: Callable
+    as_prior: Callable
+    scenes: bool
+    label: Callable
+
+
+def _check_scene_model(predictor: Predictor) -> None:
+    model_family(predictor.family_name)  # ValueError listing the families
+    check_instance("model", predictor.model, ModelConfig)
+    check_instance("flowsim", predictor.flowsim, FlowSimConfig)
+    if predictor.homes is not None:
+        raise ValueError(f"homes must be None for a {predictor.family_name!r} model (it reads "
+                         "2-D FlowSim maps)")
+
+
+def _no_receptacles(predictor: Predictor, *args, **kwargs):
+    raise ValueError(f"probabilities and as_prior take homes; this is a "
+                     f"{predictor.family_name!r} model of 2-D FlowSim maps: use table_weights "
+                     "or table_probabilities(tokens, queries, ...)")
+
+
+_INFERENCE = {
+    "flowsim": _WorldInference(
+        check=_check_scene_model, sample=Predictor._sample_scenes,
+        probabilities=_no_receptacles, as_prior=_no_receptacles, scenes=True,
+        label=lambda predictor: predictor.family.label(predictor.model)),
+    "homes": _WorldInference(
+        check=homes_inference.check_model, sample=homes_inference.sample,
+        probabilities=homes_inference.probabilities, as_prior=homes_inference.as_prior,
+        scenes=False, label=lambda predictor: "FlowMaps"),
+}
+"""How each world's models run, by :data:`flowmaps_jax.worlds.WORLDS` name."""

@@ -235,12 +235,13 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
 
 
 def load_model(source: str, which: str = "best"):
-    """``homes.predictor.HomesPredictor.load(source, which)``; a missing or unreadable source
-    is a ``ValueError`` naming ``--checkpoint``."""
-    from flowmaps_jax.homes.predictor import HomesPredictor  # the model only when asked for
+    """The homes model ``source`` names (a run or checkpoint directory, or
+    ``pretrained:NAME``) as a :class:`~flowmaps_jax.predictor.Predictor`; a missing or
+    unreadable source is a ``ValueError`` naming ``--checkpoint``."""
+    from flowmaps_jax.predictor import load_model as load_predictor
 
     with prefix_errors(f"--checkpoint {source!r}: "):
-        return HomesPredictor.load(source, which=which)
+        return load_predictor(source, which)
 
 
 def _one_count(samples) -> int:

@@ -34,7 +34,8 @@ Loss = CE + CFM. Everything is a pure function over an explicit params pytree; `
 (:class:`HomesModelConfig`) and ``homes_config`` (:class:`HomesConfig`) are static jit arguments.
 Shapes: a :class:`~flowmaps_jax.homes.tokens.HomesBatch` of B scenes with Q queries each; boxes
 normalised (``tokens.normalise_boxes``). The validated wrapper is
-:class:`flowmaps_jax.homes.predictor.HomesPredictor`.
+:class:`flowmaps_jax.predictor.Predictor` (its homes inference:
+:mod:`flowmaps_jax.homes.predictor`).
 """
 
 from __future__ import annotations

@@ -66,7 +66,7 @@ NAMES = ("flowmaps", "mlp", "mlp-learned",
 and one FlowMaps per habits world (``flowsim.WORLDS``), trained with ``--preset habits --set
 world=NAME``: ``flowmaps-<world>`` reads the last 8 maps, ``flowmaps-<world>-h1`` is the same
 recipe reading one map (the "H = 1 model" reference row); ``flowmaps-homes`` is the FlowSim
-homes model (``--preset homes``, :class:`flowmaps_jax.homes.predictor.HomesPredictor`). A name
+homes model (``--preset homes``, :class:`flowmaps_jax.predictor.Predictor`). A name
 starting with ``mlp`` holds the MLP baseline, ``flowmaps-homes`` the homes model, any other
 starting with ``flowmaps`` a FlowMaps model."""
 MAX_BYTES = 12 * 1024 * 1024  # size budget per model: issue 8 set 10 MB; issue 33's mixture head

@@ -36,7 +36,7 @@ def world_of_family(family: str) -> World:
         if family in WORLDS[name].families:
             return WORLDS[name]
     known = [f for name in WORLD_NAMES for f in WORLDS[name].families]
-    raise ValueError(f"family must be one of {known}; got {family!r}")
+    raise ValueError(f"model family must be one of {tuple(known)}; got {family!r}")
 
 
 __all__ = ["WORLDS", "WORLD_NAMES", "World", "world", "world_of_family"]
