@@ -6,9 +6,9 @@ the value in the form to go on with or raises ``ValueError`` whose message start
 one of the small classes below (:class:`Int`, :class:`Real`, :class:`Choice`, :class:`Text`,
 :class:`Optional`, :class:`Each`, :class:`Pair`, :class:`Probabilities`), or a plain check of
 :mod:`flowmaps_jax.validation` as it is (``check_flag``, ``check_seed``, ``check_plain_name``).
-What depends on another field is checked in the config's ``__post_init__``, in plain code:
-:func:`check_table` (a table of categories) and :func:`check_mixture` (named probabilities)
-help there. :func:`check_keys` is the one check of a ``from_dict`` argument.
+What depends on another field is checked in the config's ``__post_init__``, in plain code, as
+are its tables of categories (:func:`check_table`) and mixtures (:func:`check_mixture`).
+:func:`check_keys` is the one check of a ``from_dict`` argument.
 """
 
 from __future__ import annotations
