@@ -366,32 +366,19 @@ def test_scene_file_paths(tmp_path, small_scenes, flowsim_config, saved):
     assert loaded.slot.dtype == jnp.int32 and loaded.object_boxes.dtype == jnp.float32
 
 
-def test_named_sizes_must_agree_across_the_arguments_of_one_check():
-    from flowmaps_jax.validation.fields import Distribution, Int, IntArray, Mask, check_args
-
-    @check_args(q=Distribution(("*B", "K")), p_hat=Distribution(("*B", "K+1"), support="mask"),
-                mask=Mask(("*B", "K")))
-    def score(q, mask, p_hat):
-        return q.shape
-
-    q = np.full((2, 3), 1 / 3)
-    mask = np.ones((2, 3), bool)
-    assert score(q, mask, np.full((2, 4), 0.25)) == (2, 3)
-    with pytest.raises(ValueError, match=r"p_hat must have shape \(\*B, K\+1\) with K = 3 "
-                                         r"\(from q\); got \(2, 3\)"):
-        score(q, mask, np.full((2, 3), 1 / 3))
-    with pytest.raises(ValueError, match=r"mask must have shape .* with \*B = \(2,\) \(from q\)"):
-        score(q, np.ones((1, 3), bool), np.full((2, 4), 0.25))
-    with pytest.raises(ValueError, match="p_hat puts probability where mask is False"):
-        score(q, np.array([[1, 1, 0], [1, 1, 1]], bool), np.full((2, 4), 0.25))
-
-    @check_args(num_slots=Int(size="K"), slot_now=IntArray(0, "K-1"))
-    def last_seen(slot_now, num_slots):
-        return num_slots
-
-    assert last_seen(np.array([0, 2]), 3) == 3
-    with pytest.raises(ValueError, match=r"slot_now must lie in 0..K-1; got values in 0..3"):
-        last_seen(np.array([0, 3]), 3)
+def test_shapes_are_ints_none_or_a_leading_ellipsis():
+    v.check_shape("q", (2, 3), (2, 3))
+    v.check_shape("q", (2, 3), (None, 3))
+    v.check_shape("q", (5, 2, 3), (..., 3))
+    v.check_shape("q", (3,), (..., 3))
+    v.check_shape("q", (2, 3), None)
+    with pytest.raises(ValueError, match=r"^p_hat must have shape \(2, 4\) \(one more than q\); "
+                                         r"got \(2, 3\)$"):
+        v.check_shape("p_hat", (2, 3), (2, 4), "one more than q")
+    with pytest.raises(ValueError, match=r"q must have shape \(\*, 3\); got \(3,\)"):
+        v.check_shape("q", (3,), (None, 3))
+    with pytest.raises(ValueError, match=r"q must have shape \(\.\.\., 3\); got \(3, 2\)"):
+        v.check_shape("q", (3, 2), (..., 3))
 
 
 def test_real_array_bounds_name_the_argument_and_the_range():
@@ -402,19 +389,18 @@ def test_real_array_bounds_name_the_argument_and_the_range():
         check_real_array("boxes", np.array([0.5, 1.5]), low=0, high=1, what="normalised")
 
 
-def test_mixture_and_table_rules():
+def test_mixture_and_table_checks():
     import dataclasses
 
-    from flowmaps_jax.validation.composite import Mixture, Table
-    from flowmaps_jax.validation.fields import Int, Text, check_fields
+    from flowmaps_jax.validation.fields import Int, Text
 
-    mix = Mixture(("a", "b"), "habit")
-    assert mix("habits", [("b", 0.25), ("a", 0.75)]) == (("b", 0.25), ("a", 0.75))
+    assert v.check_mixture("habits", [("b", 0.25), ("a", 0.75)], ("a", "b"), "habit") == (
+        ("b", 0.25), ("a", 0.75))
     for bad, match in ((3, "pairs"), ((("c", 1.0),), "habit name"),
                        ((("a", 0.5), ("a", 0.5)), "named twice"),
                        ((("a", 0.5), ("b", 0.4)), " probabilities must sum")):
         with pytest.raises(ValueError, match=f"^habits.*{match}"):
-            mix("habits", bad)
+            v.check_mixture("habits", bad, ("a", "b"), "habit")
 
     @dataclasses.dataclass(frozen=True)
     class Kind:
@@ -427,208 +413,52 @@ def test_mixture_and_table_rules():
         descriptor: int
         kind: str
 
-    @dataclasses.dataclass
-    class Cfg:
-        kinds: tuple
-        cats: tuple
-
     entry = {"name": Text(), "descriptor": Int(0)}
-    rules = {"kinds": Table(Kind, entry, unique=("name", "descriptor")),
-             "cats": Table(Cat, entry, unique=("name", "descriptor"), after="kinds",
-                           refers=("kind",), labels={"kind": "sits on kind"})}
-    cfg = Cfg((Kind("k", np.int64(1)),), (Cat("c", 0, "k"),))
-    check_fields(cfg, rules)
-    assert type(cfg.kinds[0].descriptor) is int and cfg.cats == (Cat("c", 0, "k"),)
-    for cats, match in (((Cat("c", 1, "k"),), "cats: descriptor 1 is used twice"),
-                        ((Cat("k", 0, "k"),), "cats: name 'k' is used twice"),
-                        ((Cat("c", 0, "sofa"),), "cats: 'c' sits on kind must be one of"),
-                        ((Cat("c", -1, "k"),), "cats: 'c' descriptor must be"), ((), "cats")):
+    kinds = v.check_table("kinds", (Kind("k", np.int64(1)),), Kind, entry,
+                          unique=("name", "descriptor"))
+    assert type(kinds[0].descriptor) is int
+
+    def cats(value):
+        return v.check_table("cats", value, Cat, entry, unique=("name", "descriptor"),
+                             earlier=kinds, refers=("kind",), labels={"kind": "sits on kind"})
+
+    assert cats((Cat("c", 0, "k"),)) == (Cat("c", 0, "k"),)
+    for value, match in (((Cat("c", 1, "k"),), "cats: descriptor 1 is used twice"),
+                         ((Cat("k", 0, "k"),), "cats: name 'k' is used twice"),
+                         ((Cat("c", 0, "sofa"),), "cats: 'c' sits on kind must be one of"),
+                         ((Cat("c", -1, "k"),), "cats: 'c' descriptor must be"),
+                         ((), "cats must be a non-empty tuple of Cat"),
+                         ((Kind("k", 0),), "cats entries must be a Cat")):
         with pytest.raises(ValueError, match=match):
-            check_fields(Cfg((Kind("k", 1),), cats), rules)
+            cats(value)
 
 
-def test_fields_checks_a_pytrees_fields_in_the_arguments_scope():
-    from flowmaps_jax.validation.composite import Fields
-    from flowmaps_jax.validation.fields import Int, IntArray, Mask, Optional, check_args
-
-    rules = {"mask": Mask(("*B", "S")), "kind": IntArray(0, "K-1", ("*B", "S")),
-             "tau": IntArray(0, "T", ("*B",))}
-
-    @check_args(num_kinds=Int(size="K"), horizon=Optional(Int(size="T")),
-                tokens=Fields(tokens.SceneTokens, rules, where="mask", padded=("kind",)))
-    def count(tokens, num_kinds, horizon=None):
-        return int(np.asarray(tokens.mask).sum())
-
-    mask = np.array([[True, False]])
-    good = tokens.SceneTokens(boxes=None, descriptor=None, kind=np.array([[1, 7]]), mask=mask,
-                              tau=np.array([5]))
-    assert count(good, 2) == 1  # kind 7 on padding is free; no horizon: tau unbounded
-    with pytest.raises(ValueError, match=r"tokens.kind must lie in 0..1; got values in 2..2"):
-        count(good.replace(kind=np.array([[2, 0]])), 2)
-    with pytest.raises(ValueError, match=r"tokens.tau must lie in 0..4"):
-        count(good, 2, horizon=4)
-    with pytest.raises(ValueError, match=r"tokens.tau must have shape \(\*B,\) with \*B = \(1,\)"):
-        count(good.replace(tau=np.array([1, 2])), 2)
-    with pytest.raises(ValueError, match=r"tokens\.kind must be an array"):
-        count(good.replace(kind=[[1, 0]]), 2)
-    with pytest.raises(ValueError, match="tokens must be a SceneTokens"):
-        count(mask, 2)
-
-
-def test_pattern_rule_names_the_field_and_clips_the_value():
-    from flowmaps_jax.validation.composite import Pattern
-
-    rule = Pattern("[0-9a-f]{4}", "four hex digits")
-    assert rule("digest", "00af") == "00af"
-    for bad in ("00AF", "00af0", None, 7):
-        with pytest.raises(ValueError, match="digest must be four hex digits"):
-            rule("digest", bad)
-    with pytest.raises(ValueError, match=r"got 'xxxx+'$"):
-        rule("digest", "x" * 1000)
-
-
-def test_fields_rule_checks_nested_shapes_in_one_scope():
-    import dataclasses as dc
-
-    from flowmaps_jax.validation.composite import Fields
-    from flowmaps_jax.validation.fields import Array, check_args
-
-    @dc.dataclass
-    class Inner:
-        a: object
-
-    @dc.dataclass
-    class Outer:
-        inner: Inner
-        b: object
-
-    @check_args(x=Fields(Outer, {"inner": Fields(Inner, {"a": Array(("B", 2))}),
-                                 "b": Array(("B",))}))
-    def f(x):
-        return x
-
-    ok = Outer(Inner(np.zeros((3, 2))), np.zeros(3))
-    assert f(ok) is ok
-    with pytest.raises(ValueError, match=r"x.b must have shape \(B,\) with B = 3 "
-                                         r"\(from x.inner.a\)"):
-        f(Outer(Inner(np.zeros((3, 2))), np.zeros(4)))
-    with pytest.raises(ValueError, match=r"x\.inner must be a Inner"):
-        f(Outer(np.zeros(3), np.zeros(3)))
-
-
-def test_output_dir_rule_gives_a_path_and_refuses_a_file(tmp_path):
-    import pathlib
-
-    from flowmaps_jax.validation.composite import OutputDir
-
-    assert OutputDir()("run_dir", str(tmp_path / "new")) == tmp_path / "new"
-    assert isinstance(OutputDir()("run_dir", str(tmp_path)), pathlib.Path)
-    (tmp_path / "f").write_text("x")
-    with pytest.raises(ValueError, match=r"run_dir .* is a file, not a directory"):
-        OutputDir()("run_dir", tmp_path / "f")
-    with pytest.raises(ValueError, match="run_dir must be a non-empty path"):
-        OutputDir()("run_dir", "")
-
-
-def test_int_below_is_bounded_by_a_field_checked_before_it():
-    from flowmaps_jax.validation.composite import IntBelow
-    from flowmaps_jax.validation.fields import Int, check_args
-
-    @check_args(steps=Int(), warmup=IntBelow("steps"))
-    def schedule(steps, warmup):
-        return warmup
-
-    assert schedule(10, 9) == 9
-    with pytest.raises(ValueError, match=r"warmup must be an int in 0\.\.steps-1 \(steps = 10\); "
-                                         r"got 10"):
-        schedule(10, 10)
-    with pytest.raises(ValueError, match="warmup must be an int >= 0"):
-        schedule(10, -1)
-
-
-def test_a_rule_after_others_reads_their_checked_values():
+def test_a_config_table_takes_rules_or_plain_checks():
     import types
 
-    from flowmaps_jax.validation.composite import After
-    from flowmaps_jax.validation.fields import Each, Int, check_args, check_fields
+    from flowmaps_jax.validation.fields import Int, Optional
 
-    @check_args(steps=Int(), warmup=After(lambda got: Int(0, got["steps"] - 1)))
-    def schedule(warmup, steps):
-        return warmup, steps
-
-    assert schedule(steps=10, warmup=9) == (9, 10)
-    with pytest.raises(ValueError, match=r"warmup must be an int in 0\.\.9"):
-        schedule(steps=10, warmup=10)
-    with pytest.raises(ValueError, match="steps"):
-        schedule(steps="10", warmup=0)  # checked before the rule that reads it
-    rules = {"history": Int(1, 10),
-             "horizons": After(lambda got: Each(Int(1, 12 - got["history"]), what="horizons"))}
-    assert check_fields(types.SimpleNamespace(history=4, horizons=[1, 8]), rules,
-                        store=False) == {"history": 4, "horizons": (1, 8)}
-    with pytest.raises(ValueError, match=r"horizons must be an int in 1\.\.8"):
-        check_fields(types.SimpleNamespace(history=4, horizons=[1, 9]), rules)
+    rules = {"steps": Int(1, 10, why="a test"), "seed": v.check_seed, "flag": v.check_flag,
+             "name": Optional(v.check_plain_name)}
+    config = types.SimpleNamespace(steps=np.int64(3), seed=7, flag=np.bool_(True), name=None)
+    assert v.check_fields(config, rules, store=False) == {"steps": 3, "seed": 7, "flag": True,
+                                                          "name": None}
+    assert type(config.steps) is int and type(config.flag) is bool  # numpy numbers replaced
+    for field, value, match in (("steps", 11, r"^steps must be <= 10 \(a test\); got 11$"),
+                                ("seed", -1, "^seed must be an int in"),
+                                ("flag", 1, "^flag must be True or False"),
+                                ("name", "a/b", "^name ")):
+        with pytest.raises(ValueError, match=match):
+            v.check_fields(types.SimpleNamespace(**{**vars(config), field: value}), rules)
 
 
-def test_index_rule_bounds_by_a_named_size():
-    from flowmaps_jax.validation.composite import Index
-    from flowmaps_jax.validation.fields import IntArray, check_args
+def test_warmup_steps_are_below_steps():
+    from flowmaps_jax.training.config import TrainConfig
 
-    @check_args(x=IntArray(shape=("E", 2)), env=Index("E"))
-    def pick(x, env):
-        return env
-
-    assert pick(np.zeros((3, 2), np.int32), np.int64(2)) == 2
-    for env in (3, -1, 0.5, True):
-        with pytest.raises(ValueError, match=r"env must be an int in 0\.\.2"):
-            pick(np.zeros((3, 2), np.int32), env)
-    with pytest.raises(TypeError, match="not bound"):
-        check_args(env=Index("E"))(lambda env: env)(0)
-
-
-def test_positive_array_rule():
-    from flowmaps_jax.validation.composite import PositiveArray
-
-    rule = PositiveArray(what=" (sides)")
-    assert rule("size", np.array([1.0, 2.5])).shape == (2,)
-    for bad in (np.array([1.0, 0.0]), np.array([-1.0]), np.array([np.nan]), np.array([True])):
-        with pytest.raises(ValueError, match=r"^size (must|contains)"):
-            rule("size", bad)
-
-
-def test_needs_refuses_a_value_given_without_or_with_another_argument():
-    import types
-
-    from flowmaps_jax.validation.composite import Needs
-    from flowmaps_jax.validation.fields import Optional, check_args, check_fields
-
-    @check_args(from_step=Needs("resume", "needs resume=True"))
-    def run(resume=False, from_step=None):
-        return from_step
-
-    assert run() is None and run(True, 0) == 0
-    with pytest.raises(ValueError, match="from_step needs resume=True"):
-        run(False, 0)  # 0 is given: only None (or False) is not
-    rules = {"resume": Optional(Needs("run_dir", "needs --run-dir")),
-             "overwrite": Needs("resume", "and --resume exclude each other", needs=False)}
-    check_fields(types.SimpleNamespace(run_dir=None, resume=False, overwrite=True), rules,
-                 store=False)
-    with pytest.raises(ValueError, match=r"^--overwrite and --resume exclude each other$"):
-        check_fields(types.SimpleNamespace(run_dir="r", resume=True, overwrite=True),
-                     {"run_dir": Optional(lambda n, v: v), **rules}, prefix="--", store=False)
-    with pytest.raises(ValueError, match=r"^resume needs --run-dir$"):
-        check_fields(types.SimpleNamespace(run_dir=None, resume=True, overwrite=False),
-                     {"run_dir": Optional(lambda n, v: v), **rules}, store=False)
-
-
-def test_non_empty_rule():
-    from flowmaps_jax.validation.composite import NonEmpty
-    from flowmaps_jax.validation.fields import Array, Each, Int
-
-    rule = NonEmpty(Array((None, None)), "at least one query")
-    assert rule("q", np.zeros((2, 3))).shape == (2, 3)
-    with pytest.raises(ValueError, match=r"q must not be empty \(at least one query\); got "
-                                         r"shape \(2, 0\)"):
-        rule("q", np.zeros((2, 0)))
-    assert NonEmpty(Each(Int()))("sizes", [1, 2]) == (1, 2)
-    with pytest.raises(ValueError, match="sizes must not be empty"):  # a sequence: its length
-        NonEmpty(lambda name, value: value)("sizes", [])
+    assert TrainConfig(steps=10, warmup_steps=np.int64(9)).warmup_steps == 9
+    assert type(TrainConfig(steps=10, warmup_steps=np.int64(9)).warmup_steps) is int
+    with pytest.raises(ValueError, match=r"^warmup_steps must be an int in 0\.\.steps-1 "
+                                         r"\(steps = 10\); got 10$"):
+        TrainConfig(steps=10, warmup_steps=10)
+    with pytest.raises(ValueError, match=r"^warmup_steps must be an int >= 0"):
+        TrainConfig(steps=10, warmup_steps=-1)

@@ -18,8 +18,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.validation import check_choice, check_int
-from flowmaps_jax.validation.composite import After
-from flowmaps_jax.validation.fields import Choice, Int
 
 T_SAMPLERS = ("uniform", "beta", "logit_normal")
 SOLVERS = ("midpoint", "euler", "accurate")
@@ -61,16 +59,6 @@ def check_solver_args(num_steps: int, method: str) -> tuple[int, str]:
     method = check_choice("method", method, SOLVERS)
     num_steps = check_int("num_steps", num_steps, 3 if method == "accurate" else 2)
     return num_steps, method
-
-
-# The same checks as ``check_args`` rules, for the entry points not converted to
-# :func:`check_solver_args` yet (evaluation.protocol, predictor); to go with ``check_args``.
-GRID_POINTS = After(lambda got: Int(3 if got["method"] == "accurate" else 2))
-"""The rule of a solver's grid points, checked after its ``method``: an int >= 2 (>= 3 for
-``"accurate"``)."""
-SOLVER_RULES = {"method": Choice(SOLVERS), "num_steps": GRID_POINTS}
-"""The solver arguments as a ``check_args`` table: ``method`` one of :data:`SOLVERS`, then
-``num_steps`` grid points (:data:`GRID_POINTS`); :func:`check_solver_args` in plain code."""
 
 
 def time_grid(num_steps: int, method: str = "midpoint") -> np.ndarray:

@@ -57,13 +57,14 @@ from flowmaps_jax.predictor import (
     stored_family,
 )
 from flowmaps_jax.validation import (
-    check_options,
+    check_choice,
+    check_int,
     check_output_dir,
     check_resources,
+    check_seed,
     network_flops,
     solver_evaluations,
 )
-from flowmaps_jax.validation.fields import Choice, Int, Optional, Seed
 from flowmaps_jax.validation.scalars import int_list
 from flowmaps_jax.worlds import world_of_family
 
@@ -176,14 +177,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-_OPTIONS = {"num_envs": Int(1), "kl_draws": Int(2), "num_steps": Int(2), "chunk_envs": Int(1),
-            "seed": Seed(), "logp_steps": Optional(Int(2)),
-            "likelihood_steps": Optional(Int(3), off=(0,)),  # 0: only the paper's grid
-            "likelihood_draws": Int(2), "world": Optional(Choice(tuple(WORLDS))),
-            "history": Optional(Int(1))}
-"""What each option may hold, checked before any model is loaded."""
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; returns the exit code (0 on success, 2 on a bad argument, 74 on a failed
     write). The protocol is the one of ``--checkpoint``'s world (:data:`_BY_WORLD`)."""
@@ -217,7 +210,21 @@ def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
             if getattr(args, name) is not None:
                 raise ValueError(f"--{name} applies to FlowSim homes models; "
                                  f"{args.checkpoint} is a 2-D FlowSim model")
-        check_options(args, _OPTIONS)
+        # the options, before any model is loaded
+        check_int("--num-envs", args.num_envs, 1)
+        check_int("--kl-draws", args.kl_draws, 2)
+        check_int("--num-steps", args.num_steps, 2)
+        check_int("--chunk-envs", args.chunk_envs, 1)
+        check_seed("--seed", args.seed)
+        if args.logp_steps is not None:
+            check_int("--logp-steps", args.logp_steps, 2)
+        if args.likelihood_steps is not None and args.likelihood_steps != 0:
+            check_int("--likelihood-steps", args.likelihood_steps, 3)
+        check_int("--likelihood-draws", args.likelihood_draws, 2)
+        if args.world is not None:
+            check_choice("--world", args.world, tuple(WORLDS))
+        if args.history is not None:
+            check_int("--history", args.history, 1)
         likelihood_steps = args.likelihood_steps or None  # 0: only the paper's grid
         if args.out:
             out = pathlib.Path(args.out)

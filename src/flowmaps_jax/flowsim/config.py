@@ -16,7 +16,6 @@ from typing import Any
 import numpy as np
 
 from flowmaps_jax.validation import INT32_MAX, check_real
-from flowmaps_jax.validation.composite import Mixture, Table
 from flowmaps_jax.validation.fields import (
     Choice,
     Int,
@@ -25,6 +24,8 @@ from flowmaps_jax.validation.fields import (
     Text,
     check_fields,
     check_keys,
+    check_mixture,
+    check_table,
 )
 
 ORDERINGS = ("clockwise", "counter_clockwise", "top_to_bottom", "left_to_right", "bottom_to_top")
@@ -151,6 +152,14 @@ class FlowSimConfig:
 
     def __post_init__(self) -> None:
         check_fields(self, _RULES)
+        object.__setattr__(self, "habits", check_mixture("habits", self.habits, HABITS, "habit"))
+        kinds = check_table("furniture_kinds", self.furniture_kinds, FurnitureKind,
+                            _ENTRY_RULES, unique=("name", "descriptor"))
+        object.__setattr__(self, "furniture_kinds", kinds)
+        object.__setattr__(self, "categories", check_table(  # names and ids unique over both
+            "categories", self.categories, ObjectCategory, _CATEGORY_RULES,
+            unique=("name", "descriptor"), earlier=kinds, refers=("furniture_kind",),
+            labels={"furniture_kind": "sits on furniture kind"}))
         object.__setattr__(self, "table_min_frac", check_real(
             "table_min_frac", self.table_min_frac, 0.0, self.table_max_frac, low_open=True))
         if self.has_habits and self.dynamics != "markov":
@@ -278,7 +287,8 @@ class FlowSimConfig:
 _FRACTION = Real(0.0, 1.0, low_open=True)
 _ENTRY_RULES = {"name": Text(strip=False), "descriptor": Int(0, INT32_MAX),
                 "colour": Text(strip=False)}
-"""What each entry of the category table may hold (names and ids unique over the table)."""
+"""What each entry of the category tables may hold (names and ids unique over the tables)."""
+_CATEGORY_RULES = {**_ENTRY_RULES, "ordering": Choice(ORDERINGS), "shape": Choice(SHAPES)}
 _RULES = {
     "map_size": Int(2, MAX_MAP_SIZE, why="positions are drawn from 16 random bits"),
     # every count becomes an int32 array somewhere
@@ -291,16 +301,10 @@ _RULES = {
     "dynamics": Choice(DYNAMICS),
     "preference_move": _FRACTION, "preference_mass": _FRACTION, "dynamic_length": _FRACTION,
     "dynamic_stay": Real(0.0, 1.0, high_open=True),  # < 1: a dynamic object moves
-    "habits": Mixture(HABITS, "habit"),
-    "furniture_kinds": Table(FurnitureKind, _ENTRY_RULES, unique=("name", "descriptor")),
-    "categories": Table(ObjectCategory, {**_ENTRY_RULES, "ordering": Choice(ORDERINGS),
-                                         "shape": Choice(SHAPES)},
-                        unique=("name", "descriptor"), after="furniture_kinds",
-                        refers=("furniture_kind",),
-                        labels={"furniture_kind": "sits on furniture kind"}),
 }
 """What each field of :class:`FlowSimConfig` may hold (numbers are stored as Python numbers, so
-the config stays JSON-able and hashes like one built from Python numbers)."""
+the config stays JSON-able and hashes like one built from Python numbers); the habits and the
+category tables follow in ``__post_init__``."""
 
 DEFAULT_CONFIG = FlowSimConfig()
 """The paper's configuration (used as the default argument everywhere)."""

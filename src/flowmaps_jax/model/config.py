@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from flowmaps_jax.validation.fields import Choice, Flag, Int, Real, check_fields, check_keys
+from flowmaps_jax.validation import check_flag
+from flowmaps_jax.validation.fields import Choice, Int, Real, check_fields, check_keys
 
 BASELINE_VARIANCES = ("mean", "learned")
 HEADS = ("velocity", "pointer", "route", "mixture")
@@ -136,7 +137,7 @@ _RULES = {
     "pointer_widths": Choice(POINTER_WIDTHS),
     "weight_attention": Choice(WEIGHT_ATTENTION),
     "weight_geometry": Choice(WEIGHT_GEOMETRY),
-    "condition_on_dtau": Flag(),
+    "condition_on_dtau": check_flag,
     "baseline_variance": Choice(BASELINE_VARIANCES),
     "precision": Choice(PRECISIONS),
 }

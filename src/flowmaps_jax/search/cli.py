@@ -58,13 +58,14 @@ from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.search.report import markdown_table, write_report
 from flowmaps_jax.tables import TABLE_METHODS
 from flowmaps_jax.validation import (
+    check_choice,
     check_int,
-    check_options,
     check_output_dir,
+    check_real,
+    check_seed,
     make_output_dir,
     save_figure,
 )
-from flowmaps_jax.validation.fields import Choice, Int, Optional, Real, Seed
 from flowmaps_jax.validation.scalars import int_list
 from flowmaps_jax.worlds import world_of_family
 
@@ -169,13 +170,6 @@ def search_world(models: Sequence, world: str | None = None,
     return config, int(history)
 
 
-_OPTIONS = {**{dest: Int() for dest in ("num_envs", "times_per_env", "samples", "budget",
-                                         "chunk_rows")},
-            "seed": Seed(), "world": Optional(Choice(tuple(WORLDS))), "history": Optional(Int()),
-            "p_miss": Real(0.0, 1.0, high_open=True)}  # the chance a look at the right table misses
-"""What each option may hold, checked before any model is loaded."""
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; 0 on success, 2 on a bad argument, 74 on a failed write (a full disk);
     one line on stderr. Every argument, ``--out`` and the run's size are checked first. The
@@ -209,7 +203,19 @@ def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
             if getattr(args, name) is not None:
                 raise ValueError(f"--{name} applies to FlowSim homes models; "
                                  f"{args.checkpoint} is a 2-D FlowSim model")
-        check_options(args, _OPTIONS)
+        # the options, before any model is loaded
+        check_int("--num-envs", args.num_envs)
+        check_int("--times-per-env", args.times_per_env)
+        check_int("--samples", args.samples)
+        check_int("--budget", args.budget)
+        check_int("--chunk-rows", args.chunk_rows)
+        check_seed("--seed", args.seed)
+        if args.world is not None:
+            check_choice("--world", args.world, tuple(WORLDS))
+        if args.history is not None:
+            check_int("--history", args.history)
+        # the chance a look at the right table misses
+        check_real("--p-miss", args.p_miss, 0.0, 1.0, high_open=True)
         if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         out = pathlib.Path(check_output_dir(

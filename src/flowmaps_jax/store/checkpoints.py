@@ -35,13 +35,14 @@ import orbax.checkpoint as ocp
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
 from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
 from flowmaps_jax.validation import (
-    check_args,
+    check_choice,
     check_dir,
+    check_flag,
+    check_int,
     check_tree_no_links,
     parse_json,
     prefix_errors,
 )
-from flowmaps_jax.validation.fields import Choice, Flag, Int, Optional
 
 LATEST = "latest"
 BEST = "best"
@@ -142,11 +143,12 @@ def _step_for(root: pathlib.Path, which: str) -> tuple[pathlib.Path, int]:
     return sub, step
 
 
-@check_args(which=Optional(Choice(WHICH)))
 def saved_steps(directory: str | pathlib.Path, which: str | None = None) -> list[int]:
     """The steps saved under ``directory`` (a checkpoint root or a run directory), ascending:
     every step (in last/ or best/) by default; with ``which`` ("latest" or "best") the one step
     a restore of that checkpoint reads, or [] if there is none."""
+    if which is not None:
+        check_choice("which", which, WHICH)
     root = resolve_checkpoint_dir(directory)
     if which is None:
         return sorted({step for step, _ in saved_copies(root)})
@@ -344,7 +346,6 @@ def _select(root: pathlib.Path, which: str, step: int | None) -> list[tuple[int,
     return copies
 
 
-@check_args(which=Choice(WHICH), step=Optional(Int(0)))
 def restore(directory: str | pathlib.Path, target_state=None, *, which: str = LATEST,
             step: int | None = None, with_state: bool = True) -> Restored:
     """The verified :class:`Restored` checkpoint ``which`` ("latest" or "best") under
@@ -356,6 +357,8 @@ def restore(directory: str | pathlib.Path, target_state=None, *, which: str = LA
     ``ValueError`` for a missing, damaged or non-finite checkpoint, naming the newest intact
     step when there is one.
     """
+    check_choice("which", which, WHICH)
+    step = None if step is None else check_int("step", step, 0)
     root = resolve_checkpoint_dir(directory)
     copies = _select(root, which, step)
     if with_state:
@@ -375,13 +378,15 @@ class Weights(NamedTuple):
     root: pathlib.Path
 
 
-@check_args(which=Choice(WHICH), use_ema=Flag(), step=Optional(Int(0)))
 def load_weights(directory: str | pathlib.Path, which: str = BEST, use_ema: bool = True,
                  step: int | None = None) -> Weights:
     """The weights of the ``which`` checkpoint under ``directory`` (or of the saved ``step``),
     checked against the model their config describes. ``which="best"`` falls back to the
     latest save when no validation has run yet; ``use_ema``: the EMA weights (default) or the
     raw training weights. ``ValueError`` for a missing, damaged or non-finite checkpoint."""
+    check_choice("which", which, WHICH)
+    use_ema = check_flag("use_ema", use_ema)
+    step = None if step is None else check_int("step", step, 0)
     root = resolve_checkpoint_dir(directory)
     if step is None and which == BEST and not saved_steps(root, which):
         which = LATEST

@@ -14,9 +14,7 @@ from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import ModelFamily
 from flowmaps_jax.store.integrity import leaf_name
-from flowmaps_jax.validation import check_int
-from flowmaps_jax.validation.composite import Fields
-from flowmaps_jax.validation.fields import Int, check_fields
+from flowmaps_jax.validation import check_instance, check_int
 
 DEFAULT_FAMILY = "flowmaps"
 """The family of a stored config without ``model_kind`` (``TrainConfig``'s default)."""
@@ -43,8 +41,13 @@ class ModelSpec:
         return model_family(self.family_name)
 
     def __post_init__(self):
-        check_fields(self, _FITS, store=False)
-        # descriptor ids for all the simulator's descriptors
+        check_instance("flowsim", self.flowsim, FlowSimConfig)
+        check_instance("model", self.model, ModelConfig)
+        # a model that fits its simulator: a time embedding for each of its timesteps ...
+        if self.model.tau_max != self.flowsim.num_timesteps:
+            raise ValueError(f"model.tau_max must be flowsim.num_timesteps = "
+                             f"{self.flowsim.num_timesteps}; got {self.model.tau_max}")
+        # ... and descriptor ids for all the simulator's descriptors
         check_int("model.num_descriptors", self.model.num_descriptors,
                   self.flowsim.num_descriptors)
 
@@ -54,18 +57,12 @@ class ModelSpec:
         return jax.eval_shape(lambda key: self.family.init(key, self.model), jax.random.key(0))
 
 
-_FITS = {"flowsim": Fields(FlowSimConfig, {"num_timesteps": Int(size="T")}, arrays=False),
-         "model": Fields(ModelConfig, {"tau_max": Int(size="T")}, arrays=False)}
-"""A model that fits its simulator: ``tau_max`` equal to ``flowsim.num_timesteps`` (and, in
-``ModelSpec.__post_init__``, descriptor ids for all the simulator's descriptors)."""
-
-
 def model_spec(config: dict) -> ModelSpec:
     """The model family, model sizes and simulator of a stored run config (a checkpoint's
     ``config`` item or a pretrained model's ``.json`` ``config``; ``TrainConfig.to_dict()``).
     Checks them, and that the model fits the simulator; the training fields are not read.
     Raises ``ValueError`` naming what is wrong; ``config`` is a dict (its callers' checks:
-    a checkpoint's config item, :data:`~.pretrained._META_RULES`)."""
+    a checkpoint's config item, a pretrained model's checked ``.json``)."""
     family_name = config.get("model_kind", DEFAULT_FAMILY)  # the key run configs store it under
     if family_name == HOMES_FAMILY:  # same shape: family_name, model, abstract_params()
         from flowmaps_jax.homes.model import homes_spec

@@ -30,7 +30,7 @@ import hashlib
 import io
 import json
 import pathlib
-import types
+import re
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
@@ -41,8 +41,9 @@ from flowmaps_jax.store import checkpoints
 from flowmaps_jax.store.checkpoints import WHICH
 from flowmaps_jax.store.model_spec import HOMES_FAMILY, ModelSpec, model_spec
 from flowmaps_jax.validation import (
-    check_args,
-    check_fields,
+    check_choice,
+    check_instance,
+    check_int,
     check_keys,
     check_output_dir,
     make_output_dir,
@@ -51,8 +52,6 @@ from flowmaps_jax.validation import (
     read_npz,
     write_files,
 )
-from flowmaps_jax.validation.composite import Pattern
-from flowmaps_jax.validation.fields import Choice, Instance, Int, Optional
 
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[1] / "pretrained"
 PREFIX = "pretrained:"
@@ -91,13 +90,6 @@ def available(directory: str | pathlib.Path = PRETRAINED_DIR) -> list[str]:
 
 # --------------------------------------------------------------------------------------------
 # Reading
-
-
-_META_RULES = {"step": Optional(Int(0)), "which": Choice((*WHICH, UNKNOWN)), "why": Instance(str),
-               "sha256": Pattern("[0-9a-f]{64}", "a SHA-256 hex digest"),
-               "config": Instance(dict), "seal": Optional(Instance(dict))}
-"""The fields of a weights ``.json`` that the loader uses or reports (``name`` must also be
-the model's own)."""
 
 
 def seal(meta: dict, npz_bytes: bytes) -> dict:
@@ -145,7 +137,7 @@ def _read_limited(name: str, path: pathlib.Path, limit: int) -> bytes:
 
 def _read_meta(name: str, root: pathlib.Path) -> dict:
     """The checked ``.json`` of the weights ``name`` in ``root``: both files present, its size
-    first, then its fields (:data:`_META_RULES`)."""
+    first, then the fields the loader uses or reports (``name`` must be the model's own)."""
     if name not in available(root):
         raise ValueError(f"pretrained weights {name!r} are not in {root} (present: "
                          f"{available(root) or 'none'})")
@@ -153,21 +145,28 @@ def _read_meta(name: str, root: pathlib.Path) -> dict:
     text = _read_limited(name, root / file, MAX_META_BYTES)
     meta = parse_json(f"pretrained {name!r}: {file}", text)  # its depth bounded
     check_keys(f"pretrained {name!r}: {file}", meta)  # a JSON object
-    fields = types.SimpleNamespace(**{"step": None, "which": UNKNOWN, "why": "", "name": name,
-                                      "sha256": None, "config": None, "seal": None,
-                                      **meta})
-    check_fields(fields, {**_META_RULES, "name": Choice((name,))},
-                 prefix=f"pretrained {name!r}: {file} ", store=False)
+    where = f"pretrained {name!r}: {file} "
+    if meta.get("step") is not None:
+        check_int(where + "step", meta["step"], 0)
+    check_choice(where + "which", meta.get("which", UNKNOWN), (*WHICH, UNKNOWN))
+    check_instance(where + "why", meta.get("why", ""), str)
+    digest = meta.get("sha256")
+    if not (isinstance(digest, str) and re.fullmatch("[0-9a-f]{64}", digest)):
+        raise ValueError(f"{where}sha256 must be a SHA-256 hex digest; got {str(digest)[:40]!r}")
+    check_instance(where + "config", meta.get("config"), dict)
+    if meta.get("seal") is not None:
+        check_instance(where + "seal", meta["seal"], dict)
+    check_choice(where + "name", meta.get("name", name), (name,))
     return meta
 
 
-@check_args(name=Choice(NAMES))
 def describe(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> dict:
     """What the pretrained model ``name`` is, from its ``.json`` only (no weights are read):
     ``{"name", "kind", "step", "which", "why", "source", "note"}``. ``which`` is "latest" (the
     run's last step), "best" (its best-by-validation step) or "unknown" for a .json written
     before exports recorded it; ``why`` is then "". ValueError when the files are missing or
     the .json is not one :func:`export_pretrained` wrote."""
+    check_choice("name", name, NAMES)
     meta = _read_meta(name, pathlib.Path(directory))
     return {"name": name, "kind": meta.get("kind"), "step": meta.get("step"),
             "which": meta.get("which", UNKNOWN), "why": meta.get("why", ""),
@@ -185,12 +184,12 @@ class PretrainedWeights(NamedTuple):
     meta: dict
 
 
-@check_args(name=Choice(NAMES))
 def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> PretrainedWeights:
     """The pretrained weights ``name`` (one of :data:`NAMES`) in ``directory``, read and checked
     (see the module doc). Raises ``ValueError`` for an unknown name (listing the names), or
     weights that are missing, damaged (the seal over the .json and the .npz does not match) or
     do not fit their config."""
+    check_choice("name", name, NAMES)
     root = pathlib.Path(directory)
     npz, meta_path = root / f"{name}.npz", root / f"{name}.json"
     meta = _read_meta(name, root)
@@ -242,7 +241,6 @@ def _default_why(which: str, step: int, best_step: int | None, latest_step: int 
     return f"step {step}, the run's last (the weights at the end of training); {best}"
 
 
-@check_args(name=Choice(NAMES), which=Choice(WHICH), why=Instance(str))
 def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
                       directory: str | pathlib.Path,
                       which: str = "best", note: str = "", why: str = "") -> pathlib.Path:
@@ -259,6 +257,9 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
     the path of the .npz.
     """
     # before anything is read or written
+    check_choice("name", name, NAMES)
+    check_choice("which", which, WHICH)
+    check_instance("why", why, str)
     check_output_dir("directory", directory, files=[f"{name}.npz", f"{name}.json"])
     ckpt_root = checkpoints.resolve_checkpoint_dir(checkpoint_dir)
     best_step = next(iter(checkpoints.saved_steps(ckpt_root, checkpoints.BEST)), None)

@@ -42,7 +42,6 @@ import os
 import pathlib
 import sys
 import time
-import types
 import typing
 
 from flowmaps_jax import distributed
@@ -57,8 +56,7 @@ from flowmaps_jax.training.config import (
 )
 from flowmaps_jax.training.loop import run
 from flowmaps_jax.training.overrides import replace_fields
-from flowmaps_jax.validation.composite import Needs, OutputDir
-from flowmaps_jax.validation.fields import Optional, check_fields
+from flowmaps_jax.validation import check_output_dir
 from flowmaps_jax.worlds import world
 
 EXIT_OK, EXIT_NAN, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 1, 74, 130
@@ -125,23 +123,24 @@ def split_world(overrides: typing.Iterable[str]) -> tuple[list[str], str | None]
 _KEPT = ("cannot change on --resume: a resumed run uses the run's saved config (--preset, "
          "--family and --set world=..., which changes the data, cannot change); change fields "
          "with --set")
-_OPTION_RULES = {
-    "run_dir": Optional(OutputDir()),  # '' is refused, not the default; --resume reads it
-    "resume": Needs("run_dir", "needs --run-dir (the run to continue)"),
-    "preset": Needs("resume", _KEPT, needs=False), "family": Needs("resume", _KEPT, needs=False),
-    "world": Needs("resume", _KEPT, needs=False),
-    "overwrite": Needs("resume", "and --resume exclude each other", needs=False)}
-"""The options checked before any is used (in this order), each named as typed."""
-_LABELS = {"resume": "--resume", "preset": "--preset", "family": "--family",
-           "world": "--set world=...", "overwrite": "--overwrite"}
 
 
 def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]:
-    """The run's config and directory from parsed arguments (ValueError on bad input)."""
+    """The run's config and directory from parsed arguments (ValueError on bad input). The
+    options are checked before any is used."""
     overrides, world = split_world(args.overrides)
-    options = types.SimpleNamespace(**vars(args), world=world)
-    run_dir = check_fields(options, _OPTION_RULES, store=False, labels=_LABELS)["run_dir"]
+    run_dir = None  # '' is refused, not the default; --resume reads it
+    if args.run_dir is not None:
+        run_dir = pathlib.Path(check_output_dir("run_dir", args.run_dir))
     if args.resume:
+        if run_dir is None:
+            raise ValueError("--resume needs --run-dir (the run to continue)")
+        for flag, value in (("--preset", args.preset), ("--family", args.family),
+                            ("--set world=...", world)):
+            if value is not None:
+                raise ValueError(f"{flag} {_KEPT}")
+        if args.overwrite:
+            raise ValueError("--overwrite and --resume exclude each other")
         cfg = resume.resume_config(run_dir, args.from_step)
     else:
         cfg = get_preset(args.preset or DEFAULT_PRESET)

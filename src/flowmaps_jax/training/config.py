@@ -47,19 +47,15 @@ from flowmaps_jax.training.overrides import (
     config_to_dict,
     flatten,
 )
-from flowmaps_jax.validation import INT32_MAX, check_resources
-from flowmaps_jax.validation.composite import IntBelow
-from flowmaps_jax.validation.fields import (
-    Choice,
-    Instance,
-    Int,
-    Optional,
-    PlainName,
-    Real,
-    Seed,
-    Text,
-    check_fields,
+from flowmaps_jax.validation import (
+    INT32_MAX,
+    check_instance,
+    check_int,
+    check_plain_name,
+    check_resources,
+    check_seed,
 )
+from flowmaps_jax.validation.fields import Choice, Int, Optional, Real, Text, check_fields
 from flowmaps_jax.worlds import world, world_of_family
 
 DATA_SOURCES = ("train", "endless")
@@ -201,7 +197,10 @@ class TrainConfig:
 
     def __post_init__(self):
         check_fields(self, _RULES, store=False)
+        check_instance("model", self.model, ModelConfig)
+        check_instance("flowsim", self.flowsim, FlowSimConfig)
         # Then the checks that couple two fields: each field's own error is named first.
+        _check_warmup(self)
         if self.devices is not None and self.batch_size % self.devices:
             raise ValueError(
                 f"batch_size={self.batch_size} does not divide evenly over devices="
@@ -242,8 +241,8 @@ _RULES = {
                                  "val_envs", "val_batches", "log_every", "val_every",
                                  "ckpt_every", "keep_last", "routine_samples",
                                  "short_horizon_max")},
-    "routine_envs": Int(0, INT32_MAX), "seed": Seed(),
-    "preset": PlainName(),  # it names the default run directory
+    "routine_envs": Int(0, INT32_MAX), "seed": check_seed,
+    "preset": check_plain_name,  # it names the default run directory
     "init_from": Optional(Text("a checkpoint directory or pretrained:NAME")),
     "devices": Optional(_COUNT),
     # Every float: a finite real number (not inf, NaN, a bool or a string) within its range.
@@ -251,11 +250,18 @@ _RULES = {
     "weight_decay": Real(0.0), "clip_norm": Optional(Real(0.0, low_open=True)),
     "short_horizon_frac": Real(0.0, 1.0), "target_noise": Real(0.0, 10.0, high_open=True),
     "pointer_loss": Real(0.0, 100.0, high_open=True),
-    "model": Instance(ModelConfig), "flowsim": Instance(FlowSimConfig),
-    "warmup_steps": IntBelow("steps"),  # last: each field's own error is named first
 }
-"""What each :class:`TrainConfig` field may hold on its own (checked, not converted); the
-checks that couple two fields follow in ``__post_init__``."""
+"""What each :class:`TrainConfig` field may hold on its own (checked, not converted); ``model``,
+``flowsim`` and the checks that couple two fields follow in ``__post_init__``."""
+
+
+def _check_warmup(config: TrainConfig | HomesTrainConfig) -> None:
+    """``warmup_steps``: an int in 0..steps-1 (kept as a Python int)."""
+    warmup = check_int("warmup_steps", config.warmup_steps, 0)
+    if warmup >= config.steps:
+        raise ValueError(f"warmup_steps must be an int in 0..steps-1 (steps = {config.steps}); "
+                         f"got {warmup}")
+    object.__setattr__(config, "warmup_steps", warmup)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -310,8 +316,11 @@ class HomesTrainConfig:
     preset: str = _bookkeeping("homes")
 
     def __post_init__(self):
+        check_instance("model", self.model, HomesModelConfig)
+        check_instance("homes", self.homes, HomesConfig)
         check_fields(self, _HOMES_RULES, store=False)
         # Then the checks that couple two fields: each field's own error is named first.
+        _check_warmup(self)
         most = self.homes.num_hours - self.model.history
         if self.max_horizon > most:
             raise ValueError(
@@ -336,21 +345,19 @@ class HomesTrainConfig:
 
 
 _HOMES_RULES = {
-    "model": Instance(HomesModelConfig), "homes": Instance(HomesConfig),
     "family": Choice((HOMES_FAMILY,)),
     **{name: _COUNT for name in ("batch_size", "queries_per_scene", "steps", "chunk_homes",
                                  "chunk_steps", "val_batches", "log_every", "val_every",
                                  "ckpt_every", "keep_last", "max_horizon", "val_homes")},
-    "seed": Seed(), "preset": PlainName(),
+    "seed": check_seed, "preset": check_plain_name,
     "init_from": Optional(Text("a checkpoint directory or pretrained:NAME")),
     "devices": Optional(_COUNT),
     "lr": Real(0.0, low_open=True), "b1": _DECAY, "b2": _DECAY, "ema_decay": _DECAY,
     "weight_decay": Real(0.0), "clip_norm": Optional(Real(0.0, low_open=True)),
     "cfm_weight": Real(0.0), "default_horizon_frac": Real(0.0, 1.0),
-    "warmup_steps": IntBelow("steps"),
 }
-"""What each :class:`HomesTrainConfig` field may hold on its own; the checks that couple two
-fields follow in ``__post_init__``."""
+"""What each :class:`HomesTrainConfig` field may hold on its own (``model`` and ``homes`` are
+checked first, in ``__post_init__``); the checks that couple two fields follow there."""
 
 RUN_CONFIGS = (TrainConfig, HomesTrainConfig)
 """The run config classes, one per world (each names its world: ``cls.world``)."""

@@ -14,22 +14,19 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   :func:`is_real_dtype`.
 * :mod:`.arrays`: :func:`check_array`, :func:`check_shape`, :func:`check_real_array`,
   :func:`check_int_array`, :func:`check_mask`, :func:`check_probabilities` (with
-  :data:`PROB_ATOL` for computed float32 distributions), :func:`is_concrete`; named sizes
-  (:func:`named_sizes`, :func:`size`, :func:`bind_size`): a shape ``("*B", "K")`` and another
-  ``("*B", "K+1")`` checked in one scope must agree on B and K, so shape agreement between
-  arguments is declared in their shapes, not checked by hand.
+  :data:`PROB_ATOL` for computed float32 distributions), :func:`is_concrete`. A shape is a
+  tuple of int sizes, ``None`` (any size) and a leading ``...`` (any leading dims); a caller
+  computes the sizes from its arguments (``(num_envs, k + 1)``) and passes them in.
 * :mod:`.files`: :func:`check_path`, :func:`check_file`, :func:`check_dir`,
   :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
   name, a metadata field: no path, no markup); :func:`read_npz` (an untrusted ``.npz``: member
   names whitelisted, declared sizes checked before anything is decompressed, no pickles).
-* :mod:`.fields`: :func:`check_fields` (a config's fields, from a ``{field: rule}`` table of
-  :class:`~.fields.Int`, :class:`~.fields.Real`, :class:`~.fields.Choice`, ... rules) and
-  :func:`check_keys` (the dict a ``from_dict`` reads); :func:`check_options` (a command line's
-  options, from the same kind of table); :func:`check_args` (a function's arguments, declared
-  beside its signature: ``@check_args(num_envs=Int(), key=Key())``).
-* :mod:`.composite`: the compound rules built on those: :class:`~.composite.Table` (a
-  category table), :class:`~.composite.Fields` (a pytree's fields), :class:`~.composite.After`,
-  :class:`~.composite.Needs`, :class:`~.composite.Index` (bounds read from another argument).
+* :mod:`.fields`: the config dataclasses' schemas only: :func:`check_fields` (a config's
+  fields, from a ``{field: rule}`` table of :class:`~.fields.Int`, :class:`~.fields.Real`,
+  :class:`~.fields.Choice`, ... rules or plain checks), :func:`check_table` (a table of
+  categories), :func:`check_mixture` (named probabilities) and :func:`check_keys` (the dict a
+  ``from_dict`` reads). A public function checks its arguments in its own body, with the
+  plain checks above.
 * :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
   (the file or command they concern).
 * :mod:`.writes`: :func:`write_file`, :func:`make_output_dir`, :func:`save_figure`,
@@ -47,7 +44,6 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
 
 from flowmaps_jax.validation.arrays import (
     PROB_ATOL,
-    bind_size,
     check_array,
     check_int_array,
     check_mask,
@@ -55,11 +51,9 @@ from flowmaps_jax.validation.arrays import (
     check_real_array,
     check_shape,
     is_concrete,
-    named_sizes,
-    size,
 )
 from flowmaps_jax.validation.errors import prefix_errors
-from flowmaps_jax.validation.fields import check_args, check_fields, check_keys, check_options
+from flowmaps_jax.validation.fields import check_fields, check_keys, check_mixture, check_table
 from flowmaps_jax.validation.files import (
     check_dir,
     check_file,
@@ -116,8 +110,6 @@ __all__ = [
     "SEED_MAX",
     "SEQUENTIAL_FLOPS",
     "array_bytes",
-    "bind_size",
-    "check_args",
     "check_array",
     "check_choice",
     "check_dir",
@@ -130,8 +122,8 @@ __all__ = [
     "check_key",
     "check_keys",
     "check_mask",
+    "check_mixture",
     "check_no_links",
-    "check_options",
     "check_output_dir",
     "check_output_file",
     "check_path",
@@ -143,6 +135,7 @@ __all__ = [
     "check_resources",
     "check_seed",
     "check_shape",
+    "check_table",
     "check_tree_no_links",
     "embedding_bytes",
     "embedding_flops",
@@ -151,14 +144,12 @@ __all__ = [
     "is_real_dtype",
     "make_output_dir",
     "memory_limit",
-    "named_sizes",
     "network_flops",
     "parse_json",
     "prefix_errors",
     "read_json",
     "read_npz",
     "save_figure",
-    "size",
     "solver_evaluations",
     "write_file",
     "write_files",

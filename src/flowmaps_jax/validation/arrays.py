@@ -7,9 +7,6 @@ Each raises ``ValueError`` whose message starts with the argument's name.
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
-import re
 from typing import Any
 
 import jax
@@ -38,118 +35,25 @@ def _dtype_words(dtype) -> str:
             "key": "PRNG keys"}.get(kind, f"dtype {dtype}")
 
 
-_SIZES: contextvars.ContextVar[dict | None] = contextvars.ContextVar("flowmaps_sizes",
-                                                                     default=None)
-_SIZE = re.compile(r"^(\*?)([A-Za-z_]\w*)\s*(?:([+-])\s*(\d+))?$")
-
-
-@contextlib.contextmanager
-def named_sizes():
-    """A scope in which a named size in a shape (``"K"``, ``"K+1"``, leading ``"*B"``) means the
-    same size in every check, and ``size("K")`` reads it back: the size is bound by the first
-    check that meets it (or by :func:`bind_size`) and every later one must agree, naming where it
-    came from. :func:`~flowmaps_jax.validation.check_args` and
-    :func:`~flowmaps_jax.validation.check_fields` open one per call; a check outside any scope
-    binds its names within its own shape only."""
-    token = _SIZES.set({})
-    try:
-        yield
-    finally:
-        _SIZES.reset(token)
-
-
-def _parse_size(entry: str) -> tuple[bool, str, int]:
-    match = _SIZE.match(entry)
-    if match is None:
-        raise TypeError(f"not a named size: {entry!r} (use 'K', 'K+1', 'K-1' or a leading '*B')")
-    star, base, sign, number = match.groups()
-    return bool(star), base, (0 if number is None else int(number) * (-1 if sign == "-" else 1))
-
-
-def bind_size(size_name: str, value: Any, source: str) -> None:
-    """Bind the named size ``size_name`` to ``value`` (read from argument ``source``) in the
-    current :func:`named_sizes` scope; a size already bound must agree."""
-    sizes = _SIZES.get()
-    if sizes is None:
-        return
-    if size_name in sizes and sizes[size_name][0] != value:
-        bound, where = sizes[size_name]
-        raise ValueError(f"{source} must be {size_name} = {bound} (from {where}); got {value}")
-    sizes.setdefault(size_name, (value, source))
-
-
-def size(size_name: str):
-    """The value of a named size (``"K"``, ``"K-1"``) in the current :func:`named_sizes` scope,
-    or ``None`` when it is not bound (yet)."""
-    sizes = _SIZES.get() or {}
-    _, base, offset = _parse_size(size_name)
-    if base not in sizes:
-        return None
-    return sizes[base][0] + offset
-
-
-def _bound(size_name: str) -> int:
-    value = size(size_name)
-    if value is None:
-        raise TypeError(f"the size {size_name!r} is not bound yet: check the argument that "
-                        "fixes it first")
-    return value
-
-
 def _shape_text(shape: tuple) -> str:
     parts = ["..." if s is Ellipsis else "*" if s is None else str(s) for s in shape]
     return "(" + ", ".join(parts) + ("," if len(parts) == 1 else "") + ")"
 
 
-def _match_sizes(name: str, actual: tuple, expected: tuple, sizes: dict) -> str | None:
-    """Bind or compare the named sizes of ``expected`` against ``actual`` (which fits it in
-    rank); returns the message's "with K = 4 (from q)" text of a mismatch, else None."""
-    lead = expected[0] if expected and isinstance(expected[0], str) and \
-        expected[0].startswith("*") else None
-    tail = expected[1:] if lead is not None or (expected and expected[0] is Ellipsis) \
-        else expected
-    if lead is not None:
-        base = _parse_size(lead)[1]
-        dims = tuple(actual[:len(actual) - len(tail)])
-        if base in sizes and sizes[base][0] != dims:
-            return f"with {lead} = {sizes[base][0]} (from {sizes[base][1]})"
-        sizes.setdefault(base, (dims, name))
-    for got, entry in zip(actual[len(actual) - len(tail):], tail, strict=True):
-        if not isinstance(entry, str):
-            continue
-        _, base, offset = _parse_size(entry)
-        if base in sizes:
-            if sizes[base][0] + offset != got:
-                return f"with {base} = {sizes[base][0]} (from {sizes[base][1]})"
-        else:
-            sizes[base] = (got - offset, name)
-    return None
-
-
 def check_shape(name: str, actual: tuple[int, ...], expected: tuple | None,
                 reason: str = "") -> None:
-    """``actual`` (a shape) must match ``expected``: sizes, ``None`` for any size, a named size
-    (``"K"``, ``"K+1"``: the same K in every check of one :func:`named_sizes` scope), a leading
-    ``...`` for any leading dims or ``"*B"`` for leading dims named B (``expected`` None:
-    anything). ``reason`` says why, for the message (e.g. "the leading dims of slot_boxes")."""
+    """``actual`` (a shape) must match ``expected``: int sizes, ``None`` for any size, a leading
+    ``...`` for any leading dims (``expected`` None: anything). ``reason`` says why, for the
+    message (e.g. "the leading dims of slot_boxes")."""
     if expected is None:
         return
-    lead = bool(expected) and (expected[0] is Ellipsis or (
-        isinstance(expected[0], str) and expected[0].startswith("*")))
+    lead = bool(expected) and expected[0] is Ellipsis
     tail = expected[1:] if lead else expected
     fits = len(actual) >= len(tail) if lead else len(actual) == len(tail)
-    if fits:
-        fits = all(e is None or isinstance(e, str) or a == e
-                   for a, e in zip(actual[len(actual) - len(tail):], tail, strict=True))
-    mismatch = None
-    if fits and any(isinstance(e, str) for e in expected):
-        sizes = _SIZES.get()
-        mismatch = _match_sizes(name, tuple(actual), tuple(expected),
-                                {} if sizes is None else sizes)
-    if not fits or mismatch:
+    if not fits or any(e is not None and a != e
+                       for a, e in zip(actual[len(actual) - len(tail):], tail, strict=True)):
         why = f" ({reason})" if reason else ""
-        extra = f" {mismatch}" if mismatch else ""
-        raise ValueError(f"{name} must have shape {_shape_text(expected)}{extra}{why}; got "
+        raise ValueError(f"{name} must have shape {_shape_text(expected)}{why}; got "
                          f"{tuple(actual)}")
 
 
@@ -210,13 +114,7 @@ def check_int_array(name: str, value: Any, low: int | None = None, high=None, *,
     ``high`` may be an array broadcasting against ``value`` (each value below its own bound);
     name it with ``high_name`` for the message. Floats (even 3.0) and booleans are refused.
     Values are checked on concrete arrays only; returns numpy for those, else the input.
-    ``low`` and ``high`` may also name a size of the :func:`named_sizes` scope (``"K-1"``).
     """
-    if isinstance(high, str):
-        high_name = high_name or high
-        high = _bound(high)
-    if isinstance(low, str):
-        low = _bound(low)
     arr = _as_array(name, value)
     if arr.dtype == np.bool_ or not jnp.issubdtype(arr.dtype, jnp.integer):
         raise ValueError(f"{name} must hold integers; got {_dtype_words(arr.dtype)}")

@@ -1,45 +1,24 @@
-"""Table-driven checks of a config's fields, and of the dicts configs are read back from.
+"""Table-driven checks of a config dataclass's fields, and of the dicts configs are read back from.
 
-A config dataclass (or a command line, :func:`check_options`) declares one rule per field (a
-``{field: rule}`` table) and checks them all with one call, :func:`check_fields`, instead of
-one ``check_*`` call per field. A rule is one of the small classes below (:class:`Int`,
-:class:`Real`, :class:`Choice`, ...): data describing what a field may hold. Calling a rule
-with ``(name, value)`` runs the matching check of :mod:`flowmaps_jax.validation` and returns
-the value in the form to go on with; every message still starts with the field's name.
-:func:`check_keys` is the one check of a ``from_dict`` argument: a dict whose keys are the
-config's fields.
+A config dataclass declares one rule per field (a ``{field: rule}`` table: a schema) and checks
+them all with one call, :func:`check_fields`. A rule is any ``rule(name, value)`` that returns
+the value in the form to go on with or raises ``ValueError`` whose message starts with ``name``:
+one of the small classes below (:class:`Int`, :class:`Real`, :class:`Choice`, :class:`Text`,
+:class:`Optional`, :class:`Each`, :class:`Pair`, :class:`Probabilities`), or a plain check of
+:mod:`flowmaps_jax.validation` as it is (``check_flag``, ``check_seed``, ``check_plain_name``).
+What depends on another field is checked in the config's ``__post_init__``, in plain code, as
+are its tables of categories (:func:`check_table`) and mixtures (:func:`check_mixture`).
+:func:`check_keys` is the one check of a ``from_dict`` argument.
 """
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import dataclasses
-import functools
-import inspect
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any
 
-from flowmaps_jax.validation.arrays import (
-    PROB_ATOL,
-    bind_size,
-    check_array,
-    check_int_array,
-    check_mask,
-    check_probabilities,
-    check_real_array,
-    named_sizes,
-)
-from flowmaps_jax.validation.files import check_plain_name
-from flowmaps_jax.validation.scalars import (
-    check_choice,
-    check_flag,
-    check_instance,
-    check_int,
-    check_key,
-    check_real,
-    check_seed,
-)
+from flowmaps_jax.validation.arrays import check_probabilities
+from flowmaps_jax.validation.scalars import check_choice, check_instance, check_int, check_real
 
 Rule = Callable[[str, Any], Any]
 """A field's rule: ``rule(name, value)`` returns the checked value or raises ``ValueError``
@@ -54,19 +33,14 @@ class Int:
     minimum: int | None = 1
     maximum: int | None = None
     why: str = ""
-    size: str | None = None
-    """Binds the named size (``"K"``) of the check's :func:`~.arrays.named_sizes` scope."""
 
     def __call__(self, name: str, value: Any) -> int:
         if self.why and self.maximum is not None:
             number = check_int(name, value, self.minimum)
             if number > self.maximum:
                 raise ValueError(f"{name} must be <= {self.maximum} ({self.why}); got {number}")
-        else:
-            number = check_int(name, value, self.minimum, self.maximum)
-        if self.size is not None:
-            bind_size(self.size, number, name)
-        return number
+            return number
+        return check_int(name, value, self.minimum, self.maximum)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,122 +68,6 @@ class Choice:
 
 
 @dataclasses.dataclass(frozen=True)
-class Flag:
-    """``True`` or ``False`` (:func:`~flowmaps_jax.validation.check_flag`)."""
-
-    def __call__(self, name: str, value: Any) -> bool:
-        return check_flag(name, value)
-
-
-@dataclasses.dataclass(frozen=True)
-class Seed:
-    """A PRNG seed (:func:`~flowmaps_jax.validation.check_seed`)."""
-
-    def __call__(self, name: str, value: Any) -> int:
-        return check_seed(name, value)
-
-
-@dataclasses.dataclass(frozen=True)
-class Array:
-    """An array (numpy, jax or a tracer) of ``shape`` (:func:`~flowmaps_jax.validation.check_array`;
-    ``None`` for any size, a leading ``...`` for any leading dims)."""
-
-    shape: tuple | None = None
-
-    def __call__(self, name: str, value: Any):
-        return check_array(name, value, self.shape)
-
-
-@dataclasses.dataclass(frozen=True)
-class RealArray:
-    """A real array of ``shape``, finite if ``finite``, within ``[low, high]`` if given
-    (:func:`~flowmaps_jax.validation.check_real_array`; ``what`` names the values)."""
-
-    shape: tuple | None = None
-    finite: bool = True
-    low: float | None = None
-    high: float | None = None
-    what: str = ""
-
-    def __call__(self, name: str, value: Any):
-        return check_real_array(name, value, self.shape, finite=self.finite, low=self.low,
-                                high=self.high, what=self.what)
-
-
-@dataclasses.dataclass(frozen=True)
-class IntArray:
-    """An integer array in ``low..high`` (:func:`~flowmaps_jax.validation.check_int_array`;
-    a bound may be a named size, ``"K-1"``, or an array, named by ``high_name``)."""
-
-    low: int | str | None = None
-    high: Any = None
-    shape: tuple | None = None
-    high_name: str | None = None
-
-    def __call__(self, name: str, value: Any):
-        return check_int_array(name, value, self.low, self.high, shape=self.shape,
-                               high_name=self.high_name)
-
-
-@dataclasses.dataclass(frozen=True)
-class Distribution:
-    """Probabilities over the last axis (:func:`~flowmaps_jax.validation.check_probabilities`)
-    of ``shape``, a computed float32 one by default (sums within ``atol``, round-off negatives
-    down to ``-atol``); ``support`` names an argument (or field) checked before it, a mask
-    marking where mass may lie."""
-
-    shape: tuple | None = None
-    atol: float = PROB_ATOL
-    support: str | None = None
-    normalised: bool = True
-
-    def __call__(self, name: str, value: Any):
-        support = None if self.support is None else (_CHECKED.get() or {})[self.support]
-        return check_probabilities(name, value, self.shape, atol=self.atol,
-                                   min_value=-self.atol, normalised=self.normalised,
-                                   support=support, support_name=self.support or "support")
-
-
-@dataclasses.dataclass(frozen=True)
-class Mask:
-    """A 0/1 mask as booleans (:func:`~flowmaps_jax.validation.check_mask`)."""
-
-    shape: tuple | None = None
-
-    def __call__(self, name: str, value: Any):
-        return check_mask(name, value, self.shape)
-
-
-@dataclasses.dataclass(frozen=True)
-class Key:
-    """A PRNG key of one of the key-array ``shapes``, as a typed key
-    (:func:`~flowmaps_jax.validation.check_key`)."""
-
-    shapes: tuple = ((),)
-
-    def __call__(self, name: str, value: Any):
-        return check_key(value, name, self.shapes)
-
-
-@dataclasses.dataclass(frozen=True)
-class PlainName:
-    """A plain name (:func:`~flowmaps_jax.validation.check_plain_name`)."""
-
-    def __call__(self, name: str, value: Any) -> str:
-        return check_plain_name(name, value)
-
-
-@dataclasses.dataclass(frozen=True)
-class Instance:
-    """An instance of ``cls`` (:func:`~flowmaps_jax.validation.check_instance`)."""
-
-    cls: type | tuple[type, ...]
-
-    def __call__(self, name: str, value: Any) -> Any:
-        return check_instance(name, value, self.cls)
-
-
-@dataclasses.dataclass(frozen=True)
 class Text:
     """A non-empty string (with ``strip``, one with something in it other than white space);
     ``what`` names it in the message, e.g. "a checkpoint directory or pretrained:NAME"."""
@@ -220,20 +78,6 @@ class Text:
     def __call__(self, name: str, value: Any) -> str:
         if not isinstance(value, str) or not (value.strip() if self.strip else value):
             raise ValueError(f"{name} must be {self.what}; got {value!r}")
-        return value
-
-
-@dataclasses.dataclass(frozen=True)
-class Entries:
-    """A non-empty tuple (not a list) of ``cls`` instances: a config's table of categories."""
-
-    cls: type
-
-    def __call__(self, name: str, value: Any) -> tuple:
-        if not isinstance(value, tuple) or not value:
-            raise ValueError(f"{name} must be a non-empty tuple of {self.cls.__name__}")
-        for entry in value:
-            check_instance(f"{name} entries", entry, self.cls)
         return value
 
 
@@ -272,28 +116,6 @@ class Each:
 
 
 @dataclasses.dataclass(frozen=True)
-class Members:
-    """A non-empty tuple of names, each one of ``known`` (``what`` says what they name, e.g.
-    "room type"), each at most once if ``distinct``."""
-
-    known: frozenset
-    what: str
-    distinct: bool = True
-
-    def __call__(self, name: str, value: Any) -> tuple:
-        if not isinstance(value, tuple) or not value:
-            raise ValueError(f"{name} must be a non-empty tuple of {self.what} names; got "
-                             f"{value!r}")
-        for entry in value:
-            if entry not in self.known:
-                raise ValueError(f"{name}: unknown {self.what} {entry!r} (known: "
-                                 f"{sorted(self.known)})")
-        if self.distinct and len(set(value)) != len(value):
-            raise ValueError(f"{name} names a {self.what} twice: {value!r}")
-        return value
-
-
-@dataclasses.dataclass(frozen=True)
 class Probabilities:
     """A tuple of ``length`` probabilities summing to 1, as Python floats."""
 
@@ -326,21 +148,6 @@ class Pair:
         return (lo, hi)
 
 
-_CHECKED: contextvars.ContextVar[Mapping[str, Any] | None] = contextvars.ContextVar(
-    "flowmaps_checked", default=None)
-
-
-@contextlib.contextmanager
-def _checked(values: Mapping[str, Any]):
-    """The arguments (or fields) of the running check, for a rule that reads another one's
-    checked value (:class:`Distribution`'s ``support``)."""
-    token = _CHECKED.set(values)
-    try:
-        yield
-    finally:
-        _CHECKED.reset(token)
-
-
 def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
                  store: bool = True, labels: Mapping[str, str] | None = None) -> dict[str, Any]:
     """Check every field of ``obj`` named in ``rules`` against its rule, in the table's order;
@@ -352,51 +159,60 @@ def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
     would fail on it later); Python values are kept as given."""
     labels = labels or {}
     checked: dict[str, Any] = {}
-    with named_sizes(), _checked(checked):
-        for field, rule in rules.items():
-            given = getattr(obj, field)
-            checked[field] = value = rule(prefix + labels.get(field, field), given)
-            if store or (type(value) in _PYTHON_NUMBERS
-                         and type(given) not in _PYTHON_NUMBERS):
-                object.__setattr__(obj, field, value)
+    for field, rule in rules.items():
+        given = getattr(obj, field)
+        checked[field] = value = rule(prefix + labels.get(field, field), given)
+        if store or (type(value) in _PYTHON_NUMBERS and type(given) not in _PYTHON_NUMBERS):
+            object.__setattr__(obj, field, value)
     return checked
 
 
 _PYTHON_NUMBERS = (int, float, bool)
 
 
-def check_args(**rules: Rule) -> Callable[[Callable], Callable]:
-    """A function's argument checks, declared with its signature: ``@check_args(num_envs=Int(),
-    key=Key())`` checks each named argument against its rule (defaults included) before the
-    function runs, and passes it on in its checked form (a Python int, a typed key); every
-    message names the argument. Arguments whose bounds depend on other arguments are checked in
-    the body."""
-    def decorate(function: Callable) -> Callable:
-        signature = inspect.signature(function)
-        unknown = sorted(set(rules) - set(signature.parameters))
-        if unknown:
-            raise TypeError(f"check_args: {function.__qualname__} has no arguments {unknown}")
+def check_table(name: str, value: Any, cls: type, rules: Mapping[str, Rule], *,
+                unique: Sequence[str] = (), earlier: Sequence[Any] = (),
+                refers: Sequence[str] = (), labels: Mapping[str, str] | None = None) -> tuple:
+    """A config's table of categories: a non-empty tuple of ``cls`` entries (each with a
+    ``name``), every entry's fields checked against ``rules`` (messages name ``table: 'entry'
+    field``, or the field's ``labels``), the ``unique`` fields distinct across this table and
+    the ``earlier`` one (a table checked before it), each ``refers`` field naming an entry of
+    ``earlier``. Returns the tuple, an entry rebuilt where a rule changed a value (a numpy id
+    -> int)."""
+    if not isinstance(value, tuple) or not value:
+        raise ValueError(f"{name} must be a non-empty tuple of {cls.__name__}")
+    for entry in value:
+        check_instance(f"{name} entries", entry, cls)
+    seen = {field: {getattr(e, field) for e in earlier} for field in unique}
+    rules = {**rules, **{field: Choice(tuple(e.name for e in earlier)) for field in refers}}
+    entries = []
+    for entry in value:
+        checked = check_fields(entry, rules, prefix=f"{name}: {entry.name!r} ", store=False,
+                               labels=labels)
+        for field in unique:
+            key = checked.get(field, getattr(entry, field))
+            if key in seen[field]:
+                raise ValueError(f"{name}: {field} {key!r} is used twice")
+            seen[field].add(key)
+        changed = {f: v for f, v in checked.items() if v is not getattr(entry, f)}
+        entries.append(dataclasses.replace(entry, **changed) if changed else entry)
+    return tuple(entries)
 
-        @functools.wraps(function)
-        def checked(*args, **kwargs):
-            bound = signature.bind(*args, **kwargs)
-            bound.apply_defaults()
-            with named_sizes(), _checked(bound.arguments):
-                for name, rule in rules.items():
-                    bound.arguments[name] = rule(name, bound.arguments[name])
-            return function(*bound.args, **bound.kwargs)
 
-        return checked
-
-    return decorate
-
-
-def check_options(args: Any, rules: Mapping[str, Rule]) -> None:
-    """A command line's parsed options (an ``argparse.Namespace``) against ``{dest: rule}``,
-    before anything runs; each message names the option as typed (``num_envs``: ``--num-envs``).
-    The values are checked, not converted."""
-    check_fields(args, rules, prefix="--", store=False,
-                 labels={dest: dest.replace("_", "-") for dest in rules})
+def check_mixture(name: str, value: Any, known: Sequence[str], what: str = "component"
+                  ) -> tuple[tuple[str, float], ...]:
+    """A mixture over named components: a non-empty tuple of (name, probability) pairs, each
+    name one of ``known`` at most once, the probabilities summing to 1; as (str, float) pairs.
+    ``what`` names a component in the messages (e.g. "habit")."""
+    if (not isinstance(value, (tuple, list)) or not value
+            or not all(isinstance(p, (tuple, list)) and len(p) == 2 for p in value)):
+        raise ValueError(f"{name} must be ({what} name, probability) pairs, e.g. "
+                         f"(({known[0]!r}, 1.0),); got {value!r}")
+    names = [check_choice(f"{name}: {what} name", p[0], known) for p in value]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{name}: a {what} is named twice; got {value!r}")
+    probs = check_probabilities(f"{name} probabilities", [p[1] for p in value])
+    return tuple((str(n), float(p)) for n, p in zip(names, probs, strict=True))
 
 
 def check_keys(name: str, data: Any, known: Collection[str] | None = None, *,

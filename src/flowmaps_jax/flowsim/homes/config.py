@@ -27,20 +27,20 @@ from flowmaps_jax.flowsim.homes.vocabulary import (
     ReceptacleClass,
     RoomType,
 )
-from flowmaps_jax.validation.composite import Table
 from flowmaps_jax.validation.errors import prefix_errors
 from flowmaps_jax.validation.fields import (
     Choice,
     Each,
     Int,
     Pair,
-    PlainName,
     Probabilities,
     Real,
     Text,
     check_fields,
     check_keys,
+    check_table,
 )
+from flowmaps_jax.validation.files import check_plain_name
 from flowmaps_jax.validation.scalars import check_int
 
 REGIMES = ("preferences", "balanced", "frequent", "routine")
@@ -127,7 +127,12 @@ class HomesConfig:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the field if this config cannot make valid homes."""
-        check_fields(self, _CLASS_RULES)  # the vocabulary's tables on their own
+        # the vocabulary's tables on their own (names distinct)
+        for field, cls, rules in (("room_types", RoomType, _ENTRY_RULES),
+                                  ("receptacle_classes", ReceptacleClass, _SIZED_ENTRY_RULES),
+                                  ("object_classes", ObjectClass, _SIZED_ENTRY_RULES)):
+            object.__setattr__(self, field, check_table(field, getattr(self, field), cls, rules,
+                                                        unique=("name",)))
         # what the classes name must exist
         room_types = _names(self.room_types)
         for entry in self.receptacle_classes:
@@ -290,20 +295,13 @@ def _check_names(name: str, value: Any, known: frozenset, what: str, distinct: b
         raise ValueError(f"{name} names a {what} twice: {value!r}")
 
 
-_ENTRY_RULES = {"name": PlainName(), "text": Text()}
-_SIZE = Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")
+_ENTRY_RULES = {"name": check_plain_name, "text": Text()}
+_SIZED_ENTRY_RULES = {**_ENTRY_RULES,
+                      "size": Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")}
 _UNIT = Real(0.0, 1.0)
 _JITTER = Real(0.0, 1.0, high_open=True)
 _CLASSES = ("room_types", "receptacle_classes", "object_classes")
 """The class tables, whose entries together are the vocabulary (one descriptor each)."""
-_CLASS_RULES = {
-    "room_types": Table(RoomType, _ENTRY_RULES, unique=("name",)),
-    "receptacle_classes": Table(ReceptacleClass, {**_ENTRY_RULES, "size": _SIZE},
-                                unique=("name",)),
-    "object_classes": Table(ObjectClass, {**_ENTRY_RULES, "size": _SIZE}, unique=("name",)),
-}
-"""What the vocabulary's tables hold on their own (names distinct); ``validate`` then checks
-the names each class lists."""
 _RULES = {
     "grid_rows": Int(1),
     # one receptacle per cell of a 2 x 2 split of the room
