@@ -176,6 +176,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     protocol is the one of ``--checkpoint``'s world (:data:`_BY_WORLD`)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    try:  # the options every world reads, before any model is read
+        check_int("--num-envs", args.num_envs, 1)
+        check_seed("--seed", args.seed)
+        if args.history is not None:
+            check_int("--history", args.history, 1)
+        if args.world is not None:
+            check_choice("--world", args.world, tuple(WORLDS))
+        if args.out:
+            check_output_dir("--out", args.out)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_USAGE
     try:
         family = stored_family(args.checkpoint, args.which)
     except ValueError as err:

@@ -38,7 +38,7 @@ from flowmaps_jax.flowsim.worlds import HABITS_HISTORY, world_config  # the habi
 from flowmaps_jax.homes.model import FAMILY_NAME as HOMES_FAMILY
 from flowmaps_jax.homes.model import HomesModelConfig
 from flowmaps_jax.model.config import ModelConfig
-from flowmaps_jax.model.families import MODEL_FAMILIES
+from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
 from flowmaps_jax.store.model_spec import ModelSpec
 from flowmaps_jax.training.overrides import (
     SHORTHANDS,
@@ -206,11 +206,11 @@ class TrainConfig:
                 f"batch_size={self.batch_size} does not divide evenly over devices="
                 f"{self.devices} (each device takes batch_size / devices scenes): use a "
                 f"multiple of {self.devices}, or devices dividing {self.batch_size}")
-        if self.pointer_loss > 0 and self.family == "flowmaps" and \
-                self.model.head not in ("pointer", "route", "mixture"):
+        reads_out = model_family(self.family).table_weights is not None  # FlowMaps' heads
+        if self.pointer_loss > 0 and reads_out and not \
+                model_family(self.family).has_table_weights(self.model):
             raise ValueError("pointer_loss > 0 needs model.head='pointer', 'route' or 'mixture' "
-                             "(the MLP "
-                             "baseline ignores it)")
+                             "(the MLP baseline ignores it)")
         ModelSpec(self.family, self.model, self.flowsim)  # the model fits the simulator
         sim, net = self.flowsim, self.model
         needed = sim.num_furniture + sim.num_objects * net.history
