@@ -274,7 +274,8 @@ def test_the_size_check_counts_a_history_models_own_tokens(monkeypatch):
     seen = []
     real = cli.network_flops
     monkeypatch.setattr(cli, "network_flops",
-                        lambda net, name, tokens: seen.append(tokens) or real(net, name, tokens))
+                        lambda net, tokens, gaussian: seen.append(tokens) or real(net, tokens,
+                                                                                 gaussian))
     sim = FlowSimConfig()
     wide = dataclasses.replace(sim, max_tokens=34)
     models = [types.SimpleNamespace(model=dataclasses.replace(TINY, history=8),

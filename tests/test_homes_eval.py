@@ -14,6 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from flowmaps_jax.evaluation import priors as pr
+from flowmaps_jax.evaluation import receptacle_protocol as ev
+from flowmaps_jax.evaluation.receptacle_scores import (
+    assign_samples,
+    object_positions,
+    posterior_scores,
+)
 from flowmaps_jax.flowsim.homes import (
     REGIMES,
     HomesConfig,
@@ -21,11 +28,8 @@ from flowmaps_jax.flowsim.homes import (
     homes_history_posterior,
     homes_posterior,
 )
-from flowmaps_jax.homes import evaluate as ev
-from flowmaps_jax.homes import navigation as nav
-from flowmaps_jax.homes import priors as pr
-from flowmaps_jax.homes.queries import HomesQueries, draw_queries
-from flowmaps_jax.homes.scores import assign_samples, object_positions, posterior_scores
+from flowmaps_jax.flowsim.homes.queries import HomesQueries, draw_queries
+from flowmaps_jax.search import navigation as nav
 
 CONFIG = HomesConfig(regime="mixed", num_hours=192)
 HISTORY = 24

@@ -16,9 +16,9 @@ import pytest
 from support import perturb, run_python_in_process
 
 from flowmaps_jax.flowsim.homes import context_of, generate_homes, object_boxes
-from flowmaps_jax.homes import model as homes_model
-from flowmaps_jax.homes import tokens as homes_tokens
-from flowmaps_jax.homes.queries import HomesQueries
+from flowmaps_jax.flowsim.homes import tokens as homes_tokens
+from flowmaps_jax.flowsim.homes.queries import HomesQueries
+from flowmaps_jax.model import homes_family as homes_model
 from flowmaps_jax.predictor import Predictor, load, load_model, load_pretrained
 from flowmaps_jax.store import model_spec, pretrained
 from flowmaps_jax.training import state as train_state
@@ -381,7 +381,7 @@ def test_the_train_config_round_trips_and_refuses_bad_fields():
 
 def test_large_requests_run_in_chunks_of_queries_with_the_same_answers(run_dir, homes, queries,
                                                                        monkeypatch):
-    from flowmaps_jax.homes import predictor as homes_predictor
+    from flowmaps_jax.model import homes_inference as homes_predictor
 
     predictor = load(run_dir)
     whole = np.asarray(predictor.probabilities(homes, queries, CONFIG))

@@ -28,14 +28,6 @@ def _name(path: pathlib.Path) -> str:
 
 MODULES = {_name(path): path for path in sorted((SRC / PACKAGE).rglob("*.py"))}
 
-# The homes model family's modules (queries, tokens, the network and its loss): at the model
-# layer, below the store (which reads a stored homes config through homes.model.homes_spec, as
-# it reads the 2-D families' through model.families); the rest of homes/ sits above the store.
-HOMES_MODEL = (f"{PACKAGE}.homes", *(f"{PACKAGE}.homes.{m}" for m in ("queries", "tokens",
-                                                                     "model")))
-HOMES_ABOVE_STORE = tuple(f"{PACKAGE}.homes.{m}" for m in (
-    "predictor", "priors", "scores", "navigation", "report", "evaluate"))
-
 # The modules that load, run and export a trained model: none may import flowmaps_jax.training,
 # not even lazily, so that sampling a pretrained model needs neither optax nor the training loop.
 INFERENCE = sorted(
@@ -43,13 +35,11 @@ INFERENCE = sorted(
     if name in (f"{PACKAGE}.{m}" for m in ("predictor", "export", "flow", "tokens", "boxes",
                                             "validation", "distributed", "tables"))
     or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store",
-                        f"{PACKAGE}.worlds"))
-    or name in HOMES_MODEL or name == f"{PACKAGE}.homes.predictor")
+                        f"{PACKAGE}.worlds")))
 STORE = sorted(name for name in MODULES if name.startswith(f"{PACKAGE}.store"))
 # What sits above the store: it may import none of them, lazily or not.
-ABOVE_STORE = (*(f"{PACKAGE}.{m}" for m in ("training", "predictor", "evaluation", "search",
-                                             "export", "train", "evaluate")),
-               *HOMES_ABOVE_STORE)
+ABOVE_STORE = tuple(f"{PACKAGE}.{m}" for m in ("training", "predictor", "evaluation", "search",
+                                              "export", "train", "evaluate"))
 
 
 def _known(target: str) -> str | None:
@@ -145,9 +135,10 @@ def test_the_graph_is_read():
     assert f"{PACKAGE}.predictor" in edges(f"{PACKAGE}.training.loop")
     assert {f"{PACKAGE}.store", f"{PACKAGE}.export"} <= set(INFERENCE)
     assert len(STORE) > 5
-    # the store reads stored homes configs through the homes family's module, lazily
-    assert f"{PACKAGE}.homes.model" in edges(f"{PACKAGE}.store.model_spec")
-    assert all(m in MODULES for m in HOMES_MODEL + HOMES_ABOVE_STORE)
+    # the store reads stored homes configs through the homes family's module
+    assert f"{PACKAGE}.model.homes_family" in edges(f"{PACKAGE}.store.model_spec")
+    # no package by world: the homes' parts live in the layers (issue 49)
+    assert not any(m == f"{PACKAGE}.homes" or m.startswith(f"{PACKAGE}.homes.") for m in MODULES)
 
 
 def test_no_import_circles():
@@ -157,17 +148,18 @@ def test_no_import_circles():
 LAYERS = (
     ("validation", "boxes", "distributed"),
     ("tokens", "flow", "tables"),
-    ("flowsim", "model", "homes.queries", "homes.tokens", "homes.model"),
+    ("flowsim", "model"),
     ("worlds",),
     ("store",),
-    ("predictor", "export", "homes.predictor"),
-    ("evaluation", "search", "homes"),
+    ("predictor", "export"),
+    ("evaluation", "search"),
     ("training",),
     ("train", "evaluate"),
 )
 """The layers, bottom up, each a list of module-name prefixes under the package (the longest
-prefix decides: ``homes.model`` is at the model layer, the rest of ``homes`` above the
-predictor)."""
+prefix decides). A world is a plug-in below the layers that use it: its simulator in
+``flowsim`` (the 2-D maps, ``flowsim.homes``), its model family in ``model``, its data hooks in
+``worlds``."""
 
 
 def _layer(name: str) -> int:

@@ -27,8 +27,7 @@ def test_every_default_model_is_shipped():
 def test_shipped_homes_model_loads_by_name_and_gives_posteriors():
     """pretrained:flowmaps-homes (issue 35) is the homes preset's model; its receptacle weights
     are distributions over each queried object's allowed receptacles."""
-    from flowmaps_jax.flowsim.homes import generate_homes
-    from flowmaps_jax.homes import draw_queries
+    from flowmaps_jax.flowsim.homes import draw_queries, generate_homes
     predictor = load_pretrained("flowmaps-homes")
     assert predictor.family_name == "flowmaps-homes" and predictor.homes is not None
     assert predictor.model == get_preset("homes").model

@@ -37,8 +37,8 @@ from flowmaps_jax.evaluation import cli as eval_cli
 from flowmaps_jax.flowsim import FlowSimConfig
 from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes, load_homes, save_homes
 from flowmaps_jax.flowsim.homes.export import schema_path
-from flowmaps_jax.homes.model import HomesModelConfig
 from flowmaps_jax.model import ModelConfig
+from flowmaps_jax.model.homes_family import HomesModelConfig
 from flowmaps_jax.search import cli as search_cli
 from flowmaps_jax.store import checkpoints, pretrained, reseal, rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointStore

@@ -49,7 +49,7 @@ from flowmaps_jax import distributed, flow, tables
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
-from flowmaps_jax.homes import predictor as homes_inference
+from flowmaps_jax.model import homes_inference
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
@@ -107,7 +107,7 @@ class Predictor:
     params: the model's parameter pytree (EMA weights when loaded with ``use_ema=True``).
     model: its config (static: defines the compiled functions): a
         :class:`~flowmaps_jax.model.ModelConfig` on 2-D maps, a
-        :class:`~flowmaps_jax.homes.model.HomesModelConfig` on homes.
+        :class:`~flowmaps_jax.model.homes_family.HomesModelConfig` on homes.
     family_name: the name of its model family, as its run config's ``family``: "flowmaps"
         (flow matching) or "mlp" (Gaussian baseline; variant in ``model.baseline_variance``)
         on 2-D maps (:attr:`family` is the family itself), "flowmaps-homes" on homes. Its world
@@ -122,7 +122,7 @@ class Predictor:
     On 2-D maps: :meth:`sample`, :meth:`log_prob`, :meth:`table_weights`,
     :meth:`table_probabilities`, :meth:`gaussian` take scene tokens and queries. On homes:
     :meth:`probabilities` (receptacle weights), :meth:`sample` (boxes in metres) and
-    :meth:`as_prior` take homes and queries (:mod:`flowmaps_jax.homes.predictor`).
+    :meth:`as_prior` take homes and queries (:mod:`flowmaps_jax.model.homes_inference`).
     """
 
     params: Any = dataclasses.field(repr=False)  # a pytree of arrays: too long to print
@@ -227,7 +227,8 @@ class Predictor:
         rows = b * q * n
         factor = DENSITY_FACTOR if with_density else 1
         evaluations = solver_evaluations(num_steps, method) if self.family.uses_solver else 1
-        per_row, per_map = network_flops(self.model, self.family_name, slots)
+        per_row, per_map = network_flops(self.model, slots,
+                                           self.family.gaussian is not None)
         check_resources(
             f"{what} of {b} scenes x {q} queries x {n} boxes with num_steps={num_steps} "
             f"(model.freq_bands={self.model.freq_bands})",
@@ -246,14 +247,14 @@ class Predictor:
           (:meth:`_sample_scenes`);
         * homes: ``sample(key, homes, queries, config, num_samples, num_steps=10, *,
           return_receptacles=False)`` → boxes (E, Q, N, 6) in metres
-          (:func:`flowmaps_jax.homes.predictor.sample`).
+          (:func:`flowmaps_jax.model.homes_inference.sample`).
         """
         return self._inference.sample(self, *args, **kwargs)
 
     def probabilities(self, homes, queries, config=None) -> jnp.ndarray:
         """A homes model's receptacle weights (E, Q, R) for ``homes`` and ``queries`` (``config``:
         the homes' config, default the model's), read without sampling
-        (:func:`flowmaps_jax.homes.predictor.probabilities`); a 2-D model's are
+        (:func:`flowmaps_jax.model.homes_inference.probabilities`); a 2-D model's are
         :meth:`table_weights`."""
         return self._inference.probabilities(self, homes, queries, config)
 

@@ -101,8 +101,8 @@ def check_size(models, num_envs: int, config, args: argparse.Namespace) -> None:
     flops = 0
     for fam, p in zip(families, models, strict=True):
         # each model reads its own tokens: a history model's last H maps (model_view)
-        per_query, per_map = network_flops(p.model, p.family_name,
-                                           model_token_config(config, p).max_tokens)
+        per_query, per_map = network_flops(p.model, model_token_config(config, p).max_tokens,
+                                           fam.gaussian is not None)
         sampled = solver_evaluations(args.num_steps, args.method) if fam.uses_solver else 1
         density = solver_evaluations(logp_steps, args.method) if fam.uses_solver else 1
         accurate = getattr(args, "likelihood_steps", 0) or 0  # RK4 on N and 2N intervals
@@ -204,8 +204,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,
                 argv: Sequence[str] | None) -> int:
-    """The homes protocol's posterior part (:func:`flowmaps_jax.homes.evaluate.run_command`)."""
-    from flowmaps_jax.homes import evaluate as homes_evaluate
+    """The homes protocol's posterior part
+    (:func:`flowmaps_jax.evaluation.receptacle_protocol.run_command`)."""
+    from flowmaps_jax.evaluation import receptacle_protocol as homes_evaluate
 
     return homes_evaluate.run_command(
         parser, args, "posterior", "python -m flowmaps_jax.evaluate", argv,

@@ -198,8 +198,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,
                 argv: Sequence[str] | None) -> int:
-    """The homes navigation (:func:`flowmaps_jax.homes.evaluate.run_command`)."""
-    from flowmaps_jax.homes import evaluate as homes_evaluate
+    """The homes navigation (:func:`flowmaps_jax.evaluation.receptacle_protocol.run_command`)."""
+    from flowmaps_jax.evaluation import receptacle_protocol as homes_evaluate
 
     return homes_evaluate.run_command(
         parser, args, "navigation", "python -m flowmaps_jax.search", argv,

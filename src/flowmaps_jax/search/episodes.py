@@ -124,7 +124,8 @@ def check_search_size(config: FlowSimConfig, num_rows: int, *, budget: int,
         family_name = getattr(predictor, "family_name", None)
         if model is None or family_name not in MODEL_FAMILIES:
             continue
-        per_query, per_map = network_flops(model, family_name, s)
+        per_query, per_map = network_flops(model, s,
+                                           MODEL_FAMILIES[family_name].gaussian is not None)
         evaluations = (solver_evaluations(DEFAULT_NUM_STEPS)
                        if MODEL_FAMILIES[family_name].uses_solver else 1)
         check_resources(

@@ -10,6 +10,7 @@ import jax
 import numpy as np
 
 from flowmaps_jax.flowsim.config import FlowSimConfig
+from flowmaps_jax.model import homes_family
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import ModelFamily
@@ -18,9 +19,9 @@ from flowmaps_jax.validation import check_instance, check_int
 
 DEFAULT_FAMILY = "flowmaps"
 """The family of a stored config without ``model_kind`` (``TrainConfig``'s default)."""
-HOMES_FAMILY = "flowmaps-homes"
-"""The homes model (``flowmaps_jax.homes.model.FAMILY_NAME``): its configs, model and
-simulator are read by :func:`flowmaps_jax.homes.model.homes_spec`."""
+HOMES_FAMILY = homes_family.FAMILY_NAME
+"""The homes model: its configs, model and simulator are read by
+:func:`flowmaps_jax.model.homes_family.homes_spec`."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,14 +65,19 @@ def model_spec(config: dict) -> ModelSpec:
     Raises ``ValueError`` naming what is wrong; ``config`` is a dict (its callers' checks:
     a checkpoint's config item, a pretrained model's checked ``.json``)."""
     family_name = config.get("model_kind", DEFAULT_FAMILY)  # the key run configs store it under
-    if family_name == HOMES_FAMILY:  # same shape: family_name, model, abstract_params()
-        from flowmaps_jax.homes.model import homes_spec
-        return homes_spec(config)
+    if family_name in SPEC_READERS:  # a family with its own reader (same shape: family_name,
+        return SPEC_READERS[family_name](config)  # model, abstract_params())
     model_family(family_name)  # ValueError listing the families
     model = ModelConfig.from_dict(config["model"]) if "model" in config else ModelConfig()
     flowsim = FlowSimConfig.from_dict(config["flowsim"]) if "flowsim" in config \
         else FlowSimConfig()
     return ModelSpec(family_name=family_name, model=model, flowsim=flowsim)
+
+
+SPEC_READERS = {HOMES_FAMILY: homes_family.homes_spec}
+"""The families whose stored configs another world's spec describes (the homes network's
+model and :class:`~flowmaps_jax.flowsim.homes.HomesConfig`), by family name; the 2-D families
+are read into a :class:`ModelSpec`."""
 
 
 def check_params(params, spec: ModelSpec, where: str) -> None:

@@ -76,10 +76,10 @@ SEAL_FORMAT = 1
 """The version of the ``seal`` field (:func:`seal`) this code writes and reads."""
 
 
-def _family_of(name: str) -> str:
-    """The model family the pretrained name ``name`` holds."""
-    return "mlp" if name.startswith("mlp") else HOMES_FAMILY if name == HOMES_FAMILY \
-        else "flowmaps"
+HOLDS = {**{name: ("flowmaps", None) for name in NAMES}, "mlp": ("mlp", "mean"),
+         "mlp-learned": ("mlp", "learned"), "flowmaps-homes": (HOMES_FAMILY, None)}
+"""What each pretrained name holds: (its model family, the MLP's ``baseline_variance`` or
+None)."""
 
 
 def available(directory: str | pathlib.Path = PRETRAINED_DIR) -> list[str]:
@@ -269,9 +269,8 @@ def export_pretrained(checkpoint_dir: str | pathlib.Path, name: str,
         which = "latest"
     weights = checkpoints.load_weights(checkpoint_dir, which=which)
     family_name, model = weights.spec.family_name, weights.spec.model
-    expected = _family_of(name)  # and for an MLP, its variance head
-    variant = ("learned" if name == "mlp-learned" else "mean") if expected == "mlp" else None
-    held = model.baseline_variance if family_name == "mlp" else None
+    expected, variant = HOLDS[name]  # and for an MLP, its variance head
+    held = getattr(model, "baseline_variance", None) if variant is not None else None
     if (family_name, held) != (expected, variant):
         def what(family, variance):
             return f"a {family!r} model" + (f" with baseline_variance={variance!r}"

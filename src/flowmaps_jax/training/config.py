@@ -35,10 +35,10 @@ from flowmaps_jax.flow import T_SAMPLERS
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY, world_config  # the habits preset's H
-from flowmaps_jax.homes.model import FAMILY_NAME as HOMES_FAMILY
-from flowmaps_jax.homes.model import HomesModelConfig
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
+from flowmaps_jax.model.homes_family import FAMILY_NAME as HOMES_FAMILY
+from flowmaps_jax.model.homes_family import HomesModelConfig
 from flowmaps_jax.store.model_spec import ModelSpec
 from flowmaps_jax.training.overrides import (
     SHORTHANDS,

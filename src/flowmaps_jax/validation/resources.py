@@ -116,17 +116,17 @@ def check_resources(name: str, *, num_bytes: int = 0, flops: int = 0,
                          f"it); ask for less")
 
 
-def network_flops(model: Any, family_name: str, num_tokens: int) -> tuple[int, int]:
+def network_flops(model: Any, num_tokens: int, gaussian: bool = False) -> tuple[int, int]:
     """(FLOPs of one network evaluation of one query-sample, FLOPs of encoding one map of
-    ``num_tokens`` tokens) for a model config (``ModelConfig``) of the model family
-    ``family_name`` ("flowmaps" or "mlp").
+    ``num_tokens`` tokens) for a model config (``ModelConfig``): its CDiT blocks, or with
+    ``gaussian`` its MLP Gaussian head (a family with a ``gaussian`` core: the MLP baseline).
     A rough, generous estimate (2 FLOPs per weight use, attention included)."""
     dim, ratio = int(model.dim), int(model.mlp_ratio)
     per_layer = dim * dim * (4 + 2 * ratio)
     encoder = 2 * int(model.encoder_layers) * num_tokens * (per_layer + 2 * num_tokens * dim)
     encoder += num_tokens * embedding_flops(model, 4)  # each token's box
     query = embedding_flops(model, 5)  # a query's box and its time
-    if family_name == "mlp":
+    if gaussian:
         hidden = int(model.baseline_hidden)
         return 2 * (dim * hidden + hidden * hidden + 8 * hidden + 4 * dim * dim) + query, encoder
     blocks = int(model.cdit_blocks)

@@ -219,7 +219,8 @@ def resource_estimate(cfg, devices: int = 1) -> list[tuple[str, int, int]]:
               + 2 * net.num_descriptors * net.dim  # the descriptor embeddings
               + (net.weight_blocks * (per_layer + 6 * net.dim ** 2)
                  if net.head == "mixture" else 0))  # the mixture head's weight rows
-    query_flops, scene_flops = network_flops(net, cfg.family, tokens)
+    query_flops, scene_flops = network_flops(
+        net, tokens, model_family(cfg.family).gaussian is not None)
     # activations kept for the backward pass: per query row and per scene token, every layer
     row = 4 * net.dim * (net.mlp_ratio + 8) * net.cdit_blocks * 2 + 2 * embedding_bytes(net, 5)
     token = (4 * (net.dim * (net.mlp_ratio + 8) + tokens * net.heads) * net.encoder_layers * 2

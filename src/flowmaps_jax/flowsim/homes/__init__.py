@@ -25,22 +25,26 @@ from flowmaps_jax.flowsim.homes.posterior import (
     homes_posterior,
     transition_matrix,
 )
+from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries, draw_queries
 from flowmaps_jax.flowsim.homes.rollout import generate_homes, homes_from_keys, simulate
 from flowmaps_jax.flowsim.homes.vocabulary import ObjectClass, ReceptacleClass, RoomType
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, object_boxes, validate_homes
 
 __all__ = [
     "DEFAULT_HOMES_CONFIG",
+    "DEFAULT_HORIZONS",
     "FIELDS",
     "MAX_OBJECTS",
     "NUM_CONTEXTS",
     "REGIMES",
     "Homes",
     "HomesConfig",
+    "HomesQueries",
     "ObjectClass",
     "ReceptacleClass",
     "RoomType",
     "context_of",
+    "draw_queries",
     "favourite_weights",
     "generate_homes",
     "geodesic_distances",

@@ -38,12 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig, generate_homes
-from flowmaps_jax.flowsim.homes.rollout import homes_bytes_per_home
-from flowmaps_jax.homes import navigation as nav
-from flowmaps_jax.homes import priors as pr
-from flowmaps_jax.homes.queries import DEFAULT_HORIZONS, check_horizons, draw_queries
-from flowmaps_jax.homes.scores import (
+from flowmaps_jax.evaluation import priors as pr
+from flowmaps_jax.evaluation.receptacle_scores import (
     POSTERIOR_METRICS,
     assign_samples,
     group_ids,
@@ -52,6 +48,10 @@ from flowmaps_jax.homes.scores import (
     stats,
     summarise,
 )
+from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig, generate_homes
+from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, check_horizons, draw_queries
+from flowmaps_jax.flowsim.homes.rollout import homes_bytes_per_home
+from flowmaps_jax.search import navigation as nav
 from flowmaps_jax.validation import (
     check_choice,
     check_int,
@@ -260,7 +260,7 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
     ``flowsim_only`` that differ from their defaults are refused (they apply to 2-D FlowSim
     models); so is an ``--out`` left to its default. Returns the exit code (0, 2 on a bad
     argument, 74 on a failed write), one line on stderr."""
-    from flowmaps_jax.homes import report
+    from flowmaps_jax.evaluation import receptacle_report as report
 
     stem, figure = REPORT_STEM[part], FIGURE_OF[part]
     try:

@@ -30,8 +30,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from flowmaps_jax.flowsim.homes.config import HomesConfig, context_of
+from flowmaps_jax.flowsim.homes.queries import HomesQueries, check_queries
 from flowmaps_jax.flowsim.homes.world import Homes, object_boxes, validate_homes
-from flowmaps_jax.homes.queries import HomesQueries, check_queries
 from flowmaps_jax.validation import check_instance, check_int, check_int_array, prefix_errors
 
 HEIGHT_SCALE = 2.5

@@ -45,10 +45,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.evaluation.priors import allowed_slots, receptacle_at
 from flowmaps_jax.flowsim.homes import HomesConfig, geodesic_distances
+from flowmaps_jax.flowsim.homes.queries import HomesQueries
 from flowmaps_jax.flowsim.homes.world import Homes
-from flowmaps_jax.homes.priors import allowed_slots, receptacle_at
-from flowmaps_jax.homes.queries import HomesQueries
 from flowmaps_jax.search.policies import BELIEF_ATOL, COST_RTOL, pick, subset_values
 from flowmaps_jax.validation import check_choice, check_int
 

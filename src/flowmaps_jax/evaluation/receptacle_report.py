@@ -1,5 +1,5 @@
 """The homes evaluation's ``results.md``, ``results.json`` and figures (from
-:func:`flowmaps_jax.homes.evaluate.run_evaluation`'s results)."""
+:func:`flowmaps_jax.evaluation.receptacle_protocol.run_evaluation`'s results)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,7 @@
 """FlowMaps on homes: the network, its loss and its jitted cores, in one module.
 
-The model is issue 33's mixture read-out on a home's tokens (:mod:`flowmaps_jax.homes.tokens`):
+The model is issue 33's mixture read-out on a home's tokens
+(:mod:`flowmaps_jax.flowsim.homes.tokens`):
 
     p_θ(box | home at τ, query) = Σ_r π_r(home, query, history) · p_θ(box | r, home, query)
 
@@ -32,10 +33,10 @@ The model is issue 33's mixture read-out on a home's tokens (:mod:`flowmaps_jax.
 
 Loss = CE + CFM. Everything is a pure function over an explicit params pytree; ``config``
 (:class:`HomesModelConfig`) and ``homes_config`` (:class:`HomesConfig`) are static jit arguments.
-Shapes: a :class:`~flowmaps_jax.homes.tokens.HomesBatch` of B scenes with Q queries each; boxes
-normalised (``tokens.normalise_boxes``). The validated wrapper is
+Shapes: a :class:`~flowmaps_jax.flowsim.homes.tokens.HomesBatch` of B scenes with Q queries
+each; boxes normalised (``tokens.normalise_boxes``). The validated wrapper is
 :class:`flowmaps_jax.predictor.Predictor` (its homes inference:
-:mod:`flowmaps_jax.homes.predictor`).
+:mod:`flowmaps_jax.model.homes_inference`).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from flax import struct
 
 from flowmaps_jax import flow
 from flowmaps_jax.flowsim.homes.config import HomesConfig
-from flowmaps_jax.homes.tokens import (
+from flowmaps_jax.flowsim.homes.tokens import (
     DEFAULT_HISTORY,
     HISTORY_FEATURES,
     QUERY_FEATURES,

@@ -7,13 +7,14 @@
 The :class:`~flowmaps_jax.predictor.Predictor` of a homes model (its family's world is
 ``"homes"``) calls these functions (the predictor's registry of world inference, not a branch):
 ``probabilities`` are the model's mixture weights over each object's allowed receptacles, read
-without sampling, a prior ``(homes, queries) -> (E, Q, R)`` as :mod:`flowmaps_jax.homes.queries`
-defines it (:func:`as_prior`); ``sample`` draws a receptacle from the weights and a 6-D box
-(cx, cy, cz, w, d, h) in metres from the placement flow on it. Each query is one scene: home e
+without sampling, a prior ``(homes, queries) -> (E, Q, R)`` as
+:mod:`flowmaps_jax.flowsim.homes.queries` defines it (:func:`as_prior`); ``sample`` draws a
+receptacle from the weights and a 6-D box (cx, cy, cz, w, d, h) in metres from the placement
+flow on it. Each query is one scene: home e
 at its own τ (the object tokens of that hour) with the object's history up to τ.
 
 Inputs are checked here (``ValueError`` naming the argument); the jitted cores are
-:mod:`flowmaps_jax.homes.model`'s.
+:mod:`flowmaps_jax.model.homes_family`'s.
 """
 
 from __future__ import annotations
@@ -24,15 +25,15 @@ import jax
 import jax.numpy as jnp
 
 from flowmaps_jax.flowsim.homes.config import HomesConfig
+from flowmaps_jax.flowsim.homes.queries import HomesQueries, check_queries
+from flowmaps_jax.flowsim.homes.tokens import denormalise_boxes, per_query_batch
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
-from flowmaps_jax.homes.model import (
+from flowmaps_jax.model.homes_family import (
     DEFAULT_NUM_STEPS,
     HomesModelConfig,
     receptacle_probabilities,
     sample_placements,
 )
-from flowmaps_jax.homes.queries import HomesQueries, check_queries
-from flowmaps_jax.homes.tokens import denormalise_boxes, per_query_batch
 from flowmaps_jax.validation import (
     check_flag,
     check_instance,
@@ -68,7 +69,7 @@ def _head(a, count: int):
 
 def check_model(predictor) -> None:
     """A homes predictor's fields: ``params`` a dict, ``model`` a
-    :class:`~flowmaps_jax.homes.model.HomesModelConfig`, ``homes`` a valid
+    :class:`~flowmaps_jax.model.homes_family.HomesModelConfig`, ``homes`` a valid
     :class:`~flowmaps_jax.flowsim.homes.HomesConfig` (ValueError naming the field)."""
     check_instance("params", predictor.params, dict)
     check_instance("model", predictor.model, HomesModelConfig)

@@ -30,11 +30,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.evaluation import report
+from flowmaps_jax.evaluation.priors import allowed_slots
 from flowmaps_jax.evaluation.slots import score_slots
 from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig
+from flowmaps_jax.flowsim.homes.queries import HomesQueries
 from flowmaps_jax.flowsim.homes.world import Homes
-from flowmaps_jax.homes.priors import allowed_slots
-from flowmaps_jax.homes.queries import HomesQueries
 from flowmaps_jax.validation import check_array, check_instance
 
 KL_FLOOR = 1e-9

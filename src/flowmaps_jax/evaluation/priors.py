@@ -34,8 +34,8 @@ import jax
 import jax.numpy as jnp
 
 from flowmaps_jax.flowsim.homes import HomesConfig, homes_history_posterior
+from flowmaps_jax.flowsim.homes.queries import HomesQueries
 from flowmaps_jax.flowsim.homes.world import Homes
-from flowmaps_jax.homes.queries import HomesQueries
 from flowmaps_jax.validation import check_instance, check_int, check_key, check_real
 
 LAST_SEEN_EPS = 0.01
