@@ -347,8 +347,8 @@ def _homes_cli(monkeypatch):
     from flowmaps_jax.evaluation import cli as evaluate_cli
     from flowmaps_jax.search import cli as search_cli
 
-    for cli in (evaluate_cli, search_cli):
-        monkeypatch.setattr(cli, "stored_family", lambda spec, which: "flowmaps-homes")
+    monkeypatch.setattr(evaluate_cli, "stored_family",  # both commands read it through
+                        lambda spec, which: "flowmaps-homes")  # evaluate's run_for_world
     monkeypatch.setattr(ev, "load_model",
                         lambda source, which="best": StandIn(HomesConfig(), 24))
     return evaluate_cli.main, search_cli.main

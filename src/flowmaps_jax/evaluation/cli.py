@@ -181,8 +181,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; returns the exit code (0 on success, 2 on a bad argument, 74 on a failed
     write). The protocol is the one of ``--checkpoint``'s world (:data:`_BY_WORLD`)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
-    try:  # the options every world reads, before any model is read
+    return run_for_world(parser, parser.parse_args(argv), argv, _BY_WORLD)
+
+
+def run_for_world(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                  argv: Sequence[str] | None, by_world: dict) -> int:
+    """The command of ``--checkpoint``'s world (``by_world[world name](parser, args, argv)``):
+    first the options every world reads (``--out``, ``--num-envs``, ``--seed``, ``--history``,
+    ``--world``), then the stored model's family, before any model is loaded. The evaluate and
+    search commands share it; exit 2 with one line on a bad option."""
+    try:
         check_int("--num-envs", args.num_envs, 1)
         check_seed("--seed", args.seed)
         if args.history is not None:
@@ -199,7 +207,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as err:
         print(f"error: --checkpoint {args.checkpoint!r}: {err}", file=sys.stderr)
         return EXIT_USAGE
-    return _BY_WORLD[world_of_family(family).name](parser, args, argv)
+    return by_world[world_of_family(family).name](parser, args, argv)
 
 
 def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,

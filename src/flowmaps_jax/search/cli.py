@@ -41,6 +41,7 @@ import sys
 from collections.abc import Sequence
 
 from flowmaps_jax import distributed
+from flowmaps_jax.evaluation.cli import run_for_world
 from flowmaps_jax.flowsim import (
     WORLDS,
     FlowSimConfig,
@@ -50,7 +51,7 @@ from flowmaps_jax.flowsim import (
 )
 from flowmaps_jax.flowsim.habits import default_history
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
-from flowmaps_jax.predictor import PRETRAINED_PREFIX, load_model, stored_family
+from flowmaps_jax.predictor import PRETRAINED_PREFIX, load_model
 from flowmaps_jax.search import episodes as ep
 from flowmaps_jax.search import figures as fg
 from flowmaps_jax.search import protocol as pr
@@ -67,7 +68,6 @@ from flowmaps_jax.validation import (
     save_figure,
 )
 from flowmaps_jax.validation.scalars import int_list
-from flowmaps_jax.worlds import world_of_family
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -175,25 +175,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     one line on stderr. Every argument, ``--out`` and the run's size are checked first. The
     protocol is the one of ``--checkpoint``'s world (:data:`_BY_WORLD`)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
-    try:  # the options every world reads, before any model is read
-        check_int("--num-envs", args.num_envs, 1)
-        check_seed("--seed", args.seed)
-        if args.history is not None:
-            check_int("--history", args.history, 1)
-        if args.world is not None:
-            check_choice("--world", args.world, tuple(WORLDS))
-        if args.out:
-            check_output_dir("--out", args.out)
-    except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return EXIT_USAGE
-    try:
-        family = stored_family(args.checkpoint, args.which)
-    except ValueError as err:
-        print(f"error: --checkpoint {args.checkpoint!r}: {err}", file=sys.stderr)
-        return EXIT_USAGE
-    return _BY_WORLD[world_of_family(family).name](parser, args, argv)
+    return run_for_world(parser, parser.parse_args(argv), argv, _BY_WORLD)
 
 
 def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,
