@@ -13,8 +13,8 @@
   power loss) is taken over with a message. The lock is released on exit, and a directory the
   claim created is removed again if nothing was written. On a multi-host job process 0 holds
   the directory and every process learns whether it could. The path itself is checked by the
-  public entry points that claim it (``run_dir=OutputDir()``: ``training.loop.run``,
-  ``homes.train.run``): a file, a path under a file or a read-only place is a ``ValueError``
+  public entry point that claims it (``check_output_dir`` in ``training.loop.run``, for every
+  world): a file, a path under a file or a read-only place is a ``ValueError``
   there; one that still cannot be created (``/proc/x``) is one here.
 * :func:`write_atomic` writes a file through a temporary file and a rename, so a crash or a full
   disk never leaves it half-written (the shared writer,
@@ -252,7 +252,7 @@ def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
 def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
                 log: Callable[[str], None]) -> Iterator[RunLock]:
     """:func:`claim` by this process alone. ``run_dir`` was checked by the caller
-    (``OutputDir()``: ``training.loop.run``, ``homes.train.run``), so it is not checked again."""
+    (``check_output_dir`` in ``training.loop.run``), so it is not checked again."""
     run_dir = pathlib.Path(run_dir)
     if overwrite and not resume:
         here = pathlib.Path.cwd().resolve()
