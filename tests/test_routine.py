@@ -14,7 +14,8 @@ from flowmaps_jax import flow
 from flowmaps_jax.boxes import to_centre
 from flowmaps_jax.evaluation import routine
 from flowmaps_jax.evaluation.kl import gt_mixture_sigma
-from flowmaps_jax.evaluation.slots import ROUTE_OFFSET_LABELS, oracle_slots, route_offset_mass
+from flowmaps_jax.evaluation.priors import oracle_slots
+from flowmaps_jax.evaluation.slots import ROUTE_OFFSET_LABELS, route_offset_mass
 from flowmaps_jax.flowsim.scenes import make_train_batch
 from flowmaps_jax.model import ModelConfig, encode, init_params, velocity
 from flowmaps_jax.model.readout import mixture_velocity

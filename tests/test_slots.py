@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from support import BOXES, MASK, Q  # two real slots of a 3-slot padded problem
 
 from flowmaps_jax import tables as A  # the assignment rule
+from flowmaps_jax.evaluation import priors as P
 from flowmaps_jax.evaluation import slots as S
 
 
@@ -85,16 +86,16 @@ def test_histogram_counts_over_n():
 def test_last_seen_tv_is_one_minus_q_now(weights, now):
     q = np.asarray(weights, np.float32) / np.float32(sum(weights))
     q = q / q.sum()
-    tv = scores(S.last_seen_slots(now, 4), q)["tv"]
+    tv = scores(P.last_seen_slots(now, 4), q)["tv"]
     assert float(tv) == pytest.approx(1.0 - q[now], abs=1e-5)
 
 
 def test_uniform_and_oracle_tv():
     q = np.array([[0.1, 0.6, 0.3, 0.0], [0.5, 0.5, 0.0, 0.0]], np.float32)
-    tv = scores(S.uniform_slots(np.array([3, 2]), 4), q)["tv"]
+    tv = scores(P.uniform_slots(np.array([3, 2]), 4), q)["tv"]
     want = [0.5 * (abs(1 / 3 - 0.1) + abs(1 / 3 - 0.6) + abs(1 / 3 - 0.3)), 0.0]
     np.testing.assert_allclose(tv, want, atol=1e-6)
-    np.testing.assert_allclose(scores(S.oracle_slots(q), q)["tv"], 0.0, atol=1e-7)
+    np.testing.assert_allclose(scores(P.oracle_slots(q), q)["tv"], 0.0, atol=1e-7)
     all_off = np.array([0, 0, 0, 0, 1.0], np.float32)
     assert float(scores(all_off, q[0])["tv"]) == pytest.approx(1.0)
 
@@ -151,19 +152,19 @@ def test_search_cost_ratio_against_every_permutation(k):
 
 
 def test_reference_predictors():
-    np.testing.assert_allclose(S.uniform_slots(np.array(2), 3), [0.5, 0.5, 0, 0])
-    np.testing.assert_allclose(S.last_seen_slots(np.array([0, 2]), 3),
+    np.testing.assert_allclose(P.uniform_slots(np.array(2), 3), [0.5, 0.5, 0, 0])
+    np.testing.assert_allclose(P.last_seen_slots(np.array([0, 2]), 3),
                                [[1, 0, 0, 0], [0, 0, 1, 0]])
-    np.testing.assert_allclose(S.oracle_slots(Q), [0.3, 0.7, 0.0, 0.0], atol=1e-7)
+    np.testing.assert_allclose(P.oracle_slots(Q), [0.3, 0.7, 0.0, 0.0], atol=1e-7)
 
 
 def test_sampled_oracle_is_an_unbiased_noisy_histogram_of_q():
     q = jnp.asarray([[0.5, 0.3, 0.2, 0.0], [0.1, 0.0, 0.9, 0.0]])
-    one = S.sampled_oracle_slots(jax.random.PRNGKey(0), q, 1)  # a single draw: one-hot
+    one = P.sampled_oracle_slots(jax.random.PRNGKey(0), q, 1)  # a single draw: one-hot
     np.testing.assert_allclose(one.sum(-1), 1.0)
     assert set(np.unique(np.asarray(one))) <= {0.0, 1.0}
     qs = jnp.broadcast_to(q, (500, 2, 4))
-    p_hat = {n: np.asarray(S.sampled_oracle_slots(jax.random.PRNGKey(2), qs, n)) for n in (25, 100)}
+    p_hat = {n: np.asarray(P.sampled_oracle_slots(jax.random.PRNGKey(2), qs, n)) for n in (25, 100)}
     np.testing.assert_allclose(p_hat[100].mean(0)[:, :-1], q, atol=0.01)  # 50,000 draws
     for n, p in p_hat.items():
         np.testing.assert_allclose(p * n, np.round(p * n), atol=1e-4)  # counts / n
@@ -177,7 +178,7 @@ def test_sampled_oracle_is_an_unbiased_noisy_histogram_of_q():
 def test_route_offset_mass_of_the_exact_posterior_one_step_ahead():
     q = jnp.array([[0.0, 0.2, 0.7, 0.1, 0.0, 0.0],     # now at slot 1 of 5
                    [0.7, 0.1, 0.0, 0.0, 0.2, 0.0]])    # now at slot 4 of 5: wraps around
-    mass = S.route_offset_mass(S.oracle_slots(q), jnp.array([1, 4]), jnp.array([5, 5]))
+    mass = S.route_offset_mass(P.oracle_slots(q), jnp.array([1, 4]), jnp.array([5, 5]))
     np.testing.assert_allclose(mass, [[0.2, 0.7, 0.1, 0.0, 0.0, 0.0]] * 2, atol=1e-6)
     # a 3-slot route: offset +3 is offset 0 again, so it is not counted twice
     p3 = jnp.array([[0.5, 0.25, 0.0, 0.0, 0.25]])
@@ -202,10 +203,10 @@ P2 = np.array([0.5, 0.5, 0.0])
      "q puts probability"),
     (lambda: A.empirical_slots(np.zeros((2, 4)), BOXES, MASK, radius=0.0), "radius"),
     (lambda: A.empirical_slots(np.zeros((2, 3)), BOXES, MASK), "samples must have shape"),
-    (lambda: S.last_seen_slots(np.array([3]), 3), "slot_now"),
-    (lambda: S.uniform_slots(np.array([0]), 3), "count"),
-    (lambda: S.sampled_oracle_slots(jax.random.PRNGKey(0), jnp.asarray([0.5, 0.6]), 4), "q"),
-    (lambda: S.sampled_oracle_slots(jax.random.PRNGKey(0), jnp.asarray([0.5, 0.5]), 0), "n"),
+    (lambda: P.last_seen_slots(np.array([3]), 3), "slot_now"),
+    (lambda: P.uniform_slots(np.array([0]), 3), "count"),
+    (lambda: P.sampled_oracle_slots(jax.random.PRNGKey(0), jnp.asarray([0.5, 0.6]), 4), "q"),
+    (lambda: P.sampled_oracle_slots(jax.random.PRNGKey(0), jnp.asarray([0.5, 0.5]), 0), "n"),
     (lambda: S.route_offset_mass(np.full((2, 6), 1 / 6), np.array([1, 9]), np.array([5, 5])),
      "slot_now"),
     (lambda: S.route_offset_mass(np.full((2, 6), 1 / 6), np.array([1, 1]), np.array([5, 0])),

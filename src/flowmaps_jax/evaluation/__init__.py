@@ -29,6 +29,12 @@ from flowmaps_jax.evaluation.kl import (
     gt_mixture_sigma,
     sample_gt_mixture,
 )
+from flowmaps_jax.evaluation.priors import (
+    last_seen_slots,
+    oracle_slots,
+    sampled_oracle_slots,
+    uniform_slots,
+)
 from flowmaps_jax.evaluation.protocol import (
     DEFAULT_CHUNK_ENVS,
     DEFAULT_KL_DRAWS,
@@ -61,12 +67,8 @@ from flowmaps_jax.evaluation.run import default_history, run_evaluation
 from flowmaps_jax.evaluation.slots import (
     ROUTE_OFFSET_LABELS,
     SLOT_METRICS,
-    last_seen_slots,
-    oracle_slots,
     route_offset_mass,
-    sampled_oracle_slots,
     slot_scores,
-    uniform_slots,
 )
 from flowmaps_jax.tables import ASSIGN_RADIUS, empirical_slots  # the protocol's assignment
 

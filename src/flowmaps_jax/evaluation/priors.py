@@ -1,8 +1,18 @@
-"""Reference rows as priors: ``prior(homes, queries) -> (E, Q, R)`` float32 (:mod:`.queries`).
+"""The reference priors of every world, one module: what a model is compared with.
 
-Each row's probabilities over the home's R receptacle slots for the queried object at τ_q, with
-mass only on the object's allowed receptacles (rows sum to 1). All are pure functions of the
-homes and the queries, jitted and vmapped over homes and queries (no Python loop over either):
+**2-D maps** (slot distributions (..., K + 1): the K slots of the object's kind, then "off";
+:mod:`.slots` scores them): :func:`oracle_slots` (q itself), :func:`sampled_oracle_slots` (n
+draws from q, histogrammed: the floor of any sampler), :func:`last_seen_slots` (the object
+stays), :func:`uniform_slots` (1/n on the real slots); each validates once and runs its jitted
+kernel (:func:`with_off_bin`, :func:`draw_slot_histogram`, :func:`one_hot_slots`,
+:func:`uniform_over_slots`), which the protocol and the search call on arrays they built. The
+exact posterior itself comes from the simulator (``flowsim.dynamics``, ``flowsim.habits``).
+
+**Receptacle worlds (FlowSim homes)**: priors ``prior(homes, queries) -> (E, Q, R)`` float32
+(:mod:`flowmaps_jax.flowsim.homes.queries`). Each row's probabilities over the home's R
+receptacle slots for the queried object at τ_q, with mass only on the object's allowed
+receptacles (rows sum to 1). All are pure functions of the homes and the queries, jitted and
+vmapped over homes and queries (no Python loop over either):
 
 * :func:`exact_prior` — the exact posterior given the map at τ and the object's last
   ``history`` hours (``flowsim.homes.homes_history_posterior``: the preferences regime's hidden
@@ -22,13 +32,14 @@ homes and the queries, jitted and vmapped over homes and queries (no Python loop
   a perfect sampler seen through N samples, the floor of any sampler's TV (the 2-D protocol's
   "oracle samples").
 
-"Nearest first" needs no prior: it is a navigation policy (:mod:`.navigation`).
+"Nearest first" needs no prior: it is a navigation policy (:mod:`flowmaps_jax.search.navigation`).
 """
 
 from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -36,7 +47,16 @@ import jax.numpy as jnp
 from flowmaps_jax.flowsim.homes import HomesConfig, homes_history_posterior
 from flowmaps_jax.flowsim.homes.queries import HomesQueries
 from flowmaps_jax.flowsim.homes.world import Homes
-from flowmaps_jax.validation import check_instance, check_int, check_key, check_real
+from flowmaps_jax.tables import histogram
+from flowmaps_jax.validation import (
+    PROB_ATOL,
+    check_instance,
+    check_int,
+    check_int_array,
+    check_key,
+    check_probabilities,
+    check_real,
+)
 
 LAST_SEEN_EPS = 0.01
 """Mass last-seen leaves to the object's other allowed receptacles (KL stays finite)."""
@@ -45,6 +65,77 @@ DEFAULT_HISTORY = 168
 
 Prior = Callable[[Homes, HomesQueries], jax.Array]
 """``prior(homes, queries) -> (E, Q, R)`` float32 probabilities over receptacle slots."""
+
+
+# --------------------------------------------------------------------------- 2-D maps: slots
+
+
+def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
+    """The oracle predictor: q itself. (..., K) → (..., K + 1) with an empty off bin."""
+    q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
+    return with_off_bin(jnp.asarray(q, jnp.float32))
+
+
+@jax.jit
+def with_off_bin(q):
+    """The kernel of :func:`oracle_slots` (no checks): q (..., K) float32 with an empty off
+    bin."""
+    return jnp.concatenate([q, jnp.zeros_like(q[..., :1])], axis=-1)
+
+
+@partial(jax.jit, static_argnames="n")
+def draw_slot_histogram(key, q, n):
+    """The kernel of :func:`sampled_oracle_slots` (no checks; ``q`` float32)."""
+    draws = jax.random.categorical(key, jnp.log(q)[..., None, :], shape=(*q.shape[:-1], n))
+    return histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
+
+
+def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:
+    """A perfect sampler seen through n samples: slot counts / n of n draws from q itself.
+
+    (..., K) → (..., K + 1) (off bin empty). Its slot scores are the best any sampler can expect
+    from n samples: the gap to the exact oracle is pure finite-sample noise.
+    """
+    q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
+    n = check_int("n", n)
+    return draw_slot_histogram(key, jnp.asarray(q, jnp.float32), n)
+
+
+@partial(jax.jit, static_argnames="num_slots")
+def one_hot_slots(slot_now, num_slots: int):
+    """The kernel of :func:`last_seen_slots` (no checks; ``num_slots`` an int)."""
+    return jax.nn.one_hot(slot_now, num_slots + 1)
+
+
+def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
+    """Last-seen predictor: the object stays where it is. slot_now (...) ints → (..., K + 1).
+
+    num_slots: K, the padded slot count. slot_now indexes the same slot axis as q.
+    """
+    num_slots = check_int("num_slots", num_slots)
+    slot_now = check_int_array("slot_now", slot_now, 0, num_slots - 1)
+    return one_hot_slots(jnp.asarray(slot_now), num_slots)
+
+
+@partial(jax.jit, static_argnames="num_slots")
+def uniform_over_slots(count, num_slots: int):
+    """The kernel of :func:`uniform_slots` (no checks; ``num_slots`` an int)."""
+    real = jnp.arange(num_slots) < count[..., None]
+    probs = jnp.where(real, 1.0 / count[..., None], 0.0)
+    return jnp.concatenate([probs, jnp.zeros_like(probs[..., :1])], axis=-1)
+
+
+def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
+    """Uniform predictor over the real slots. count (...) ints in 1..K → (..., K + 1).
+
+    Real slots are the first ``count`` of the K padded ones (as in ``Scenes.visit_order``).
+    """
+    num_slots = check_int("num_slots", num_slots)
+    count = check_int_array("count", count, 1, num_slots)
+    return uniform_over_slots(jnp.asarray(count), num_slots)
+
+
+# --------------------------------------------------------------------------- homes: receptacles
 
 
 def allowed_slots(homes: Homes, queries: HomesQueries) -> jax.Array:
@@ -125,13 +216,10 @@ def frequency_prior(history: int = DEFAULT_HISTORY) -> Prior:
     return functools.partial(_frequency, history=history)
 
 
-@functools.partial(jax.jit, static_argnames=("num_samples",))
 def histogram_draws(key, probs, num_samples: int) -> jax.Array:
-    """(..., R): counts / N of ``num_samples`` categorical draws from ``probs`` (..., R)."""
-    draws = jax.random.categorical(key, jnp.log(probs)[..., None, :],
-                                   shape=(*probs.shape[:-1], num_samples))
-    hits = draws[..., None] == jnp.arange(probs.shape[-1])
-    return jnp.mean(hits, axis=-2, dtype=jnp.float32)
+    """(..., R): counts / N of ``num_samples`` categorical draws from ``probs`` (..., R): the
+    2-D oracle samples' kernel (:func:`draw_slot_histogram`) without its empty off bin."""
+    return draw_slot_histogram(key, probs, num_samples)[..., :-1]
 
 
 def oracle_samples_prior(config: HomesConfig, key, num_samples: int = 100,

@@ -43,13 +43,13 @@ from tqdm import tqdm
 
 from flowmaps_jax import flow
 from flowmaps_jax.evaluation.kl import kl_estimate, mixture_log_prob, mixture_samples
-from flowmaps_jax.evaluation.slots import (
+from flowmaps_jax.evaluation.priors import (
     draw_slot_histogram,
     one_hot_slots,
-    score_slots,
     uniform_over_slots,
     with_off_bin,
 )
+from flowmaps_jax.evaluation.slots import score_slots
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.dynamics import exact_posterior
 from flowmaps_jax.flowsim.habits import (

@@ -10,15 +10,14 @@ rule, v1: L2 over the four numbers (y, x, h, w) below ``ASSIGN_RADIUS``, put 6.7
 draws off; docs/results.md, issue 21.) A slot distribution p̂ has
 ``K + 1`` entries: the K slots, then "off". Against the exact posterior q (K entries) the protocol
 scores total variation, top-1 and the search-cost ratio (:func:`slot_scores`). The reference
-predictors (oracle, oracle samples, last-seen, uniform) and the route-offset mass of the routine
-diagnostic are slot distributions too.
+predictors (oracle, oracle samples, last-seen, uniform: :mod:`.priors`, the one module of the
+reference priors of every world) and the route-offset mass of the routine diagnostic are slot
+distributions too.
 
 Shapes: ``...`` are free leading batch dims (one per query); ``K`` slots padded to a common size,
 ``slot_mask`` (..., K) True on real slots. Public functions validate once and run a jitted
-kernel, which checks nothing: :func:`score_slots`, :func:`with_off_bin`,
-:func:`draw_slot_histogram`, :func:`one_hot_slots`, :func:`uniform_over_slots`,
-:func:`offset_mass`. The evaluation's own modules (and the search) run the kernels on the arrays
-they built.
+kernel, which checks nothing: :func:`score_slots`, :func:`offset_mass`. The evaluation's own
+modules (and the search) run the kernels on the arrays they built.
 
 Ties: top-1 and the search cost break ties between slots with equal p̂ uniformly at random and
 report the expectation: deterministic, and independent of how slots happen to be numbered. Scores
@@ -27,17 +26,13 @@ within ``TIE_ATOL`` of each other count as tied.
 
 from __future__ import annotations
 
-from functools import partial
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.tables import histogram
 from flowmaps_jax.validation import (
     PROB_ATOL,
     check_array,
-    check_int,
     check_int_array,
     check_mask,
     check_probabilities,
@@ -126,74 +121,6 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
                        jnp.asarray(slot_mask, bool))
 
 
-# --------------------------------------------------------------------------- reference predictors
-
-
-def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
-    """The oracle predictor: q itself. (..., K) → (..., K + 1) with an empty off bin."""
-    q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
-    return with_off_bin(jnp.asarray(q, jnp.float32))
-
-
-@jax.jit
-def with_off_bin(q):
-    """The kernel of :func:`oracle_slots` (no checks): q (..., K) float32 with an empty off
-    bin."""
-    return jnp.concatenate([q, jnp.zeros_like(q[..., :1])], axis=-1)
-
-
-@partial(jax.jit, static_argnames="n")
-def draw_slot_histogram(key, q, n):
-    """The kernel of :func:`sampled_oracle_slots` (no checks; ``q`` float32)."""
-    draws = jax.random.categorical(key, jnp.log(q)[..., None, :], shape=(*q.shape[:-1], n))
-    return histogram(draws, q.shape[-1])  # (..., K + 1); draws never hit the off bin
-
-
-def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:
-    """A perfect sampler seen through n samples: slot counts / n of n draws from q itself.
-
-    (..., K) → (..., K + 1) (off bin empty). Its slot scores are the best any sampler can expect
-    from n samples: the gap to the exact oracle is pure finite-sample noise.
-    """
-    q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
-    n = check_int("n", n)
-    return draw_slot_histogram(key, jnp.asarray(q, jnp.float32), n)
-
-
-@partial(jax.jit, static_argnames="num_slots")
-def one_hot_slots(slot_now, num_slots: int):
-    """The kernel of :func:`last_seen_slots` (no checks; ``num_slots`` an int)."""
-    return jax.nn.one_hot(slot_now, num_slots + 1)
-
-
-def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
-    """Last-seen predictor: the object stays where it is. slot_now (...) ints → (..., K + 1).
-
-    num_slots: K, the padded slot count. slot_now indexes the same slot axis as q.
-    """
-    num_slots = check_int("num_slots", num_slots)
-    slot_now = check_int_array("slot_now", slot_now, 0, num_slots - 1)
-    return one_hot_slots(jnp.asarray(slot_now), num_slots)
-
-
-@partial(jax.jit, static_argnames="num_slots")
-def uniform_over_slots(count, num_slots: int):
-    """The kernel of :func:`uniform_slots` (no checks; ``num_slots`` an int)."""
-    real = jnp.arange(num_slots) < count[..., None]
-    probs = jnp.where(real, 1.0 / count[..., None], 0.0)
-    return jnp.concatenate([probs, jnp.zeros_like(probs[..., :1])], axis=-1)
-
-
-def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
-    """Uniform predictor over the real slots. count (...) ints in 1..K → (..., K + 1).
-
-    Real slots are the first ``count`` of the K padded ones (as in ``Scenes.visit_order``).
-    """
-    num_slots = check_int("num_slots", num_slots)
-    count = check_int_array("count", count, 1, num_slots)
-    return uniform_over_slots(jnp.asarray(count), num_slots)
-
-
 # --------------------------------------------------------------------------- routines
 
 
@@ -215,8 +142,8 @@ def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
     """Where along the visiting order a slot distribution puts its mass, relative to now.
 
     p_hat: (..., K + 1) slot distribution (positions along the object's visiting order, last bin
-    "off"), e.g. :func:`empirical_slots` or :func:`oracle_slots`. slot_now: (...) int position
-    at τ. num_slots: (...) int number of real slots.
+    "off"), e.g. :func:`empirical_slots` or :func:`.priors.oracle_slots`. slot_now: (...) int
+    position at τ. num_slots: (...) int number of real slots.
     Returns (..., 6), labelled :data:`ROUTE_OFFSET_LABELS`: mass at route offsets 0, +1, +2, +3
     (offsets ≥ the route length are not counted there), at every larger offset ("beyond"), and
     off every slot. One step ahead the exact posterior gives 0.2 / 0.7 / 0.1 / 0 / 0 / 0.

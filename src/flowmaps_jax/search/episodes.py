@@ -34,7 +34,7 @@ import numpy as np
 from flax import struct
 from tqdm import tqdm
 
-from flowmaps_jax.evaluation import slots as slot_metrics
+from flowmaps_jax.evaluation import priors as reference_priors
 from flowmaps_jax.flowsim import (
     FlowSimConfig,
     Scenes,
@@ -269,7 +269,7 @@ def exact_tables(search_set: SearchSet) -> jnp.ndarray:
 def uniform_tables(search_set: SearchSet) -> jnp.ndarray:
     """Uniform over the K tables of the object's kind, as table probabilities (R, M, S + 1)."""
     s = search_set
-    slots = slot_metrics.uniform_over_slots(s.num_slots, s.visit_order.shape[-1])
+    slots = reference_priors.uniform_over_slots(s.num_slots, s.visit_order.shape[-1])
     return spread_over_tables(slots, s.visit_order, s.tokens.num_tokens)
 
 
@@ -313,7 +313,7 @@ def pad_tables(table_probs, num_tokens: int) -> jnp.ndarray:
 def last_seen_tables(search_set: SearchSet) -> jnp.ndarray:
     """All mass on the table the object was seen on at τ, as table probabilities (R, M, S + 1)."""
     s = search_set
-    slots = slot_metrics.one_hot_slots(s.slot_now, s.visit_order.shape[-1])
+    slots = reference_priors.one_hot_slots(s.slot_now, s.visit_order.shape[-1])
     return spread_over_tables(slots, s.visit_order, s.tokens.num_tokens)
 
 
