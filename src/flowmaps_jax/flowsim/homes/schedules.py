@@ -93,14 +93,23 @@ def move_kernel(regime, cycle, num_allowed, allowed, distance, config: HomesConf
     uniform = others / jnp.maximum(num_allowed - 1, 1).astype(jnp.float32)
     c = config.balanced_cycle
     balanced = c * shifts[1] + (1 - c) * uniform
-    weight = jnp.where(others > 0, jnp.exp(-distance / config.frequent_length), 0.0)
-    total = jnp.sum(weight, axis=-1, keepdims=True)
-    frequent = weight / jnp.where(total > 0, total, 1.0)
+    frequent = _frequent_kernel(others > 0, distance, config.frequent_length)
     p0, p1, p2 = config.routine_probs
     routine = p0 * shifts[0] + p1 * shifts[1] + p2 * shifts[2]
     kernel = jnp.select([regime == BALANCED, regime == FREQUENT, regime == ROUTINE],
                         [balanced, frequent, routine], eye)
     return jnp.where(single, eye, kernel)
+
+
+def _frequent_kernel(others, distance, length: float) -> jnp.ndarray:
+    """(R, R) float32: B(i, j) ∝ exp(−g(i, j) / L) over the ``others`` (R, R) bool, each row a
+    softmax of its logits less the row's largest (the nearest place has weight 1), so no row
+    underflows to zero however small L is; a row with no others is zero."""
+    logits = jnp.where(others, -distance / length, -jnp.inf)
+    top = jnp.max(logits, axis=-1, keepdims=True)
+    weight = jnp.where(others, jnp.exp(logits - jnp.where(jnp.isfinite(top), top, 0.0)), 0.0)
+    total = jnp.sum(weight, axis=-1, keepdims=True)
+    return weight / jnp.where(total > 0, total, 1.0)
 
 
 def preference_targets(favourite, allowed, num_allowed, mass) -> jnp.ndarray:
