@@ -36,20 +36,15 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from flowmaps_jax import export as export_cli
 from flowmaps_jax.evaluation import cli as eval_cli
 from flowmaps_jax.evaluation.receptacle_scores import posterior_scores
-from flowmaps_jax.flowsim import FlowSimConfig, generate, scene_tokens
-from flowmaps_jax.flowsim.homes import (
-    HomesConfig,
-    generate_homes,
-    load_homes,
-    save_homes,
-    schedules,
-)
+from flowmaps_jax.flowsim import FlowSimConfig, generate, habits, scene_tokens
+from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes, load_homes, save_homes
 from flowmaps_jax.flowsim.homes.export import schema_path
 from flowmaps_jax.flowsim.homes.posterior import (
     homes_history_posterior,
@@ -57,6 +52,7 @@ from flowmaps_jax.flowsim.homes.posterior import (
     transition_matrix,
 )
 from flowmaps_jax.flowsim.homes.queries import HomesQueries
+from flowmaps_jax.flowsim.kernels import distance_weights
 from flowmaps_jax.model import ModelConfig, init_params
 from flowmaps_jax.model.homes_family import HomesModelConfig
 from flowmaps_jax.predictor import Predictor, load_pretrained
@@ -576,14 +572,34 @@ def test_the_frequent_posterior_keeps_its_mass_at_any_accepted_length(length):
             np.testing.assert_allclose(t[allowed].sum(-1), 1.0, atol=1e-5)
 
 
-def test_the_frequent_kernel_is_unchanged_where_it_did_not_underflow():
+def test_the_distance_kernel_is_unchanged_to_the_bit_where_it_did_not_underflow():
     distance = jax.random.uniform(jax.random.key(3), (6, 6)) * 20.0
     others = ~np.eye(6, dtype=bool)
     others[:, 5] = False  # a place the object may not stand on
-    naive = np.where(others, np.exp(-np.asarray(distance) / 3.0), 0.0)
-    naive /= naive.sum(-1, keepdims=True)
-    np.testing.assert_allclose(schedules._frequent_kernel(others, distance, 3.0), naive,
-                               rtol=1e-5, atol=1e-7)
+    plain = jnp.where(others, jnp.exp(-distance / 3.0), 0.0)
+    weight, total = distance_weights(others, distance, 3.0)
+    np.testing.assert_array_equal(weight, plain)
+    np.testing.assert_array_equal(total, plain.sum(-1, keepdims=True))
+
+
+@pytest.mark.parametrize("length", [1e-3, 1e-2])
+def test_the_distance_kernel_keeps_its_rows_where_the_exponentials_underflow(length):
+    distance = jnp.asarray([[0.0, 2.0, 3.0], [2.0, 0.0, 2.0], [3.0, 2.0, 0.0]], jnp.float32)
+    others = ~np.eye(3, dtype=bool)
+    weight, total = distance_weights(others, distance, length)
+    kernel = np.asarray(weight / total)
+    np.testing.assert_allclose(kernel.sum(-1), 1.0)
+    np.testing.assert_allclose(kernel[0], [0.0, 1.0, 0.0])  # all to the nearest place
+    np.testing.assert_allclose(kernel[1], [0.5, 0.0, 0.5])  # two equally near
+
+
+def test_the_2d_dynamic_habit_moves_at_a_short_length():
+    centres = jnp.asarray([[0.1, 0.1], [0.9, 0.9], [0.1, 0.9], [0.0, 0.0]], jnp.float32)
+    matrix = np.asarray(habits._dynamic_matrix(3, centres, 0.5, 1e-3))  # 3 places, 1 padding
+    np.testing.assert_allclose(matrix[:3].sum(-1), 1.0, atol=1e-6)
+    assert matrix[0, 0] == 0.5 and matrix[0, 2] == 0.5  # moves to its nearest place
+    with pytest.raises(ValueError, match="dynamic_length"):
+        FlowSimConfig(dynamic_length=1e-45)
 
 
 @pytest.mark.parametrize("kwargs,field", [
