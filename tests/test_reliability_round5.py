@@ -8,7 +8,14 @@ one other member of its class.
 5. outputs: checked up front, and never half an output;
 6. damaged checkpoints: one line, nothing else on the terminal;
 7. config types: numpy scalars become Python numbers;
-8. minor: ``int_list``, an int field given a non-integer text, a subnormal positive real.
+8. minor: ``int_list``, an int field given a non-integer text, a subnormal positive real;
+9. numerics: the frequent kernel cannot underflow, homes lengths are bounded, a reference
+   posterior that does not sum to 1 is never scored;
+10. ill-posed queries: every table method refuses an object absent from its map, or twice in it;
+11. silent wrong answers: non-finite or absurd homes are refused, a traced out-of-range object
+    index gives NaNs;
+12. sizes: homes training refuses every size before its run directory is written;
+13. raw errors and tracing: ``ValueError`` naming the argument, and one line under ``jax.jit``.
 
 Trainings use the smoke preset without the routine diagnostic (they share the compilation of
 the other training tests).
@@ -29,19 +36,31 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from flowmaps_jax import export as export_cli
 from flowmaps_jax.evaluation import cli as eval_cli
-from flowmaps_jax.flowsim import FlowSimConfig
+from flowmaps_jax.evaluation.receptacle_scores import posterior_scores
+from flowmaps_jax.flowsim import FlowSimConfig, generate, habits, scene_tokens
 from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes, load_homes, save_homes
 from flowmaps_jax.flowsim.homes.export import schema_path
-from flowmaps_jax.model import ModelConfig
+from flowmaps_jax.flowsim.homes.posterior import (
+    homes_history_posterior,
+    homes_posterior,
+    transition_matrix,
+)
+from flowmaps_jax.flowsim.homes.queries import HomesQueries
+from flowmaps_jax.flowsim.kernels import distance_weights
+from flowmaps_jax.model import ModelConfig, init_params
 from flowmaps_jax.model.homes_family import HomesModelConfig
+from flowmaps_jax.predictor import Predictor, load_pretrained
 from flowmaps_jax.search import cli as search_cli
 from flowmaps_jax.store import checkpoints, pretrained, reseal, rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointStore
+from flowmaps_jax.tables import table_probabilities
+from flowmaps_jax.tokens import OBJECT, Queries
 from flowmaps_jax.training import cli as train_cli
 from flowmaps_jax.training import loop, resume, runlog
 from flowmaps_jax.training.config import HomesTrainConfig, TrainConfig, apply_overrides, get_preset
@@ -528,3 +547,293 @@ def test_set_still_reads_integers_written_as_reals():
     assert (config.steps, config.seed, config.clip_norm) == (10_000, 8, 1e-30)
     with pytest.raises(ValueError, match=r"clip_norm must be > 0.0 and at least"):
         HomesTrainConfig(clip_norm=1e-320)
+
+
+# ------------------------------------------------------------- class 9: numerics
+
+HOMES = HomesConfig(num_hours=96)
+
+
+def _frequent(length: float) -> HomesConfig:
+    return HomesConfig(regime="frequent", frequent_length=length, num_hours=96)
+
+
+@pytest.mark.parametrize("length", [0.1, 1e-3, 3.0])  # 0.1: the reproduction (rows lost mass)
+def test_the_frequent_posterior_keeps_its_mass_at_any_accepted_length(length):
+    config = _frequent(length)
+    homes = generate_homes(jax.random.key(0), config, 2)
+    for e in range(2):
+        home = homes.home(e)
+        for i in np.flatnonzero(np.asarray(home.object_valid)):
+            p = np.asarray(homes_posterior(home, int(i), 3, 90, config))
+            assert abs(p.sum() - 1.0) < 1e-4, (length, e, i, p.sum())
+            t = np.asarray(transition_matrix(home, int(i), 3, config))
+            allowed = np.asarray(home.object_allowed[i])
+            np.testing.assert_allclose(t[allowed].sum(-1), 1.0, atol=1e-5)
+
+
+def test_the_distance_kernel_is_unchanged_to_the_bit_where_it_did_not_underflow():
+    distance = jax.random.uniform(jax.random.key(3), (6, 6)) * 20.0
+    others = ~np.eye(6, dtype=bool)
+    others[:, 5] = False  # a place the object may not stand on
+    plain = jnp.where(others, jnp.exp(-distance / 3.0), 0.0)
+    weight, total = distance_weights(others, distance, 3.0)
+    np.testing.assert_array_equal(weight, plain)
+    np.testing.assert_array_equal(total, plain.sum(-1, keepdims=True))
+
+
+@pytest.mark.parametrize("length", [1e-3, 1e-2])
+def test_the_distance_kernel_keeps_its_rows_where_the_exponentials_underflow(length):
+    distance = jnp.asarray([[0.0, 2.0, 3.0], [2.0, 0.0, 2.0], [3.0, 2.0, 0.0]], jnp.float32)
+    others = ~np.eye(3, dtype=bool)
+    weight, total = distance_weights(others, distance, length)
+    kernel = np.asarray(weight / total)
+    np.testing.assert_allclose(kernel.sum(-1), 1.0)
+    np.testing.assert_allclose(kernel[0], [0.0, 1.0, 0.0])  # all to the nearest place
+    np.testing.assert_allclose(kernel[1], [0.5, 0.0, 0.5])  # two equally near
+
+
+def test_the_2d_dynamic_habit_moves_at_a_short_length():
+    centres = jnp.asarray([[0.1, 0.1], [0.9, 0.9], [0.1, 0.9], [0.0, 0.0]], jnp.float32)
+    matrix = np.asarray(habits._dynamic_matrix(3, centres, 0.5, 1e-3))  # 3 places, 1 padding
+    np.testing.assert_allclose(matrix[:3].sum(-1), 1.0, atol=1e-6)
+    assert matrix[0, 0] == 0.5 and matrix[0, 2] == 0.5  # moves to its nearest place
+    with pytest.raises(ValueError, match="dynamic_length"):
+        FlowSimConfig(dynamic_length=1e-45)
+
+
+@pytest.mark.parametrize("kwargs,field", [
+    (dict(frequent_length=1e-30), "frequent_length"),
+    (dict(frequent_length=1e308), "frequent_length"),
+    (dict(home_width=(1e308, 1e308)), "home_width"),  # the reproduction: infinite homes
+    (dict(home_depth=(8.0, 1e300)), "home_depth"),
+    (dict(door_width=1e30), "door_width"),
+    (dict(wall_margin=1e300), "wall_margin"),
+])
+def test_homes_config_bounds_its_real_valued_sizes(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        HomesConfig(**kwargs)
+
+
+def test_a_class_size_beyond_the_bound_is_refused():
+    big = dataclasses.replace(HOMES.object_classes[0], size=(1e308, 0.1, 0.1))
+    with pytest.raises(ValueError, match="object_classes"):
+        HomesConfig(object_classes=(big, *HOMES.object_classes[1:]))
+
+
+def test_a_reference_posterior_that_lost_mass_is_never_scored():
+    q = np.array([[0.5, 0.5, 0.0], [0.0, 0.0, 0.0]], np.float32)  # row 1 lost its mass
+    allowed = np.array([[True, True, False], [True, True, True]])
+    with pytest.raises(ValueError, match=r"q: the reference posterior's row \(1,\) sums to 0"):
+        posterior_scores(q, q, allowed)
+    with pytest.raises(ValueError, match="reference posterior"):
+        posterior_scores(q[:1], np.array([[np.nan, 1.0, 0.0]], np.float32), allowed[:1])
+    assert float(posterior_scores(q[:1], q[:1], allowed[:1])["kl"][0]) == 0.0
+
+
+# ------------------------------------------------------------- class 10: ill-posed queries
+
+TABLES_MODEL = ModelConfig(dim=16, encoder_layers=1, cdit_blocks=1, heads=2, mlp_ratio=2,
+                           dropout=0.0, head="mixture")
+
+
+@pytest.fixture(scope="module")
+def scene_model():
+    """A mixture-head FlowMaps from init, two FlowSim maps and one query of each."""
+    sim = FlowSimConfig()
+    scenes = generate(jax.random.key(0), 2, sim)
+    tokens = jax.tree.map(np.asarray, scene_tokens(scenes, np.arange(2), np.array([0, 5]), sim))
+    is_object = (tokens.kind[0] == OBJECT) & tokens.mask[0]
+    objects = [int(d) for d in tokens.descriptor[0][is_object]]
+    queries = Queries(descriptor=np.array([[objects[0]], [objects[0]]], np.int32),
+                      tau_q=np.array([[3], [9]], np.int32))
+    model = Predictor.from_params(init_params(jax.random.key(1), TABLES_MODEL), TABLES_MODEL)
+    return model, tokens, queries, objects
+
+
+def _ill_posed(tokens, objects, how: str):
+    """The maps with the first queried object (scene 0) absent, or present twice."""
+    slot = {d: i for i, (d, k) in enumerate(zip(tokens.descriptor[0], tokens.kind[0], strict=True))
+            if k == OBJECT}
+    if how == "absent":
+        mask = tokens.mask.copy()
+        mask[0, slot[objects[0]]] = False
+        return tokens.replace(mask=mask)
+    descriptor = tokens.descriptor.copy()
+    descriptor[0, slot[objects[1]]] = objects[0]
+    return tokens.replace(descriptor=descriptor)
+
+
+_TABLE_CALLS = {
+    "table_weights": lambda m, t, q: m.table_weights(t, q),
+    "weights": lambda m, t, q: m.table_probabilities(t, q, 4, jax.random.key(0),
+                                                     method="weights"),
+    "samples": lambda m, t, q: m.table_probabilities(t, q, 4, jax.random.key(0)),
+    "tables.weights": lambda m, t, q: table_probabilities(m, t, q, 0, None, method="weights"),
+}
+
+
+@pytest.mark.parametrize("how", ["absent", "twice"])
+@pytest.mark.parametrize("call", sorted(_TABLE_CALLS))
+def test_every_table_method_refuses_an_ill_posed_query_alike(scene_model, how, call):
+    model, tokens, queries, objects = scene_model
+    found = 0 if how == "absent" else 2
+    with pytest.raises(ValueError, match=rf"queries\.descriptor\[0, 0\] must name exactly one "
+                                         rf"object token of its map .*; found {found}"):
+        _TABLE_CALLS[call](model, _ill_posed(tokens, objects, how), queries)
+
+
+def test_the_table_methods_still_answer_a_well_posed_query(scene_model):
+    model, tokens, queries, _ = scene_model
+    weights = np.asarray(model.table_weights(tokens, queries))
+    np.testing.assert_allclose(weights.sum(-1), 1.0, atol=1e-5)
+    np.testing.assert_array_equal(_TABLE_CALLS["weights"](model, tokens, queries), weights)
+
+
+# ------------------------------------------------------------- class 11: silent wrong answers
+
+
+@pytest.fixture(scope="module")
+def homes_model():
+    """The packaged homes model, two short homes and three queries in each."""
+    homes = generate_homes(jax.random.key(1), HOMES, 2)
+    queries = HomesQueries(object_index=np.zeros((2, 3), np.int32),
+                           tau=np.full((2, 3), 30, np.int32), tau_q=np.full((2, 3), 40, np.int32))
+    return load_pretrained("flowmaps-homes"), homes, queries
+
+
+_HOMES_CALLS = {
+    "probabilities": lambda m, h, q: m.probabilities(h, q, HOMES),
+    "sample": lambda m, h, q: m.sample(jax.random.key(0), h, q, HOMES, 2, 2),
+}
+
+
+@pytest.mark.parametrize("call", sorted(_HOMES_CALLS))
+@pytest.mark.parametrize("field,change,message", [
+    ("receptacle_box", lambda a: a.at[0, 0, 0].set(np.nan), "contains NaN or inf"),
+    ("receptacle_distance", lambda a: a * 1e30, "must lie in"),
+    ("home_size", lambda a: a.at[1, 0].set(np.inf), "contains NaN or inf"),
+    ("room_box", lambda a: a * 1e6, "must lie in"),
+])
+def test_a_homes_model_refuses_non_finite_or_absurd_homes(homes_model, call, field, change,
+                                                         message):
+    model, homes, queries = homes_model
+    bad = homes.replace(**{field: change(getattr(homes, field))})
+    with pytest.raises(ValueError, match=rf"homes\.{field} {message}"):
+        _HOMES_CALLS[call](model, bad, queries)
+
+
+def test_a_homes_model_still_answers_valid_homes(homes_model):
+    model, homes, queries = homes_model
+    p = np.asarray(model.probabilities(homes, queries, HOMES))
+    np.testing.assert_allclose(p.sum(-1), 1.0, atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def full_home():
+    """A home whose 15 object slots are all used."""
+    config = HomesConfig(num_hours=96, objects_per_home=(15, 15))
+    home = generate_homes(jax.random.key(2), config, 1).home(0)
+    assert bool(np.all(home.object_valid))
+    return config, home
+
+
+@pytest.mark.parametrize("index", [-1, 15, 1000])
+def test_a_traced_object_index_out_of_range_gives_nans(full_home, index):
+    config, home = full_home
+    posterior = jax.jit(lambda i: homes_posterior(home, i, 3, 10, config))
+    history = jax.jit(lambda i: homes_history_posterior(home, i, 30, 40, 24, config))
+    matrix = jax.jit(lambda i: transition_matrix(home, i, 3, config))
+    for fn in (posterior, history, matrix):
+        assert np.all(np.isnan(np.asarray(fn(index)))), fn
+    assert abs(float(posterior(14).sum()) - 1.0) < 1e-5  # the last slot still answers
+    assert not np.any(np.isnan(np.asarray(matrix(14))))
+
+
+def test_a_traced_hour_out_of_range_gives_nans(full_home):
+    config, home = full_home
+    matrix = jax.jit(lambda hour: transition_matrix(home, 0, hour, config))
+    assert np.all(np.isnan(np.asarray(matrix(config.num_hours - 1))))
+    assert np.all(np.isnan(np.asarray(matrix(-1))))
+    assert not np.any(np.isnan(np.asarray(matrix(config.num_hours - 2))))
+
+
+# ------------------------------------------------------------- class 12: sizes (homes training)
+
+
+@pytest.mark.parametrize("overrides,field", [
+    (["model.dim=65536", "model.heads=1"], "model.dim"),
+    (["homes.max_vocabulary=1000000000"], "max_vocabulary"),
+    (["queries_per_home=100000000"], "queries_per_scene"),
+    (["homes.num_hours=1048576"], "num_hours"),
+    (["homes.max_tokens=100000"], "max_tokens"),
+    (["homes.max_tokens=1000000000"], "max_tokens"),
+    (["model.encoder_layers=65536"], "model.encoder_layers"),
+    (["chunk_homes=100000000"], "chunk_homes"),
+    (["val_homes=100000000"], "val_homes"),
+    (["val_batches=100000000"], "val_batches"),
+    # other members of the class
+    (["val_batches=1000000", "val_homes=4000000"], "val_batches"),
+    (["model.weight_blocks=1000"], "model.weight_blocks"),
+    (["model.cdit_blocks=65536"], "model.cdit_blocks"),
+    (["batch_size=100000000"], "batch_size"),
+    (["model.dim=4096", "model.mlp_ratio=4096"], "model.mlp_ratio"),
+    (["homes.frequent_length=1e-30"], "frequent_length"),
+])
+def test_homes_training_refuses_a_size_before_writing_the_run(tmp_path, capsys, overrides,
+                                                              field):
+    run_dir = tmp_path / "run"
+    argv = ["--preset", "homes-smoke", "--run-dir", str(run_dir)]
+    for override in overrides:
+        argv += ["--set", override]
+    code, _, err = _cli(train_cli.main, argv, capsys)
+    assert code == 2, err
+    assert field in _error_line(err)
+    assert not run_dir.exists()
+
+
+# ------------------------------------------------------------- class 13: raw errors, tracing
+
+
+@pytest.mark.parametrize("rooms", [(["kitchen"],) * 6, ({"kitchen": 1},) * 6, "kitchen"])
+def test_homes_config_refuses_unhashable_room_names(rooms):
+    with pytest.raises(ValueError, match="rooms must be a non-empty tuple of room type names"):
+        HomesConfig(rooms=rooms)
+
+
+@pytest.mark.parametrize("call", sorted(_HOMES_CALLS))
+def test_a_homes_model_refuses_no_queries_and_no_homes(homes_model, call):
+    model, homes, queries = homes_model
+    none = jax.tree.map(lambda a: a[:, :0], queries)
+    with pytest.raises(ValueError, match=r"queries must hold at least one query per home"):
+        _HOMES_CALLS[call](model, homes, none)
+    with pytest.raises(ValueError, match=r"homes must hold at least one home; got 0"):
+        _HOMES_CALLS[call](model, jax.tree.map(lambda a: a[:0], homes),
+                           jax.tree.map(lambda a: a[:0], queries))
+
+
+def _one_line_tracing_error(fn, *args):
+    with pytest.raises(ValueError, match=r"takes concrete arrays.*outside jax\.jit") as info:
+        fn(*args)
+    assert "\n" not in str(info.value)
+
+
+def test_a_homes_model_under_jit_says_it_takes_concrete_arrays(homes_model):
+    model, homes, queries = homes_model
+    _one_line_tracing_error(jax.jit(lambda h: model.probabilities(h, queries, HOMES)), homes)
+    _one_line_tracing_error(jax.jit(lambda q: model.probabilities(homes, q, HOMES)), queries)
+    _one_line_tracing_error(
+        jax.jit(lambda k: model.sample(k, homes, queries, HOMES, 2, 2)), jax.random.key(0))
+
+
+def test_a_scene_model_under_jit_says_it_takes_concrete_arrays(scene_model):
+    model, tokens, queries, _ = scene_model
+    _one_line_tracing_error(jax.jit(model.table_weights), tokens, queries)
+    _one_line_tracing_error(jax.jit(lambda t: model.sample(t, queries, 2, jax.random.key(0))),
+                            tokens)
+    _one_line_tracing_error(jax.jit(lambda k: model.sample(tokens, queries, 2, k)),
+                            jax.random.key(0))
+    _one_line_tracing_error(jax.vmap(lambda d: model.validate(tokens, queries.replace(
+        descriptor=d))), np.stack([queries.descriptor] * 2))
+    _one_line_tracing_error(jax.jit(lambda t: model.table_probabilities(
+        t, queries, 2, jax.random.key(0))), tokens)

@@ -59,6 +59,7 @@ from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
     check_array,
+    check_concrete,
     check_flag,
     check_instance,
     check_int,
@@ -146,8 +147,10 @@ class Predictor:
         """How this model's world runs (:data:`_INFERENCE`, by the family's world)."""
         return _INFERENCE[world_of_family(self.family_name).name]
 
-    def _scenes_only(self, method: str) -> None:
-        """ValueError unless this model reads 2-D scene tokens (``method`` names the call)."""
+    def _scenes_only(self, method: str, *arguments) -> None:
+        """ValueError unless this model reads 2-D scene tokens (``method`` names the call) and
+        ``arguments`` are concrete (not traced: the methods check values on the host)."""
+        check_concrete(f"Predictor.{method}", *arguments)
         if not self._inference.scenes:
             raise ValueError(f"{method} takes 2-D FlowSim scene tokens; this is a "
                              f"{self.family_name!r} model of FlowSim homes: use "
@@ -206,7 +209,7 @@ class Predictor:
         descriptors, a query that names a table instead of an object category, more token slots
         than ``flowsim.max_tokens``, τ out of range or τ_q ≤ τ.
         """
-        self._scenes_only("validate")
+        self._scenes_only("validate", tokens, queries)
         check_inputs(self.model, tokens, queries,  # every field: type, dtype, shape, range, role
                      object_descriptors=self.flowsim.object_descriptors)
         b, q = np.shape(queries.descriptor)
@@ -278,6 +281,7 @@ class Predictor:
         the boxes equal those without it, to float rounding; the mixture head sums the near
         tables' terms, so it solves backwards once more). Planners weigh samples with it.
         """
+        check_concrete("Predictor.sample", tokens, queries, key)
         scenes, _ = _query_shape(queries)
         key = check_key(key, "key", ((), (scenes,)))  # one key, or one per scene
         num_samples = check_int("num_samples", num_samples)
@@ -305,7 +309,7 @@ class Predictor:
         "samples" counts ``num_samples`` samples per query; "weights" reads the route head's
         mixture weights (:meth:`table_weights`, no sampling noise). See
         :func:`flowmaps_jax.tables.table_probabilities` (also ``search.table_probabilities``)."""
-        self._scenes_only("table_probabilities")
+        self._scenes_only("table_probabilities", tokens, queries, key)
         return tables.table_probabilities(self, tokens, queries, num_samples, key,
                                           method=method, **sample_kwargs)
 
@@ -317,7 +321,7 @@ class Predictor:
         from t = 1 to 0 on ``num_steps`` grid points (the only error is the ODE discretisation).
         MLP: the closed-form diagonal Gaussian.
         """
-        self._scenes_only("log_prob")
+        self._scenes_only("log_prob", tokens, queries, x)
         scenes, per_scene = _query_shape(queries)
         x = check_real_array("x", x, (scenes, per_scene, None, 4))
         if 0 in np.shape(x):
@@ -350,13 +354,14 @@ class Predictor:
         samples follow them while its residual is zero; the pointer head's are its weights at
         t = 0.
         """
-        self._scenes_only("table_weights")
+        self._scenes_only("table_weights", tokens, queries)
         if not self.has_table_weights:
             raise ValueError("table_weights needs a FlowMaps model with model.head 'mixture', "
                              f"'pointer' or 'route' (explicit mixture weights); this one is "
                              f"{self.name} with "
                              f"head={self.model.head!r}: use table_probabilities with samples")
         b, _ = self.validate(tokens, queries)
+        tables.check_query_objects(tokens, queries)  # as table_probabilities' samples do
         s = np.shape(tokens.boxes)[1]
         is_table = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == FURNITURE)
         tokens, queries = self._on_mesh(*canonical_inputs(tokens, queries))
@@ -367,7 +372,7 @@ class Predictor:
 
     def gaussian(self, tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp.ndarray]:
         """MLP baseline only: (mean, log_var), each (B, Q, 4), of the predicted Gaussian."""
-        self._scenes_only("gaussian")
+        self._scenes_only("gaussian", tokens, queries)
         if self.family.gaussian is None:
             raise ValueError("gaussian() is only defined for the MLP baseline (family_name='mlp')")
         b, _ = self.validate(tokens, queries)

@@ -35,6 +35,7 @@ from flowmaps_jax.tokens import FURNITURE, OBJECT, Queries, SceneTokens
 from flowmaps_jax.validation import (
     check_array,
     check_choice,
+    check_concrete,
     check_instance,
     check_int,
     check_mask,
@@ -152,6 +153,17 @@ def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp
     ``ValueError`` naming ``queries.descriptor`` unless a queried object has one token in its map
     (in the map at τ, for tokens of a history: ``age`` 0).
     """
+    check_query_objects(tokens, queries)
+    return _table_boxes(tokens, queries)
+
+
+def check_query_objects(tokens: SceneTokens, queries: Queries) -> None:
+    """``ValueError`` naming ``queries.descriptor`` unless every queried object has exactly one
+    token in its map (in the map at τ, for tokens of a history: ``age`` 0): a question about an
+    object absent from the map, or present twice, has no answer on its tables. Every method
+    that answers with table masses (:func:`table_probabilities`'s samples and weights,
+    ``Predictor.table_weights``) refuses such a query here."""
+    check_concrete("the table masses", tokens, queries)
     check_instance("tokens", tokens, SceneTokens)
     check_array("tokens.boxes", tokens.boxes, (None, None, 4))
     check_instance("queries", queries, Queries)
@@ -164,7 +176,6 @@ def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp
         b, q = np.argwhere(counts != 1)[0]
         raise ValueError(f"queries.descriptor[{b}, {q}] must name exactly one object token of its "
                          f"map (its size places it on the tables); found {counts[b, q]}")
-    return _table_boxes(tokens, queries)
 
 
 # --------------------------------------------------------------------------- sampled priors
@@ -214,9 +225,10 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
     # "weights" does not use num_samples: >= 0 will do
     num_samples = check_int("num_samples", num_samples, 0 if method == "weights" else 1)
     check_instance("predictor", predictor, _MODELS[method])
+    check_query_objects(tokens, queries)  # every method: every queried object is on its map
     if method == "weights":
         return predictor.table_weights(tokens, queries)
-    boxes, mask = table_boxes(tokens, queries)  # every queried object is on its map
+    boxes, mask = table_boxes(tokens, queries)
     if "solver" in sample_kwargs:
         sample_kwargs["method"] = sample_kwargs.pop("solver")
     samples = predictor.sample(tokens, queries, num_samples, key, **sample_kwargs)

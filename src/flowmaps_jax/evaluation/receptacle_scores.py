@@ -40,6 +40,8 @@ from flowmaps_jax.validation import check_array, check_instance
 KL_FLOOR = 1e-9
 """KL(q ‖ p) reads max(p, KL_FLOOR): about 20.7 nats per unit of q's mass where p has none."""
 POSTERIOR_METRICS = ("kl", "tv", "top1", "rank_cost")
+REFERENCE_TOLERANCE = 1e-3
+"""How far from 1 a reference posterior's row may sum (float32 rounding of R² hourly steps)."""
 ASSIGN_MARGIN = 0.1
 """Metres: a sampled box counts for a receptacle within half its footprint diagonal plus this."""
 
@@ -59,6 +61,19 @@ def _with_off_bin(p, allowed):
                            axis=-1)
 
 
+def check_reference(q, tolerance: float = REFERENCE_TOLERANCE) -> None:
+    """``ValueError`` unless every row of the reference posterior q (..., R) (its allowed
+    receptacles) is finite and sums to 1 within ``tolerance``: a score against a posterior that
+    lost (or gained) mass is never published."""
+    total = np.asarray(jnp.sum(q, axis=-1))
+    bad = ~np.isfinite(total) | (np.abs(total - 1.0) > tolerance)
+    if np.any(bad):
+        where = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"q: the reference posterior's row {where} sums to {total[where]:.6g}, "
+                         f"not 1 ({int(bad.sum())} of {bad.size} rows): its scores would be "
+                         f"wrong, so none are computed")
+
+
 def posterior_scores(p, q, allowed) -> dict[str, jax.Array]:
     """{``kl``, ``tv``, ``top1``, ``rank_cost``} (...) of p (..., R) against q (..., R) on the
     ``allowed`` (..., R) receptacles (see the module's docstring)."""
@@ -67,6 +82,7 @@ def posterior_scores(p, q, allowed) -> dict[str, jax.Array]:
     check_array("allowed", allowed, shape)
     p, allowed = jnp.asarray(p, jnp.float32), jnp.asarray(allowed, bool)
     q = jnp.where(allowed, jnp.asarray(q, jnp.float32), 0.0)
+    check_reference(q)
     slots = score_slots(_with_off_bin(p, allowed), q, allowed)  # TV, top-1, rank cost
     return {"kl": _kl(p, q, allowed), "tv": slots["tv"], "top1": slots["top1"],
             "rank_cost": slots["search_cost_ratio"]}

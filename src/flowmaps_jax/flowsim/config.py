@@ -299,7 +299,8 @@ _RULES = {
     "object_frac": _FRACTION,
     "transition_probs": Probabilities(3), "jitter_probs": Probabilities(3),
     "dynamics": Choice(DYNAMICS),
-    "preference_move": _FRACTION, "preference_mass": _FRACTION, "dynamic_length": _FRACTION,
+    "preference_move": _FRACTION, "preference_mass": _FRACTION,
+    "dynamic_length": Real(1e-6, 1.0),  # a float32 normal number: its kernel cannot underflow
     "dynamic_stay": Real(0.0, 1.0, high_open=True),  # < 1: a dynamic object moves
 }
 """What each field of :class:`FlowSimConfig` may hold (numbers are stored as Python numbers, so

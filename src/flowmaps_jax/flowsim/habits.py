@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig, sim_params
+from flowmaps_jax.flowsim.kernels import distance_weights
 from flowmaps_jax.flowsim.worlds import HABITS_HISTORY
 from flowmaps_jax.validation import (
     check_instance,
@@ -125,8 +126,7 @@ def _dynamic_matrix(k, centres, stay, length) -> jnp.ndarray:
     place = jnp.arange(f) < k
     distance = jnp.linalg.norm(centres[:, None, :] - centres[None, :, :], axis=-1)
     others = place[None, :] & ~jnp.eye(f, dtype=bool)
-    weight = jnp.where(others, jnp.exp(-distance / length), 0.0)
-    total = jnp.sum(weight, axis=-1, keepdims=True)
+    weight, total = distance_weights(others, distance, length)  # no row underflows
     move = jnp.where(total > 0, (1.0 - stay) * weight / jnp.where(total > 0, total, 1.0), 0.0)
     stay_here = jnp.where(total[:, 0] > 0, stay, 1.0)
     return move + stay_here[:, None] * jnp.eye(f, dtype=jnp.float32)

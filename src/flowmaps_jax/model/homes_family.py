@@ -117,9 +117,13 @@ class HomesModelConfig:
         return cls(**data)
 
 
+MAX_BLOCKS = 64
+"""The most layers (or block pairs) of each stack of the homes network: its stacks are
+unrolled when compiled, so the compile time grows with them."""
 _MODEL_RULES = {**{name: Int(1, 1 << 16) for name in (
-    "dim", "encoder_layers", "weight_blocks", "cdit_blocks", "heads", "mlp_ratio", "freq_bands",
-    "history")}, "max_frequency": Real(1.0)}
+    "dim", "heads", "mlp_ratio", "freq_bands", "history")},
+    **{name: Int(1, MAX_BLOCKS, "each layer is compiled on its own") for name in (
+        "encoder_layers", "weight_blocks", "cdit_blocks")}, "max_frequency": Real(1.0)}
 """The rules of :class:`HomesModelConfig`'s fields (messages name ``model.<field>``)."""
 
 

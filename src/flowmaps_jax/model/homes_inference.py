@@ -35,6 +35,7 @@ from flowmaps_jax.model.homes_family import (
     sample_placements,
 )
 from flowmaps_jax.validation import (
+    check_concrete,
     check_flag,
     check_instance,
     check_int,
@@ -78,17 +79,25 @@ def check_model(predictor) -> None:
         predictor.homes.validate()  # the token budget too, should a config skip its checks
 
 
-def check(predictor, homes: Homes, queries: HomesQueries, config: HomesConfig) -> None:
+def check(predictor, homes: Homes, queries: HomesQueries, config: HomesConfig,
+          what: str = "the query") -> None:
     """``ValueError`` naming the argument unless ``config`` agrees with the model's on the
     token layout and vocabulary (:data:`COMPATIBLE_FIELDS`) and ``homes`` / ``queries`` fit
-    ``config``."""
-    validate_homes(homes, config, values=False)  # config is a HomesConfig from here on
+    ``config``: finite, sensible home arrays (``validate_homes`` with values), at least one
+    home and one query per home, concrete arrays (``what`` is not run under ``jax.jit``)."""
+    check_concrete(f"{what} of a homes model", homes, queries)
+    validate_homes(homes, config)  # config is a HomesConfig from here on; values too
+    if homes.num_homes == 0:
+        raise ValueError("homes must hold at least one home; got 0")
     for field in COMPATIBLE_FIELDS:
         if getattr(config, field) != getattr(predictor.homes, field):
             raise ValueError(f"config.{field} differs from the model's (trained on "
                              f"{field}={str(getattr(predictor.homes, field))[:80]}): the tokens "
                              f"would mean something else")
     check_queries(queries, homes, config)
+    if queries.tau.shape[1] == 0:
+        raise ValueError("queries must hold at least one query per home; got shape "
+                         f"{tuple(queries.tau.shape)}")
 
 
 def _chunked(fn, queries: HomesQueries, rows_per_query: int):
@@ -112,7 +121,7 @@ def probabilities(predictor, homes: Homes, queries: HomesQueries,
     receptacle slot r at τ_q; 0 off its allowed receptacles, rows sum to 1. ``config``: the
     config the homes were generated with (default: the model's)."""
     config = predictor.homes if config is None else config
-    check(predictor, homes, queries, config)
+    check(predictor, homes, queries, config, "probabilities")
     e = queries.tau.shape[0]
 
     def run(chunk):
@@ -130,12 +139,13 @@ def sample(predictor, key, homes: Homes, queries: HomesQueries, config: HomesCon
     """(E, Q, N, 6) float32 boxes (cx, cy, cz, w, d, h) in metres: a receptacle drawn from
     the weights, then the placement flow on it (``num_steps`` midpoint grid points). With
     ``return_receptacles``: (boxes, receptacles (E, Q, N) int32)."""
+    check_concrete("sample of a homes model", key)
     key = check_key(key)
     num_samples = check_int("num_samples", num_samples)
     num_steps = check_int("num_steps", num_steps, 2, MAX_NUM_STEPS)
     return_receptacles = check_flag("return_receptacles", return_receptacles)
     config = predictor.homes if config is None else config
-    check(predictor, homes, queries, config)
+    check(predictor, homes, queries, config, "sample")
     e, q = queries.tau.shape
     check_request_size(f"sample({e} x {q} queries x {num_samples} samples)",
                        e * q * num_samples * 6 * 4 * 2)  # the boxes and receptacles

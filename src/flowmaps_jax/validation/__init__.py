@@ -14,9 +14,10 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   :func:`is_real_dtype`.
 * :mod:`.arrays`: :func:`check_array`, :func:`check_shape`, :func:`check_real_array`,
   :func:`check_int_array`, :func:`check_mask`, :func:`check_probabilities` (with
-  :data:`PROB_ATOL` for computed float32 distributions), :func:`is_concrete`. A shape is a
-  tuple of int sizes, ``None`` (any size) and a leading ``...`` (any leading dims); a caller
-  computes the sizes from its arguments (``(num_envs, k + 1)``) and passes them in.
+  :data:`PROB_ATOL` for computed float32 distributions), :func:`is_concrete`,
+  :func:`check_concrete`. A shape is a tuple of int sizes, ``None`` (any size) and a leading
+  ``...`` (any leading dims); a caller computes the sizes from its arguments
+  (``(num_envs, k + 1)``) and passes them in.
 * :mod:`.files`: :func:`check_path`, :func:`check_file`, :func:`check_dir`,
   :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
   name, a metadata field: no path, no markup); :func:`read_npz` (an untrusted ``.npz``: member
@@ -45,6 +46,7 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
 from flowmaps_jax.validation.arrays import (
     PROB_ATOL,
     check_array,
+    check_concrete,
     check_int_array,
     check_mask,
     check_probabilities,
@@ -112,6 +114,7 @@ __all__ = [
     "array_bytes",
     "check_array",
     "check_choice",
+    "check_concrete",
     "check_dir",
     "check_fields",
     "check_file",

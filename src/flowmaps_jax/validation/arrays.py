@@ -26,6 +26,15 @@ def is_concrete(*arrays) -> bool:
     return not any(isinstance(a, jax.core.Tracer) for a in arrays)
 
 
+def check_concrete(what: str, *trees) -> None:
+    """``ValueError`` (one line) when a leaf of ``trees`` is a tracer: ``what`` (e.g.
+    "Predictor.sample") checks values and picks compiled shapes on the host, so it takes
+    concrete arrays and cannot run under ``jax.jit`` / ``vmap``."""
+    if not is_concrete(*jax.tree.leaves(trees)):
+        raise ValueError(f"{what} takes concrete arrays (it checks their values and compiles "
+                         f"its own programs); call it outside jax.jit / jax.vmap")
+
+
 def _dtype_words(dtype) -> str:
     """What an array of ``dtype`` holds, in words, for error messages."""
     if dtype == np.bool_:

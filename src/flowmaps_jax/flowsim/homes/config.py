@@ -3,7 +3,7 @@
 Frozen and hashable, so it can be a static argument of ``jax.jit``; ``validate()`` (run when
 the config is built) raises ``ValueError`` naming the field for anything that could not make
 valid homes: an unknown room type, receptacle class or object class, an object class that may
-stand on nothing (or on nothing any room of the home holds), negative or zero sizes, a floor
+stand on nothing (or on nothing any room of the home holds), sizes not in (0, MAX_METRES], a floor
 plan too small for its doors, a vocabulary or a scene larger than the token budget.
 
 Time: hour t = 0 … ``num_hours`` − 1 starts on a Monday at 00:00; hour of day t mod 24, day of
@@ -57,6 +57,23 @@ NUM_CONTEXTS = 8
 """Preference contexts: 4 phases of the day × (weekday, weekend)."""
 
 HOURS_PER_WEEK = 24 * 7
+
+MAX_METRES = 1000.0
+"""The largest length a config may set (home sides, door width, wall margin, class sizes),
+metres: homes stay finite, and so do their distances."""
+
+MAX_HOURS = 2**16
+"""The most hours a config's homes may span (about 7.5 years)."""
+
+MAX_TOKENS = 4096
+"""The largest scene token budget (``max_tokens``): attention is quadratic in it."""
+
+MAX_VOCABULARY = 2**16
+"""The largest descriptor budget (``max_vocabulary``): the network embeds every descriptor."""
+
+FREQUENT_LENGTH = (1e-3, 1e4)
+"""The range of ``frequent_length``, metres (its kernel is a softmax of −distance / length,
+which cannot underflow; the bounds keep −distance / length finite in float32)."""
 
 DEFAULT_ACTIVITY = tuple(0.2 if (h < 7 or h == 23) else 1.0 for h in range(24))
 """Hourly activity (multiplies the move probability of every regime but the routine, which
@@ -133,6 +150,14 @@ class HomesConfig:
                                   ("object_classes", ObjectClass, _SIZED_ENTRY_RULES)):
             object.__setattr__(self, field, check_table(field, getattr(self, field), cls, rules,
                                                         unique=("name",)))
+        # names must be strings (hashable) before they are compared
+        _check_name_tuple("rooms", self.rooms, "room type")
+        for entry in self.receptacle_classes:
+            _check_name_tuple(f"receptacle_classes: {entry.name!r} rooms", entry.rooms,
+                              "room type")
+        for entry in self.object_classes:
+            _check_name_tuple(f"object_classes: {entry.name!r} receptacles", entry.receptacles,
+                              "receptacle class")
         # what the classes name must exist
         room_types = _names(self.room_types)
         for entry in self.receptacle_classes:
@@ -148,7 +173,8 @@ class HomesConfig:
         check_int("objects_per_home[1]", self.objects_per_home[1], 1,
                   min(MAX_OBJECTS, len(self.object_classes)))
         object.__setattr__(self, "max_vocabulary", check_int(
-            "max_vocabulary", self.max_vocabulary, self.vocabulary_size))  # as a Python int
+            "max_vocabulary", self.max_vocabulary, self.vocabulary_size,
+            MAX_VOCABULARY))  # as a Python int
         # how the fields fit together
         if len(self.rooms) % self.grid_rows:
             raise ValueError(f"rooms: {len(self.rooms)} rooms do not fill a grid of grid_rows="
@@ -283,6 +309,14 @@ def _names(entries) -> frozenset:
     return frozenset(e.name for e in entries)
 
 
+def _check_name_tuple(name: str, value: Any, what: str) -> None:
+    """``value`` must be a non-empty tuple of strings (``what`` names, e.g. "room type")."""
+    if (not isinstance(value, tuple) or not value
+            or not all(isinstance(v, str) for v in value)):
+        raise ValueError(f"{name} must be a non-empty tuple of {what} names (strings); got "
+                         f"{value!r}"[:300])
+
+
 def _check_names(name: str, value: Any, known: frozenset, what: str, distinct: bool = True):
     """``value`` must be a non-empty tuple of names, each one of ``known`` (``what`` says what
     they name, e.g. "room type"), each at most once if ``distinct``."""
@@ -297,7 +331,9 @@ def _check_names(name: str, value: Any, known: frozenset, what: str, distinct: b
 
 _ENTRY_RULES = {"name": check_plain_name, "text": Text()}
 _SIZED_ENTRY_RULES = {**_ENTRY_RULES,
-                      "size": Each(Real(0.0, low_open=True), 3, "(w, d, h) sizes in metres")}
+                      "size": Each(Real(0.0, MAX_METRES, low_open=True), 3,
+                                   "(w, d, h) sizes in metres")}
+_METRES = Real(0.0, MAX_METRES, low_open=True)
 _UNIT = Real(0.0, 1.0)
 _JITTER = Real(0.0, 1.0, high_open=True)
 _CLASSES = ("room_types", "receptacle_classes", "object_classes")
@@ -307,17 +343,17 @@ _RULES = {
     # one receptacle per cell of a 2 x 2 split of the room
     "receptacles_per_room": Pair(1, integer=True, high=MAX_PER_ROOM),
     "objects_per_home": Pair(1, integer=True, high=MAX_OBJECTS),
-    "num_hours": Int(2, 2**20),
+    "num_hours": Int(2, MAX_HOURS),
     "regime": Choice((*REGIMES, "mixed")),
     "routine_probs": Probabilities(3),
     **{name: _UNIT for name in ("preference_move", "preference_mass", "balanced_move",
                                 "balanced_cycle", "frequent_move", "extra_door_prob")},
-    "frequent_length": Real(0.0, low_open=True),
+    "frequent_length": Real(*FREQUENT_LENGTH),
     "split_jitter": _JITTER, "size_jitter": _JITTER,
     "activity": Each(_UNIT, 24, "hourly values in [0, 1]"),
-    "home_width": Pair(0.0), "home_depth": Pair(0.0),
-    "door_width": Real(0.0, low_open=True), "wall_margin": Real(0.0),
-    "max_tokens": Int(1),
+    "home_width": Pair(0.0, high=MAX_METRES), "home_depth": Pair(0.0, high=MAX_METRES),
+    "door_width": _METRES, "wall_margin": Real(0.0, MAX_METRES),
+    "max_tokens": Int(1, MAX_TOKENS),
 }
 """What the other fields of :class:`HomesConfig` may hold on their own (numbers are stored as
 Python numbers); ``validate`` then checks ``rooms``, the bounds the vocabulary sets

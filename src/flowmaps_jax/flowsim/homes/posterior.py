@@ -33,7 +33,8 @@ distances), so for them the history changes nothing: the chain is Markov.
 
 ``home`` is one home (``Homes.home(i)``); every function is jittable and vmappable (over
 homes, objects, hours). Concrete inputs are checked (``ValueError`` naming the argument); a
-traced query out of range (τ_q ≤ τ, τ_q beyond the rollout, a masked object) gives NaNs.
+traced query out of range (τ_q ≤ τ, τ_q beyond the rollout, an object index outside
+0 … M − 1 or a masked object, an hour outside 0 … T − 2) gives NaNs.
 """
 
 from __future__ import annotations
@@ -67,9 +68,17 @@ def _forward(law: dict, p, tau, tau_q):
     return jax.lax.fori_loop(tau, tau_q, lambda t, q: schedules.step_distribution(law, q, t), p)
 
 
+def _object_ok(home: Homes, object_index):
+    """Whether ``object_index`` is a valid object slot of ``home``: in range (a traced index out
+    of range must not read a clamped slot) and not masked."""
+    m = home.object_valid.shape[0]
+    inside = (object_index >= 0) & (object_index < m)
+    return inside & home.object_valid[jnp.clip(object_index, 0, m - 1)]
+
+
 def _valid(home: Homes, object_index, tau, tau_q):
     t = home.receptacle.shape[0]
-    return (home.object_valid[object_index] & (tau >= 0) & (tau_q > tau) & (tau_q < t))
+    return _object_ok(home, object_index) & (tau >= 0) & (tau_q > tau) & (tau_q < t)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -185,7 +194,8 @@ def homes_history_posterior(home: Homes, object_index, tau, tau_q, history,
 def transition_matrix(home: Homes, object_index, hour,
                       config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """P_hour (R, R) float32 of one object: [i, j] = P(j at hour + 1 | i at hour); zero outside
-    its allowed receptacles. A pure function of (home, object, hour of week)."""
+    its allowed receptacles. A pure function of (home, object, hour of week). Traced, an
+    object index or hour out of range gives NaNs."""
     check_instance("config", config, HomesConfig)
     object_index = check_int_array("object_index", object_index, 0, config.max_objects - 1,
                                    shape=())
@@ -196,4 +206,7 @@ def transition_matrix(home: Homes, object_index, hour,
 
 @functools.partial(jax.jit, static_argnames=("config",))
 def _transition_matrix(home: Homes, object_index, hour, config: HomesConfig):
-    return schedules.transition_matrix(object_law(home, object_index, config), hour)
+    p = schedules.transition_matrix(object_law(home, object_index, config), hour)
+    m = home.object_valid.shape[0]
+    valid = (object_index >= 0) & (object_index < m) & (hour >= 0) & (hour < config.num_hours - 1)
+    return jnp.where(valid, p, jnp.nan)

@@ -19,7 +19,8 @@ week). The regimes (``REGIMES``; activity a_h = ``HomesConfig.activity``):
   (the next one included). B is doubly
   stochastic, so occupancy stays spread uniformly over A.
 * **frequent** — m = ρ_f · a_h (ρ_f = ``frequent_move``, high); B(i, j) ∝ exp(−g(i, j) / L)
-  over allowed j ≠ i, g the geodesic distance through doors, L = ``frequent_length``.
+  over allowed j ≠ i, g the geodesic distance through doors, L = ``frequent_length``
+  (``flowsim.kernels.distance_weights``: no row underflows, however short L).
 * **routine** — FlowSim's chain on the cycle: m = 1, B = p₀ I + p₁ S + p₂ S²
   (``routine_probs``, stay 0.2 / advance 0.7 / skip 0.1), time-homogeneous: it moves at every
   hour, night included (activity does not apply).
@@ -35,6 +36,7 @@ import jax.numpy as jnp
 
 from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.floorplan import split_uniforms
+from flowmaps_jax.flowsim.kernels import distance_weights
 
 PREFERENCES, BALANCED, FREQUENT, ROUTINE = (REGIMES.index(r) for r in
                                             ("preferences", "balanced", "frequent", "routine"))
@@ -93,8 +95,7 @@ def move_kernel(regime, cycle, num_allowed, allowed, distance, config: HomesConf
     uniform = others / jnp.maximum(num_allowed - 1, 1).astype(jnp.float32)
     c = config.balanced_cycle
     balanced = c * shifts[1] + (1 - c) * uniform
-    weight = jnp.where(others > 0, jnp.exp(-distance / config.frequent_length), 0.0)
-    total = jnp.sum(weight, axis=-1, keepdims=True)
+    weight, total = distance_weights(others > 0, distance, config.frequent_length)
     frequent = weight / jnp.where(total > 0, total, 1.0)
     p0, p1, p2 = config.routine_probs
     routine = p0 * shifts[0] + p1 * shifts[1] + p2 * shifts[2]

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig
+from flowmaps_jax.flowsim.homes.config import MAX_METRES, NUM_CONTEXTS, REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.floorplan import door_pairs
 from flowmaps_jax.validation import (
     check_instance,
@@ -143,9 +143,11 @@ def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: 
                              f"({', '.join(FIELDS[field][0])} of the config) and {dtype}")
     if not (values and is_concrete(*arrays.values())):
         return
-    for field in ("home_size", "room_box", "door_position", "receptacle_box",
-                  "receptacle_distance"):
-        check_real_array(f"{name}.{field}", arrays[field], low=0.0, what="metres")
+    longest = 2 * MAX_METRES * (config.num_rooms + 1)  # a walk through every room, and more
+    for field, high in (("home_size", MAX_METRES), ("room_box", MAX_METRES),
+                        ("door_position", MAX_METRES), ("receptacle_box", MAX_METRES),
+                        ("receptacle_distance", longest)):
+        check_real_array(f"{name}.{field}", arrays[field], low=0.0, high=high, what="metres")
     r = config.max_receptacles
     for field, low, high in (("room_type", 0, len(config.room_types) - 1),
                              ("receptacle_class", -1, len(config.receptacle_classes) - 1),
