@@ -161,3 +161,19 @@ def fast_compile():
     finally:
         jax.config.update("jax_disable_most_optimizations", previous)
 
+
+def run_cli(main, argv, capsys) -> tuple[int, str, str]:
+    """``main(argv)`` → (exit code, stdout, stderr); argparse errors exit with 2."""
+    try:
+        code = main(argv)
+    except SystemExit as exit_info:
+        code = exit_info.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def error_line(err: str) -> str:
+    """The one ``error:`` line of stderr (asserted to be one)."""
+    lines = [line for line in err.strip().splitlines() if "error:" in line]
+    assert len(lines) == 1, err
+    return lines[0]

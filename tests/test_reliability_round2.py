@@ -20,6 +20,7 @@ import zipfile
 import jax
 import numpy as np
 import pytest
+from support import run_cli
 
 from flowmaps_jax import validation as v
 from flowmaps_jax.store import rundir
@@ -30,14 +31,7 @@ CFG = dataclasses.replace(get_preset("smoke"), routine_envs=0)
 QUIET = ["--preset", "smoke", "--set", "routine_envs=0", "--no-progress"]
 
 
-def _cli(main, argv, capsys):
-    """``main(argv)`` → (exit code, stdout, stderr); argparse errors exit with 2."""
-    try:
-        code = main(argv)
-    except SystemExit as exit_info:
-        code = exit_info.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
+_cli = run_cli  # tests/support.py
 
 
 def _one_line(err: str) -> str:

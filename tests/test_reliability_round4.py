@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from support import TINY, synthetic_queries, synthetic_tokens
+from support import TINY, error_line, run_cli, synthetic_queries, synthetic_tokens
 
 from flowmaps_jax import model as model_lib
 from flowmaps_jax import validation as v
@@ -67,19 +67,7 @@ def _budget(monkeypatch):
     monkeypatch.setenv(v.MAX_BYTES_ENV, "16G")
 
 
-def _cli(main, argv, capsys):
-    try:
-        code = main(argv)
-    except SystemExit as exit_info:
-        code = exit_info.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def _error_line(err: str) -> str:
-    lines = [line for line in err.strip().splitlines() if "error:" in line]
-    assert len(lines) == 1, err
-    return lines[0]
+_cli, _error_line = run_cli, error_line  # tests/support.py
 
 
 def _outside(tmp_path) -> pathlib.Path:

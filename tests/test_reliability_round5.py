@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from support import error_line, run_cli
 
 from flowmaps_jax import export as export_cli
 from flowmaps_jax.evaluation import cli as eval_cli
@@ -75,19 +76,7 @@ SILENT = dict(progress=False, log=lambda _: None)
 SRC = pathlib.Path(__file__).resolve().parents[1] / "src"
 
 
-def _cli(main, argv, capsys):
-    try:
-        code = main(argv)
-    except SystemExit as exit_info:
-        code = exit_info.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def _error_line(err: str) -> str:
-    lines = [line for line in err.strip().splitlines() if "error:" in line]
-    assert len(lines) == 1, err
-    return lines[0]
+_cli, _error_line = run_cli, error_line  # tests/support.py
 
 
 @pytest.fixture(scope="module")
