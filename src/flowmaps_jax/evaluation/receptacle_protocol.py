@@ -52,6 +52,7 @@ from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig, generate_homes
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, check_horizons, draw_queries
 from flowmaps_jax.flowsim.homes.rollout import homes_bytes_per_home
 from flowmaps_jax.search import navigation as nav
+from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
 from flowmaps_jax.validation import (
     check_choice,
     check_int,
@@ -67,6 +68,10 @@ EVAL_SEED = 35_000_002
 DEFAULT_NUM_HOMES, DEFAULT_QUERIES, DEFAULT_SAMPLES = 200, 3, 100
 REGIME_CHOICES = (*REGIMES, "mixed")
 PARTS = ("posterior", "navigation")
+DEFAULT_OUT = {"posterior": lambda checkpoint: pathlib.Path(checkpoint) / "eval",
+               "navigation": lambda checkpoint: pathlib.Path(checkpoint) / "search"}
+"""Where each part writes without ``--out`` (as the 2-D commands do): ``<checkpoint>/eval``,
+``<checkpoint>/search``."""
 REPORT_STEM = {"posterior": "results", "navigation": "search"}
 """The report files of each part: ``<stem>.json`` and ``<stem>.md``."""
 FIGURE_OF = {"posterior": "rank_cost_by_horizon.png", "navigation": "success_vs_looks.png"}
@@ -258,7 +263,8 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
     """The ``part`` (``"posterior"`` for ``evaluate``, ``"navigation"`` for ``search``) of the
     homes protocol for ``--checkpoint``, from the parsed ``args`` of ``prog``. Options in
     ``flowsim_only`` that differ from their defaults are refused (they apply to 2-D FlowSim
-    models); so is an ``--out`` left to its default. Returns the exit code (0, 2 on a bad
+    models); without ``--out`` the files go to :data:`DEFAULT_OUT` (a pretrained model needs
+    ``--out``). Returns the exit code (0, 2 on a bad
     argument, 74 on a failed write), one line on stderr."""
     from flowmaps_jax.evaluation import receptacle_report as report
 
@@ -268,13 +274,13 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
             if getattr(args, name) != parser.get_default(name):
                 raise ValueError(f"--{name.replace('_', '-')} applies to 2-D FlowSim models; "
                                  f"{args.checkpoint} is a FlowSim homes model")
-        if args.out is None:
-            raise ValueError("--out is required for a FlowSim homes model")
+        if args.out is None and str(args.checkpoint).startswith(PRETRAINED_PREFIX):
+            raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         regime = check_choice("--regime", "mixed" if args.regime is None else args.regime,
                               REGIME_CHOICES)
         out = pathlib.Path(check_output_dir(  # and no link at the names it will write
-            "--out", args.out, files=[f"{stem}.json", f"{stem}.md",
-                                      *(() if args.no_figures else (figure,))]))
+            "--out", DEFAULT_OUT[part](args.checkpoint) if args.out is None else args.out,
+            files=[f"{stem}.json", f"{stem}.md", *(() if args.no_figures else (figure,))]))
         samples = args.samples
         num_samples = DEFAULT_SAMPLES if samples == parser.get_default("samples") \
             else _one_count(samples)
@@ -285,11 +291,15 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
         queries = DEFAULT_QUERIES if args.queries is None else args.queries
         print(f"Homes {part}: {args.num_envs} homes x {queries} queries, regime {regime}, "
               f"FlowMaps {info} -> {out}", flush=True)
+        # Defaults that fit the model's homes: a week of history (at most half of them), and
+        # the default horizons that fit after it (the shipped model's: all of them).
+        history = min(pr.DEFAULT_HISTORY, config.num_hours // 2) if args.history is None \
+            else args.history
+        horizons = args.horizons if args.horizons is not None else [
+            d for d in DEFAULT_HORIZONS if d <= config.num_hours - history] or [1]
         results = run_evaluation(
             config, num_homes=args.num_envs, num_queries=queries, seed=args.seed,
-            history=pr.DEFAULT_HISTORY if args.history is None else args.history,
-            num_samples=num_samples,
-            horizons=DEFAULT_HORIZONS if args.horizons is None else args.horizons,
+            history=history, num_samples=num_samples, horizons=horizons,
             budget=budget, model=model, model_info=info, progress=not args.no_progress,
             parts=(part,))
     except ValueError as err:
