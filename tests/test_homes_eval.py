@@ -398,6 +398,22 @@ def test_the_homes_commands_name_a_bad_or_foreign_argument(command, args, named,
     assert not (tmp_path / "x").exists()
 
 
+def test_the_homes_defaults_fit_the_model_and_write_beside_the_run(tmp_path, monkeypatch):
+    """A model of 96-hour homes: the default history (at most half the hours) and horizons (those
+    that fit after it) are its own, and without --out the files go to <checkpoint>/eval and
+    <checkpoint>/search, as for a 2-D model (the end-of-run advice names no --out)."""
+    evaluate, search = _homes_cli(monkeypatch)
+    short = HomesConfig(num_hours=96)
+    monkeypatch.setattr(ev, "load_model", lambda source, which="best": StandIn(short, 24))
+    monkeypatch.chdir(tmp_path)
+    common = ["--checkpoint", "run", "--num-envs", "2", "--queries", "2", "--no-progress"]
+    assert evaluate([*common, "--samples", "4"]) == 0
+    assert search(common) == 0
+    protocol = json.loads((tmp_path / "run" / "eval" / "results.json").read_text())["protocol"]
+    assert protocol["history"] == 48 and protocol["horizons"] == [1, 3, 6, 12, 24]
+    assert (tmp_path / "run" / "search" / "search.md").is_file()
+
+
 def test_a_missing_checkpoint_names_the_flag(tmp_path, capsys):
     from flowmaps_jax.evaluation.cli import main
 
