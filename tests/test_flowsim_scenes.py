@@ -96,7 +96,7 @@ def test_query_times_follow_the_papers_law(flowsim_config):
 
 def test_make_train_batch(small_scenes, flowsim_config):
     batch = make_train_batch(jax.random.key(1), small_scenes, 16, 4, flowsim_config)
-    tok.assert_batch_shapes(batch)
+    tok.check_train_batch(batch)
     assert batch.target.shape == (16, 4, 4) and batch.tokens.boxes.shape == (16, 20, 4)
     tok.validate_tokens(batch.tokens, flowsim_config.num_descriptors, max_tokens=20)
     tok.validate_queries(batch.queries, batch.tokens.tau, flowsim_config.num_descriptors, 20)
@@ -128,7 +128,7 @@ def test_make_train_batch(small_scenes, flowsim_config):
 def test_make_train_batch_under_jit(small_scenes, flowsim_config):
     fn = jax.jit(lambda key, scenes: make_train_batch(key, scenes, 8, 2, flowsim_config))
     batch = fn(jax.random.key(2), small_scenes)
-    tok.assert_batch_shapes(batch)
+    tok.check_train_batch(batch)
 
 
 def test_splits_are_fixed_and_disjoint(flowsim_config):

@@ -437,11 +437,11 @@ def load_model(spec: str, which: str = "best", devices: int | None = None) -> Pr
 
 def stored_family(spec: str, which: str = "best") -> str:
     """The model family of what a CLI's ``--checkpoint`` names (a run or checkpoint directory,
-    or ``pretrained:NAME``), read from its stored config and verified like a load: the CLIs
-    find the model's world from it (``flowmaps_jax.worlds.world_of_family``) before loading."""
+    or ``pretrained:NAME``), read from its stored config without its weights: the CLIs find the
+    model's world from it (``flowmaps_jax.worlds.world_of_family``) before loading."""
     if spec.startswith(PRETRAINED_PREFIX):
-        return pretrained.read_weights(spec[len(PRETRAINED_PREFIX):]).spec.family_name
-    return checkpoints.load_weights(spec, which).spec.family_name
+        return pretrained.describe(spec[len(PRETRAINED_PREFIX):])["kind"]
+    return checkpoints.stored_family(spec, which)
 
 
 # --------------------------------------------------------------------------- the worlds

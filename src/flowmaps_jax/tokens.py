@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from collections.abc import Collection
 
-import chex
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
@@ -33,6 +32,7 @@ from flowmaps_jax.validation import (
     check_int_array,
     check_mask,
     check_real_array,
+    check_shape,
     is_concrete,
 )
 
@@ -162,15 +162,27 @@ def validate_queries(queries: Queries, tau, num_descriptors: int, tau_max: int,
         raise ValueError("queries.tau_q must be strictly greater than tau")
 
 
-def assert_batch_shapes(batch: TrainBatch) -> None:
-    """chex shape assertions for a TrainBatch (usable inside jit: shapes are static)."""
-    b, s = batch.tokens.mask.shape
-    q = batch.queries.tau_q.shape[1]
-    chex.assert_shape(batch.tokens.boxes, (b, s, 4))
-    chex.assert_shape([batch.tokens.descriptor, batch.tokens.kind], (b, s))
-    chex.assert_shape(batch.tokens.tau, (b,))
-    chex.assert_shape([batch.queries.descriptor, batch.queries.tau_q], (b, q))
-    chex.assert_shape(batch.target, (b, q, 4))
+def check_train_batch(batch: TrainBatch) -> None:
+    """A train step's batch: a :class:`TrainBatch` whose arrays agree on B (scenes), S (tokens)
+    and Q (queries per scene), else a ValueError naming the array (not an XLA error). Shapes
+    only, so it runs on tracers too (inside ``jit``)."""
+    if not isinstance(batch, TrainBatch):
+        raise ValueError(f"batch must be a TrainBatch; got {type(batch).__name__}")
+    tokens, queries = batch.tokens, batch.queries
+    if not isinstance(tokens, SceneTokens) or not isinstance(queries, Queries):
+        raise ValueError("batch must hold SceneTokens and Queries (batch.tokens, "
+                         "batch.queries)")
+    check_shape("batch.tokens.mask", np.shape(tokens.mask), (None, None))
+    b, s = np.shape(tokens.mask)
+    for name, value, shape in (("batch.tokens.boxes", tokens.boxes, (b, s, 4)),
+                               ("batch.tokens.descriptor", tokens.descriptor, (b, s)),
+                               ("batch.tokens.kind", tokens.kind, (b, s)),
+                               ("batch.tokens.tau", tokens.tau, (b,)),
+                               ("batch.queries.descriptor", queries.descriptor, (b, None))):
+        check_shape(name, np.shape(value), shape)
+    q = np.shape(queries.descriptor)[1]
+    check_shape("batch.queries.tau_q", np.shape(queries.tau_q), (b, q))
+    check_shape("batch.target", np.shape(batch.target), (b, q, 4))
 
 
 def trim_padding(tokens: SceneTokens, num_tokens: int) -> SceneTokens:

@@ -40,8 +40,9 @@ from flowmaps_jax.validation import (
     check_instance,
     check_int,
     check_key,
-    check_request_size,
+    check_resources,
     prefix_errors,
+    solver_evaluations,
 )
 
 COMPATIBLE_FIELDS = ("rooms", "receptacles_per_room", "objects_per_home", "max_tokens",
@@ -52,8 +53,6 @@ predictor must agree with the model's on these (the schedules may differ)."""
 ROWS_PER_CALL = 8192
 """Query rows one compiled call takes at most (queries × samples); larger requests run in
 chunks of queries of one padded shape (one compiled program), so memory stays bounded."""
-MAX_NUM_STEPS = 1000
-"""The most ODE grid points a homes sample takes (each is a network call per query row)."""
 
 _query_batch = jax.jit(per_query_batch, static_argnames=("config", "history"))
 
@@ -142,13 +141,14 @@ def sample(predictor, key, homes: Homes, queries: HomesQueries, config: HomesCon
     check_concrete("sample of a homes model", key)
     key = check_key(key)
     num_samples = check_int("num_samples", num_samples)
-    num_steps = check_int("num_steps", num_steps, 2, MAX_NUM_STEPS)
+    num_steps = check_int("num_steps", num_steps, 2)
     return_receptacles = check_flag("return_receptacles", return_receptacles)
     config = predictor.homes if config is None else config
     check(predictor, homes, queries, config, "sample")
     e, q = queries.tau.shape
-    check_request_size(f"sample({e} x {q} queries x {num_samples} samples)",
-                       e * q * num_samples * 6 * 4 * 2)  # the boxes and receptacles
+    check_resources(  # the shared budget: the boxes and receptacles, the solve's evaluations
+        f"sample({e} x {q} queries x {num_samples} samples, num_steps={num_steps})",
+        num_bytes=e * q * num_samples * 6 * 4 * 2, sequential=solver_evaluations(num_steps))
     calls = iter(range(q))  # chunk k draws with fold_in(key, k)
 
     def run(chunk):

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import io
 import logging
 import os
 import pathlib
@@ -33,7 +34,7 @@ import jax
 import orbax.checkpoint as ocp
 
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
-from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
+from flowmaps_jax.store.model_spec import DEFAULT_FAMILY, ModelSpec, check_params, model_spec
 from flowmaps_jax.validation import (
     check_choice,
     check_dir,
@@ -192,20 +193,6 @@ def _missing_state_files(state_dir: pathlib.Path) -> list[str]:
     return missing
 
 
-class _TextSink(list):
-    """A write-only text stream that keeps what it is given."""
-
-    def write(self, text: str) -> int:
-        self.append(text)
-        return len(text)
-
-    def flush(self) -> None:
-        pass
-
-    def getvalue(self) -> str:
-        return "".join(self)
-
-
 @contextlib.contextmanager
 def _silenced():
     """Nothing orbax and tensorstore print reaches the terminal while a step is read: a damaged
@@ -215,7 +202,7 @@ def _silenced():
     unraisable-exception hook is a no-op; what was printed is shown again after a read that
     succeeded, and dropped after one that failed."""
     sys.stderr.flush()
-    saved_fd, saved_hook, text = os.dup(2), sys.unraisablehook, _TextSink()
+    saved_fd, saved_hook, text = os.dup(2), sys.unraisablehook, io.StringIO()
     failed = True
     with tempfile.TemporaryFile() as sink:
         os.dup2(sink.fileno(), 2)
@@ -378,6 +365,21 @@ class Weights(NamedTuple):
     root: pathlib.Path
 
 
+def _loadable(root: pathlib.Path, which: str, step: int | None) -> str:
+    """``which``, or "latest" for "best" when no validation has run yet (nothing in best/)."""
+    return LATEST if step is None and which == BEST and not saved_steps(root, which) else which
+
+
+def stored_family(directory: str | pathlib.Path, which: str = BEST) -> str:
+    """The model family of the checkpoint :func:`load_weights` would load (its stored config's
+    ``"model_kind"``), read without its state: what a command needs to know before loading."""
+    check_choice("which", which, WHICH)
+    root = resolve_checkpoint_dir(directory)
+    restored = _restore_copies(root, _select(root, _loadable(root, which, None), None), None,
+                               with_state=False)
+    return restored.config.get("model_kind", DEFAULT_FAMILY)
+
+
 def load_weights(directory: str | pathlib.Path, which: str = BEST, use_ema: bool = True,
                  step: int | None = None) -> Weights:
     """The weights of the ``which`` checkpoint under ``directory`` (or of the saved ``step``),
@@ -388,9 +390,7 @@ def load_weights(directory: str | pathlib.Path, which: str = BEST, use_ema: bool
     use_ema = check_flag("use_ema", use_ema)
     step = None if step is None else check_int("step", step, 0)
     root = resolve_checkpoint_dir(directory)
-    if step is None and which == BEST and not saved_steps(root, which):
-        which = LATEST
-    restored = _restore_copies(root, _select(root, which, step), None)
+    restored = _restore_copies(root, _select(root, _loadable(root, which, step), step), None)
     with prefix_errors(f"checkpoint {restored.path}: cannot read the config: ",
                        also=(TypeError,)):
         spec = model_spec(restored.config)

@@ -234,20 +234,24 @@ class TrainConfig:
 
 _COUNT = Int(1, INT32_MAX)
 _DECAY = Real(0.0, 1.0, high_open=True)
-_RULES = {
-    "family": Choice(tuple(MODEL_FAMILIES)), "t_sampler": Choice(T_SAMPLERS),
-    "data": Choice(DATA_SOURCES),
-    **{name: _COUNT for name in ("batch_size", "queries_per_scene", "steps", "train_envs",
-                                 "val_envs", "val_batches", "log_every", "val_every",
-                                 "ckpt_every", "keep_last", "routine_samples",
-                                 "short_horizon_max")},
-    "routine_envs": Int(0, INT32_MAX), "seed": check_seed,
-    "preset": check_plain_name,  # it names the default run directory
+_RUN_RULES = {
+    **{name: _COUNT for name in ("batch_size", "queries_per_scene", "steps", "val_batches",
+                                 "log_every", "val_every", "ckpt_every", "keep_last")},
+    "seed": check_seed, "preset": check_plain_name,  # the preset names the default run dir
     "init_from": Optional(Text("a checkpoint directory or pretrained:NAME")),
     "devices": Optional(_COUNT),
     # Every float: a finite real number (not inf, NaN, a bool or a string) within its range.
     "lr": Real(0.0, low_open=True), "b1": _DECAY, "b2": _DECAY, "ema_decay": _DECAY,
     "weight_decay": Real(0.0), "clip_norm": Optional(Real(0.0, low_open=True)),
+}
+"""The fields every run config has (the loop, the optimiser, the intervals), whatever its
+world."""
+_RULES = {
+    "family": Choice(tuple(MODEL_FAMILIES)), "t_sampler": Choice(T_SAMPLERS),
+    "data": Choice(DATA_SOURCES), **_RUN_RULES,
+    **{name: _COUNT for name in ("train_envs", "val_envs", "routine_samples",
+                                 "short_horizon_max")},
+    "routine_envs": Int(0, INT32_MAX),
     "short_horizon_frac": Real(0.0, 1.0), "target_noise": Real(0.0, 10.0, high_open=True),
     "pointer_loss": Real(0.0, 100.0, high_open=True),
 }
@@ -345,15 +349,8 @@ class HomesTrainConfig:
 
 
 _HOMES_RULES = {
-    "family": Choice((HOMES_FAMILY,)),
-    **{name: _COUNT for name in ("batch_size", "queries_per_scene", "steps", "chunk_homes",
-                                 "chunk_steps", "val_batches", "log_every", "val_every",
-                                 "ckpt_every", "keep_last", "max_horizon", "val_homes")},
-    "seed": check_seed, "preset": check_plain_name,
-    "init_from": Optional(Text("a checkpoint directory or pretrained:NAME")),
-    "devices": Optional(_COUNT),
-    "lr": Real(0.0, low_open=True), "b1": _DECAY, "b2": _DECAY, "ema_decay": _DECAY,
-    "weight_decay": Real(0.0), "clip_norm": Optional(Real(0.0, low_open=True)),
+    "family": Choice((HOMES_FAMILY,)), **_RUN_RULES,
+    **{name: _COUNT for name in ("chunk_homes", "chunk_steps", "max_horizon", "val_homes")},
     "cfm_weight": Real(0.0), "default_horizon_frac": Real(0.0, 1.0),
 }
 """What each :class:`HomesTrainConfig` field may hold on its own (``model`` and ``homes`` are

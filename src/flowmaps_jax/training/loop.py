@@ -45,8 +45,8 @@ from tqdm import tqdm
 
 from flowmaps_jax import distributed
 from flowmaps_jax.evaluation import routine
-from flowmaps_jax.predictor import Predictor
-from flowmaps_jax.store import checkpoints, pretrained, rundir
+from flowmaps_jax.predictor import Predictor, load_model
+from flowmaps_jax.store import checkpoints, rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointSaveError
 from flowmaps_jax.store.integrity import NonFiniteStateError
 from flowmaps_jax.training import objectives, runlog
@@ -216,11 +216,8 @@ def _start_params(cfg, log: Callable[[str], None]):
     if cfg.init_from is None:
         return None
     with prefix_errors(f"init_from={cfg.init_from!r}: "):
-        if cfg.init_from.startswith(pretrained.PREFIX):
-            source = pretrained.read_weights(cfg.init_from[len(pretrained.PREFIX):])
-        else:
-            source = checkpoints.load_weights(cfg.init_from)
-    family = source.spec.family_name
+        source = load_model(cfg.init_from, devices=1)
+    family = source.family_name
     if family != cfg.family:
         raise ValueError(f"init_from={cfg.init_from!r} is a {family!r} model; this run trains "
                          f"{cfg.family!r}")

@@ -20,7 +20,6 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from flowmaps_jax.boxes import from_centre, to_centre
 from flowmaps_jax.distributed import host_part
@@ -30,14 +29,13 @@ from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
 from flowmaps_jax.model.family import LossOptions
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.tables import protocol_sigma
-from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch, trim_padding
+from flowmaps_jax.tokens import TrainBatch, check_train_batch, trim_padding
 from flowmaps_jax.validation import (
-    check_shape,
     embedding_bytes,
     network_flops,
     solver_evaluations,
 )
-from flowmaps_jax.worlds.world import World
+from flowmaps_jax.worlds.world import World, chunk_key
 
 # batch_fn(key, scenes) -> TrainBatch, traceable
 BatchFn = Callable[[jax.Array, Any], TrainBatch]
@@ -138,10 +136,7 @@ def endless_scenes(cfg, data_key: jax.Array, step: int, mesh=None):
     splits the work over devices; a multi-host job generates this host's share only.
     """
     chunk = int(step) // endless_chunk_steps(cfg)
-    raw = jax.random.fold_in(jax.random.fold_in(np.asarray(data_key), _CHUNK_SALT), chunk)
-    # An uncommitted typed key, as the fixed splits use, so that generation and the train step
-    # (which specialise on key type and device commitment) reuse their compiled code.
-    key = jax.random.wrap_key_data(jnp.asarray(np.asarray(raw)))
+    key = chunk_key(data_key, _CHUNK_SALT, chunk)
     return generate(key, cfg.train_envs, cfg.flowsim, mesh=mesh, part=host_train_part(cfg))
 
 
@@ -154,29 +149,6 @@ def make_val_batches(cfg, scenes, batch_fn: BatchFn | None = None) -> TrainBatch
     keys = jax.random.split(jax.random.PRNGKey(cfg.seed + EVAL_KEY_SALT), cfg.val_batches)
     batches = [batch_fn(key, scenes) for key in keys]
     return jax.tree.map(lambda *xs: jnp.stack(xs), *batches)
-
-
-def check_batch(batch) -> None:
-    """A train step's batch: a :class:`~flowmaps_jax.tokens.TrainBatch` whose arrays agree on B
-    (scenes), S (tokens) and Q (queries per scene), so that a wrong one is a ValueError naming
-    the array, not an XLA error. Shapes only (they are static under ``jit``)."""
-    if not isinstance(batch, TrainBatch):
-        raise ValueError(f"batch must be a TrainBatch; got {type(batch).__name__}")
-    tokens, queries = batch.tokens, batch.queries
-    if not isinstance(tokens, SceneTokens) or not isinstance(queries, Queries):
-        raise ValueError("batch must hold SceneTokens and Queries (batch.tokens, "
-                         "batch.queries)")
-    check_shape("batch.tokens.mask", np.shape(tokens.mask), (None, None))
-    b, s = np.shape(tokens.mask)
-    for name, value, shape in (("batch.tokens.boxes", tokens.boxes, (b, s, 4)),
-                               ("batch.tokens.descriptor", tokens.descriptor, (b, s)),
-                               ("batch.tokens.kind", tokens.kind, (b, s)),
-                               ("batch.tokens.tau", tokens.tau, (b,)),
-                               ("batch.queries.descriptor", queries.descriptor, (b, None))):
-        check_shape(name, np.shape(value), shape)
-    q = np.shape(queries.descriptor)[1]
-    check_shape("batch.queries.tau_q", np.shape(queries.tau_q), (b, q))
-    check_shape("batch.target", np.shape(batch.target), (b, q, 4))
 
 
 def objective(cfg):
@@ -266,6 +238,6 @@ WORLD = World(
     endless=lambda cfg, data_key, step, mesh=None: endless_scenes(cfg, data_key, step, mesh),
     chunk_steps=endless_chunk_steps, is_endless=lambda cfg: cfg.data == "endless",
     batch_fn=default_batch_fn, val_batches=make_val_batches, objective=objective,
-    check_batch=check_batch, resources=resource_estimate, host_part=host_train_part,
+    check_batch=check_train_batch, resources=resource_estimate, host_part=host_train_part,
     families=tuple(MODEL_FAMILIES))
 """The 2-D FlowSim world."""

@@ -21,13 +21,12 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
 from flowmaps_jax.flowsim.homes.rollout import generate_homes
 from flowmaps_jax.flowsim.homes.tokens import HomesBatch, shared_tau_batch
 from flowmaps_jax.model.homes_family import FAMILY_NAME, homes_loss, init_params
-from flowmaps_jax.worlds.world import World
+from flowmaps_jax.worlds.world import World, chunk_key
 
 VAL_SEED = 0x40E5_0001
 """The fixed seed of the validation homes (distinct from every training key and from the
@@ -73,9 +72,7 @@ def splits(cfg, log: Callable[[str], None] = print, mesh=None):
 def endless_homes(cfg, data_key, step: int, mesh=None):
     """The ``chunk_homes`` fresh homes of the chunk holding ``step``, from (data key, chunk)."""
     chunk = int(step) // cfg.chunk_steps
-    raw = jax.random.fold_in(jax.random.fold_in(np.asarray(data_key), _CHUNK_SALT), chunk)
-    return generate_homes(jax.random.wrap_key_data(jnp.asarray(np.asarray(raw))), cfg.homes,
-                          cfg.chunk_homes)
+    return generate_homes(chunk_key(data_key, _CHUNK_SALT, chunk), cfg.homes, cfg.chunk_homes)
 
 
 def validation_batches(cfg, homes) -> HomesBatch:

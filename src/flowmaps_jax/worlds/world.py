@@ -6,6 +6,10 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+
 
 @dataclasses.dataclass(frozen=True)
 class World:
@@ -38,3 +42,12 @@ class World:
     resources: Callable[[Any, int], list]
     host_part: Callable[[Any], slice | None]
     families: tuple[str, ...]
+
+
+def chunk_key(data_key, salt: int, chunk: int) -> jax.Array:
+    """The typed key of endless chunk ``chunk``: ``fold_in(fold_in(data_key, salt), chunk)``, a
+    function of (data key, chunk) only, so that a resumed run draws the same data. Uncommitted,
+    as the fixed splits' keys are, so that generation and the train step (which specialise on
+    key type and device commitment) reuse their compiled code."""
+    raw = jax.random.fold_in(jax.random.fold_in(np.asarray(data_key), salt), chunk)
+    return jax.random.wrap_key_data(jnp.asarray(np.asarray(raw)))
