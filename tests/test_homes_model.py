@@ -140,6 +140,15 @@ def _hand_features(homes, e, obj, tau, tau_q, history):
                 inverse_allowed=1 / n, move_rate=len(moves) / (len(hours) - 1),
                 step_1_rate=steps.count(1) / (len(hours) - 1),
                 step_2_rate=steps.count(2) / (len(hours) - 1), coverage=len(hours) / history)
+            for name, hour in (("context", tau_q), ("earlier", tau_q - 6), ("next", tau + 1)):
+                ctx = [t for t in hours if context_of(t) == context_of(hour)]
+                f[f"{name}_arrival_count"] = np.log1p(
+                    sum(s == r for t, s in moves if context_of(t) == context_of(hour))
+                ) / homes_tokens.COUNT_SCALE
+                f[f"{name}_hour_count"] = np.log1p(
+                    sum(traj[t] == r for t in ctx)) / homes_tokens.COUNT_SCALE
+            days = [t for t in hours if t % 24 == tau_q % 24]
+            f["same_hour_occupancy"] = sum(traj[t] == r for t in days) / max(len(days), 1)
         out[r] = [float(f[name]) for name in homes_tokens.HISTORY_FEATURES]
     return out
 

@@ -53,6 +53,7 @@ from flax import struct
 from flowmaps_jax import flow
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.homes.tokens import (
+    BASE_HISTORY_FEATURES,
     DEFAULT_HISTORY,
     HISTORY_FEATURES,
     QUERY_FEATURES,
@@ -65,7 +66,7 @@ from flowmaps_jax.model.cdit import CDiTBlock, FinalLayer
 from flowmaps_jax.model.embeddings import FlatDense, SinusoidalMLP
 from flowmaps_jax.model.encoder import EncoderLayer
 from flowmaps_jax.validation import check_keys
-from flowmaps_jax.validation.fields import Int, Real, check_fields
+from flowmaps_jax.validation.fields import Choice, Int, Real, check_fields
 
 FAMILY_NAME = "flowmaps-homes"
 """The family name stored with the model (``"model_kind"`` of its config)."""
@@ -87,7 +88,9 @@ class HomesModelConfig:
     dim: width D; encoder_layers: Map Encoder layers; weight_blocks: (self, cross) block pairs of
     the receptacle-weight rows; cdit_blocks: CDiT blocks of the placement flow; heads: attention
     heads (divide ``dim``); mlp_ratio: MLP hidden width ÷ D; freq_bands, max_frequency: the
-    sinusoidal features of boxes; history: hours of history the features read.
+    sinusoidal features of boxes; history: hours of history the features read;
+    history_counts: the rows also read the per-context counts (all of ``HISTORY_FEATURES``, not
+    the first ``BASE_HISTORY_FEATURES``; False for models stored before them).
     """
 
     dim: int = 64
@@ -99,6 +102,7 @@ class HomesModelConfig:
     freq_bands: int = 8
     max_frequency: float = 100.0
     history: int = DEFAULT_HISTORY
+    history_counts: bool = False
 
     def __post_init__(self):
         check_fields(self, _MODEL_RULES, prefix="model.", store=False)
@@ -123,7 +127,8 @@ unrolled when compiled, so the compile time grows with them."""
 _MODEL_RULES = {**{name: Int(1, 1 << 16) for name in (
     "dim", "heads", "mlp_ratio", "freq_bands", "history")},
     **{name: Int(1, MAX_BLOCKS, "each layer is compiled on its own") for name in (
-        "encoder_layers", "weight_blocks", "cdit_blocks")}, "max_frequency": Real(1.0)}
+        "encoder_layers", "weight_blocks", "cdit_blocks")}, "max_frequency": Real(1.0),
+    "history_counts": Choice((False, True))}
 """The rules of :class:`HomesModelConfig`'s fields (messages name ``model.<field>``)."""
 
 
@@ -234,7 +239,9 @@ class HomesNet(nn.Module):
         geometry = mixture.relative_geometry(_receptacle_boxes_4d(context.boxes,
                                                                   self.homes_config),
                                              batch.current)  # (B, Q, R, 22)
-        features = jnp.concatenate([batch.history, geometry], axis=-1)
+        history = batch.history if self.config.history_counts else batch.history[
+            ..., :BASE_HISTORY_FEATURES]
+        features = jnp.concatenate([history, geometry], axis=-1)
         rows = (context.tokens[:, None, first:first + r] + self.row_mlp(features)
                 + self.weight_pos + c[:, :, None, :])  # (B, Q, R, D)
         allowed = batch.allowed.reshape(b * q, r)

@@ -50,7 +50,10 @@ QUERY_FEATURES = 9 + 2 * len(HORIZON_FREQUENCIES) + 1
 HISTORY_FEATURES = ("occupancy", "context_occupancy", "at_tau", "distance", "near",
                     "allowed", "cycle_0", "cycle_1", "cycle_2", "cycle_back", "cycle_fraction",
                     "arrivals", "context_arrivals", "inverse_allowed", "move_rate",
-                    "step_1_rate", "step_2_rate", "coverage")
+                    "step_1_rate", "step_2_rate", "coverage",
+                    "context_arrival_count", "context_hour_count", "earlier_arrival_count",
+                    "earlier_hour_count", "next_arrival_count", "next_hour_count",
+                    "same_hour_occupancy")
 """Per (query, receptacle r): fraction of the window's hours the object stood on r; the same
 over the window's hours with the preference context of τ_q (``context_of``); whether it stands
 on r at τ; the geodesic distance from its receptacle at τ to r / :data:`DISTANCE_SCALE`, and
@@ -59,7 +62,16 @@ n − 1 places on along the object's cycle from its receptacle at τ, and that o
 fraction of the window's moves that ended on r, and of those in τ_q's context; then, the same
 for every r of a query: 1 / n (n allowed receptacles), the fraction of the window's hour steps
 that moved, that advanced one and two places along the cycle, and the fraction of the window
-inside the rollout. Zero off the allowed receptacles (except ``allowed``)."""
+inside the rollout; then counts, log(1 + count) / :data:`COUNT_SCALE`, of the window's moves
+that ended on r and of its hours on r, within the context of τ_q, of τ_q − 6 h and of τ + 1 h;
+and the fraction of the window's days on which the object stood on r at τ_q's hour of day.
+Zero off the allowed receptacles (except ``allowed``). Counts, unlike fractions, say how much
+evidence there is: a posterior over a context's favourite place sharpens with every arrival.
+Models before these counts read the first :data:`BASE_HISTORY_FEATURES` only."""
+BASE_HISTORY_FEATURES = 18
+"""The history features of models without ``history_counts`` (the first 18)."""
+COUNT_SCALE = 4.0
+"""log(1 + count) is divided by this (about 1 at 50 hours)."""
 
 
 @struct.dataclass
@@ -211,8 +223,19 @@ def _history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
         dist / DISTANCE_SCALE, jnp.exp(-dist / config.frequent_length),
         allowed.astype(jnp.float32), offset == 0, offset == 1, offset == 2, offset == n - 1,
         offset / n, arrivals, context_arrivals], axis=-1).astype(jnp.float32)
+    def counts(hour):  # moves ending on r and hours on r, in the context of ``hour`` (E, Q)
+        ctx = inside & (context_of(jnp.maximum(hours, 0)) == context_of(hour)[..., None])
+        return [jnp.log1p((arrive & ctx[..., :-1, None]).sum(2)) / COUNT_SCALE,
+                jnp.log1p((on & ctx[..., None]).sum(2)) / COUNT_SCALE]
+
+    same_hour = inside & (jnp.mod(hours, 24) == jnp.mod(queries.tau_q, 24)[..., None])
+    extra = jnp.stack([*counts(queries.tau_q), *counts(queries.tau_q - 6),
+                       *counts(queries.tau + 1),
+                       fraction((on & same_hour[..., None]).sum(2), same_hour.sum(-1))],
+                      axis=-1).astype(jnp.float32)
     out = jnp.concatenate([per_slot, jnp.broadcast_to(per_query[..., None, :],
-                                                      (*per_slot.shape[:-1], 5))], axis=-1)
+                                                      (*per_slot.shape[:-1], 5)), extra],
+                          axis=-1)
     keep = allowed[..., None] | (jnp.arange(out.shape[-1]) == HISTORY_FEATURES.index("allowed"))
     return jnp.where(keep, out, 0.0)
 
