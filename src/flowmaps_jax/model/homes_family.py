@@ -54,6 +54,7 @@ from flowmaps_jax import flow
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.homes.tokens import (
     BASE_HISTORY_FEATURES,
+    COUNT_HISTORY_FEATURES,
     DEFAULT_HISTORY,
     HISTORY_FEATURES,
     QUERY_FEATURES,
@@ -90,7 +91,10 @@ class HomesModelConfig:
     heads (divide ``dim``); mlp_ratio: MLP hidden width ÷ D; freq_bands, max_frequency: the
     sinusoidal features of boxes; history: hours of history the features read;
     history_counts: the rows also read the per-context counts (all of ``HISTORY_FEATURES``, not
-    the first ``BASE_HISTORY_FEATURES``; False for models stored before them).
+    the first ``BASE_HISTORY_FEATURES``; False for models stored before them);
+    history_observed: the rows also read the partial-observation features (unseen at τ, hours
+    since last seen, never seen; all of ``HISTORY_FEATURES``; needs ``history_counts``; False
+    for models stored before them, which read the first ``COUNT_HISTORY_FEATURES``).
     """
 
     dim: int = 64
@@ -103,9 +107,12 @@ class HomesModelConfig:
     max_frequency: float = 100.0
     history: int = DEFAULT_HISTORY
     history_counts: bool = False
+    history_observed: bool = False
 
     def __post_init__(self):
         check_fields(self, _MODEL_RULES, prefix="model.", store=False)
+        if self.history_observed and not self.history_counts:
+            raise ValueError("model.history_observed needs model.history_counts=True")
         if self.dim % self.heads:
             raise ValueError(f"model.dim={self.dim} must be divisible by model.heads="
                              f"{self.heads}")
@@ -128,7 +135,7 @@ _MODEL_RULES = {**{name: Int(1, 1 << 16) for name in (
     "dim", "heads", "mlp_ratio", "freq_bands", "history")},
     **{name: Int(1, MAX_BLOCKS, "each layer is compiled on its own") for name in (
         "encoder_layers", "weight_blocks", "cdit_blocks")}, "max_frequency": Real(1.0),
-    "history_counts": Choice((False, True))}
+    "history_counts": Choice((False, True)), "history_observed": Choice((False, True))}
 """The rules of :class:`HomesModelConfig`'s fields (messages name ``model.<field>``)."""
 
 
@@ -239,8 +246,9 @@ class HomesNet(nn.Module):
         geometry = mixture.relative_geometry(_receptacle_boxes_4d(context.boxes,
                                                                   self.homes_config),
                                              batch.current)  # (B, Q, R, 22)
-        history = batch.history if self.config.history_counts else batch.history[
-            ..., :BASE_HISTORY_FEATURES]
+        read = (len(HISTORY_FEATURES) if self.config.history_observed else
+                COUNT_HISTORY_FEATURES if self.config.history_counts else BASE_HISTORY_FEATURES)
+        history = batch.history[..., :read]
         features = jnp.concatenate([history, geometry], axis=-1)
         rows = (context.tokens[:, None, first:first + r] + self.row_mlp(features)
                 + self.weight_pos + c[:, :, None, :])  # (B, Q, R, D)

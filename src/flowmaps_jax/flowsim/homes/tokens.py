@@ -32,7 +32,13 @@ from flax import struct
 from flowmaps_jax.flowsim.homes.config import HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.queries import HomesQueries, check_queries
 from flowmaps_jax.flowsim.homes.world import Homes, object_boxes, validate_homes
-from flowmaps_jax.validation import check_instance, check_int, check_int_array, prefix_errors
+from flowmaps_jax.validation import (
+    check_instance,
+    check_int,
+    check_int_array,
+    check_mask,
+    prefix_errors,
+)
 
 HEIGHT_SCALE = 2.5
 """Metres: token z and h are divided by this (the footprint scales x, y, w, d)."""
@@ -53,7 +59,7 @@ HISTORY_FEATURES = ("occupancy", "context_occupancy", "at_tau", "distance", "nea
                     "step_1_rate", "step_2_rate", "coverage",
                     "context_arrival_count", "context_hour_count", "earlier_arrival_count",
                     "earlier_hour_count", "next_arrival_count", "next_hour_count",
-                    "same_hour_occupancy")
+                    "same_hour_occupancy", "unseen_at_tau", "hours_since_seen", "never_seen")
 """Per (query, receptacle r): fraction of the window's hours the object stood on r; the same
 over the window's hours with the preference context of τ_q (``context_of``); whether it stands
 on r at τ; the geodesic distance from its receptacle at τ to r / :data:`DISTANCE_SCALE`, and
@@ -67,9 +73,19 @@ that ended on r and of its hours on r, within the context of τ_q, of τ_q − 6
 and the fraction of the window's days on which the object stood on r at τ_q's hour of day.
 Zero off the allowed receptacles (except ``allowed``). Counts, unlike fractions, say how much
 evidence there is: a posterior over a context's favourite place sharpens with every arrival.
-Models before these counts read the first :data:`BASE_HISTORY_FEATURES` only."""
+Models before these counts read the first :data:`BASE_HISTORY_FEATURES` only.
+
+Partial observation (recorded worlds: ``observed`` (E, T, M), False where the object was not
+seen): the window's features count only the hours the object was seen, ``Homes.receptacle``
+holds where it was last seen (its receptacle at τ too), and the last three say whether it was
+unseen at τ, the hours since it was last seen, log(1 + hours) / log(1 + ``num_hours``) (the
+hours since −1 when never), and whether it was never seen up to τ. All three are 0 when every
+hour is observed (FlowSim homes). Models before them read the first
+:data:`COUNT_HISTORY_FEATURES` (``HomesModelConfig.history_observed``)."""
 BASE_HISTORY_FEATURES = 18
 """The history features of models without ``history_counts`` (the first 18)."""
+COUNT_HISTORY_FEATURES = 25
+"""The history features of models with ``history_counts`` but without ``history_observed``."""
 COUNT_SCALE = 4.0
 """log(1 + count) is divided by this (about 1 at 50 hours)."""
 
@@ -183,11 +199,26 @@ def _per_query(homes: Homes, queries: HomesQueries, history: int):
     return window, hours, inside, current
 
 
+def _last_seen(observed, queries: HomesQueries):
+    """(E, Q) int32: the last hour <= τ at which each queried object was seen (−1: never)."""
+    def one(obs, obj, tau):  # obs (T, M); obj, tau (Q,)
+        t = jnp.arange(obs.shape[0])
+        seen = obs[:, obj].T & (t <= tau[:, None])  # (Q, T)
+        return jnp.max(jnp.where(seen, t, -1), axis=-1)
+
+    return jax.vmap(one)(observed, queries.object_index, queries.tau).astype(jnp.int32)
+
+
 def _history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
-                      history: int):
-    """(E, Q, R, len(HISTORY_FEATURES)) float32; see :data:`HISTORY_FEATURES`. Unchecked."""
+                      history: int, observed=None):
+    """(E, Q, R, len(HISTORY_FEATURES)) float32; see :data:`HISTORY_FEATURES`. ``observed``
+    (E, T, M) bool, None: every hour. Unchecked."""
     r = config.max_receptacles
     window, hours, inside, current = _per_query(homes, queries, history)
+    if observed is not None:  # only the hours the object was seen count
+        seen = jax.vmap(lambda obs, hh, obj: obs[jnp.maximum(hh, 0), obj[:, None]])(
+            observed, hours, queries.object_index)  # (E, Q, H)
+        inside = inside & seen
     slots = jnp.arange(r)
     on = (window[..., None] == slots) & inside[..., None]  # (E, Q, H, R)
     fraction = lambda num, den: num / jnp.maximum(den, 1.0)[..., None]  # noqa: E731
@@ -233,6 +264,15 @@ def _history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
                        *counts(queries.tau + 1),
                        fraction((on & same_hour[..., None]).sum(2), same_hour.sum(-1))],
                       axis=-1).astype(jnp.float32)
+    if observed is None:
+        unseen = jnp.zeros((*per_slot.shape[:-1], 3), jnp.float32)
+    else:
+        last = _last_seen(observed, queries)  # (E, Q)
+        ago = jnp.log1p((queries.tau - last).astype(jnp.float32)) / jnp.log1p(
+            float(config.num_hours))
+        unseen = jnp.stack([last != queries.tau, ago, last < 0], axis=-1).astype(jnp.float32)
+        unseen = jnp.broadcast_to(unseen[..., None, :], (*per_slot.shape[:-1], 3))
+    extra = jnp.concatenate([extra, unseen], axis=-1)
     out = jnp.concatenate([per_slot, jnp.broadcast_to(per_query[..., None, :],
                                                       (*per_slot.shape[:-1], 5)), extra],
                           axis=-1)
@@ -241,16 +281,19 @@ def _history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
 
 
 def history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
-                     history: int = DEFAULT_HISTORY) -> jax.Array:
+                     history: int = DEFAULT_HISTORY, observed=None) -> jax.Array:
     """(E, Q, R, len(HISTORY_FEATURES)) float32 history features of every query (see
-    :data:`HISTORY_FEATURES`), over the ``history`` hours up to each query's τ."""
+    :data:`HISTORY_FEATURES`), over the ``history`` hours up to each query's τ; ``observed``
+    (E, T, M) bool: the hours each object was seen (None: every hour)."""
     check_instance("config", config, HomesConfig)
     history = check_int("history", history, 1, config.num_hours)
     with prefix_errors("config."):
         config.validate()  # its token budget too, should it have skipped its own checks
     validate_homes(homes, config, values=False)
     check_queries(queries, homes, config)
-    return _history_features(homes, queries, config, history)
+    if observed is not None:
+        observed = check_mask("observed", observed, tuple(homes.receptacle.shape))
+    return _history_features(homes, queries, config, history, observed)
 
 
 @struct.dataclass
@@ -286,7 +329,8 @@ def _targets(homes: Homes, queries: HomesQueries, config: HomesConfig):
     return target, normalise_boxes(box, homes.home_size)
 
 
-def _parts(homes: Homes, queries: HomesQueries, config: HomesConfig, history: int) -> dict:
+def _parts(homes: Homes, queries: HomesQueries, config: HomesConfig, history: int,
+           observed=None) -> dict:
     _, first_object, _ = token_layout(config)
     allowed = jax.vmap(lambda a, o: a[o])(homes.object_allowed, queries.object_index)
     target, box = _targets(homes, queries, config)
@@ -294,26 +338,27 @@ def _parts(homes: Homes, queries: HomesQueries, config: HomesConfig, history: in
                                                       queries.object_index)
     return {"object_token": (first_object + queries.object_index).astype(jnp.int32),
             "query": _query_features(queries.tau, queries.tau_q, config),
-            "history": _history_features(homes, queries, config, history),
+            "history": _history_features(homes, queries, config, history, observed),
             "allowed": allowed, "current": current.astype(jnp.int32),
             "target": target.astype(jnp.int32), "target_box": box}
 
 
 def shared_tau_batch(homes: Homes, queries: HomesQueries, config: HomesConfig,
-                     history: int) -> HomesBatch:
+                     history: int, observed=None) -> HomesBatch:
     """One scene per home (B = E) at the map hour ``queries.tau[:, 0]``, which all the home's
-    queries must share (training). Unchecked; jittable."""
+    queries must share (training); ``observed`` (E, T, M): the hours each object was seen
+    (None: every hour). Unchecked; jittable."""
     tokens = jax.tree.map(lambda a: a[:, 0], _tokens(homes, queries.tau[:, :1], config))
-    return HomesBatch(tokens=tokens, **_parts(homes, queries, config, history))
+    return HomesBatch(tokens=tokens, **_parts(homes, queries, config, history, observed))
 
 
 def per_query_batch(homes: Homes, queries: HomesQueries, config: HomesConfig,
-                    history: int) -> HomesBatch:
+                    history: int, observed=None) -> HomesBatch:
     """One scene per query (B = E·Q, one query each), each home at its own query's τ
     (inference: any queries). Unchecked; jittable."""
     e, q = queries.tau.shape
     tokens = jax.tree.map(lambda a: a.reshape(e * q, *a.shape[2:]),
                           _tokens(homes, queries.tau, config))
     parts = {k: v.reshape(e * q, 1, *v.shape[2:])
-             for k, v in _parts(homes, queries, config, history).items()}
+             for k, v in _parts(homes, queries, config, history, observed).items()}
     return HomesBatch(tokens=tokens, **parts)
