@@ -444,6 +444,15 @@ def stored_family(spec: str, which: str = "best") -> str:
     return checkpoints.stored_family(spec, which)
 
 
+def stored_config(spec: str, which: str = "best") -> dict:
+    """The run config stored with what a CLI's ``--checkpoint`` names (a dict, read without
+    the weights; {} for ``pretrained:NAME``): e.g. its ``"world"`` and ``"data"``, where a
+    recorded run stores them."""
+    if spec.startswith(PRETRAINED_PREFIX):
+        return {}
+    return checkpoints.stored_config(spec, which)
+
+
 # --------------------------------------------------------------------------- the worlds
 
 

@@ -17,6 +17,11 @@ top-1, rank cost, overall, by regime and by horizon; ``results.md``, ``results.j
 model's world from its stored family (:data:`flowmaps_jax.worlds.WORLDS`), and refuses the
 options that do not apply to it.
 
+A homes-network model with ``--data PATH`` (a recorded dataset; a run trained with ``--data``
+reads its own by default) is scored against the realised receptacles of the data's held-out
+part (:mod:`flowmaps_jax.evaluation.realised`: log score, top-1, top-5, rank, the reliability
+table and ``reliability.png``; ``--queries`` per environment).
+
 ``--world`` (a ``flowsim.WORLDS`` name; default the world of ``--checkpoint``'s config) picks the
 habits the validation scenes are generated with (``flowsim.world_config``), so a model can be
 scored on another world than its own. ``--history`` H: the observations the exact posterior is
@@ -54,6 +59,7 @@ from flowmaps_jax.predictor import (
     PRETRAINED_PREFIX,
     SOLVERS,
     load_model,
+    stored_config,
     stored_family,
 )
 from flowmaps_jax.validation import (
@@ -66,7 +72,7 @@ from flowmaps_jax.validation import (
     solver_evaluations,
 )
 from flowmaps_jax.validation.scalars import int_list
-from flowmaps_jax.worlds import world_of_family
+from flowmaps_jax.worlds import world_of_family, world_of_files
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -172,6 +178,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--horizons", type=int_list, default=None,
                         help="FlowSim homes: query horizons in hours, comma-separated (default "
                              "1,3,6,12,24,72,168)")
+    parser.add_argument("--data", default=None, metavar="PATH",
+                        help="a recorded dataset (python -m flowmaps_jax.data): score a homes "
+                             "model against the realised receptacles of its held-out part "
+                             "(default for a run trained with --data: its own data)")
     parser.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
@@ -203,11 +213,24 @@ def run_for_world(parser: argparse.ArgumentParser, args: argparse.Namespace,
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
     try:
-        family = stored_family(args.checkpoint, args.which)
+        stored = stored_config(args.checkpoint, args.which)
+        family = stored.get("model_kind") or stored_family(args.checkpoint, args.which)
     except ValueError as err:
         print(f"error: --checkpoint {args.checkpoint!r}: {err}", file=sys.stderr)
         return EXIT_USAGE
-    return by_world[world_of_family(family).name](parser, args, argv)
+    name = stored.get("world") or world_of_family(family).name  # a world stored with the run
+    if getattr(args, "data", None) is not None:  # a dataset on disk: the world that reads it
+        files = world_of_files()
+        if family not in files.families:
+            print(f"error: --data needs a model of the {list(files.families)} families; "
+                  f"{args.checkpoint} is a {family!r} model", file=sys.stderr)
+            return EXIT_USAGE
+        name = files.name
+    if name not in by_world:
+        print(f"error: --checkpoint {args.checkpoint!r}: no protocol for its world {name!r}",
+              file=sys.stderr)
+        return EXIT_USAGE
+    return by_world[name](parser, args, argv)
 
 
 def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,
@@ -301,6 +324,16 @@ def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
     return 0
 
 
-_BY_WORLD = {"flowsim": _main_flowsim, "homes": _main_homes}
+def _main_recorded(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                   argv: Sequence[str] | None) -> int:
+    """The realised-outcome scores on a recorded dataset
+    (:func:`flowmaps_jax.evaluation.realised.run_command`)."""
+    from flowmaps_jax.evaluation import realised
+
+    return realised.run_command(parser, args, "posterior", "python -m flowmaps_jax.evaluate",
+                                argv)
+
+
+_BY_WORLD = {"flowsim": _main_flowsim, "homes": _main_homes, "recorded": _main_recorded}
 """The evaluation protocol of each world, by :data:`flowmaps_jax.worlds.WORLDS` name."""
 

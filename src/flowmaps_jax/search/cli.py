@@ -119,6 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
     add("--regime", default=None,
         help="FlowSim homes: the schedule regime of the homes (preferences, balanced, frequent, "
              "routine or mixed; default mixed)")
+    add("--data", default=None, metavar="PATH",
+        help="a recorded dataset: navigation of a homes model with the realised receptacle "
+             "as the target (default for a run trained with --data: its own data)")
     add("--no-figures", action="store_true", help="skip the PNG figures")
     add("--no-progress", action="store_true", help="no progress bars")
     return cli
@@ -260,5 +263,15 @@ def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
     return 0
 
 
-_BY_WORLD = {"flowsim": _main_flowsim, "homes": _main_homes}
+def _main_recorded(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                   argv: Sequence[str] | None) -> int:
+    """Navigation on a recorded dataset, the realised receptacle as the target
+    (:func:`flowmaps_jax.evaluation.realised.run_command`)."""
+    from flowmaps_jax.evaluation import realised
+
+    return realised.run_command(parser, args, "navigation", "python -m flowmaps_jax.search",
+                                argv)
+
+
+_BY_WORLD = {"flowsim": _main_flowsim, "homes": _main_homes, "recorded": _main_recorded}
 """The search protocol of each world, by :data:`flowmaps_jax.worlds.WORLDS` name."""

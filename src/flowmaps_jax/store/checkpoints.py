@@ -370,14 +370,20 @@ def _loadable(root: pathlib.Path, which: str, step: int | None) -> str:
     return LATEST if step is None and which == BEST and not saved_steps(root, which) else which
 
 
-def stored_family(directory: str | pathlib.Path, which: str = BEST) -> str:
-    """The model family of the checkpoint :func:`load_weights` would load (its stored config's
-    ``"model_kind"``), read without its state: what a command needs to know before loading."""
+def stored_config(directory: str | pathlib.Path, which: str = BEST) -> dict:
+    """The run config stored with the checkpoint :func:`load_weights` would load (a dict),
+    read without its state: what a command needs to know before loading."""
     check_choice("which", which, WHICH)
     root = resolve_checkpoint_dir(directory)
     restored = _restore_copies(root, _select(root, _loadable(root, which, None), None), None,
                                with_state=False)
-    return restored.config.get("model_kind", DEFAULT_FAMILY)
+    return dict(restored.config)
+
+
+def stored_family(directory: str | pathlib.Path, which: str = BEST) -> str:
+    """The model family of the checkpoint :func:`load_weights` would load (its stored config's
+    ``"model_kind"``), read without its state: what a command needs to know before loading."""
+    return stored_config(directory, which).get("model_kind", DEFAULT_FAMILY)
 
 
 def load_weights(directory: str | pathlib.Path, which: str = BEST, use_ema: bool = True,

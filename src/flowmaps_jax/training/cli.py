@@ -12,6 +12,8 @@ Examples::
     python -m flowmaps_jax.train --resume --run-dir runs/X --from-step 500   # an older save
     python -m flowmaps_jax.train --overwrite --run-dir runs/X   # old run moved to X.old-<time>
     python -m flowmaps_jax.train --preset homes --run-dir runs/homes   # FlowSim homes
+    python -m flowmaps_jax.train --data PATH --run-dir runs/mine   # a recorded dataset
+    python -m flowmaps_jax.train --preset smoke --data PATH        # ... a tiny model on it
 
 A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` (one JSON record
 per log interval: ``"kind": "train"`` with mean loss/grad_norm/lr and steps/s and samples/s over
@@ -52,6 +54,7 @@ from flowmaps_jax.training.config import (
     RUN_CONFIGS,
     TrainConfig,
     get_preset,
+    recorded_config,
     with_world,
 )
 from flowmaps_jax.training.loop import run
@@ -98,6 +101,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="start from these weights (a run or checkpoint directory, or "
                              "pretrained:NAME) instead of a random init: e.g. a history model "
                              "from the one-map pretrained:flowmaps (same as --set init_from=...)")
+    parser.add_argument("--data", default=None, metavar="PATH",
+                        help="train the homes network on a recorded dataset (a folder of "
+                             "recorded.json, python -m flowmaps_jax.data); --preset smoke or "
+                             "homes (default) picks the recipe")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -136,12 +143,14 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
         if run_dir is None:
             raise ValueError("--resume needs --run-dir (the run to continue)")
         for flag, value in (("--preset", args.preset), ("--family", args.family),
-                            ("--set world=...", world)):
+                            ("--set world=...", world), ("--data", args.data)):
             if value is not None:
                 raise ValueError(f"{flag} {_KEPT}")
         if args.overwrite:
             raise ValueError("--overwrite and --resume exclude each other")
         cfg = resume.resume_config(run_dir, args.from_step)
+    elif args.data is not None:
+        cfg = recorded_config(args.preset, args.data)
     else:
         cfg = get_preset(args.preset or DEFAULT_PRESET)
     if world is not None:

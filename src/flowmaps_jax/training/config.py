@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import os
 import typing
 from typing import Any
 
@@ -61,9 +62,11 @@ from flowmaps_jax.worlds import world, world_of_family
 DATA_SOURCES = ("train", "endless")
 
 __all__ = ["DATA_SOURCES", "DEFAULT_PRESET", "PRESETS", "RESUMABLE_FIELDS", "ROLES", "RUN_CONFIGS",
-           "SHORTHANDS", "HomesTrainConfig", "Role", "TrainConfig", "apply_overrides",
+           "SHORTHANDS", "HomesTrainConfig", "RecordedTrainConfig", "Role", "TrainConfig",
+           "apply_overrides",
            "check_run_resources", "compile_key", "config_from_stored", "cpu_preset",
-           "format_config", "get_preset", "paper_preset", "resumable_fields", "smoke_preset"]
+           "format_config", "get_preset", "paper_preset", "recorded_config", "resumable_fields",
+           "smoke_preset"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -356,7 +359,50 @@ _HOMES_RULES = {
 """What each :class:`HomesTrainConfig` field may hold on its own (``model`` and ``homes`` are
 checked first, in ``__post_init__``); the checks that couple two fields follow there."""
 
-RUN_CONFIGS = (TrainConfig, HomesTrainConfig)
+@dataclasses.dataclass(frozen=True)
+class RecordedTrainConfig(HomesTrainConfig):
+    """A training run of the homes network on a recorded dataset (the world ``"recorded"``,
+    :mod:`flowmaps_jax.worlds.recorded`): :class:`HomesTrainConfig`'s fields (``homes`` is
+    derived from the data, :func:`recorded_config`; ``chunk_homes``, ``chunk_steps`` and
+    ``val_homes`` are not read) and ``data`` (the dataset's folder), the split by environment
+    (``val_fraction``, ``test_fraction`` of them held out, seeded by ``split_seed``) and by time
+    (``time_fraction``: the last hours of every training environment held out for test).
+    ``config.json`` stores ``"world": "recorded"`` beside the fields."""
+
+    world: typing.ClassVar[str] = "recorded"
+    """The world this config trains on (:func:`flowmaps_jax.worlds.world`)."""
+
+    data: str | None = _source(None)
+    val_fraction: float = _recipe(0.1)
+    test_fraction: float = _recipe(0.1)
+    time_fraction: float = _recipe(0.0)
+    split_seed: int = _recipe(0)
+    preset: str = _bookkeeping("recorded")
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_fields(self, _RECORDED_RULES, store=False)
+        if self.val_fraction + self.test_fraction >= 1.0:
+            raise ValueError(f"val_fraction + test_fraction must be < 1 (some environments "
+                             f"train); got {self.val_fraction} + {self.test_fraction}")
+
+    def to_dict(self) -> dict:
+        """A JSON-able dict, with ``"world"`` (what :func:`config_from_stored` reads)."""
+        return {**config_to_dict(self), "world": self.world}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> RecordedTrainConfig:
+        """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
+        return config_from_dict(cls, {k: v for k, v in data.items() if k != "world"}, "config")
+
+
+_RECORDED_RULES = {
+    "data": Optional(Text("a recorded dataset's folder")),
+    "val_fraction": Real(0.0, 1.0, high_open=True), "test_fraction": Real(0.0, 1.0, high_open=True),
+    "time_fraction": Real(0.0, 1.0, high_open=True), "split_seed": check_seed,
+}
+
+RUN_CONFIGS = (TrainConfig, HomesTrainConfig, RecordedTrainConfig)
 """The run config classes, one per world (each names its world: ``cls.world``)."""
 
 
@@ -368,9 +414,11 @@ def config_from_stored(data: dict, where: str = "config") -> TrainConfig | Homes
     family = data.get("model_kind", data.get("family", TrainConfig().family))
     if not isinstance(family, str):
         raise ValueError(f"{where}: model_kind must be a string; got {family!r}")
-    family_world = world_of_family(family).name
-    cls = next(c for c in RUN_CONFIGS if c.world == family_world)
-    return config_from_dict(cls, data, where)
+    stored_world = data.get("world", world_of_family(family).name)  # a world stored beside
+    cls = next((c for c in RUN_CONFIGS if c.world == stored_world), None)  # the family's own
+    if cls is None or family not in world(cls.world).families:
+        raise ValueError(f"{where}: world {stored_world!r} does not train {family!r} models")
+    return config_from_dict(cls, {k: v for k, v in data.items() if k != "world"}, where)
 
 
 def _fields_whose_role(cls: type, prop: str, value: bool) -> tuple[str, ...]:
@@ -521,6 +569,48 @@ def with_world(cfg: TrainConfig, habits: str) -> TrainConfig:
         raise ValueError(f"world={habits!r}: --set world=... chooses a habit world of the 2-D "
                          f"FlowSim presets; preset {cfg.preset!r} trains on another world")
     return dataclasses.replace(cfg, flowsim=world_config(habits, cfg.flowsim))
+
+
+def recorded_smoke_preset() -> RecordedTrainConfig:
+    """A tiny homes model on a recorded dataset (``--preset smoke --data PATH``): trains in
+    seconds on 3 environments x 72 hours."""
+    smoke = homes_smoke_preset()
+    return RecordedTrainConfig(
+        model=dataclasses.replace(smoke.model, history_observed=True), batch_size=4,
+        queries_per_scene=2, steps=6, warmup_steps=1, max_horizon=24, val_homes=8,
+        val_batches=2, log_every=2, val_every=3, ckpt_every=3, val_fraction=0.2,
+        test_fraction=0.2, preset="recorded-smoke")
+
+
+def recorded_homes_preset() -> RecordedTrainConfig:
+    """The homes recipe on a recorded dataset (``--data PATH``, or ``--preset homes --data``):
+    the model also reads the partial-observation features (``history_observed``)."""
+    return RecordedTrainConfig(model=HomesModelConfig(history_counts=True,
+                                                      history_observed=True), steps=10000)
+
+
+RECORDED_PRESETS = {"smoke": recorded_smoke_preset, "homes": recorded_homes_preset}
+"""The recipes ``--preset NAME --data PATH`` trains (default ``homes``)."""
+
+
+def recorded_config(preset: str | None, data: str) -> RecordedTrainConfig:
+    """The run config of ``--preset PRESET --data DATA``: the recipe ``RECORDED_PRESETS[preset]``
+    with ``homes`` derived from the dataset (its vocabulary, sizes and hours,
+    :func:`flowmaps_jax.worlds.recorded.homes_config_of`), ``model.history`` at most half its
+    hours and ``max_horizon`` what fits after it. ValueError naming ``--preset`` or ``data``."""
+    from flowmaps_jax.worlds.recorded import homes_config_of, load_data
+
+    preset = preset or "homes"
+    if preset not in RECORDED_PRESETS:
+        raise ValueError(f"--preset {preset}: with --data the preset must be one of "
+                         f"{sorted(RECORDED_PRESETS)}")
+    base = RECORDED_PRESETS[preset]()
+    base = dataclasses.replace(base, data=os.path.abspath(data))
+    homes = homes_config_of(load_data(base))
+    history = min(base.model.history, max(1, homes.num_hours // 2))
+    return dataclasses.replace(
+        base, homes=homes, model=dataclasses.replace(base.model, history=history),
+        max_horizon=min(base.max_horizon, homes.num_hours - history))
 
 
 PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "smoke": smoke_preset,

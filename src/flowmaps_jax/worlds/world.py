@@ -28,6 +28,8 @@ class World:
     resources(cfg, devices) -> ``[(what, bytes, FLOPs), ...]``: what a run needs, part by part.
     host_part(cfg) -> this host's share of the training data on a multi-host job (None on one).
     families: the model families that train on this world.
+    reads_files: whether the world's data is a dataset on disk (``--data PATH``) rather than
+        generated.
     """
 
     name: str
@@ -42,6 +44,7 @@ class World:
     resources: Callable[[Any, int], list]
     host_part: Callable[[Any], slice | None]
     families: tuple[str, ...]
+    reads_files: bool = False
 
 
 def chunk_key(data_key, salt: int, chunk: int) -> jax.Array:

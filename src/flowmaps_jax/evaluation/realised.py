@@ -1,0 +1,411 @@
+"""Scores without an exact posterior: a homes-network model on a recorded dataset, against the
+realised (observed) receptacle of every query.
+
+Queries (:func:`realised_queries`): on the held-out part of the data (the environments the run's
+split held out for test, and its held-out hours; every environment of a dataset the run was not
+trained on), ``num_queries`` per environment, each at its own map hour τ, the object and
+τ_q = τ + Δ (Δ from the default horizons that fit) drawn among the observed (object, hour)
+pairs: the target is where the object was seen at τ_q. The object may be unseen at τ.
+
+Per row (the model, and the reference rows: uniform over the allowed receptacles, last seen,
+the frequency prior of :mod:`flowmaps_jax.evaluation.priors`, both read over the recorded
+history where every unseen hour holds where the object was last seen):
+
+* log score: log p(realised receptacle), nats (higher is better; p floored at ``P_FLOOR``);
+* top-1 and top-5: whether the realised receptacle is the most probable / among the 5 most
+  probable; rank: its place when the allowed receptacles are sorted by probability (1 = the
+  most probable); ties are broken uniformly at random, in expectation (uniform's top-1 is 1/n);
+* reliability: every (query, allowed receptacle) pair's probability, binned in ``BINS`` equal
+  bins, against how often the realised receptacle was that one (a table and
+  ``reliability.png``), and the expected calibration error (ECE, the count-weighted mean gap).
+
+Navigation (``search``): the policies of :mod:`flowmaps_jax.search.navigation` with each row as
+the belief and the realised receptacle as the target; the searcher starts at receptacle slot 0
+(a recorded home has no start point of its own) and walks the recorded walking distances.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import pathlib
+import shlex
+import sys
+import time
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flowmaps_jax.evaluation import priors as pr
+from flowmaps_jax.evaluation.receptacle_scores import stats, summarise
+from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
+from flowmaps_jax.flowsim.homes.tokens import per_query_batch
+from flowmaps_jax.model.homes_family import receptacle_probabilities
+from flowmaps_jax.search import navigation as nav
+from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
+from flowmaps_jax.validation import (
+    check_int,
+    check_output_dir,
+    check_seed,
+    make_output_dir,
+    prefix_errors,
+    write_file,
+)
+from flowmaps_jax.worlds import recorded as rw
+
+EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
+EVAL_SEED = 35_000_047
+"""Seed of the evaluation queries (with ``--seed`` folded in)."""
+DEFAULT_QUERIES = 32
+"""Queries per environment."""
+P_FLOOR = 1e-9
+BINS = 10
+TOP_K = 5
+METRICS = ("log_score", "top1", "top5", "rank")
+METRIC_NAMES = {"log_score": "log score (nats)", "top1": "top-1", "top5": "top-5",
+                "rank": "rank"}
+MODEL_ROW, UNIFORM, LAST_SEEN, FREQUENCY = ("FlowMaps", "uniform over allowed", "last seen",
+                                            "frequency prior")
+REPORT = {"posterior": ("results", "reliability.png"),
+          "navigation": ("search", "success_vs_looks.png")}
+ROWS_PER_CALL = 4096
+
+
+# --------------------------------------------------------------------------- queries
+
+
+def realised_queries(key, data: rw.RecordedHomes, num_queries: int, max_horizon: int
+                     ) -> tuple[HomesQueries, np.ndarray]:
+    """(queries (E, Q), valid (E, Q) bool): Q queries per environment, each its own τ (see the
+    module docstring); ``valid`` False where an environment had no observed target to draw."""
+    keys = jax.random.split(key, num_queries)
+    draw = jax.jit(jax.vmap(lambda k: rw.draw_queries(k, data, 1, max_horizon, 1.0)))
+    q = draw(keys)  # fields (Q, E, 1)
+    queries = jax.tree.map(lambda a: jnp.transpose(a[..., 0]), q)
+    ok = np.asarray(rw.target_hours(data))
+    e = np.arange(ok.shape[0])[:, None]
+    valid = ok[e, np.asarray(queries.tau_q), np.asarray(queries.object_index)]
+    return queries, valid
+
+
+# --------------------------------------------------------------------------- the rows
+
+
+@functools.partial(jax.jit, static_argnames=("model", "config", "history"))
+def _model_probabilities(params, model, config, homes, observed, queries, history):
+    batch = per_query_batch(homes, queries, config, history, observed)
+    e, q = queries.tau.shape
+    return receptacle_probabilities(params, model, config, batch).reshape(e, q, -1)
+
+
+def model_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries) -> np.ndarray:
+    """(E, Q, R) the model's receptacle weights, in chunks of queries (the last padded with
+    copies of the first query: one compiled shape)."""
+    e, q = queries.tau.shape
+    size = max(1, min(q, ROWS_PER_CALL // max(1, e * predictor.homes.max_receptacles)))
+    parts = []
+    for start in range(0, q, size):
+        chunk = jax.tree.map(lambda a, s=start: jnp.concatenate(
+            [a[:, s:s + size], jnp.repeat(a[:, :1], max(0, s + size - q), 1)], 1), queries)
+        p = _model_probabilities(predictor.params, predictor.model, predictor.homes,
+                                 data.homes, data.observed, chunk, predictor.model.history)
+        parts.append(np.asarray(p)[:, :min(size, q - start)])
+    return np.concatenate(parts, axis=1)
+
+
+def row_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries) -> dict:
+    """{row name: (E, Q, R)} of the model and the reference rows."""
+    history = predictor.model.history
+    return {MODEL_ROW: model_probabilities(predictor, data, queries),
+            UNIFORM: np.asarray(pr.uniform_prior(data.homes, queries)),
+            LAST_SEEN: np.asarray(pr.last_seen_prior()(data.homes, queries)),
+            FREQUENCY: np.asarray(pr.frequency_prior(history)(data.homes, queries))}
+
+
+# --------------------------------------------------------------------------- scores
+
+
+def realised_scores(p, target, allowed) -> dict[str, np.ndarray]:
+    """Per query (E, Q): ``METRICS`` of probabilities ``p`` (E, Q, R) against the realised
+    receptacle ``target`` (E, Q) among the ``allowed`` (E, Q, R) ones."""
+    p = np.where(allowed, np.asarray(p, np.float64), 0.0)
+    at = np.take_along_axis(p, target[..., None], -1)[..., 0]
+    above = np.sum(allowed & (p > at[..., None]), -1)
+    ties = np.sum(allowed & (p == at[..., None]), -1)  # the realised one among them
+    # ties broken uniformly at random: its place is above + U{1 … ties}, in expectation
+    return {"log_score": np.log(np.maximum(at, P_FLOOR)),
+            "top1": np.where(above == 0, 1.0 / ties, 0.0),
+            "top5": np.clip((TOP_K - above) / ties, 0.0, 1.0),
+            "rank": above + (ties + 1) / 2.0}
+
+
+def reliability(p, target, allowed, valid, bins: int = BINS) -> dict:
+    """The reliability table: per probability bin, the pairs' count, mean probability and the
+    frequency of the realised receptacle; ``ece`` the count-weighted mean |gap|."""
+    p = np.asarray(p, np.float64)
+    hit = np.arange(p.shape[-1]) == target[..., None]
+    keep = allowed & valid[..., None]
+    prob, outcome = p[keep], hit[keep]
+    index = np.minimum((prob * bins).astype(int), bins - 1)
+    table = []
+    for b in range(bins):
+        inside = index == b
+        n = int(inside.sum())
+        table.append({"low": b / bins, "high": (b + 1) / bins, "count": n,
+                      "predicted": float(prob[inside].mean()) if n else None,
+                      "realised": float(outcome[inside].mean()) if n else None})
+    ece = sum(r["count"] * abs(r["predicted"] - r["realised"]) for r in table if r["count"])
+    return {"bins": table, "ece": ece / max(1, len(prob))}
+
+
+# --------------------------------------------------------------------------- the protocol
+
+
+def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
+    """(RecordedHomes, what it is): the test part of the run's own split when ``data_path``
+    is the dataset the run trained on, else every environment of the data."""
+    same = stored.get("data") and pathlib.Path(stored["data"]).resolve() == \
+        pathlib.Path(data_path).resolve()
+    if same:
+        split = (stored.get("val_fraction", 0.0), stored.get("test_fraction", 0.0),
+                 stored.get("time_fraction", 0.0), stored.get("split_seed", 0))
+        names = rw.split_environments(recorded.names(), *split[:2], split[3])
+        what = (f"the run's held-out test part ({len(names['test'])} environments"
+                + (f", and the last {split[2]:.0%} of the training environments' hours"
+                   if split[2] > 0 else "") + f"; split_seed={split[3]})")
+        return rw.part_of(recorded, config, split, "test"), what
+    return rw.recorded_homes(recorded, config), f"all {len(recorded.environments)} environments"
+
+
+def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed: int,
+                   parts: Sequence[str], budget: int = nav.LOOK_BUDGET,
+                   progress: bool = True) -> dict:
+    """The realised-outcome results (JSON-able) of ``predictor`` on ``data``: ``posterior``
+    (the scores and the reliability table of every row) and/or ``navigation``."""
+    from tqdm.auto import tqdm
+
+    begin = time.perf_counter()
+    config = predictor.homes
+    horizons = [d for d in DEFAULT_HORIZONS if d <= config.num_hours - 1] or [1]
+    key = jax.random.fold_in(jax.random.key(EVAL_SEED), seed)
+    rows_steps = 4 * (("posterior" in parts) + ("navigation" in parts) * len(nav.POLICIES))
+    bar = tqdm(total=2 + rows_steps, desc="realised", disable=not progress, leave=False)
+    queries, valid = realised_queries(key, data, num_queries, max(horizons))
+    if not valid.any():
+        raise ValueError("--data: the evaluated environments hold no observed target")
+    bar.update(1)
+    homes = data.homes
+    target = np.asarray(pr.receptacle_at(homes, queries.tau_q, queries.object_index))
+    allowed = np.asarray(pr.allowed_slots(homes, queries))
+    beliefs = row_probabilities(predictor, data, queries)
+    bar.update(1)
+    horizon = np.asarray(queries.horizon)
+
+    def summary(values):
+        return summarise(np.asarray(values)[valid], {"horizon": horizon[valid]})
+
+    results = {"protocol": {
+        "eval_seed": EVAL_SEED, "seed": seed, "queries_per_environment": num_queries,
+        "queries": int(valid.sum()), "environments": int(homes.num_homes),
+        "horizons": horizons, "history": predictor.model.history, "p_floor": P_FLOOR,
+        "bins": BINS, "start": "receptacle slot 0", "budget": budget,
+        "unseen_at_tau": stats(np.asarray(
+            ~np.asarray(data.observed)[np.arange(homes.num_homes)[:, None],
+                                       np.asarray(queries.tau),
+                                       np.asarray(queries.object_index)])[valid] * 1.0)},
+        "num_allowed": stats(allowed.sum(-1)[valid])}
+    if "posterior" in parts:
+        posterior = {}
+        for name, p in beliefs.items():
+            bar.set_postfix_str(name)
+            scores = realised_scores(p, target, allowed)
+            posterior[name] = {"metrics": {m: summary(scores[m]) for m in METRICS},
+                               "reliability": reliability(p, target, allowed, valid)}
+            bar.update(1)
+        results["posterior"] = posterior
+    if "navigation" in parts:
+        start = np.asarray(homes.receptacle_distance)[:, 0]  # (E, R): from receptacle slot 0
+        start = jnp.asarray(start)
+        realised = jax.nn.one_hot(target, allowed.shape[-1], dtype=jnp.float32)
+        navigation = {}
+        for name, p in beliefs.items():
+            for policy in nav.POLICIES:
+                if policy == "nearest" and name != MODEL_ROW:
+                    bar.update(1)
+                    continue  # nearest-first ignores the belief: one row
+                label = "nearest first" if policy == "nearest" else f"{name}, {policy}"
+                bar.set_postfix_str(label)
+                orders = nav.visit_orders(policy, jnp.asarray(p, jnp.float32), homes, queries,
+                                          start)
+                outcome = nav.walk_orders(jnp.asarray(orders), homes, queries, realised, start,
+                                          budget)
+                metrics = nav.episode_metrics(outcome, budget)
+                navigation[label] = {
+                    "prior": None if policy == "nearest" else name, "policy": policy,
+                    "metrics": {m: summary(metrics[m]) for m in nav.NAVIGATION_METRICS},
+                    "success_at": np.round(metrics["success_at"][valid].mean(0), 5).tolist()}
+                bar.update(1)
+        results["navigation"] = navigation
+    bar.close()
+    results["seconds"] = round(time.perf_counter() - begin, 1)
+    return results
+
+
+# --------------------------------------------------------------------------- the report
+
+
+def _pm(stat: dict | None, digits: int = 3) -> str:
+    if not stat or stat.get("mean") is None:
+        return "-"
+    err = stat.get("stderr")
+    return f"{stat['mean']:.{digits}f}" + ("" if err is None else f" ± {err:.{digits}f}")
+
+
+def markdown(results: dict) -> str:
+    """results.md / search.md: the realised-outcome tables."""
+    p = results["protocol"]
+    lines = ["# Realised-outcome scores on recorded data",
+             "", f"Data: {results.get('data', '?')}: {results.get('part', '')}. "
+             f"{p['queries']} queries ({p['queries_per_environment']} per environment on "
+             f"{p['environments']} environments; horizons {p['horizons']} h; history "
+             f"{p['history']} h; the object unseen at τ in {_pm(p['unseen_at_tau'], 2)} of "
+             f"them), scored against the receptacle where the object was seen at τ_q. Seed "
+             f"{p['seed']}.", ""]
+    if "posterior" in results:
+        lines += ["| row | " + " | ".join(METRIC_NAMES[m] for m in METRICS) + " | ECE |",
+                  "|---" * (len(METRICS) + 2) + "|"]
+        for name, row in results["posterior"].items():
+            lines.append(f"| {name} | " + " | ".join(
+                _pm(row["metrics"][m]["overall"]) for m in METRICS)
+                + f" | {row['reliability']['ece']:.3f} |")
+        lines += ["", "Log score by horizon (nats):", "",
+                  "| row | " + " | ".join(f"Δ = {h} h" for h in p["horizons"]) + " |",
+                  "|---" * (len(p["horizons"]) + 1) + "|"]
+        for name, row in results["posterior"].items():
+            by = row["metrics"]["log_score"]["by_horizon"]
+            lines.append(f"| {name} | " + " | ".join(_pm(by.get(str(h))) for h in p["horizons"])
+                         + " |")
+        lines += ["", "## Reliability (predicted probability vs realised frequency)", "",
+                  "| bin | " + " | ".join(results["posterior"]) + " |",
+                  "|---" * (len(results["posterior"]) + 1) + "|"]
+        for b in range(p["bins"]):
+            cells = []
+            for row in results["posterior"].values():
+                r = row["reliability"]["bins"][b]
+                cells.append("-" if not r["count"] else
+                             f"{r['predicted']:.2f} → {r['realised']:.2f} (n={r['count']})")
+            low = results["posterior"][next(iter(results["posterior"]))]["reliability"][
+                "bins"][b]
+            lines.append(f"| {low['low']:.1f}–{low['high']:.1f} | " + " | ".join(cells) + " |")
+    if "navigation" in results:
+        cols = nav.NAVIGATION_METRICS
+        lines += ["", "## Navigation (target: the realised receptacle)", "",
+                  "| row | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
+        for name, row in results["navigation"].items():
+            lines.append(f"| {name} | " + " | ".join(
+                _pm(row["metrics"][m]["overall"], 1 if m == "steps" else 3) for m in cols)
+                + " |")
+    lines += ["", f"Command: `{results.get('command', '')}`", ""]
+    return "\n".join(lines)
+
+
+def write_figure(results: dict, out: pathlib.Path, part: str) -> str:
+    """``reliability.png`` (posterior) or ``success_vs_looks.png`` (navigation)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6, 4.5))
+    ax = fig.subplots()
+    if part == "posterior":
+        ax.plot([0, 1], [0, 1], color="grey", lw=0.8, ls="--")
+        for name, row in results["posterior"].items():
+            bins = [b for b in row["reliability"]["bins"] if b["count"]]
+            ax.plot([b["predicted"] for b in bins], [b["realised"] for b in bins], marker="o",
+                    label=f"{name} (ECE {row['reliability']['ece']:.3f})")
+        ax.set_xlabel("predicted probability")
+        ax.set_ylabel("realised frequency")
+        ax.set_title("Reliability on recorded data")
+    else:
+        for name, row in results["navigation"].items():
+            ax.plot(range(1, len(row["success_at"]) + 1), row["success_at"], label=name)
+        ax.set_xlabel("looks")
+        ax.set_ylabel("success rate")
+        ax.set_title("Success vs looks (target: the realised receptacle)")
+    ax.legend(fontsize=7)
+    name = REPORT[part][1]
+    fig.savefig(out / name, dpi=110, bbox_inches="tight")
+    return name
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part: str,
+                prog: str, argv: Sequence[str] | None) -> int:
+    """``evaluate`` (``part`` "posterior") or ``search`` ("navigation") of ``--checkpoint`` on
+    ``--data`` (default: the data the run trained on). Exit 0, 2 on bad input (one line), 74
+    on a failed write."""
+    from flowmaps_jax.predictor import load_model, stored_config
+
+    stem, figure = REPORT[part]
+    try:
+        stored = stored_config(args.checkpoint, args.which)
+        data_path = args.data if getattr(args, "data", None) else stored.get("data")
+        if not data_path:
+            raise ValueError("--data PATH is required (the recorded dataset to score on)")
+        if args.out is None and str(args.checkpoint).startswith(PRETRAINED_PREFIX):
+            raise ValueError("--out is required when --checkpoint is pretrained:NAME")
+        default = pathlib.Path(args.checkpoint) / ("eval" if part == "posterior" else "search")
+        out = pathlib.Path(check_output_dir(
+            "--out", default if args.out is None else args.out,
+            files=[f"{stem}.json", f"{stem}.md", *(() if args.no_figures else (figure,))]))
+        queries = DEFAULT_QUERIES if getattr(args, "queries", None) is None else args.queries
+        check_int("--queries", queries, 1)
+        check_seed("--seed", args.seed)
+        budget = check_int("--budget", getattr(args, "budget", nav.LOOK_BUDGET), 1)
+        with prefix_errors(f"--checkpoint {args.checkpoint!r}: "):
+            model = load_model(args.checkpoint, args.which)
+        if model.homes is None:
+            raise ValueError(f"--data needs a homes-network model; {args.checkpoint} is a "
+                             f"{model.family_name!r} model of 2-D FlowSim maps")
+        with prefix_errors("--data: "):
+            recorded = rw.load_recorded_data(data_path)
+            data, what = evaluation_part(recorded, model.homes, stored, data_path)
+        print(f"Recorded {part}: {data_path} ({what}), {queries} queries per environment, "
+              f"FlowMaps {args.checkpoint} (step {model.step}) -> {out}", flush=True)
+        results = run_evaluation(model, data, num_queries=queries, seed=args.seed,
+                                 parts=(part,), budget=budget,
+                                 progress=not args.no_progress)
+    except ValueError as err:
+        print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as err:
+        print(f"error: --data {getattr(args, 'data', None)}: {err.strerror or err}",
+              file=sys.stderr)
+        return EXIT_USAGE
+    results["data"], results["part"] = str(data_path), what
+    results["model"] = f"{args.checkpoint} (step {model.step})"
+    results["command"] = f"{prog} " + shlex.join(sys.argv[1:] if argv is None else list(argv))
+    try:
+        make_output_dir("--out", out)
+        import json
+
+        results["figures"] = [] if args.no_figures else [write_figure(results, out, part)]
+        text = markdown(results)
+        paths = [write_file(out / f"{stem}.json", json.dumps(results, indent=1,
+                                                             ensure_ascii=False),
+                            name="--out file"),
+                 write_file(out / f"{stem}.md", text, name="--out file")]
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as err:
+        print(f"error: could not write the results into {out}: {err.strerror or err}",
+              file=sys.stderr)
+        return EXIT_WRITE_FAILED
+    print(text.split("\n## Reliability")[0].split("\nCommand:")[0])
+    print(f"wrote {', '.join(str(p) for p in paths)}"
+          + "".join(f", {out / f}" for f in results["figures"])
+          + f" ({results['seconds']:.0f} s)")
+    return 0
