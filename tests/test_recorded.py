@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import pathlib
+import re
 import zipfile
 
 import jax
@@ -346,3 +347,256 @@ def test_npz_members_are_plain_arrays(tmp_path):
     with zipfile.ZipFile(root / "train/env0" / ARRAYS_FILE) as archive:
         assert sorted(archive.namelist()) == ["hours.npy", "location.npy",
                                               "receptacle_corners.npy"]
+
+
+# ---------------------------------------------------------------------------- the authors' format
+
+OBJECTS = ["Book|surface|1|2", "Mug|3"]
+RECEPTACLES = ["Sofa|1|0", "CounterTop|2|1", "Sink|5|1|0___0"]
+ALLOWED = {"Book|surface|1|2": ["Sofa|1|0", "CounterTop|2|1"],
+           "Mug|3": ["CounterTop|2|1", "Sink|5|1|0___0"]}
+ASSIGNMENT = np.zeros((5, 2, 3), np.int64)  # hour, object, receptacle (one-hot)
+for _t, (_book, _mug) in enumerate([(0, 1), (0, 2), (1, None), (1, 1), (0, 2)]):
+    ASSIGNMENT[_t, 0, _book] = 1
+    if _mug is not None:  # the mug is not seen at hour 2: an all-zero row
+        ASSIGNMENT[_t, 1, _mug] = 1
+
+
+def _y_up_box(x0, z0, x1, z1, top) -> list:
+    """8 corner points [x, y up, z] of a box on the floor, in the authors' axes."""
+    return [[x, y, z] for y in (0.0, top) for x, z in ((x0, z0), (x1, z0), (x1, z1), (x0, z1))]
+
+
+def _nested(array: np.ndarray, fixed: bool):
+    """A numpy array (rows first) as a pyarrow column of nested lists."""
+    pa = pytest.importorskip("pyarrow")
+    column = pa.array(array.reshape(-1))
+    for size in reversed(array.shape[1:]):
+        if fixed:
+            column = pa.FixedSizeListArray.from_arrays(column, size)
+        else:
+            offsets = pa.array(np.arange(0, len(column) + 1, size, dtype=np.int32))
+            column = pa.ListArray.from_arrays(offsets, column)
+    return column
+
+
+def write_authors_environment(folder: pathlib.Path, *, pieces: bool = False,
+                              fixed: bool = True, assignment=ASSIGNMENT,
+                              objects=OBJECTS) -> None:
+    """One environment folder written from the documented columns and JSON layout."""
+    pa = pytest.importorskip("pyarrow")
+    pq = pytest.importorskip("pyarrow.parquet")
+    folder.mkdir(parents=True)
+    t, m = assignment.shape[:2]
+    corners = np.zeros((t, m, 8, 3), np.float32)
+    corners[..., 1] = np.arange(t, dtype=np.float32)[:, None, None]  # y up: the hour
+    columns = {"assignment": assignment, "rotation": np.full((t, m), 0.5, np.float32),
+               "aabb_cornerPoints": corners}
+    splits = [(0, 3), (3, t)] if pieces else [(0, t)]
+    for n, (a, b) in enumerate(splits):
+        table = pa.table({k: _nested(v[a:b], fixed) for k, v in columns.items()})
+        pq.write_table(table, folder / (f"scan_{n * 10}.parquet" if pieces
+                                        else "scan_merged.parquet"))
+    boxes = {r: {"cornerPoints": _y_up_box(i, 0.0, i + 1.0, 2.0, 0.5 + i)}
+             for i, r in enumerate(RECEPTACLES)}
+    for name, value in (("pickupable_names.json", objects),
+                        ("receptacle_names.json", RECEPTACLES),
+                        ("receptacles_oobb.json", boxes),
+                        ("pickupable_to_receptacle.json", ALLOWED)):
+        (folder / name).write_text(json.dumps(value, indent=4))
+
+
+def write_lookup(folder: pathlib.Path) -> None:
+    (folder / "lookup.json").write_text(json.dumps({
+        "pickupable2id": {"Apple": 0, "Book": 1, "Mug": 2},
+        "receptacle2id": {"CounterTop": 0, "Sofa": 1, "Sink": 2, "Bed": 3}}))
+
+
+@pytest.fixture
+def authors_root(tmp_path) -> pathlib.Path:
+    """data/lookup.json above ROOT = data/habit1, holding train/env0 (scan_merged.parquet of
+    fixed-size lists) and val/env1 (two scan_N.parquet pieces of variable-size lists)."""
+    (tmp_path / "data").mkdir()
+    write_lookup(tmp_path / "data")
+    root = tmp_path / "data" / "habit1"
+    write_authors_environment(root / "train" / "env0")
+    write_authors_environment(root / "val" / "env1", pieces=True, fixed=False)
+    return root
+
+
+def test_an_authors_folder_imports(authors_root):
+    from flowmaps_jax.recorded.flowmaps2026 import import_flowmaps2026
+
+    world = import_flowmaps2026(authors_root)
+    assert world.names() == ("train/env0", "val/env1")
+    for env in world.environments:
+        assert env.object_classes == ("Book", "Mug")
+        assert env.receptacle_classes == ("Sofa", "CounterTop", "Sink")
+        assert env.receptacle_texts == ("sofa", "counter top", "sink")
+        np.testing.assert_array_equal(env.hours, np.arange(5))
+        np.testing.assert_array_equal(env.location, [[0, 1], [0, 2], [1, -1], [1, 1], [0, 2]])
+        np.testing.assert_array_equal(env.allowed, [[1, 1, 0], [0, 1, 1]])
+        # their y is up: here z is
+        np.testing.assert_allclose(env.receptacle_boxes()[2], [2.5, 1.0, 1.25, 1.0, 2.0, 2.5])
+        np.testing.assert_array_equal(env.object_corners[:, 0, 0, 2], np.arange(5))
+        np.testing.assert_array_equal(env.object_rotation, 0.5)
+        assert env.room_classes == () and env.distance is None
+    assert world.environments[1].source["scans"] == ["scan_0.parquet", "scan_10.parquet"]
+
+
+def _remove(key):
+    return lambda d: d.pop(key)
+
+
+AUTHORS_CASES = {
+    "names against counts": (
+        lambda root: ((root / "pickupable_names.json").write_text(json.dumps([*OBJECTS, "Mug|9"])),
+                      _edit_json(root / "pickupable_to_receptacle.json",
+                                 _set("Mug|9", ["Sink|5|1|0___0"]))),
+        "scan_merged.parquet: assignment: has 2 objects per row, but pickupable_names.json "
+        "lists 3"),
+    "id missing from oobb": (
+        lambda root: _edit_json(root / "receptacles_oobb.json", _remove("Sink|5|1|0___0")),
+        r"receptacles_oobb.json: Sink\|5\|1\|0___0: missing"),
+    "class missing from lookup": (
+        lambda root: _edit_json(root.parents[2] / "lookup.json",
+                                lambda d: d["pickupable2id"].pop("Mug")),
+        r"pickupable_names.json: Mug\|3: its class 'Mug' is missing from .*lookup.json"),
+    "allowed unknown": (
+        lambda root: _edit_json(root / "pickupable_to_receptacle.json",
+                                lambda d: d["Mug|3"].append("Bed|1")),
+        r"pickupable_to_receptacle.json: Mug\|3: 'Bed\|1' is not in receptacle_names.json"),
+    "allowed missing": (
+        lambda root: _edit_json(root / "pickupable_to_receptacle.json", _remove("Mug|3")),
+        r"pickupable_to_receptacle.json: Mug\|3: missing"),
+    "two receptacles": (
+        lambda root: (root / "scan_merged.parquet").unlink() or write_authors_environment(
+            root.parent / "env9", assignment=np.ones((2, 2, 3), np.int64)),
+        "scan_merged.parquet: assignment: object 0 is on 3 receptacles at row 0"),
+    "broken parquet": (
+        lambda root: (root / "scan_merged.parquet").write_bytes(b"PAR1 not really"),
+        r"scan_merged.parquet: \(file\): not a readable parquet file"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(AUTHORS_CASES))
+def test_import_refuses_a_folder_that_contradicts_itself(authors_root, case):
+    from flowmaps_jax.recorded.flowmaps2026 import import_flowmaps2026
+
+    edit, message = AUTHORS_CASES[case]
+    edit(authors_root / "train" / "env0")
+    with pytest.raises(ValueError, match=message) as info:
+        import_flowmaps2026(authors_root)
+    assert "\n" not in str(info.value)
+
+
+def test_import_needs_a_lookup_and_an_environment(tmp_path):
+    from flowmaps_jax.recorded.flowmaps2026 import import_flowmaps2026
+
+    write_authors_environment(tmp_path / "root" / "env0")
+    with pytest.raises(ValueError, match=r"lookup\.json: none in the folder or above it"):
+        import_flowmaps2026(tmp_path / "root")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="holds no environment folder"):
+        import_flowmaps2026(tmp_path / "empty")
+
+
+def test_homes_through_the_authors_format_round_trip(homes, tmp_path):
+    pq = pytest.importorskip("pyarrow.parquet")
+    from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026, import_flowmaps2026
+
+    world = from_homes(homes, CONFIG, mask_fraction=0.3, seed=5)
+    lookup = export_flowmaps2026(world, tmp_path / "authors")
+    assert json.loads(lookup.read_text())["receptacle2id"]["sofa"] == \
+        world.vocabulary()["receptacles"].index("sofa")
+    table = pq.read_table(tmp_path / "authors/home0/scan_merged.parquet")
+    env = world.environments[0]
+    assert table.num_rows == CONFIG.num_hours
+    assert str(table.schema.field("assignment").type).startswith("fixed_size_list")
+    assignment = np.asarray(table.column("assignment").combine_chunks().flatten().flatten()
+                            ).reshape(CONFIG.num_hours, env.num_objects, env.num_receptacles)
+    # an unobserved hour is an all-zero row; an observed one is one-hot on its receptacle
+    np.testing.assert_array_equal(assignment.sum(-1), env.observed)
+    np.testing.assert_array_equal(np.where(env.observed, assignment.argmax(-1), -1),
+                                  env.location)
+    back = import_flowmaps2026(tmp_path / "authors")
+    assert_same(world, back)  # identical arrays, ids, classes, texts, rooms, distances
+    # without the extras file: the native columns alone give the same observations
+    for name in world.names():
+        (tmp_path / "authors" / name / "flowmaps_recorded.json").unlink()
+    bare = import_flowmaps2026(tmp_path / "authors")
+    for a, b in zip(world.environments, bare.environments, strict=True):
+        for field in ("hours", "location", "allowed", "receptacle_corners"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+        assert (a.receptacle_ids, a.object_ids) == (b.receptacle_ids, b.object_ids)
+        assert (a.receptacle_classes, a.object_classes) == (b.receptacle_classes,
+                                                            b.object_classes)
+
+
+def test_recorded_boxes_and_gaps_round_trip(tmp_path):
+    pq = pytest.importorskip("pyarrow.parquet")
+    from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026, import_flowmaps2026
+
+    rng = np.random.default_rng(0)
+    env = tiny_environment("env0", object_corners=rng.normal(size=(4, 2, 8, 3)).astype(
+        np.float32), object_rotation=rng.normal(size=(4, 2)).astype(np.float32))
+    world = Recorded((env, tiny_environment("env1")))
+    export_flowmaps2026(world, tmp_path / "a")
+    table = pq.read_table(tmp_path / "a/env0/scan_merged.parquet")
+    assert table.num_rows == 6  # hours 0, 1, 2, 5: rows 3 and 4 are all-zero assignments
+    assert_same(world, import_flowmaps2026(tmp_path / "a"))
+
+
+def test_export_is_readable_the_way_their_loader_reads_it(tmp_path):
+    polars = pytest.importorskip("polars")
+    pytest.importorskip("pyarrow")
+    from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026
+
+    export_flowmaps2026(Recorded((tiny_environment("env0"),)), tmp_path)
+    path = tmp_path / "env0" / "scan_merged.parquet"
+    assert polars.scan_parquet(path).select(polars.len()).collect().item() == 6
+    data = polars.read_parquet(path)
+    assert np.array(data["assignment"].to_numpy(), copy=True).shape == (6, 2, 3)
+    assert np.stack(data["rotation"].to_numpy()).shape == (6, 2)
+    assert np.stack(data["aabb_cornerPoints"].to_numpy()).shape == (6, 2, 8, 3)
+
+
+# ---------------------------------------------------------------------------- the commands
+
+
+def test_the_data_commands(homes, tmp_path, capsys):
+    pytest.importorskip("pyarrow")
+    from support import error_line, run_cli
+
+    from flowmaps_jax.data.__main__ import main
+
+    code, out, _ = run_cli(main, ["from-homes", "--homes", "4", "--hours", "48", "--mask",
+                                  "0.3", "--seed", "0", "--names", "train/env",
+                                  "--no-progress", "--out", str(tmp_path / "w")], capsys)
+    assert code == 0 and "wrote" in out and "4 environments, 48 hours" in out
+    world = load_recorded(tmp_path / "w")
+    assert world.names() == tuple(f"train/env{e}" for e in range(4))
+    direct = from_homes(homes, CONFIG, mask_fraction=0.3, seed=0)
+    for a, b in zip(direct.environments, world.environments, strict=True):
+        np.testing.assert_array_equal(a.location, b.location)
+        assert b.source["generator"]["num_homes"] == 4
+    code, out, _ = run_cli(main, ["export-flowmaps2026", str(tmp_path / "w"), "--out",
+                                  str(tmp_path / "a"), "--no-progress"], capsys)
+    assert code == 0 and (tmp_path / "a/lookup.json").is_file()
+    code, out, _ = run_cli(main, ["import-flowmaps2026", str(tmp_path / "a"), "--out",
+                                  str(tmp_path / "w2"), "--no-progress"], capsys)
+    assert code == 0
+    assert_same(world, load_recorded(tmp_path / "w2"))
+    (tmp_path / "a/train/env1/receptacles_oobb.json").write_text("{}")
+    for argv, message in (
+            (["import-flowmaps2026", str(tmp_path / "a"), "--out", str(tmp_path / "w3")],
+             "receptacles_oobb.json: .*: missing"),
+            (["export-flowmaps2026", str(tmp_path / "a"), "--out", str(tmp_path / "x")],
+             r"recorded.json: \(file\): missing"),
+            (["from-homes", "--homes", "2", "--mask", "1.5", "--out", str(tmp_path / "y")],
+             "--mask must be in"),
+            (["from-homes", "--homes", "0", "--out", str(tmp_path / "y")], "--homes must be")):
+        code, _, err = run_cli(main, [*argv, "--no-progress"], capsys)
+        assert code == 2, argv
+        assert re.search(message, error_line(err)), err
+    assert not (tmp_path / "w3").exists() and not (tmp_path / "y").exists()

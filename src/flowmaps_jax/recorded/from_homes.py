@@ -11,7 +11,8 @@ or not, in alternating runs of hours (geometric lengths; unvisited runs last
 (location -1) at an hour when the room it stands in is unvisited. Each hour's chance of a room
 being unvisited is ``mask_fraction`` (the runs start in their stationary state), so about that
 fraction of the object-hours is hidden, by whole rooms. Home e's mask depends only on
-(seed, e): ``numpy.random.default_rng([seed, e])``.
+(seed, e): ``numpy.random.default_rng([seed, e])``, so homes converted in chunks
+(``first_home``) get the masks of one call.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from flowmaps_jax.recorded.format import (
     check_environment_name,
     validate_recorded,
 )
-from flowmaps_jax.validation import check_real, check_seed
+from flowmaps_jax.validation import check_int, check_real, check_seed
 
 MASK_RUN_HOURS = 6.0
 """The mean length (hours) of the shorter of a room's unvisited and visited runs."""
@@ -62,9 +63,9 @@ def unvisited_rooms(rng: np.random.Generator, num_rooms: int, num_hours: int,
     return np.take_along_axis(state, run, axis=1).T
 
 
-def _check_names(names, num_homes: int) -> tuple[str, ...]:
+def _check_names(names, num_homes: int, first: int) -> tuple[str, ...]:
     if names is None:
-        return tuple(f"home{e}" for e in range(num_homes))
+        return tuple(f"home{first + e}" for e in range(num_homes))
     if isinstance(names, str) or not isinstance(names, Sequence) or len(names) != num_homes:
         raise ValueError(f"names must be a sequence of {num_homes} environment names (one per "
                          f"home); got {names!r}"[:300])
@@ -72,8 +73,10 @@ def _check_names(names, num_homes: int) -> tuple[str, ...]:
 
 
 def home_environment(arrays: dict, e: int, config: HomesConfig, name: str,
-                     mask_fraction: float, seed: int) -> Environment:
-    """Home ``e`` of the homes' numpy ``arrays`` (``Homes.as_dict``) as an Environment."""
+                     mask_fraction: float, seed: int, home: int | None = None) -> Environment:
+    """Home ``e`` of the homes' numpy ``arrays`` (``Homes.as_dict``) as an Environment; ``home``
+    (default ``e``): its number in the whole set, which seeds its mask."""
+    home = e if home is None else home
     a = {k: v[e] for k, v in arrays.items()}
     slots = np.flatnonzero(a["receptacle_valid"])
     objects = np.flatnonzero(a["object_valid"])
@@ -81,7 +84,7 @@ def home_environment(arrays: dict, e: int, config: HomesConfig, name: str,
     renumber[slots] = np.arange(slots.size, dtype=np.int32)
     location = renumber[a["receptacle"][:, objects]]  # (T, M'): valid objects are always placed
     room = a["receptacle_room"][slots].astype(np.int32)
-    rng = np.random.default_rng([seed, e])
+    rng = np.random.default_rng([seed, home])
     hidden = unvisited_rooms(rng, config.num_rooms, config.num_hours, mask_fraction)
     location = np.where(np.take_along_axis(hidden, room[location], axis=1), -1,
                         location).astype(np.int32)
@@ -106,27 +109,31 @@ def home_environment(arrays: dict, e: int, config: HomesConfig, name: str,
         door_rooms=a["door_rooms"][doors].astype(np.int32),
         door_positions=a["door_position"][doors].astype(np.float32),
         distance=a["receptacle_distance"][slots][:, slots].astype(np.float32),
-        source={"from": "flowsim-homes", "config": config.to_dict(), "home": int(e),
+        source={"from": "flowsim-homes", "config": config.to_dict(), "home": int(home),
                 "mask_fraction": mask_fraction, "mask_seed": seed,
                 "mask_run_hours": MASK_RUN_HOURS})
 
 
 def from_homes(homes: Homes, config: HomesConfig, *, mask_fraction: float = 0.0, seed: int = 0,
-               names: Sequence[str] | None = None, progress=None) -> Recorded:
+               names: Sequence[str] | None = None, progress=None,
+               first_home: int = 0) -> Recorded:
     """FlowSim ``homes`` (E homes of ``config``) as a recorded world of E environments.
 
     mask_fraction: in [0, 1), about this fraction of the object-hours is hidden (-1), by whole
     rooms unvisited for runs of hours (see the module's docstring); seed: the masks' seed;
-    names: E environment names (default ``home0`` ...); progress: optional callable wrapping
-    the range of homes (a tqdm). ``ValueError`` naming the argument on bad input.
+    names: E environment names (default ``home{first_home + e}``); progress: optional callable
+    wrapping the range of homes (a tqdm); first_home: the number of ``homes``' first home in a
+    larger set generated in chunks (names, masks and ``source["home"]`` follow it).
+    ``ValueError`` naming the argument on bad input.
     """
     validate_homes(homes, config)
     mask_fraction = check_real("mask_fraction", mask_fraction, 0.0, 1.0, high_open=True)
     seed = check_seed("seed", seed)
+    first_home = check_int("first_home", first_home, 0)
     arrays = {k: np.asarray(v) for k, v in homes.as_dict().items()}
-    names = _check_names(names, homes.num_homes)
+    names = _check_names(names, homes.num_homes, first_home)
     homes_range = range(homes.num_homes) if progress is None else progress(
         range(homes.num_homes))
     return validate_recorded(Recorded(tuple(
-        home_environment(arrays, e, config, names[e], mask_fraction, seed)
+        home_environment(arrays, e, config, names[e], mask_fraction, seed, first_home + e)
         for e in homes_range)))
