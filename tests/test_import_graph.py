@@ -35,7 +35,7 @@ INFERENCE = sorted(
     if name in (f"{PACKAGE}.{m}" for m in ("predictor", "export", "flow", "tokens", "boxes",
                                             "validation", "distributed", "tables"))
     or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store",
-                        f"{PACKAGE}.worlds")))
+                        f"{PACKAGE}.worlds", f"{PACKAGE}.recorded")))
 STORE = sorted(name for name in MODULES if name.startswith(f"{PACKAGE}.store"))
 # What sits above the store: it may import none of them, lazily or not.
 ABOVE_STORE = tuple(f"{PACKAGE}.{m}" for m in ("training", "predictor", "evaluation", "search",
@@ -148,13 +148,13 @@ def test_no_import_circles():
 LAYERS = (
     ("validation", "boxes", "distributed"),
     ("tokens", "flow", "tables"),
-    ("flowsim", "model"),
+    ("flowsim", "model", "recorded"),
     ("worlds",),
     ("store",),
     ("predictor", "export"),
     ("evaluation", "search"),
     ("training",),
-    ("train", "evaluate"),
+    ("train", "evaluate", "data"),
 )
 """The layers, bottom up, each a list of module-name prefixes under the package (the longest
 prefix decides). A world is a plug-in below the layers that use it: its simulator in
