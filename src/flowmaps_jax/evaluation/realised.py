@@ -187,8 +187,8 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
     from tqdm.auto import tqdm
 
     begin = time.perf_counter()
-    config = predictor.homes
-    horizons = [d for d in DEFAULT_HORIZONS if d <= config.num_hours - 1] or [1]
+    longest = int(np.max(np.asarray(data.stop)))  # the data's hours, not the model's
+    horizons = [d for d in DEFAULT_HORIZONS if d <= longest - 1] or [1]
     key = jax.random.fold_in(jax.random.key(EVAL_SEED), seed)
     rows_steps = 4 * (("posterior" in parts) + ("navigation" in parts) * len(nav.POLICIES))
     bar = tqdm(total=2 + rows_steps, desc="realised", disable=not progress, leave=False)

@@ -55,6 +55,7 @@ from flowmaps_jax.validation import (
     check_plain_name,
     check_resources,
     check_seed,
+    prefix_errors,
 )
 from flowmaps_jax.validation.fields import Choice, Int, Optional, Real, Text, check_fields
 from flowmaps_jax.worlds import world, world_of_family
@@ -606,7 +607,8 @@ def recorded_config(preset: str | None, data: str) -> RecordedTrainConfig:
                          f"{sorted(RECORDED_PRESETS)}")
     base = RECORDED_PRESETS[preset]()
     base = dataclasses.replace(base, data=os.path.abspath(data))
-    homes = homes_config_of(load_data(base))
+    with prefix_errors("--data: "):
+        homes = homes_config_of(load_data(base))
     history = min(base.model.history, max(1, homes.num_hours // 2))
     return dataclasses.replace(
         base, homes=homes, model=dataclasses.replace(base.model, history=history),

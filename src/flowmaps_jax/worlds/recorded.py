@@ -52,6 +52,7 @@ from flowmaps_jax.flowsim.homes.vocabulary import ObjectClass, ReceptacleClass, 
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
 from flowmaps_jax.model.homes_family import FAMILY_NAME
 from flowmaps_jax.recorded.format import load_recorded
+from flowmaps_jax.validation import prefix_errors
 from flowmaps_jax.worlds import homes as homes_world
 from flowmaps_jax.worlds.world import World
 
@@ -124,7 +125,7 @@ def homes_config_of(recorded) -> HomesConfig:
     voc = recorded.vocabulary()
     big = max(envs, key=lambda e: e.num_objects)
     if big.num_objects > MAX_OBJECTS:
-        raise ValueError(f"data: environment {big.name!r} has {big.num_objects} objects; the "
+        raise ValueError(f"environment {big.name!r} has {big.num_objects} objects; the "
                          f"homes network takes at most {MAX_OBJECTS} per environment")
     r_max = max(e.num_receptacles for e in envs)
     m_max = max(e.num_objects for e in envs)
@@ -156,9 +157,12 @@ def homes_config_of(recorded) -> HomesConfig:
 
 
 def _ids(config: HomesConfig, field: str) -> dict[str, int]:
-    """Class name (the vocabulary entry's ``text``) -> id in ``config``'s ``field``."""
-    return {c.text: i for i, c in enumerate(getattr(config, field))
-            if not c.name.startswith("object_pad") and c.name != NO_ROOM}
+    """Class name -> id in ``config``'s ``field``: the entry's ``text`` (a config derived from
+    data holds the class names there) or its ``name`` (a FlowSim homes model's config, whose
+    names ``from_homes`` records as the classes)."""
+    entries = [(i, c) for i, c in enumerate(getattr(config, field))
+               if not c.name.startswith("object_pad") and c.name != NO_ROOM]
+    return {**{c.name: i for i, c in entries}, **{c.text: i for i, c in entries}}
 
 
 # --------------------------------------------------------------------------------------------
@@ -170,17 +174,21 @@ def _environment_home(env, config: HomesConfig, ids: dict) -> dict:
     nr, r, m, t = (config.num_rooms, config.max_receptacles, config.max_objects,
                    config.num_hours)
     re, me, k = env.num_receptacles, env.num_objects, len(env.room_classes)
-    where = f"data: environment {env.name!r}"
-    if re > r or me > m or k >= nr or int(env.hours[-1]) >= t:
+    where = f"environment {env.name!r}"
+    unknown = bool(np.any(np.asarray(env.receptacle_room) < 0))
+    if re > r or me > m or k + unknown > nr or int(env.hours[-1]) >= t:
         raise ValueError(f"{where} is larger than the model's homes ({re} receptacles, {me} "
-                         f"objects, {k} rooms, {int(env.hours[-1]) + 1} hours; the model takes "
-                         f"{r}, {m}, {nr - 1} and {t})")
+                         f"objects, {k} rooms{' + 1 for unknown rooms' if unknown else ''}, "
+                         f"{int(env.hours[-1]) + 1} hours; the model takes {r}, {m}, {nr} "
+                         f"and {t})")
     for field, classes in (("room_types", env.room_classes),
                            ("receptacle_classes", env.receptacle_classes),
                            ("object_classes", env.object_classes)):
         missing = sorted(set(classes) - set(ids[field]))
         if missing:
-            raise ValueError(f"{where}: the model's vocabulary has no {field[:-2]} "
+            what = {"room_types": "room", "receptacle_classes": "receptacle",
+                    "object_classes": "object"}[field]
+            raise ValueError(f"{where}: the model's vocabulary has no {what} class "
                              f"{missing[0]!r} ({len(missing)} class(es) missing)")
     corners = np.asarray(env.receptacle_corners, np.float64)  # (R, 8, 3)
     points = [corners[..., :2].reshape(-1, 2)]
@@ -201,7 +209,8 @@ def _environment_home(env, config: HomesConfig, ids: dict) -> dict:
     boxes[:, 2] = np.maximum(boxes[:, 2], boxes[:, 5] / 2)
     rooms = np.tile(np.array([0.0, 0.0, *size]), (nr, 1))
     rooms[:k] = room_box
-    room_type = np.full(nr, len(config.room_types) - 1, np.int32)
+    names = [c.name for c in config.room_types]
+    room_type = np.full(nr, names.index(NO_ROOM) if NO_ROOM in names else 0, np.int32)
     room_type[:k] = [ids["room_types"][c] for c in env.room_classes]
     rec_class = np.full(r, -1, np.int32)
     rec_class[:re] = [ids["receptacle_classes"][c] for c in env.receptacle_classes]
@@ -259,10 +268,10 @@ def recorded_homes(recorded, config: HomesConfig, index=None, start=None,
     ids = {f: _ids(config, f) for f in ("room_types", "receptacle_classes", "object_classes")}
     parts = [_environment_home(envs[i], config, ids) for i in index]
     if not parts:
-        raise ValueError("data: no environment to read")
+        raise ValueError("no environment to read")
     stacked = {k: np.stack([p[k] for p in parts]) for k in parts[0]}
     homes = Homes(**{k: jnp.asarray(v) for k, v in stacked.items() if not k.startswith("_")})
-    validate_homes(homes, config, name="data")
+    validate_homes(homes, config, name="the homes of the data")
     e = len(parts)
     start = np.zeros(e, np.int32) if start is None else np.asarray(start, np.int32)
     stop = stacked["_hours"] if stop is None else np.asarray(stop)
@@ -405,30 +414,31 @@ def _split_of(cfg) -> tuple:
 
 
 def load_data(cfg, log: Callable[[str], None] = print):
-    """``cfg.data`` read (ValueError naming ``data`` on a missing or bad dataset)."""
+    """``cfg.data`` read (ValueError on a missing or bad dataset; callers name the option)."""
     if not cfg.data:
-        raise ValueError("data: a recorded run needs a dataset (--data PATH)")
+        raise ValueError("a recorded run needs a dataset (--data PATH)")
     try:
         return load_recorded_data(cfg.data)
     except OSError as err:
-        raise ValueError(f"data: cannot read {cfg.data}: {err.strerror or err}") from None
+        raise ValueError(f"cannot read {cfg.data}: {err.strerror or err}") from None
 
 
 def splits(cfg, log: Callable[[str], None] = print, mesh=None):
     """(the training environments, the validation environments) of ``cfg.data``, split as
     ``cfg`` says (printed)."""
     start = time.perf_counter()
-    recorded = load_data(cfg)
-    split = split_environments(recorded.names(), cfg.val_fraction, cfg.test_fraction,
-                               cfg.split_seed)
-    log(f"Recorded data {cfg.data}: {len(recorded.environments)} environments, split by "
-        f"environment (split_seed={cfg.split_seed}):\n"
-        + describe_split(recorded, split, cfg.time_fraction))
-    train = part_of(recorded, cfg.homes, _split_of(cfg), "train")
-    if not bool(target_hours(train).any()):
-        raise ValueError(f"data: the training environments of {cfg.data} hold no observation "
-                         "to train on")
-    val = part_of(recorded, cfg.homes, _split_of(cfg), "val" if split["val"] else "train")
+    with prefix_errors("data: "):
+        recorded = load_data(cfg)
+        split = split_environments(recorded.names(), cfg.val_fraction, cfg.test_fraction,
+                                   cfg.split_seed)
+        log(f"Recorded data {cfg.data}: {len(recorded.environments)} environments, split by "
+            f"environment (split_seed={cfg.split_seed}):\n"
+            + describe_split(recorded, split, cfg.time_fraction))
+        train = part_of(recorded, cfg.homes, _split_of(cfg), "train")
+        if not bool(target_hours(train).any()):
+            raise ValueError(f"the training environments of {cfg.data} hold no observation "
+                             "to train on")
+        val = part_of(recorded, cfg.homes, _split_of(cfg), "val" if split["val"] else "train")
     log(f"  data ready in {time.perf_counter() - start:.1f} s")
     return train, val
 

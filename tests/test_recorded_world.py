@@ -1,0 +1,206 @@
+"""The recorded world (issue 47): a recorded dataset as the homes network's input, partial
+observation in its inputs, train / evaluate / search with ``--data``."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from support import run_python_in_process
+
+from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes
+from flowmaps_jax.flowsim.homes import tokens as homes_tokens
+from flowmaps_jax.flowsim.homes.queries import HomesQueries
+from flowmaps_jax.recorded.format import Recorded, load_recorded, save_recorded
+from flowmaps_jax.recorded.from_homes import from_homes
+from flowmaps_jax.training.config import (
+    RecordedTrainConfig,
+    config_from_stored,
+    recorded_config,
+)
+from flowmaps_jax.worlds import WORLDS, world_of_files
+from flowmaps_jax.worlds import recorded as rw
+
+CONFIG = HomesConfig(regime="mixed", num_hours=72,
+                     rooms=("kitchen", "living_room", "bedroom", "bathroom"),
+                     objects_per_home=(4, 6))
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    """3 FlowSim homes x 72 hours as a recorded dataset, 30 % of the object-hours masked."""
+    homes = generate_homes(jax.random.key(0), CONFIG, 3)
+    path = tmp_path_factory.mktemp("recorded") / "data"
+    save_recorded(from_homes(homes, CONFIG, mask_fraction=0.3, seed=0), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def recorded(data_dir):
+    return load_recorded(data_dir)
+
+
+@pytest.fixture(scope="module")
+def cfg(data_dir):
+    return recorded_config("smoke", str(data_dir))
+
+
+def test_the_world_is_registered_and_reads_files():
+    assert WORLDS["recorded"] is rw.WORLD and world_of_files() is rw.WORLD
+    assert not WORLDS["homes"].reads_files
+
+
+def test_the_config_comes_from_the_data_and_is_stored_with_the_run(cfg, recorded):
+    homes = cfg.homes
+    voc = recorded.vocabulary()
+    assert [c.text for c in homes.object_classes][:len(voc["objects"])] == voc["objects"]
+    assert homes.max_receptacles >= max(e.num_receptacles for e in recorded.environments)
+    assert homes.max_objects == max(e.num_objects for e in recorded.environments)
+    assert homes.num_hours == 72 and cfg.model.history_observed
+    assert cfg.model.history + cfg.max_horizon <= 72
+    stored = json.loads(json.dumps(cfg.to_dict()))
+    assert stored["world"] == "recorded"
+    assert config_from_stored(stored) == cfg  # resume rebuilds it
+    with pytest.raises(ValueError, match="--preset cpu"):
+        recorded_config("cpu", cfg.data)
+    with pytest.raises(ValueError, match="val_fraction"):
+        dataclasses.replace(cfg, val_fraction=0.5, test_fraction=0.5)
+
+
+def test_environments_become_valid_homes_with_their_observations(cfg, recorded):
+    data = rw.recorded_homes(recorded, cfg.homes)  # validate_homes inside
+    observed = np.asarray(data.observed)
+    receptacle = np.asarray(data.homes.receptacle)
+    for e, env in enumerate(recorded.environments):
+        m = env.num_objects
+        np.testing.assert_array_equal(observed[e, env.hours, :m], env.observed)
+        seen = env.location >= 0
+        np.testing.assert_array_equal(receptacle[e, env.hours, :m][seen], env.location[seen])
+        # where an object is unseen, it stands where it was last seen
+        t, i = np.argwhere(~seen & np.cumsum(seen, 0).astype(bool))[0]
+        last = np.flatnonzero(seen[:t, i])[-1]
+        assert receptacle[e, t, i] == env.location[last, i]
+    assert 0.3 < observed[:, :, :4].mean() < 0.99  # masked, not empty
+
+
+def test_a_vocabulary_that_does_not_cover_the_data_is_refused(cfg, recorded):
+    env = recorded.environments[0]
+    alien = dataclasses.replace(env, object_classes=("Alien", *env.object_classes[1:]))
+    with pytest.raises(ValueError, match="no object class 'Alien'"):
+        rw.recorded_homes(Recorded(environments=(alien,)), cfg.homes)
+
+
+def test_the_split_is_seeded_by_environment_and_by_time(recorded):
+    names = [f"env{i}" for i in range(10)]
+    a = rw.split_environments(names, 0.2, 0.2, seed=1)
+    assert a == rw.split_environments(names, 0.2, 0.2, seed=1)
+    assert a != rw.split_environments(names, 0.2, 0.2, seed=2)
+    assert sorted(a["train"] + a["val"] + a["test"]) == list(range(10))
+    assert len(a["test"]) == len(a["val"]) == 2
+    three = rw.split_environments(recorded.names(), 0.2, 0.2, seed=0)
+    assert [len(three[p]) for p in rw.SPLITS] == [1, 1, 1]
+    cut = rw.time_cut(recorded, [0], 0.25)
+    assert cut[0] == 54  # the last quarter of 72 hours held out
+
+
+def test_training_batches_query_only_observed_targets(cfg, recorded):
+    data = rw.part_of(recorded, cfg.homes, (0.0, 0.0, 0.25, 0), "train")
+    batch = jax.jit(lambda k: rw.draw_batch(k, data, cfg))(jax.random.key(3))
+    queries = rw.draw_queries(jax.random.key(3), jax.tree.map(lambda a: a[:3], data), 50,
+                              cfg.max_horizon, cfg.default_horizon_frac)
+    ok = np.asarray(rw.target_hours(data))
+    e = np.arange(3)[:, None]
+    assert ok[e, np.asarray(queries.tau_q), np.asarray(queries.object_index)].all()
+    assert np.all(np.asarray(queries.tau_q) < 54)  # before the time cut
+    horizon = np.asarray(queries.horizon)
+    assert horizon.min() >= 1 and horizon.max() <= cfg.max_horizon
+    assert batch.history.shape[-1] == len(homes_tokens.HISTORY_FEATURES)
+
+
+def test_unseen_objects_carry_where_and_how_long_ago_they_were_seen(cfg, recorded):
+    data = rw.recorded_homes(recorded, cfg.homes)
+    observed = np.asarray(data.observed)
+    e, t, i = (int(v) for v in np.argwhere(~observed[:, 10:60, :1])[0])
+    t += 10
+    last = np.flatnonzero(observed[e, :t + 1, i])
+    queries = HomesQueries(object_index=jnp.full((3, 1), i, jnp.int32),
+                           tau=jnp.full((3, 1), t, jnp.int32),
+                           tau_q=jnp.full((3, 1), t + 1, jnp.int32))
+    f = np.asarray(homes_tokens.history_features(data.homes, queries, cfg.homes, 24,
+                                                 data.observed))[e, 0]
+    names = homes_tokens.HISTORY_FEATURES
+    allowed = f[:, names.index("allowed")] > 0
+    unseen = f[allowed][:, [names.index(n) for n in names[-3:]]]
+    ago = t - last[-1] if len(last) else t + 1
+    np.testing.assert_allclose(unseen[0], [1.0, np.log1p(ago) / np.log1p(72),
+                                           float(not len(last))], atol=1e-6)
+    # every hour observed: the features of FlowSim homes, the last three 0
+    full = np.asarray(homes_tokens.history_features(data.homes, queries, cfg.homes, 24,
+                                                    np.ones_like(observed)))
+    none = np.asarray(homes_tokens.history_features(data.homes, queries, cfg.homes, 24))
+    np.testing.assert_array_equal(full, none)
+    assert np.all(none[..., -3:] == 0)
+
+
+def test_realised_scores_break_ties_fairly():
+    from flowmaps_jax.evaluation.realised import realised_scores, reliability
+
+    allowed = np.array([[[True, True, True, False]]])
+    uniform = allowed / 3.0
+    s = realised_scores(uniform, np.array([[1]]), allowed)
+    np.testing.assert_allclose([s["top1"][0, 0], s["rank"][0, 0], s["log_score"][0, 0]],
+                               [1 / 3, 2.0, np.log(1 / 3)])
+    sharp = np.array([[[0.7, 0.2, 0.1, 0.0]]])
+    s = realised_scores(sharp, np.array([[2]]), allowed)
+    assert s["top1"][0, 0] == 0 and s["rank"][0, 0] == 3 and s["top5"][0, 0] == 1
+    table = reliability(sharp, np.array([[0]]), allowed, np.array([[True]]))
+    assert sum(b["count"] for b in table["bins"]) == 3
+    assert table["bins"][7]["realised"] == 1.0 and table["bins"][1]["realised"] == 0.0
+
+
+def test_train_evaluate_and_search_with_data(data_dir, tmp_path):
+    run = tmp_path / "run"
+    code, out = run_python_in_process(
+        ["-m", "flowmaps_jax.train", "--preset", "smoke", "--data", str(data_dir),
+         "--run-dir", str(run), "--no-progress", "--steps", "2", "--set", "val_every=2",
+         "--set", "ckpt_every=2", "--set", "log_every=1"], tmp_path)
+    assert code == 0, out
+    assert "train (1): " in out and "test (1): " in out  # the split, printed
+    config = json.loads((run / "config.json").read_text())
+    assert config["world"] == "recorded" and config["data"] == str(data_dir)
+    assert isinstance(config_from_stored(config), RecordedTrainConfig)
+    code, out = run_python_in_process(
+        ["-m", "flowmaps_jax.evaluate", "--checkpoint", str(run), "--out",
+         str(tmp_path / "eval"), "--queries", "8", "--no-progress"], tmp_path)
+    assert code == 0, out
+    results = json.loads((tmp_path / "eval" / "results.json").read_text())
+    rows = results["posterior"]
+    assert set(rows) == {"FlowMaps", "uniform over allowed", "last seen", "frequency prior"}
+    assert results["protocol"]["queries"] == 8 and "held-out test part" in results["part"]
+    assert (tmp_path / "eval" / "reliability.png").exists()
+    for row in rows.values():
+        assert row["metrics"]["log_score"]["overall"]["mean"] <= 0
+    code, out = run_python_in_process(
+        ["-m", "flowmaps_jax.search", "--checkpoint", str(run), "--data", str(data_dir),
+         "--out", str(tmp_path / "search"), "--queries", "4", "--no-progress"], tmp_path)
+    assert code == 0, out
+    nav = json.loads((tmp_path / "search" / "search.json").read_text())["navigation"]
+    assert "FlowMaps, most-probable" in nav and "nearest first" in nav
+
+
+@pytest.mark.parametrize("args, message", [
+    (["-m", "flowmaps_jax.train", "--data", "{missing}", "--preset", "smoke"], "--data"),
+    (["-m", "flowmaps_jax.evaluate", "--checkpoint", "pretrained:flowmaps", "--data",
+      "{data}", "--out", "{tmp}/e"], "--data needs a model of"),
+    (["-m", "flowmaps_jax.search", "--checkpoint", "pretrained:flowmaps-homes", "--data",
+      "{missing}", "--out", "{tmp}/s"], "--data"),
+])
+def test_bad_data_exits_2_with_one_line(args, message, data_dir, tmp_path):
+    fill = {"missing": str(tmp_path / "nothing"), "data": str(data_dir), "tmp": str(tmp_path)}
+    code, out = run_python_in_process([a.format(**fill) for a in args], tmp_path)
+    assert code == 2, out
+    assert message in out.strip().splitlines()[-1]
