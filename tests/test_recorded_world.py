@@ -105,6 +105,9 @@ def test_the_split_is_seeded_by_environment_and_by_time(recorded):
     assert [len(three[p]) for p in rw.SPLITS] == [1, 1, 1]
     cut = rw.time_cut(recorded, [0], 0.25)
     assert cut[0] == 54  # the last quarter of 72 hours held out
+    cfg = rw.homes_config_of(recorded)
+    test = rw.part_of(recorded, cfg, (0.2, 0.2, 0.25, 0), "test")  # + the training hours
+    assert test.num_homes == 2 and list(np.asarray(test.start)) == [0, 54]
 
 
 def test_training_batches_query_only_observed_targets(cfg, recorded):

@@ -213,12 +213,11 @@ def run_for_world(parser: argparse.ArgumentParser, args: argparse.Namespace,
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
     try:
-        stored = stored_config(args.checkpoint, args.which)
-        family = stored.get("model_kind") or stored_family(args.checkpoint, args.which)
+        family = stored_family(args.checkpoint, args.which)
     except ValueError as err:
         print(f"error: --checkpoint {args.checkpoint!r}: {err}", file=sys.stderr)
         return EXIT_USAGE
-    name = stored.get("world") or world_of_family(family).name  # a world stored with the run
+    name = _stored_world(args) or world_of_family(family).name
     if getattr(args, "data", None) is not None:  # a dataset on disk: the world that reads it
         files = world_of_files()
         if family not in files.families:
@@ -231,6 +230,15 @@ def run_for_world(parser: argparse.ArgumentParser, args: argparse.Namespace,
               file=sys.stderr)
         return EXIT_USAGE
     return by_world[name](parser, args, argv)
+
+
+def _stored_world(args: argparse.Namespace) -> str | None:
+    """The world stored with ``--checkpoint``'s run (a recorded run stores ``"world"``), or
+    None: then the first world that trains its family."""
+    try:
+        return stored_config(args.checkpoint, args.which).get("world")
+    except ValueError:  # read once already (its family): nothing stored beside it
+        return None
 
 
 def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,

@@ -7,9 +7,10 @@ trained on), ``num_queries`` per environment, each at its own map hour τ, the o
 τ_q = τ + Δ (Δ from the default horizons that fit) drawn among the observed (object, hour)
 pairs: the target is where the object was seen at τ_q. The object may be unseen at τ.
 
-Per row (the model, and the reference rows: uniform over the allowed receptacles, last seen,
-the frequency prior of :mod:`flowmaps_jax.evaluation.priors`, both read over the recorded
-history where every unseen hour holds where the object was last seen):
+Per row (the model, and the reference rows of :mod:`flowmaps_jax.evaluation.priors`: uniform
+over the allowed receptacles; last seen, where the object was last seen up to τ; the frequency
+prior, add-one counts over the hours of the model's history window in which the object was
+seen):
 
 * log score: log p(realised receptacle), nats (higher is better; p floored at ``P_FLOOR``);
 * top-1 and top-5: whether the realised receptacle is the most probable / among the 5 most
@@ -76,13 +77,18 @@ ROWS_PER_CALL = 4096
 # --------------------------------------------------------------------------- queries
 
 
+@functools.partial(jax.jit, static_argnames="max_horizon")
+def _draw(keys, data, max_horizon):
+    """One query per environment for every key, one key at a time (memory: one draw's)."""
+    return jax.lax.map(lambda k: rw.draw_queries(k, data, 1, max_horizon, 1.0), keys)
+
+
 def realised_queries(key, data: rw.RecordedHomes, num_queries: int, max_horizon: int
                      ) -> tuple[HomesQueries, np.ndarray]:
     """(queries (E, Q), valid (E, Q) bool): Q queries per environment, each its own τ (see the
     module docstring); ``valid`` False where an environment had no observed target to draw."""
     keys = jax.random.split(key, num_queries)
-    draw = jax.jit(jax.vmap(lambda k: rw.draw_queries(k, data, 1, max_horizon, 1.0)))
-    q = draw(keys)  # fields (Q, E, 1)
+    q = _draw(keys, data, max_horizon)  # fields (Q, E, 1)
     queries = jax.tree.map(lambda a: jnp.transpose(a[..., 0]), q)
     ok = np.asarray(rw.target_hours(data))
     e = np.arange(ok.shape[0])[:, None]
@@ -118,10 +124,12 @@ def model_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries
 def row_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries) -> dict:
     """{row name: (E, Q, R)} of the model and the reference rows."""
     history = predictor.model.history
+    seen_only = data.homes.replace(  # unseen hours count for no receptacle
+        receptacle=jnp.where(data.observed, data.homes.receptacle, -1))
     return {MODEL_ROW: model_probabilities(predictor, data, queries),
             UNIFORM: np.asarray(pr.uniform_prior(data.homes, queries)),
             LAST_SEEN: np.asarray(pr.last_seen_prior()(data.homes, queries)),
-            FREQUENCY: np.asarray(pr.frequency_prior(history)(data.homes, queries))}
+            FREQUENCY: np.asarray(pr.frequency_prior(history)(seen_only, queries))}
 
 
 # --------------------------------------------------------------------------- scores

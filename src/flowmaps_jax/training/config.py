@@ -335,12 +335,16 @@ class HomesTrainConfig:
                 f"max_horizon must be <= {most} (homes.num_hours={self.homes.num_hours} - "
                 f"model.history={self.model.history}: a map hour needs model.history hours "
                 f"before it and max_horizon after it); got {self.max_horizon}")
-        if self.val_homes < self.val_batches * self.batch_size:
-            raise ValueError(f"val_homes must be an int in {self.val_batches * self.batch_size}"
-                             f".. (val_batches x batch_size); got {self.val_homes}")
+        self._check_data()
         if self.devices is not None and self.batch_size % self.devices:
             raise ValueError(f"batch_size={self.batch_size} does not divide evenly over "
                              f"devices={self.devices}: use a multiple of {self.devices}")
+
+    def _check_data(self) -> None:
+        """The checks of the fields that say where the data comes from."""
+        if self.val_homes < self.val_batches * self.batch_size:
+            raise ValueError(f"val_homes must be an int in {self.val_batches * self.batch_size}"
+                             f".. (val_batches x batch_size); got {self.val_homes}")
 
     def to_dict(self) -> dict:
         """A JSON-able dict (nested configs become nested dicts)."""
@@ -380,8 +384,9 @@ class RecordedTrainConfig(HomesTrainConfig):
     split_seed: int = _recipe(0)
     preset: str = _bookkeeping("recorded")
 
-    def __post_init__(self):
-        super().__post_init__()
+    def _check_data(self) -> None:
+        """``data`` and the split (``val_homes``, ``chunk_homes``, ``chunk_steps``: not
+        read)."""
         check_fields(self, _RECORDED_RULES, store=False)
         if self.val_fraction + self.test_fraction >= 1.0:
             raise ValueError(f"val_fraction + test_fraction must be < 1 (some environments "
@@ -578,7 +583,7 @@ def recorded_smoke_preset() -> RecordedTrainConfig:
     smoke = homes_smoke_preset()
     return RecordedTrainConfig(
         model=dataclasses.replace(smoke.model, history_observed=True), batch_size=4,
-        queries_per_scene=2, steps=6, warmup_steps=1, max_horizon=24, val_homes=8,
+        queries_per_scene=2, steps=6, warmup_steps=1, max_horizon=24,
         val_batches=2, log_every=2, val_every=3, ckpt_every=3, val_fraction=0.2,
         test_fraction=0.2, preset="recorded-smoke")
 
@@ -590,7 +595,8 @@ def recorded_homes_preset() -> RecordedTrainConfig:
                                                       history_observed=True), steps=10000)
 
 
-RECORDED_PRESETS = {"smoke": recorded_smoke_preset, "homes": recorded_homes_preset}
+RECORDED_PRESETS = {"smoke": recorded_smoke_preset, "homes-smoke": recorded_smoke_preset,
+                    "homes": recorded_homes_preset}
 """The recipes ``--preset NAME --data PATH`` trains (default ``homes``)."""
 
 

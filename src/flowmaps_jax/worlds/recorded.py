@@ -370,9 +370,9 @@ def _horizon_weights(max_horizon: int, default_frac: float) -> jax.Array:
 
 
 def draw_queries(key, data: RecordedHomes, num_queries: int, max_horizon: int,
-                 default_frac: float, history_min: int = 0) -> HomesQueries:
-    """Q queries per home, sharing one map hour τ per home: τ uniformly among the hours >=
-    ``history_min`` with an observed target within ``max_horizon`` hours after it, then
+                 default_frac: float) -> HomesQueries:
+    """Q queries per home, sharing one map hour τ per home: τ uniformly among the hours with
+    an observed target within ``max_horizon`` hours after it, then
     (object, horizon) pairs among the observed targets, horizons weighted as the homes world
     draws them (:func:`_horizon_weights`). Jittable."""
     k_tau, k_pair = jax.random.split(key)
@@ -383,7 +383,7 @@ def draw_queries(key, data: RecordedHomes, num_queries: int, max_horizon: int,
     csum = jnp.cumsum(any_ok, axis=1)  # (E, T + H + 1)
     hours = jnp.arange(t)
     ahead = csum[:, hours + h] - csum[:, hours]  # targets in τ + 1 … τ + H
-    tau_ok = (ahead > 0) & (hours >= history_min)
+    tau_ok = ahead > 0
     tau = jax.random.categorical(k_tau, jnp.where(tau_ok, 0.0, -jnp.inf))  # (E,)
     padded = jnp.concatenate([ok, jnp.zeros((e, h + 1, m), bool)], axis=1)
     window = jax.vmap(lambda o, s: jax.lax.dynamic_slice_in_dim(o, s + 1, h, 0))(
