@@ -493,7 +493,7 @@ def save_recorded(recorded: Recorded, path) -> pathlib.Path:
     root = make_output_dir("path", root, [INDEX_FILE])
     for env in recorded.environments:
         make_output_dir("path", root / env.name, [ENVIRONMENT_FILE, ARRAYS_FILE])
-    files[root / INDEX_FILE] = json.dumps(index_json(recorded), indent=1) + "\n"
+    files[root / INDEX_FILE] = dumps_entries(index_json(recorded))
     write_files(files, name="path")
     return root / INDEX_FILE
 
