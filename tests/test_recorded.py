@@ -507,6 +507,8 @@ def test_import_needs_a_lookup_and_an_environment(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="holds no environment folder"):
         import_flowmaps2026(tmp_path / "empty")
+    write_lookup(tmp_path / "root" / "env0")  # ROOT may be the environment folder itself
+    assert import_flowmaps2026(tmp_path / "root" / "env0").names() == ("env0",)
 
 
 def test_homes_through_the_authors_format_round_trip(homes, tmp_path):
