@@ -165,6 +165,14 @@ ENV_CASES = {
                            "doors: doors are given but rooms is empty"),
     "bad box": (_set("rooms", [{"class": "a", "box": [0, 0, -1, 1]}]),
                 r"rooms\[\*\]\.box: must have x1 > x0"),
+    "door index": (lambda d: (d.__setitem__("rooms", [{"class": "a", "box": [0, 0, 1, 1]}]),
+                              d.__setitem__("doors", [{"rooms": [0, 5], "position": [1, 0]}])),
+                   r"doors\[0\]\.rooms: holds 5, outside 0\.\.0"),
+    "no receptacles": (lambda d: (d.__setitem__("receptacles", []),
+                                  [o.__setitem__("allowed", []) for o in d["objects"]]),
+                       "receptacles: is empty"),
+    "nan room box": (_set("rooms", [{"class": "a", "box": [0, 0, float("nan"), 1]}]),
+                     r"rooms\[\*\]\.box: holds NaN or inf"),
     "duplicate id": (lambda d: d["objects"][1].__setitem__("id", "Book|1"),
                      r"objects\[\*\]\.id: names 'Book\|1' twice"),
 }
@@ -499,6 +507,8 @@ def test_import_needs_a_lookup_and_an_environment(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="holds no environment folder"):
         import_flowmaps2026(tmp_path / "empty")
+    write_lookup(tmp_path / "root" / "env0")  # ROOT may be the environment folder itself
+    assert import_flowmaps2026(tmp_path / "root" / "env0").names() == ("env0",)
 
 
 def test_homes_through_the_authors_format_round_trip(homes, tmp_path):

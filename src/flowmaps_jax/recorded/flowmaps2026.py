@@ -294,7 +294,7 @@ def import_environment(name: str, folder: pathlib.Path, lookups: dict | None = N
             value = np.asarray(points, np.float64)
         except (TypeError, ValueError):
             value = np.zeros(0)
-        if value.shape != (8, 3) or not np.all(np.isfinite(value)) or value.dtype == object:
+        if value.shape != (8, 3) or not np.all(np.isfinite(value)):
             raise ValueError(f"{boxes_file}: {i}.cornerPoints: must be 8 finite [x, y, z] "
                              f"points")
         corners[r] = value[:, _SWAP]
@@ -311,7 +311,7 @@ def import_environment(name: str, folder: pathlib.Path, lookups: dict | None = N
         if not isinstance(listed, list):
             raise ValueError(f"{allowed_file}: {i}: must be a list of receptacle ids")
         for r in listed:
-            if r not in index:
+            if not isinstance(r, str) or r not in index:
                 raise ValueError(f"{allowed_file}: {i}: {r!r} is not in {RECEPTACLE_NAMES}"
                                  [:300])
             allowed[m, index[r]] = True

@@ -268,7 +268,7 @@ def _check_range(where: _Where, field: str, value: np.ndarray, low: int, high: i
     if value.size and (value.min() < low or value.max() > high):
         at = tuple(int(i) for i in np.argwhere((value < low) | (value > high))[0])
         bad = value[at]
-        if value.ndim == 1:
+        if value.ndim == 1 or field in _JSON_NAMES:  # one entry of environment.json
             raise where.fail(f"{field}[{at[0]}]", f"holds {bad}, outside {low}..{high} "
                                                   f"({meaning})")
         raise where.fail(field, f"holds {bad} at {list(at)}, outside {low}..{high} ({meaning})")
@@ -493,7 +493,7 @@ def save_recorded(recorded: Recorded, path) -> pathlib.Path:
     root = make_output_dir("path", root, [INDEX_FILE])
     for env in recorded.environments:
         make_output_dir("path", root / env.name, [ENVIRONMENT_FILE, ARRAYS_FILE])
-    files[root / INDEX_FILE] = json.dumps(index_json(recorded), indent=1) + "\n"
+    files[root / INDEX_FILE] = dumps_entries(index_json(recorded))
     write_files(files, name="path")
     return root / INDEX_FILE
 
