@@ -87,6 +87,23 @@ def test_environments_become_valid_homes_with_their_observations(cfg, recorded):
     assert 0.3 < observed[:, :, :4].mean() < 0.99  # masked, not empty
 
 
+def test_environments_without_rooms_or_distances_read_as_homes(cfg, recorded):
+    """The authors' layout has no rooms: the receptacles stand in a room spanning the home,
+    distances Euclidean."""
+    envs = tuple(dataclasses.replace(
+        e, room_classes=(), room_boxes=None, door_rooms=None, door_positions=None,
+        receptacle_room=np.full(e.num_receptacles, -1, np.int32), distance=None)
+        for e in recorded.environments)
+    bare = Recorded(environments=envs)
+    config = rw.homes_config_of(bare)
+    assert config.num_rooms >= 1 and [t.name for t in config.room_types] == ["none"]
+    data = rw.recorded_homes(bare, config)
+    size = np.asarray(data.homes.home_size)[0]
+    np.testing.assert_allclose(np.asarray(data.homes.room_box)[0, 0], [0, 0, *size])
+    data = rw.recorded_homes(bare, cfg.homes)  # a config with rooms reads it too
+    assert np.all(np.asarray(data.homes.receptacle_room)[:, :8] == 0)
+
+
 def test_a_vocabulary_that_does_not_cover_the_data_is_refused(cfg, recorded):
     env = recorded.environments[0]
     alien = dataclasses.replace(env, object_classes=("Alien", *env.object_classes[1:]))
