@@ -249,3 +249,27 @@ def test_a_recorded_run_stopped_and_resumed_writes_the_records_of_one_never_stop
     code, out = run_python_in_process(["-m", "flowmaps_jax.train", "--run-dir", str(split),
                                        "--resume", "--data", str(data_dir)], tmp_path)
     assert code == 2 and "--data cannot change on --resume" in out, out
+
+
+def test_the_shipped_homes_model_reads_homes_through_recorded_files_as_it_reads_them(
+        tmp_path):
+    """FlowSim homes -> recorded files -> homes again (0 % masked): the shipped homes model's
+    probabilities are those on the original homes (receptacles and objects renumbered)."""
+    from flowmaps_jax.predictor import load_pretrained
+
+    model = load_pretrained("flowmaps-homes")
+    homes = generate_homes(jax.random.key(5), model.homes, 2)
+    save_recorded(from_homes(homes, model.homes), tmp_path / "data")
+    data = rw.recorded_homes(load_recorded(tmp_path / "data"), model.homes)
+    valid_o, valid_r = np.asarray(homes.object_valid), np.asarray(homes.receptacle_valid)
+    tau = jnp.full((2, 3), 300, jnp.int32)
+    tau_q = tau + jnp.asarray([1, 24, 168], jnp.int32)
+    objects = np.stack([np.flatnonzero(v)[:3] for v in valid_o])
+    p = np.asarray(model.probabilities(homes, HomesQueries(
+        object_index=jnp.asarray(objects, jnp.int32), tau=tau, tau_q=tau_q)))
+    q = np.asarray(model.probabilities(data.homes, HomesQueries(
+        object_index=jnp.broadcast_to(jnp.arange(3, dtype=jnp.int32), (2, 3)), tau=tau,
+        tau_q=tau_q)))
+    for e in range(2):
+        slots = np.flatnonzero(valid_r[e])
+        np.testing.assert_allclose(q[e][:, :len(slots)], p[e][:, slots], atol=1e-5)
