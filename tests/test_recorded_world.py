@@ -228,6 +228,8 @@ def test_train_evaluate_and_search_with_data(data_dir, tmp_path):
       "{data}", "--out", "{tmp}/e"], "--data needs a model of"),
     (["-m", "flowmaps_jax.search", "--checkpoint", "pretrained:flowmaps-homes", "--data",
       "{missing}", "--out", "{tmp}/s"], "--data"),
+    (["-m", "flowmaps_jax.evaluate", "--checkpoint", "pretrained:flowmaps-homes", "--data",
+      "{data}", "--out", "{tmp}/e", "--kl-draws", "7"], "--kl-draws does not apply"),
 ])
 def test_bad_data_exits_2_with_one_line(args, message, data_dir, tmp_path):
     fill = {"missing": str(tmp_path / "nothing"), "data": str(data_dir), "tmp": str(tmp_path)}

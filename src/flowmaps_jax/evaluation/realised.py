@@ -72,6 +72,10 @@ MODEL_ROW, UNIFORM, LAST_SEEN, FREQUENCY = ("FlowMaps", "uniform over allowed", 
 REPORT = {"posterior": ("results", "reliability.png"),
           "navigation": ("search", "success_vs_looks.png")}
 ROWS_PER_CALL = 4096
+OPTIONS = ("checkpoint", "out", "data", "queries", "seed", "which", "no_figures", "no_progress",
+           "budget", "num_envs")
+"""The options the recorded scores read (``--num-envs``: at most this many environments);
+any other given is refused."""
 
 
 # --------------------------------------------------------------------------- queries
@@ -358,6 +362,10 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
 
     stem, figure = REPORT[part]
     try:
+        for name, value in vars(args).items():
+            if name not in OPTIONS and value != parser.get_default(name):
+                raise ValueError(f"--{name.replace('_', '-')} does not apply to recorded data "
+                                 "(--data)")
         stored = stored_config(args.checkpoint, args.which)
         data_path = args.data if getattr(args, "data", None) else stored.get("data")
         if not data_path:
@@ -380,6 +388,9 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
         with prefix_errors("--data: "):
             recorded = rw.load_recorded_data(data_path)
             data, what = evaluation_part(recorded, model.homes, stored, data_path)
+        if args.num_envs != parser.get_default("num_envs") and args.num_envs < data.num_homes:
+            data = jax.tree.map(lambda a: a[:args.num_envs], data)
+            what += f", the first {args.num_envs}"
         print(f"Recorded {part}: {data_path} ({what}), {queries} queries per environment, "
               f"FlowMaps {args.checkpoint} (step {model.step}) -> {out}", flush=True)
         results = run_evaluation(model, data, num_queries=queries, seed=args.seed,
