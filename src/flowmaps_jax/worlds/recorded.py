@@ -372,23 +372,22 @@ def _horizon_weights(max_horizon: int, default_frac: float) -> jax.Array:
 def draw_queries(key, data: RecordedHomes, num_queries: int, max_horizon: int,
                  default_frac: float) -> HomesQueries:
     """Q queries per home, sharing one map hour τ per home: τ uniformly among the hours with
-    an observed target within ``max_horizon`` hours after it, then
+    an observed target at a horizon it may draw (1 … ``max_horizon``), then
     (object, horizon) pairs among the observed targets, horizons weighted as the homes world
     draws them (:func:`_horizon_weights`). Jittable."""
     k_tau, k_pair = jax.random.split(key)
     ok = target_hours(data)  # (E, T, M)
     e, t, m = ok.shape
     h = max_horizon
+    weights = _horizon_weights(h, default_frac)  # (H,)
     any_ok = jnp.concatenate([ok.any(-1), jnp.zeros((e, h + 1), bool)], axis=1)
-    csum = jnp.cumsum(any_ok, axis=1)  # (E, T + H + 1)
-    hours = jnp.arange(t)
-    ahead = csum[:, hours + h] - csum[:, hours]  # targets in τ + 1 … τ + H
-    tau_ok = ahead > 0
+    ahead = any_ok[:, jnp.arange(t)[:, None] + jnp.arange(1, h + 1)]  # (E, T, H): τ + Δ
+    tau_ok = jnp.any(ahead & (weights > 0), axis=-1)  # a target at a horizon drawn
     tau = jax.random.categorical(k_tau, jnp.where(tau_ok, 0.0, -jnp.inf))  # (E,)
     padded = jnp.concatenate([ok, jnp.zeros((e, h + 1, m), bool)], axis=1)
     window = jax.vmap(lambda o, s: jax.lax.dynamic_slice_in_dim(o, s + 1, h, 0))(
         padded, tau)  # (E, H, M)
-    logits = jnp.where(window, jnp.log(_horizon_weights(h, default_frac))[:, None], -jnp.inf)
+    logits = jnp.where(window, jnp.log(weights)[:, None], -jnp.inf)
     pair = jax.random.categorical(k_pair, logits.reshape(e, 1, h * m),
                                   shape=(e, num_queries))  # (E, Q)
     dt, obj = pair // m + 1, pair % m
