@@ -275,3 +275,15 @@ def test_the_shipped_homes_model_reads_homes_through_recorded_files_as_it_reads_
     for e in range(2):
         slots = np.flatnonzero(valid_r[e])
         np.testing.assert_allclose(q[e][:, :len(slots)], p[e][:, slots], atol=1e-5)
+
+
+def test_a_checkpoint_whose_vocabulary_does_not_cover_the_data_exits_2(recorded, tmp_path):
+    env = recorded.environments[0]
+    alien = dataclasses.replace(env, object_classes=("Alien", *env.object_classes[1:]))
+    save_recorded(Recorded(environments=(alien,)), tmp_path / "alien")
+    code, out = run_python_in_process(
+        ["-m", "flowmaps_jax.evaluate", "--checkpoint", "pretrained:flowmaps-homes", "--data",
+         str(tmp_path / "alien"), "--out", str(tmp_path / "e")], tmp_path)
+    assert code == 2, out
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("error: --data: ") and "no object class 'Alien'" in last
