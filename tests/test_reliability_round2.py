@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from support import run_cli
 
+from flowmaps_jax import resources
 from flowmaps_jax import validation as v
 from flowmaps_jax.store import rundir
 from flowmaps_jax.training import cli as train_cli
@@ -71,7 +72,7 @@ def test_train_sizes_refused_before_anything_is_written(tmp_path, capsys, overri
                                          str(run_dir), "--set", override], capsys)
     assert code == 2
     line = _one_line(err)
-    assert field in line and "GB" in line and v.MAX_BYTES_ENV in line
+    assert field in line and "GB" in line and resources.MAX_BYTES_ENV in line
     assert not run_dir.exists()
 
 
@@ -88,22 +89,22 @@ def test_resume_with_a_size_over_budget_keeps_config_json(tmp_path, capsys):
 def test_budget_env_variables(monkeypatch):
     cfg = apply_overrides(CFG, ["val_batches=1000"])
     check_run_resources(cfg)
-    monkeypatch.setenv(v.MAX_BYTES_ENV, "1M")
+    monkeypatch.setenv(resources.MAX_BYTES_ENV, "1M")
     with pytest.raises(ValueError, match=r"val_batches=1000 .* more than the 0.001 GB"):
         check_run_resources(cfg)
-    monkeypatch.setenv(v.MAX_BYTES_ENV, "64Gi")
-    assert v.memory_limit() == 64 * 2**30
-    monkeypatch.setenv(v.MAX_BYTES_ENV, "lots")
-    with pytest.raises(ValueError, match=v.MAX_BYTES_ENV):
-        v.memory_limit()
-    monkeypatch.delenv(v.MAX_BYTES_ENV)
-    monkeypatch.setenv(v.MAX_FLOPS_ENV, "1e6")
+    monkeypatch.setenv(resources.MAX_BYTES_ENV, "64Gi")
+    assert resources.memory_limit() == 64 * 2**30
+    monkeypatch.setenv(resources.MAX_BYTES_ENV, "lots")
+    with pytest.raises(ValueError, match=resources.MAX_BYTES_ENV):
+        resources.memory_limit()
+    monkeypatch.delenv(resources.MAX_BYTES_ENV)
+    monkeypatch.setenv(resources.MAX_FLOPS_ENV, "1e6")
     with pytest.raises(ValueError, match=r"a train step .* floating-point operations"):
         check_run_resources(CFG)
-    monkeypatch.delenv(v.MAX_FLOPS_ENV)
-    assert v.flops_limit() == v.DEFAULT_MAX_FLOPS
+    monkeypatch.delenv(resources.MAX_FLOPS_ENV)
+    assert resources.flops_limit() == resources.DEFAULT_MAX_FLOPS
     with pytest.raises(ValueError, match="budget"):
-        v.check_resources("x=3", flops=v.DEFAULT_MAX_FLOPS + 1)
+        resources.check_resources("x=3", flops=resources.DEFAULT_MAX_FLOPS + 1)
 
 
 def test_every_preset_fits_the_default_budget():
@@ -463,7 +464,7 @@ def test_load_scenes_refuses_unknown_members_and_oversize(tmp_path, small_scenes
     with pytest.raises(ValueError, match=r"load_scenes: .*unexpected member 'extra.npy'"):
         load_scenes(path)
     save_scenes(path, scenes, flowsim_config)
-    monkeypatch.setenv(v.MAX_BYTES_ENV, "1K")
+    monkeypatch.setenv(resources.MAX_BYTES_ENV, "1K")
     with pytest.raises(ValueError, match="not reading it"):
         load_scenes(path)
 

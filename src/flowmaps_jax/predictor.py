@@ -55,6 +55,12 @@ from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
 from flowmaps_jax.model.flowmaps import check_inputs
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
+from flowmaps_jax.resources import (
+    check_resources,
+    embedding_bytes,
+    network_flops,
+    solver_evaluations,
+)
 from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
@@ -65,10 +71,6 @@ from flowmaps_jax.validation import (
     check_int,
     check_key,
     check_real_array,
-    check_resources,
-    embedding_bytes,
-    network_flops,
-    solver_evaluations,
 )
 from flowmaps_jax.worlds import world_of_family
 

@@ -20,6 +20,7 @@ from collections.abc import Hashable, Sequence
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.atomic_files import make_output_dir, write_file
 from flowmaps_jax.evaluation.protocol import EvalSet, RowResult
 from flowmaps_jax.evaluation.slots import (
     ROUTE_OFFSET_LABELS,
@@ -27,7 +28,6 @@ from flowmaps_jax.evaluation.slots import (
     offset_mass,
 )
 from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig
-from flowmaps_jax.validation import make_output_dir, write_file
 
 # --------------------------------------------------------------------------- aggregation
 

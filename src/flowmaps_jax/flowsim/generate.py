@@ -29,15 +29,14 @@ from flowmaps_jax.flowsim.config import (
     sim_params,
     sim_shape,
 )
+from flowmaps_jax.resources import array_bytes, check_request_size
 from flowmaps_jax.validation import (
-    array_bytes,
     check_array,
     check_instance,
     check_int,
     check_int_array,
     check_key,
     check_real_array,
-    check_request_size,
     is_concrete,
 )
 

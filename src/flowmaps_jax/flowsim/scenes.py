@@ -24,10 +24,11 @@ import numpy as np
 
 from flowmaps_jax import boxes as box_geometry
 from flowmaps_jax import tokens as tok
+from flowmaps_jax.atomic_files import write_file
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, FlowSimConfig
 from flowmaps_jax.flowsim.generate import _FIELDS, _FLOAT_FIELDS, Scenes, generate, validate_scenes
+from flowmaps_jax.resources import array_bytes, check_request_size
 from flowmaps_jax.validation import (
-    array_bytes,
     check_choice,
     check_file,
     check_instance,
@@ -37,12 +38,10 @@ from flowmaps_jax.validation import (
     check_output_file,
     check_real,
     check_real_array,
-    check_request_size,
     check_seed,
     parse_json,
     prefix_errors,
     read_npz,
-    write_file,
 )
 
 FORMAT_VERSION = 2

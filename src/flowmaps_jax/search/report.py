@@ -15,7 +15,7 @@ import json
 import pathlib
 import re
 
-from flowmaps_jax.validation import make_output_dir, write_file
+from flowmaps_jax.atomic_files import make_output_dir, write_file
 
 POLICY_LABELS = {"most-probable": "most-probable first",
                  "greedy": "greedy probability per pixel",

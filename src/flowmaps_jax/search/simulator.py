@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from flowmaps_jax.resources import check_resources
 from flowmaps_jax.search.policies import (
     MAX_OPTIMAL_TABLES,
     POLICIES,
@@ -50,7 +51,6 @@ from flowmaps_jax.validation import (
     check_probabilities,
     check_real,
     check_real_array,
-    check_resources,
 )
 
 DEFAULT_BUDGET = 10

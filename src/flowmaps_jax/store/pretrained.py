@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
+from flowmaps_jax.atomic_files import make_output_dir, write_files
 from flowmaps_jax.store import checkpoints
 from flowmaps_jax.store.checkpoints import WHICH
 from flowmaps_jax.store.model_spec import HOMES_FAMILY, ModelSpec, model_spec
@@ -46,11 +47,9 @@ from flowmaps_jax.validation import (
     check_int,
     check_keys,
     check_output_dir,
-    make_output_dir,
     parse_json,
     prefix_errors,
     read_npz,
-    write_files,
 )
 
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[1] / "pretrained"

@@ -38,13 +38,9 @@ from collections.abc import Callable, Iterator
 import jax
 
 from flowmaps_jax import distributed
+from flowmaps_jax.atomic_files import check_no_links, check_tree_no_links, write_file
 from flowmaps_jax.store import checkpoints
-from flowmaps_jax.validation import (
-    check_no_links,
-    check_tree_no_links,
-    parse_json,
-    write_file,
-)
+from flowmaps_jax.validation import parse_json
 
 LOCK_NAME = ".lock"
 METRICS = "metrics.jsonl"

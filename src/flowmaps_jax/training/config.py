@@ -39,6 +39,7 @@ from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
 from flowmaps_jax.model.homes_family import FAMILY_NAME as HOMES_FAMILY
 from flowmaps_jax.model.homes_family import HomesModelConfig
+from flowmaps_jax.resources import check_resources
 from flowmaps_jax.store.model_spec import ModelSpec
 from flowmaps_jax.training.overrides import (
     SHORTHANDS,
@@ -52,7 +53,6 @@ from flowmaps_jax.validation import (
     check_instance,
     check_int,
     check_plain_name,
-    check_resources,
     check_seed,
 )
 from flowmaps_jax.validation.fields import Choice, Int, Optional, Real, Text, check_fields

@@ -30,19 +30,20 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   plain checks above.
 * :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
   (the file or command they concern).
-* :mod:`.writes`: :func:`write_file`, :func:`make_output_dir`, :func:`save_figure`,
-  :func:`check_no_links`: the one writer of every command's output files (a temporary file and
-  a rename; a symbolic link at the target, or in a folder it creates, is refused).
-* :mod:`.resources`: :func:`array_bytes`, :func:`memory_limit`, :func:`flops_limit`,
-  :func:`check_request_size`, :func:`check_resources`, :func:`network_flops`,
-  :func:`solver_evaluations`, :func:`embedding_bytes`, :func:`embedding_flops`. Every size that
-  scales memory or time goes through :func:`check_resources` before anything runs: a request
-  above the budget is a ``ValueError`` naming it, the estimate and the limit. The budgets:
-  memory, :data:`MAX_BYTES_ENV` (default the accelerator's memory, else the host's); work,
-  :data:`MAX_FLOPS_ENV` (default :data:`DEFAULT_MAX_FLOPS` floating-point operations per
-  uninterruptible call; a sequential step counts as at least :data:`SEQUENTIAL_FLOPS`).
+
+Not checks, and so not here: the atomic writer of output files is
+:mod:`flowmaps_jax.atomic_files`, the memory and work budgets are :mod:`flowmaps_jax.resources`
+(the names some callers still import from here are re-exported below).
 """
 
+from flowmaps_jax.atomic_files import make_output_dir, save_figure, write_file
+from flowmaps_jax.resources import (
+    check_request_size,
+    check_resources,
+    embedding_bytes,
+    network_flops,
+    solver_evaluations,
+)
 from flowmaps_jax.validation.arrays import (
     PROB_ATOL,
     check_array,
@@ -67,21 +68,6 @@ from flowmaps_jax.validation.files import (
     read_json,
     read_npz,
 )
-from flowmaps_jax.validation.resources import (
-    DEFAULT_MAX_FLOPS,
-    MAX_BYTES_ENV,
-    MAX_FLOPS_ENV,
-    SEQUENTIAL_FLOPS,
-    array_bytes,
-    check_request_size,
-    check_resources,
-    embedding_bytes,
-    embedding_flops,
-    flops_limit,
-    memory_limit,
-    network_flops,
-    solver_evaluations,
-)
 from flowmaps_jax.validation.scalars import (
     INT32_MAX,
     SEED_MAX,
@@ -94,24 +80,11 @@ from flowmaps_jax.validation.scalars import (
     check_seed,
     is_real_dtype,
 )
-from flowmaps_jax.validation.writes import (
-    check_no_links,
-    check_tree_no_links,
-    make_output_dir,
-    save_figure,
-    write_file,
-    write_files,
-)
 
 __all__ = [
-    "DEFAULT_MAX_FLOPS",
     "INT32_MAX",
-    "MAX_BYTES_ENV",
-    "MAX_FLOPS_ENV",
     "PROB_ATOL",
     "SEED_MAX",
-    "SEQUENTIAL_FLOPS",
-    "array_bytes",
     "check_array",
     "check_choice",
     "check_concrete",
@@ -126,7 +99,6 @@ __all__ = [
     "check_keys",
     "check_mask",
     "check_mixture",
-    "check_no_links",
     "check_output_dir",
     "check_output_file",
     "check_path",
@@ -139,14 +111,10 @@ __all__ = [
     "check_seed",
     "check_shape",
     "check_table",
-    "check_tree_no_links",
     "embedding_bytes",
-    "embedding_flops",
-    "flops_limit",
     "is_concrete",
     "is_real_dtype",
     "make_output_dir",
-    "memory_limit",
     "network_flops",
     "parse_json",
     "prefix_errors",
@@ -155,5 +123,4 @@ __all__ = [
     "save_figure",
     "solver_evaluations",
     "write_file",
-    "write_files",
 ]

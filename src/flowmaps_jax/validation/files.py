@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from flowmaps_jax.validation.resources import array_bytes, memory_limit
-from flowmaps_jax.validation.writes import check_no_links
+from flowmaps_jax.atomic_files import check_no_links
+from flowmaps_jax.resources import array_bytes, memory_limit
 
 # ------------------------------------------------------------------------------ files
 

@@ -23,6 +23,7 @@ import pathlib
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.atomic_files import write_files
 from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
 from flowmaps_jax.validation import (
@@ -31,7 +32,6 @@ from flowmaps_jax.validation import (
     parse_json,
     prefix_errors,
     read_npz,
-    write_files,
 )
 
 FORMAT = "flowmaps-homes"
