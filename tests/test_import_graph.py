@@ -34,7 +34,7 @@ INFERENCE = sorted(
     name for name in MODULES
     if name in (f"{PACKAGE}.{m}" for m in ("predictor", "export", "flow", "tokens", "boxes",
                                             "validation", "distributed", "tables",
-                                            "atomic_files", "resources"))
+                                            "atomic_files", "untrusted_files", "resources"))
     or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store",
                         f"{PACKAGE}.worlds")))
 STORE = sorted(name for name in MODULES if name.startswith(f"{PACKAGE}.store"))
@@ -147,7 +147,7 @@ def test_no_import_circles():
 
 
 LAYERS = (
-    ("validation", "atomic_files", "resources", "boxes", "distributed"),
+    ("validation", "atomic_files", "untrusted_files", "resources", "boxes", "distributed"),
     ("tokens", "flow", "tables"),
     ("flowsim", "model"),
     ("worlds",),

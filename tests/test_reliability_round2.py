@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from support import run_cli
 
-from flowmaps_jax import resources
+from flowmaps_jax import resources, untrusted_files
 from flowmaps_jax import validation as v
 from flowmaps_jax.store import rundir
 from flowmaps_jax.training import cli as train_cli
@@ -431,24 +431,24 @@ def _npy(array) -> bytes:
 
 def test_read_npz_checks_members_and_sizes_before_decompressing(tmp_path):
     good = _zip(tmp_path / "good.npz", {"a.npy": _npy(np.arange(4))})
-    assert v.read_npz("f", good, allowed=["a"])["a"].tolist() == [0, 1, 2, 3]
+    assert untrusted_files.read_npz("f", good, allowed=["a"])["a"].tolist() == [0, 1, 2, 3]
     with pytest.raises(ValueError, match=r"unexpected member 'b.npy'"):
-        v.read_npz("f", _zip(tmp_path / "x.npz", {"a.npy": _npy(np.arange(4)),
+        untrusted_files.read_npz("f", _zip(tmp_path / "x.npz", {"a.npy": _npy(np.arange(4)),
                                                   "b.npy": _npy(np.zeros(3))}), allowed=["a"])
     with pytest.raises(ValueError, match=r"unexpected member 'notes.txt'"):
-        v.read_npz("f", _zip(tmp_path / "t.npz", {"notes.txt": b"hi"}))
+        untrusted_files.read_npz("f", _zip(tmp_path / "t.npz", {"notes.txt": b"hi"}))
     zeros = _zip(tmp_path / "zeros.npz", {"a.npy": _npy(np.zeros(2_000_000, np.uint8))})
     assert zeros.stat().st_size < 20_000  # 2 MB of zeros compress to almost nothing
     with pytest.raises(ValueError, match=r"declares 0.002 GB .* not reading it"):
-        v.read_npz("f", zeros, max_bytes=1_000_000)
+        untrusted_files.read_npz("f", zeros, max_bytes=1_000_000)
     buffer = io.BytesIO()  # a header claiming 8 GB, and no data
     np.lib.format.write_array_header_1_0(buffer, {"descr": "<f8", "fortran_order": False,
                                                   "shape": (10**9,)})
     header = buffer.getvalue()
     with pytest.raises(ValueError, match="header claims 8000000000 bytes"):
-        v.read_npz("f", _zip(tmp_path / "liar.npz", {"a.npy": header}))
+        untrusted_files.read_npz("f", _zip(tmp_path / "liar.npz", {"a.npy": header}))
     with pytest.raises(ValueError, match="missing arrays"):
-        v.read_npz("f", good, required=["a", "b"])
+        untrusted_files.read_npz("f", good, required=["a", "b"])
 
 
 def test_load_scenes_refuses_unknown_members_and_oversize(tmp_path, small_scenes,

@@ -66,7 +66,7 @@ from flowmaps_jax.tokens import OBJECT, Queries
 from flowmaps_jax.training import cli as train_cli
 from flowmaps_jax.training import loop, resume, runlog
 from flowmaps_jax.training.config import HomesTrainConfig, TrainConfig, apply_overrides, get_preset
-from flowmaps_jax.validation import parse_json, read_json
+from flowmaps_jax.untrusted_files import parse_json, read_json
 from flowmaps_jax.validation.scalars import int_list
 
 # A damaged checkpoint makes orbax leave un-awaited coroutines behind ("unraisable" warnings).

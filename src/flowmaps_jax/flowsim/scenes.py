@@ -28,6 +28,7 @@ from flowmaps_jax.atomic_files import write_file
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, FlowSimConfig
 from flowmaps_jax.flowsim.generate import _FIELDS, _FLOAT_FIELDS, Scenes, generate, validate_scenes
 from flowmaps_jax.resources import array_bytes, check_request_size
+from flowmaps_jax.untrusted_files import parse_json, read_npz
 from flowmaps_jax.validation import (
     check_choice,
     check_file,
@@ -39,9 +40,7 @@ from flowmaps_jax.validation import (
     check_real,
     check_real_array,
     check_seed,
-    parse_json,
     prefix_errors,
-    read_npz,
 )
 
 FORMAT_VERSION = 2

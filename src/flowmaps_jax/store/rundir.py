@@ -40,7 +40,7 @@ import jax
 from flowmaps_jax import distributed
 from flowmaps_jax.atomic_files import check_no_links, check_tree_no_links, write_file
 from flowmaps_jax.store import checkpoints
-from flowmaps_jax.validation import parse_json
+from flowmaps_jax.untrusted_files import parse_json
 
 LOCK_NAME = ".lock"
 METRICS = "metrics.jsonl"

@@ -20,8 +20,7 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   (``(num_envs, k + 1)``) and passes them in.
 * :mod:`.files`: :func:`check_path`, :func:`check_file`, :func:`check_dir`,
   :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
-  name, a metadata field: no path, no markup); :func:`read_npz` (an untrusted ``.npz``: member
-  names whitelisted, declared sizes checked before anything is decompressed, no pickles).
+  name, a metadata field: no path, no markup).
 * :mod:`.fields`: the config dataclasses' schemas only: :func:`check_fields` (a config's
   fields, from a ``{field: rule}`` table of :class:`~.fields.Int`, :class:`~.fields.Real`,
   :class:`~.fields.Choice`, ... rules or plain checks), :func:`check_table` (a table of
@@ -32,7 +31,8 @@ Modules (everything is importable from ``flowmaps_jax.validation``):
   (the file or command they concern).
 
 Not checks, and so not here: the atomic writer of output files is
-:mod:`flowmaps_jax.atomic_files`, the memory and work budgets are :mod:`flowmaps_jax.resources`
+:mod:`flowmaps_jax.atomic_files`, the reader of untrusted files
+:mod:`flowmaps_jax.untrusted_files`, the memory and work budgets :mod:`flowmaps_jax.resources`
 (the names some callers still import from here are re-exported below).
 """
 
@@ -64,9 +64,6 @@ from flowmaps_jax.validation.files import (
     check_output_file,
     check_path,
     check_plain_name,
-    parse_json,
-    read_json,
-    read_npz,
 )
 from flowmaps_jax.validation.scalars import (
     INT32_MAX,
@@ -116,10 +113,7 @@ __all__ = [
     "is_real_dtype",
     "make_output_dir",
     "network_flops",
-    "parse_json",
     "prefix_errors",
-    "read_json",
-    "read_npz",
     "save_figure",
     "solver_evaluations",
     "write_file",

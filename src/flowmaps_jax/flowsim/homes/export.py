@@ -26,13 +26,8 @@ import numpy as np
 from flowmaps_jax.atomic_files import write_files
 from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
-from flowmaps_jax.validation import (
-    check_file,
-    check_output_file,
-    parse_json,
-    prefix_errors,
-    read_npz,
-)
+from flowmaps_jax.untrusted_files import parse_json, read_npz
+from flowmaps_jax.validation import check_file, check_output_file, prefix_errors
 
 FORMAT = "flowmaps-homes"
 SCHEMA_VERSION = 1
