@@ -7,26 +7,19 @@ string). Array checks read only ``shape`` and ``dtype`` of tracers (values are c
 array is concrete), so a public function may run them and still be traced by ``jax.jit``; the
 jitted cores behind the public functions do not check again.
 
-Modules (everything is importable from ``flowmaps_jax.validation``):
+Modules (everything is importable from ``flowmaps_jax.validation``; the names are listed below):
 
-* :mod:`.scalars`: :func:`check_int`, :func:`check_real`, :func:`check_flag`,
-  :func:`check_choice`, :func:`check_instance`, :func:`check_seed`, :func:`check_key`;
-  :func:`is_real_dtype`.
-* :mod:`.arrays`: :func:`check_array`, :func:`check_shape`, :func:`check_real_array`,
-  :func:`check_int_array`, :func:`check_mask`, :func:`check_probabilities` (with
-  :data:`PROB_ATOL` for computed float32 distributions), :func:`is_concrete`,
-  :func:`check_concrete`. A shape is a tuple of int sizes, ``None`` (any size) and a leading
-  ``...`` (any leading dims); a caller computes the sizes from its arguments
-  (``(num_envs, k + 1)``) and passes them in.
-* :mod:`.files`: :func:`check_path`, :func:`check_file`, :func:`check_dir`,
-  :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
-  name, a metadata field: no path, no markup).
-* :mod:`.fields`: the config dataclasses' schemas only: :func:`check_fields` (a config's
-  fields, from a ``{field: rule}`` table of :class:`~.fields.Int`, :class:`~.fields.Real`,
-  :class:`~.fields.Choice`, ... rules or plain checks), :func:`check_table` (a table of
-  categories), :func:`check_mixture` (named probabilities) and :func:`check_keys` (the dict a
-  ``from_dict`` reads). A public function checks its arguments in its own body, with the
-  plain checks above.
+* :mod:`.scalars`: ints, reals, flags, choices, instances, seeds, PRNG keys.
+* :mod:`.arrays`: arrays, shapes, real and integer arrays, masks, probabilities (with
+  :data:`PROB_ATOL` for computed float32 distributions). A shape is a tuple of int sizes,
+  ``None`` (any size) and a leading ``...`` (any leading dims); a caller computes the sizes
+  from its arguments (``(num_envs, k + 1)``) and passes them in.
+* :mod:`.files`: paths, readable files and folders, writable outputs, plain names (a preset or
+  file name, a metadata field: no path, no markup).
+* :mod:`.fields`: the config dataclasses' schemas only: :func:`check_fields` (a config's fields,
+  from a ``{field: rule}`` table), :func:`check_table`, :func:`check_mixture`, :func:`check_keys`
+  (the dict a ``from_dict`` reads). A public function checks its arguments in its own body,
+  with the plain checks above.
 * :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
   (the file or command they concern).
 
