@@ -225,7 +225,7 @@ class Predictor:
     def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool,
                        num_steps: int, method: str, slots: int) -> None:
         """Refuse (ValueError) a request whose working memory or work would not fit the shared
-        budget (:func:`flowmaps_jax.validation.check_resources`), before XLA tries: the rows'
+        budget (:func:`flowmaps_jax.resources.check_resources`), before XLA tries: the rows'
         memory (``model.freq_bands`` included), the solver's ``num_steps`` (its time grid, and
         its evaluations one after another) and the FLOPs of every evaluation. The solver's
         arguments are checked already (:func:`flowmaps_jax.flow.check_solver_args`)."""

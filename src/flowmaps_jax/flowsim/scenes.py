@@ -296,7 +296,7 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
     or off the map, ids, visit orders or slots out of range (see ``validate_scenes``). The file
     is untrusted: a member ``save_scenes`` does not write, Python objects, or arrays declared
     larger than the memory budget are refused before anything is decompressed
-    (:func:`flowmaps_jax.validation.read_npz`)."""
+    (:func:`flowmaps_jax.untrusted_files.read_npz`)."""
     with prefix_errors("load_scenes: "):
         path = check_file("path", path)
         contents = read_npz(repr(path), path, allowed=("format_version", "config_json", *_FIELDS),

@@ -409,8 +409,8 @@ def compile_key(cfg):
 def check_run_resources(cfg: TrainConfig | HomesTrainConfig, devices: int = 1) -> None:
     """``ValueError`` naming the fields when a part of the run's resource estimate (its
     world's ``resources``, e.g. :func:`flowmaps_jax.worlds.flowsim.resource_estimate`), or all of it
-    together, is over the memory or work budget (:func:`flowmaps_jax.validation.memory_limit`,
-    :func:`~flowmaps_jax.validation.flops_limit`; environment variables FLOWMAPS_MAX_BYTES and
+    together, is over the memory or work budget (:func:`flowmaps_jax.resources.memory_limit`,
+    :func:`~flowmaps_jax.resources.flops_limit`; environment variables FLOWMAPS_MAX_BYTES and
     FLOWMAPS_MAX_FLOPS raise them)."""
     parts = world(cfg.world).resources(cfg, devices)
     total = ("the run altogether (model, step, validation, data and diagnostics)",

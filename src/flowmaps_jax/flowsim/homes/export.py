@@ -7,7 +7,7 @@ strings)) and, beside it, ``<stem>.schema.json``: the same schema, for tools tha
 arrays without this package (numpy, or any zip + .npy reader). The schema names every field's
 shape (symbols and sizes), dtype, unit and meaning, the vocabulary (class names and text
 descriptors, in id order), the regimes and the time convention. Both files are written aside
-and renamed into place together (``validation.write_files``), never through a symbolic link.
+and renamed into place together (``atomic_files.write_files``), never through a symbolic link.
 
 ``load_homes(path)`` returns (homes, config) and raises ``ValueError`` naming the file for
 anything ``save_homes`` could not have written: another format or schema version, missing or
@@ -96,7 +96,7 @@ def save_homes(path, homes: Homes, config: HomesConfig) -> pathlib.Path:
 def load_homes(path) -> tuple[Homes, HomesConfig]:
     """Read a file written by ``save_homes``; ``ValueError`` naming it if it is not one (see
     the module's docstring). The file is untrusted: members are whitelisted and their declared
-    sizes checked before anything is decompressed (``validation.read_npz``)."""
+    sizes checked before anything is decompressed (``untrusted_files.read_npz``)."""
     with prefix_errors("load_homes: "):
         path = check_file("path", path)
         contents = read_npz(repr(path), path, allowed=(*_META, *FIELDS),
