@@ -36,7 +36,7 @@ INFERENCE = sorted(
                                             "validation", "distributed", "tables",
                                             "atomic_files", "untrusted_files", "resources"))
     or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store",
-                        f"{PACKAGE}.worlds")))
+                        f"{PACKAGE}.worlds", f"{PACKAGE}.recorded")))
 STORE = sorted(name for name in MODULES if name.startswith(f"{PACKAGE}.store"))
 # What sits above the store: it may import none of them, lazily or not.
 ABOVE_STORE = tuple(f"{PACKAGE}.{m}" for m in ("training", "predictor", "evaluation", "search",
@@ -149,13 +149,13 @@ def test_no_import_circles():
 LAYERS = (
     ("validation", "atomic_files", "untrusted_files", "resources", "boxes", "distributed"),
     ("tokens", "flow", "tables"),
-    ("flowsim", "model"),
+    ("flowsim", "model", "recorded"),
     ("worlds",),
     ("store",),
     ("predictor", "export"),
     ("evaluation", "search"),
     ("training",),
-    ("train", "evaluate"),
+    ("train", "evaluate", "data"),
 )
 """The layers, bottom up, each a list of module-name prefixes under the package (the longest
 prefix decides). A world is a plug-in below the layers that use it: its simulator in
