@@ -33,7 +33,8 @@ MODULES = {_name(path): path for path in sorted((SRC / PACKAGE).rglob("*.py"))}
 INFERENCE = sorted(
     name for name in MODULES
     if name in (f"{PACKAGE}.{m}" for m in ("predictor", "export", "flow", "tokens", "boxes",
-                                            "validation", "distributed", "tables"))
+                                            "validation", "distributed", "tables",
+                                            "atomic_files", "untrusted_files", "resources"))
     or name.startswith((f"{PACKAGE}.model", f"{PACKAGE}.flowsim", f"{PACKAGE}.store",
                         f"{PACKAGE}.worlds", f"{PACKAGE}.recorded")))
 STORE = sorted(name for name in MODULES if name.startswith(f"{PACKAGE}.store"))
@@ -146,7 +147,7 @@ def test_no_import_circles():
 
 
 LAYERS = (
-    ("validation", "boxes", "distributed"),
+    ("validation", "atomic_files", "untrusted_files", "resources", "boxes", "distributed"),
     ("tokens", "flow", "tables"),
     ("flowsim", "model", "recorded"),
     ("worlds",),

@@ -15,6 +15,8 @@ import zipfile
 
 import jax
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes
@@ -377,7 +379,6 @@ def _y_up_box(x0, z0, x1, z1, top) -> list:
 
 def _nested(array: np.ndarray, fixed: bool):
     """A numpy array (rows first) as a pyarrow column of nested lists."""
-    pa = pytest.importorskip("pyarrow")
     column = pa.array(array.reshape(-1))
     for size in reversed(array.shape[1:]):
         if fixed:
@@ -392,8 +393,6 @@ def write_authors_environment(folder: pathlib.Path, *, pieces: bool = False,
                               fixed: bool = True, assignment=ASSIGNMENT,
                               objects=OBJECTS) -> None:
     """One environment folder written from the documented columns and JSON layout."""
-    pa = pytest.importorskip("pyarrow")
-    pq = pytest.importorskip("pyarrow.parquet")
     folder.mkdir(parents=True)
     t, m = assignment.shape[:2]
     corners = np.zeros((t, m, 8, 3), np.float32)
@@ -512,7 +511,6 @@ def test_import_needs_a_lookup_and_an_environment(tmp_path):
 
 
 def test_homes_through_the_authors_format_round_trip(homes, tmp_path):
-    pq = pytest.importorskip("pyarrow.parquet")
     from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026, import_flowmaps2026
 
     world = from_homes(homes, CONFIG, mask_fraction=0.3, seed=5)
@@ -544,7 +542,6 @@ def test_homes_through_the_authors_format_round_trip(homes, tmp_path):
 
 
 def test_recorded_boxes_and_gaps_round_trip(tmp_path):
-    pq = pytest.importorskip("pyarrow.parquet")
     from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026, import_flowmaps2026
 
     rng = np.random.default_rng(0)
@@ -557,25 +554,33 @@ def test_recorded_boxes_and_gaps_round_trip(tmp_path):
     assert_same(world, import_flowmaps2026(tmp_path / "a"))
 
 
-def test_export_is_readable_the_way_their_loader_reads_it(tmp_path):
-    polars = pytest.importorskip("polars")
-    pytest.importorskip("pyarrow")
+def test_export_writes_fixed_size_list_columns_as_their_loader_reads_them(tmp_path):
+    """Their loader reads the columns as polars' fixed-size ``Array`` columns: nested
+    fixed-size lists of [M, R] (assignment), [M] (rotation) and [M, 8, 3] (corner points)."""
     from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026
 
     export_flowmaps2026(Recorded((tiny_environment("env0"),)), tmp_path)
-    path = tmp_path / "env0" / "scan_merged.parquet"
-    assert polars.scan_parquet(path).select(polars.len()).collect().item() == 6
-    data = polars.read_parquet(path)
-    assert np.array(data["assignment"].to_numpy(), copy=True).shape == (6, 2, 3)
-    assert np.stack(data["rotation"].to_numpy()).shape == (6, 2)
-    assert np.stack(data["aabb_cornerPoints"].to_numpy()).shape == (6, 2, 8, 3)
+    table = pq.read_table(tmp_path / "env0" / "scan_merged.parquet")
+    assert table.num_rows == 6
+
+    def sizes(kind):
+        out = []
+        while pa.types.is_fixed_size_list(kind):
+            out.append(kind.list_size)
+            kind = kind.value_type
+        return out
+
+    assert sizes(table.schema.field("assignment").type) == [2, 3]
+    assert sizes(table.schema.field("rotation").type) == [2]
+    assert sizes(table.schema.field("aabb_cornerPoints").type) == [2, 8, 3]
+    assignment = np.asarray(table.column("assignment").to_pylist())
+    assert assignment.shape == (6, 2, 3) and set(np.unique(assignment)) <= {0, 1}
 
 
 # ---------------------------------------------------------------------------- the commands
 
 
 def test_the_data_commands(homes, tmp_path, capsys):
-    pytest.importorskip("pyarrow")
     from support import error_line, run_cli
 
     from flowmaps_jax.data.__main__ import main

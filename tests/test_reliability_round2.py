@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from support import run_cli
 
+from flowmaps_jax import resources, untrusted_files
 from flowmaps_jax import validation as v
 from flowmaps_jax.store import rundir
 from flowmaps_jax.training import cli as train_cli
@@ -71,7 +72,7 @@ def test_train_sizes_refused_before_anything_is_written(tmp_path, capsys, overri
                                          str(run_dir), "--set", override], capsys)
     assert code == 2
     line = _one_line(err)
-    assert field in line and "GB" in line and v.MAX_BYTES_ENV in line
+    assert field in line and "GB" in line and resources.MAX_BYTES_ENV in line
     assert not run_dir.exists()
 
 
@@ -88,22 +89,22 @@ def test_resume_with_a_size_over_budget_keeps_config_json(tmp_path, capsys):
 def test_budget_env_variables(monkeypatch):
     cfg = apply_overrides(CFG, ["val_batches=1000"])
     check_run_resources(cfg)
-    monkeypatch.setenv(v.MAX_BYTES_ENV, "1M")
+    monkeypatch.setenv(resources.MAX_BYTES_ENV, "1M")
     with pytest.raises(ValueError, match=r"val_batches=1000 .* more than the 0.001 GB"):
         check_run_resources(cfg)
-    monkeypatch.setenv(v.MAX_BYTES_ENV, "64Gi")
-    assert v.memory_limit() == 64 * 2**30
-    monkeypatch.setenv(v.MAX_BYTES_ENV, "lots")
-    with pytest.raises(ValueError, match=v.MAX_BYTES_ENV):
-        v.memory_limit()
-    monkeypatch.delenv(v.MAX_BYTES_ENV)
-    monkeypatch.setenv(v.MAX_FLOPS_ENV, "1e6")
+    monkeypatch.setenv(resources.MAX_BYTES_ENV, "64Gi")
+    assert resources.memory_limit() == 64 * 2**30
+    monkeypatch.setenv(resources.MAX_BYTES_ENV, "lots")
+    with pytest.raises(ValueError, match=resources.MAX_BYTES_ENV):
+        resources.memory_limit()
+    monkeypatch.delenv(resources.MAX_BYTES_ENV)
+    monkeypatch.setenv(resources.MAX_FLOPS_ENV, "1e6")
     with pytest.raises(ValueError, match=r"a train step .* floating-point operations"):
         check_run_resources(CFG)
-    monkeypatch.delenv(v.MAX_FLOPS_ENV)
-    assert v.flops_limit() == v.DEFAULT_MAX_FLOPS
+    monkeypatch.delenv(resources.MAX_FLOPS_ENV)
+    assert resources.flops_limit() == resources.DEFAULT_MAX_FLOPS
     with pytest.raises(ValueError, match="budget"):
-        v.check_resources("x=3", flops=v.DEFAULT_MAX_FLOPS + 1)
+        resources.check_resources("x=3", flops=resources.DEFAULT_MAX_FLOPS + 1)
 
 
 def test_every_preset_fits_the_default_budget():
@@ -430,24 +431,24 @@ def _npy(array) -> bytes:
 
 def test_read_npz_checks_members_and_sizes_before_decompressing(tmp_path):
     good = _zip(tmp_path / "good.npz", {"a.npy": _npy(np.arange(4))})
-    assert v.read_npz("f", good, allowed=["a"])["a"].tolist() == [0, 1, 2, 3]
+    assert untrusted_files.read_npz("f", good, allowed=["a"])["a"].tolist() == [0, 1, 2, 3]
     with pytest.raises(ValueError, match=r"unexpected member 'b.npy'"):
-        v.read_npz("f", _zip(tmp_path / "x.npz", {"a.npy": _npy(np.arange(4)),
+        untrusted_files.read_npz("f", _zip(tmp_path / "x.npz", {"a.npy": _npy(np.arange(4)),
                                                   "b.npy": _npy(np.zeros(3))}), allowed=["a"])
     with pytest.raises(ValueError, match=r"unexpected member 'notes.txt'"):
-        v.read_npz("f", _zip(tmp_path / "t.npz", {"notes.txt": b"hi"}))
+        untrusted_files.read_npz("f", _zip(tmp_path / "t.npz", {"notes.txt": b"hi"}))
     zeros = _zip(tmp_path / "zeros.npz", {"a.npy": _npy(np.zeros(2_000_000, np.uint8))})
     assert zeros.stat().st_size < 20_000  # 2 MB of zeros compress to almost nothing
     with pytest.raises(ValueError, match=r"declares 0.002 GB .* not reading it"):
-        v.read_npz("f", zeros, max_bytes=1_000_000)
+        untrusted_files.read_npz("f", zeros, max_bytes=1_000_000)
     buffer = io.BytesIO()  # a header claiming 8 GB, and no data
     np.lib.format.write_array_header_1_0(buffer, {"descr": "<f8", "fortran_order": False,
                                                   "shape": (10**9,)})
     header = buffer.getvalue()
     with pytest.raises(ValueError, match="header claims 8000000000 bytes"):
-        v.read_npz("f", _zip(tmp_path / "liar.npz", {"a.npy": header}))
+        untrusted_files.read_npz("f", _zip(tmp_path / "liar.npz", {"a.npy": header}))
     with pytest.raises(ValueError, match="missing arrays"):
-        v.read_npz("f", good, required=["a", "b"])
+        untrusted_files.read_npz("f", good, required=["a", "b"])
 
 
 def test_load_scenes_refuses_unknown_members_and_oversize(tmp_path, small_scenes,
@@ -463,7 +464,7 @@ def test_load_scenes_refuses_unknown_members_and_oversize(tmp_path, small_scenes
     with pytest.raises(ValueError, match=r"load_scenes: .*unexpected member 'extra.npy'"):
         load_scenes(path)
     save_scenes(path, scenes, flowsim_config)
-    monkeypatch.setenv(v.MAX_BYTES_ENV, "1K")
+    monkeypatch.setenv(resources.MAX_BYTES_ENV, "1K")
     with pytest.raises(ValueError, match="not reading it"):
         load_scenes(path)
 

@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 from support import TINY, error_line, run_cli, synthetic_queries, synthetic_tokens
 
+from flowmaps_jax import atomic_files, resources
 from flowmaps_jax import model as model_lib
 from flowmaps_jax import validation as v
 from flowmaps_jax.evaluation import cli as eval_cli
@@ -64,7 +65,7 @@ def _tally(cls: str, ok: bool) -> None:
 @pytest.fixture(autouse=True)
 def _budget(monkeypatch):
     """The same memory budget on every machine (16 GB), so the huge values are huge here too."""
-    monkeypatch.setenv(v.MAX_BYTES_ENV, "16G")
+    monkeypatch.setenv(resources.MAX_BYTES_ENV, "16G")
 
 
 _cli, _error_line = run_cli, error_line  # tests/support.py
@@ -119,7 +120,7 @@ def test_every_writer_refuses_a_link_and_writes_through_a_rename(tmp_path):
     link = out / "file.bin"
     link.symlink_to(target)
     with pytest.raises(ValueError, match="symbolic link"):
-        v.write_file(link, b"new")
+        atomic_files.write_file(link, b"new")
     with pytest.raises(ValueError, match="symbolic link"):
         rundir.write_atomic(link, "new")  # train's writer is the same one
     import matplotlib.pyplot as plt
@@ -127,17 +128,17 @@ def test_every_writer_refuses_a_link_and_writes_through_a_rename(tmp_path):
     figure = plt.figure()
     (out / "plot.png").symlink_to(target)
     with pytest.raises(ValueError, match="symbolic link"):
-        v.save_figure(figure, out / "plot.png")
+        atomic_files.save_figure(figure, out / "plot.png")
     plt.close(figure)
     # a link planted at the temporary name is removed, never followed
     (out / "fine.txt.tmp").symlink_to(target)
-    v.write_file(out / "fine.txt", "written")
+    atomic_files.write_file(out / "fine.txt", "written")
     assert (out / "fine.txt").read_text() == "written" and not (out / "fine.txt.tmp").exists()
     # a folder the writer creates is made component by component; a file in the way is named
     (out / "afile").write_text("x")
     with pytest.raises(ValueError, match="not a directory"):
-        v.make_output_dir("--out", out / "afile" / "sub")
-    assert v.make_output_dir("--out", out / "a" / "b").is_dir()
+        atomic_files.make_output_dir("--out", out / "afile" / "sub")
+    assert atomic_files.make_output_dir("--out", out / "a" / "b").is_dir()
     ok = target.read_text() == "keep"
     _tally("1 links", ok)
     assert ok

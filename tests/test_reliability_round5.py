@@ -42,6 +42,7 @@ import pytest
 from support import error_line, run_cli
 
 from flowmaps_jax import export as export_cli
+from flowmaps_jax.atomic_files import write_files
 from flowmaps_jax.evaluation import cli as eval_cli
 from flowmaps_jax.evaluation.receptacle_scores import posterior_scores
 from flowmaps_jax.flowsim import FlowSimConfig, generate, habits, scene_tokens
@@ -65,7 +66,7 @@ from flowmaps_jax.tokens import OBJECT, Queries
 from flowmaps_jax.training import cli as train_cli
 from flowmaps_jax.training import loop, resume, runlog
 from flowmaps_jax.training.config import HomesTrainConfig, TrainConfig, apply_overrides, get_preset
-from flowmaps_jax.validation import parse_json, read_json, write_files
+from flowmaps_jax.untrusted_files import parse_json, read_json
 from flowmaps_jax.validation.scalars import int_list
 
 # A damaged checkpoint makes orbax leave un-awaited coroutines behind ("unraisable" warnings).

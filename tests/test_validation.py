@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from flowmaps_jax import boxes, tokens
+from flowmaps_jax import boxes, resources, tokens
 from flowmaps_jax import validation as v
 from flowmaps_jax.flowsim import (
     FlowSimConfig,
@@ -194,11 +194,11 @@ def test_paths(tmp_path):
 
 
 def test_request_size():
-    assert v.array_bytes((10**7, 4)) == 1.6e8
-    assert v.check_request_size("x", 100, limit=1000) == 100
+    assert resources.array_bytes((10**7, 4)) == 1.6e8
+    assert resources.check_request_size("x", 100, limit=1000) == 100
     with pytest.raises(ValueError, match=r"sample\(N=10\*\*9\) would need about 36 GB"):
-        v.check_request_size("sample(N=10**9)", 36 * 10**9, limit=16 * 10**9)
-    assert v.memory_limit() > 2**28
+        resources.check_request_size("sample(N=10**9)", 36 * 10**9, limit=16 * 10**9)
+    assert resources.memory_limit() > 2**28
 
 
 # ------------------------------------------------------------------------------ boxes

@@ -55,6 +55,12 @@ from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
 from flowmaps_jax.model.flowmaps import check_inputs
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
+from flowmaps_jax.resources import (
+    check_resources,
+    embedding_bytes,
+    network_flops,
+    solver_evaluations,
+)
 from flowmaps_jax.store import checkpoints, pretrained
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
@@ -65,10 +71,6 @@ from flowmaps_jax.validation import (
     check_int,
     check_key,
     check_real_array,
-    check_resources,
-    embedding_bytes,
-    network_flops,
-    solver_evaluations,
 )
 from flowmaps_jax.worlds import world_of_family
 
@@ -223,7 +225,7 @@ class Predictor:
     def _check_request(self, what: str, b: int, q: int, n: int, with_density: bool,
                        num_steps: int, method: str, slots: int) -> None:
         """Refuse (ValueError) a request whose working memory or work would not fit the shared
-        budget (:func:`flowmaps_jax.validation.check_resources`), before XLA tries: the rows'
+        budget (:func:`flowmaps_jax.resources.check_resources`), before XLA tries: the rows'
         memory (``model.freq_bands`` included), the solver's ``num_steps`` (its time grid, and
         its evaluations one after another) and the FLOPs of every evaluation. The solver's
         arguments are checked already (:func:`flowmaps_jax.flow.check_solver_args`)."""

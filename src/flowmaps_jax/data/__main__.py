@@ -30,13 +30,8 @@ from flowmaps_jax.flowsim.homes.config import REGIMES, HomesConfig
 from flowmaps_jax.recorded import Recorded, from_homes, load_recorded, save_recorded
 from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026, import_flowmaps2026
 from flowmaps_jax.recorded.format import check_environment_name
-from flowmaps_jax.validation import (
-    check_int,
-    check_output_dir,
-    check_real,
-    check_request_size,
-    check_seed,
-)
+from flowmaps_jax.resources import check_request_size
+from flowmaps_jax.validation import check_int, check_output_dir, check_real, check_seed
 
 EXIT_OK, EXIT_USAGE, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 2, 74, 130
 PROG = "python -m flowmaps_jax.data"

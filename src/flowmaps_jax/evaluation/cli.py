@@ -62,15 +62,8 @@ from flowmaps_jax.predictor import (
     stored_config,
     stored_family,
 )
-from flowmaps_jax.validation import (
-    check_choice,
-    check_int,
-    check_output_dir,
-    check_resources,
-    check_seed,
-    network_flops,
-    solver_evaluations,
-)
+from flowmaps_jax.resources import check_resources, network_flops, solver_evaluations
+from flowmaps_jax.validation import check_choice, check_int, check_output_dir, check_seed
 from flowmaps_jax.validation.scalars import int_list
 from flowmaps_jax.worlds import world_of_family, world_of_files
 
@@ -90,7 +83,7 @@ def _parse_counts(text: str) -> tuple[int, ...]:
 
 def check_size(models, num_envs: int, config, args: argparse.Namespace) -> None:
     """The evaluation's memory and work, estimated before anything runs (the shared budget,
-    :func:`flowmaps_jax.validation.check_resources`): ValueError naming the arguments."""
+    :func:`flowmaps_jax.resources.check_resources`): ValueError naming the arguments."""
     e, m, f, d = num_envs, config.num_objects, config.num_furniture, args.kl_draws
     n, chunk = max(args.samples), min(args.chunk_envs, num_envs)
     queries = f"on {e} environments x {m} objects"

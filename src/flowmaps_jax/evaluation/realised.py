@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.atomic_files import make_output_dir, write_file
 from flowmaps_jax.evaluation import priors as pr
 from flowmaps_jax.evaluation.receptacle_scores import stats, summarise
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
@@ -46,14 +47,7 @@ from flowmaps_jax.flowsim.homes.tokens import per_query_batch
 from flowmaps_jax.model.homes_family import receptacle_probabilities
 from flowmaps_jax.search import navigation as nav
 from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
-from flowmaps_jax.validation import (
-    check_int,
-    check_output_dir,
-    check_seed,
-    make_output_dir,
-    prefix_errors,
-    write_file,
-)
+from flowmaps_jax.validation import check_int, check_output_dir, check_seed, prefix_errors
 from flowmaps_jax.worlds import recorded as rw
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74

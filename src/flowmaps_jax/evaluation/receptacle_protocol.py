@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.atomic_files import make_output_dir
 from flowmaps_jax.evaluation import priors as pr
 from flowmaps_jax.evaluation.receptacle_scores import (
     POSTERIOR_METRICS,
@@ -51,15 +52,14 @@ from flowmaps_jax.evaluation.receptacle_scores import (
 from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig, generate_homes
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, check_horizons, draw_queries
 from flowmaps_jax.flowsim.homes.rollout import homes_bytes_per_home
+from flowmaps_jax.resources import check_request_size
 from flowmaps_jax.search import navigation as nav
 from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
 from flowmaps_jax.validation import (
     check_choice,
     check_int,
     check_output_dir,
-    check_request_size,
     check_seed,
-    make_output_dir,
     prefix_errors,
 )
 

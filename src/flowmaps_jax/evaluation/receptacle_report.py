@@ -6,8 +6,8 @@ from __future__ import annotations
 import json
 import pathlib
 
+from flowmaps_jax.atomic_files import save_figure, write_file
 from flowmaps_jax.flowsim.homes import REGIMES
-from flowmaps_jax.validation import save_figure, write_file
 
 METRIC_NAMES = {"kl": "KL (nats)", "tv": "TV", "top1": "top-1", "rank_cost": "rank cost"}
 NAV_COLUMNS = ("sr@1", "sr@5", "sr@10", "msr", "spl@1", "mspl", "steps")

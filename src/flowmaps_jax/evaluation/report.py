@@ -20,6 +20,7 @@ from collections.abc import Hashable, Sequence
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.atomic_files import make_output_dir, write_file
 from flowmaps_jax.evaluation.protocol import EvalSet, RowResult
 from flowmaps_jax.evaluation.slots import (
     ROUTE_OFFSET_LABELS,
@@ -27,7 +28,6 @@ from flowmaps_jax.evaluation.slots import (
     offset_mass,
 )
 from flowmaps_jax.flowsim.config import HABITS, FlowSimConfig
-from flowmaps_jax.validation import make_output_dir, write_file
 
 # --------------------------------------------------------------------------- aggregation
 
@@ -244,7 +244,7 @@ def _history_sentence(p: dict) -> str:
 
 def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathlib.Path]:
     """Write ``results.json`` and ``results.md`` into out_dir (created); returns their paths.
-    Both go through the shared writer (:func:`flowmaps_jax.validation.write_file`: a temporary
+    Both go through the shared writer (:func:`flowmaps_jax.atomic_files.write_file`: a temporary
     file and a rename; a symbolic link at either name is a ``ValueError``)."""
     out = make_output_dir("out_dir", out_dir, files=("results.json", "results.md"))
     paths = {"json": out / "results.json", "markdown": out / "results.md"}

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 import jax
 
+from flowmaps_jax.atomic_files import make_output_dir, save_figure
 from flowmaps_jax.evaluation.figures import plot_by_horizon, plot_kl, plot_samples, plot_slot_bars
 from flowmaps_jax.evaluation.protocol import (
     DEFAULT_CHUNK_ENVS,
@@ -38,12 +39,7 @@ from flowmaps_jax.flowsim.scenes import check_history, scene_tokens
 from flowmaps_jax.flowsim.worlds import world_of
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tables import ASSIGN_RADIUS
-from flowmaps_jax.validation import (
-    check_instance,
-    check_output_dir,
-    make_output_dir,
-    save_figure,
-)
+from flowmaps_jax.validation import check_instance, check_output_dir
 
 REPORT_FILES = ("results.json", "results.md")
 FIGURES = ("kl.png", "by_horizon.png", "samples.png", "slots.png")

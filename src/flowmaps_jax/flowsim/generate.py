@@ -29,15 +29,14 @@ from flowmaps_jax.flowsim.config import (
     sim_params,
     sim_shape,
 )
+from flowmaps_jax.resources import array_bytes, check_request_size
 from flowmaps_jax.validation import (
-    array_bytes,
     check_array,
     check_instance,
     check_int,
     check_int_array,
     check_key,
     check_real_array,
-    check_request_size,
     is_concrete,
 )
 
@@ -297,7 +296,7 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh
     part: generate only these environments of the ``num_envs`` (a slice, e.g. this host's
         :func:`flowmaps_jax.distributed.host_part`); they equal the same rows of the full set.
     Raises ``ValueError`` on bad arguments (also when ``num_envs`` environments would not fit in
-    memory, see ``validation.check_request_size``) and :class:`LayoutError` (a ``ValueError`` and a
+    memory, see ``resources.check_request_size``) and :class:`LayoutError` (a ``ValueError`` and a
     ``RuntimeError``) if some layout could not be placed within ``config.layout_budget`` redraws
     (the config is too crowded). Not for use
     inside ``jit`` (it checks the layouts on the host); there, call ``scenes_from_env_keys``.

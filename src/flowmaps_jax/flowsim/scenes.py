@@ -24,10 +24,12 @@ import numpy as np
 
 from flowmaps_jax import boxes as box_geometry
 from flowmaps_jax import tokens as tok
+from flowmaps_jax.atomic_files import write_file
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, FlowSimConfig
 from flowmaps_jax.flowsim.generate import _FIELDS, _FLOAT_FIELDS, Scenes, generate, validate_scenes
+from flowmaps_jax.resources import array_bytes, check_request_size
+from flowmaps_jax.untrusted_files import parse_json, read_npz
 from flowmaps_jax.validation import (
-    array_bytes,
     check_choice,
     check_file,
     check_instance,
@@ -37,12 +39,8 @@ from flowmaps_jax.validation import (
     check_output_file,
     check_real,
     check_real_array,
-    check_request_size,
     check_seed,
-    parse_json,
     prefix_errors,
-    read_npz,
-    write_file,
 )
 
 FORMAT_VERSION = 2
@@ -298,7 +296,7 @@ def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
     or off the map, ids, visit orders or slots out of range (see ``validate_scenes``). The file
     is untrusted: a member ``save_scenes`` does not write, Python objects, or arrays declared
     larger than the memory budget are refused before anything is decompressed
-    (:func:`flowmaps_jax.validation.read_npz`)."""
+    (:func:`flowmaps_jax.untrusted_files.read_npz`)."""
     with prefix_errors("load_scenes: "):
         path = check_file("path", path)
         contents = read_npz(repr(path), path, allowed=("format_version", "config_json", *_FIELDS),

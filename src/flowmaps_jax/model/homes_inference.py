@@ -34,15 +34,14 @@ from flowmaps_jax.model.homes_family import (
     receptacle_probabilities,
     sample_placements,
 )
+from flowmaps_jax.resources import check_resources, solver_evaluations
 from flowmaps_jax.validation import (
     check_concrete,
     check_flag,
     check_instance,
     check_int,
     check_key,
-    check_resources,
     prefix_errors,
-    solver_evaluations,
 )
 
 COMPATIBLE_FIELDS = ("rooms", "receptacles_per_room", "objects_per_home", "max_tokens",

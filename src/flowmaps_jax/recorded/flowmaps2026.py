@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 
+from flowmaps_jax.atomic_files import make_output_dir, write_files
 from flowmaps_jax.recorded.format import (
     FORMAT,
     VERSION,
@@ -62,14 +63,9 @@ from flowmaps_jax.recorded.format import (
     validate_environment,
     validate_recorded,
 )
-from flowmaps_jax.validation import (
-    check_dir,
-    check_output_dir,
-    check_request_size,
-    make_output_dir,
-    read_json,
-    write_files,
-)
+from flowmaps_jax.resources import check_request_size
+from flowmaps_jax.untrusted_files import read_json
+from flowmaps_jax.validation import check_dir, check_output_dir
 
 SCAN_MERGED = "scan_merged.parquet"
 SCAN_PIECE = re.compile(r"^scan_(\d+)\.parquet$")

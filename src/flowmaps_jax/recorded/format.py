@@ -16,7 +16,7 @@ hours (hour t counts from Monday 00:00 of the first week); coordinates x, y on t
 
 ``load_recorded(path)`` raises ``ValueError`` with one line, ``"<file>: <field>: what is
 wrong"``, for anything ``save_recorded`` could not have written. ``save_recorded`` writes every
-file aside and renames them into place together (``validation.write_files``), never through a
+file aside and renames them into place together (``atomic_files.write_files``), never through a
 symbolic link. ``validate_environment`` applies the loader's checks to an in-memory builder's
 ``Environment``.
 """
@@ -33,14 +33,9 @@ from typing import Any
 
 import numpy as np
 
-from flowmaps_jax.validation import (
-    check_dir,
-    check_output_dir,
-    make_output_dir,
-    read_json,
-    read_npz,
-    write_files,
-)
+from flowmaps_jax.atomic_files import make_output_dir, write_files
+from flowmaps_jax.untrusted_files import read_json, read_npz
+from flowmaps_jax.validation import check_dir, check_output_dir
 
 FORMAT = "flowmaps-recorded"
 VERSION = 1

@@ -38,7 +38,6 @@ from flowmaps_jax.search.episodes import (
 from flowmaps_jax.search.policies import (
     MAX_OPTIMAL_TABLES,
     POLICIES,
-    choose_batch,
     optimal_expected_travel,
     plan_costs,
 )
@@ -77,7 +76,6 @@ __all__ = [
     "at_targets",
     "bayes_update",
     "build_search_set",
-    "choose_batch",
     "episode_scores",
     "exact_tables",
     "expected_outcomes",

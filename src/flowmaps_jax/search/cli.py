@@ -41,6 +41,7 @@ import sys
 from collections.abc import Sequence
 
 from flowmaps_jax import distributed
+from flowmaps_jax.atomic_files import make_output_dir, save_figure
 from flowmaps_jax.evaluation.cli import run_for_world
 from flowmaps_jax.flowsim import (
     WORLDS,
@@ -64,8 +65,6 @@ from flowmaps_jax.validation import (
     check_output_dir,
     check_real,
     check_seed,
-    make_output_dir,
-    save_figure,
 )
 from flowmaps_jax.validation.scalars import int_list
 

@@ -50,6 +50,7 @@ from flowmaps_jax.flowsim.habits import (  # noqa: F401  (names this module re-e
 )
 from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
+from flowmaps_jax.resources import check_resources, network_flops, solver_evaluations
 from flowmaps_jax.search.probabilities import spread_over_tables
 from flowmaps_jax.search.simulator import (  # noqa: F401  (re-exported: the simulator's home was here)
     DEFAULT_BUDGET,
@@ -75,9 +76,6 @@ from flowmaps_jax.validation import (
     check_int_array,
     check_key,
     check_probabilities,
-    check_resources,
-    network_flops,
-    solver_evaluations,
 )
 
 STARTS = ("centre", "last-seen")

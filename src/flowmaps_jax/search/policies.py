@@ -154,10 +154,3 @@ def choose_indexed(policy_index: jnp.ndarray, belief: jnp.ndarray, centres: jnp.
     stays a branch, so only the chosen policy runs."""
     branches = [functools.partial(choose, p) for p in POLICIES]
     return jax.lax.switch(policy_index, branches, belief, centres, position, allowed, looks_at)
-
-
-@functools.partial(jax.jit, static_argnames="policy")
-def choose_batch(policy: str, belief, centres, position, allowed, looks_at) -> jnp.ndarray:
-    """:func:`choose` over a batch: (N, K), (N, K, 2), (N, 2), (N, K), (N, K) → (N,) int32."""
-    return jax.vmap(functools.partial(choose, policy))(belief, centres, position, allowed,
-                                                       looks_at)

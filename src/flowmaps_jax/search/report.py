@@ -15,7 +15,7 @@ import json
 import pathlib
 import re
 
-from flowmaps_jax.validation import make_output_dir, write_file
+from flowmaps_jax.atomic_files import make_output_dir, write_file
 
 POLICY_LABELS = {"most-probable": "most-probable first",
                  "greedy": "greedy probability per pixel",
@@ -168,7 +168,7 @@ def compact_json(results: dict) -> str:
 
 def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathlib.Path]:
     """Write ``search.json`` and ``search.md`` into out_dir (created); returns their paths.
-    Both go through the shared writer (:func:`flowmaps_jax.validation.write_file`: a temporary
+    Both go through the shared writer (:func:`flowmaps_jax.atomic_files.write_file`: a temporary
     file and a rename; a symbolic link at either name is a ``ValueError``)."""
     out = make_output_dir("out_dir", out_dir, files=("search.json", "search.md"))
     paths = {"json": out / "search.json", "markdown": out / "search.md"}

@@ -26,7 +26,6 @@ from flowmaps_jax.evaluation.report import summarise
 
 SR_LOOKS = (1, 2, 3)
 SCORES = ("sr@1", "sr@2", "sr@3", "looks", "travel", "spl", "found")
-LOWER_IS_BETTER = ("looks", "travel")
 
 
 def spl(found, shortest, travel) -> np.ndarray:

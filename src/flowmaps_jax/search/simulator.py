@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from flowmaps_jax.resources import check_resources
 from flowmaps_jax.search.policies import (
     MAX_OPTIMAL_TABLES,
     POLICIES,
@@ -50,7 +51,6 @@ from flowmaps_jax.validation import (
     check_probabilities,
     check_real,
     check_real_array,
-    check_resources,
 )
 
 DEFAULT_BUDGET = 10
@@ -156,7 +156,7 @@ def check_episodes_size(num_episodes: int, num_tables: int, budget: int, policy:
     """``ValueError`` when ``policy`` is "optimal" with more than ``MAX_OPTIMAL_TABLES`` real
     tables in an episode (``real_tables``, default ``num_tables``), or naming ``budget`` when
     ``copies`` × ``num_episodes`` episodes of ``budget`` looks over ``num_tables`` tables would
-    be over the memory or work budget (:func:`flowmaps_jax.validation.check_resources`)."""
+    be over the memory or work budget (:func:`flowmaps_jax.resources.check_resources`)."""
     k = num_tables if real_tables is None else real_tables
     if policy == "optimal" and k > MAX_OPTIMAL_TABLES:
         raise ValueError(

@@ -23,9 +23,10 @@ import sys
 
 import orbax.checkpoint as ocp
 
+from flowmaps_jax.atomic_files import check_tree_no_links
 from flowmaps_jax.store.checkpoints import BEST, LATEST, SUBDIRS, best_manager, last_manager
 from flowmaps_jax.store.integrity import describe_state, shorten
-from flowmaps_jax.validation import check_int, check_tree_no_links
+from flowmaps_jax.validation import check_int
 
 
 class CheckpointSaveError(OSError):

@@ -33,17 +33,11 @@ from typing import Any, NamedTuple
 import jax
 import orbax.checkpoint as ocp
 
+from flowmaps_jax.atomic_files import check_tree_no_links
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
 from flowmaps_jax.store.model_spec import DEFAULT_FAMILY, ModelSpec, check_params, model_spec
-from flowmaps_jax.validation import (
-    check_choice,
-    check_dir,
-    check_flag,
-    check_int,
-    check_tree_no_links,
-    parse_json,
-    prefix_errors,
-)
+from flowmaps_jax.untrusted_files import parse_json
+from flowmaps_jax.validation import check_choice, check_dir, check_flag, check_int, prefix_errors
 
 LATEST = "latest"
 BEST = "best"

@@ -37,20 +37,18 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
+from flowmaps_jax.atomic_files import make_output_dir, write_files
 from flowmaps_jax.store import checkpoints
 from flowmaps_jax.store.checkpoints import WHICH
 from flowmaps_jax.store.model_spec import HOMES_FAMILY, ModelSpec, model_spec
+from flowmaps_jax.untrusted_files import parse_json, read_npz
 from flowmaps_jax.validation import (
     check_choice,
     check_instance,
     check_int,
     check_keys,
     check_output_dir,
-    make_output_dir,
-    parse_json,
     prefix_errors,
-    read_npz,
-    write_files,
 )
 
 PRETRAINED_DIR = pathlib.Path(__file__).resolve().parents[1] / "pretrained"

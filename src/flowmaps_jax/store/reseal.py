@@ -20,8 +20,9 @@ import pathlib
 import sys
 from collections.abc import Sequence
 
+from flowmaps_jax.atomic_files import write_file
 from flowmaps_jax.store import pretrained
-from flowmaps_jax.validation import check_dir, write_file
+from flowmaps_jax.validation import check_dir
 
 
 def reseal(directory: str | pathlib.Path) -> dict[str, str]:

@@ -18,7 +18,7 @@
   there; one that still cannot be created (``/proc/x``) is one here.
 * :func:`write_atomic` writes a file through a temporary file and a rename, so a crash or a full
   disk never leaves it half-written (the shared writer,
-  :func:`flowmaps_jax.validation.write_file`); :func:`open_append` opens a log for appending.
+  :func:`flowmaps_jax.atomic_files.write_file`); :func:`open_append` opens a log for appending.
   Both refuse a symbolic link.
 * The metrics file :data:`METRICS` (one JSON record per line): :func:`kept_records` are the
   lines a resumed run keeps. The checkpoints: :func:`checkpoint_root`, :func:`only_best_saved`.
@@ -38,13 +38,9 @@ from collections.abc import Callable, Iterator
 import jax
 
 from flowmaps_jax import distributed
+from flowmaps_jax.atomic_files import check_no_links, check_tree_no_links, write_file
 from flowmaps_jax.store import checkpoints
-from flowmaps_jax.validation import (
-    check_no_links,
-    check_tree_no_links,
-    parse_json,
-    write_file,
-)
+from flowmaps_jax.untrusted_files import parse_json
 
 LOCK_NAME = ".lock"
 METRICS = "metrics.jsonl"
@@ -62,7 +58,7 @@ _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 
 def write_atomic(path: pathlib.Path, data: str | bytes) -> None:
     """Write ``data`` to ``path`` via ``<path>.tmp`` and a rename (no half-written file), with
-    the one writer of every command (:func:`flowmaps_jax.validation.write_file`): a symbolic
+    the one writer of every command (:func:`flowmaps_jax.atomic_files.write_file`): a symbolic
     link at ``path`` is refused (``ValueError``), one at the temporary name is removed."""
     write_file(path, data, name="run file")
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import os
 import typing
 from typing import Any
@@ -40,6 +39,7 @@ from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
 from flowmaps_jax.model.homes_family import FAMILY_NAME as HOMES_FAMILY
 from flowmaps_jax.model.homes_family import HomesModelConfig
+from flowmaps_jax.resources import check_resources
 from flowmaps_jax.store.model_spec import ModelSpec
 from flowmaps_jax.training.overrides import (
     SHORTHANDS,
@@ -53,7 +53,6 @@ from flowmaps_jax.validation import (
     check_instance,
     check_int,
     check_plain_name,
-    check_resources,
     check_seed,
     prefix_errors,
 )
@@ -231,9 +230,6 @@ class TrainConfig:
     def from_dict(cls, data: dict) -> TrainConfig:
         """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError``."""
         return config_from_dict(cls, data, "config")
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=False)
 
 
 _COUNT = Int(1, INT32_MAX)
@@ -467,8 +463,8 @@ def compile_key(cfg):
 def check_run_resources(cfg: TrainConfig | HomesTrainConfig, devices: int = 1) -> None:
     """``ValueError`` naming the fields when a part of the run's resource estimate (its
     world's ``resources``, e.g. :func:`flowmaps_jax.worlds.flowsim.resource_estimate`), or all of it
-    together, is over the memory or work budget (:func:`flowmaps_jax.validation.memory_limit`,
-    :func:`~flowmaps_jax.validation.flops_limit`; environment variables FLOWMAPS_MAX_BYTES and
+    together, is over the memory or work budget (:func:`flowmaps_jax.resources.memory_limit`,
+    :func:`~flowmaps_jax.resources.flops_limit`; environment variables FLOWMAPS_MAX_BYTES and
     FLOWMAPS_MAX_FLOPS raise them)."""
     parts = world(cfg.world).resources(cfg, devices)
     total = ("the run altogether (model, step, validation, data and diagnostics)",

@@ -21,7 +21,7 @@ from flowmaps_jax.store import checkpoints, rundir
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import TrainConfig, config_from_stored, resumable_fields
 from flowmaps_jax.training.overrides import flatten
-from flowmaps_jax.validation import read_json
+from flowmaps_jax.untrusted_files import read_json
 
 
 def load_config(directory: str | pathlib.Path, which: str = checkpoints.LATEST,

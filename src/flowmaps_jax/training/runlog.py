@@ -34,7 +34,7 @@ from flowmaps_jax.store.checkpoint_store import CheckpointSaveError, CheckpointS
 from flowmaps_jax.store.rundir import METRICS
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import TrainConfig
-from flowmaps_jax.validation import read_json
+from flowmaps_jax.untrusted_files import read_json
 
 # --------------------------------------------------------------------------------------------
 # metrics.jsonl and the checkpoints

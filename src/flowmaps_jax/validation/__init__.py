@@ -7,40 +7,25 @@ string). Array checks read only ``shape`` and ``dtype`` of tracers (values are c
 array is concrete), so a public function may run them and still be traced by ``jax.jit``; the
 jitted cores behind the public functions do not check again.
 
-Modules (everything is importable from ``flowmaps_jax.validation``):
+Modules (everything is importable from ``flowmaps_jax.validation``; the names are listed below):
 
-* :mod:`.scalars`: :func:`check_int`, :func:`check_real`, :func:`check_flag`,
-  :func:`check_choice`, :func:`check_instance`, :func:`check_seed`, :func:`check_key`;
-  :func:`is_real_dtype`.
-* :mod:`.arrays`: :func:`check_array`, :func:`check_shape`, :func:`check_real_array`,
-  :func:`check_int_array`, :func:`check_mask`, :func:`check_probabilities` (with
-  :data:`PROB_ATOL` for computed float32 distributions), :func:`is_concrete`,
-  :func:`check_concrete`. A shape is a tuple of int sizes, ``None`` (any size) and a leading
-  ``...`` (any leading dims); a caller computes the sizes from its arguments
-  (``(num_envs, k + 1)``) and passes them in.
-* :mod:`.files`: :func:`check_path`, :func:`check_file`, :func:`check_dir`,
-  :func:`check_output_file`, :func:`check_output_dir`; :func:`check_plain_name` (a preset or file
-  name, a metadata field: no path, no markup); :func:`read_npz` (an untrusted ``.npz``: member
-  names whitelisted, declared sizes checked before anything is decompressed, no pickles).
-* :mod:`.fields`: the config dataclasses' schemas only: :func:`check_fields` (a config's
-  fields, from a ``{field: rule}`` table of :class:`~.fields.Int`, :class:`~.fields.Real`,
-  :class:`~.fields.Choice`, ... rules or plain checks), :func:`check_table` (a table of
-  categories), :func:`check_mixture` (named probabilities) and :func:`check_keys` (the dict a
-  ``from_dict`` reads). A public function checks its arguments in its own body, with the
-  plain checks above.
+* :mod:`.scalars`: ints, reals, flags, choices, instances, seeds, PRNG keys.
+* :mod:`.arrays`: arrays, shapes, real and integer arrays, masks, probabilities (with
+  :data:`PROB_ATOL` for computed float32 distributions). A shape is a tuple of int sizes,
+  ``None`` (any size) and a leading ``...`` (any leading dims); a caller computes the sizes
+  from its arguments (``(num_envs, k + 1)``) and passes them in.
+* :mod:`.files`: paths, readable files and folders, writable outputs, plain names (a preset or
+  file name, a metadata field: no path, no markup).
+* :mod:`.fields`: the config dataclasses' schemas only: :func:`check_fields` (a config's fields,
+  from a ``{field: rule}`` table), :func:`check_table`, :func:`check_mixture`, :func:`check_keys`
+  (the dict a ``from_dict`` reads). A public function checks its arguments in its own body,
+  with the plain checks above.
 * :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
   (the file or command they concern).
-* :mod:`.writes`: :func:`write_file`, :func:`make_output_dir`, :func:`save_figure`,
-  :func:`check_no_links`: the one writer of every command's output files (a temporary file and
-  a rename; a symbolic link at the target, or in a folder it creates, is refused).
-* :mod:`.resources`: :func:`array_bytes`, :func:`memory_limit`, :func:`flops_limit`,
-  :func:`check_request_size`, :func:`check_resources`, :func:`network_flops`,
-  :func:`solver_evaluations`, :func:`embedding_bytes`, :func:`embedding_flops`. Every size that
-  scales memory or time goes through :func:`check_resources` before anything runs: a request
-  above the budget is a ``ValueError`` naming it, the estimate and the limit. The budgets:
-  memory, :data:`MAX_BYTES_ENV` (default the accelerator's memory, else the host's); work,
-  :data:`MAX_FLOPS_ENV` (default :data:`DEFAULT_MAX_FLOPS` floating-point operations per
-  uninterruptible call; a sequential step counts as at least :data:`SEQUENTIAL_FLOPS`).
+
+Not checks, and so not here: the atomic writer of output files is
+:mod:`flowmaps_jax.atomic_files`, the reader of untrusted files
+:mod:`flowmaps_jax.untrusted_files`, the memory and work budgets :mod:`flowmaps_jax.resources`.
 """
 
 from flowmaps_jax.validation.arrays import (
@@ -63,24 +48,6 @@ from flowmaps_jax.validation.files import (
     check_output_file,
     check_path,
     check_plain_name,
-    parse_json,
-    read_json,
-    read_npz,
-)
-from flowmaps_jax.validation.resources import (
-    DEFAULT_MAX_FLOPS,
-    MAX_BYTES_ENV,
-    MAX_FLOPS_ENV,
-    SEQUENTIAL_FLOPS,
-    array_bytes,
-    check_request_size,
-    check_resources,
-    embedding_bytes,
-    embedding_flops,
-    flops_limit,
-    memory_limit,
-    network_flops,
-    solver_evaluations,
 )
 from flowmaps_jax.validation.scalars import (
     INT32_MAX,
@@ -94,24 +61,11 @@ from flowmaps_jax.validation.scalars import (
     check_seed,
     is_real_dtype,
 )
-from flowmaps_jax.validation.writes import (
-    check_no_links,
-    check_tree_no_links,
-    make_output_dir,
-    save_figure,
-    write_file,
-    write_files,
-)
 
 __all__ = [
-    "DEFAULT_MAX_FLOPS",
     "INT32_MAX",
-    "MAX_BYTES_ENV",
-    "MAX_FLOPS_ENV",
     "PROB_ATOL",
     "SEED_MAX",
-    "SEQUENTIAL_FLOPS",
-    "array_bytes",
     "check_array",
     "check_choice",
     "check_concrete",
@@ -126,7 +80,6 @@ __all__ = [
     "check_keys",
     "check_mask",
     "check_mixture",
-    "check_no_links",
     "check_output_dir",
     "check_output_file",
     "check_path",
@@ -134,26 +87,10 @@ __all__ = [
     "check_probabilities",
     "check_real",
     "check_real_array",
-    "check_request_size",
-    "check_resources",
     "check_seed",
     "check_shape",
     "check_table",
-    "check_tree_no_links",
-    "embedding_bytes",
-    "embedding_flops",
-    "flops_limit",
     "is_concrete",
     "is_real_dtype",
-    "make_output_dir",
-    "memory_limit",
-    "network_flops",
-    "parse_json",
     "prefix_errors",
-    "read_json",
-    "read_npz",
-    "save_figure",
-    "solver_evaluations",
-    "write_file",
-    "write_files",
 ]

@@ -28,13 +28,9 @@ from flowmaps_jax.flowsim.scenes import make_train_batch, train_split, validatio
 from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
 from flowmaps_jax.model.family import LossOptions
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
+from flowmaps_jax.resources import embedding_bytes, network_flops, solver_evaluations
 from flowmaps_jax.tables import protocol_sigma
 from flowmaps_jax.tokens import TrainBatch, check_train_batch, trim_padding
-from flowmaps_jax.validation import (
-    embedding_bytes,
-    network_flops,
-    solver_evaluations,
-)
 from flowmaps_jax.worlds.world import World, chunk_key
 
 # batch_fn(key, scenes) -> TrainBatch, traceable

@@ -7,7 +7,7 @@ strings)) and, beside it, ``<stem>.schema.json``: the same schema, for tools tha
 arrays without this package (numpy, or any zip + .npy reader). The schema names every field's
 shape (symbols and sizes), dtype, unit and meaning, the vocabulary (class names and text
 descriptors, in id order), the regimes and the time convention. Both files are written aside
-and renamed into place together (``validation.write_files``), never through a symbolic link.
+and renamed into place together (``atomic_files.write_files``), never through a symbolic link.
 
 ``load_homes(path)`` returns (homes, config) and raises ``ValueError`` naming the file for
 anything ``save_homes`` could not have written: another format or schema version, missing or
@@ -23,16 +23,11 @@ import pathlib
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.atomic_files import write_files
 from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
-from flowmaps_jax.validation import (
-    check_file,
-    check_output_file,
-    parse_json,
-    prefix_errors,
-    read_npz,
-    write_files,
-)
+from flowmaps_jax.untrusted_files import parse_json, read_npz
+from flowmaps_jax.validation import check_file, check_output_file, prefix_errors
 
 FORMAT = "flowmaps-homes"
 SCHEMA_VERSION = 1
@@ -101,7 +96,7 @@ def save_homes(path, homes: Homes, config: HomesConfig) -> pathlib.Path:
 def load_homes(path) -> tuple[Homes, HomesConfig]:
     """Read a file written by ``save_homes``; ``ValueError`` naming it if it is not one (see
     the module's docstring). The file is untrusted: members are whitelisted and their declared
-    sizes checked before anything is decompressed (``validation.read_npz``)."""
+    sizes checked before anything is decompressed (``untrusted_files.read_npz``)."""
     with prefix_errors("load_homes: "):
         path = check_file("path", path)
         contents = read_npz(repr(path), path, allowed=(*_META, *FIELDS),

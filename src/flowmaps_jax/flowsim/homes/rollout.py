@@ -27,13 +27,8 @@ from flowmaps_jax.flowsim.homes import floorplan, furnish, schedules
 from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.schedules import BALANCED, FREQUENT, PREFERENCES, ROUTINE
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
-from flowmaps_jax.validation import (
-    array_bytes,
-    check_instance,
-    check_int,
-    check_key,
-    check_request_size,
-)
+from flowmaps_jax.resources import array_bytes, check_request_size
+from flowmaps_jax.validation import check_instance, check_int, check_key
 
 
 def _uniform24(words: jnp.ndarray) -> jnp.ndarray:

@@ -18,8 +18,6 @@ from typing import Any
 import jax
 import numpy as np
 
-# ------------------------------------------------------------------------------ resources
-
 MAX_BYTES_ENV = "FLOWMAPS_MAX_BYTES"
 """Environment variable overriding the memory budget of one request (bytes; ``64G`` etc.)."""
 MAX_FLOPS_ENV = "FLOWMAPS_MAX_FLOPS"

@@ -1,0 +1,146 @@
+"""Reading files this project did not write, or that may have been changed since: nothing in
+them is trusted before it is checked.
+
+* :func:`read_npz`: the arrays of an untrusted ``.npz``; member names whitelisted, the declared
+  sizes checked before anything is decompressed, no pickles.
+* :func:`parse_json` / :func:`read_json`: untrusted JSON, its size and nesting depth bounded
+  (never a ``RecursionError``).
+
+Any failure is a ``ValueError`` naming the file (the ``name`` argument).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import zipfile
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from flowmaps_jax.resources import array_bytes, memory_limit
+
+
+def read_npz(name: str, source: Any, *, allowed: Sequence[str] | None = None,
+             required: Sequence[str] = (), max_bytes: int | None = None,
+             expected: dict[str, tuple[tuple[int, ...], Any]] | None = None
+             ) -> dict[str, np.ndarray]:
+    """The arrays of an untrusted ``.npz`` (a path, or its bytes as a file object), read safely.
+
+    Before anything is decompressed: the file must be a zip whose members are ``<key>.npy`` for
+    keys in ``allowed`` (None: any key) with ``required`` present, no member twice, and whose
+    declared sizes (the zip directory's, then each ``.npy`` header's shape and dtype) add up to at
+    most ``max_bytes`` (default :func:`memory_limit`); ``expected`` ({key: (shape, dtype)}) pins
+    members exactly. Objects (pickles) are refused. A member that inflates past its declared
+    size is refused while reading. Any failure is a ``ValueError`` naming ``name``.
+    """
+    limit = memory_limit() if max_bytes is None else int(max_bytes)
+    try:
+        archive = zipfile.ZipFile(source)
+    except (OSError, zipfile.BadZipFile, ValueError) as err:
+        raise ValueError(f"{name} is not a readable .npz file ({err})") from None
+    with archive:
+        infos = archive.infolist()
+        keys = []
+        for info in infos:
+            key = info.filename[:-4] if info.filename.endswith(".npy") else None
+            if key is None or (allowed is not None and key not in allowed) \
+                    or (expected is not None and key not in expected):
+                raise ValueError(f"{name} holds an unexpected member {info.filename!r}")
+            keys.append(key)
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"{name} holds a member twice")
+        missing = [k for k in (*required, *(expected or {})) if k not in keys]
+        if missing:
+            raise ValueError(f"{name} is missing arrays {sorted(set(missing))}")
+        declared = sum(info.file_size for info in infos)
+        if declared > limit:
+            raise ValueError(f"{name} declares {declared / 1e9:.3g} GB of arrays, more than the "
+                             f"{limit / 1e9:.3g} GB allowed; not reading it")
+        arrays = {}
+        for info, key in zip(infos, keys, strict=True):
+            try:
+                with archive.open(info) as member:
+                    arrays[key] = _read_npy(member, info.file_size,
+                                            None if expected is None else expected[key])
+            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+                raise ValueError(f"{name}: member {info.filename!r} is not a valid array "
+                                 f"({err})") from None
+    return arrays
+
+
+def _read_npy(member, declared: int, expected) -> np.ndarray:
+    """One ``.npy`` member, its header checked against its declared size before the data."""
+    version = np.lib.format.read_magic(member)
+    readers = {(1, 0): np.lib.format.read_array_header_1_0,
+               (2, 0): np.lib.format.read_array_header_2_0}
+    if version not in readers:
+        raise ValueError(f"unsupported .npy format version {version}")
+    shape, fortran, dtype = readers[version](member)
+    if dtype.hasobject:
+        raise ValueError("it holds Python objects")
+    if expected is not None and (tuple(shape) != tuple(expected[0])
+                                 or dtype != np.dtype(expected[1])):
+        raise ValueError(f"expected shape {tuple(expected[0])} and dtype "
+                         f"{np.dtype(expected[1])}; got {tuple(shape)} and {dtype}")
+    size = array_bytes(shape, dtype)
+    if size > declared:
+        raise ValueError(f"its header claims {size} bytes, more than the {declared} declared")
+    data = member.read(size + 1)
+    if len(data) != size:
+        raise ValueError(f"it holds {len(data)} bytes of data where its header says {size}")
+    array = np.frombuffer(data, dtype=dtype, count=math.prod(shape) if shape else 1)
+    return array.reshape(shape, order="F" if fortran else "C").copy()
+
+
+MAX_JSON_DEPTH = 64
+"""The deepest nesting of arrays and objects accepted in a JSON file read from disk (a config is
+about 4 deep); deeper text is refused before it is parsed (Python's parser would recurse)."""
+MAX_JSON_BYTES = 16 * 1024 * 1024
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"', re.DOTALL)
+
+
+def json_depth(text: str) -> int:
+    """The deepest nesting of ``[`` / ``{`` in the JSON ``text``, strings skipped (a malformed
+    text gets some count; the parser refuses it anyway)."""
+    brackets = np.frombuffer(_JSON_STRING.sub("", text).encode(), np.uint8)
+    steps = (np.isin(brackets, (ord("["), ord("{"))).astype(np.int64)
+             - np.isin(brackets, (ord("]"), ord("}"))))
+    return int(np.cumsum(steps).max(initial=0))
+
+
+def parse_json(name: str, text: str | bytes, *, max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """The value of the untrusted JSON ``text``; ``ValueError`` naming ``name`` (the file) if it
+    is not UTF-8, not JSON, or nested deeper than ``max_depth`` (never a ``RecursionError``)."""
+    if isinstance(text, bytes):
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{name} is not UTF-8 text ({err.reason} at byte {err.start})"
+                             ) from None
+    depth = json_depth(text)
+    if depth > max_depth:
+        raise ValueError(f"{name} is nested {depth} levels deep, more than the {max_depth} "
+                         f"a file of this project has; not reading it")
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError(f"{name} is nested too deeply to read") from None
+    except ValueError as err:
+        raise ValueError(f"{name} is not valid JSON ({err})") from None
+
+
+def read_json(name: str, path: Any, *, max_bytes: int = MAX_JSON_BYTES,
+              max_depth: int = MAX_JSON_DEPTH) -> Any:
+    """The value of the untrusted JSON file ``path`` (at most ``max_bytes``, nested at most
+    ``max_depth``); ``ValueError`` naming ``name`` and the file for any failure but a missing
+    or unreadable file (its ``OSError`` propagates)."""
+    label = f"{name} {os.fspath(path)!r}" if name else repr(os.fspath(path))
+    size = os.stat(path).st_size
+    if size > max_bytes:
+        raise ValueError(f"{label} holds {size:,} bytes, more than the {max_bytes:,} allowed")
+    with open(path, "rb") as file:
+        return parse_json(label, file.read(max_bytes + 1), max_depth=max_depth)
