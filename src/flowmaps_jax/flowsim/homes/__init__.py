@@ -5,7 +5,8 @@ Modules, one idea each: ``vocabulary`` (room types, receptacle and object classe
 ``furnish`` (receptacles in rooms by type, objects on allowed receptacles, cycles),
 ``schedules`` (the four regimes' hourly transition laws), ``world`` (the ``Homes`` pytree and
 its field table), ``rollout`` (``generate_homes``), ``posterior`` (the exact posterior, also
-given a history), ``export`` (``save_homes`` / ``load_homes``). See docs/flowsim.md, "Homes".
+given a history, or filtered over a partial one), ``export`` (``save_homes`` /
+``load_homes``). See docs/flowsim.md, "Homes".
 """
 
 from flowmaps_jax.flowsim.homes.config import (
@@ -21,6 +22,7 @@ from flowmaps_jax.flowsim.homes.export import homes_schema, load_homes, save_hom
 from flowmaps_jax.flowsim.homes.floorplan import geodesic_distances, room_adjacency
 from flowmaps_jax.flowsim.homes.posterior import (
     favourite_weights,
+    filtered_posterior,
     homes_history_posterior,
     homes_posterior,
     transition_matrix,
@@ -46,6 +48,7 @@ __all__ = [
     "context_of",
     "draw_queries",
     "favourite_weights",
+    "filtered_posterior",
     "generate_homes",
     "geodesic_distances",
     "homes_from_keys",

@@ -31,6 +31,15 @@ hour 0). With history = τ + 1 (a = 0) the term is 1 / n; with history = 1 it is
 at τ alone says about the favourites. The other regimes' laws are seen on the map (cycle,
 distances), so for them the history changes nothing: the chain is Markov.
 
+``filtered_posterior(home, i, observed, τ, τ_q)`` is the posterior of an observer who knows
+the whole law (favourites included) but sees the object only at the hours ``observed`` marks:
+a forward filter from the simulator's start (uniform over the allowed receptacles at hour 0),
+p ← p P_t every hour, and at every observed hour t ≤ τ p ← p · 1[r = s_t] / Σ (conditioning on
+where it was seen), then the forward pass on to τ_q. One ``lax.scan`` over the T − 1 hours,
+R² work each. With every hour observed it is ``homes_posterior`` (the chain is Markov given its
+law); with hours hidden it is the best any predictor of that partial history can do on
+average (a ceiling of the realised log score).
+
 ``home`` is one home (``Homes.home(i)``); every function is jittable and vmappable (over
 homes, objects, hours). Concrete inputs are checked (``ValueError`` naming the argument); a
 traced query out of range (τ_q ≤ τ, τ_q beyond the rollout, an object index outside
@@ -48,7 +57,7 @@ from flowmaps_jax.flowsim.homes import schedules
 from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.schedules import PREFERENCES
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
-from flowmaps_jax.validation import check_instance, check_int_array, is_concrete
+from flowmaps_jax.validation import check_instance, check_int_array, check_mask, is_concrete
 
 
 def object_law(home: Homes, object_index, config: HomesConfig) -> dict:
@@ -189,6 +198,54 @@ def homes_history_posterior(home: Homes, object_index, tau, tau_q, history,
     object_index, tau, tau_q = _check_query(home, object_index, tau, tau_q, config)
     history = check_int_array("history", history, 1, _after(tau), shape=())
     return _history_posterior(home, object_index, tau, tau_q, history, config)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _filtered_posterior(home: Homes, object_index, observed, tau, tau_q, config: HomesConfig):
+    """The unchecked core of :func:`filtered_posterior` (jittable, vmappable)."""
+    law = object_law(home, object_index, config)
+    allowed = law["allowed"]
+    r = allowed.shape[0]
+    m = observed.shape[1]
+    column = jnp.clip(object_index, 0, m - 1)
+    where = home.receptacle[:, column]  # (T,)
+    seen = observed[:, column] & (jnp.arange(observed.shape[0]) <= tau)  # (T,)
+    num = jnp.maximum(home.num_allowed[column], 1).astype(jnp.float32)
+
+    def condition(p, t):
+        """p times the indicator of where the object was seen at t, renormalised (if the law
+        gives that sighting no mass, the sighting itself); p unchanged where t is unseen."""
+        hit = jax.nn.one_hot(where[t], r, dtype=p.dtype)
+        q = p * hit
+        total = jnp.sum(q)
+        return jnp.where(seen[t], jnp.where(total > 0, q / jnp.where(total > 0, total, 1.0),
+                                            hit), p)
+
+    def hour(p, t):  # t -> t + 1 while t < τ_q, then the sighting at t + 1 (if ≤ τ)
+        p = jnp.where(t < tau_q, schedules.step_distribution(law, p, t), p)
+        return condition(p, t + 1), None
+
+    start = condition(jnp.where(allowed, 1.0 / num, 0.0), 0)  # hour 0: uniform over A
+    p, _ = jax.lax.scan(hour, start, jnp.arange(observed.shape[0] - 1))
+    return jnp.where(_valid(home, object_index, tau, tau_q), p, jnp.nan)
+
+
+def filtered_posterior(home: Homes, object_index, observed, tau, tau_q,
+                       config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
+    """(R,) float32: P(object ``object_index`` on receptacle r at hour ``tau_q`` | its
+    receptacles at the hours t <= ``tau`` where ``observed`` is True), the law (regime,
+    favourites, cycle) known: the forward filter of the module's docstring, from the uniform
+    start at hour 0. Mass only on its allowed receptacles, sums to 1.
+
+    home: one home (``Homes.home(i)``); observed: (T, M) bool (or 0/1), the hours each object
+    was seen (only column ``object_index`` and hours <= tau are read; where it was seen is
+    ``home.receptacle``); object_index, tau, tau_q: int scalars (or traced), 0 <= tau < tau_q
+    <= T − 1. With ``observed`` all True it equals ``homes_posterior``.
+    """
+    object_index, tau, tau_q = _check_query(home, object_index, tau, tau_q, config)
+    observed = check_mask("observed", observed, (config.num_hours, config.max_objects))
+    return _filtered_posterior(home, object_index, jnp.asarray(observed, bool), tau, tau_q,
+                               config)
 
 
 def transition_matrix(home: Homes, object_index, hour,
