@@ -10,7 +10,9 @@ pairs: the target is where the object was seen at τ_q. The object may be unseen
 Per row (the model, and the reference rows of :mod:`flowmaps_jax.evaluation.priors`: uniform
 over the allowed receptacles; last seen, where the object was last seen up to τ; the frequency
 prior, add-one counts over the hours of the model's history window in which the object was
-seen):
+seen; and, when every evaluated environment is FlowSim homes written by ``from-homes``, the exact
+posterior and the known-parameters filter of :mod:`flowmaps_jax.worlds.recorded_references`,
+else one line in the report saying why not):
 
 * log score: log p(realised receptacle), nats (higher is better; p floored at ``P_FLOOR``);
 * top-1 and top-5: whether the realised receptacle is the most probable / among the 5 most
@@ -49,6 +51,7 @@ from flowmaps_jax.search import navigation as nav
 from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
 from flowmaps_jax.validation import check_int, check_output_dir, check_seed, prefix_errors
 from flowmaps_jax.worlds import recorded as rw
+from flowmaps_jax.worlds import recorded_references as references
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 EVAL_SEED = 35_000_047
@@ -170,8 +173,9 @@ def reliability(p, target, allowed, valid, bins: int = BINS) -> dict:
 
 
 def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
-    """(RecordedHomes, what it is): the test part of the run's own split when ``data_path``
-    is the dataset the run trained on, else every environment of the data."""
+    """(RecordedHomes, what it is, its environments): the test part of the run's own split
+    when ``data_path`` is the dataset the run trained on, else every environment of the data;
+    the environments (``recorded.Environment``) in the homes' order."""
     same = stored.get("data") and pathlib.Path(stored["data"]).resolve() == \
         pathlib.Path(data_path).resolve()
     if same:
@@ -181,15 +185,23 @@ def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
         what = (f"the run's held-out test part ({len(names['test'])} environments"
                 + (f", and the last {split[2]:.0%} of the training environments' hours"
                    if split[2] > 0 else "") + f"; split_seed={split[3]})")
-        return rw.part_of(recorded, config, split, "test"), what
-    return rw.recorded_homes(recorded, config), f"all {len(recorded.environments)} environments"
+        index = rw.part_index(recorded, split, "test")
+        return (rw.part_of(recorded, config, split, "test"), what,
+                tuple(recorded.environments[i] for i in index))
+    return (rw.recorded_homes(recorded, config), f"all {len(recorded.environments)} environments",
+            tuple(recorded.environments))
 
 
 def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed: int,
                    parts: Sequence[str], budget: int = nav.LOOK_BUDGET,
-                   progress: bool = True) -> dict:
+                   progress: bool = True, environments: Sequence | None = None) -> dict:
     """The realised-outcome results (JSON-able) of ``predictor`` on ``data``: ``posterior``
-    (the scores and the reliability table of every row) and/or ``navigation``."""
+    (the scores and the reliability table of every row) and/or ``navigation``.
+
+    environments: the recorded environments ``data`` was built from, in its order; when they
+    are all FlowSim homes written by ``from-homes``, the exact reference rows
+    (:mod:`flowmaps_jax.worlds.recorded_references`) are added after the model's, and
+    ``protocol["references"]`` says in one line which (or why not)."""
     from tqdm.auto import tqdm
 
     begin = time.perf_counter()
@@ -206,6 +218,13 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
     target = np.asarray(pr.receptacle_at(homes, queries.tau_q, queries.object_index))
     allowed = np.asarray(pr.allowed_slots(homes, queries))
     beliefs = row_probabilities(predictor, data, queries)
+    if environments is None:
+        exact, note = {}, "No exact reference rows: the data's environments were not given."
+    else:
+        exact, note = references.reference_rows(environments, data, queries)
+    beliefs = {MODEL_ROW: beliefs.pop(MODEL_ROW), **exact, **beliefs}
+    bar.total += len(exact) * (rows_steps // 4)
+    bar.refresh()
     bar.update(1)
     horizon = np.asarray(queries.horizon)
 
@@ -216,7 +235,7 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
         "eval_seed": EVAL_SEED, "seed": seed, "queries_per_environment": num_queries,
         "queries": int(valid.sum()), "environments": int(homes.num_homes),
         "horizons": horizons, "history": predictor.model.history, "p_floor": P_FLOOR,
-        "bins": BINS, "start": "receptacle slot 0", "budget": budget,
+        "bins": BINS, "start": "receptacle slot 0", "budget": budget, "references": note,
         "unseen_at_tau": stats(np.asarray(
             ~np.asarray(data.observed)[np.arange(homes.num_homes)[:, None],
                                        np.asarray(queries.tau),
@@ -279,6 +298,8 @@ def markdown(results: dict) -> str:
              f"{p['history']} h; the object unseen at τ in {_pm(p['unseen_at_tau'], 2)} of "
              f"them), scored against the receptacle where the object was seen at τ_q. Seed "
              f"{p['seed']}.", ""]
+    if p.get("references"):
+        lines += [p["references"], ""]
     if "posterior" in results:
         lines += ["| row | " + " | ".join(METRIC_NAMES[m] for m in METRICS) + " | ECE |",
                   "|---" * (len(METRICS) + 2) + "|"]
@@ -381,15 +402,17 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
                              f"{model.family_name!r} model of 2-D FlowSim maps")
         with prefix_errors("--data: "):
             recorded = rw.load_recorded_data(data_path)
-            data, what = evaluation_part(recorded, model.homes, stored, data_path)
+            data, what, environments = evaluation_part(recorded, model.homes, stored,
+                                                       data_path)
         if args.num_envs != parser.get_default("num_envs") and args.num_envs < data.num_homes:
             data = jax.tree.map(lambda a: a[:args.num_envs], data)
+            environments = environments[:args.num_envs]
             what += f", the first {args.num_envs}"
         print(f"Recorded {part}: {data_path} ({what}), {queries} queries per environment, "
               f"FlowMaps {args.checkpoint} (step {model.step}) -> {out}", flush=True)
         results = run_evaluation(model, data, num_queries=queries, seed=args.seed,
                                  parts=(part,), budget=budget,
-                                 progress=not args.no_progress)
+                                 progress=not args.no_progress, environments=environments)
     except ValueError as err:
         print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return EXIT_USAGE

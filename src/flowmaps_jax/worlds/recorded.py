@@ -335,15 +335,26 @@ def part_of(recorded, config: HomesConfig, cfg_split: tuple, part: str) -> Recor
     split = split_environments(recorded.names(), val_fraction, test_fraction, seed)
     train = split["train"]
     cut = time_cut(recorded, train, time_fraction)
+    index = part_index(recorded, cfg_split, part)
     if part == "train":
-        return recorded_homes(recorded, config, train, stop=cut)
+        return recorded_homes(recorded, config, index, stop=cut)
     if part == "test" and time_fraction > 0:
-        index = (*split["test"], *train)
         start = np.concatenate([np.zeros(len(split["test"]), np.int32), cut])
         return recorded_homes(recorded, config, index, start=start)
-    if not split[part]:
+    if not index:
         raise ValueError(f"the split has no {part} environment (val_fraction / test_fraction)")
-    return recorded_homes(recorded, config, split[part])
+    return recorded_homes(recorded, config, index)
+
+
+def part_index(recorded, cfg_split: tuple, part: str) -> tuple[int, ...]:
+    """The environments (indices into ``recorded``) of :func:`part_of`'s homes, in its order:
+    the part's environments, and for ``"test"`` with a time cut the training ones after
+    them."""
+    val_fraction, test_fraction, time_fraction, seed = cfg_split
+    split = split_environments(recorded.names(), val_fraction, test_fraction, seed)
+    if part == "test" and time_fraction > 0:
+        return (*split["test"], *split["train"])
+    return split[part]
 
 
 # --------------------------------------------------------------------------------------------
