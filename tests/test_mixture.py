@@ -200,3 +200,26 @@ def test_relative_geometry_is_zero_at_the_start_table_and_feeds_the_rows(evalset
     assert np.abs(w - w0).max() > 1e-4
     with pytest.raises(ValueError, match="weight_geometry"):
         dataclasses.replace(MIXTURE, weight_geometry="absolute")
+
+
+def test_offsets_geometry_has_no_angle_and_moves_with_the_map(evalset):
+    """``weight_geometry="offsets"`` (issue 47's world-agnostic rows): the centre features and
+    the distance, no angle around the map centre. Shifting every box leaves them unchanged (the
+    angle features change), and a model with them gives table weights."""
+    part = evalset.take(np.arange(4))
+    tokens, _ = canonical_inputs(part.tokens, part.queries)
+    start = jnp.asarray([[0, 3], [2, 1]] * 2)
+    k = len(mixture.GEOMETRY_FREQUENCIES)
+    shifted = tokens.boxes + jnp.asarray([0.07, -0.05, 0.0, 0.0])  # (y, x, h, w): a translation
+    plain = np.asarray(mixture.relative_geometry(tokens.boxes, start, angle=False))
+    moved = np.asarray(mixture.relative_geometry(shifted, start, angle=False))
+    assert plain.shape[-1] == 2 + 4 * k + 1
+    np.testing.assert_allclose(moved, plain, atol=1e-5)
+    distance = np.linalg.norm(plain[..., :2], axis=-1)
+    np.testing.assert_allclose(plain[..., -1], distance, atol=1e-6)
+    with_angle = np.asarray(mixture.relative_geometry(tokens.boxes, start))
+    assert np.abs(np.asarray(mixture.relative_geometry(shifted, start)) - with_angle).max() > 1e-2
+    cfg = dataclasses.replace(MIXTURE, weight_geometry="offsets", weight_attention="self")
+    params = init_params(jax.random.key(3), cfg)
+    w = np.asarray(Predictor.from_params(params, cfg).table_weights(part.tokens, part.queries))
+    np.testing.assert_allclose(w.sum(-1), 1.0, rtol=1e-5)

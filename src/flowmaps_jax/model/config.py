@@ -18,7 +18,7 @@ HEADS = ("velocity", "pointer", "route", "mixture")
 PRECISIONS = ("float32", "bf16")
 POINTER_WIDTHS = ("absolute", "relative")
 WEIGHT_ATTENTION = ("cross", "self")
-WEIGHT_GEOMETRY = ("none", "relative")
+WEIGHT_GEOMETRY = ("none", "relative", "offsets")
 REMOVED_FIELDS = ("max_tokens",)
 """Fields that older configs carry and that configured nothing: :meth:`ModelConfig.from_dict`
 drops them, so configs saved with them still load."""
@@ -60,7 +60,9 @@ class ModelConfig:
     weight_geometry: what each table-weight row knows of where its table lies (``head="mixture"``):
         ``"none"`` (only its context token) or ``"relative"`` (also Fourier features of its centre
         relative to the table the object stands on, and of its angle around the map centre
-        relative to that table's: the quantities FlowSim's orders are defined by).
+        relative to that table's: the quantities FlowSim's orders are defined by) or
+        ``"offsets"`` (the centre features and the distance, no angle: nothing that only means
+        something on FlowSim's maps).
     pointer_width_scale: the pointer/route widths' log-variance is this × its parameter, so Adam
         moves it this much faster.
     pointer_widths: ``"absolute"`` (the pointer's widths in flow units, as first shipped) or

@@ -93,7 +93,7 @@ class FlowMaps(nn.Module):
             self.weight_tau_embed = nn.Embed(cfg.tau_max, cfg.dim)
             self.weight_final = FinalLayer(cfg.dim, out_dim=cfg.tau_max, precision=cfg.precision)
             self.table_embed = FlatDense(cfg.dim, precision=cfg.precision)
-            if cfg.weight_geometry == "relative":
+            if cfg.weight_geometry != "none":
                 self.geometry_embed = FlatDense(cfg.dim, precision=cfg.precision)
 
     def encode(self, tokens: SceneTokens, deterministic: bool = True) -> Context:
@@ -133,8 +133,9 @@ class FlowMaps(nn.Module):
         s = context.tokens.shape[1]
         on_start = jax.nn.one_hot(start, s, dtype=context.tokens.dtype)[..., None]  # (B,R,S,1)
         rows = context.tokens[:, None] + self.weight_pos + on_start * self.start_pos
-        if self.config.weight_geometry == "relative":
-            rows = rows + self.geometry_embed(mixture.relative_geometry(context.boxes, start))
+        if self.config.weight_geometry != "none":
+            rows = rows + self.geometry_embed(mixture.relative_geometry(
+                context.boxes, start, angle=self.config.weight_geometry == "relative"))
         if self.config.weight_attention == "self":  # one object's rows attend to each other
             b, r = descriptors.shape
             x = (rows + c[:, :, None, :]).reshape(b * r, s, -1)

@@ -125,20 +125,24 @@ GEOMETRY_FREQUENCIES = (1.0, 2.0, 4.0, 8.0)
 """Frequencies (× π) of :func:`relative_geometry`'s Fourier features of the centre offsets."""
 
 
-def relative_geometry(boxes, start):
+def relative_geometry(boxes, start, angle: bool = True):
     """Each token's place relative to the table an object stands on, as features (B, R, S, F):
-    the centre offset (dy, dx) and its sines and cosines at :data:`GEOMETRY_FREQUENCIES`, and
-    the sine and cosine of the angle around the map centre (0.5, 0.5) minus the start table's
-    (and of twice it). boxes (B, S, 4) normalised, start (B, R) token indices."""
+    the centre offset (dy, dx) and its sines and cosines at :data:`GEOMETRY_FREQUENCIES`, then
+    with ``angle`` the sine and cosine of the angle around the map centre (0.5, 0.5) minus the
+    start table's (and of twice it), without it the offset's length (the distance). boxes
+    (B, S, 4) normalised, start (B, R) token indices."""
     centres = to_centre(boxes)[..., :2]  # (B, S, 2)
     here = gather_tokens(centres, start)  # (B, R, 2)
     offset = centres[:, None] - here[:, :, None]  # (B, R, S, 2)
-    angle = jnp.arctan2(centres[..., 1] - 0.5, -(centres[..., 0] - 0.5))  # (B, S)
-    here_angle = jnp.take_along_axis(angle, start, axis=1)  # (B, R)
-    turn = angle[:, None] - here_angle[:, :, None]  # (B, R, S)
+    bearing = jnp.arctan2(centres[..., 1] - 0.5, -(centres[..., 0] - 0.5))  # (B, S)
+    here_bearing = jnp.take_along_axis(bearing, start, axis=1)  # (B, R)
+    turn = bearing[:, None] - here_bearing[:, :, None]  # (B, R, S)
     freqs = jnp.pi * jnp.asarray(GEOMETRY_FREQUENCIES, jnp.float32)
     waves = offset[..., None] * freqs  # (B, R, S, 2, K)
     waves = waves.reshape(*offset.shape[:-1], -1)
+    if not angle:  # world-agnostic: offsets and distances only
+        distance = jnp.sqrt(jnp.sum(offset ** 2, axis=-1, keepdims=True))
+        return jnp.concatenate([offset, jnp.sin(waves), jnp.cos(waves), distance], axis=-1)
     turns = jnp.stack([turn, 2 * turn], axis=-1)
     return jnp.concatenate([offset, jnp.sin(waves), jnp.cos(waves), jnp.sin(turns),
                             jnp.cos(turns)], axis=-1)
