@@ -230,6 +230,10 @@ def test_train_evaluate_and_search_with_data(data_dir, tmp_path):
       "{missing}", "--out", "{tmp}/s"], "--data"),
     (["-m", "flowmaps_jax.evaluate", "--checkpoint", "pretrained:flowmaps-homes", "--data",
       "{data}", "--out", "{tmp}/e", "--kl-draws", "7"], "--kl-draws does not apply"),
+    (["-m", "flowmaps_jax.evaluate", "--checkpoint", "pretrained:flowmaps-homes", "--data",
+      "{data}", "--out", "{tmp}/e", "--num-envs", "-1"], "--num-envs"),
+    (["-m", "flowmaps_jax.search", "--checkpoint", "pretrained:flowmaps-homes", "--data",
+      "{data}", "--out", "{tmp}/s", "--num-envs", "0"], "--num-envs"),
 ])
 def test_bad_data_exits_2_with_one_line(args, message, data_dir, tmp_path):
     fill = {"missing": str(tmp_path / "nothing"), "data": str(data_dir), "tmp": str(tmp_path)}
@@ -287,3 +291,18 @@ def test_a_checkpoint_whose_vocabulary_does_not_cover_the_data_exits_2(recorded,
     assert code == 2, out
     last = out.strip().splitlines()[-1]
     assert last.startswith("error: --data: ") and "no object class 'Alien'" in last
+
+
+def test_realised_figure_is_not_written_through_a_link(tmp_path):
+    from flowmaps_jax.evaluation.realised import write_figure
+
+    victim = tmp_path / "victim.png"
+    victim.write_bytes(b"keep")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "reliability.png").symlink_to(victim)
+    bins = [{"low": 0.0, "high": 1.0, "count": 1, "predicted": 0.5, "realised": 1.0}]
+    results = {"posterior": {"FlowMaps": {"reliability": {"bins": bins, "ece": 0.5}}}}
+    with pytest.raises(ValueError, match="symbolic link"):
+        write_figure(results, out, "posterior")
+    assert victim.read_bytes() == b"keep"

@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.atomic_files import make_output_dir, write_file
+from flowmaps_jax.atomic_files import make_output_dir, save_figure, write_file
 from flowmaps_jax.evaluation import priors as pr
 from flowmaps_jax.evaluation.receptacle_scores import stats, summarise
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
@@ -339,7 +339,8 @@ def markdown(results: dict) -> str:
 
 
 def write_figure(results: dict, out: pathlib.Path, part: str) -> str:
-    """``reliability.png`` (posterior) or ``success_vs_looks.png`` (navigation)."""
+    """``reliability.png`` (posterior) or ``success_vs_looks.png`` (navigation), written
+    atomically and never through a symbolic link (``atomic_files.save_figure``)."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(6, 4.5))
@@ -361,7 +362,7 @@ def write_figure(results: dict, out: pathlib.Path, part: str) -> str:
         ax.set_title("Success vs looks (target: the realised receptacle)")
     ax.legend(fontsize=7)
     name = REPORT[part][1]
-    fig.savefig(out / name, dpi=110, bbox_inches="tight")
+    save_figure(fig, out / name, name="--out file", dpi=110, bbox_inches="tight")
     return name
 
 
