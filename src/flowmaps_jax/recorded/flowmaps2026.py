@@ -93,7 +93,7 @@ def _pyarrow():
         import pyarrow.parquet as pq
     except ImportError:
         raise ValueError("the authors' format is parquet, which needs pyarrow: "
-                         "pip install 'flowmaps-jax[data]' (or pip install pyarrow)") from None
+                         "pip install pyarrow (a dependency of flowmaps-jax)") from None
     return pa, pq
 
 
