@@ -306,3 +306,18 @@ def test_realised_figure_is_not_written_through_a_link(tmp_path):
     with pytest.raises(ValueError, match="symbolic link"):
         write_figure(results, out, "posterior")
     assert victim.read_bytes() == b"keep"
+
+
+def test_an_environment_with_no_drawable_hour_is_refused(recorded, tmp_path):
+    # seen once, at hour 0: no map hour has a target after it, so its queries would target
+    # hours never observed (trained on silently before)
+    envs = []
+    for env in recorded.environments:
+        location = np.full_like(env.location, -1)
+        location[0] = env.location[0]
+        envs.append(dataclasses.replace(env, location=location))
+    path = tmp_path / "once"
+    save_recorded(Recorded(tuple(envs)), path)
+    cfg = recorded_config("smoke", str(path))
+    with pytest.raises(ValueError, match=r"^data: training environment 'home.*max_horizon"):
+        rw.splits(cfg, log=lambda line: None)

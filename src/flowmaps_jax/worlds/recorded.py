@@ -380,6 +380,31 @@ def _horizon_weights(max_horizon: int, default_frac: float) -> jax.Array:
     return jnp.asarray(w, jnp.float32)
 
 
+def drawable_tau(data: RecordedHomes, max_horizon: int, default_frac: float) -> jax.Array:
+    """(E, T) bool: the map hours τ with an observed target at a horizon :func:`draw_queries`
+    may draw (1 … ``max_horizon``, weighted by :func:`_horizon_weights`)."""
+    ok = target_hours(data)  # (E, T, M)
+    e, t, _ = ok.shape
+    h = max_horizon
+    weights = _horizon_weights(h, default_frac)  # (H,)
+    any_ok = jnp.concatenate([ok.any(-1), jnp.zeros((e, h + 1), bool)], axis=1)
+    ahead = any_ok[:, jnp.arange(t)[:, None] + jnp.arange(1, h + 1)]  # (E, T, H): τ + Δ
+    return jnp.any(ahead & (weights > 0), axis=-1)  # a target at a horizon drawn
+
+
+def check_drawable(data: RecordedHomes, names, cfg, part: str) -> None:
+    """``ValueError`` naming the first environment of ``data`` (``names`` in its order) with
+    no map hour :func:`draw_queries` can draw (its queries would target hours never observed:
+    e.g. no sighting within ``max_horizon`` hours after another one)."""
+    ok = np.asarray(drawable_tau(data, cfg.max_horizon, cfg.default_horizon_frac).any(-1))
+    if not ok.all():
+        bad = int(np.flatnonzero(~ok)[0])
+        raise ValueError(f"{part} environment {names[bad]!r} has no observed target within "
+                         f"max_horizon={cfg.max_horizon} hours after a map hour"
+                         + (" before the time cut" if part == "training" else "")
+                         + f" ({int((~ok).sum())} such environment(s)); drop it from the data")
+
+
 def draw_queries(key, data: RecordedHomes, num_queries: int, max_horizon: int,
                  default_frac: float) -> HomesQueries:
     """Q queries per home, sharing one map hour τ per home: τ uniformly among the hours with
@@ -388,12 +413,10 @@ def draw_queries(key, data: RecordedHomes, num_queries: int, max_horizon: int,
     draws them (:func:`_horizon_weights`). Jittable."""
     k_tau, k_pair = jax.random.split(key)
     ok = target_hours(data)  # (E, T, M)
-    e, t, m = ok.shape
+    e, _, m = ok.shape
     h = max_horizon
     weights = _horizon_weights(h, default_frac)  # (H,)
-    any_ok = jnp.concatenate([ok.any(-1), jnp.zeros((e, h + 1), bool)], axis=1)
-    ahead = any_ok[:, jnp.arange(t)[:, None] + jnp.arange(1, h + 1)]  # (E, T, H): τ + Δ
-    tau_ok = jnp.any(ahead & (weights > 0), axis=-1)  # a target at a horizon drawn
+    tau_ok = drawable_tau(data, max_horizon, default_frac)  # (E, T)
     tau = jax.random.categorical(k_tau, jnp.where(tau_ok, 0.0, -jnp.inf))  # (E,)
     padded = jnp.concatenate([ok, jnp.zeros((e, h + 1, m), bool)], axis=1)
     window = jax.vmap(lambda o, s: jax.lax.dynamic_slice_in_dim(o, s + 1, h, 0))(
@@ -448,7 +471,12 @@ def splits(cfg, log: Callable[[str], None] = print, mesh=None):
         if not bool(target_hours(train).any()):
             raise ValueError(f"the training environments of {cfg.data} hold no observation "
                              "to train on")
-        val = part_of(recorded, cfg.homes, _split_of(cfg), "val" if split["val"] else "train")
+        names = recorded.names()
+        check_drawable(train, [names[i] for i in split["train"]], cfg, "training")
+        val_part = "val" if split["val"] else "train"
+        val = part_of(recorded, cfg.homes, _split_of(cfg), val_part)
+        check_drawable(val, [names[i] for i in split[val_part]], cfg,
+                       "validation" if split["val"] else "training")
     log(f"  data ready in {time.perf_counter() - start:.1f} s")
     return train, val
 
