@@ -615,3 +615,16 @@ def test_the_data_commands(homes, tmp_path, capsys):
         assert code == 2, argv
         assert re.search(message, error_line(err)), err
     assert not (tmp_path / "w3").exists() and not (tmp_path / "y").exists()
+
+
+def test_export_refuses_a_folder_holding_an_earlier_exports_environments(tmp_path):
+    """An earlier export's env folders left beside a new one would be read with it (by their
+    loader and by import); exporting the same names again (an update) is fine."""
+    from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026, import_flowmaps2026
+
+    two = Recorded((tiny_environment("env0"), tiny_environment("env1")))
+    export_flowmaps2026(two, tmp_path / "a")
+    export_flowmaps2026(two, tmp_path / "a")  # the same environments again
+    with pytest.raises(ValueError, match=r"^root: .*'env1' .*choose an empty folder"):
+        export_flowmaps2026(Recorded((tiny_environment("env0"),)), tmp_path / "a")
+    assert_same(two, import_flowmaps2026(tmp_path / "a"))  # nothing written

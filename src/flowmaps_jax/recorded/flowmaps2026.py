@@ -512,7 +512,8 @@ def export_flowmaps2026(recorded: Recorded, root, *, progress: Progress = None
     """Write ``recorded`` into the folder ``root`` in the authors' layout: ``root/lookup.json``
     and one folder ``root/<environment name>/`` per environment (see the module's docstring).
     Every environment's files are written aside and renamed into place together; nothing is
-    written through a symbolic link. Returns ``root/lookup.json``."""
+    written through a symbolic link; a ``root`` holding an environment folder that this export
+    does not write (an earlier export's) is refused. Returns ``root/lookup.json``."""
     validate_recorded(recorded)
     _pyarrow()
     for env in recorded.environments:
@@ -533,6 +534,15 @@ def export_flowmaps2026(recorded: Recorded, root, *, progress: Progress = None
             if here.is_symlink():
                 raise ValueError(f"root: {os.fspath(here)!r} is a symbolic link; refusing to "
                                  f"write through it")
+    if root.is_dir():  # an earlier export's folders would be read with this one's
+        written = {os.path.normcase(os.path.abspath(root / n)) for n in recorded.names()}
+        stale = [name for name, folder in environment_folders(root)
+                 if os.path.normcase(os.path.abspath(folder)) not in written]
+        if stale:
+            raise ValueError(f"root: {os.fspath(root)!r} already holds the environment folder "
+                             f"{stale[0]!r} ({len(stale)} in all), which this export does not "
+                             f"write; their loader and import-flowmaps2026 would read it with "
+                             f"the new ones: choose an empty folder")
     root = make_output_dir("root", root, [LOOKUP])
     write_files({root / LOOKUP: _dumps(lookup_json(recorded))}, name="root")
     items = recorded.environments if progress is None else progress(recorded.environments)
