@@ -628,3 +628,14 @@ def test_export_refuses_a_folder_holding_an_earlier_exports_environments(tmp_pat
     with pytest.raises(ValueError, match=r"^root: .*'env1' .*choose an empty folder"):
         export_flowmaps2026(Recorded((tiny_environment("env0"),)), tmp_path / "a")
     assert_same(two, import_flowmaps2026(tmp_path / "a"))  # nothing written
+
+
+def test_export_refuses_a_linked_environment_folder(tmp_path):
+    from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026
+
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "a" / "train").mkdir(parents=True)
+    (tmp_path / "a" / "train" / "env0").symlink_to(tmp_path / "elsewhere")
+    with pytest.raises(ValueError, match=r"^root: .*env0' is a symbolic link"):
+        export_flowmaps2026(Recorded((tiny_environment("train/env0"),)), tmp_path / "a")
+    assert not any((tmp_path / "elsewhere").iterdir())

@@ -59,6 +59,7 @@ from flowmaps_jax.recorded.format import (
     Recorded,
     _environment_from_json,
     check_environment_name,
+    check_no_link_below,
     environment_json,
     validate_environment,
     validate_recorded,
@@ -528,12 +529,7 @@ def export_flowmaps2026(recorded: Recorded, root, *, progress: Progress = None
     names = [SCAN_MERGED, OBJECT_NAMES, RECEPTACLE_NAMES, RECEPTACLE_BOXES, OBJECT_ALLOWED,
              EXTRAS]
     for env in recorded.environments:
-        here = root
-        for part in env.name.split("/"):
-            here = here / part
-            if here.is_symlink():
-                raise ValueError(f"root: {os.fspath(here)!r} is a symbolic link; refusing to "
-                                 f"write through it")
+        check_no_link_below(root, env.name, "root")
     if root.is_dir():  # an earlier export's folders would be read with this one's
         written = {os.path.normcase(os.path.abspath(root / n)) for n in recorded.names()}
         stale = [name for name, folder in environment_folders(root)

@@ -452,14 +452,15 @@ def _npz_bytes(env: Environment) -> bytes:
     return buffer.getvalue()
 
 
-def _check_no_link_below(path: pathlib.Path, name: str) -> None:
-    """``ValueError`` if a component of ``path / name`` below ``path`` is a symbolic link."""
+def check_no_link_below(path: pathlib.Path, name: str, what: str = "path") -> None:
+    """``ValueError`` (naming the argument ``what``) if a component of ``path / name`` below
+    ``path`` is a symbolic link."""
     here = path
     for part in name.split("/"):
         here = here / part
         if here.is_symlink():
-            raise ValueError(f"path: {os.fspath(here)!r} is a symbolic link; refusing to write "
-                             f"through it")
+            raise ValueError(f"{what}: {os.fspath(here)!r} is a symbolic link; refusing to "
+                             f"write through it")
 
 
 def index_json(recorded: Recorded) -> dict:
@@ -478,7 +479,7 @@ def save_recorded(recorded: Recorded, path) -> pathlib.Path:
     root = pathlib.Path(check_output_dir("path", path))
     files: dict[pathlib.Path, str | bytes] = {}
     for env in recorded.environments:
-        _check_no_link_below(root, env.name)
+        check_no_link_below(root, env.name)
         folder = root / env.name
         if folder.exists() and not folder.is_dir():
             raise ValueError(f"path: {os.fspath(folder)!r} is a file, where the environment "
