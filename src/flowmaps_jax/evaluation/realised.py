@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import pathlib
 import shlex
 import sys
@@ -402,7 +403,7 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
             raise ValueError(f"--data needs a homes-network model; {args.checkpoint} is a "
                              f"{model.family_name!r} model of 2-D FlowSim maps")
         with prefix_errors("--data: "):
-            recorded = rw.load_recorded_data(data_path)
+            recorded = rw.load_recorded(data_path)
             data, what, environments = evaluation_part(recorded, model.homes, stored,
                                                        data_path)
         if args.num_envs != parser.get_default("num_envs") and args.num_envs < data.num_homes:
@@ -426,8 +427,6 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
     results["command"] = f"{prog} " + shlex.join(sys.argv[1:] if argv is None else list(argv))
     try:
         make_output_dir("--out", out)
-        import json
-
         results["figures"] = [] if args.no_figures else [write_figure(results, out, part)]
         text = markdown(results)
         paths = [write_file(out / f"{stem}.json", json.dumps(results, indent=1,

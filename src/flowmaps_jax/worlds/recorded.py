@@ -88,11 +88,6 @@ class RecordedHomes:
 # The vocabulary and sizes
 
 
-def load_recorded_data(path):
-    """The recorded dataset at ``path`` (``flowmaps_jax.recorded.format.load_recorded``)."""
-    return load_recorded(path)
-
-
 def _class_sizes(recorded, kind: str) -> dict[str, tuple[float, float, float]]:
     """Median (w, d, h) of every receptacle (``kind`` "receptacles") or object class (from the
     object boxes, where recorded), metres."""
@@ -451,7 +446,7 @@ def load_data(cfg, log: Callable[[str], None] = print):
     if not cfg.data:
         raise ValueError("a recorded run needs a dataset (--data PATH)")
     try:
-        return load_recorded_data(cfg.data)
+        return load_recorded(cfg.data)
     except OSError as err:
         raise ValueError(f"cannot read {cfg.data}: {err.strerror or err}") from None
 
