@@ -15,7 +15,7 @@ from support import run_python_in_process
 from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes
 from flowmaps_jax.flowsim.homes import tokens as homes_tokens
 from flowmaps_jax.flowsim.homes.queries import HomesQueries
-from flowmaps_jax.recorded.format import Recorded, load_recorded, save_recorded
+from flowmaps_jax.recorded.format import Recorded, content_digest, load_recorded, save_recorded
 from flowmaps_jax.recorded.from_homes import from_homes
 from flowmaps_jax.training.config import (
     RecordedTrainConfig,
@@ -65,6 +65,7 @@ def test_the_config_comes_from_the_data_and_is_stored_with_the_run(cfg, recorded
     stored = json.loads(json.dumps(cfg.to_dict()))
     assert stored["world"] == "recorded"
     assert config_from_stored(stored) == cfg  # resume rebuilds it
+    assert stored["data_digest"] == content_digest(recorded)
     with pytest.raises(ValueError, match="--preset cpu"):
         recorded_config("cpu", cfg.data)
     with pytest.raises(ValueError, match="val_fraction"):
@@ -321,3 +322,44 @@ def test_an_environment_with_no_drawable_hour_is_refused(recorded, tmp_path):
     cfg = recorded_config("smoke", str(path))
     with pytest.raises(ValueError, match=r"^data: training environment 'home.*max_horizon"):
         rw.splits(cfg, log=lambda line: None)
+
+
+def test_a_copy_of_the_training_data_is_scored_on_its_test_part_and_changed_data_is_refused(
+        cfg, recorded, data_dir, tmp_path):
+    from flowmaps_jax.evaluation.realised import evaluation_part
+
+    copy = tmp_path / "copy"
+    save_recorded(recorded, copy)
+    stored = cfg.to_dict()
+    _, what, envs = evaluation_part(load_recorded(copy), cfg.homes, stored, str(copy))
+    assert "held-out test part" in what and len(envs) == 1  # not the training environments
+    other = dict(stored, data_digest="0" * 64)
+    _, what, envs = evaluation_part(load_recorded(copy), cfg.homes, other, str(copy))
+    assert what == "all 3 environments" and len(envs) == 3
+    # a resume whose data changed under it is refused, naming the digest
+    changed = dataclasses.replace(cfg, data_digest="0" * 64)
+    with pytest.raises(ValueError, match=r"changed since the run began.*data_digest"):
+        rw.splits(changed, log=lambda _: None)
+    assert content_digest(load_recorded(copy)) == content_digest(recorded)
+    moved = Recorded(environments=(dataclasses.replace(
+        recorded.environments[0], location=np.roll(recorded.environments[0].location, 1, 0)),
+        *recorded.environments[1:]))
+    assert content_digest(moved) != content_digest(recorded)
+
+
+def test_last_seen_is_uniform_for_an_object_not_yet_seen(cfg, recorded):
+    from flowmaps_jax.evaluation.realised import LAST_SEEN, UNIFORM, reference_rows
+
+    data = rw.recorded_homes(recorded, cfg.homes)
+    observed = np.asarray(data.observed)
+    never = np.cumsum(observed, axis=1) == 0  # (E, T, M) not yet seen up to t
+    choice = np.asarray(data.homes.object_allowed).sum(-1) >= 2  # (E, M) uniform ≠ one place
+    e, t, i = (int(v) for v in np.argwhere(never[:, :-1] & choice[:, None, :])[0])
+    seen_e, seen_t, seen_i = (int(v) for v in np.argwhere(observed[:, :-1])[0])
+    queries = HomesQueries(object_index=jnp.asarray([[i, seen_i]] * 3, jnp.int32),
+                           tau=jnp.asarray([[t, seen_t]] * 3, jnp.int32),
+                           tau_q=jnp.asarray([[t + 1, seen_t + 1]] * 3, jnp.int32))
+    rows = reference_rows(data, queries, 24)
+    np.testing.assert_array_equal(rows[LAST_SEEN][e, 0], rows[UNIFORM][e, 0])
+    where = int(np.asarray(data.homes.receptacle)[seen_e, seen_t, seen_i])
+    assert rows[LAST_SEEN][seen_e, 1, where] > 0.9  # seen: its receptacle at τ

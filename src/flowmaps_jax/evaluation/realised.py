@@ -8,11 +8,11 @@ trained on), ``num_queries`` per environment, each at its own map hour τ, the o
 pairs: the target is where the object was seen at τ_q. The object may be unseen at τ.
 
 Per row (the model, and the reference rows of :mod:`flowmaps_jax.evaluation.priors`: uniform
-over the allowed receptacles; last seen, where the object was last seen up to τ; the frequency
-prior, add-one counts over the hours of the model's history window in which the object was
-seen; and, when every evaluated environment is FlowSim homes written by ``from-homes``, the exact
-posterior and the known-parameters filter of :mod:`flowmaps_jax.worlds.recorded_references`,
-else one line in the report saying why not):
+over the allowed receptacles; last seen, where the object was last seen up to τ (uniform while
+it was never seen); the frequency prior, add-one counts over the hours of the model's history
+window in which the object was seen; and, when every evaluated environment is FlowSim homes
+written by ``from-homes``, the exact posterior and the known-parameters filter of
+:mod:`flowmaps_jax.worlds.recorded_references`, else one line in the report saying why not):
 
 * log score: log p(realised receptacle), nats (higher is better; p floored at ``P_FLOOR``);
 * top-1 and top-5: whether the realised receptacle is the most probable / among the 5 most
@@ -48,6 +48,7 @@ from flowmaps_jax.evaluation.receptacle_scores import stats, summarise
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
 from flowmaps_jax.flowsim.homes.tokens import per_query_batch
 from flowmaps_jax.model.homes_family import receptacle_probabilities
+from flowmaps_jax.recorded.format import content_digest
 from flowmaps_jax.search import navigation as nav
 from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
 from flowmaps_jax.validation import check_int, check_output_dir, check_seed, prefix_errors
@@ -125,12 +126,24 @@ def model_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries
 
 def row_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries) -> dict:
     """{row name: (E, Q, R)} of the model and the reference rows."""
-    history = predictor.model.history
+    return {MODEL_ROW: model_probabilities(predictor, data, queries),
+            **reference_rows(data, queries, predictor.model.history)}
+
+
+def reference_rows(data: rw.RecordedHomes, queries: HomesQueries, history: int) -> dict:
+    """{row name: (E, Q, R)} of uniform, last seen and the frequency prior over ``history``
+    hours. Last seen is uniform over the allowed receptacles for an object not yet seen at τ
+    (the world's stand-in receptacle for it is no sighting)."""
     seen_only = data.homes.replace(  # unseen hours count for no receptacle
         receptacle=jnp.where(data.observed, data.homes.receptacle, -1))
-    return {MODEL_ROW: model_probabilities(predictor, data, queries),
-            UNIFORM: np.asarray(pr.uniform_prior(data.homes, queries)),
-            LAST_SEEN: np.asarray(pr.last_seen_prior()(data.homes, queries)),
+    uniform = np.asarray(pr.uniform_prior(data.homes, queries))
+    observed = np.asarray(data.observed)  # (E, T, M)
+    e = np.arange(observed.shape[0])[:, None]
+    seen = np.cumsum(observed, axis=1)[e, np.asarray(queries.tau),
+                                       np.asarray(queries.object_index)] > 0  # (E, Q)
+    last_seen = np.asarray(pr.last_seen_prior()(data.homes, queries))
+    return {UNIFORM: uniform,
+            LAST_SEEN: np.where(seen[..., None], last_seen, uniform),
             FREQUENCY: np.asarray(pr.frequency_prior(history)(seen_only, queries))}
 
 
@@ -175,10 +188,13 @@ def reliability(p, target, allowed, valid, bins: int = BINS) -> dict:
 
 def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
     """(RecordedHomes, what it is, its environments): the test part of the run's own split
-    when ``data_path`` is the dataset the run trained on, else every environment of the data;
+    when ``recorded`` (read from ``data_path``) is the dataset the run trained on (the same
+    folder, or a copy of it: the run's ``data_digest``), else every environment of the data;
     the environments (``recorded.Environment``) in the homes' order."""
-    same = stored.get("data") and pathlib.Path(stored["data"]).resolve() == \
+    same = bool(stored.get("data")) and pathlib.Path(stored["data"]).resolve() == \
         pathlib.Path(data_path).resolve()
+    same = same or (bool(stored.get("data_digest"))
+                    and content_digest(recorded) == stored["data_digest"])
     if same:
         split = (stored.get("val_fraction", 0.0), stored.get("test_fraction", 0.0),
                  stored.get("time_fraction", 0.0), stored.get("split_seed", 0))

@@ -24,6 +24,7 @@ symbolic link. ``validate_environment`` applies the loader's checks to an in-mem
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import io
 import json
 import os
@@ -450,6 +451,20 @@ def _npz_bytes(env: Environment) -> bytes:
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **{k: np.asarray(v) for k, v in arrays.items()})
     return buffer.getvalue()
+
+
+def content_digest(recorded: Recorded) -> str:
+    """A SHA-256 (hex) of what ``recorded`` holds, in order: each environment's name, its
+    ``environment.json`` entries and its hours, locations and receptacle boxes. Copies of one
+    dataset share it wherever they sit; a run stores it to recognise its own data."""
+    digest = hashlib.sha256()
+    for env in recorded.environments:
+        digest.update(json.dumps([env.name, environment_json(env)], sort_keys=True).encode())
+        for array in (env.hours, env.location, env.receptacle_corners):
+            array = np.ascontiguousarray(array)
+            digest.update(f"{array.dtype.str}{array.shape}".encode())
+            digest.update(array.tobytes())
+    return digest.hexdigest()
 
 
 def check_no_link_below(path: pathlib.Path, name: str, what: str = "path") -> None:

@@ -368,12 +368,16 @@ class RecordedTrainConfig(HomesTrainConfig):
     ``val_homes`` are not read) and ``data`` (the dataset's folder), the split by environment
     (``val_fraction``, ``test_fraction`` of them held out, seeded by ``split_seed``) and by time
     (``time_fraction``: the last hours of every training environment held out for test).
-    ``config.json`` stores ``"world": "recorded"`` beside the fields."""
+    ``data_digest``: :func:`flowmaps_jax.recorded.format.content_digest` of the data when the
+    run began (set by :func:`recorded_config`): a resume refuses changed data, and evaluation
+    knows a copy of the data elsewhere for the run's own. ``config.json`` stores
+    ``"world": "recorded"`` beside the fields."""
 
     world: typing.ClassVar[str] = "recorded"
     """The world this config trains on (:func:`flowmaps_jax.worlds.world`)."""
 
     data: str | None = _source(None)
+    data_digest: str | None = _source(None)
     val_fraction: float = _recipe(0.1)
     test_fraction: float = _recipe(0.1)
     time_fraction: float = _recipe(0.0)
@@ -400,6 +404,7 @@ class RecordedTrainConfig(HomesTrainConfig):
 
 _RECORDED_RULES = {
     "data": Optional(Text("a recorded dataset's folder")),
+    "data_digest": Optional(Text("a SHA-256 digest (hex)")),
     "val_fraction": Real(0.0, 1.0, high_open=True), "test_fraction": Real(0.0, 1.0, high_open=True),
     "time_fraction": Real(0.0, 1.0, high_open=True), "split_seed": check_seed,
 }
@@ -601,6 +606,7 @@ def recorded_config(preset: str | None, data: str) -> RecordedTrainConfig:
     with ``homes`` derived from the dataset (its vocabulary, sizes and hours,
     :func:`flowmaps_jax.worlds.recorded.homes_config_of`), ``model.history`` at most half its
     hours and ``max_horizon`` what fits after it. ValueError naming ``--preset`` or ``data``."""
+    from flowmaps_jax.recorded.format import content_digest
     from flowmaps_jax.worlds.recorded import homes_config_of, load_data
 
     preset = preset or "homes"
@@ -610,7 +616,9 @@ def recorded_config(preset: str | None, data: str) -> RecordedTrainConfig:
     base = RECORDED_PRESETS[preset]()
     base = dataclasses.replace(base, data=os.path.abspath(data))
     with prefix_errors("--data: "):
-        homes = homes_config_of(load_data(base))
+        recorded = load_data(base)
+        homes = homes_config_of(recorded)
+    base = dataclasses.replace(base, data_digest=content_digest(recorded))
     history = min(base.model.history, max(1, homes.num_hours // 2))
     return dataclasses.replace(
         base, homes=homes, model=dataclasses.replace(base.model, history=history),

@@ -51,7 +51,7 @@ from flowmaps_jax.flowsim.homes.tokens import shared_tau_batch
 from flowmaps_jax.flowsim.homes.vocabulary import ObjectClass, ReceptacleClass, RoomType
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
 from flowmaps_jax.model.homes_family import FAMILY_NAME
-from flowmaps_jax.recorded.format import load_recorded
+from flowmaps_jax.recorded.format import content_digest, load_recorded
 from flowmaps_jax.validation import prefix_errors
 from flowmaps_jax.worlds import homes as homes_world
 from flowmaps_jax.worlds.world import World
@@ -457,6 +457,10 @@ def splits(cfg, log: Callable[[str], None] = print, mesh=None):
     start = time.perf_counter()
     with prefix_errors("data: "):
         recorded = load_data(cfg)
+        if cfg.data_digest and content_digest(recorded) != cfg.data_digest:
+            raise ValueError(f"{cfg.data} changed since the run began (its contents no longer "
+                             f"match the digest in config.json, data_digest); train a new run "
+                             f"on the new data")
         split = split_environments(recorded.names(), cfg.val_fraction, cfg.test_fraction,
                                    cfg.split_seed)
         log(f"Recorded data {cfg.data}: {len(recorded.environments)} environments, split by "
