@@ -205,6 +205,21 @@ def test_weights_are_a_distribution_over_the_allowed_receptacles_only(params, ba
     assert np.abs(p - p0).max() > 1e-3  # the perturbed model is not uniform
 
 
+def test_rows_without_the_angle_read_offsets_and_distance_only(params, batch):
+    """``geometry_angle=False`` (issue 47: nothing that needs a home's centre): the rows' geometry
+    loses the angle's four features and gains the distance, and the model still answers a
+    distribution; stored models (no such key) keep the angle."""
+    flat = dataclasses.replace(MODEL, geometry_angle=False)
+    agnostic = homes_model.init_params(jax.random.key(0), flat, CONFIG)
+    width = lambda p: p["row_mlp"]["in"]["kernel"].shape[0]  # noqa: E731
+    assert width(params) - width(agnostic) == 3
+    p = np.asarray(homes_model.receptacle_probabilities(perturb(agnostic, jax.random.key(1)),
+                                                        flat, CONFIG, batch))
+    np.testing.assert_allclose(p.sum(-1), 1.0, atol=1e-5)
+    stored = {k: v for k, v in flat.to_dict().items() if k != "geometry_angle"}
+    assert homes_model.HomesModelConfig.from_dict(stored).geometry_angle
+
+
 def test_placement_velocity_is_zero_at_init(params, batch):
     context, c = homes_model._encode_and_condition(params, MODEL, CONFIG, batch)
     b, q = batch.current.shape

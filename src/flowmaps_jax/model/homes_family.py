@@ -94,7 +94,10 @@ class HomesModelConfig:
     the first ``BASE_HISTORY_FEATURES``; False for models stored before them);
     history_observed: the rows also read the partial-observation features (unseen at τ, hours
     since last seen, never seen; all of ``HISTORY_FEATURES``; needs ``history_counts``; False
-    for models stored before them, which read the first ``COUNT_HISTORY_FEATURES``).
+    for models stored before them, which read the first ``COUNT_HISTORY_FEATURES``);
+    geometry_angle: the rows' geometry (``mixture.relative_geometry``) has the angle around the
+    home's centre, which orders FlowSim homes' cycles (True, as stored models); False: offsets
+    and the distance only, nothing that needs a centre to mean something.
     """
 
     dim: int = 64
@@ -108,6 +111,7 @@ class HomesModelConfig:
     history: int = DEFAULT_HISTORY
     history_counts: bool = False
     history_observed: bool = False
+    geometry_angle: bool = True
 
     def __post_init__(self):
         check_fields(self, _MODEL_RULES, prefix="model.", store=False)
@@ -135,7 +139,8 @@ _MODEL_RULES = {**{name: Int(1, 1 << 16) for name in (
     "dim", "heads", "mlp_ratio", "freq_bands", "history")},
     **{name: Int(1, MAX_BLOCKS, "each layer is compiled on its own") for name in (
         "encoder_layers", "weight_blocks", "cdit_blocks")}, "max_frequency": Real(1.0),
-    "history_counts": Choice((False, True)), "history_observed": Choice((False, True))}
+    **{name: Choice((False, True)) for name in (
+        "history_counts", "history_observed", "geometry_angle")}}
 """The rules of :class:`HomesModelConfig`'s fields (messages name ``model.<field>``)."""
 
 
@@ -245,7 +250,8 @@ class HomesNet(nn.Module):
         b, q = batch.current.shape
         geometry = mixture.relative_geometry(_receptacle_boxes_4d(context.boxes,
                                                                   self.homes_config),
-                                             batch.current)  # (B, Q, R, 22)
+                                             batch.current,
+                                             angle=self.config.geometry_angle)  # (B, Q, R, G)
         read = (len(HISTORY_FEATURES) if self.config.history_observed else
                 COUNT_HISTORY_FEATURES if self.config.history_counts else BASE_HISTORY_FEATURES)
         history = batch.history[..., :read]
