@@ -13,6 +13,7 @@ from support import run_python_in_process
 
 from flowmaps_jax.evaluation import realised
 from flowmaps_jax.flowsim.homes import (
+    REGIMES,
     HomesConfig,
     filtered_posterior,
     generate_homes,
@@ -70,7 +71,7 @@ def test_at_0_percent_the_rows_are_the_homes_posteriors_of_the_original_homes(fu
     recorded = load_recorded(full_dir)
     data = rw.recorded_homes(recorded, rw.homes_config_of(recorded))
     queries = _queries(data)
-    rows, note = refs.reference_rows(recorded.environments, data, queries)
+    rows, note, regime = refs.reference_rows(recorded.environments, data, queries)
     assert set(rows) == {refs.EXACT_ROW, refs.FILTER_ROW} and "seed 4, 3 homes" in note
     obj, tau, tau_q = (np.asarray(a) for a in (queries.object_index, queries.tau,
                                                queries.tau_q))
@@ -87,13 +88,16 @@ def test_at_0_percent_the_rows_are_the_homes_posteriors_of_the_original_homes(fu
             np.testing.assert_allclose(rows[refs.EXACT_ROW][e, k, :n], exact, atol=1e-6)
             np.testing.assert_allclose(rows[refs.FILTER_ROW][e, k, :n], known, atol=1e-6)
             assert np.all(rows[refs.EXACT_ROW][e, k, n:] == 0)
+            objects = np.flatnonzero(np.asarray(homes.object_valid[e]))
+            law = int(np.asarray(homes.regime)[e, objects[obj[e, k]]])
+            assert regime[e, k] == REGIMES[law]  # the query's object's regime, by name
 
 
 def test_with_masking_the_filter_sees_only_the_observed_hours(masked_dir, homes):
     recorded = load_recorded(masked_dir)
     data = rw.recorded_homes(recorded, rw.homes_config_of(recorded))
     queries = _queries(data)
-    rows, _ = refs.reference_rows(recorded.environments, data, queries)
+    rows, _, _ = refs.reference_rows(recorded.environments, data, queries)
     obj, tau, tau_q = (np.asarray(a) for a in (queries.object_index, queries.tau,
                                                queries.tau_q))
     gap = 0.0
@@ -134,7 +138,7 @@ def test_data_not_written_by_from_homes_gets_no_rows_and_a_reason(full_dir, home
             ((other, *envs[1:]), "is not FlowSim homes"),
             ((envs[0], edited, envs[2]), "is not its regenerated home"),
             ((*envs[:2], shifted), "is not its regenerated home")):
-        rows, note = refs.reference_rows(environments, data, queries)
+        rows, note, _ = refs.reference_rows(environments, data, queries)
         assert rows == {} and note.startswith("No exact reference rows: ") and reason in note
 
 
@@ -151,6 +155,9 @@ def test_evaluate_data_adds_the_rows_for_from_homes_data_and_says_why_not_otherw
     assert list(results["posterior"])[:3] == ["FlowMaps", refs.EXACT_ROW, refs.FILTER_ROW]
     assert results["protocol"]["references"].startswith("Exact reference rows")
     assert f"| {refs.FILTER_ROW} |" in out
+    by_regime = results["posterior"]["FlowMaps"]["metrics"]["log_score"]["by_regime"]
+    assert set(by_regime) <= set(REGIMES) and "by the object's regime" in out
+    assert sum(v["count"] for v in by_regime.values()) == results["protocol"]["queries"]
     bare = tmp_path / "bare"
     save_recorded(Recorded(from_homes(homes, CONFIG).environments), bare)
     code, out = run_python_in_process(
@@ -161,6 +168,7 @@ def test_evaluate_data_adds_the_rows_for_from_homes_data_and_says_why_not_otherw
     results = json.loads((tmp_path / "b" / "results.json").read_text())
     assert refs.EXACT_ROW not in results["posterior"] and len(results["posterior"]) == 4
     assert "No exact reference rows: " in (tmp_path / "b" / "results.md").read_text()
+    assert "by_regime" not in results["posterior"]["FlowMaps"]["metrics"]["log_score"]
 
 
 def test_the_test_part_lists_its_environments_in_the_homes_order(full_dir):

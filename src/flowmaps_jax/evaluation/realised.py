@@ -236,17 +236,22 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
     allowed = np.asarray(pr.allowed_slots(homes, queries))
     beliefs = row_probabilities(predictor, data, queries)
     if environments is None:
-        exact, note = {}, "No exact reference rows: the data's environments were not given."
+        exact, note, regime = ({}, "No exact reference rows: the data's environments were not "
+                               "given.", None)
     else:
-        exact, note = references.reference_rows(environments, data, queries)
+        exact, note, regime = references.reference_rows(environments, data, queries)
     beliefs = {MODEL_ROW: beliefs.pop(MODEL_ROW), **exact, **beliefs}
     bar.total += len(exact) * (rows_steps // 4)
     bar.refresh()
     bar.update(1)
     horizon = np.asarray(queries.horizon)
 
+    groups = {"horizon": horizon[valid]}
+    if regime is not None:  # FlowSim homes: their regimes are known
+        groups["regime"] = regime[valid]
+
     def summary(values):
-        return summarise(np.asarray(values)[valid], {"horizon": horizon[valid]})
+        return summarise(np.asarray(values)[valid], groups)
 
     results = {"protocol": {
         "eval_seed": EVAL_SEED, "seed": seed, "queries_per_environment": num_queries,
@@ -331,6 +336,14 @@ def markdown(results: dict) -> str:
             by = row["metrics"]["log_score"]["by_horizon"]
             lines.append(f"| {name} | " + " | ".join(_pm(by.get(str(h))) for h in p["horizons"])
                          + " |")
+        regimes = list(next(iter(results["posterior"].values()))["metrics"]["log_score"].get(
+            "by_regime", {}))
+        if regimes:  # FlowSim homes
+            lines += ["", "Log score by the object's regime (FlowSim homes; nats):", "",
+                      "| row | " + " | ".join(regimes) + " |", "|---" * (len(regimes) + 1) + "|"]
+            for name, row in results["posterior"].items():
+                by = row["metrics"]["log_score"]["by_regime"]
+                lines.append(f"| {name} | " + " | ".join(_pm(by.get(r)) for r in regimes) + " |")
         lines += ["", "## Reliability (predicted probability vs realised frequency)", "",
                   "| bin | " + " | ".join(results["posterior"]) + " |",
                   "|---" * (len(results["posterior"]) + 1) + "|"]

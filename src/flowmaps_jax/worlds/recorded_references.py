@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.flowsim.homes.config import HomesConfig
+from flowmaps_jax.flowsim.homes.config import REGIMES, HomesConfig
 from flowmaps_jax.flowsim.homes.posterior import filtered_posterior, homes_history_posterior
 from flowmaps_jax.flowsim.homes.queries import HomesQueries
 from flowmaps_jax.flowsim.homes.rollout import homes_from_keys
@@ -123,15 +123,17 @@ def _rows(homes, observed, queries: HomesQueries, config: HomesConfig, history: 
 
 
 def reference_rows(environments, data, queries: HomesQueries,
-                   history: int = EXACT_HISTORY) -> tuple[dict[str, np.ndarray], str]:
-    """({``EXACT_ROW``: (E, Q, R), ``FILTER_ROW``: (E, Q, R)}, a one-line note) for the E
-    environments of ``data`` (a ``worlds.recorded.RecordedHomes``; ``environments`` the
-    recorded ones it was built from, in its order) and its ``queries`` (E, Q), in ``data``'s
-    receptacle slots; ({}, the reason) when they are not all FlowSim homes that
-    ``from-homes`` wrote (see the module docstring)."""
+                   history: int = EXACT_HISTORY
+                   ) -> tuple[dict[str, np.ndarray], str, np.ndarray | None]:
+    """({``EXACT_ROW``: (E, Q, R), ``FILTER_ROW``: (E, Q, R)}, a one-line note, the regime
+    name of each query's object (E, Q)) for the E environments of ``data`` (a
+    ``worlds.recorded.RecordedHomes``; ``environments`` the recorded ones it was built from, in
+    its order) and its ``queries`` (E, Q), in ``data``'s receptacle slots; ({}, the reason,
+    None) when they are not all FlowSim homes that ``from-homes`` wrote (see the module
+    docstring)."""
     source = homes_source(environments)
     if isinstance(source, str):
-        return {}, f"No exact reference rows: {source}."
+        return {}, f"No exact reference rows: {source}.", None
     config = source.config
     e, q = np.asarray(queries.tau).shape
     r_data, m_data = (data.homes.receptacle_valid.shape[-1], data.homes.object_valid.shape[-1])
@@ -140,13 +142,14 @@ def reference_rows(environments, data, queries: HomesQueries,
     observed = np.asarray(data.observed)
     if observed.shape[1] < t:
         return {}, (f"No exact reference rows: the data's homes hold {observed.shape[1]} hours, "
-                    f"the FlowSim homes {t}.")
+                    f"the FlowSim homes {t}."), None
     obj, tau, tau_q = (np.asarray(a) for a in (queries.object_index, queries.tau,
                                                queries.tau_q))
     keys = jax.random.split(jax.random.key(source.seed), source.num_homes)
     chunk = max(1, min(e, QUERIES_PER_CALL // max(q, 1)))
     rows = {EXACT_ROW: np.zeros((e, q, r_data), np.float32),
             FILTER_ROW: np.zeros((e, q, r_data), np.float32)}
+    regime = np.zeros((e, q), np.int64)
     for start in range(0, e, chunk):
         index = np.arange(start, start + chunk)
         real = index < e
@@ -160,7 +163,7 @@ def reference_rows(environments, data, queries: HomesQueries,
             env = environments[index[c]]
             numbering = _numbering(env, {k: v[c] for k, v in fields.items()}, config)
             if isinstance(numbering, str):
-                return {}, f"No exact reference rows: {numbering}."
+                return {}, f"No exact reference rows: {numbering}.", None
             slots, objects = numbering
             to_slot[c] = -1
             to_slot[c, :len(slots)] = slots
@@ -177,9 +180,11 @@ def reference_rows(environments, data, queries: HomesQueries,
             p = np.take_along_axis(np.asarray(p), np.maximum(to_slot, 0)[:, None, :], 2)
             p = np.where(to_slot[:, None, :] >= 0, np.nan_to_num(p), 0.0)
             rows[name][index[real]] = p[real]
+        regime[index[real]] = np.take_along_axis(
+            fields["regime"], np.asarray(home_queries.object_index), 1)[real]
     note = (f"Exact reference rows (the environments are FlowSim homes {config.regime!r}, "
             f"regenerated from their source: seed {source.seed}, {source.num_homes} homes): "
             f"{EXACT_ROW} reads the true receptacles of the last {history} h up to τ, hidden "
             f"hours included, its favourites unknown; {FILTER_ROW} knows every object's law and "
             f"filters over the observed hours only.")
-    return rows, note
+    return rows, note, np.asarray(REGIMES)[regime]
