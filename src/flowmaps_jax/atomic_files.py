@@ -9,6 +9,9 @@ weights, a run's config and metrics): nothing is ever written through a symbolic
 * :func:`make_output_dir` creates an output folder and the parents it lacks, one by one; a
   component that turns out to be a symbolic link (planted while it was being created) is
   refused. An existing folder given by the caller (``--out``) is used as it is.
+* :func:`output_folder` writes a whole output folder (a data command's ``--out``) into a fresh
+  folder beside it, renamed into place at the end: nothing half-written, no link followed, and
+  a folder that holds anything is replaced only when told to (it is moved aside).
 * :func:`save_figure` renders a matplotlib figure in memory and writes it with
   :func:`write_file`.
 * :func:`check_no_links` refuses, up front, links at the names a command is about to write, so
@@ -24,7 +27,10 @@ import contextlib
 import io
 import os
 import pathlib
-from collections.abc import Iterable
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
@@ -96,6 +102,54 @@ def make_output_dir(name: str, path: Any, files: Iterable[str] = ()) -> pathlib.
         raise ValueError(f"{name} {os.fspath(path)!r} is a file, not a directory")
     check_no_links(name, path, files)
     return path
+
+
+def move_aside(path: pathlib.Path) -> pathlib.Path:
+    """Rename ``path`` to a free ``<path>.old-<timestamp>`` and return that path."""
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    target = path.with_name(f"{path.name}.old-{stamp}")
+    suffix = 1
+    while target.exists():
+        suffix += 1
+        target = path.with_name(f"{path.name}.old-{stamp}-{suffix}")
+    path.rename(target)
+    return target
+
+
+@contextlib.contextmanager
+def output_folder(name: str, path: Any, *, overwrite: bool = False,
+                  log: Callable[[str], None] = print) -> Iterator[pathlib.Path]:
+    """Yields a fresh temporary folder beside ``path`` to write a whole output into; on leaving
+    it is renamed to ``path``, and on an error (a refusal, a full disk, an interrupt) removed.
+    A symbolic link at ``path`` is a ``ValueError`` naming ``name``; so is a folder there that
+    holds anything, unless ``overwrite``: it is then moved to ``<path>.old-<timestamp>``."""
+    given, path = os.fspath(path), pathlib.Path(os.path.abspath(path))
+    if path.is_symlink():
+        raise _link_error(name, given)
+    held = sorted(os.listdir(path)) if path.is_dir() else []
+    if held and not overwrite:
+        raise ValueError(f"{name} {given!r} already holds {', '.join(held[:3])}"
+                         f"{', ...' if len(held) > 3 else ''}: add --overwrite to replace it "
+                         f"(the old folder is moved to {path.name}.old-<time>), or choose "
+                         f"another folder")
+    parent = make_output_dir(name, path.parent)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=parent))
+    umask = os.umask(0o22)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # as a folder made by mkdir (mkdtemp's is private)
+    old = None
+    try:
+        yield tmp
+        if held:
+            old = move_aside(path)
+        os.rename(tmp, path)  # also over an empty folder; a link or a filled one: an OSError
+    except BaseException:
+        if old is not None and not os.path.lexists(path):
+            os.rename(old, path)
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if old is not None:
+        log(f"{name}: moved the old {given} to {old}")
 
 
 def _write_temporary(path: pathlib.Path, raw: bytes, name: str) -> pathlib.Path:

@@ -1,17 +1,20 @@
 """``python -m flowmaps_jax.data``: recorded worlds from files and simulators, and back
 (docs/data.md).
 
-    python -m flowmaps_jax.data import-flowmaps2026 ROOT --out PATH
-    python -m flowmaps_jax.data export-flowmaps2026 PATH --out ROOT
+    python -m flowmaps_jax.data import-flowmaps2026 ROOT --out PATH [--overwrite]
+    python -m flowmaps_jax.data export-flowmaps2026 PATH --out ROOT [--overwrite]
     python -m flowmaps_jax.data from-homes --homes N [--regime mixed] [--hours T] [--mask 0.3]
-        [--seed S] [--names PREFIX] --out PATH
+        [--seed S] [--names PREFIX] --out PATH [--overwrite]
 
 ``import-flowmaps2026`` reads every environment folder under ROOT in the authors' 2026 layout
 (:mod:`flowmaps_jax.recorded.flowmaps2026`) and writes one recorded world (:mod:`~flowmaps_jax.
 recorded.format`) to PATH; ``export-flowmaps2026`` writes a recorded world in that layout;
 ``from-homes`` generates N FlowSim homes (``generate_homes(jax.random.key(S), config, N)``) and
 writes them as a recorded world, about ``--mask`` of the object-hours hidden by whole rooms
-(:mod:`~flowmaps_jax.recorded.from_homes`). Exit codes: 0 ok, 2 bad arguments or a bad input
+(:mod:`~flowmaps_jax.recorded.from_homes`). Every command writes its whole ``--out`` folder
+aside and renames it into place (:func:`~flowmaps_jax.atomic_files.output_folder`): a link
+there is refused, and so is a folder holding anything unless ``--overwrite`` (it is then moved
+to ``<out>.old-<time>``). Exit codes: 0 ok, 2 bad arguments or a bad input
 file (one line), 74 a failed write (a full disk), 130 interrupted.
 """
 
@@ -26,6 +29,7 @@ from collections.abc import Sequence
 
 from tqdm.auto import tqdm
 
+from flowmaps_jax.atomic_files import output_folder
 from flowmaps_jax.flowsim.homes.config import REGIMES, HomesConfig
 from flowmaps_jax.recorded import Recorded, from_homes, load_recorded, save_recorded
 from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026, import_flowmaps2026
@@ -72,6 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     homes.add_argument("--out", required=True, metavar="PATH", help="the recorded world's folder")
     for sub in (imp, exp, homes):
         sub.add_argument("--no-progress", action="store_true", help="no progress bar")
+        sub.add_argument("--overwrite", action="store_true", help="replace a --out folder that "
+                         "holds anything (it is moved to <out>.old-<time>)")
     return parser
 
 
@@ -97,19 +103,25 @@ def _bar(args, what: str, unit: str):
                               leave=False)
 
 
-def _import(args) -> str:
+def _out(args):
+    """The ``--out`` folder, checked before any work, written aside (``output_folder``)."""
     check_output_dir("--out", args.out)
-    recorded = import_flowmaps2026(args.root, progress=_bar(args, "reading", "env"))
-    save_recorded(recorded, args.out)
+    return output_folder("--out", args.out, overwrite=args.overwrite)
+
+
+def _import(args) -> str:
+    with _out(args) as out:
+        recorded = import_flowmaps2026(args.root, progress=_bar(args, "reading", "env"))
+        save_recorded(recorded, out)
     return f"wrote {args.out}: {describe(recorded)}"
 
 
 def _export(args) -> str:
-    check_output_dir("--out", args.out)
-    recorded = load_recorded(args.path)
-    lookup = export_flowmaps2026(recorded, args.out, progress=_bar(args, "writing", "env"))
-    return (f"wrote {len(recorded.environments)} environment folders and {lookup} "
-            f"({describe(recorded)})")
+    with _out(args) as out:
+        recorded = load_recorded(args.path)
+        export_flowmaps2026(recorded, out, progress=_bar(args, "writing", "env"))
+    return (f"wrote {len(recorded.environments)} environment folders and "
+            f"{os.path.join(args.out, 'lookup.json')} ({describe(recorded)})")
 
 
 def homes_config(args) -> HomesConfig:
@@ -121,18 +133,26 @@ def homes_config(args) -> HomesConfig:
 
 
 def _from_homes(args) -> str:
-    import jax
-    import numpy as np
-
-    from flowmaps_jax.flowsim.homes.rollout import homes_bytes_per_home, homes_from_keys
+    from flowmaps_jax.flowsim.homes.rollout import homes_bytes_per_home
 
     num = check_int("--homes", args.homes, 1)
     mask = check_real("--mask", args.mask, 0.0, 1.0, high_open=True)
     seed = check_seed("--seed", args.seed)
     config = homes_config(args)
     check_environment_name(f"{args.names}0", "--names")
-    check_output_dir("--out", args.out)
     check_request_size(f"--homes {num}", 2 * num * homes_bytes_per_home(config))
+    with _out(args) as out:
+        recorded = _generate(args, num, mask, seed, config)
+        save_recorded(recorded, out)
+    return f"wrote {args.out}: {describe(recorded)}"
+
+
+def _generate(args, num: int, mask: float, seed: int, config: HomesConfig) -> Recorded:
+    import jax
+    import numpy as np
+
+    from flowmaps_jax.flowsim.homes.rollout import homes_from_keys
+
     keys = jax.random.split(jax.random.key(seed), num)  # as generate_homes(key(seed), config, N)
     chunk = min(HOMES_CHUNK, num)
     environments = []
@@ -151,11 +171,8 @@ def _from_homes(args) -> str:
             bar.update(size)
     generator = {"call": "generate_homes(jax.random.key(seed), config, num_homes)",
                  "seed": seed, "num_homes": num}
-    recorded = Recorded(tuple(dataclasses.replace(env, source={**env.source,
-                                                               "generator": generator})
-                              for env in environments))
-    save_recorded(recorded, args.out)
-    return f"wrote {args.out}: {describe(recorded)}"
+    return Recorded(tuple(dataclasses.replace(env, source={**env.source, "generator": generator})
+                          for env in environments))
 
 
 COMMANDS = {"import-flowmaps2026": _import, "export-flowmaps2026": _export,

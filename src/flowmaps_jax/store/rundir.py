@@ -38,7 +38,7 @@ from collections.abc import Callable, Iterator
 import jax
 
 from flowmaps_jax import distributed
-from flowmaps_jax.atomic_files import check_no_links, check_tree_no_links, write_file
+from flowmaps_jax.atomic_files import check_no_links, check_tree_no_links, move_aside, write_file
 from flowmaps_jax.store import checkpoints
 from flowmaps_jax.untrusted_files import parse_json
 
@@ -198,18 +198,6 @@ class RunLock:
 
 def _entries(run_dir: pathlib.Path) -> list[str]:
     return sorted(p.name for p in run_dir.iterdir() if p.name != LOCK_NAME)
-
-
-def move_aside(run_dir: pathlib.Path) -> pathlib.Path:
-    """Rename ``run_dir`` to a free ``<run_dir>.old-<timestamp>`` and return that path."""
-    stamp = time.strftime("%Y%m%d-%H%M%S")
-    target = run_dir.with_name(f"{run_dir.name}.old-{stamp}")
-    suffix = 1
-    while target.exists():
-        suffix += 1
-        target = run_dir.with_name(f"{run_dir.name}.old-{stamp}-{suffix}")
-    run_dir.rename(target)
-    return target
 
 
 @contextlib.contextmanager
