@@ -31,6 +31,16 @@ vmapped over homes and queries (no Python loop over either):
 * :func:`oracle_samples_prior` — ``num_samples`` draws from the exact posterior, histogrammed:
   a perfect sampler seen through N samples, the floor of any sampler's TV (the 2-D protocol's
   "oracle samples").
+* :func:`count_table_prior` — per object × hour of day Dirichlet counts: hour h of the window
+  weighs K_b(hour of day of h − that of τ_q) (a circular Gaussian kernel of bandwidth b hours,
+  × ``day_factor`` when h and τ_q are not both weekdays or both weekend days), plus α × the
+  class back-off P(receptacle class | object class, hour of day of τ_q) (training counts
+  smoothed by the same kernel), uniform among the allowed receptacles of a class.
+* :func:`stay_prior` — s₁^Δ on the receptacle where the object was last seen (Δ hours before
+  τ_q, any hour up to τ), the rest by the count table; the count table alone if never seen.
+
+Both read ``homes.receptacle`` −1 as "not seen" (:func:`seen_only`), and their parameters
+(:class:`CountFit`) are chosen on a training part by :func:`fit_count_table`.
 
 "Nearest first" needs no prior: it is a navigation policy (:mod:`flowmaps_jax.search.navigation`).
 """
@@ -43,6 +53,7 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
+from flax import struct
 
 from flowmaps_jax.flowsim.homes import HomesConfig, homes_history_posterior
 from flowmaps_jax.flowsim.homes.queries import HomesQueries
@@ -50,6 +61,7 @@ from flowmaps_jax.flowsim.homes.world import Homes
 from flowmaps_jax.tables import histogram
 from flowmaps_jax.validation import (
     PROB_ATOL,
+    check_array,
     check_instance,
     check_int,
     check_int_array,
@@ -234,3 +246,136 @@ def oracle_samples_prior(config: HomesConfig, key, num_samples: int = 100,
         return histogram_draws(key, exact(homes, queries), num_samples)
 
     return prior
+
+
+# --------------------------------------------------------------------------- count tables
+
+COUNT_ROW, STAY_ROW = "count table (hour of day)", "last seen, fitted stay"
+BANDWIDTHS = (0.5, 1.0, 2.0, 4.0, 8.0, 1e3)
+"""Hours: the kernel bandwidths :func:`fit_count_table` tries (1e3: no hour-of-day effect)."""
+ALPHAS = (0.1, 0.5, 2.0, 8.0)
+"""Pseudo-counts of the class back-off tried."""
+DAY_FACTORS = (1.0, 0.2)
+"""Weight of an hour of the other day type (weekday / weekend) tried (1: day type ignored)."""
+STAYS = (0.5, 0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97, 0.98, 0.99, 0.995, 0.999)
+"""Hourly stay probabilities s₁ tried."""
+CLASS_PSEUDO = 0.5
+"""Add-β of the class table (per receptacle class and hour of day)."""
+LOG_FLOOR = 1e-9
+
+
+@struct.dataclass
+class CountFit:
+    """The count rows' parameters: ``classes`` (Co, 24, Cr) training sightings of each object
+    class on each receptacle class by hour of day; ``bandwidth`` b (hours), ``alpha``,
+    ``day_factor``, ``stay`` s₁: float32 scalars."""
+
+    classes: jax.Array
+    bandwidth: jax.Array
+    alpha: jax.Array
+    day_factor: jax.Array
+    stay: jax.Array
+
+    def summary(self) -> dict:
+        """The chosen values (JSON-able)."""
+        return {k: float(getattr(self, k)) for k in ("bandwidth", "alpha", "day_factor", "stay")}
+
+
+def seen_only(homes: Homes, observed) -> Homes:
+    """``homes`` with ``receptacle`` −1 where ``observed`` (E, T, M) is False."""
+    return homes.replace(receptacle=jnp.where(observed, homes.receptacle, -1))
+
+
+def _kernel(hours, bandwidth):
+    """exp(−d² / 2b²), d the circular distance of ``hours`` on the 24-hour clock."""
+    d = jnp.abs(hours) % 24
+    return jnp.exp(-0.5 * (jnp.minimum(d, 24 - d) / bandwidth) ** 2)
+
+
+@functools.partial(jax.jit, static_argnames="shape")
+def _class_counts(homes: Homes, shape):
+    rec = homes.receptacle  # (E, T, M)
+    rc = jnp.take_along_axis(homes.receptacle_class, jnp.maximum(rec, 0).reshape(
+        rec.shape[0], -1), 1).reshape(rec.shape)
+    oc = jnp.broadcast_to(homes.object_class[:, None, :], rec.shape)
+    ok = (rec >= 0) & (oc >= 0) & (rc >= 0)
+    hod = (jnp.arange(rec.shape[1]) % 24)[None, :, None]
+    index = (jnp.maximum(oc, 0) * 24 + hod) * shape[1] + jnp.maximum(rc, 0)
+    flat = jnp.zeros(shape[0] * 24 * shape[1]).at[index.ravel()].add(ok.ravel().astype(float))
+    return flat.reshape(shape[0], 24, shape[1])
+
+
+def _backoff(homes: Homes, queries: HomesQueries, fit: CountFit, allowed):
+    """(E, Q, R) over the allowed receptacles: the class back-off at τ_q's hour of day."""
+    hours = jnp.arange(24)
+    smooth = jnp.einsum("hk,okc->ohc", _kernel(hours[:, None] - hours, fit.bandwidth),
+                        fit.classes) + CLASS_PSEUDO
+    oc = jnp.maximum(jnp.take_along_axis(homes.object_class, queries.object_index, 1), 0)
+    row = smooth[oc, queries.tau_q % 24]  # (E, Q, Cr)
+    rc = jnp.broadcast_to(jnp.maximum(homes.receptacle_class, 0)[:, None], allowed.shape)
+    same = jnp.sum(allowed[..., None, :] & (rc[..., :, None] == rc[..., None, :]), -1)
+    w = jnp.where(allowed, jnp.take_along_axis(row, rc, -1) / jnp.maximum(same, 1), 0.0)
+    return w / w.sum(-1, keepdims=True)
+
+
+@functools.partial(jax.jit, static_argnames="history")
+def _count_table(homes: Homes, queries: HomesQueries, fit: CountFit, history: int):
+    allowed = allowed_slots(homes, queries)
+    hours = queries.tau[..., None] - jnp.arange(history)  # (E, Q, H): τ, τ − 1, …
+    e = jnp.arange(hours.shape[0])[:, None, None]
+    where = homes.receptacle[e, jnp.maximum(hours, 0), queries.object_index[..., None]]
+    weekend = (hours // 24) % 7 >= 5
+    w = _kernel(hours - queries.tau_q[..., None], fit.bandwidth) * jnp.where(
+        weekend == ((queries.tau_q // 24) % 7 >= 5)[..., None], 1.0, fit.day_factor)
+    w = jnp.where((hours >= 0) & (where >= 0), w, 0.0)
+    counts = jnp.einsum("eqh,eqhr->eqr", w, jax.nn.one_hot(where, allowed.shape[-1]))
+    p = jnp.where(allowed, counts + fit.alpha * _backoff(homes, queries, fit, allowed), 0.0)
+    return p / p.sum(-1, keepdims=True)
+
+
+@functools.partial(jax.jit, static_argnames="history")
+def _stay(homes: Homes, queries: HomesQueries, fit: CountFit, history: int):
+    table = _count_table(homes, queries, fit, history)
+    rec = jnp.take_along_axis(homes.receptacle, queries.object_index[:, None, :], 2)  # (E,T,Q)
+    t = jnp.arange(rec.shape[1])[None, :, None]
+    last = jnp.max(jnp.where((rec >= 0) & (t <= queries.tau[:, None]), t, -1), 1)  # (E, Q)
+    place = jnp.take_along_axis(rec, jnp.maximum(last, 0)[:, None], 1)[:, 0]
+    s = jnp.where(last >= 0, fit.stay ** (queries.tau_q - last), 0.0)[..., None]
+    return s * jax.nn.one_hot(place, table.shape[-1]) + (1.0 - s) * table
+
+
+def count_table_prior(fit: CountFit, history: int = DEFAULT_HISTORY) -> Prior:
+    """The count table over the ``history`` hours up to τ (module docstring)."""
+    check_instance("fit", fit, CountFit)
+    return functools.partial(_count_table, fit=fit, history=check_int("history", history))
+
+
+def stay_prior(fit: CountFit, history: int = DEFAULT_HISTORY) -> Prior:
+    """Last seen with the fitted stay probability, the rest by the count table."""
+    check_instance("fit", fit, CountFit)
+    return functools.partial(_stay, fit=fit, history=check_int("history", history))
+
+
+def fit_count_table(homes: Homes, queries: HomesQueries, target, valid, num_classes: tuple,
+                    history: int = DEFAULT_HISTORY) -> CountFit:
+    """The :class:`CountFit` of a training part: ``homes`` (−1 where not seen; the class
+    table counts every sighting), its ``queries`` (E, Q), their realised ``target``
+    receptacles (E, Q) where ``valid`` (E, Q) bool; ``num_classes`` (Co, Cr). b, α and the
+    day factor maximise the count table's mean log score on the grids, then s₁ the stay row's."""
+    shape = tuple(check_int("num_classes", n) for n in num_classes)
+    if len(shape) != 2:
+        raise ValueError(f"num_classes must be (object classes, receptacle classes); got {shape}")
+    target = jnp.asarray(check_array("target", target, queries.tau.shape))[..., None]
+    valid = jnp.asarray(check_array("valid", valid, queries.tau.shape), bool)
+    history = check_int("history", history)
+    classes = _class_counts(homes, shape)
+
+    def score(kernel, values):
+        fit = CountFit(classes, *(jnp.float32(v) for v in values))
+        p = jnp.take_along_axis(kernel(homes, queries, fit, history), target, -1)[..., 0]
+        return float(jnp.sum(jnp.where(valid, jnp.log(jnp.maximum(p, LOG_FLOOR)), 0.0)))
+
+    best = max(((b, a, d, 0.0) for b in BANDWIDTHS for a in ALPHAS for d in DAY_FACTORS),
+               key=lambda v: score(_count_table, v))
+    stay = max(STAYS, key=lambda s: score(_stay, (*best[:3], s)))
+    return CountFit(classes, *(jnp.float32(v) for v in (*best[:3], stay)))
