@@ -9,7 +9,10 @@
 from __future__ import annotations
 
 import errno
+import json
 import os
+import re
+import shutil
 
 import pytest
 from support import error_line, run_cli
@@ -109,3 +112,97 @@ def test_a_late_failure_leaves_nothing_half_written(tmp_path, capsys, monkeypatc
                                   str(tmp_path / "w2"), "--no-progress"], capsys)
     assert code == 74 and "disk full" in error_line(err)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["authors", "empty", "world"]
+
+
+# ------------------------------------------------------------ class 4: quietly accepted input
+
+
+def _authors(tmp_path, extras: bool = False):
+    """Two environments in the authors' layout (without flowmaps_recorded.json unless
+    ``extras``)."""
+    root = tmp_path / "authors"
+    export_flowmaps2026(Recorded((tiny_environment("env0"), tiny_environment("env1"))), root)
+    if not extras:
+        for env in ("env0", "env1"):
+            (root / env / "flowmaps_recorded.json").unlink()
+    return root
+
+
+def _import_error(root) -> str:
+    from flowmaps_jax.recorded.flowmaps2026 import import_flowmaps2026
+
+    with pytest.raises(ValueError) as info:
+        import_flowmaps2026(root)
+    return str(info.value)
+
+
+def test_a_linked_folder_under_the_root_is_refused_not_skipped(tmp_path):
+    """A linked environment folder was skipped with no word: the world had one environment."""
+    root = _authors(tmp_path)
+    (root / "env1").rename(tmp_path / "away")
+    (root / "env1").symlink_to(tmp_path / "away")
+    assert re.match(rf"^{re.escape(str(root / 'env1'))}: \(folder\): is a symbolic link",
+                    _import_error(root))
+    (root / "env1").unlink()  # a link to a folder holding environment folders, deeper down
+    (tmp_path / "deeper").mkdir()
+    (tmp_path / "away").rename(tmp_path / "deeper" / "env1")
+    (root / "sub").mkdir()
+    (root / "sub" / "more").symlink_to(tmp_path / "deeper")
+    assert "sub/more: (folder): is a symbolic link" in _import_error(root)
+
+
+@pytest.mark.parametrize("file,change,message", [
+    ("receptacles_oobb.json", lambda d: d["Sofa|1"].update(cornerPoints=[[True, False, True]] * 8),
+     r"receptacles_oobb.json: Sofa\|1.cornerPoints: must be 8 finite"),
+    ("receptacles_oobb.json", lambda d: d["Sofa|1"].update(cornerPoints=[["1", "2", "3"]] * 8),
+     r"receptacles_oobb.json: Sofa\|1.cornerPoints: must be 8 finite"),
+    ("flowmaps_recorded.json", lambda d: d.update(distance=[[False] * 3] * 3),
+     "flowmaps_recorded.json: distance: must be an R x R list of numbers")])
+def test_true_false_and_text_are_not_numbers_in_json(tmp_path, file, change, message):
+    """Corner points of true/false were read as 1.0 / 0.0 (and texts as numbers)."""
+    root = _authors(tmp_path, extras=file == "flowmaps_recorded.json")
+    path = root / "env0" / file
+    data = json.loads(path.read_text())
+    change(data)
+    path.write_text(json.dumps(data))
+    assert re.search(message, _import_error(root))
+
+
+@pytest.mark.parametrize("column", ["aabb_cornerPoints", "rotation", "assignment"])
+def test_boolean_parquet_columns_are_numbers_only_for_the_assignment(tmp_path, column):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from flowmaps_jax.recorded.flowmaps2026 import import_flowmaps2026
+
+    root = _authors(tmp_path)
+    path = root / "env0" / "scan_merged.parquet"
+    table = pq.read_table(path)
+    kind = table.schema.field(column).type
+    bool_kind, inner = pa.bool_(), kind
+    sizes = []
+    while pa.types.is_fixed_size_list(inner):
+        sizes.append(inner.list_size)
+        inner = inner.value_type
+    for size in reversed(sizes):
+        bool_kind = pa.list_(bool_kind, size)
+    values = table.column(column).cast(bool_kind)
+    pq.write_table(table.set_column(table.column_names.index(column), column, values), path)
+    if column == "assignment":  # a one-hot row of true/false is one of 1/0
+        assert import_flowmaps2026(root).names() == ("env0", "env1")
+    else:
+        assert re.search(rf"scan_merged.parquet: {column}: holds bool, not numbers",
+                         _import_error(root))
+
+
+@pytest.mark.parametrize("names", [("scan_1", "scan_01"), ("scan_0", "scan_000")])
+def test_two_scan_pieces_of_the_same_number_are_refused(tmp_path, names):
+    """scan_1 and scan_01 were both read as piece 1: every hour twice."""
+    root = _authors(tmp_path)
+    folder = root / "env0"
+    for name in names:
+        shutil.copy(folder / "scan_merged.parquet", folder / f"{name}.parquet")
+    (folder / "scan_merged.parquet").unlink()
+    first, second = sorted(names)
+    assert re.match(rf"^{re.escape(str(folder))}: \(folder\): {first}.parquet and "
+                    rf"{second}.parquet are both scan piece", _import_error(root))

@@ -120,11 +120,15 @@ def _natural(name: str) -> list:
 def environment_folders(root) -> list[tuple[str, pathlib.Path]]:
     """(name, folder) of every environment folder under ``root`` (one holding
     ``scan_merged.parquet`` or ``scan_N.parquet``), named by its path relative to ``root``, in
-    natural order (env2 before env10). Links are not followed."""
+    natural order (env2 before env10). A linked folder is refused (links are not followed)."""
     root = pathlib.Path(root)
     found = []
     for here, dirs, files in os.walk(root, followlinks=False):
         dirs.sort()
+        for name in dirs:
+            if os.path.islink(os.path.join(here, name)):
+                raise ValueError(f"{os.path.join(here, name)}: (folder): is a symbolic link; "
+                                 f"import does not follow links: put the folder itself there")
         if SCAN_MERGED in files or any(SCAN_PIECE.match(f) for f in files):
             folder = pathlib.Path(here)
             name = folder.relative_to(root).as_posix()
@@ -135,9 +139,20 @@ def environment_folders(root) -> list[tuple[str, pathlib.Path]]:
 def _scan_files(folder: pathlib.Path) -> list[pathlib.Path]:
     if (folder / SCAN_MERGED).is_file():
         return [folder / SCAN_MERGED]
-    pieces = [(int(m.group(1)), folder / f) for f in os.listdir(folder)
-              if (m := SCAN_PIECE.match(f)) and (folder / f).is_file()]
-    return [path for _, path in sorted(pieces)]
+    pieces = sorted((int(m.group(1)), folder / f) for f in os.listdir(folder)
+                    if (m := SCAN_PIECE.match(f)) and (folder / f).is_file())
+    for (a, first), (b, second) in itertools.pairwise(pieces):
+        if a == b:
+            raise ValueError(f"{os.fspath(folder)}: (folder): {first.name} and {second.name} "
+                             f"are both scan piece {a} (the same hours twice): keep one")
+    return [path for _, path in pieces]
+
+
+def _numbers(value: Any, depth: int) -> bool:
+    """Whether ``value`` is ``depth`` levels of JSON lists of numbers (true/false is not one)."""
+    if depth == 0:
+        return type(value) in (int, float)
+    return isinstance(value, list) and all(_numbers(v, depth - 1) for v in value)
 
 
 def _column(table, name: str, file: str, rank: int) -> np.ndarray:
@@ -169,7 +184,7 @@ def _column(table, name: str, file: str, rank: int) -> np.ndarray:
     if array.null_count:
         raise ValueError(f"{file}: {name}: holds nulls")
     if not (pa.types.is_integer(array.type) or pa.types.is_floating(array.type)
-            or pa.types.is_boolean(array.type)):
+            or (pa.types.is_boolean(array.type) and name == "assignment")):
         raise ValueError(f"{file}: {name}: holds {array.type}, not numbers")
     values = array.to_numpy(zero_copy_only=False)
     if values.size != int(np.prod(shape)):
@@ -291,7 +306,7 @@ def import_environment(name: str, folder: pathlib.Path, lookups: dict | None = N
             value = np.asarray(points, np.float64)
         except (TypeError, ValueError):
             value = np.zeros(0)
-        if value.shape != (8, 3) or not np.all(np.isfinite(value)):
+        if value.shape != (8, 3) or not _numbers(points, 2) or not np.all(np.isfinite(value)):
             raise ValueError(f"{boxes_file}: {i}.cornerPoints: must be 8 finite [x, y, z] "
                              f"points")
         corners[r] = value[:, _SWAP]
@@ -377,6 +392,8 @@ def _with_extras(env: Environment, folder: pathlib.Path, assignment: np.ndarray
     if distance is not None:
         try:
             arrays["distance"] = np.asarray(distance, np.float32)
+            if not _numbers(distance, 2):
+                raise ValueError
         except (TypeError, ValueError):
             raise ValueError(f"{file}: distance: must be an R x R list of numbers") from None
     for key, value in (("object_corners", env.object_corners[hours]),
