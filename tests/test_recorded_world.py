@@ -335,7 +335,7 @@ def test_a_copy_of_the_training_data_is_scored_on_its_test_part_and_changed_data
     assert "held-out test part" in what and len(envs) == 1  # not the training environments
     other = dict(stored, data_digest="0" * 64)
     _, what, envs = evaluation_part(load_recorded(copy), cfg.homes, other, str(copy))
-    assert what == "all 3 environments" and len(envs) == 3
+    assert what.startswith("all 3 environments (home0, home1, home2); ") and len(envs) == 3
     # a resume whose data changed under it is refused, naming the digest
     changed = dataclasses.replace(cfg, data_digest="0" * 64)
     with pytest.raises(ValueError, match=r"changed since the run began.*data_digest"):

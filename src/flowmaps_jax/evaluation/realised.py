@@ -186,27 +186,63 @@ def reliability(p, target, allowed, valid, bins: int = BINS) -> dict:
 # --------------------------------------------------------------------------- the protocol
 
 
+def _names(names) -> str:
+    return ", ".join(names[:4]) + (f", ... ({len(names)} in all)" if len(names) > 4 else "")
+
+
+def _trained_on(stored: dict, recorded) -> str:
+    """Whether the run trained on any environment of ``recorded`` (by content), in words."""
+    path, digest = stored.get("data"), stored.get("data_digest")
+    if not stored:
+        return "whether the model trained on any of them is not recorded with it"
+    if not path:
+        return "the run trained on generated FlowSim homes, none of them"
+    try:
+        original = rw.load_recorded(path)
+    except (ValueError, OSError):
+        original = None
+    if original is None or content_digest(original) != digest:
+        return (f"whether the run trained on any of them is not known: its data {path} is gone "
+                f"or changed")
+    train = rw.split_environments(original.names(), stored.get("val_fraction", 0.0),
+                                  stored.get("test_fraction", 0.0),
+                                  stored.get("split_seed", 0))["train"]
+    ours = {content_digest(type(recorded)((original.environments[i],))) for i in train}
+    seen = [e.name for e in recorded.environments
+            if content_digest(type(recorded)((e,))) in ours]
+    return (f"the run trained on {len(seen)} of them ({_names(seen)}): not held out"
+            if seen else "the run trained on none of them")
+
+
 def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
     """(RecordedHomes, what it is, its environments): the test part of the run's own split
-    when ``recorded`` (read from ``data_path``) is the dataset the run trained on (the same
-    folder, or a copy of it: the run's ``data_digest``), else every environment of the data;
-    the environments (``recorded.Environment``) in the homes' order."""
-    same = bool(stored.get("data")) and pathlib.Path(stored["data"]).resolve() == \
+    when ``recorded`` (read from ``data_path``) is the dataset the run trained on (its
+    ``data_digest``, wherever it sits), else every environment of the data, ``what`` naming
+    them and saying whether the run trained on any; the environments in the homes' order.
+    ``ValueError`` if the run's own data folder no longer matches its digest."""
+    digest = stored.get("data_digest")
+    folder = bool(stored.get("data")) and pathlib.Path(stored["data"]).resolve() == \
         pathlib.Path(data_path).resolve()
-    same = same or (bool(stored.get("data_digest"))
-                    and content_digest(recorded) == stored["data_digest"])
+    same = content_digest(recorded) == digest if digest else folder
+    if folder and not same:
+        raise ValueError(f"{data_path} changed since the run trained on it (it no longer matches "
+                         f"data_digest in the run's config.json): its split would now mix "
+                         f"training environments into the test part; score a copy of the data "
+                         f"the run trained on, or new environments in a folder of their own")
     if same:
         split = (stored.get("val_fraction", 0.0), stored.get("test_fraction", 0.0),
                  stored.get("time_fraction", 0.0), stored.get("split_seed", 0))
         names = rw.split_environments(recorded.names(), *split[:2], split[3])
-        what = (f"the run's held-out test part ({len(names['test'])} environments"
+        what = (f"the run's held-out test part ({len(names['test'])} environments: "
+                f"{_names([recorded.names()[i] for i in names['test']])}"
                 + (f", and the last {split[2]:.0%} of the training environments' hours"
                    if split[2] > 0 else "") + f"; split_seed={split[3]})")
         index = rw.part_index(recorded, split, "test")
         return (rw.part_of(recorded, config, split, "test"), what,
                 tuple(recorded.environments[i] for i in index))
-    return (rw.recorded_homes(recorded, config), f"all {len(recorded.environments)} environments",
-            tuple(recorded.environments))
+    return (rw.recorded_homes(recorded, config),
+            f"all {len(recorded.environments)} environments ({_names(recorded.names())}); "
+            f"{_trained_on(stored, recorded)}", tuple(recorded.environments))
 
 
 def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed: int,
