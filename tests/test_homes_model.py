@@ -15,10 +15,11 @@ import optax
 import pytest
 from support import perturb, run_python_in_process
 
-from flowmaps_jax.flowsim.homes import context_of, generate_homes, object_boxes
-from flowmaps_jax.flowsim.homes import tokens as homes_tokens
+from flowmaps_jax.flowsim.homes import generate_homes, object_boxes
 from flowmaps_jax.flowsim.homes.queries import HomesQueries
 from flowmaps_jax.model import homes_family as homes_model
+from flowmaps_jax.model import homes_inputs
+from flowmaps_jax.model.homes_inference import home_tokens
 from flowmaps_jax.predictor import Predictor, load, load_model, load_pretrained
 from flowmaps_jax.store import model_spec, pretrained
 from flowmaps_jax.training import state as train_state
@@ -63,7 +64,7 @@ def run_dir(tmp_path_factory):
 
 def test_tokens_have_the_layout_masks_and_normalised_boxes(homes):
     tau = np.arange(homes.num_homes, dtype=np.int32) * 5
-    tok = homes_tokens.home_tokens(homes, tau, CONFIG)
+    tok = home_tokens(homes, tau, CONFIG)
     nr, r, m, s = CONFIG.num_rooms, CONFIG.max_receptacles, CONFIG.max_objects, CONFIG.max_tokens
     assert tok.boxes.shape == (homes.num_homes, s, 6) and tok.mask.shape == (homes.num_homes, s)
     mask = np.asarray(tok.mask)
@@ -80,7 +81,7 @@ def test_tokens_have_the_layout_masks_and_normalised_boxes(homes):
                                   np.asarray(homes.object_class)[valid] + obj_off)
     assert desc[:, nr:nr + r][np.asarray(homes.receptacle_valid)].min() >= rec_off
     size = np.asarray(homes.home_size)
-    scale = np.concatenate([size, np.full((len(tau), 1), homes_tokens.HEIGHT_SCALE)], 1)
+    scale = np.concatenate([size, np.full((len(tau), 1), homes_inputs.HEIGHT_SCALE)], 1)
     scale = np.concatenate([scale, scale], 1)[:, None]  # (E, 1, 6)
     boxes = np.asarray(tok.boxes)
     np.testing.assert_allclose(boxes[:, nr:nr + r] * scale, homes.receptacle_box, atol=1e-5)
@@ -90,7 +91,7 @@ def test_tokens_have_the_layout_masks_and_normalised_boxes(homes):
     inside = boxes[mask][:, :2]
     assert inside.min() >= 0 and inside.max() <= 1  # centres within the footprint
     # (E, K) hours give (E, K, S) tokens, one scene per hour
-    both = homes_tokens.home_tokens(homes, np.stack([tau, tau + 1], 1), CONFIG)
+    both = home_tokens(homes, np.stack([tau, tau + 1], 1), CONFIG)
     np.testing.assert_array_equal(both.boxes[:, 0], tok.boxes)
 
 
@@ -100,84 +101,132 @@ def test_token_budget_and_tau_are_checked(homes):
     tight = dataclasses.replace(CONFIG)
     object.__setattr__(tight, "max_tokens", 10)  # a config that skipped its own checks
     with pytest.raises(ValueError, match=r"config.max_tokens=10"):
-        homes_tokens.home_tokens(homes, np.zeros(homes.num_homes, np.int32), tight)
+        home_tokens(homes, np.zeros(homes.num_homes, np.int32), tight)
     with pytest.raises(ValueError, match="tau"):
-        homes_tokens.home_tokens(homes, np.zeros(homes.num_homes + 1, np.int32), CONFIG)
+        home_tokens(homes, np.zeros(homes.num_homes + 1, np.int32), CONFIG)
     with pytest.raises(ValueError, match="tau"):
-        homes_tokens.home_tokens(homes, np.full(homes.num_homes, 10**6, np.int32), CONFIG)
+        home_tokens(homes, np.full(homes.num_homes, 10**6, np.int32), CONFIG)
 
 
-# --------------------------------------------------------------------------- history features
+# --------------------------------------------------------------------------- history inputs
 
 
-def _hand_features(homes, e, obj, tau, tau_q, history):
-    """The features of one query, computed with loops over the window's hours."""
+def _hand_rows(homes, e, obj, tau, tau_q, history):
+    """The events and row features of one query, with loops over the window's hours."""
     traj = np.asarray(homes.receptacle)[e, :, obj]
     allowed = np.asarray(homes.object_allowed)[e, obj]
-    cycle = [int(c) for c in np.asarray(homes.cycle)[e, obj] if c >= 0]
-    n, cur = len(cycle), traj[tau]
-    hours = [t for t in range(tau - history + 1, tau + 1) if t >= 0]
-    same = [t for t in hours if context_of(t) == context_of(tau_q)]
-    moves = [(t, traj[t + 1]) for t in hours[:-1] if traj[t + 1] != traj[t]]
-    steps = [(cycle.index(traj[t + 1]) - cycle.index(traj[t])) % n for t in hours[:-1]]
-    out = np.zeros((allowed.size, len(homes_tokens.HISTORY_FEATURES)))
+    r_all = allowed.size
+    hours = list(range(tau - history + 1, tau + 1))
+    events = [int(traj[t]) if t >= 0 else -1 for t in hours]
+    seen = [t for t in hours if t >= 0]
+    counts = np.zeros((r_all, r_all))
+    for t in seen[:-1]:
+        counts[traj[t], traj[t + 1]] += 1
+    counts += homes_inputs.STAY_PRIOR * np.diag(allowed)
+    counts *= np.outer(allowed, allowed)
+    chain = counts / np.maximum(counts.sum(1, keepdims=True), 1e-9)
+    cur = traj[tau]
+    pushed = np.linalg.matrix_power(chain, tau_q - tau)[cur]
+    moves = sum(traj[t + 1] != traj[t] for t in seen[:-1])
     dist = np.asarray(homes.receptacle_distance)[e, cur]
-    for r in range(allowed.size):
-        f = dict.fromkeys(homes_tokens.HISTORY_FEATURES, 0.0)
+    out = np.zeros((r_all, len(homes_inputs.ROW_FEATURES)))
+    for r in range(r_all):
+        f = dict.fromkeys(homes_inputs.ROW_FEATURES, 0.0)
         f["allowed"] = float(allowed[r])
         if allowed[r]:
-            k = (cycle.index(r) - cycle.index(cur)) % n
-            ctx_moves = [1 for t, s in moves if context_of(t) == context_of(tau_q)]
-            f.update(
-                occupancy=sum(traj[t] == r for t in hours) / len(hours),
-                context_occupancy=sum(traj[t] == r for t in same) / max(len(same), 1),
-                at_tau=float(cur == r), distance=dist[r] / homes_tokens.DISTANCE_SCALE,
-                near=np.exp(-dist[r] / CONFIG.frequent_length), cycle_0=k == 0, cycle_1=k == 1,
-                cycle_2=k == 2, cycle_back=k == n - 1, cycle_fraction=k / n,
-                arrivals=sum(s == r for _, s in moves) / max(len(moves), 1),
-                context_arrivals=sum(s == r for t, s in moves if context_of(t)
-                                     == context_of(tau_q)) / max(len(ctx_moves), 1),
-                inverse_allowed=1 / n, move_rate=len(moves) / (len(hours) - 1),
-                step_1_rate=steps.count(1) / (len(hours) - 1),
-                step_2_rate=steps.count(2) / (len(hours) - 1), coverage=len(hours) / history)
-            for name, hour in (("context", tau_q), ("earlier", tau_q - 6), ("next", tau + 1)):
-                ctx = [t for t in hours if context_of(t) == context_of(hour)]
-                f[f"{name}_arrival_count"] = np.log1p(
-                    sum(s == r for t, s in moves if context_of(t) == context_of(hour))
-                ) / homes_tokens.COUNT_SCALE
-                f[f"{name}_hour_count"] = np.log1p(
-                    sum(traj[t] == r for t in ctx)) / homes_tokens.COUNT_SCALE
-            days = [t for t in hours if t % 24 == tau_q % 24]
-            f["same_hour_occupancy"] = sum(traj[t] == r for t in days) / max(len(days), 1)
-        out[r] = [float(f[name]) for name in homes_tokens.HISTORY_FEATURES]
-    return out
+            f.update(last_seen=float(cur == r), distance=dist[r] / homes_inputs.DISTANCE_SCALE,
+                     occupancy=sum(traj[t] == r for t in seen) / len(seen),
+                     one_step=chain[cur, r], pushed=pushed[r],
+                     pushed_log=np.log(pushed[r] + 1e-3) / -np.log(1e-3),
+                     inverse_allowed=1 / allowed.sum(), coverage=len(seen) / history,
+                     moves=moves / max(len(seen) - 1, 1))
+        out[r] = [float(f[name]) for name in homes_inputs.ROW_FEATURES]
+    return np.asarray(events), out
 
 
-def test_history_features_match_a_hand_computation(homes, queries):
-    got = np.asarray(homes_tokens.history_features(homes, queries, CONFIG, H))
-    assert got.shape == (homes.num_homes, 3, CONFIG.max_receptacles,
-                         len(homes_tokens.HISTORY_FEATURES))
-    for e in range(3):
-        for j in range(3):
-            args = (int(queries.object_index[e, j]), int(queries.tau[e, j]),
-                    int(queries.tau_q[e, j]))
-            np.testing.assert_allclose(got[e, j], _hand_features(homes, e, *args, H), atol=1e-6,
-                                       err_msg=f"home {e} query {j}")
-    # a window reaching before hour 0 counts only the hours inside the rollout
+def test_history_inputs_match_a_hand_computation(homes, queries):
+    events = homes_inputs.history_events(homes, queries, H)
+    rows = np.asarray(homes_inputs.row_features(homes, queries, CONFIG, events))
+    assert rows.shape == (homes.num_homes, 3, CONFIG.max_receptacles,
+                          len(homes_inputs.ROW_FEATURES))
     early = queries.replace(tau=jnp.full_like(queries.tau, 2), tau_q=jnp.full_like(queries.tau, 5))
-    got = np.asarray(homes_tokens.history_features(homes, early, CONFIG, H))
-    np.testing.assert_allclose(got[0, 0], _hand_features(homes, 0, int(early.object_index[0, 0]),
-                                                         2, 5, H), atol=1e-6)
+    early_events = homes_inputs.history_events(homes, early, H)
+    early_rows = np.asarray(homes_inputs.row_features(homes, early, CONFIG, early_events))
+    for qs, ev, got in ((queries, events, rows), (early, early_events, early_rows)):
+        for e in range(3):
+            for j in range(3):
+                want_ev, want = _hand_rows(homes, e, int(qs.object_index[e, j]),
+                                           int(qs.tau[e, j]), int(qs.tau_q[e, j]), H)
+                np.testing.assert_array_equal(np.asarray(ev)[e, j], want_ev)
+                np.testing.assert_allclose(got[e, j], want, atol=1e-5,
+                                           err_msg=f"home {e} query {j}")
+
+
+def test_unobserved_hours_are_events_of_nothing(homes, queries):
+    observed = np.ones(homes.receptacle.shape, bool)
+    observed[:, 30:41] = False  # hours 30 … 40 unseen: τ = 40 is unseen too
+    events = np.asarray(homes_inputs.history_events(homes, queries, H, jnp.asarray(observed)))
+    hours = np.asarray(queries.tau)[..., None] - H + 1 + np.arange(H)
+    assert (events[(hours >= 30) & (hours <= 40)] == -1).all()
+    assert (events[(hours >= 0) & ((hours < 30) | (hours > 40))] >= 0).all()
+    rows = np.asarray(homes_inputs.row_features(homes, queries, CONFIG, jnp.asarray(events),
+                                                jnp.asarray(observed)))
+    unseen = rows[..., homes_inputs.ROW_FEATURES.index("unseen_at_tau")].max(-1)
+    np.testing.assert_array_equal(unseen[:, 1], 1.0)  # the query at τ = 40
+    np.testing.assert_array_equal(unseen[:, 2], 0.0)  # τ = 50 was seen
+
+
+def test_the_model_inputs_read_nothing_of_a_simulators_law():
+    """Issue 54: the network's inputs are what any log has; the rhythms are learned."""
+    import ast
+    import inspect
+
+    from flowmaps_jax.model import homes_inputs as inputs
+
+    for module in (inputs, homes_model):
+        tree = ast.parse(inspect.getsource(module))
+        imported = [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+        imported += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+        law = [m for m in imported if m.startswith("flowmaps_jax.flowsim")
+               and m != "flowmaps_jax.flowsim.homes.config"]  # the stored spec's config class
+        assert not law, (module.__name__, law)
+        names = {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+        names |= {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
+        told = names & {"context_of", "cycle", "frequent_length", "regime", "favourite",
+                        "routine_probs", "preference_mass", "num_allowed", "NUM_CONTEXTS"}
+        assert not told, (module.__name__, told)
+    assert not [m for m in ast.walk(ast.parse(inspect.getsource(inputs)))
+                if isinstance(m, ast.ImportFrom) and (m.module or "").startswith("flowmaps_jax")]
 
 
 def test_queries_are_checked(homes, queries):
+    from flowmaps_jax.model.homes_inference import check
+
+    predictor = Predictor(params=homes_model.init_params(jax.random.key(0), MODEL, CONFIG),
+                          model=MODEL, family_name=homes_model.FAMILY_NAME, homes=CONFIG)
     with pytest.raises(ValueError, match=r"queries.tau"):
-        homes_tokens.history_features(homes, queries.replace(tau=queries.tau[:, :2]), CONFIG,
-                                      H)
+        check(predictor, homes, queries.replace(tau=queries.tau[:, :2]), CONFIG)
     with pytest.raises(ValueError, match="tau_q"):
-        homes_tokens.history_features(homes, queries.replace(tau_q=queries.tau), CONFIG, H)
-    with pytest.raises(ValueError, match="history"):
-        homes_tokens.history_features(homes, queries, CONFIG, 0)
+        check(predictor, homes, queries.replace(tau_q=queries.tau), CONFIG)
+    with pytest.raises(ValueError, match="observed"):
+        check(predictor, homes, queries, CONFIG, observed=np.ones((1, 2, 3), bool))
+
+
+def test_a_model_trained_on_partial_logs_refuses_a_query_without_the_mask(homes, queries):
+    model = dataclasses.replace(MODEL, history_observed=True)
+    predictor = Predictor(params=homes_model.init_params(jax.random.key(0), model, CONFIG),
+                          model=model, family_name=homes_model.FAMILY_NAME, homes=CONFIG)
+    with pytest.raises(ValueError, match="observed is required"):
+        predictor.probabilities(homes, queries, CONFIG)
+    observed = np.ones(homes.receptacle.shape, bool)
+    p = np.asarray(predictor.probabilities(homes, queries, CONFIG, observed=observed))
+    np.testing.assert_allclose(p.sum(-1), 1.0, atol=1e-5)
+
+
+def test_models_with_the_told_features_are_refused_with_a_clear_line():
+    old = {**MODEL.to_dict(), "history_counts": True}
+    with pytest.raises(ValueError, match="generator-told history features"):
+        homes_model.HomesModelConfig.from_dict(old)
 
 
 # --------------------------------------------------------------------------- the model
@@ -190,7 +239,7 @@ def params():
 
 @pytest.fixture(scope="module")
 def batch(homes, queries):
-    return homes_tokens.per_query_batch(homes, queries, CONFIG, H)
+    return homes_inputs.per_query_batch(homes, queries, CONFIG, H)
 
 
 def test_weights_are_a_distribution_over_the_allowed_receptacles_only(params, batch):
@@ -206,18 +255,16 @@ def test_weights_are_a_distribution_over_the_allowed_receptacles_only(params, ba
 
 
 def test_rows_without_the_angle_read_offsets_and_distance_only(params, batch):
-    """``geometry_angle=False`` (issue 47: nothing that needs a home's centre): the rows' geometry
-    loses the angle's four features and gains the distance, and the model still answers a
-    distribution; stored models (no such key) keep the angle."""
-    flat = dataclasses.replace(MODEL, geometry_angle=False)
-    agnostic = homes_model.init_params(jax.random.key(0), flat, CONFIG)
+    """``geometry_angle=False`` (the default: nothing that needs a home's centre): the rows'
+    geometry has no angle's four features but the distance; ``True`` adds the angle, and both
+    answer a distribution."""
+    angled = dataclasses.replace(MODEL, geometry_angle=True)
+    with_angle = homes_model.init_params(jax.random.key(0), angled, CONFIG)
     width = lambda p: p["row_mlp"]["in"]["kernel"].shape[0]  # noqa: E731
-    assert width(params) - width(agnostic) == 3
-    p = np.asarray(homes_model.receptacle_probabilities(perturb(agnostic, jax.random.key(1)),
-                                                        flat, CONFIG, batch))
+    assert not MODEL.geometry_angle and width(with_angle) - width(params) == 3
+    p = np.asarray(homes_model.receptacle_probabilities(perturb(with_angle, jax.random.key(1)),
+                                                        angled, CONFIG, batch))
     np.testing.assert_allclose(p.sum(-1), 1.0, atol=1e-5)
-    stored = {k: v for k, v in flat.to_dict().items() if k != "geometry_angle"}
-    assert homes_model.HomesModelConfig.from_dict(stored).geometry_angle
 
 
 def test_placement_velocity_is_zero_at_init(params, batch):

@@ -46,8 +46,6 @@ from flowmaps_jax.atomic_files import make_output_dir, save_figure, write_file
 from flowmaps_jax.evaluation import priors as pr
 from flowmaps_jax.evaluation.receptacle_scores import stats, summarise
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
-from flowmaps_jax.flowsim.homes.tokens import per_query_batch
-from flowmaps_jax.model.homes_family import receptacle_probabilities
 from flowmaps_jax.recorded.format import content_digest
 from flowmaps_jax.search import navigation as nav
 from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
@@ -70,7 +68,6 @@ MODEL_ROW, UNIFORM, LAST_SEEN, FREQUENCY = ("FlowMaps", "uniform over allowed", 
                                             "frequency prior")
 REPORT = {"posterior": ("results", "reliability.png"),
           "navigation": ("search", "success_vs_looks.png")}
-ROWS_PER_CALL = 4096
 OPTIONS = ("checkpoint", "out", "data", "queries", "seed", "which", "no_figures", "no_progress",
            "budget", "num_envs")
 """The options the recorded scores read (``--num-envs``: at most this many environments);
@@ -102,26 +99,11 @@ def realised_queries(key, data: rw.RecordedHomes, num_queries: int, max_horizon:
 # --------------------------------------------------------------------------- the rows
 
 
-@functools.partial(jax.jit, static_argnames=("model", "config", "history"))
-def _model_probabilities(params, model, config, homes, observed, queries, history):
-    batch = per_query_batch(homes, queries, config, history, observed)
-    e, q = queries.tau.shape
-    return receptacle_probabilities(params, model, config, batch).reshape(e, q, -1)
-
-
 def model_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries) -> np.ndarray:
-    """(E, Q, R) the model's receptacle weights, in chunks of queries (the last padded with
-    copies of the first query: one compiled shape)."""
-    e, q = queries.tau.shape
-    size = max(1, min(q, ROWS_PER_CALL // max(1, e * predictor.homes.max_receptacles)))
-    parts = []
-    for start in range(0, q, size):
-        chunk = jax.tree.map(lambda a, s=start: jnp.concatenate(
-            [a[:, s:s + size], jnp.repeat(a[:, :1], max(0, s + size - q), 1)], 1), queries)
-        p = _model_probabilities(predictor.params, predictor.model, predictor.homes,
-                                 data.homes, data.observed, chunk, predictor.model.history)
-        parts.append(np.asarray(p)[:, :min(size, q - start)])
-    return np.concatenate(parts, axis=1)
+    """(E, Q, R) the model's receptacle weights: the Predictor's own call, with the data's
+    observation mask."""
+    return np.asarray(predictor.probabilities(data.homes, queries, predictor.homes,
+                                              observed=data.observed))
 
 
 def row_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries) -> dict:

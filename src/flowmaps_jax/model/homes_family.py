@@ -1,26 +1,31 @@
 """FlowMaps on homes: the network, its loss and its jitted cores, in one module.
 
-The model is issue 33's mixture read-out on a home's tokens
-(:mod:`flowmaps_jax.flowsim.homes.tokens`):
+The mixture read-out on a home's tokens and the queried object's history
+(:mod:`flowmaps_jax.model.homes_inputs`, which reads only what any log has):
 
     p_θ(box | home at τ, query) = Σ_r π_r(home, query, history) · p_θ(box | r, home, query)
 
 * **Map Encoder.** Token embedding = SinusoidalMLP(6-D box) + Embed(descriptor, the class
   vocabulary) + Embed(kind), then ``encoder_layers`` pre-norm transformer layers
   (:class:`~flowmaps_jax.model.encoder.EncoderLayer`) and a LayerNorm: the context (B, S, D).
-* **Query.** c (B, Q, D) = Embed(the object's descriptor) + MLP(query features: hours of τ and
-  τ_q, the log-scaled horizon) + Dense(the object's context token).
+* **Query.** c (B, Q, D) = Embed(the object's descriptor) + MLP(query features: periodic
+  features of τ and τ_q, the log-scaled horizon) + Dense(the object's context token).
+* **History read-out** (learned rhythms). ``history_heads`` heads attend over the object's
+  observed history events: keys from each event's hour of day, day of week and age
+  (``homes_inputs.periodic``), a query from c and τ_q's periodic features. Per head and
+  receptacle r: the softmax-weighted fraction of the events on r, and two unnormalised sums
+  with sigmoid gates, log(1 + Σ g · [on r]) and log(1 + Σ g · [arrived on r]), beside the head's
+  log(1 + Σ g): how much evidence the learned context holds, as a count per context would say.
 * **Receptacle weights π** (B, Q, R), independent of the flow's x_t and t: one row per
-  receptacle slot, built from that receptacle's context token, an MLP of its history features
-  and of its place relative to the object's receptacle at τ
-  (:func:`flowmaps_jax.model.mixture.relative_geometry`), plus c. ``weight_blocks`` times, the
-  rows of one query self-attend (over the object's allowed receptacles) and then cross-attend to
-  the context (a :class:`~flowmaps_jax.model.cdit.CDiTBlock`, AdaLN-Zero on c); a zero-initialised
-  AdaLN final layer gives one logit per row, plus a zero-initialised linear term of the row's
-  features (what they say directly is learnt in the first steps, while the zero-initialised
-  deep path starts), masked to the object's allowed receptacles (``Homes.object_allowed``).
-  Trained by cross-entropy against the receptacle the object stands on at τ_q: the proper
-  scoring rule, whose optimum is the exact posterior.
+  receptacle slot, built from that receptacle's context token, an MLP of its row features
+  (``homes_inputs.ROW_FEATURES``, the history read-out, and its place relative to the object's
+  last-seen receptacle, :func:`flowmaps_jax.model.mixture.relative_geometry`), plus c.
+  ``weight_blocks`` times, the rows of one query self-attend (over the object's allowed
+  receptacles) and then cross-attend to the context (a :class:`~flowmaps_jax.model.cdit.CDiTBlock`,
+  AdaLN-Zero on c); a zero-initialised AdaLN final layer gives one logit per row, plus a
+  zero-initialised linear term of the row's features, masked to the object's allowed
+  receptacles. Trained by cross-entropy against the receptacle the object stands on at τ_q: the
+  proper scoring rule, whose optimum is the exact posterior.
 * **Placement** p_θ(box | r): a flow-matching model of the 6-D box in the local frame of
   receptacle r, z = (box − μ_r) / scale_r with μ_r = (r's centre x, y; its top + the object's
   half height; the object's w, d, h) and scale_r = :data:`PLACEMENT_SCALE` × (r's w, d; the
@@ -33,7 +38,7 @@ The model is issue 33's mixture read-out on a home's tokens
 
 Loss = CE + CFM. Everything is a pure function over an explicit params pytree; ``config``
 (:class:`HomesModelConfig`) and ``homes_config`` (:class:`HomesConfig`) are static jit arguments.
-Shapes: a :class:`~flowmaps_jax.flowsim.homes.tokens.HomesBatch` of B scenes with Q queries
+Shapes: a :class:`~flowmaps_jax.model.homes_inputs.HomesBatch` of B scenes with Q queries
 each; boxes normalised (``tokens.normalise_boxes``). The validated wrapper is
 :class:`flowmaps_jax.predictor.Predictor` (its homes inference:
 :mod:`flowmaps_jax.model.homes_inference`).
@@ -52,20 +57,19 @@ from flax import struct
 
 from flowmaps_jax import flow
 from flowmaps_jax.flowsim.homes.config import HomesConfig
-from flowmaps_jax.flowsim.homes.tokens import (
-    BASE_HISTORY_FEATURES,
-    COUNT_HISTORY_FEATURES,
-    DEFAULT_HISTORY,
-    HISTORY_FEATURES,
-    QUERY_FEATURES,
-    HomesBatch,
-    HomeTokens,
-    token_layout,
-)
 from flowmaps_jax.model import mixture
 from flowmaps_jax.model.cdit import CDiTBlock, FinalLayer
 from flowmaps_jax.model.embeddings import FlatDense, SinusoidalMLP
 from flowmaps_jax.model.encoder import EncoderLayer
+from flowmaps_jax.model.homes_inputs import (
+    DEFAULT_HISTORY,
+    QUERY_FEATURES,
+    ROW_FEATURES,
+    HomesBatch,
+    HomeTokens,
+    periodic,
+    token_layout,
+)
 from flowmaps_jax.validation import check_keys
 from flowmaps_jax.validation.fields import Choice, Int, Real, check_fields
 
@@ -80,6 +84,10 @@ DEFAULT_NUM_STEPS = 10
 """ODE grid points of the placement flow (the paper's ``linspace(0, 1, 10)``: 18 evaluations)."""
 NEGATIVE = jnp.finfo(jnp.float32).min / 4
 """The logit of a receptacle the object may not stand on."""
+HISTORY_KEY = 16
+"""Width of each history head's keys and query."""
+COUNT_SCALE = 4.0
+"""The history read-out's log(1 + sums) are divided by this (about 1 at 50 events)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,15 +97,10 @@ class HomesModelConfig:
     dim: width D; encoder_layers: Map Encoder layers; weight_blocks: (self, cross) block pairs of
     the receptacle-weight rows; cdit_blocks: CDiT blocks of the placement flow; heads: attention
     heads (divide ``dim``); mlp_ratio: MLP hidden width ÷ D; freq_bands, max_frequency: the
-    sinusoidal features of boxes; history: hours of history the features read;
-    history_counts: the rows also read the per-context counts (all of ``HISTORY_FEATURES``, not
-    the first ``BASE_HISTORY_FEATURES``; False for models stored before them);
-    history_observed: the rows also read the partial-observation features (unseen at τ, hours
-    since last seen, never seen; all of ``HISTORY_FEATURES``; needs ``history_counts``; False
-    for models stored before them, which read the first ``COUNT_HISTORY_FEATURES``);
-    geometry_angle: the rows' geometry (``mixture.relative_geometry``) has the angle around the
-    home's centre, which orders FlowSim homes' cycles (True, as stored models); False: offsets
-    and the distance only, nothing that needs a centre to mean something.
+    sinusoidal features of boxes; history: hours of history the network reads; history_heads:
+    heads of the history read-out; history_observed: trained on partially observed data (every
+    query must say which hours were observed); geometry_angle: the rows' geometry has the angle
+    around the home's centre (False: offsets and the distance only).
     """
 
     dim: int = 64
@@ -109,14 +112,12 @@ class HomesModelConfig:
     freq_bands: int = 8
     max_frequency: float = 100.0
     history: int = DEFAULT_HISTORY
-    history_counts: bool = False
+    history_heads: int = 8
     history_observed: bool = False
-    geometry_angle: bool = True
+    geometry_angle: bool = False
 
     def __post_init__(self):
         check_fields(self, _MODEL_RULES, prefix="model.", store=False)
-        if self.history_observed and not self.history_counts:
-            raise ValueError("model.history_observed needs model.history_counts=True")
         if self.dim % self.heads:
             raise ValueError(f"model.dim={self.dim} must be divisible by model.heads="
                              f"{self.heads}")
@@ -127,6 +128,10 @@ class HomesModelConfig:
     @classmethod
     def from_dict(cls, data: dict) -> HomesModelConfig:
         """Inverse of :meth:`to_dict`; unknown keys raise ``ValueError`` naming them."""
+        if isinstance(data, dict) and "history_counts" in data:
+            raise ValueError("this homes model reads the generator-told history features "
+                             "removed in issue 54; retrain it (python -m flowmaps_jax.train "
+                             "--preset homes, or --data PATH)")
         check_keys("the homes model config", data, [f.name for f in dataclasses.fields(cls)],
                    what="unknown keys")
         return cls(**data)
@@ -136,11 +141,11 @@ MAX_BLOCKS = 64
 """The most layers (or block pairs) of each stack of the homes network: its stacks are
 unrolled when compiled, so the compile time grows with them."""
 _MODEL_RULES = {**{name: Int(1, 1 << 16) for name in (
-    "dim", "heads", "mlp_ratio", "freq_bands", "history")},
+    "dim", "heads", "mlp_ratio", "freq_bands", "history", "history_heads")},
     **{name: Int(1, MAX_BLOCKS, "each layer is compiled on its own") for name in (
         "encoder_layers", "weight_blocks", "cdit_blocks")}, "max_frequency": Real(1.0),
     **{name: Choice((False, True)) for name in (
-        "history_counts", "history_observed", "geometry_angle")}}
+        "history_observed", "geometry_angle")}}
 """The rules of :class:`HomesModelConfig`'s fields (messages name ``model.<field>``)."""
 
 
@@ -216,6 +221,10 @@ class HomesNet(nn.Module):
         self.query_mlp = _MLP(d)
         self.object_proj = FlatDense(d)
         self.row_mlp = _MLP(d)
+        self.history_query = FlatDense(cfg.history_heads * HISTORY_KEY)
+        self.history_key = FlatDense(cfg.history_heads * HISTORY_KEY)
+        self.history_gate = self.param("history_gate", nn.initializers.zeros_init(),
+                                       (cfg.history_heads,))
         self.weight_pos = self.param("weight_pos", nn.initializers.normal(0.02), (d,))
         self.row_self = [layer() for _ in range(cfg.weight_blocks)]
         self.row_cross = [block() for _ in range(cfg.weight_blocks)]
@@ -243,6 +252,33 @@ class HomesNet(nn.Module):
         return (self.descriptor_embed(descriptor) + self.query_mlp(batch.query)
                 + self.object_proj(_gather(context.tokens, batch.object_token)))
 
+    def read_history(self, c, batch: HomesBatch):
+        """The learned history read-out (B, Q, R, 4 · history_heads): see the module docstring."""
+        k, r = self.config.history_heads, self.homes_config.max_receptacles
+        h = batch.events.shape[-1]
+        hours = batch.tau[..., None] - h + 1 + jnp.arange(h)  # (B, Q, H)
+        age = (batch.tau[..., None] - hours).astype(jnp.float32)
+        event_time = jnp.concatenate([periodic(hours), age[..., None] / h,
+                                      jnp.log1p(age)[..., None] / jnp.log1p(float(h))], -1)
+        keys = self.history_key(event_time).reshape(*hours.shape, k, HISTORY_KEY)
+        query = self.history_query(jnp.concatenate([c, batch.query], -1))
+        score = jnp.einsum("bqhkd,bqkd->bqkh", keys,
+                           query.reshape(*c.shape[:2], k, HISTORY_KEY)) / HISTORY_KEY ** 0.5
+        seen = (batch.events >= 0)[:, :, None, :]  # (B, Q, 1, H)
+        weight = jax.nn.softmax(jnp.where(seen, score, NEGATIVE), -1) * seen
+        gate = jax.nn.sigmoid(score + self.history_gate[:, None]) * seen
+        on = jax.nn.one_hot(batch.events, r, dtype=jnp.float32)  # (B, Q, H, R)
+        code = jnp.where(batch.events >= 0, jnp.arange(h) * r + batch.events, -1)
+        before = jnp.concatenate([jnp.full_like(code[..., :1], -1),
+                                  jax.lax.cummax(code, axis=code.ndim - 1)[..., :-1]], -1)
+        arrived = on * ((before >= 0) & (before % r != batch.events))[..., None]
+        total = jnp.log1p(gate.sum(-1))[..., None] / COUNT_SCALE  # (B, Q, K, 1)
+        out = [jnp.einsum("bqkh,bqhr->bqkr", weight, on),
+               jnp.log1p(jnp.einsum("bqkh,bqhr->bqkr", gate, on)) / COUNT_SCALE,
+               jnp.log1p(jnp.einsum("bqkh,bqhr->bqkr", gate, arrived)) / COUNT_SCALE,
+               jnp.broadcast_to(total, (*total.shape[:-1], r))]
+        return jnp.concatenate(out, axis=2).swapaxes(2, 3)  # (B, Q, R, 4K)
+
     def weight_logits(self, context: Context, c, batch: HomesBatch):
         """Receptacle logits (B, Q, R), :data:`NEGATIVE` off the allowed receptacles."""
         first, _, _ = token_layout(self.homes_config)
@@ -252,10 +288,7 @@ class HomesNet(nn.Module):
                                                                   self.homes_config),
                                              batch.current,
                                              angle=self.config.geometry_angle)  # (B, Q, R, G)
-        read = (len(HISTORY_FEATURES) if self.config.history_observed else
-                COUNT_HISTORY_FEATURES if self.config.history_counts else BASE_HISTORY_FEATURES)
-        history = batch.history[..., :read]
-        features = jnp.concatenate([history, geometry], axis=-1)
+        features = jnp.concatenate([batch.rows, self.read_history(c, batch), geometry], -1)
         rows = (context.tokens[:, None, first:first + r] + self.row_mlp(features)
                 + self.weight_pos + c[:, :, None, :])  # (B, Q, R, D)
         allowed = batch.allowed.reshape(b * q, r)
@@ -290,9 +323,11 @@ def example_batch(homes_config: HomesConfig, b: int = 1, q: int = 1) -> HomesBat
     s, r = homes_config.max_tokens, homes_config.max_receptacles
     tokens = HomeTokens(boxes=jnp.zeros((b, s, 6)), descriptor=jnp.zeros((b, s), jnp.int32),
                         kind=jnp.zeros((b, s), jnp.int32), mask=jnp.ones((b, s), bool))
-    return HomesBatch(tokens=tokens, object_token=jnp.zeros((b, q), jnp.int32),
+    zeros = jnp.zeros((b, q), jnp.int32)
+    return HomesBatch(tokens=tokens, object_token=zeros, tau=zeros, tau_q=zeros + 1,
                       query=jnp.zeros((b, q, QUERY_FEATURES)),
-                      history=jnp.zeros((b, q, r, len(HISTORY_FEATURES))),
+                      events=jnp.zeros((b, q, DEFAULT_HISTORY), jnp.int32),
+                      rows=jnp.zeros((b, q, r, len(ROW_FEATURES))),
                       allowed=jnp.arange(r) == jnp.zeros((b, q, 1), jnp.int32),
                       current=jnp.zeros((b, q), jnp.int32), target=jnp.zeros((b, q), jnp.int32),
                       target_box=jnp.zeros((b, q, 6)))

@@ -3,6 +3,11 @@
     predictor = load_model("runs/homes")        # or load_pretrained("flowmaps-homes")
     p = predictor.probabilities(homes, queries, config)          # (E, Q, R), rows sum to 1
     boxes = predictor.sample(jax.random.key(0), homes, queries, config, num_samples=16)
+    p = predictor.probabilities(homes, queries, config, observed=observed)  # partial logs
+
+``observed`` (E, T, M) bool says which hours each object was seen (``homes.receptacle`` holds
+where it was last seen); None: every hour. A model trained on partially observed data
+(``history_observed``) refuses a query without it.
 
 The :class:`~flowmaps_jax.predictor.Predictor` of a homes model (its family's world is
 ``"homes"``) calls these functions (the predictor's registry of world inference, not a branch):
@@ -26,7 +31,6 @@ import jax.numpy as jnp
 
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.homes.queries import HomesQueries, check_queries
-from flowmaps_jax.flowsim.homes.tokens import denormalise_boxes, per_query_batch
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
 from flowmaps_jax.model.homes_family import (
     DEFAULT_NUM_STEPS,
@@ -34,13 +38,21 @@ from flowmaps_jax.model.homes_family import (
     receptacle_probabilities,
     sample_placements,
 )
+from flowmaps_jax.model.homes_inputs import (
+    HomeTokens,
+    denormalise_boxes,
+    per_query_batch,
+    scene_tokens,
+)
 from flowmaps_jax.resources import check_resources, solver_evaluations
 from flowmaps_jax.validation import (
     check_concrete,
     check_flag,
     check_instance,
     check_int,
+    check_int_array,
     check_key,
+    check_mask,
     prefix_errors,
 )
 
@@ -77,8 +89,22 @@ def check_model(predictor) -> None:
         predictor.homes.validate()  # the token budget too, should a config skip its checks
 
 
+def home_tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
+    """Tokens of every home at hour ``tau``: (E,) ints → (E, S); (E, K) → (E, K, S)."""
+    check_instance("config", config, HomesConfig)
+    tau = check_int_array("tau", tau, 0, config.num_hours - 1)
+    with prefix_errors("config."):
+        config.validate()
+    validate_homes(homes, config, values=False)
+    e = homes.num_homes
+    if tau.ndim not in (1, 2) or tau.shape[0] != e:
+        raise ValueError(f"tau must have shape (E={e},) or (E, K); got {tau.shape}")
+    out = scene_tokens(homes, jnp.asarray(tau, jnp.int32).reshape(e, -1), config)
+    return jax.tree.map(lambda a: a[:, 0], out) if tau.ndim == 1 else out
+
+
 def check(predictor, homes: Homes, queries: HomesQueries, config: HomesConfig,
-          what: str = "the query") -> None:
+          what: str = "the query", observed=None):
     """``ValueError`` naming the argument unless ``config`` agrees with the model's on the
     token layout and vocabulary (:data:`COMPATIBLE_FIELDS`) and ``homes`` / ``queries`` fit
     ``config``: finite, sensible home arrays (``validate_homes`` with values), at least one
@@ -96,6 +122,13 @@ def check(predictor, homes: Homes, queries: HomesQueries, config: HomesConfig,
     if queries.tau.shape[1] == 0:
         raise ValueError("queries must hold at least one query per home; got shape "
                          f"{tuple(queries.tau.shape)}")
+    if observed is None:
+        if predictor.model.history_observed:
+            raise ValueError("observed is required: this model was trained on partially "
+                             "observed data; pass observed (E, T, M) bool, the hours each "
+                             "object was seen (all True if every hour was)")
+        return None
+    return jnp.asarray(check_mask("observed", observed, tuple(homes.receptacle.shape)))
 
 
 def _chunked(fn, queries: HomesQueries, rows_per_query: int):
@@ -114,18 +147,18 @@ def _chunked(fn, queries: HomesQueries, rows_per_query: int):
 
 
 def probabilities(predictor, homes: Homes, queries: HomesQueries,
-                  config: HomesConfig | None = None) -> jax.Array:
+                  config: HomesConfig | None = None, observed=None) -> jax.Array:
     """(E, Q, R) float32: the model's probability that each queried object stands on
     receptacle slot r at τ_q; 0 off its allowed receptacles, rows sum to 1. ``config``: the
-    config the homes were generated with (default: the model's)."""
+    config the homes were generated with (default: the model's); ``observed``: see above."""
     config = predictor.homes if config is None else config
-    check(predictor, homes, queries, config, "probabilities")
+    observed = check(predictor, homes, queries, config, "probabilities", observed)
     e = queries.tau.shape[0]
 
     def run(chunk):
         p = receptacle_probabilities(predictor.params, predictor.model, predictor.homes,
                                      _query_batch(homes, chunk, predictor.homes,
-                                                  predictor.model.history))
+                                                  predictor.model.history, observed))
         return p.reshape(e, chunk.tau.shape[1], -1)
 
     return _chunked(run, queries, predictor.homes.max_receptacles)
@@ -133,7 +166,7 @@ def probabilities(predictor, homes: Homes, queries: HomesQueries,
 
 def sample(predictor, key, homes: Homes, queries: HomesQueries, config: HomesConfig | None,
            num_samples: int, num_steps: int = DEFAULT_NUM_STEPS, *,
-           return_receptacles: bool = False):
+           return_receptacles: bool = False, observed=None):
     """(E, Q, N, 6) float32 boxes (cx, cy, cz, w, d, h) in metres: a receptacle drawn from
     the weights, then the placement flow on it (``num_steps`` midpoint grid points). With
     ``return_receptacles``: (boxes, receptacles (E, Q, N) int32)."""
@@ -143,7 +176,7 @@ def sample(predictor, key, homes: Homes, queries: HomesQueries, config: HomesCon
     num_steps = check_int("num_steps", num_steps, 2)
     return_receptacles = check_flag("return_receptacles", return_receptacles)
     config = predictor.homes if config is None else config
-    check(predictor, homes, queries, config, "sample")
+    observed = check(predictor, homes, queries, config, "sample", observed)
     e, q = queries.tau.shape
     check_resources(  # the shared budget: the boxes and receptacles, the solve's evaluations
         f"sample({e} x {q} queries x {num_samples} samples, num_steps={num_steps})",
@@ -154,7 +187,7 @@ def sample(predictor, key, homes: Homes, queries: HomesQueries, config: HomesCon
         qc = chunk.tau.shape[1]
         table, boxes = sample_placements(predictor.params, predictor.model, predictor.homes,
                                          _query_batch(homes, chunk, predictor.homes,
-                                                      predictor.model.history),
+                                                      predictor.model.history, observed),
                                          jax.random.fold_in(key, next(calls)), num_samples,
                                          num_steps)
         return table.reshape(e, qc, num_samples), boxes.reshape(e, qc, num_samples, 6)
@@ -164,10 +197,10 @@ def sample(predictor, key, homes: Homes, queries: HomesQueries, config: HomesCon
     return (boxes, table) if return_receptacles else boxes
 
 
-def as_prior(predictor, config: HomesConfig | None = None):
+def as_prior(predictor, config: HomesConfig | None = None, observed=None):
     """``prior(homes, queries) -> (E, Q, R)``: :func:`probabilities` for ``config``."""
-    return functools.partial(_prior, predictor, config=config)
+    return functools.partial(_prior, predictor, config=config, observed=observed)
 
 
-def _prior(predictor, homes, queries, config):
-    return probabilities(predictor, homes, queries, config)
+def _prior(predictor, homes, queries, config, observed):
+    return probabilities(predictor, homes, queries, config, observed)

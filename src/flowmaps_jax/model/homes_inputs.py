@@ -1,26 +1,25 @@
-"""A home at hour τ as model inputs: scene tokens, query features and history features.
+"""What the homes network reads: a home's layout as tokens, a query's times and the queried
+object's observation history. Only what any log has; nothing here imports a simulator.
 
-Tokens (one scene per home and map hour, ``config.max_tokens`` slots S): the rooms, then the
-receptacle slots, then the object slots at τ, then padding. Each token has a 6-D box
-(cx, cy, cz, w, d, h) normalised by the home's footprint (x and w by its width, y and d by its
-depth) and by :data:`HEIGHT_SCALE` (z and h), a descriptor (an id into the one class vocabulary:
-room types, then receptacle classes, then object classes, ``HomesConfig.descriptor_offsets``;
-the model embeds it with a learned table), a kind (room, receptacle, object) and a mask (False
-on unused slots). A room's box is lifted to 6-D: from the floor to :data:`ROOM_HEIGHT`. An
-object's box at τ is ``object_boxes``': its class's size, centred on its receptacle's top.
+* **Tokens** (one scene per home and map hour, ``config.max_tokens`` slots S): the rooms, the
+  receptacle slots, the object slots at τ, then padding. Each token has a 6-D box
+  (cx, cy, cz, w, d, h) normalised by the home's footprint (x and w by its width, y and d by its
+  depth) and by :data:`HEIGHT_SCALE` (z and h), a descriptor (an id into the class vocabulary:
+  room types, receptacle classes, object classes, ``config.descriptor_offsets``), a kind (room,
+  receptacle, object) and a mask. A room's box runs from the floor to :data:`ROOM_HEIGHT`; an
+  object's box at τ is its class's size centred on the top of the receptacle it was last seen on.
+* **Query features** (…, :data:`QUERY_FEATURES`): :func:`periodic` of τ_q and of τ, and the
+  horizon Δ = τ_q − τ as log(1 + Δ) / log(1 + T) with its sines and cosines at
+  :data:`HORIZON_FREQUENCIES`.
+* **Events** (…, H) int32: the receptacle the object was seen on at each hour τ − H + 1 … τ, −1
+  where it was not observed (or before hour 0). The network embeds each event's hour of day, day
+  of week and age and attends over them (``model.homes_family``): the rhythms are learned.
+* **Row features** (…, R, :data:`ROW_FEATURES`): statistics of the observed history, per
+  (query, receptacle r), zero off the object's allowed receptacles (except ``allowed``).
 
-Query features (…, :data:`QUERY_FEATURES`): hour of day and day of week of τ_q and of τ as
-sines and cosines, a weekend flag of τ_q, and the horizon Δ = τ_q − τ in hours as log(1 + Δ)
-scaled to [0, 1] with its sines and cosines at :data:`HORIZON_FREQUENCIES`.
-
-History features (…, R, :data:`HISTORY_FEATURES`), per (query, receptacle slot), over the
-``history`` hours τ − H + 1 … τ (hours before 0 left out): see :data:`HISTORY_FEATURES`. The
-cycle features read ``Homes.cycle``, the object's allowed receptacles clockwise around the home's
-centre: a function of the map's geometry (``furnish.cycles``), not of the hidden law.
-
-Everything here is jittable and vmapped over homes and queries; :func:`home_tokens` and
-:func:`history_features` check their arguments (``ValueError`` naming them), the ``_``
-functions and the batch builders do not.
+Hour t counts from the log's hour 0; hour of day t mod 24, day of week ⌊t / 24⌋ mod 7. Partial
+observation: ``observed`` (E, T, M) bool, None for every hour; ``homes.receptacle`` holds where
+each object was last seen. Everything is jittable and unchecked (the Predictor checks).
 """
 
 from __future__ import annotations
@@ -29,65 +28,36 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from flowmaps_jax.flowsim.homes.config import HomesConfig, context_of
-from flowmaps_jax.flowsim.homes.queries import HomesQueries, check_queries
-from flowmaps_jax.flowsim.homes.world import Homes, object_boxes, validate_homes
-from flowmaps_jax.validation import (
-    check_instance,
-    check_int,
-    check_int_array,
-    check_mask,
-    prefix_errors,
-)
-
 HEIGHT_SCALE = 2.5
 """Metres: token z and h are divided by this (the footprint scales x, y, w, d)."""
 ROOM_HEIGHT = 2.5
 """Metres: a room's 6-D box runs from the floor to this height."""
 DISTANCE_SCALE = 10.0
-"""Metres: geodesic distances are divided by this."""
+"""Metres: walking distances are divided by this."""
 DEFAULT_HISTORY = 168
-"""Hours of history the features read by default (a week)."""
+"""Hours of history the network reads by default (a week)."""
 ROOM, RECEPTACLE, OBJECT = 0, 1, 2
 """Token kinds."""
+HOUR_HARMONICS, WEEK_HARMONICS = 6, 3
+"""Harmonics of the hour of day and of the day of week in :func:`periodic`."""
+PERIODIC_FEATURES = 2 * (HOUR_HARMONICS + WEEK_HARMONICS)
 HORIZON_FREQUENCIES = (1.0, 2.0, 4.0, 8.0)
 """Angular frequencies (× π) of the horizon's log-scaled features."""
-QUERY_FEATURES = 9 + 2 * len(HORIZON_FREQUENCIES) + 1
-HISTORY_FEATURES = ("occupancy", "context_occupancy", "at_tau", "distance", "near",
-                    "allowed", "cycle_0", "cycle_1", "cycle_2", "cycle_back", "cycle_fraction",
-                    "arrivals", "context_arrivals", "inverse_allowed", "move_rate",
-                    "step_1_rate", "step_2_rate", "coverage",
-                    "context_arrival_count", "context_hour_count", "earlier_arrival_count",
-                    "earlier_hour_count", "next_arrival_count", "next_hour_count",
-                    "same_hour_occupancy", "unseen_at_tau", "hours_since_seen", "never_seen")
-"""Per (query, receptacle r): fraction of the window's hours the object stood on r; the same
-over the window's hours with the preference context of τ_q (``context_of``); whether it stands
-on r at τ; the geodesic distance from its receptacle at τ to r / :data:`DISTANCE_SCALE`, and
-exp(−distance / ``config.frequent_length``); whether r is allowed; whether r is 0, 1, 2 or
-n − 1 places on along the object's cycle from its receptacle at τ, and that offset / n; the
-fraction of the window's moves that ended on r, and of those in τ_q's context; then, the same
-for every r of a query: 1 / n (n allowed receptacles), the fraction of the window's hour steps
-that moved, that advanced one and two places along the cycle, and the fraction of the window
-inside the rollout; then counts, log(1 + count) / :data:`COUNT_SCALE`, of the window's moves
-that ended on r and of its hours on r, within the context of τ_q, of τ_q − 6 h and of τ + 1 h;
-and the fraction of the window's days on which the object stood on r at τ_q's hour of day.
-Zero off the allowed receptacles (except ``allowed``). Counts, unlike fractions, say how much
-evidence there is: a posterior over a context's favourite place sharpens with every arrival.
-Models before these counts read the first :data:`BASE_HISTORY_FEATURES` only.
-
-Partial observation (recorded worlds: ``observed`` (E, T, M), False where the object was not
-seen): the window's features count only the hours the object was seen, ``Homes.receptacle``
-holds where it was last seen (its receptacle at τ too), and the last three say whether it was
-unseen at τ, the hours since it was last seen, log(1 + hours) / log(1 + ``num_hours``) (the
-hours since −1 when never), and whether it was never seen up to τ. All three are 0 when every
-hour is observed (FlowSim homes). Models before them read the first
-:data:`COUNT_HISTORY_FEATURES` (``HomesModelConfig.history_observed``)."""
-BASE_HISTORY_FEATURES = 18
-"""The history features of models without ``history_counts`` (the first 18)."""
-COUNT_HISTORY_FEATURES = 25
-"""The history features of models with ``history_counts`` but without ``history_observed``."""
-COUNT_SCALE = 4.0
-"""log(1 + count) is divided by this (about 1 at 50 hours)."""
+QUERY_FEATURES = 2 * PERIODIC_FEATURES + 1 + 2 * len(HORIZON_FREQUENCIES)
+ROW_FEATURES = ("last_seen", "distance", "allowed", "occupancy", "one_step", "pushed",
+                "pushed_log", "inverse_allowed", "coverage", "moves", "unseen_at_tau",
+                "hours_since_seen", "never_seen")
+"""Per (query, receptacle r): r is where the object was last seen (up to τ); the walking
+distance from there / :data:`DISTANCE_SCALE`; r is allowed; the fraction of the window's
+observed hours on r; the empirical hourly chain P̂ (counts of consecutive observed hours,
+plus :data:`STAY_PRIOR` on staying) from the last-seen receptacle to r in one step, and
+pushed over the hours from the last sighting to τ_q (with its log, scaled); then per query: 1 / n
+(n allowed receptacles), the fraction of the window observed, the fraction of its consecutive
+observed hour pairs that moved, unseen at τ, log(1 + hours since last seen) / log(1 + T) (the
+hours since −1 when never) and never seen up to τ."""
+STAY_PRIOR = 0.5
+"""Pseudo-count on staying in every row of the empirical hourly chain."""
+LOG_FLOOR = 1e-3
 
 
 @struct.dataclass
@@ -101,7 +71,30 @@ class HomeTokens:
     mask: jax.Array
 
 
-def token_layout(config: HomesConfig) -> tuple[int, int, int]:
+@struct.dataclass
+class HomesBatch:
+    """What the homes network reads for B scenes with Q queries each.
+
+    tokens (B, S); object_token (B, Q) int32, the queried object's token; tau, tau_q (B, Q)
+    int32; query (B, Q, QUERY_FEATURES); events (B, Q, H) int32; rows (B, Q, R, ROW_FEATURES);
+    allowed (B, Q, R) bool; current (B, Q) int32 the receptacle it was last seen on; target
+    (B, Q) int32 its receptacle at τ_q; target_box (B, Q, 6) its normalised box at τ_q.
+    """
+
+    tokens: HomeTokens
+    object_token: jax.Array
+    tau: jax.Array
+    tau_q: jax.Array
+    query: jax.Array
+    events: jax.Array
+    rows: jax.Array
+    allowed: jax.Array
+    current: jax.Array
+    target: jax.Array
+    target_box: jax.Array
+
+
+def token_layout(config) -> tuple[int, int, int]:
     """(first receptacle token, first object token, S): rooms sit at 0 … NR − 1."""
     first_receptacle = config.num_rooms
     return first_receptacle, first_receptacle + config.max_receptacles, config.max_tokens
@@ -115,18 +108,27 @@ def _scale(home_size):
 
 def normalise_boxes(boxes, home_size):
     """Boxes (E, …, 6) in metres → normalised (footprint and :data:`HEIGHT_SCALE`)."""
-    scale = _scale(home_size).reshape(home_size.shape[0], *([1] * (boxes.ndim - 2)), 6)
-    return boxes / scale
+    return boxes / _scale(home_size).reshape(home_size.shape[0], *([1] * (boxes.ndim - 2)), 6)
 
 
 def denormalise_boxes(boxes, home_size):
     """Inverse of :func:`normalise_boxes`."""
-    scale = _scale(home_size).reshape(home_size.shape[0], *([1] * (boxes.ndim - 2)), 6)
-    return boxes * scale
+    return boxes * _scale(home_size).reshape(home_size.shape[0], *([1] * (boxes.ndim - 2)), 6)
 
 
-def _tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
-    """Tokens (E, K, S) of every home at the hours ``tau`` (E, K). Unchecked; jittable."""
+def object_boxes(homes, hour, config):
+    """(E, M, 6) object boxes in metres at ``hour`` (E,): the class's size centred on the top
+    of its receptacle; 0 for masked objects."""
+    where = jnp.take_along_axis(homes.receptacle, hour[:, None, None], axis=1)[:, 0]  # (E, M)
+    under = jnp.take_along_axis(homes.receptacle_box, jnp.maximum(where, 0)[..., None], axis=1)
+    size = jnp.asarray([o.size for o in config.object_classes], jnp.float32)[
+        jnp.maximum(homes.object_class, 0)]  # (E, M, 3)
+    centre = jnp.stack([under[..., 0], under[..., 1], under[..., 5] + size[..., 2] / 2], -1)
+    return jnp.where(homes.object_valid[..., None], jnp.concatenate([centre, size], -1), 0.0)
+
+
+def scene_tokens(homes, tau, config) -> HomeTokens:
+    """Tokens (E, K, S) of every home at the hours ``tau`` (E, K)."""
     e, k = tau.shape
     room = homes.room_box
     rooms = jnp.stack([(room[..., 0] + room[..., 2]) / 2, (room[..., 1] + room[..., 3]) / 2,
@@ -155,210 +157,126 @@ def _tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
                       kind=flat[1].astype(jnp.int32), mask=flat[2].astype(bool))
 
 
-def home_tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
-    """Tokens of every home at hour ``tau``: (E,) ints → (E, S); (E, K) → (E, K, S)."""
-    check_instance("config", config, HomesConfig)
-    tau = check_int_array("tau", tau, 0, config.num_hours - 1)
-    with prefix_errors("config."):
-        config.validate()  # its token budget too, should it have skipped its own checks
-    validate_homes(homes, config, values=False)
-    e = homes.num_homes
-    if tau.ndim not in (1, 2) or tau.shape[0] != e:
-        raise ValueError(f"tau must have shape (E={e},) or (E, K); got {tau.shape}")
-    out = _tokens(homes, jnp.asarray(tau, jnp.int32).reshape(e, -1), config)
-    return jax.tree.map(lambda a: a[:, 0], out) if tau.ndim == 1 else out
+def periodic(hours) -> jax.Array:
+    """(…, PERIODIC_FEATURES) float32: sines and cosines of the hour of day (harmonics
+    1 … :data:`HOUR_HARMONICS`) and of the day of week (1 … :data:`WEEK_HARMONICS`)."""
+    hours = jnp.asarray(hours)
+    day = 2 * jnp.pi * (hours % 24).astype(jnp.float32)[..., None] / 24.0
+    week = 2 * jnp.pi * ((hours // 24) % 7).astype(jnp.float32)[..., None] / 7.0
+    day = day * jnp.arange(1, HOUR_HARMONICS + 1)
+    week = week * jnp.arange(1, WEEK_HARMONICS + 1)
+    return jnp.concatenate([jnp.sin(day), jnp.cos(day), jnp.sin(week), jnp.cos(week)], -1)
 
 
-def _cyclic(hours, period):
-    angle = 2 * jnp.pi * hours / period
-    return [jnp.sin(angle), jnp.cos(angle)]
-
-
-def _query_features(tau, tau_q, config: HomesConfig):
+def query_features(tau, tau_q, num_hours: int) -> jax.Array:
     """(…, QUERY_FEATURES) float32 of queries with map hours ``tau`` and query hours ``tau_q``."""
     tau, tau_q = jnp.asarray(tau), jnp.asarray(tau_q)
-    scaled = jnp.log1p((tau_q - tau).astype(jnp.float32)) / jnp.log1p(float(config.num_hours))
+    scaled = jnp.log1p((tau_q - tau).astype(jnp.float32)) / jnp.log1p(float(num_hours))
     waves = scaled[..., None] * jnp.pi * jnp.asarray(HORIZON_FREQUENCIES, jnp.float32)
-    parts = [*_cyclic(tau_q % 24, 24.0), *_cyclic((tau_q // 24) % 7, 7.0),
-             *_cyclic(tau % 24, 24.0), *_cyclic((tau // 24) % 7, 7.0),
-             ((tau_q // 24) % 7 >= 5).astype(jnp.float32), scaled]
-    out = jnp.concatenate([jnp.stack(parts, -1), jnp.sin(waves), jnp.cos(waves)], axis=-1)
-    return out.astype(jnp.float32)
+    return jnp.concatenate([periodic(tau_q), periodic(tau), scaled[..., None], jnp.sin(waves),
+                            jnp.cos(waves)], axis=-1).astype(jnp.float32)
 
 
-def _per_query(homes: Homes, queries: HomesQueries, history: int):
-    """The object's receptacles over the window (E, Q, H), which hours are in the rollout, and
-    its receptacle at τ (E, Q)."""
+def history_events(homes, queries, history: int, observed=None) -> jax.Array:
+    """(E, Q, H) int32: the queried object's receptacle at hours τ − H + 1 … τ, −1 where it was
+    not observed or the hour is before 0."""
     hours = queries.tau[..., None] - history + 1 + jnp.arange(history)  # (E, Q, H)
-    inside = hours >= 0
+    obs = (jnp.ones(homes.receptacle.shape, bool) if observed is None else observed)
 
-    def one(traj, hh, obj, tau):
-        return traj[jnp.maximum(hh, 0), obj[:, None]], traj[tau, obj]
+    def one(traj, seen, hh, obj):
+        at = jnp.maximum(hh, 0), obj[:, None]
+        return jnp.where((hh >= 0) & seen[at], traj[at], -1)
 
-    window, current = jax.vmap(one)(homes.receptacle, hours, queries.object_index, queries.tau)
-    return window, hours, inside, current
+    return jax.vmap(one)(homes.receptacle, obs, hours, queries.object_index).astype(jnp.int32)
 
 
-def _last_seen(observed, queries: HomesQueries):
+def _last_seen(observed, queries):
     """(E, Q) int32: the last hour <= τ at which each queried object was seen (−1: never)."""
     def one(obs, obj, tau):  # obs (T, M); obj, tau (Q,)
         t = jnp.arange(obs.shape[0])
-        seen = obs[:, obj].T & (t <= tau[:, None])  # (Q, T)
-        return jnp.max(jnp.where(seen, t, -1), axis=-1)
+        return jnp.max(jnp.where(obs[:, obj].T & (t <= tau[:, None]), t, -1), axis=-1)
 
     return jax.vmap(one)(observed, queries.object_index, queries.tau).astype(jnp.int32)
 
 
-def _history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
-                      history: int, observed=None):
-    """(E, Q, R, len(HISTORY_FEATURES)) float32; see :data:`HISTORY_FEATURES`. ``observed``
-    (E, T, M) bool, None: every hour. Unchecked."""
-    r = config.max_receptacles
-    window, hours, inside, current = _per_query(homes, queries, history)
-    if observed is not None:  # only the hours the object was seen count
-        seen = jax.vmap(lambda obs, hh, obj: obs[jnp.maximum(hh, 0), obj[:, None]])(
-            observed, hours, queries.object_index)  # (E, Q, H)
-        inside = inside & seen
-    slots = jnp.arange(r)
-    on = (window[..., None] == slots) & inside[..., None]  # (E, Q, H, R)
-    fraction = lambda num, den: num / jnp.maximum(den, 1.0)[..., None]  # noqa: E731
-    same = inside & (context_of(jnp.maximum(hours, 0)) == context_of(queries.tau_q)[..., None])
-    occupancy = fraction(on.sum(2), inside.sum(-1))
-    context_occupancy = fraction((on & same[..., None]).sum(2), same.sum(-1))
-    pair = inside[..., 1:] & inside[..., :-1]  # hour steps inside the window
-    moved = pair & (window[..., 1:] != window[..., :-1])
-    arrive = moved[..., None] & on[..., 1:, :]
-    moved_same = moved & same[..., :-1]  # the move's hour (t of t → t + 1) in τ_q's context
-    arrivals = fraction(arrive.sum(2), moved.sum(-1))
-    context_arrivals = fraction((arrive & same[..., :-1, None]).sum(2), moved_same.sum(-1))
+def _pushed(chain, start, steps, bits: int):
+    """start (…, R) pushed ``steps`` (…) hours through ``chain`` (…, R, R): binary powers."""
+    def body(carry, bit):
+        v, m = carry
+        take = ((steps >> bit) & 1)[..., None] == 1
+        return (jnp.where(take, jnp.einsum("...i,...ij->...j", v, m), v), m @ m), None
 
-    def per_home(cycle, allowed, num, dist, obj, cur):
-        return cycle[obj], allowed[obj], num[obj], dist[cur]
-
-    cycle, allowed, num, dist = jax.vmap(per_home)(
-        homes.cycle, homes.object_allowed, homes.num_allowed, homes.receptacle_distance,
-        queries.object_index, current)  # (E, Q, R), (E, Q, R), (E, Q), (E, Q, R)
-    n = jnp.maximum(num, 1)[..., None]
-    position = jnp.argmax(cycle[..., None, :] == slots[:, None], axis=-1)  # (E, Q, R)
-    here = jnp.take_along_axis(position, current[..., None], axis=-1)
-    offset = jnp.mod(position - here, n)  # places along the cycle from the object's receptacle
-    along = jnp.take_along_axis(position, jnp.maximum(window, 0), axis=-1)  # (E, Q, H)
-    step = jnp.mod(along[..., 1:] - along[..., :-1], n)
-    steps = jnp.maximum(pair.sum(-1), 1)
-    per_query = jnp.stack([1.0 / n[..., 0], moved.sum(-1) / steps,
-                           (pair & (step == 1)).sum(-1) / steps,
-                           (pair & (step == 2)).sum(-1) / steps,
-                           inside.sum(-1) / history], axis=-1)  # (E, Q, 5)
-    per_slot = jnp.stack([
-        occupancy, context_occupancy, (slots == current[..., None]).astype(jnp.float32),
-        dist / DISTANCE_SCALE, jnp.exp(-dist / config.frequent_length),
-        allowed.astype(jnp.float32), offset == 0, offset == 1, offset == 2, offset == n - 1,
-        offset / n, arrivals, context_arrivals], axis=-1).astype(jnp.float32)
-    def counts(hour):  # moves ending on r and hours on r, in the context of ``hour`` (E, Q)
-        ctx = inside & (context_of(jnp.maximum(hours, 0)) == context_of(hour)[..., None])
-        return [jnp.log1p((arrive & ctx[..., :-1, None]).sum(2)) / COUNT_SCALE,
-                jnp.log1p((on & ctx[..., None]).sum(2)) / COUNT_SCALE]
-
-    same_hour = inside & (jnp.mod(hours, 24) == jnp.mod(queries.tau_q, 24)[..., None])
-    extra = jnp.stack([*counts(queries.tau_q), *counts(queries.tau_q - 6),
-                       *counts(queries.tau + 1),
-                       fraction((on & same_hour[..., None]).sum(2), same_hour.sum(-1))],
-                      axis=-1).astype(jnp.float32)
-    if observed is None:
-        unseen = jnp.zeros((*per_slot.shape[:-1], 3), jnp.float32)
-    else:
-        last = _last_seen(observed, queries)  # (E, Q)
-        ago = jnp.log1p((queries.tau - last).astype(jnp.float32)) / jnp.log1p(
-            float(config.num_hours))
-        unseen = jnp.stack([last != queries.tau, ago, last < 0], axis=-1).astype(jnp.float32)
-        unseen = jnp.broadcast_to(unseen[..., None, :], (*per_slot.shape[:-1], 3))
-    extra = jnp.concatenate([extra, unseen], axis=-1)
-    out = jnp.concatenate([per_slot, jnp.broadcast_to(per_query[..., None, :],
-                                                      (*per_slot.shape[:-1], 5)), extra],
-                          axis=-1)
-    keep = allowed[..., None] | (jnp.arange(out.shape[-1]) == HISTORY_FEATURES.index("allowed"))
-    return jnp.where(keep, out, 0.0)
+    (v, _), _ = jax.lax.scan(body, (start, chain), jnp.arange(bits))
+    return v
 
 
-def history_features(homes: Homes, queries: HomesQueries, config: HomesConfig,
-                     history: int = DEFAULT_HISTORY, observed=None) -> jax.Array:
-    """(E, Q, R, len(HISTORY_FEATURES)) float32 history features of every query (see
-    :data:`HISTORY_FEATURES`), over the ``history`` hours up to each query's τ; ``observed``
-    (E, T, M) bool: the hours each object was seen (None: every hour)."""
-    check_instance("config", config, HomesConfig)
-    history = check_int("history", history, 1, config.num_hours)
-    with prefix_errors("config."):
-        config.validate()  # its token budget too, should it have skipped its own checks
-    validate_homes(homes, config, values=False)
-    check_queries(queries, homes, config)
-    if observed is not None:
-        observed = check_mask("observed", observed, tuple(homes.receptacle.shape))
-    return _history_features(homes, queries, config, history, observed)
+def row_features(homes, queries, config, events, observed=None) -> jax.Array:
+    """(E, Q, R, len(ROW_FEATURES)) float32 (see :data:`ROW_FEATURES`) from ``events``
+    (:func:`history_events`)."""
+    r, t = config.max_receptacles, config.num_hours
+    allowed = jax.vmap(lambda a, o: a[o])(homes.object_allowed, queries.object_index)
+    current = jax.vmap(lambda traj, tau, o: traj[tau, o])(homes.receptacle, queries.tau,
+                                                          queries.object_index)
+    last = queries.tau if observed is None else _last_seen(observed, queries)
+    seen = events >= 0
+    on = jax.nn.one_hot(events, r, dtype=jnp.float32)  # (E, Q, H, R); zero where unseen
+    pair = seen[..., 1:] & seen[..., :-1]
+    counts = jnp.einsum("...hi,...hj->...ij", on[..., :-1, :] * pair[..., None], on[..., 1:, :])
+    eye = jnp.eye(r, dtype=jnp.float32) * allowed[..., None, :]
+    counts = (counts + STAY_PRIOR * eye) * allowed[..., :, None] * allowed[..., None, :]
+    chain = counts / jnp.maximum(counts.sum(-1, keepdims=True), 1e-9)
+    here = jax.nn.one_hot(current, r, dtype=jnp.float32)
+    one_step = jnp.einsum("...i,...ij->...j", here, chain)
+    steps = queries.tau_q - jnp.where(last >= 0, last, queries.tau)
+    pushed = _pushed(chain, here, steps, max(1, int(t).bit_length()))
+    dist = jax.vmap(lambda d, c: d[c])(homes.receptacle_distance, current)  # (E, Q, R)
+    n = jnp.maximum(allowed.sum(-1), 1).astype(jnp.float32)
+    observed_hours = seen.sum(-1).astype(jnp.float32)
+    ago = jnp.log1p((queries.tau - last).astype(jnp.float32)) / jnp.log1p(float(t))
+    per_slot = [here, dist / DISTANCE_SCALE, allowed.astype(jnp.float32),
+                on.sum(-2) / jnp.maximum(observed_hours, 1.0)[..., None], one_step, pushed,
+                jnp.log(pushed + LOG_FLOOR) / -jnp.log(LOG_FLOOR)]
+    per_query = [1.0 / n, observed_hours / events.shape[-1],
+                 (pair & (events[..., 1:] != events[..., :-1])).sum(-1)
+                 / jnp.maximum(pair.sum(-1), 1), (last != queries.tau).astype(jnp.float32), ago,
+                 (last < 0).astype(jnp.float32)]
+    out = jnp.stack([*per_slot, *(jnp.broadcast_to(f[..., None].astype(jnp.float32),
+                                                   allowed.shape) for f in per_query)], -1)
+    keep = allowed[..., None] | (jnp.arange(out.shape[-1]) == ROW_FEATURES.index("allowed"))
+    return jnp.where(keep, out, 0.0).astype(jnp.float32)
 
 
-@struct.dataclass
-class HomesBatch:
-    """What the homes model reads for B scenes with Q queries each.
-
-    tokens (B, S); object_token (B, Q) int32, the queried object's token index; query
-    (B, Q, QUERY_FEATURES); history (B, Q, R, len(HISTORY_FEATURES)); allowed (B, Q, R) bool;
-    current (B, Q) int32 its receptacle at τ; target (B, Q) int32 its receptacle at τ_q;
-    target_box (B, Q, 6) its normalised box at τ_q.
-    """
-
-    tokens: HomeTokens
-    object_token: jax.Array
-    query: jax.Array
-    history: jax.Array
-    allowed: jax.Array
-    current: jax.Array
-    target: jax.Array
-    target_box: jax.Array
-
-
-def _targets(homes: Homes, queries: HomesQueries, config: HomesConfig):
-    """Receptacle (E, Q) and normalised box (E, Q, 6) of each queried object at τ_q."""
+def _parts(homes, queries, config, history: int, observed=None) -> dict:
+    _, first_object, _ = token_layout(config)
+    allowed = jax.vmap(lambda a, o: a[o])(homes.object_allowed, queries.object_index)
     boxes = jax.vmap(lambda hour: object_boxes(homes, hour, config), in_axes=1,
                      out_axes=1)(queries.tau_q)  # (E, Q, M, 6)
     box = jnp.take_along_axis(boxes, queries.object_index[..., None, None], axis=2)[:, :, 0]
-
-    def where(traj, tq, obj):
-        return traj[tq, obj]
-
-    target = jax.vmap(where)(homes.receptacle, queries.tau_q, queries.object_index)
-    return target, normalise_boxes(box, homes.home_size)
-
-
-def _parts(homes: Homes, queries: HomesQueries, config: HomesConfig, history: int,
-           observed=None) -> dict:
-    _, first_object, _ = token_layout(config)
-    allowed = jax.vmap(lambda a, o: a[o])(homes.object_allowed, queries.object_index)
-    target, box = _targets(homes, queries, config)
-    current = jax.vmap(lambda traj, t, o: traj[t, o])(homes.receptacle, queries.tau,
-                                                      queries.object_index)
+    at = jax.vmap(lambda traj, t, o: traj[t, o])
+    events = history_events(homes, queries, history, observed)
     return {"object_token": (first_object + queries.object_index).astype(jnp.int32),
-            "query": _query_features(queries.tau, queries.tau_q, config),
-            "history": _history_features(homes, queries, config, history, observed),
-            "allowed": allowed, "current": current.astype(jnp.int32),
-            "target": target.astype(jnp.int32), "target_box": box}
+            "tau": queries.tau.astype(jnp.int32), "tau_q": queries.tau_q.astype(jnp.int32),
+            "query": query_features(queries.tau, queries.tau_q, config.num_hours),
+            "events": events, "rows": row_features(homes, queries, config, events, observed),
+            "allowed": allowed,
+            "current": at(homes.receptacle, queries.tau, queries.object_index).astype(jnp.int32),
+            "target": at(homes.receptacle, queries.tau_q, queries.object_index).astype(jnp.int32),
+            "target_box": normalise_boxes(box, homes.home_size)}
 
 
-def shared_tau_batch(homes: Homes, queries: HomesQueries, config: HomesConfig,
-                     history: int, observed=None) -> HomesBatch:
+def shared_tau_batch(homes, queries, config, history: int, observed=None) -> HomesBatch:
     """One scene per home (B = E) at the map hour ``queries.tau[:, 0]``, which all the home's
-    queries must share (training); ``observed`` (E, T, M): the hours each object was seen
-    (None: every hour). Unchecked; jittable."""
-    tokens = jax.tree.map(lambda a: a[:, 0], _tokens(homes, queries.tau[:, :1], config))
+    queries share (training)."""
+    tokens = jax.tree.map(lambda a: a[:, 0], scene_tokens(homes, queries.tau[:, :1], config))
     return HomesBatch(tokens=tokens, **_parts(homes, queries, config, history, observed))
 
 
-def per_query_batch(homes: Homes, queries: HomesQueries, config: HomesConfig,
-                    history: int, observed=None) -> HomesBatch:
+def per_query_batch(homes, queries, config, history: int, observed=None) -> HomesBatch:
     """One scene per query (B = E·Q, one query each), each home at its own query's τ
-    (inference: any queries). Unchecked; jittable."""
+    (inference)."""
     e, q = queries.tau.shape
     tokens = jax.tree.map(lambda a: a.reshape(e * q, *a.shape[2:]),
-                          _tokens(homes, queries.tau, config))
+                          scene_tokens(homes, queries.tau, config))
     parts = {k: v.reshape(e * q, 1, *v.shape[2:])
              for k, v in _parts(homes, queries, config, history, observed).items()}
     return HomesBatch(tokens=tokens, **parts)

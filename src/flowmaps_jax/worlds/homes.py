@@ -24,8 +24,8 @@ import jax.numpy as jnp
 
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
 from flowmaps_jax.flowsim.homes.rollout import generate_homes
-from flowmaps_jax.flowsim.homes.tokens import HomesBatch, shared_tau_batch
 from flowmaps_jax.model.homes_family import FAMILY_NAME, homes_loss, init_params
+from flowmaps_jax.model.homes_inputs import HomesBatch, shared_tau_batch
 from flowmaps_jax.worlds.world import World, chunk_key
 
 VAL_SEED = 0x40E5_0001
@@ -101,7 +101,7 @@ def objective(cfg):
 
 
 def check_batch(batch) -> None:
-    """ValueError unless ``batch`` is a :class:`~flowmaps_jax.flowsim.homes.tokens.HomesBatch`."""
+    """ValueError unless ``batch`` is a :class:`~flowmaps_jax.model.homes_inputs.HomesBatch`."""
     if not isinstance(batch, HomesBatch):
         raise ValueError(f"batch must be a HomesBatch; got {type(batch).__name__}")
 

@@ -47,10 +47,10 @@ from flowmaps_jax.flowsim.homes.config import MAX_OBJECTS, MAX_PER_ROOM, NUM_CON
 from flowmaps_jax.flowsim.homes.floorplan import door_pairs
 from flowmaps_jax.flowsim.homes.furnish import cycles
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
-from flowmaps_jax.flowsim.homes.tokens import shared_tau_batch
 from flowmaps_jax.flowsim.homes.vocabulary import ObjectClass, ReceptacleClass, RoomType
 from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
 from flowmaps_jax.model.homes_family import FAMILY_NAME
+from flowmaps_jax.model.homes_inputs import shared_tau_batch
 from flowmaps_jax.recorded.format import content_digest, load_recorded
 from flowmaps_jax.validation import prefix_errors
 from flowmaps_jax.worlds import homes as homes_world
