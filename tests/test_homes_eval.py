@@ -315,6 +315,22 @@ def test_the_evaluation_scores_every_row_by_regime_and_horizon(results):
         assert overall == pytest.approx({"kl": 0.0, "tv": 0.0, "top1": 1.0, "rank_cost": 1.0},
                                         abs=1e-5)
     assert posterior["last-seen (ε = 0.01)"]["metrics"]["kl"]["overall"]["mean"] > 0.1
+    fit = results["protocol"]["count_table"]
+    assert fit["bandwidth"] in pr.BANDWIDTHS and fit["stay"] == pytest.approx(
+        min(pr.STAYS, key=lambda s: abs(s - fit["stay"])))
+    learned = [pr.COUNT_ROW, pr.STAY_ROW, f"frequency prior (H = {HISTORY})",
+               "last-seen (ε = 0.01)", "uniform over allowed"]
+    assert list(posterior)[-5:] == learned
+    best = results["best_reference"]
+    assert list(best["posterior"]) == ["overall", *regimes]
+    for key, row in best["posterior"].items():  # the least KL among the learned rows
+        kl = {n: posterior[n]["metrics"]["kl"]["overall" if key == "overall" else "by_regime"]
+              for n in learned}
+        kl = {n: v["mean"] if key == "overall" else v[key]["mean"] for n, v in kl.items()}
+        assert row == {"row": min(kl, key=kl.get), "kl": min(kl.values())}
+    assert set(best["navigation"]) == {"overall", *regimes}
+    assert all(b["row"] == ev.NEAREST or b["row"].rsplit(", ", 1)[0] in learned
+               for b in best["navigation"].values())
     assert {f"FlowMaps, {p}" for p in ev.NAV_POLICIES} | {ev.NEAREST} <= set(navigation)
     for name, row in navigation.items():
         ratio = row["travel_ratio"]["overall"]
@@ -369,7 +385,8 @@ def test_evaluate_and_search_run_the_homes_protocol_for_a_homes_model(tmp_path, 
     assert "navigation" not in results and "FlowMaps" in results["posterior"]
     md = (out / "results.md").read_text()
     assert "| row | KL (nats) | TV | top-1 | rank cost |" in md and "### routine" in md
-    assert "## Navigation" not in md
+    assert "## Navigation" not in md and "### Best reference row per regime (by KL" in md
+    assert "Count rows chosen on 32 training homes" in md
     assert (out / "rank_cost_by_horizon.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert search(common) == 0
     printed = capsys.readouterr().out

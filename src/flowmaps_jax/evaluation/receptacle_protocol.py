@@ -16,8 +16,12 @@ regime.
 Rows (:mod:`.priors`): the exact posterior given the map and the last ``--history`` hours; the
 same given the map alone (H = 1); oracle samples (``--samples`` draws from it); FlowMaps
 (``--checkpoint``: its probabilities, and ``--samples`` sampled boxes assigned to receptacles);
-the frequency prior; last-seen; uniform. Navigation (:mod:`.navigation`): every prior row
-drives the Bayes-optimal-travel planner and most-probable-first, plus nearest first.
+the count table and last seen with a fitted stay (their parameters chosen on ``FIT_HOMES``
+training homes of ``FIT_SEED``, :func:`fitted_counts`); the frequency prior; last-seen; uniform.
+The report names the best of the reference rows learned from data (the exact rows and the
+model excluded) per regime: by KL, and by SR@1 in navigation. Navigation (:mod:`.navigation`):
+every prior row drives the Bayes-optimal-travel planner and most-probable-first, plus nearest
+first.
 
 ``evaluate`` writes ``results.md``, ``results.json`` and ``rank_cost_by_horizon.png`` into
 ``--out``; ``search`` writes ``search.md``, ``search.json`` and ``success_vs_looks.png``. Exit
@@ -43,6 +47,7 @@ from flowmaps_jax.evaluation import priors as pr
 from flowmaps_jax.evaluation.receptacle_scores import (
     POSTERIOR_METRICS,
     assign_samples,
+    best_rows,
     group_ids,
     posterior_scores,
     query_groups,
@@ -78,17 +83,22 @@ FIGURE_OF = {"posterior": "rank_cost_by_horizon.png", "navigation": "success_vs_
 EXACT, NEAREST = "exact posterior", "nearest first"
 NAV_POLICIES = ("optimal", "most-probable")
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
+FIT_SEED, FIT_HOMES, FIT_QUERIES = 35_000_003, 32, 16
+"""The count rows' training part: ``FIT_HOMES`` homes of ``jax.random.key(FIT_SEED)`` (neither
+the evaluation's nor a run's), ``FIT_QUERIES`` queries each."""
 
 
 @dataclasses.dataclass(frozen=True)
 class Row:
     """A reference row: ``prior(homes, queries) -> (E, Q, R)``; ``samples``: a histogram (its
-    KL is not reported); ``navigate``: also drives the navigation policies."""
+    KL is not reported); ``navigate``: also drives the navigation policies; ``baseline``: a
+    reference learned from data (in the running for the best reference row)."""
 
     name: str
     prior: pr.Prior
     samples: bool = False
     navigate: bool = True
+    baseline: bool = False
 
 
 def evaluation_homes(config: HomesConfig, num_homes: int):
@@ -109,9 +119,20 @@ def model_rows(model, config: HomesConfig, key, num_samples: int) -> list[Row]:
     return rows
 
 
+def fitted_counts(config: HomesConfig, history: int, horizons) -> pr.CountFit:
+    """The count rows' parameters, fitted on the training homes (``FIT_SEED``) against where
+    each queried object stands at τ_q."""
+    homes = generate_homes(jax.random.key(FIT_SEED), config, FIT_HOMES)
+    queries = draw_queries(jax.random.key(FIT_SEED + 1), homes, config, FIT_QUERIES,
+                           history=history, horizons=horizons)
+    target = pr.receptacle_at(homes, queries.tau_q, queries.object_index)
+    return pr.fit_count_table(homes, queries, target, target >= 0, (
+        len(config.object_classes), len(config.receptacle_classes)), history)
+
+
 def reference_rows(config: HomesConfig, key, history: int, num_samples: int,
-                   model=None) -> list[Row]:
-    """The rows in table order (see the module's docstring)."""
+                   model=None, fit: pr.CountFit | None = None) -> list[Row]:
+    """The rows in table order (see the module's docstring); the count rows with ``fit``."""
     rows = [Row(EXACT, pr.exact_prior(config, history))]
     if history > 1:
         rows.append(Row("exact, H = 1 (the map alone)", pr.exact_prior(config, 1),
@@ -122,9 +143,12 @@ def reference_rows(config: HomesConfig, key, history: int, num_samples: int,
                                                 history), samples=True, navigate=False))
     if model is not None:
         rows += model_rows(model, config, jax.random.fold_in(key, 2), num_samples)
-    rows += [Row(f"frequency prior (H = {history})", pr.frequency_prior(history)),
-             Row(f"last-seen (ε = {pr.LAST_SEEN_EPS})", pr.last_seen_prior()),
-             Row("uniform over allowed", pr.uniform_prior)]
+    if fit is not None:
+        rows += [Row(pr.COUNT_ROW, pr.count_table_prior(fit, history), baseline=True),
+                 Row(pr.STAY_ROW, pr.stay_prior(fit, history), baseline=True)]
+    rows += [Row(f"frequency prior (H = {history})", pr.frequency_prior(history), baseline=True),
+             Row(f"last-seen (ε = {pr.LAST_SEEN_EPS})", pr.last_seen_prior(), baseline=True),
+             Row("uniform over allowed", pr.uniform_prior, baseline=True)]
     return rows
 
 
@@ -166,7 +190,9 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
                        num_homes * (homes_bytes_per_home(config) + num_queries * per_query))
     begin = time.perf_counter()
     key = jax.random.key(seed)
-    rows = reference_rows(config, key, history, num_samples, model)
+    fit = fitted_counts(config, history, horizons)
+    rows = reference_rows(config, key, history, num_samples, model, fit)
+    baselines = [r.name for r in rows if r.baseline]
     navigated = [r for r in rows if r.navigate]
     if "posterior" not in parts:  # navigation alone: only the priors it drives
         rows = navigated
@@ -224,12 +250,18 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
             "horizons": list(horizons), "budget": budget, "num_hours": config.num_hours,
             "queries_by_regime": counts, "step_length_m": nav.STEP_LENGTH,
             "last_seen_eps": pr.LAST_SEEN_EPS, "start": "centre of room 0",
-            "model": model_info},
+            "model": model_info, "count_table": {
+                **fit.summary(), "fitted_on": f"{FIT_HOMES} training homes (seed {FIT_SEED}) "
+                f"x {FIT_QUERIES} queries"}},
         "num_allowed": stats(np.asarray(allowed).sum(-1))}
+    best = results["best_reference"] = {}
     if "posterior" in parts:
         results["posterior"] = posterior
+        best["posterior"] = best_rows(posterior, baselines, "kl", "regime", higher=False)
     if plans:
         results["navigation"] = navigation
+        best["navigation"] = best_rows(navigation, [NEAREST, *(
+            n for n, prior, _ in plans if prior in baselines)], "sr@1", "regime", higher=True)
         results["bayes_optimal_travel"] = summarise(np.asarray(optimal_travel, np.float64),
                                                     groups)
     results["seconds"] = round(time.perf_counter() - begin, 1)

@@ -7,6 +7,7 @@ import json
 import pathlib
 
 from flowmaps_jax.atomic_files import save_figure, write_file
+from flowmaps_jax.evaluation.receptacle_scores import best_lines
 from flowmaps_jax.flowsim.homes import REGIMES
 
 METRIC_NAMES = {"kl": "KL (nats)", "tv": "TV", "top1": "top-1", "rank_cost": "rank cost"}
@@ -84,11 +85,20 @@ def markdown(results: dict) -> str:
         f"{p['history']} hours; {p['samples']} samples per sample row; seed {p['seed']}"
         + (f"; FlowMaps: {p['model']}" if p.get("model") else "") + ". Mean ± standard "
         f"error over queries. {results['seconds']:.0f} s.", ""]
+    fit = p.get("count_table")
+    if fit:
+        out += [f"Count rows chosen on {fit['fitted_on']}: bandwidth b = {fit['bandwidth']:g} h, "
+                f"back-off α = {fit['alpha']:g}, other-day-type factor {fit['day_factor']:.2g}, "
+                f"hourly stay s₁ = {fit['stay']:g}.", ""]
+    best = results.get("best_reference", {})
     if "posterior" in results:
         out += ["## Posterior", "",
                 "KL(q ‖ p) in nats, TV, top-1 and rank cost against the exact posterior q "
                 "(docs/protocol.md's definitions on the object's allowed receptacles; sample "
                 "rows have no KL).", "", "### All regimes", "", posterior_table(results), ""]
+        if best.get("posterior"):
+            out += best_lines(best["posterior"], "### Best reference row per regime (by KL; "
+                              "the exact rows and the model excluded)", "kl")
         for r in regimes:
             out += [f"### {r}", "", posterior_table(results, "by_regime", r), ""]
         out += ["## By horizon", "", "### Rank cost", "",
@@ -105,6 +115,9 @@ def markdown(results: dict) -> str:
             "(optimal: least expected travel under that prior, by exact dynamic programming; "
             "most-probable: decreasing prior, ties to the nearest).", "",
             "### All regimes", "", navigation_table(results), ""]
+    if best.get("navigation"):
+        out += best_lines(best["navigation"], "### Best reference row per regime (by SR@1; the "
+                          "exact rows and the model excluded)", "sr@1")
     for r in regimes:
         out += [f"### {r}", "", navigation_table(results, "by_regime", r), ""]
     return "\n".join(out)

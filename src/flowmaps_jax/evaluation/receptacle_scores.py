@@ -69,7 +69,7 @@ def check_reference(q, tolerance: float = REFERENCE_TOLERANCE) -> None:
     bad = ~np.isfinite(total) | (np.abs(total - 1.0) > tolerance)
     if np.any(bad):
         where = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise ValueError(f"q: the reference posterior's row {where} sums to {total[where]:.6g}, "
+        raise ValueError(f"q: the reference posterior's row {where} sums to {total[where]:.12g}, "
                          f"not 1 ({int(bad.sum())} of {bad.size} rows): its scores would be "
                          f"wrong, so none are computed")
 
@@ -174,3 +174,23 @@ def group_ids(name: str, labels) -> list:
     labels = np.asarray(labels)
     return [r for r in REGIMES if np.any(labels == r)] if name == "regime" else \
         sorted(np.unique(labels).tolist())
+
+
+def best_rows(table: dict, names, metric: str, group: str, higher: bool) -> dict:
+    """{"overall" and each id of ``by_<group>``: {"row": name, ``metric``: mean}}: the best
+    mean ``metric`` among the rows ``names`` of a results ``table`` (name -> {"metrics": …})."""
+    best: dict = {}
+    for name in names:
+        summary = table[name]["metrics"][metric]
+        for key, stat in {"overall": summary["overall"], **summary[f"by_{group}"]}.items():
+            if stat["mean"] is not None and (key not in best or (
+                    stat["mean"] > best[key][metric] if higher else
+                    stat["mean"] < best[key][metric])):
+                best[key] = {"row": name, metric: stat["mean"]}
+    return best
+
+
+def best_lines(best: dict, title: str, metric: str) -> list[str]:
+    """The markdown of :func:`best_rows`' answer: a titled table, one line per group."""
+    lines = [title, "", f"| | best reference row | {metric} |", "|---|---|---|"]
+    return lines + [f"| {k} | {v['row']} | {v[metric]:.3f} |" for k, v in best.items()] + [""]
