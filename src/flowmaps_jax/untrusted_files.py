@@ -11,8 +11,8 @@ Any failure is a ``ValueError`` naming the file (the ``name`` argument).
 
 from __future__ import annotations
 
+import contextlib
 import json
-import math
 import os
 import re
 import zipfile
@@ -30,19 +30,19 @@ def read_npz(name: str, source: Any, *, allowed: Sequence[str] | None = None,
              ) -> dict[str, np.ndarray]:
     """The arrays of an untrusted ``.npz`` (a path, or its bytes as a file object), read safely.
 
-    Before anything is decompressed: the file must be a zip whose members are ``<key>.npy`` for
-    keys in ``allowed`` (None: any key) with ``required`` present, no member twice, and whose
-    declared sizes (the zip directory's, then each ``.npy`` header's shape and dtype) add up to at
-    most ``max_bytes`` (default :func:`memory_limit`); ``expected`` ({key: (shape, dtype)}) pins
-    members exactly. Objects (pickles) are refused. A member that inflates past its declared
-    size is refused while reading. Any failure is a ``ValueError`` naming ``name``.
+    Before any data is decompressed: the file must be a zip whose members are ``<key>.npy`` for
+    keys in ``allowed`` (None: any key) with ``required`` present, no member twice; the zip
+    directory's declared sizes, then the total of the ``.npy`` headers' shapes and dtypes, must
+    be at most ``max_bytes`` (default :func:`memory_limit`); ``expected`` ({key: (shape, dtype)})
+    pins members exactly; objects (pickles) are refused. Each member's data is then read once,
+    into its array. Any failure is a ``ValueError`` naming ``name``.
     """
     limit = memory_limit() if max_bytes is None else int(max_bytes)
     try:
         archive = zipfile.ZipFile(source)
     except (OSError, zipfile.BadZipFile, ValueError) as err:
         raise ValueError(f"{name} is not a readable .npz file ({err})") from None
-    with archive:
+    with archive, contextlib.ExitStack() as members:
         infos = archive.infolist()
         keys = []
         for info in infos:
@@ -60,20 +60,34 @@ def read_npz(name: str, source: Any, *, allowed: Sequence[str] | None = None,
         if declared > limit:
             raise ValueError(f"{name} declares {declared / 1e9:.3g} GB of arrays, more than the "
                              f"{limit / 1e9:.3g} GB allowed; not reading it")
-        arrays = {}
+        headers = []
         for info, key in zip(infos, keys, strict=True):
-            try:
-                with archive.open(info) as member:
-                    arrays[key] = _read_npy(member, info.file_size,
-                                            None if expected is None else expected[key])
-            except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-                raise ValueError(f"{name}: member {info.filename!r} is not a valid array "
-                                 f"({err})") from None
+            with _member_errors(name, info):
+                member = members.enter_context(archive.open(info))
+                headers.append((member, _npy_header(member, info.file_size,
+                                                    None if expected is None else expected[key])))
+        total = sum(array_bytes(shape, dtype) for _, (shape, _, dtype) in headers)
+        if total > limit:
+            raise ValueError(f"{name} holds {total / 1e9:.3g} GB of arrays (by their headers), "
+                             f"more than the {limit / 1e9:.3g} GB allowed; not reading it")
+        arrays = {}
+        for info, key, (member, header) in zip(infos, keys, headers, strict=True):
+            with _member_errors(name, info):
+                arrays[key] = _read_npy_data(member, *header)
     return arrays
 
 
-def _read_npy(member, declared: int, expected) -> np.ndarray:
-    """One ``.npy`` member, its header checked against its declared size before the data."""
+@contextlib.contextmanager
+def _member_errors(name: str, info):
+    try:
+        yield
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        raise ValueError(f"{name}: member {info.filename!r} is not a valid array "
+                         f"({err})") from None
+
+
+def _npy_header(member, declared: int, expected) -> tuple:
+    """(shape, fortran, dtype) of one ``.npy`` member, checked against its declared size."""
     version = np.lib.format.read_magic(member)
     readers = {(1, 0): np.lib.format.read_array_header_1_0,
                (2, 0): np.lib.format.read_array_header_2_0}
@@ -86,21 +100,34 @@ def _read_npy(member, declared: int, expected) -> np.ndarray:
                                  or dtype != np.dtype(expected[1])):
         raise ValueError(f"expected shape {tuple(expected[0])} and dtype "
                          f"{np.dtype(expected[1])}; got {tuple(shape)} and {dtype}")
-    size = array_bytes(shape, dtype)
-    if size > declared:
-        raise ValueError(f"its header claims {size} bytes, more than the {declared} declared")
-    data = member.read(size + 1)
-    if len(data) != size:
-        raise ValueError(f"it holds {len(data)} bytes of data where its header says {size}")
-    array = np.frombuffer(data, dtype=dtype, count=math.prod(shape) if shape else 1)
-    return array.reshape(shape, order="F" if fortran else "C").copy()
+    if array_bytes(shape, dtype) > declared:
+        raise ValueError(f"its header claims {array_bytes(shape, dtype)} bytes, more than the "
+                         f"{declared} declared")
+    return tuple(shape), fortran, dtype
+
+
+def _read_npy_data(member, shape, fortran, dtype) -> np.ndarray:
+    """The data of one ``.npy`` member after its header, read once into the array."""
+    array = np.empty(shape, dtype, order="F" if fortran else "C")
+    buffer = memoryview(array.reshape(-1, order="A").view(np.uint8))
+    done = 0
+    while done < len(buffer):
+        count = member.readinto(buffer[done:done + 2**24])
+        if not count:
+            raise ValueError(f"it holds {done} bytes of data where its header says "
+                             f"{len(buffer)}")
+        done += count
+    if member.read(1):
+        raise ValueError(f"it holds more data than the {len(buffer)} bytes its header says")
+    return array
 
 
 MAX_JSON_DEPTH = 64
 """The deepest nesting of arrays and objects accepted in a JSON file read from disk (a config is
 about 4 deep); deeper text is refused before it is parsed (Python's parser would recurse)."""
 MAX_JSON_BYTES = 16 * 1024 * 1024
-_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"', re.DOTALL)
+_JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"?', re.DOTALL)
+"""A JSON string; an unterminated one runs to the end (one pass: linear in the text's length)."""
 
 
 def json_depth(text: str) -> int:

@@ -199,11 +199,18 @@ def read_scans(files: list[pathlib.Path]) -> dict[str, np.ndarray]:
     parts: dict[str, list[np.ndarray]] = {c: [] for c in COLUMNS}
     for path in files:
         file = os.fspath(path)
+        size = "its values"
         try:
             meta = pq.ParquetFile(path).metadata
-            size = sum(meta.row_group(i).total_byte_size for i in range(meta.num_row_groups))
-            check_request_size(file, size)  # before the data is read
+            chunks = [meta.row_group(i).column(j) for i in range(meta.num_row_groups)
+                      for j in range(meta.num_columns)]
+            values = sum(c.num_values for c in chunks if c.path_in_schema.split(".")[0]
+                         in COLUMNS)  # decoded: 8 bytes each, a copy and the concatenation
+            size = f"{meta.num_rows} rows of {values} values"
+            check_request_size(f"{file}: {size}", 24 * values)
             table = pq.read_table(path, columns=list(COLUMNS))
+        except MemoryError:  # pyarrow's too: more than the process may have (a ulimit)
+            raise ValueError(f"{file}: (file): not enough memory to read {size}") from None
         except (pa.ArrowException, OSError) as err:  # a broken or foreign file
             raise ValueError(f"{file}: (file): not a readable parquet file with the columns "
                              f"{list(COLUMNS)} ({' '.join(str(err).split())[:200]})") from None
@@ -293,6 +300,8 @@ def import_environment(name: str, folder: pathlib.Path, lookups: dict | None = N
             if class_of(i) not in tables[key]:
                 raise ValueError(f"{file}: {i}: its class {class_of(i)!r} is missing from "
                                  f"{os.fspath(lookup_path)} ({key})")
+    check_request_size(f"{objects_file}: {len(objects)} objects x {len(receptacles)} "
+                       f"receptacles", len(objects) * len(receptacles))
     boxes, boxes_file = _json(folder, RECEPTACLE_BOXES)
     if not isinstance(boxes, dict):
         raise ValueError(f"{boxes_file}: (top level): must be an object of id -> box")

@@ -35,6 +35,12 @@ from typing import Any
 import numpy as np
 
 from flowmaps_jax.atomic_files import make_output_dir, write_files
+from flowmaps_jax.resources import (
+    SEQUENTIAL_FLOPS,
+    check_request_size,
+    check_resources,
+    memory_limit,
+)
 from flowmaps_jax.untrusted_files import read_json, read_npz
 from flowmaps_jax.validation import check_dir, check_output_dir
 
@@ -152,6 +158,7 @@ class Environment:
         room = np.asarray(self.receptacle_room)
         if self.room_boxes is None or self.door_rooms is None or np.any(room < 0):
             return straight.astype(np.float32)
+        check_walk(f"environment {self.name!r}", len(room), len(self.door_rooms))
         geodesic = _geodesic(centre, room, np.asarray(self.door_positions, np.float64),
                              np.asarray(self.door_rooms), len(self.room_classes))
         return np.where(np.isfinite(geodesic), geodesic, straight).astype(np.float32)
@@ -175,8 +182,20 @@ class Recorded:
                 "objects": sorted({c for e in self.environments for c in e.object_classes})}
 
 
+def check_walk(where: str, points: int, doors: int) -> None:
+    """The memory and work of :func:`_geodesic` through the shared budget: its (P + D)²
+    matrices, and D passes over (P, P + D), each million entries counted as one sequential
+    step (:data:`~flowmaps_jax.resources.SEQUENTIAL_FLOPS`)."""
+    v = points + doors
+    check_resources(f"{where}: walking distances between {points} receptacles through {doors} "
+                    f"doors", num_bytes=8 * (5 * v * v + 4 * points * v),
+                    flops=doors * -(-points * v // 2**20) * SEQUENTIAL_FLOPS)
+
+
 def _geodesic(points, point_room, door_positions, door_rooms, num_rooms: int) -> np.ndarray:
-    """(P, P) float64 shortest walks between points (P, 2) through doors (inf: not joined)."""
+    """(P, P) float64 shortest walks between points (P, 2) through doors (inf: not joined):
+    Dijkstra from every point at once, settling the doors only (a point is never worth passing
+    through: its room's nodes are joined directly)."""
     nodes = np.concatenate([points, door_positions.reshape(-1, 2)], axis=0)
     rooms = np.arange(num_rooms)
     member = np.concatenate([point_room[:, None] == rooms[None],
@@ -185,9 +204,13 @@ def _geodesic(points, point_room, door_positions, door_rooms, num_rooms: int) ->
     share = (member.astype(np.int64) @ member.T.astype(np.int64)) > 0
     dist = np.where(share, np.linalg.norm(nodes[:, None] - nodes[None], axis=-1), np.inf)
     np.fill_diagonal(dist, 0.0)
-    for k in range(len(nodes)):  # Floyd-Warshall over a few dozen nodes
-        dist = np.minimum(dist, dist[:, k:k + 1] + dist[k:k + 1, :])
-    return dist[:len(points), :len(points)]
+    p, rows = len(points), np.arange(len(points))
+    best, done = dist[:p].copy(), np.zeros((p, len(nodes) - p), bool)
+    for _ in range(len(nodes) - p):
+        u = np.argmin(np.where(done, np.inf, best[:, p:]), axis=1)
+        done[rows, u] = True
+        np.minimum(best, best[rows, p + u][:, None] + dist[p + u], out=best)
+    return best[:, :p]
 
 
 # ------------------------------------------------------------------------------ checks
@@ -547,6 +570,17 @@ def _string(file: str, field: str, value: Any) -> str:
     return value
 
 
+def _json_bytes(file: str, data: Any, limit: int) -> int:
+    """Bytes that the sizes ``environment.json`` gives cost (the objects x receptacles matrix,
+    the walking distances), checked against ``limit`` before anything is allocated."""
+    data = _keys(file, "(top level)", data, _ENV_KEYS)
+    m, r, d = (len(_list(file, key, data[key])) for key in ("objects", "receptacles", "doors"))
+    size = check_request_size(f"{file}: {m} objects x {r} receptacles", m * r, limit)
+    if d:
+        check_walk(file, r, d)
+    return size
+
+
 def _environment_from_json(name: str, data: Any, arrays: dict[str, np.ndarray],
                            files: dict[str, str]) -> Environment:
     """An Environment from a parsed ``environment.json`` and its arrays (structure checked
@@ -629,9 +663,10 @@ def _environment_from_json(name: str, data: Any, arrays: dict[str, np.ndarray],
     return validate_environment(env, _files=files)
 
 
-def load_environment(root, name: str) -> Environment:
+def load_environment(root, name: str, budget: int | None = None) -> Environment:
     """The environment ``name`` of the recorded world in the folder ``root`` (checked as
-    ``load_recorded`` checks it)."""
+    ``load_recorded`` checks it); the sizes its files give must fit in ``budget`` bytes
+    (default :func:`~flowmaps_jax.resources.memory_limit`) before anything is allocated."""
     folder = pathlib.Path(root) / name
     files = {"json": os.fspath(folder / ENVIRONMENT_FILE),
              "arrays": os.fspath(folder / ARRAYS_FILE)}
@@ -639,9 +674,11 @@ def load_environment(root, name: str) -> Environment:
         if not os.path.isfile(file):
             raise ValueError(f"{file}: (file): missing; the environment {name!r} listed in "
                              f"{INDEX_FILE} has no such file")
+    budget = memory_limit() if budget is None else budget
     data = read_json("", files["json"])
     arrays = read_npz(files["arrays"], files["arrays"],
-                      allowed=(*REQUIRED_ARRAYS, *OPTIONAL_ARRAYS), required=REQUIRED_ARRAYS)
+                      allowed=(*REQUIRED_ARRAYS, *OPTIONAL_ARRAYS), required=REQUIRED_ARRAYS,
+                      max_bytes=max(budget - _json_bytes(files["json"], data, budget), 0))
     return _environment_from_json(name, data, arrays, files)
 
 
@@ -677,5 +714,12 @@ def load_recorded(path) -> Recorded:
         _check_distinct_names(names, "environments")
     except ValueError as err:
         raise ValueError(f"{index_file}: {err}") from None
-    return Recorded(tuple(load_environment(root, name) for name in names))
+    environments, left = [], memory_limit()  # one budget for all the environments
+    for name in names:
+        environments.append(load_environment(root, name, left))
+        env = environments[-1]
+        left -= env.num_objects * env.num_receptacles + sum(
+            getattr(env, f).nbytes for f in (*REQUIRED_ARRAYS, *OPTIONAL_ARRAYS)
+            if getattr(env, f) is not None)
+    return Recorded(tuple(environments))
 
