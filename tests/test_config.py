@@ -150,6 +150,21 @@ def test_overrides_convert_types_including_nested_fields():
     assert again.clip_norm == 0.5
 
 
+def test_homes_rhythms_preset_and_tuple_overrides_from_the_command_line():
+    """The homes recipe on other preference contexts; tuples set as comma-separated items."""
+    homes, rhythms = get_preset("homes"), get_preset("homes-rhythms")
+    assert rhythms.homes.day_phases == (7, 9, 17, 18) and homes.homes.day_phases == (0, 6, 12, 18)
+    assert dataclasses.replace(rhythms, homes=homes.homes, preset="homes") == homes
+    args = build_parser().parse_args(["--preset", "homes", "--set", "homes.day_phases=7, 9,17,18",
+                                      "--set", "homes.routine_probs=0.1,0.8,0.1"])
+    cfg, _ = resolve_config(args)
+    assert cfg.homes == dataclasses.replace(homes.homes, day_phases=(7, 9, 17, 18),
+                                            routine_probs=(0.1, 0.8, 0.1))
+    for bad in ("7,9,17", "7,9,17,24", "9,7,17,18", "7,9,x,18"):
+        with pytest.raises(ValueError, match=r"homes\.day_phases"):
+            apply_overrides(homes, [f"homes.day_phases={bad}"])
+
+
 def test_coupled_overrides_are_validated_together():
     cfg = apply_overrides(get_preset("smoke"), ["flowsim.num_timesteps=10", "model.tau_max=10"])
     assert cfg.model.tau_max == cfg.flowsim.num_timesteps == 10

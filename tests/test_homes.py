@@ -1,7 +1,8 @@
 """FlowSim homes: the config's refusals, generated homes, the exact posterior (against
 Monte-Carlo chains and brute-force enumeration), jit / vmap, and the on-disk format.
 
-Tiny sizes: one "mixed" config (every regime in one compiled program) over 8 days, 6 homes."""
+Tiny sizes: one "mixed" config (every regime in one compiled program) over 8 days, 6 homes, and
+the same with other preference contexts (``day_phases``), for the tests that follow the law."""
 
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ from flowmaps_jax.flowsim.homes import (
     ReceptacleClass,
     context_of,
     favourite_weights,
+    filtered_posterior,
     generate_homes,
     homes_history_posterior,
     homes_posterior,
@@ -40,12 +42,33 @@ from flowmaps_jax.flowsim.homes.floorplan import geodesic_distances
 from flowmaps_jax.flowsim.homes.rollout import sample_paths
 
 CONFIG = HomesConfig(regime="mixed", num_hours=192)
+RHYTHMS = dataclasses.replace(CONFIG, day_phases=(7, 9, 17, 18))  # 07–09, 09–17, 17–18, 18–07
 NUM_HOMES = 6
 
 
 @pytest.fixture(scope="module")
 def homes() -> Homes:
     return generate_homes(jax.random.key(0), CONFIG, NUM_HOMES)
+
+
+@pytest.fixture(scope="module")
+def rhythm_homes() -> Homes:
+    return generate_homes(jax.random.key(0), RHYTHMS, NUM_HOMES)
+
+
+BOTH = pytest.mark.parametrize("config", [CONFIG, RHYTHMS], ids=["six-hour", "rhythms"])
+"""Run a test on the default contexts and on ``RHYTHMS``' (its homes: ``_homes_of``)."""
+
+
+def _homes_of(request, config: HomesConfig) -> Homes:
+    return request.getfixturevalue("homes" if config is CONFIG else "rhythm_homes")
+
+
+def _context(t: int, phases) -> int:
+    """c(t) as docs/flowsim.md states it: the phase of the last start <= hour of day (the last
+    phase before the first start), + 4 on Saturday and Sunday."""
+    started = [i for i, start in enumerate(phases) if start <= t % 24]
+    return (started[-1] if started else len(phases) - 1) + 4 * ((t // 24) % 7 >= 5)
 
 
 def _objects_by_regime(homes: Homes, min_allowed: int = 2, max_allowed: int = 18):
@@ -71,6 +94,26 @@ def test_vocabulary_sizes_and_round_trip():
     assert HomesConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
     assert len(config.vocabulary) == config.vocabulary_size
     assert context_of(0) == 0 and context_of(13) == 2 and context_of(5 * 24 + 19) == 7
+
+
+def test_day_phases_default_is_the_six_hour_contexts_and_others_follow_the_docs():
+    week = np.arange(7 * 24)
+    before = (week % 24) // 6 + 4 * ((week // 24) % 7 >= 5)  # the contexts before day_phases
+    assert HomesConfig().day_phases == (0, 6, 12, 18)
+    for t in week:
+        assert context_of(int(t)) == before[t] == _context(int(t), (0, 6, 12, 18))
+        assert context_of(int(t), RHYTHMS.day_phases) == _context(int(t), RHYTHMS.day_phases)
+    np.testing.assert_array_equal(context_of(week), before)
+    np.testing.assert_array_equal(context_of(jnp.asarray(week)), before)
+    rhythm = context_of(jnp.asarray(week), RHYTHMS.day_phases)
+    assert rhythm.dtype == jnp.int32
+    # Monday 03, 07, 08, 09, 16, 17, 18, 23 h; Saturday 06 and 08 h
+    hours = [3, 7, 8, 9, 16, 17, 18, 23, 5 * 24 + 6, 5 * 24 + 8]
+    np.testing.assert_array_equal(rhythm[np.asarray(hours)], [3, 0, 0, 1, 1, 2, 3, 3, 7, 4])
+    # a stored config from before the field loads with the default; the field round-trips
+    old = {k: v for k, v in HomesConfig().to_dict().items() if k != "day_phases"}
+    assert HomesConfig.from_dict(old) == HomesConfig()
+    assert HomesConfig.from_dict(json.loads(json.dumps(RHYTHMS.to_dict()))) == RHYTHMS
 
 
 def _replace_class(field: str, name: str, **changes) -> dict:
@@ -101,6 +144,13 @@ BAD_CONFIGS = [
     ({"receptacles_per_room": (2, 5)}, "receptacles_per_room"),
     ({"grid_rows": 4}, "rooms"),
     ({"preference_mass": 1.5}, "preference_mass"),
+    ({"day_phases": (0, 6, 12)}, "day_phases must be a tuple of 4 start hours"),
+    ({"day_phases": (0, 6, 12, 24)}, r"day_phases\[3\] must be an int in 0..23"),
+    ({"day_phases": (-1, 6, 12, 18)}, r"day_phases\[0\] must be an int in 0..23"),
+    ({"day_phases": (0, 6.5, 12, 18)}, r"day_phases\[1\] must be an int"),
+    ({"day_phases": (7, 9, 9, 18)}, "day_phases must be strictly increasing"),
+    ({"day_phases": (18, 7, 9, 17)}, "day_phases must be strictly increasing"),
+    ({"day_phases": "7,9,17,18"}, "day_phases must be a tuple"),
 ]
 
 
@@ -264,15 +314,19 @@ def test_posterior_matches_enumeration_of_all_paths(homes):
         np.testing.assert_allclose(p, brute, atol=1e-6, err_msg=REGIMES[r])
 
 
-def test_posterior_matches_monte_carlo(homes):
+@BOTH
+def test_posterior_matches_monte_carlo(request, config):
+    """The generator's sampler follows the law the posterior computes (16 h -> 07 h next day:
+    every context boundary of both configs)."""
+    homes = _homes_of(request, config)
     chains, tau, tau_q = 20_000, 40, 55
     for r, (e, m) in _objects_by_regime(homes, min_allowed=3).items():
         home = homes.home(e)
-        p = np.asarray(homes_posterior(home, m, tau, tau_q, CONFIG), np.float64)
+        p = np.asarray(homes_posterior(home, m, tau, tau_q, config), np.float64)
         allowed = np.asarray(home.object_allowed[m])
         np.testing.assert_allclose(p.sum(), 1.0, atol=1e-5)
         assert np.all(p[~allowed] == 0)
-        draws = np.asarray(simulate(jax.random.key(r), home, m, tau, tau_q, chains, CONFIG))
+        draws = np.asarray(simulate(jax.random.key(r), home, m, tau, tau_q, chains, config))
         assert np.all(allowed[draws])
         freq = np.bincount(draws, minlength=p.size) / chains
         se = np.sqrt(np.maximum(p * (1 - p), 1e-12) / chains)
@@ -311,33 +365,44 @@ def _doc_law(home, m, config: HomesConfig):
             lambda t, k: (1 - move[t % 24]) * eye + move[t % 24] * kernel, cycle)
 
 
-def _enumerated_posteriors(home, m, tau, tau_q, config: HomesConfig, from_hour_0: bool = True):
+def _enumerated_posteriors(home, m, tau, tau_q, config: HomesConfig, from_hour_0: bool = True,
+                           seen=None):
     """(τ + 1, n) float64: row a is P(s_{τ_q} = cycle position j | s_a … s_τ), by brute force
     over the whole generative process: every favourite assignment (uniform), the uniform start
     at hour 0 and every path, as one forward pass over the joint (assignment, state) that
     multiplies in each observation of the window. ``from_hour_0=False`` starts the joint at
-    hour a instead (the window's transitions only: the formula issue 46 found wrong)."""
+    hour a instead (the window's transitions only: the formula issue 46 found wrong). With
+    ``seen`` ((τ + 1,) bool), the law is known (the home's own favourites only) and only the
+    hours ``seen`` marks are observed (row 0: the known-parameters filter's posterior)."""
     favs, step, cycle = _doc_law(home, m, config)
     n = cycle.size
     where = {int(rec): i for i, rec in enumerate(cycle)}
     s = [where[int(x)] for x in np.asarray(home.receptacle[:tau + 1, m])]
+    if seen is not None and len(favs) > 1:
+        mine = [where.get(int(f), -1) for f in np.asarray(home.favourite[m])]
+        favs = favs[np.all(favs == mine, axis=1)]
+    seen = np.ones(tau + 1, bool) if seen is None else seen
     first = np.arange(tau + 1)  # the window's first hour a (history τ + 1 − a)
     p = np.full((tau + 1, len(favs), n), 1.0 / (len(favs) * n))
     for t in range(tau_q):
-        if t <= tau:
+        if t <= tau and seen[t]:
             p[first <= t] *= np.eye(n)[s[t]]
             if not from_hour_0:  # forget what came before a: the start at a is uniform
                 p[first == t] = np.eye(n)[s[t]] / len(favs)
         for k in range(n):  # assignments whose favourite of context c(t) is k share P_t
-            chosen = favs[:, context_of(t)] == k
+            chosen = favs[:, _context(t, config.day_phases)] == k
             if chosen.any():
                 p[:, chosen] = p[:, chosen] @ step(t, k)
     post = p.sum(1)
     return post / post.sum(1, keepdims=True), cycle
 
 
-def test_history_posterior_matches_enumeration_of_the_whole_process(homes):
-    """Every regime, n = 2 and 3 places, every history H = 1 … τ + 1 (H = τ + 1: from hour 0)."""
+@BOTH
+def test_history_posterior_matches_enumeration_of_the_whole_process(request, config):
+    """Every regime, n = 2 and 3 places, every history H = 1 … τ + 1 (H = τ + 1: from hour 0);
+    and the known-parameters filter on a random half of the hours."""
+    homes = _homes_of(request, config)
+    rng = np.random.default_rng(54)
     regime, valid, num = (np.asarray(a) for a in (homes.regime, homes.object_valid,
                                                   homes.num_allowed))
     differs = 0.0
@@ -346,20 +411,25 @@ def test_history_posterior_matches_enumeration_of_the_whole_process(homes):
         home = homes.home(e)
         # 131 = Friday 11:00, so the window's contexts include the weekend's after τ
         for tau, tau_q in ((40, 47), (131, 155)) if n == 2 else ((40, 47),):
-            want, cycle = _enumerated_posteriors(home, m, tau, tau_q, CONFIG)
+            want, cycle = _enumerated_posteriors(home, m, tau, tau_q, config)
             got = jax.vmap(lambda h, home=home, m=m, tau=tau, tau_q=tau_q: homes_history_posterior(
-                home, m, tau, tau_q, h, CONFIG))(jnp.arange(tau + 1, 0, -1))  # a = 0 … τ
+                home, m, tau, tau_q, h, config))(jnp.arange(tau + 1, 0, -1))  # a = 0 … τ
             got = np.asarray(got, np.float64)
             np.testing.assert_allclose(got[:, cycle], want, atol=1e-6, err_msg=REGIMES[r])
             np.testing.assert_allclose(got.sum(-1), 1.0, atol=1e-6)
+            observed = np.zeros((config.num_hours, config.max_objects), bool)
+            observed[:tau + 1, m] = seen = rng.random(tau + 1) < 0.5
+            known, _ = _enumerated_posteriors(home, m, tau, tau_q, config, seen=seen)
+            filtered = np.asarray(filtered_posterior(home, m, observed, tau, tau_q, config))
+            np.testing.assert_allclose(filtered[cycle], known[0], atol=1e-6, err_msg=REGIMES[r])
             if REGIMES[r] == "preferences":  # the test can fail: the window alone is wrong
-                window_only, _ = _enumerated_posteriors(home, m, tau, tau_q, CONFIG, False)
+                window_only, _ = _enumerated_posteriors(home, m, tau, tau_q, config, False)
                 differs = max(differs, np.abs(window_only - want).max())
-                weights = np.asarray(favourite_weights(home, m, tau, 5, CONFIG))
+                weights = np.asarray(favourite_weights(home, m, tau, 5, config))
                 np.testing.assert_allclose(weights.sum(-1), 1.0, atol=1e-6)
             else:  # Markov: the history changes nothing
                 np.testing.assert_allclose(got, np.broadcast_to(
-                    homes_posterior(home, m, tau, tau_q, CONFIG), got.shape), atol=1e-6)
+                    homes_posterior(home, m, tau, tau_q, config), got.shape), atol=1e-6)
     assert differs > 0.05, "p(s_a | f) matters on these queries"
 
 

@@ -558,6 +558,14 @@ def homes_preset() -> HomesTrainConfig:
     return HomesTrainConfig(model=HomesModelConfig(history_counts=True), steps=10000)
 
 
+def homes_rhythms_preset() -> HomesTrainConfig:
+    """The homes recipe on homes of other rhythms: preference contexts 07–09, 09–17, 17–18 and
+    18–07 h (``HomesConfig.day_phases``), not six-hour blocks: the rhythms must be learned."""
+    base = homes_preset()
+    return dataclasses.replace(base, preset="homes-rhythms", homes=dataclasses.replace(
+        base.homes, day_phases=(7, 9, 17, 18)))
+
+
 def homes_smoke_preset() -> HomesTrainConfig:
     """A tiny homes model on short homes: trains in seconds (tests)."""
     return HomesTrainConfig(
@@ -626,13 +634,14 @@ def recorded_config(preset: str | None, data: str) -> RecordedTrainConfig:
 
 
 PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "smoke": smoke_preset,
-           "habits": habits_preset, "homes": homes_preset, "homes-smoke": homes_smoke_preset}
+           "habits": habits_preset, "homes": homes_preset, "homes-smoke": homes_smoke_preset,
+           "homes-rhythms": homes_rhythms_preset}
 DEFAULT_PRESET = "cpu"
 
 
 def get_preset(name: str = DEFAULT_PRESET) -> TrainConfig | HomesTrainConfig:
     """The named preset (``paper``, ``cpu``, ``smoke``, ``habits``, ``homes``,
-    ``homes-smoke``) as a fresh run config."""
+    ``homes-smoke``, ``homes-rhythms``) as a fresh run config."""
     if name not in PRESETS:
         raise ValueError(f"preset must be one of {sorted(PRESETS)}; got {name!r}")
     return PRESETS[name]()

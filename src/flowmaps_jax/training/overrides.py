@@ -129,7 +129,8 @@ _FALSE_WORDS = ("false", "0", "no", "off")
 
 
 def _convert(text: str, hint: Any, key: str) -> Any:
-    """A command-line string as the annotated type ``hint``. Text that does not convert is
+    """A command-line string as the annotated type ``hint`` (a tuple from comma-separated
+    items, ``homes.day_phases=7,9,17,18``). Text that does not convert is
     returned as it is: the config's own rule for the field (its ``check_fields`` table; every
     field of a settable type has one) then refuses it, naming the key, so it is not checked
     twice."""
@@ -143,6 +144,13 @@ def _convert(text: str, hint: Any, key: str) -> Any:
             if value is not text:
                 return value
         return text
+    args = typing.get_args(hint)
+    if origin is tuple and args and set(args) <= {int, float, str, Ellipsis}:  # "7,9,17,18"
+        items = [item.strip() for item in text.split(",")]
+        kinds = [args[0]] * len(items) if args[1:] == (Ellipsis,) else list(args)
+        if len(kinds) != len(items):  # the field's rule refuses the text, naming the key
+            return text
+        return tuple(_convert(item, kind, key) for item, kind in zip(items, kinds, strict=True))
     if origin is Literal:
         return next((choice for choice in typing.get_args(hint) if str(choice) == text), text)
     if hint is bool:

@@ -8,8 +8,10 @@ plan too small for its doors, a vocabulary or a scene larger than the token budg
 
 Time: hour t = 0 … ``num_hours`` − 1 starts on a Monday at 00:00; hour of day t mod 24, day of
 week ⌊t / 24⌋ mod 7 (0 = Monday, 5 and 6 the weekend). The preferences regime has
-``NUM_CONTEXTS`` = 8 contexts: four phases of the day (00–06, 06–12, 12–18, 18–24) on weekdays
-and on weekends.
+``NUM_CONTEXTS`` = 8 contexts: four phases of the day on weekdays and on weekends; the phases start
+at the hours ``day_phases`` (default 00, 06, 12, 18: 00–06, 06–12, 12–18, 18–24), and an hour
+before the first start belongs to the last phase (``day_phases=(7, 9, 17, 18)``: 07–09, 09–17,
+17–18, 18–07).
 """
 
 from __future__ import annotations
@@ -55,6 +57,9 @@ MAX_PER_ROOM = 4
 
 NUM_CONTEXTS = 8
 """Preference contexts: 4 phases of the day × (weekday, weekend)."""
+
+DEFAULT_PHASES = (0, 6, 12, 18)
+"""The start hours of the four phases of the day (``HomesConfig.day_phases``)."""
 
 HOURS_PER_WEEK = 24 * 7
 
@@ -106,6 +111,8 @@ class HomesConfig:
     frequent_move, frequent_length: frequent moves with ρ · activity to another place j with
         weight exp(−geodesic distance / length), metres.
     activity: 24 hourly multipliers in [0, 1] (of every regime's move but the routine's).
+    day_phases: the start hours of the 4 phases of the day (strictly increasing, in 0..23) of
+        the preference contexts (``context_of``).
     size_jitter: receptacle sizes are the class's × (1 + s·U[−1, 1]).
     max_tokens: scene token budget, >= rooms + max receptacles + max objects.
     max_vocabulary: descriptor budget, >= room types + receptacle classes + object classes.
@@ -132,6 +139,7 @@ class HomesConfig:
     frequent_move: float = 0.9
     frequent_length: float = 3.0
     activity: tuple[float, ...] = DEFAULT_ACTIVITY
+    day_phases: tuple[int, int, int, int] = DEFAULT_PHASES
     size_jitter: float = 0.1
     max_tokens: int = 48
     max_vocabulary: int = 128
@@ -329,6 +337,14 @@ def _check_names(name: str, value: Any, known: frozenset, what: str, distinct: b
         raise ValueError(f"{name} names a {what} twice: {value!r}")
 
 
+def _day_phases(name: str, value: Any) -> tuple[int, ...]:
+    """4 start hours in 0..23, strictly increasing."""
+    starts = Each(Int(0, 23), 4, "start hours in 0..23", index=True)(name, value)
+    if list(starts) != sorted(set(starts)):
+        raise ValueError(f"{name} must be strictly increasing; got {value!r}")
+    return starts
+
+
 _ENTRY_RULES = {"name": check_plain_name, "text": Text()}
 _SIZED_ENTRY_RULES = {**_ENTRY_RULES,
                       "size": Each(Real(0.0, MAX_METRES, low_open=True), 3,
@@ -351,6 +367,7 @@ _RULES = {
     "frequent_length": Real(*FREQUENT_LENGTH),
     "split_jitter": _JITTER, "size_jitter": _JITTER,
     "activity": Each(_UNIT, 24, "hourly values in [0, 1]"),
+    "day_phases": _day_phases,
     "home_width": Pair(0.0, high=MAX_METRES), "home_depth": Pair(0.0, high=MAX_METRES),
     "door_width": _METRES, "wall_margin": Real(0.0, MAX_METRES),
     "max_tokens": Int(1, MAX_TOKENS),
@@ -367,8 +384,9 @@ def hour_of_day(t):
     return t % 24
 
 
-def context_of(t):
-    """Preference context of hour t: phase of day (⌊hour / 6⌋) + 4 on weekends."""
-    day = (t // 24) % 7
-    return (t % 24) // 6 + 4 * (day >= 5)
+def context_of(t, phases: tuple[int, ...] = DEFAULT_PHASES):
+    """Preference context of hour t (an int or an array, NumPy or JAX): the phase of the day
+    (the last of ``phases`` <= t mod 24; the last phase before the first) + 4 on weekends."""
+    phase = (sum(t % 24 >= start for start in phases) - 1) % len(phases)
+    return phase + 4 * ((t // 24) % 7 >= 5)
 

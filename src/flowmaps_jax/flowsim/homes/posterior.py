@@ -61,7 +61,8 @@ from flowmaps_jax.validation import check_instance, check_int_array, check_mask,
 
 
 def object_law(home: Homes, object_index, config: HomesConfig) -> dict:
-    """One object's law: move (24,), kernel (R, R), targets (C, R), regime (), allowed (R,)."""
+    """One object's law: move (24,), kernel (R, R), targets (C, R), regime (), allowed (R,),
+    context (168,) (``schedules.week_contexts``)."""
     allowed = home.object_allowed[object_index]
     regime = home.regime[object_index]
     num = home.num_allowed[object_index]
@@ -70,7 +71,7 @@ def object_law(home: Homes, object_index, config: HomesConfig) -> dict:
     return {"move": schedules.move_probabilities(regime, config), "kernel": kernel,
             "targets": schedules.preference_targets(home.favourite[object_index], allowed, num,
                                                     config.preference_mass),
-            "regime": regime, "allowed": allowed}
+            "regime": regime, "allowed": allowed, "context": schedules.week_contexts(config)}
 
 
 def _forward(law: dict, p, tau, tau_q):
@@ -121,7 +122,7 @@ def favourite_weights(home: Homes, object_index, tau, history, config: HomesConf
     first = tau - history + 1  # a
     window = (t >= first) & (t < tau)
     loglik = jnp.where(window[:, None], jnp.log(lik), 0.0)
-    per_context = jax.nn.one_hot(context_of(t), c, dtype=jnp.float32)
+    per_context = jax.nn.one_hot(context_of(t, config.day_phases), c, dtype=jnp.float32)
     total = per_context.T @ loglik  # (C, R)
     ell = jax.nn.softmax(jnp.where(allowed[None, :], total, -jnp.inf), axis=-1)  # ℓ_c
     # p(s_a | f) = α / n + Σ_c W_c π_c(s_a): the uniform start pushed through hours 0 … a − 1
@@ -132,7 +133,8 @@ def favourite_weights(home: Homes, object_index, tau, history, config: HomesConf
     later = jnp.concatenate([from_here[1:], jnp.ones((1,), from_here.dtype)])
     alpha = from_here[0]
     w_hour = jnp.where(before, move * later, 0.0)  # m_t Π_{t < u < a} (1 − m_u)
-    w_ctx = jax.nn.one_hot(context_of(hours), c, dtype=jnp.float32).T @ w_hour  # W_c (C,)
+    in_context = jax.nn.one_hot(context_of(hours, config.day_phases), c, dtype=jnp.float32)
+    w_ctx = in_context.T @ w_hour  # W_c (C,)
     s_a = s[jnp.clip(first, 0, s.shape[0] - 1)]
     ell_a = ell[:, s_a]  # ℓ_c(s_a) (C,)
     z = alpha / jnp.maximum(num, 1) + jnp.sum(w_ctx * (rest + (mass - rest) * ell_a))

@@ -88,12 +88,12 @@ def _cycle_position(cycle, state):
     return jnp.argmax(cycle == state[..., None], axis=-1).astype(jnp.int32)
 
 
-def _hours(t0, steps: int):
+def _hours(t0, steps: int, config: HomesConfig):
     """(hour of day, context) of the hours t0 … t0 + steps − 1 each step leaves: numpy
     constants when t0 is a Python int (as in ``generate_homes``), else traced."""
     xp = np if isinstance(t0, int) else jnp
     hours = t0 + xp.arange(steps)
-    return hours % 24, context_of(hours)
+    return hours % 24, context_of(hours, config.day_phases)
 
 
 def sample_paths(home: dict, start, t0, u, config: HomesConfig) -> jnp.ndarray:
@@ -104,7 +104,7 @@ def sample_paths(home: dict, start, t0, u, config: HomesConfig) -> jnp.ndarray:
     (each regime's fast path, see the module's docstring, is the same law).
     """
     steps = u.shape[0]
-    hour, context = _hours(t0, steps)
+    hour, context = _hours(t0, steps, config)
     regime, cycle = home["regime"], home["cycle"]
     n = jnp.maximum(home["num_allowed"], 1)
     rho = jnp.asarray([config.preference_move, config.balanced_move, config.frequent_move, 1.0],

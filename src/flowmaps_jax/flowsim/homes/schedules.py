@@ -11,7 +11,8 @@ week). The regimes (``REGIMES``; activity a_h = ``HomesConfig.activity``):
 
 * **preferences** — m = ρ_p · a_h; B_c = 1 π_cᵀ: the object goes to a place drawn from π_c,
   which puts ``preference_mass`` on the favourite f_c of the context c(t) (4 phases of the day ×
-  weekday / weekend, ``config.context_of``) and the rest evenly on the other allowed places. The
+  weekday / weekend, ``config.context_of``; a law carries c of each hour of the week,
+  ``week_contexts``) and the rest evenly on the other allowed places. The
   favourites are drawn once per object, uniformly over A for each context: they are the hidden
   part of the law (``posterior.homes_history_posterior`` marginalises them).
 * **balanced** — m = ρ_b · a_h; B = c S + (1 − c)(J − I)/(n − 1): to the next place of the
@@ -33,8 +34,15 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from flowmaps_jax.flowsim.homes.config import NUM_CONTEXTS, REGIMES, HomesConfig, context_of
+from flowmaps_jax.flowsim.homes.config import (
+    HOURS_PER_WEEK,
+    NUM_CONTEXTS,
+    REGIMES,
+    HomesConfig,
+    context_of,
+)
 from flowmaps_jax.flowsim.homes.floorplan import split_uniforms
 from flowmaps_jax.flowsim.kernels import distance_weights
 
@@ -69,6 +77,11 @@ def move_probabilities(regime, config: HomesConfig) -> jnp.ndarray:
     activity = jnp.asarray(config.activity, jnp.float32)
     scaled = rho[..., None] * activity
     return jnp.where((regime == ROUTINE)[..., None], 1.0, scaled)
+
+
+def week_contexts(config: HomesConfig) -> jnp.ndarray:
+    """(168,) int32: the preference context of each hour of the week (a law's ``"context"``)."""
+    return jnp.asarray(context_of(np.arange(HOURS_PER_WEEK), config.day_phases), jnp.int32)
 
 
 def _cycle_shifts(cycle, num_allowed, r: int, shifts: int) -> jnp.ndarray:
@@ -117,11 +130,16 @@ def preference_targets(favourite, allowed, num_allowed, mass) -> jnp.ndarray:
     return jnp.where(allowed[..., None, :], pi, 0.0)
 
 
+def _targets(law: dict, t) -> jnp.ndarray:
+    """π_{c(t)} (R,): the law's preference targets at hour t."""
+    return law["targets"][law["context"][t % HOURS_PER_WEEK]]
+
+
 def step_distribution(law: dict, p, t) -> jnp.ndarray:
     """p (R,) at hour t -> its distribution at t + 1 under one object's law (p P_t)."""
     m = law["move"][t % 24]
     moved = jnp.where(law["regime"] == PREFERENCES,
-                      jnp.sum(p) * law["targets"][context_of(t)], p @ law["kernel"])
+                      jnp.sum(p) * _targets(law, t), p @ law["kernel"])
     return (1.0 - m) * p + m * moved
 
 
@@ -131,7 +149,7 @@ def transition_matrix(law: dict, t) -> jnp.ndarray:
     allowed = law["allowed"]
     r = allowed.shape[0]
     eye = jnp.where(allowed[:, None], jnp.eye(r, dtype=jnp.float32), 0.0)
-    target = jnp.where(allowed[:, None], law["targets"][context_of(t)][None, :], 0.0)
+    target = jnp.where(allowed[:, None], _targets(law, t)[None, :], 0.0)
     moved = jnp.where(law["regime"] == PREFERENCES, target, law["kernel"])
     m = law["move"][t % 24]
     return (1.0 - m) * eye + m * moved
