@@ -13,7 +13,7 @@ import pytest
 from support import run_python_in_process
 
 from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes
-from flowmaps_jax.flowsim.homes import tokens as homes_tokens
+from flowmaps_jax.model import homes_inputs
 from flowmaps_jax.flowsim.homes.queries import HomesQueries
 from flowmaps_jax.recorded.format import Recorded, content_digest, load_recorded, save_recorded
 from flowmaps_jax.recorded.from_homes import from_homes
@@ -139,7 +139,8 @@ def test_training_batches_query_only_observed_targets(cfg, recorded):
     assert np.all(np.asarray(queries.tau_q) < 54)  # before the time cut
     horizon = np.asarray(queries.horizon)
     assert horizon.min() >= 1 and horizon.max() <= cfg.max_horizon
-    assert batch.history.shape[-1] == len(homes_tokens.HISTORY_FEATURES)
+    assert batch.rows.shape[-1] == len(homes_inputs.ROW_FEATURES)
+    assert batch.events.shape[-1] == cfg.model.history
 
 
 def test_unseen_objects_carry_where_and_how_long_ago_they_were_seen(cfg, recorded):
@@ -151,18 +152,20 @@ def test_unseen_objects_carry_where_and_how_long_ago_they_were_seen(cfg, recorde
     queries = HomesQueries(object_index=jnp.full((3, 1), i, jnp.int32),
                            tau=jnp.full((3, 1), t, jnp.int32),
                            tau_q=jnp.full((3, 1), t + 1, jnp.int32))
-    f = np.asarray(homes_tokens.history_features(data.homes, queries, cfg.homes, 24,
-                                                 data.observed))[e, 0]
-    names = homes_tokens.HISTORY_FEATURES
+    def rows(observed):
+        events = homes_inputs.history_events(data.homes, queries, 24, observed)
+        return np.asarray(homes_inputs.row_features(data.homes, queries, cfg.homes, events,
+                                                    observed))
+
+    f = rows(data.observed)[e, 0]
+    names = homes_inputs.ROW_FEATURES
     allowed = f[:, names.index("allowed")] > 0
     unseen = f[allowed][:, [names.index(n) for n in names[-3:]]]
     ago = t - last[-1] if len(last) else t + 1
     np.testing.assert_allclose(unseen[0], [1.0, np.log1p(ago) / np.log1p(72),
                                            float(not len(last))], atol=1e-6)
     # every hour observed: the features of FlowSim homes, the last three 0
-    full = np.asarray(homes_tokens.history_features(data.homes, queries, cfg.homes, 24,
-                                                    np.ones_like(observed)))
-    none = np.asarray(homes_tokens.history_features(data.homes, queries, cfg.homes, 24))
+    full, none = rows(jnp.ones_like(data.observed)), rows(None)
     np.testing.assert_array_equal(full, none)
     assert np.all(none[..., -3:] == 0)
 
@@ -210,7 +213,7 @@ def test_train_evaluate_and_search_with_data(data_dir, tmp_path):
     assert code == 0, out
     results = json.loads((tmp_path / "eval" / "results.json").read_text())
     rows = results["posterior"]
-    assert set(rows) == {"FlowMaps", "uniform over allowed", "last seen", "frequency prior"}
+    assert {"FlowMaps", "uniform over allowed", "last seen", "frequency prior"} <= set(rows)
     assert results["protocol"]["queries"] == 8 and "held-out test part" in results["part"]
     assert (tmp_path / "eval" / "reliability.png").exists()
     for row in rows.values():
@@ -221,6 +224,27 @@ def test_train_evaluate_and_search_with_data(data_dir, tmp_path):
     assert code == 0, out
     nav = json.loads((tmp_path / "search" / "search.json").read_text())["navigation"]
     assert "FlowMaps, most-probable" in nav and "nearest first" in nav
+    # the documented Python call (docs/data.md) answers as evaluate's own path does
+    from flowmaps_jax.evaluation import realised
+    from flowmaps_jax.predictor import load_model
+
+    predictor, recorded = load_model(str(run)), load_recorded(data_dir)
+    data = rw.recorded_homes(recorded, predictor.homes)
+    queries, _ = realised.realised_queries(jax.random.key(5), data, 2, 24)
+    rows = realised.row_probabilities(predictor, data, queries)[realised.MODEL_ROW]
+    for e, env in enumerate(recorded.environments):
+        for j in range(2):
+            obj, tau, tau_q = (int(a[e, j]) for a in (queries.object_index, queries.tau,
+                                                      queries.tau_q))
+            got = rw.answer(predictor, str(data_dir), env.name, env.object_ids[obj], tau, tau_q)
+            want = {env.receptacle_ids[r]: rows[e, j, r] for r in range(env.num_receptacles)
+                    if rows[e, j, r] > 0}
+            assert got.keys() == want.keys()
+            np.testing.assert_allclose([got[k] for k in want], list(want.values()), atol=1e-6)
+    with pytest.raises(ValueError, match="object_id"):
+        rw.answer(predictor, recorded, recorded.environments[0].name, "no such", 30, 31)
+    with pytest.raises(ValueError, match="observed is required"):
+        predictor.probabilities(data.homes, queries, predictor.homes)
 
 
 @pytest.mark.parametrize("args, message", [

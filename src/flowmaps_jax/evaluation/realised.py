@@ -457,6 +457,10 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
             data = jax.tree.map(lambda a: a[:args.num_envs], data)
             environments = environments[:args.num_envs]
             what += f", the first {args.num_envs}"
+        from flowmaps_jax.evaluation.receptacle_protocol import check_query_size
+
+        check_query_size(model.homes, data.num_homes, queries, model.model.history,
+                         budget=budget)  # as FlowSim homes, before XLA tries
         print(f"Recorded {part}: {data_path} ({what}), {queries} queries per environment, "
               f"FlowMaps {args.checkpoint} (step {model.step}) -> {out}", flush=True)
         results = run_evaluation(model, data, num_queries=queries, seed=args.seed,

@@ -164,6 +164,15 @@ def _ratio_summary(expected: np.ndarray, optimal: np.ndarray, groups: dict) -> d
     return out
 
 
+def check_query_size(config: HomesConfig, num_homes: int, num_queries: int, history: int,
+                     num_samples: int = 0, budget: int = nav.LOOK_BUDGET) -> None:
+    """``--num-envs`` x ``--queries`` through the memory budget, before any query is drawn:
+    the homes, and per query its rows (history, samples, look orders) over the receptacles."""
+    per_query = 4 * config.max_receptacles * (history + max(num_samples, 1) + 8 * budget)
+    check_request_size(f"--num-envs {num_homes} x --queries {num_queries}",
+                       num_homes * (homes_bytes_per_home(config) + num_queries * per_query))
+
+
 def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
                    num_queries: int = DEFAULT_QUERIES, seed: int = 0,
                    history: int = pr.DEFAULT_HISTORY, num_samples: int = DEFAULT_SAMPLES,
@@ -185,9 +194,7 @@ def run_evaluation(config: HomesConfig, *, num_homes: int = DEFAULT_NUM_HOMES,
     num_samples = check_int("--samples", num_samples, 0)
     budget = check_int("--budget", budget, max(nav.SR_LOOKS))
     horizons = check_horizons("--horizons", horizons, t - history)
-    per_query = 4 * config.max_receptacles * (history + max(num_samples, 1) + 8 * budget)
-    check_request_size(f"--num-envs {num_homes} x --queries {num_queries}",
-                       num_homes * (homes_bytes_per_home(config) + num_queries * per_query))
+    check_query_size(config, num_homes, num_queries, history, num_samples, budget)
     begin = time.perf_counter()
     key = jax.random.key(seed)
     fit = fitted_counts(config, history, horizons)

@@ -225,7 +225,7 @@ def row_features(homes, queries, config, events, observed=None) -> jax.Array:
     eye = jnp.eye(r, dtype=jnp.float32) * allowed[..., None, :]
     counts = (counts + STAY_PRIOR * eye) * allowed[..., :, None] * allowed[..., None, :]
     chain = counts / jnp.maximum(counts.sum(-1, keepdims=True), 1e-9)
-    here = jax.nn.one_hot(current, r, dtype=jnp.float32)
+    here = jax.nn.one_hot(current, r, dtype=jnp.float32) * (last >= 0)[..., None]
     one_step = jnp.einsum("...i,...ij->...j", here, chain)
     steps = queries.tau_q - jnp.where(last >= 0, last, queries.tau)
     pushed = _pushed(chain, here, steps, max(1, int(t).bit_length()))

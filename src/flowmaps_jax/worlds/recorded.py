@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import pathlib
 import time
 from collections.abc import Callable
 
@@ -52,7 +53,7 @@ from flowmaps_jax.flowsim.homes.world import Homes, validate_homes
 from flowmaps_jax.model.homes_family import FAMILY_NAME
 from flowmaps_jax.model.homes_inputs import shared_tau_batch
 from flowmaps_jax.recorded.format import content_digest, load_recorded
-from flowmaps_jax.validation import prefix_errors
+from flowmaps_jax.validation import check_int, prefix_errors
 from flowmaps_jax.worlds import homes as homes_world
 from flowmaps_jax.worlds.world import World
 
@@ -273,6 +274,31 @@ def recorded_homes(recorded, config: HomesConfig, index=None, start=None,
     return RecordedHomes(homes=homes, observed=jnp.asarray(stacked["_observed"]),
                          start=jnp.asarray(start, jnp.int32),
                          stop=jnp.asarray(stop, jnp.int32))
+
+
+def answer(predictor, data, environment: str, object_id: str, tau: int, tau_q: int
+           ) -> dict[str, float]:
+    """Where is ``object_id`` of ``environment`` at hour ``tau_q``, given the log up to ``tau``
+    (hours as the data counts them)? ``{receptacle id: probability}`` over its allowed
+    receptacles, most probable first: ``predictor.probabilities`` on that one query, with the
+    data's observation mask. ``data``: a dataset folder or a loaded ``Recorded``."""
+    recorded = load_recorded(data) if isinstance(data, (str, pathlib.Path)) else data
+    names = [env.name for env in recorded.environments]
+    if environment not in names:
+        raise ValueError(f"environment must be one of the data's {len(names)} environments; "
+                         f"got {environment!r}")
+    env = recorded.environments[names.index(environment)]
+    if object_id not in env.object_ids:
+        raise ValueError(f"object_id must be an object of {environment!r}; got {object_id!r}")
+    tau = check_int("tau", tau, 0, int(env.hours[-1]))
+    tau_q = check_int("tau_q", tau_q, tau + 1, predictor.homes.num_hours - 1)
+    homes = recorded_homes(recorded, predictor.homes, index=[names.index(environment)])
+    queries = HomesQueries(*(jnp.full((1, 1), v, jnp.int32)
+                             for v in (env.object_ids.index(object_id), tau, tau_q)))
+    p = np.asarray(predictor.probabilities(homes.homes, queries, predictor.homes,
+                                           observed=homes.observed))[0, 0]
+    return {env.receptacle_ids[r]: float(p[r]) for r in np.argsort(-p[:env.num_receptacles])
+            if p[r] > 0}
 
 
 # --------------------------------------------------------------------------------------------
