@@ -53,6 +53,10 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         ["--sizes", "4", "--repeats", "1", "--world", "routine", "mixed", "--history", "2"],
         rf"^world: mixed .*\n(?:.*\n)*^\s+4\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}$",
         []),
+    # ~30 s: the homes-smoke preset, 51 steps (one child process)
+    "bench_homes_train.py": (
+        ["--presets", "homes-smoke", "--steps", "51"],
+        rf'^\{{"preset": "homes-smoke", .*"steps_per_sec": {NUM}\}}$', []),
     # ~10 s: 8 homes x 4 queries, 16 DP episodes, the priors on 4 homes x 2 queries, 1 repeat
     "bench_homes_navigation.py": (
         ["--homes", "8", "--queries", "4", "--dp-episodes", "16", "--prior-homes", "4",

@@ -13,8 +13,8 @@ import pytest
 from support import run_python_in_process
 
 from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes
-from flowmaps_jax.model import homes_inputs
 from flowmaps_jax.flowsim.homes.queries import HomesQueries
+from flowmaps_jax.model import homes_inputs
 from flowmaps_jax.recorded.format import Recorded, content_digest, load_recorded, save_recorded
 from flowmaps_jax.recorded.from_homes import from_homes
 from flowmaps_jax.training.config import (
