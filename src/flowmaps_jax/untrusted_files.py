@@ -112,7 +112,7 @@ def _read_npy_data(member, shape, fortran, dtype) -> np.ndarray:
     buffer = memoryview(array.reshape(-1, order="A").view(np.uint8))
     done = 0
     while done < len(buffer):
-        count = member.readinto(buffer[done:done + 2**24])
+        count = member.readinto(buffer[done:done + 2**20])
         if not count:
             raise ValueError(f"it holds {done} bytes of data where its header says "
                              f"{len(buffer)}")

@@ -468,12 +468,19 @@ def derived_object_corners(env: Environment) -> np.ndarray:
     return np.where((where >= 0)[..., None, None], corners, 0.0).astype(np.float32)
 
 
+def check_export_size(env: Environment) -> int:
+    """The hourly rows (0 .. hours[-1]) of exporting ``env``, its memory through the budget:
+    per row and object the one-hot row and, at the peak, three copies of the float columns."""
+    rows, m, r = int(env.hours[-1]) + 1, env.num_objects, env.num_receptacles
+    check_request_size(f"exporting {env.name!r} ({rows} hourly rows x {m} objects)",
+                       rows * m * (2 * r + 3 * 4 * 26))
+    return rows
+
+
 def _rows(env: Environment) -> dict[str, np.ndarray]:
     """The parquet columns of ``env``: one row per hour 0 .. hours[-1]."""
     hours = np.asarray(env.hours)
-    rows, m, r = int(hours[-1]) + 1, env.num_objects, env.num_receptacles
-    check_request_size(f"exporting {env.name!r} ({rows} hourly rows)",
-                       rows * m * (r + 4 * 26))
+    rows, m, r = check_export_size(env), env.num_objects, env.num_receptacles
     assignment = np.zeros((rows, m, r), np.int8)
     t_seen, m_seen = np.nonzero(env.observed)
     assignment[hours[t_seen], m_seen, np.asarray(env.location)[t_seen, m_seen]] = 1
@@ -543,7 +550,8 @@ def export_flowmaps2026(recorded: Recorded, root, *, progress: Progress = None
     does not write (an earlier export's) is refused. Returns ``root/lookup.json``."""
     validate_recorded(recorded)
     _pyarrow()
-    for env in recorded.environments:
+    for env in recorded.environments:  # every refusal before anything is written
+        check_export_size(env)
         bad = [(i, c) for i, c in zip((*env.receptacle_ids, *env.object_ids),
                                       (*env.receptacle_classes, *env.object_classes),
                                       strict=True) if class_of(i) != c]
