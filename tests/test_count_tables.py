@@ -152,3 +152,72 @@ def test_bad_arguments_name_themselves(mixed):
         pr.fit_count_table(homes, queries, queries.tau, ok, (3,))
     with pytest.raises(ValueError, match="target"):
         pr.fit_count_table(homes, queries, queries.tau[:, :1], ok, CLASSES)
+
+
+def test_recorded_rows_ignore_unobserved_and_held_out_hours(mixed):
+    """``realised``: the count rows read only the observed hours (whatever the world holds at
+    the others), and their fit only the training part's hours before its time cut."""
+    from flowmaps_jax.evaluation import realised
+    from flowmaps_jax.worlds.recorded import RecordedHomes
+
+    homes, queries = mixed
+    full = _homes(2)
+    observed = homes.receptacle >= 0
+    e, t = observed.shape[:2]
+    data = RecordedHomes(homes=full, observed=observed, start=jnp.zeros(e, jnp.int32),
+                         stop=jnp.full(e, t // 2, jnp.int32))
+    scrambled = full.replace(receptacle=jnp.where(  # other places where nothing was seen
+        observed, full.receptacle, jnp.roll(full.receptacle, 5, axis=1)))
+    other = data.replace(homes=scrambled)
+    fit = realised.fit_counts(data, CONFIG, HISTORY, 24)
+    late = jnp.arange(t)[None, :, None] >= t // 2  # after the cut: anything at all
+    cut = other.replace(homes=scrambled.replace(receptacle=jnp.where(
+        late & (scrambled.receptacle >= 0), scrambled.receptacle[:, ::-1], scrambled.receptacle)))
+    assert realised.fit_counts(cut, CONFIG, HISTORY, 24).summary() == fit.summary()
+    np.testing.assert_array_equal(realised.fit_counts(cut, CONFIG, HISTORY, 24).classes,
+                                  fit.classes)
+    rows = realised.reference_rows(data, queries, HISTORY, fit)
+    again = realised.reference_rows(other, queries, HISTORY, fit)
+    for name in (pr.COUNT_ROW, pr.STAY_ROW):
+        np.testing.assert_array_equal(rows[name], again[name])
+    shown = realised.reference_rows(data.replace(observed=jnp.ones_like(observed)), queries,
+                                    HISTORY, fit)
+    assert not np.allclose(shown[pr.COUNT_ROW], rows[pr.COUNT_ROW])  # the mask matters
+
+
+def test_the_recorded_report_names_the_best_reference_row_per_object_class(mixed):
+    """``realised.run_evaluation`` (a stand-in model: uniform) on data the run did not train
+    on: the count rows are fitted on the evaluated environments and the report says so; the
+    best learned row per object class is named, never the model."""
+    from flowmaps_jax.evaluation import realised
+    from flowmaps_jax.worlds.recorded import RecordedHomes
+
+    class Uniform:
+        homes, model = CONFIG, type("Model", (), {"history": HISTORY})
+
+        def probabilities(self, homes, queries, config, observed=None):
+            return pr.uniform_prior(homes, queries)
+
+    homes, _ = mixed
+    e, t = homes.receptacle.shape[:2]
+    data = RecordedHomes(homes=_homes(2), observed=homes.receptacle >= 0,
+                         start=jnp.zeros(e, jnp.int32), stop=jnp.full(e, t, jnp.int32))
+    results = realised.run_evaluation(Uniform(), data, num_queries=6, seed=0,
+                                      parts=("posterior", "navigation"), progress=False)
+    assert results["protocol"]["count_table"]["fitted_on"].startswith("the evaluated")
+    posterior = results["posterior"]
+    assert list(posterior) == ["FlowMaps", realised.UNIFORM, realised.LAST_SEEN,
+                               realised.FREQUENCY, pr.COUNT_ROW, pr.STAY_ROW]
+    classes = posterior["FlowMaps"]["metrics"]["log_score"]["by_object_class"]
+    for part, metric in (("posterior", "log_score"), ("navigation", "sr@1")):
+        best = results["best_reference"][part]
+        assert list(best) == ["overall", *classes]
+        table = results[part]
+        for key, row in best.items():
+            scores = {n: (r["metrics"][metric]["overall"] if key == "overall" else
+                          r["metrics"][metric]["by_object_class"][key])["mean"]
+                      for n, r in table.items() if not n.startswith("FlowMaps")}
+            assert row == {"row": max(scores, key=scores.get), metric: max(scores.values())}
+    text = realised.markdown(results)
+    assert "Best reference row per object class (by log score" in text
+    assert "Count rows chosen on the evaluated environments themselves" in text

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from support import run_python_in_process
 
+from flowmaps_jax.evaluation import priors as pr
 from flowmaps_jax.evaluation import realised
 from flowmaps_jax.flowsim.homes import (
     REGIMES,
@@ -153,6 +154,8 @@ def test_evaluate_data_adds_the_rows_for_from_homes_data_and_says_why_not_otherw
     assert code == 0, out
     results = json.loads((tmp_path / "e" / "results.json").read_text())
     assert list(results["posterior"])[:3] == ["FlowMaps", refs.EXACT_ROW, refs.FILTER_ROW]
+    assert all(b["row"] not in (refs.EXACT_ROW, refs.FILTER_ROW, "FlowMaps")
+               for b in results["best_reference"]["posterior"].values())
     assert results["protocol"]["references"].startswith("Exact reference rows")
     assert f"| {refs.FILTER_ROW} |" in out
     by_regime = results["posterior"]["FlowMaps"]["metrics"]["log_score"]["by_regime"]
@@ -166,7 +169,13 @@ def test_evaluate_data_adds_the_rows_for_from_homes_data_and_says_why_not_otherw
          "--no-figures"], tmp_path)
     assert code == 0, out
     results = json.loads((tmp_path / "b" / "results.json").read_text())
-    assert refs.EXACT_ROW not in results["posterior"] and len(results["posterior"]) == 4
+    assert refs.EXACT_ROW not in results["posterior"] and len(results["posterior"]) == 6
+    assert {pr.COUNT_ROW, pr.STAY_ROW} <= set(results["posterior"])
+    assert results["protocol"]["count_table"]["fitted_on"].startswith("the evaluated")
+    best = results["best_reference"]["posterior"]  # per object class, no exact row, no model
+    classes = results["posterior"]["FlowMaps"]["metrics"]["log_score"]["by_object_class"]
+    assert list(best) == ["overall", *classes]
+    assert {b["row"] for b in best.values()} <= set(results["posterior"]) - {"FlowMaps"}
     assert "No exact reference rows: " in (tmp_path / "b" / "results.md").read_text()
     assert "by_regime" not in results["posterior"]["FlowMaps"]["metrics"]["log_score"]
 

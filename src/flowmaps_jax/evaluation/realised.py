@@ -10,9 +10,13 @@ pairs: the target is where the object was seen at τ_q. The object may be unseen
 Per row (the model, and the reference rows of :mod:`flowmaps_jax.evaluation.priors`: uniform
 over the allowed receptacles; last seen, where the object was last seen up to τ (uniform while
 it was never seen); the frequency prior, add-one counts over the hours of the model's history
-window in which the object was seen; and, when every evaluated environment is FlowSim homes
-written by ``from-homes``, the exact posterior and the known-parameters filter of
-:mod:`flowmaps_jax.worlds.recorded_references`, else one line in the report saying why not):
+window in which the object was seen; the count table and last seen with a fitted stay
+(:func:`fit_counts`: chosen on the run's training environments, before the time cut, or on the
+evaluated ones when the run did not train on this data); and, when every evaluated environment
+is FlowSim homes written by ``from-homes``, the exact posterior and the known-parameters filter
+of :mod:`flowmaps_jax.worlds.recorded_references`, else one line in the report saying why not).
+The report names the best of the reference rows learned from data (not the exact ones, not
+the model) per object class: by log score, and by SR@1 in navigation.
 
 * log score: log p(realised receptacle), nats (higher is better; p floored at ``P_FLOOR``);
 * top-1 and top-5: whether the realised receptacle is the most probable / among the 5 most
@@ -44,7 +48,7 @@ import numpy as np
 
 from flowmaps_jax.atomic_files import make_output_dir, save_figure, write_file
 from flowmaps_jax.evaluation import priors as pr
-from flowmaps_jax.evaluation.receptacle_scores import stats, summarise
+from flowmaps_jax.evaluation.receptacle_scores import best_lines, best_rows, stats, summarise
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
 from flowmaps_jax.recorded.format import content_digest
 from flowmaps_jax.search import navigation as nav
@@ -66,6 +70,8 @@ METRIC_NAMES = {"log_score": "log score (nats)", "top1": "top-1", "top5": "top-5
                 "rank": "rank"}
 MODEL_ROW, UNIFORM, LAST_SEEN, FREQUENCY = ("FlowMaps", "uniform over allowed", "last seen",
                                             "frequency prior")
+FIT_SEED, FIT_QUERIES = 35_000_048, 64
+"""The count rows' fitting queries: ``FIT_QUERIES`` per environment, seeded apart."""
 REPORT = {"posterior": ("results", "reliability.png"),
           "navigation": ("search", "success_vs_looks.png")}
 OPTIONS = ("checkpoint", "out", "data", "queries", "seed", "which", "no_figures", "no_progress",
@@ -106,27 +112,45 @@ def model_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries
                                               observed=data.observed))
 
 
-def row_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries) -> dict:
+def row_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries,
+                      fit: pr.CountFit | None = None) -> dict:
     """{row name: (E, Q, R)} of the model and the reference rows."""
     return {MODEL_ROW: model_probabilities(predictor, data, queries),
-            **reference_rows(data, queries, predictor.model.history)}
+            **reference_rows(data, queries, predictor.model.history, fit)}
 
 
-def reference_rows(data: rw.RecordedHomes, queries: HomesQueries, history: int) -> dict:
-    """{row name: (E, Q, R)} of uniform, last seen and the frequency prior over ``history``
-    hours. Last seen is uniform over the allowed receptacles for an object not yet seen at τ
-    (the world's stand-in receptacle for it is no sighting)."""
-    seen_only = data.homes.replace(  # unseen hours count for no receptacle
-        receptacle=jnp.where(data.observed, data.homes.receptacle, -1))
+def fit_counts(data: rw.RecordedHomes, config, history: int, max_horizon: int) -> pr.CountFit:
+    """The count rows' parameters chosen on ``data`` (its sightings before ``stop``) with
+    ``FIT_QUERIES`` realised queries per environment."""
+    queries, valid = realised_queries(jax.random.key(FIT_SEED), data, FIT_QUERIES, max_horizon)
+    t = jnp.arange(data.observed.shape[1])[:, None]
+    homes = pr.seen_only(data.homes, data.observed & (t < data.stop[:, None, None]))
+    target = pr.receptacle_at(homes, queries.tau_q, queries.object_index)
+    return pr.fit_count_table(homes, queries, jnp.maximum(target, 0),
+                              jnp.asarray(valid) & (target >= 0), (
+                                  len(config.object_classes), len(config.receptacle_classes)),
+                              history)
+
+
+def reference_rows(data: rw.RecordedHomes, queries: HomesQueries, history: int,
+                   fit: pr.CountFit | None = None) -> dict:
+    """{row name: (E, Q, R)} of uniform, last seen, the frequency prior over ``history``
+    hours, and with ``fit`` the count table and last seen with a fitted stay. Last seen is
+    uniform over the allowed receptacles for an object not yet seen at τ (the world's
+    stand-in receptacle for it is no sighting)."""
+    seen_only = pr.seen_only(data.homes, data.observed)  # unseen hours count for nothing
     uniform = np.asarray(pr.uniform_prior(data.homes, queries))
     observed = np.asarray(data.observed)  # (E, T, M)
     e = np.arange(observed.shape[0])[:, None]
     seen = np.cumsum(observed, axis=1)[e, np.asarray(queries.tau),
                                        np.asarray(queries.object_index)] > 0  # (E, Q)
     last_seen = np.asarray(pr.last_seen_prior()(data.homes, queries))
+    counts = {} if fit is None else {
+        pr.COUNT_ROW: np.asarray(pr.count_table_prior(fit, history)(seen_only, queries)),
+        pr.STAY_ROW: np.asarray(pr.stay_prior(fit, history)(seen_only, queries))}
     return {UNIFORM: uniform,
             LAST_SEEN: np.where(seen[..., None], last_seen, uniform),
-            FREQUENCY: np.asarray(pr.frequency_prior(history)(seen_only, queries))}
+            FREQUENCY: np.asarray(pr.frequency_prior(history)(seen_only, queries)), **counts}
 
 
 # --------------------------------------------------------------------------- scores
@@ -196,12 +220,8 @@ def _trained_on(stored: dict, recorded) -> str:
             if seen else "the run trained on none of them")
 
 
-def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
-    """(RecordedHomes, what it is, its environments): the test part of the run's own split
-    when ``recorded`` (read from ``data_path``) is the dataset the run trained on (its
-    ``data_digest``, wherever it sits), else every environment of the data, ``what`` naming
-    them and saying whether the run trained on any; the environments in the homes' order.
-    ``ValueError`` if the run's own data folder no longer matches its digest."""
+def _run_split(recorded, stored: dict, data_path: str) -> tuple | None:
+    """The run's split (val, test, time fractions, seed) when it trained on ``recorded``."""
     digest = stored.get("data_digest")
     folder = bool(stored.get("data")) and pathlib.Path(stored["data"]).resolve() == \
         pathlib.Path(data_path).resolve()
@@ -211,9 +231,25 @@ def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
                          f"data_digest in the run's config.json): its split would now mix "
                          f"training environments into the test part; score a copy of the data "
                          f"the run trained on, or new environments in a folder of their own")
-    if same:
-        split = (stored.get("val_fraction", 0.0), stored.get("test_fraction", 0.0),
-                 stored.get("time_fraction", 0.0), stored.get("split_seed", 0))
+    return (stored.get("val_fraction", 0.0), stored.get("test_fraction", 0.0),
+            stored.get("time_fraction", 0.0), stored.get("split_seed", 0)) if same else None
+
+
+def training_part(recorded, config, stored: dict, data_path: str) -> rw.RecordedHomes | None:
+    """The run's training environments (``stop``: its time cut) when it trained on
+    ``recorded``, else None."""
+    split = _run_split(recorded, stored, data_path)
+    return rw.part_of(recorded, config, split, "train") if split else None
+
+
+def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
+    """(RecordedHomes, what it is, its environments): the test part of the run's own split
+    when ``recorded`` (read from ``data_path``) is the dataset the run trained on (its
+    ``data_digest``, wherever it sits), else every environment of the data, ``what`` naming
+    them and saying whether the run trained on any; the environments in the homes' order.
+    ``ValueError`` if the run's own data folder no longer matches its digest."""
+    split = _run_split(recorded, stored, data_path)
+    if split:
         names = rw.split_environments(recorded.names(), *split[:2], split[3])
         what = (f"the run's held-out test part ({len(names['test'])} environments: "
                 f"{_names([recorded.names()[i] for i in names['test']])}"
@@ -229,9 +265,11 @@ def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
 
 def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed: int,
                    parts: Sequence[str], budget: int = nav.LOOK_BUDGET,
-                   progress: bool = True, environments: Sequence | None = None) -> dict:
+                   progress: bool = True, environments: Sequence | None = None,
+                   train: rw.RecordedHomes | None = None) -> dict:
     """The realised-outcome results (JSON-able) of ``predictor`` on ``data``: ``posterior``
-    (the scores and the reliability table of every row) and/or ``navigation``.
+    (the scores and the reliability table of every row) and/or ``navigation``; the count rows
+    fitted on ``train`` (None: on ``data`` itself, said in ``protocol["count_table"]``).
 
     environments: the recorded environments ``data`` was built from, in its order; when they
     are all FlowSim homes written by ``from-homes``, the exact reference rows
@@ -243,7 +281,7 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
     longest = int(np.max(np.asarray(data.stop)))  # the data's hours, not the model's
     horizons = [d for d in DEFAULT_HORIZONS if d <= longest - 1] or [1]
     key = jax.random.fold_in(jax.random.key(EVAL_SEED), seed)
-    rows_steps = 4 * (("posterior" in parts) + ("navigation" in parts) * len(nav.POLICIES))
+    rows_steps = 6 * (("posterior" in parts) + ("navigation" in parts) * len(nav.POLICIES))
     bar = tqdm(total=2 + rows_steps, desc="realised", disable=not progress, leave=False)
     queries, valid = realised_queries(key, data, num_queries, max(horizons))
     if not valid.any():
@@ -252,7 +290,10 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
     homes = data.homes
     target = np.asarray(pr.receptacle_at(homes, queries.tau_q, queries.object_index))
     allowed = np.asarray(pr.allowed_slots(homes, queries))
-    beliefs = row_probabilities(predictor, data, queries)
+    fit = fit_counts(data if train is None else train, predictor.homes,
+                     predictor.model.history, max(horizons))
+    beliefs = row_probabilities(predictor, data, queries, fit)
+    learned = [name for name in beliefs if name != MODEL_ROW]
     if environments is None:
         exact, note, regime = ({}, "No exact reference rows: the data's environments were not "
                                "given.", None)
@@ -267,6 +308,9 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
     groups = {"horizon": horizon[valid]}
     if regime is not None:  # FlowSim homes: their regimes are known
         groups["regime"] = regime[valid]
+    classes = np.asarray([c.text for c in predictor.homes.object_classes])
+    groups["object_class"] = classes[np.maximum(np.take_along_axis(
+        np.asarray(homes.object_class), np.asarray(queries.object_index), 1), 0)][valid]
 
     def summary(values):
         return summarise(np.asarray(values)[valid], groups)
@@ -279,8 +323,12 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
         "unseen_at_tau": stats(np.asarray(
             ~np.asarray(data.observed)[np.arange(homes.num_homes)[:, None],
                                        np.asarray(queries.tau),
-                                       np.asarray(queries.object_index)])[valid] * 1.0)},
+                                       np.asarray(queries.object_index)])[valid] * 1.0),
+        "count_table": {**fit.summary(), "fitted_on": (
+            "the evaluated environments themselves (the run did not train on this data)"
+            if train is None else f"the run's {train.num_homes} training environments")}},
         "num_allowed": stats(allowed.sum(-1)[valid])}
+    best = results["best_reference"] = {}
     if "posterior" in parts:
         posterior = {}
         for name, p in beliefs.items():
@@ -290,6 +338,7 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
                                "reliability": reliability(p, target, allowed, valid)}
             bar.update(1)
         results["posterior"] = posterior
+        best["posterior"] = best_rows(posterior, learned, "log_score", "object_class", True)
     if "navigation" in parts:
         start = np.asarray(homes.receptacle_distance)[:, 0]  # (E, R): from receptacle slot 0
         start = jnp.asarray(start)
@@ -313,6 +362,8 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
                     "success_at": np.round(metrics["success_at"][valid].mean(0), 5).tolist()}
                 bar.update(1)
         results["navigation"] = navigation
+        best["navigation"] = best_rows(navigation, [n for n, r in navigation.items() if r[
+            "prior"] in learned or r["policy"] == "nearest"], "sr@1", "object_class", True)
     bar.close()
     results["seconds"] = round(time.perf_counter() - begin, 1)
     return results
@@ -340,6 +391,11 @@ def markdown(results: dict) -> str:
              f"{p['seed']}.", ""]
     if p.get("references"):
         lines += [p["references"], ""]
+    fit, best = p.get("count_table"), results.get("best_reference", {})
+    if fit:
+        lines += [f"Count rows chosen on {fit['fitted_on']}: bandwidth b = {fit['bandwidth']:g} h, "
+                  f"back-off α = {fit['alpha']:g}, other-day-type factor "
+                  f"{fit['day_factor']:.2g}, hourly stay s₁ = {fit['stay']:g}.", ""]
     if "posterior" in results:
         lines += ["| row | " + " | ".join(METRIC_NAMES[m] for m in METRICS) + " | ECE |",
                   "|---" * (len(METRICS) + 2) + "|"]
@@ -347,6 +403,10 @@ def markdown(results: dict) -> str:
             lines.append(f"| {name} | " + " | ".join(
                 _pm(row["metrics"][m]["overall"]) for m in METRICS)
                 + f" | {row['reliability']['ece']:.3f} |")
+        if best.get("posterior"):
+            lines += ["", *best_lines(best["posterior"], "Best reference row per object class (by "
+                                          "log score; the exact rows and the model excluded):",
+                                          "log_score")[:-1]]
         lines += ["", "Log score by horizon (nats):", "",
                   "| row | " + " | ".join(f"Δ = {h} h" for h in p["horizons"]) + " |",
                   "|---" * (len(p["horizons"]) + 1) + "|"]
@@ -382,6 +442,10 @@ def markdown(results: dict) -> str:
             lines.append(f"| {name} | " + " | ".join(
                 _pm(row["metrics"][m]["overall"], 1 if m == "steps" else 3) for m in cols)
                 + " |")
+        if best.get("navigation"):
+            lines += ["", *best_lines(best["navigation"], "Best reference row per object class (by "
+                                          "SR@1; the exact rows and the model excluded):",
+                                          "sr@1")[:-1]]
     lines += ["", f"Command: `{results.get('command', '')}`", ""]
     return "\n".join(lines)
 
@@ -453,6 +517,7 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
             recorded = rw.load_recorded(data_path)
             data, what, environments = evaluation_part(recorded, model.homes, stored,
                                                        data_path)
+            train = training_part(recorded, model.homes, stored, data_path)
         if args.num_envs != parser.get_default("num_envs") and args.num_envs < data.num_homes:
             data = jax.tree.map(lambda a: a[:args.num_envs], data)
             environments = environments[:args.num_envs]
@@ -465,7 +530,8 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
               f"FlowMaps {args.checkpoint} (step {model.step}) -> {out}", flush=True)
         results = run_evaluation(model, data, num_queries=queries, seed=args.seed,
                                  parts=(part,), budget=budget,
-                                 progress=not args.no_progress, environments=environments)
+                                 progress=not args.no_progress, environments=environments,
+                                 train=train)
     except ValueError as err:
         print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return EXIT_USAGE
