@@ -104,7 +104,8 @@ class HomesConfig:
     regime: one of ``REGIMES`` or "mixed".
     routine_probs: the routine's (stay, advance one, advance two) each hour.
     preference_move, preference_mass: preferences move with ρ · activity per hour to a place
-        drawn from π_c, with this mass on the context's favourite.
+        drawn from π_c, with this mass (in (0, 1): at 0 or 1 a move rules favourites out, and
+        the posterior's log-likelihood is log 0) on the context's favourite.
     balanced_move, balanced_cycle: balanced moves with ρ · activity, to the next place of its
         cycle with this probability, else to one of all n − 1 other places uniformly (the next
         one included).
@@ -362,7 +363,8 @@ _RULES = {
     "num_hours": Int(2, MAX_HOURS),
     "regime": Choice((*REGIMES, "mixed")),
     "routine_probs": Probabilities(3),
-    **{name: _UNIT for name in ("preference_move", "preference_mass", "balanced_move",
+    "preference_mass": Real(0.0, 1.0, low_open=True, high_open=True),
+    **{name: _UNIT for name in ("preference_move", "balanced_move",
                                 "balanced_cycle", "frequent_move", "extra_door_prob")},
     "frequent_length": Real(*FREQUENT_LENGTH),
     "split_jitter": _JITTER, "size_jitter": _JITTER,

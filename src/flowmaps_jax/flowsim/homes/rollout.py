@@ -12,7 +12,8 @@ u < m_t · mass, else one of the others uniformly), and the balanced and routine
 along the cycle that do not depend on where the object is (+1 if u < m_t · c, else one of the
 n − 1 others uniformly; the routine's 0 / 1 / 2 from u), so their positions are cumulative sums.
 Only the frequent regime (whose move depends on the current receptacle) runs a ``lax.scan``,
-inverting the CDF of its kernel's row at u / m_t.
+inverting the CDF of its kernel's row at u / m_t (u = 0 read as the middle of its 2⁻¹⁶ cell: at
+its edge, the first place of any mass, however small, would take the whole cell).
 """
 
 from __future__ import annotations
@@ -152,7 +153,7 @@ def sample_paths(home: dict, start, t0, u, config: HomesConfig) -> jnp.ndarray:
             reg, cyc, num, al, home["receptacle_distance"], config))(
                 jnp.full_like(regime, FREQUENT), cycle, home["num_allowed"], allowed)
         cdf = jnp.cumsum(kernel, axis=-1)  # (M, R, R)
-        v = u / jnp.where(m > 0, m, 1.0)  # the move's own uniform
+        v = jnp.where(u > 0, u, 2.0**-17) / jnp.where(m > 0, m, 1.0)  # the move's own uniform
 
         def hop(state, x):
             go, w = x
