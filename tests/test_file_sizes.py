@@ -151,3 +151,16 @@ def test_export_checks_every_environment_before_writing_any(tmp_path, monkeypatc
                                          r"would need about 0\.636 GB"):
         export_flowmaps2026(world, tmp_path / "out")
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_queries_on_recorded_data_are_sized_as_on_flowsim_homes(tmp_path):
+    # the check FlowSim homes' evaluate and search run, on a recorded world's own sizes (the
+    # recorded evaluate and search call it before any query is drawn)
+    from flowmaps_jax.evaluation.receptacle_protocol import check_query_size
+    from flowmaps_jax.worlds.recorded import homes_config_of
+
+    config = homes_config_of(load_recorded(_world(tmp_path, 3)))
+    check_query_size(config, 3, 8, 8)
+    with pytest.raises(ValueError, match=r"--num-envs 3 x --queries 100000000000 would need "
+                                         r"about .* GB, more than"):
+        check_query_size(config, 3, 10**11, 8)
