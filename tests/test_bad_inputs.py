@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 
 import jax
 import numpy as np
@@ -397,6 +398,51 @@ def test_predictor_sample_and_log_prob(predictor, tokens_queries, data, what):
         raises_value_error(predictor.log_prob, t, q, x, num_steps=3, method="euler")
         return
     raises_value_error(predictor.sample, **bad)
+
+
+@pytest.mark.parametrize("params", [{}, None, {"params": {}}, "weights"])
+def test_predictor_params_that_are_not_the_models_are_named(predictor, params):
+    """``Predictor(params={})`` was accepted, then a Flax error came out of the first call."""
+    from flowmaps_jax.predictor import Predictor
+
+    with pytest.raises(ValueError, match=r"^params: parameter \S+ is absent; the 'flowmaps' "
+                                         r"|^params must be a Mapping; got (NoneType|str)"):
+        Predictor(params=params, model=predictor.model)
+    half = dict(predictor.params)
+    half.pop(sorted(half)[0])
+    with pytest.raises(ValueError, match=rf"^params: parameter {sorted(predictor.params)[0]}/"):
+        Predictor.from_params(half, predictor.model)
+
+
+def test_homes_queries_must_be_homes_queries_of_arrays():
+    """A homes model's queries as lists, a tuple or a dict raised AttributeError; its params
+    {} a Flax error."""
+    from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes
+    from flowmaps_jax.flowsim.homes.queries import HomesQueries
+    from flowmaps_jax.model.homes_family import HomesModelConfig, init_params
+    from flowmaps_jax.predictor import Predictor
+
+    config = HomesConfig(regime="mixed", num_hours=96)
+    model = HomesModelConfig(dim=16, encoder_layers=1, weight_blocks=1, cdit_blocks=1, heads=2,
+                             mlp_ratio=2, freq_bands=4, history=24)
+    with pytest.raises(ValueError, match=r"^params: parameter \S+ is absent"):
+        Predictor(params={}, model=model, family_name="flowmaps-homes", homes=config)
+    homes_model = Predictor(params=init_params(jax.random.key(0), model, config), model=model,
+                            family_name="flowmaps-homes", homes=config)
+    homes = generate_homes(jax.random.key(0), config, 2)
+    fields = (np.zeros((2, 3), np.int32), np.full((2, 3), 30, np.int32),
+              np.full((2, 3), 31, np.int32))
+    for queries, message in (
+            (HomesQueries(*(f.tolist() for f in fields)), "queries.object_index must be an array"),
+            (fields, "queries must be a HomesQueries; got tuple"),
+            (list(fields), "queries must be a HomesQueries; got list"),
+            (dict(zip(("object_index", "tau", "tau_q"), fields, strict=True)),
+             "queries must be a HomesQueries; got dict")):
+        for call in (lambda q: homes_model.probabilities(homes, q),
+                     lambda q: homes_model.sample(jax.random.key(1), homes, q, None, 2),
+                     lambda q: homes_model.as_prior()(homes, q)):
+            with pytest.raises(ValueError, match=f"^{re.escape(message)}"):
+                call(queries)
 
 
 # ------------------------------------------------------------------------------ boxes, render

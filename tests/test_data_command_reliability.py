@@ -206,3 +206,31 @@ def test_two_scan_pieces_of_the_same_number_are_refused(tmp_path, names):
     first, second = sorted(names)
     assert re.match(rf"^{re.escape(str(folder))}: \(folder\): {first}.parquet and "
                     rf"{second}.parquet are both scan piece", _import_error(root))
+
+
+# ---------------------------------------------------------------------------- class 5: wrong words
+
+
+@pytest.mark.parametrize("where", ["scan_merged.parquet", "scan_1.parquet"])
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+def test_a_scan_file_that_is_not_a_file_is_named(tmp_path, where, kind):
+    """A FIFO at scan_merged.parquet said "need at least one array to concatenate"."""
+    root = _authors(tmp_path)
+    folder = root / "env0"
+    (folder / "scan_merged.parquet").rename(folder / "scan_0.parquet")
+    target = folder / where
+    os.mkfifo(target) if kind == "fifo" else target.mkdir()
+    assert _import_error(root) == f"{target}: (file): not a regular file"
+
+
+@pytest.mark.parametrize("file,old,new", [
+    ("receptacle_names.json", "Sofa|1", "Sofa|\u0001"),
+    ("pickupable_names.json", "Mug|2", "Mug|" + "x" * 300)])
+def test_a_bad_id_is_blamed_on_the_file_that_lists_it(tmp_path, file, old, new):
+    """A non-printable receptacle id was blamed on pickupable_to_receptacle.json."""
+    root = _authors(tmp_path)
+    for path in (root / "env0").glob("*.json"):
+        path.write_text(path.read_text().replace(json.dumps(old), json.dumps(new)))
+    index = json.loads((root / "env0" / file).read_text()).index(new)
+    assert _import_error(root).startswith(f"{root / 'env0' / file}: [{index}]: must be a "
+                                          f"non-empty printable string")

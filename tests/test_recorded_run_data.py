@@ -1,7 +1,11 @@
-"""What ``evaluate`` and ``search`` score on ``--data`` (issue 57, class 1): they name the
-environments and say whether the run trained on any of them (by content, through the run's
-``data_digest``), and refuse the run's own data folder once it no longer matches that digest
-(its split would mix training environments into the test part)."""
+"""A recorded run and its data (issue 57):
+
+* what ``evaluate`` and ``search`` score on ``--data`` (class 1): they name the environments and
+  say whether the run trained on any of them (by content, through the run's ``data_digest``),
+  and refuse the run's own data folder once it no longer matches that digest (its split would
+  mix training environments into the test part);
+* ``--resume`` repeating the original command's own ``--data`` / ``--preset`` works, another
+  is refused; ``--set data_digest=...`` is not a setting (class 5)."""
 
 from __future__ import annotations
 
@@ -96,3 +100,37 @@ def test_whether_the_run_trained_on_them_is_said_even_when_unknown(world, tmp_pa
         "the run trained on generated FlowSim homes, none of them")
     assert _part({}, one, tmp_path / "one")[0].endswith(  # pretrained:NAME: no run config
         "whether the model trained on any of them is not recorded with it")
+
+
+def _resolve(argv, monkeypatch, saved=None):
+    from flowmaps_jax.training import cli, resume
+
+    if saved is not None:  # the run's saved config, without training one
+        monkeypatch.setattr(resume, "resume_config", lambda *a, **k: saved)
+    return cli.resolve_config(cli.build_parser().parse_args(argv))[0]
+
+
+def test_resume_repeating_the_original_data_and_preset_works(world, tmp_path, monkeypatch):
+    """``--resume`` with the run's own unchanged --data and --preset said "cannot change"."""
+    path, recorded, _stored, _names = world
+    saved = recorded_config("smoke", str(path))
+    run = ["--run-dir", str(tmp_path / "run"), "--resume"]
+    for again in (["--data", str(path)], ["--preset", "smoke", "--data", str(path)],
+                  ["--preset", "smoke"], ["--data", f"{path}/../{path.name}"]):
+        assert _resolve([*run, *again], monkeypatch, saved) == saved, again
+    save_recorded(Recorded(recorded.environments[:1]), tmp_path / "other")
+    for other, flag in ((["--data", str(tmp_path / "other")], "--data"),
+                        (["--preset", "homes"], "--preset"), (["--preset", "cpu"], "--preset")):
+        with pytest.raises(ValueError, match=f"^{flag} cannot change on --resume"):
+            _resolve([*run, *other], monkeypatch, saved)
+
+
+def test_the_data_digest_and_path_are_not_settings(world, tmp_path, monkeypatch):
+    """``--set data_digest=abc`` on a new run trained, then said the data "changed since the
+    run began"."""
+    path, _recorded, _stored, _names = world
+    for argv in (["--data", str(path), "--set", "data_digest=abc"],
+                 ["--preset", "smoke", "--set", "data_digest=abc"],
+                 ["--data", str(path), "--set", f"data={tmp_path}"]):
+        with pytest.raises(ValueError, match=r"^--set data(_digest)?: not a setting"):
+            _resolve([*argv, "--run-dir", str(tmp_path / "run")], monkeypatch)

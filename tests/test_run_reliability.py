@@ -317,3 +317,19 @@ def test_a_ctrl_c_python_swallowed_before_the_steps_still_stops_the_run():
         with pytest.raises(KeyboardInterrupt):
             stop._handle(signal.SIGINT, None)
     assert signal.getsignal(signal.SIGINT) != stop._handle  # the handler is put back
+
+
+def test_resume_says_it_replaces_a_damaged_config_json(at12):
+    """``--resume`` replaced a damaged config.json with the checkpoint's config silently."""
+    from flowmaps_jax.training import resume
+
+    for damage in ("{not json", "[1, 2]", '{"model": 3}'):
+        (at12 / "config.json").write_text(damage)
+        lines = []
+        cfg = resume.resume_config(at12, None, log=lines.append)
+        assert cfg == CFG and len(lines) == 1, lines
+        assert lines[0].startswith(f"{at12 / 'config.json'} is unreadable (")
+        assert "resuming with the config saved in the checkpoint" in lines[0]
+    (at12 / "config.json").unlink()  # missing: nothing to say
+    lines = []
+    assert resume.resume_config(at12, None, log=lines.append) == CFG and not lines

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 
 import jax
 import jax.numpy as jnp
@@ -149,6 +150,44 @@ def test_probabilities_name_the_problem():
         with pytest.raises(ValueError, match=match):
             v.check_probabilities("p", probs)
     assert v.check_probabilities("p", [0.5, 2.0], normalised=False).sum() == 2.5
+
+
+@pytest.mark.parametrize("probs, total", [([0.5, 0.500002], "1.000002"),
+                                          ([0.5, 0.4999985], "0.9999985"),
+                                          (np.float32([0.5, 0.5000015]), "1.0000014")])
+def test_a_sum_off_by_more_than_the_tolerance_is_not_printed_as_1(probs, total):
+    """'must sum to 1; found a sum of 1': the sum was rounded to 6 digits."""
+    with pytest.raises(ValueError, match=rf"must sum to 1 \(within 1e-06\); found a sum of "
+                                         rf"{re.escape(total)}"):
+        v.check_probabilities("p", probs)
+    from flowmaps_jax.evaluation.receptacle_scores import check_reference
+
+    with pytest.raises(ValueError, match=r"sums to 1\.0000004\d*, not 1"):
+        check_reference(np.float64([[0.5, 0.5000004]]), tolerance=1e-7)
+
+
+@pytest.mark.parametrize("command, argv, bad", [
+    ("evaluate", ["--checkpoint", "x", "--num-envs", "{}"], "\u0662"),
+    ("evaluate", ["--checkpoint", "x", "--seed", "{}"], "1_0"),
+    ("search", ["--checkpoint", "x", "--budget", "{}"], "\uff13"),
+    ("search", ["--checkpoint", "x", "--p-miss", "{}"], "\u0660.5"),
+    ("train", ["--steps", "{}"], "\u0662"),
+    ("data", ["from-homes", "--homes", "{}", "--out", "x"], "\u0662"),
+    ("data", ["from-homes", "--homes", "2", "--mask", "{}", "--out", "x"], "\u0660.3")])
+def test_number_flags_take_ascii_digits_only(command, argv, bad, capsys):
+    """``--num-envs \u0662`` was read as 2 (Python's int reads every script's digits)."""
+    import importlib
+
+    module = {"evaluate": "evaluation.cli", "search": "search.cli", "train": "training.cli",
+              "data": "data.__main__"}[command]
+    parser = importlib.import_module(f"flowmaps_jax.{module}").build_parser()
+    flag = argv[argv.index("{}") - 1]
+    with pytest.raises(SystemExit) as info:
+        parser.parse_args([a.format(bad) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert info.value.code == 2 and f"argument {flag}: expected a" in err, err
+    assert "(ASCII digits)" in err
+    parser.parse_args([a.format("0") for a in argv])  # ASCII digits are still read
 
 
 # ------------------------------------------------------------------------------ files

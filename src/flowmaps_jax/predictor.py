@@ -55,6 +55,7 @@ from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
 from flowmaps_jax.model.flowmaps import check_inputs
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
+from flowmaps_jax.model.homes_family import HomesSpec
 from flowmaps_jax.resources import (
     check_resources,
     embedding_bytes,
@@ -62,6 +63,7 @@ from flowmaps_jax.resources import (
     solver_evaluations,
 )
 from flowmaps_jax.store import checkpoints, pretrained
+from flowmaps_jax.store.model_spec import ModelSpec, check_params
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
     check_array,
@@ -139,6 +141,9 @@ class Predictor:
 
     def __post_init__(self):
         self._inference.check(self)  # ValueError naming the field (or listing the families)
+        check_params(self.params, ModelSpec(self.family_name, self.model, self.flowsim)
+                     if self._inference.scenes else
+                     HomesSpec(self.family_name, self.model, self.homes), "params")
         if self.mesh is not None:
             check_instance("mesh", self.mesh, Mesh)
             # Replicate once, not at every call (a frozen dataclass: set the field directly).

@@ -5,13 +5,15 @@
     python -m flowmaps_jax.data export-flowmaps2026 PATH --out ROOT [--overwrite]
     python -m flowmaps_jax.data from-homes --homes N [--regime mixed] [--hours T] [--mask 0.3]
         [--seed S] [--names PREFIX] --out PATH [--overwrite]
+    python -m flowmaps_jax.data validate PATH
 
 ``import-flowmaps2026`` reads every environment folder under ROOT in the authors' 2026 layout
 (:mod:`flowmaps_jax.recorded.flowmaps2026`) and writes one recorded world (:mod:`~flowmaps_jax.
 recorded.format`) to PATH; ``export-flowmaps2026`` writes a recorded world in that layout;
 ``from-homes`` generates N FlowSim homes (``generate_homes(jax.random.key(S), config, N)``) and
 writes them as a recorded world, about ``--mask`` of the object-hours hidden by whole rooms
-(:mod:`~flowmaps_jax.recorded.from_homes`). Every command writes its whole ``--out`` folder
+(:mod:`~flowmaps_jax.recorded.from_homes`); ``validate`` loads PATH and prints a summary and
+the default recipe's split. Every writing command writes its whole ``--out`` folder
 aside and renames it into place (:func:`~flowmaps_jax.atomic_files.output_folder`): a link
 there is refused, and so is a folder holding anything unless ``--overwrite`` (it is then moved
 to ``<out>.old-<time>``). Exit codes: 0 ok, 2 bad arguments or a bad input
@@ -36,6 +38,7 @@ from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026, import_flowm
 from flowmaps_jax.recorded.format import check_environment_name
 from flowmaps_jax.resources import check_request_size
 from flowmaps_jax.validation import check_int, check_output_dir, check_real, check_seed
+from flowmaps_jax.validation.scalars import ascii_float, ascii_int
 
 EXIT_OK, EXIT_USAGE, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 2, 74, 130
 PROG = "python -m flowmaps_jax.data"
@@ -60,20 +63,23 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("--out", required=True, metavar="ROOT", help="folder to write the "
                                                                    "environment folders into")
     homes = commands.add_parser("from-homes", help="FlowSim homes -> a recorded world")
-    homes.add_argument("--homes", type=int, required=True, metavar="N", help="number of homes")
+    homes.add_argument("--homes", type=ascii_int, required=True, metavar="N",
+                       help="number of homes")
     homes.add_argument("--regime", choices=(*REGIMES, "mixed"), default="mixed",
                        help="the homes' schedule regime (default mixed)")
-    homes.add_argument("--hours", type=int, default=None, metavar="T",
+    homes.add_argument("--hours", type=ascii_int, default=None, metavar="T",
                        help=f"hours per home (default {HomesConfig().num_hours}, four weeks)")
-    homes.add_argument("--mask", type=float, default=0.0, metavar="FRACTION",
+    homes.add_argument("--mask", type=ascii_float, default=0.0, metavar="FRACTION",
                        help="about this fraction of the object-hours is hidden, by whole rooms "
                             "unvisited for runs of hours (default 0)")
-    homes.add_argument("--seed", type=int, default=0,
+    homes.add_argument("--seed", type=ascii_int, default=0,
                        help="seed of the homes (jax.random.key(seed)) and of the mask")
     homes.add_argument("--names", default="home", metavar="PREFIX",
                        help="environment e is named PREFIX<e> (default home: home0, home1, "
                             "...); a path prefix such as train/env gives train/env0, ...")
     homes.add_argument("--out", required=True, metavar="PATH", help="the recorded world's folder")
+    val = commands.add_parser("validate", help="check a recorded world and summarise it")
+    val.add_argument("path", metavar="PATH", help="a recorded world's folder")
     for sub in (imp, exp, homes):
         sub.add_argument("--no-progress", action="store_true", help="no progress bar")
         sub.add_argument("--overwrite", action="store_true", help="replace a --out folder that "
@@ -175,8 +181,44 @@ def _generate(args, num: int, mask: float, seed: int, config: HomesConfig) -> Re
                           for env in environments))
 
 
+def _validate(args) -> str:
+    """The one-screen summary of a dataset that loads (``load_recorded`` refuses a bad one)."""
+    from flowmaps_jax.training.config import recorded_homes_preset
+    from flowmaps_jax.worlds.recorded import describe_split, split_environments
+
+    recorded = load_recorded(args.path)
+    envs, voc, cfg = recorded.environments, recorded.vocabulary(), recorded_homes_preset()
+
+    def some(items, k: int = 8) -> str:
+        return ", ".join(items[:k]) + (f", ... ({len(items)} in all)" if len(items) > k else "")
+
+    def share(field: str) -> str:
+        n = sum(getattr(e, field) is not None and len(getattr(e, field)) > 0 for e in envs)
+        return "all" if n == len(envs) else f"{n} of {len(envs)}"
+
+    def span(values) -> str:
+        return f"{min(values)}" + (f"-{max(values)}" if max(values) > min(values) else "")
+
+    spans = [int(e.hours[-1] - e.hours[0]) + 1 for e in envs]
+    split = split_environments(recorded.names(), cfg.val_fraction, cfg.test_fraction,
+                               cfg.split_seed)
+    return "\n".join([
+        f"{args.path}: a valid recorded world: {describe(recorded)}",
+        f"  environments: {some(recorded.names())}",
+        f"  hours spanned (first to last): {span(spans)} ({max(spans) / 24:.1f} days at most)",
+        *(f"  {kind[:-1]} classes: {some(voc[kind]) or 'none'}"
+          for kind in ("objects", "receptacles", "rooms")),
+        f"  rooms per environment: {span([len(e.room_classes) for e in envs])}",
+        f"  geometry: receptacle boxes in all; rooms in {share('room_boxes')}, doors in "
+        f"{share('door_rooms')}, stored walking distances in {share('distance')} (else "
+        f"derived), object boxes in {share('object_corners')}",
+        f"  the default recipe's split (val_fraction={cfg.val_fraction}, test_fraction="
+        f"{cfg.test_fraction}, split_seed={cfg.split_seed}; docs/protocol.md):",
+        describe_split(recorded, split, cfg.time_fraction).replace("  ", "    ")])
+
+
 COMMANDS = {"import-flowmaps2026": _import, "export-flowmaps2026": _export,
-            "from-homes": _from_homes}
+            "from-homes": _from_homes, "validate": _validate}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -64,7 +64,7 @@ from flowmaps_jax.predictor import (
 )
 from flowmaps_jax.resources import check_resources, network_flops, solver_evaluations
 from flowmaps_jax.validation import check_choice, check_int, check_output_dir, check_seed
-from flowmaps_jax.validation.scalars import int_list
+from flowmaps_jax.validation.scalars import ascii_int, int_list
 from flowmaps_jax.worlds import world_of_family, world_of_files
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
@@ -124,46 +124,47 @@ def build_parser() -> argparse.ArgumentParser:
                              "(several after one flag, or the flag repeated)")
     parser.add_argument("--out", default=None,
                         help="output directory (default: <checkpoint>/eval)")
-    parser.add_argument("--num-envs", type=int, default=DEFAULT_NUM_ENVS,
+    parser.add_argument("--num-envs", type=ascii_int, default=DEFAULT_NUM_ENVS,
                         help="validation environments (3 queries each)")
     parser.add_argument("--samples", type=_parse_counts, default=DEFAULT_SAMPLES,
                         help="sample counts for the slot metrics, e.g. 25,100")
-    parser.add_argument("--kl-draws", type=int, default=DEFAULT_KL_DRAWS,
+    parser.add_argument("--kl-draws", type=ascii_int, default=DEFAULT_KL_DRAWS,
                         help="draws from q per query for the KL estimate")
-    parser.add_argument("--seed", type=int, default=0, help="seed of times, draws and samples")
+    parser.add_argument("--seed", type=ascii_int, default=0,
+                        help="seed of times, draws and samples")
     parser.add_argument("--which", choices=("best", "latest"), default="best",
                         help="which checkpoint to load")
-    parser.add_argument("--num-steps", type=int, default=DEFAULT_NUM_STEPS,
+    parser.add_argument("--num-steps", type=ascii_int, default=DEFAULT_NUM_STEPS,
                         help="ODE grid points for sampling (10 = 18 midpoint evaluations)")
-    parser.add_argument("--logp-steps", type=int, default=None,
+    parser.add_argument("--logp-steps", type=ascii_int, default=None,
                         help="ODE grid points for the likelihood (default: --num-steps)")
-    parser.add_argument("--likelihood-steps", type=int, default=DEFAULT_LIKELIHOOD_STEPS,
+    parser.add_argument("--likelihood-steps", type=ascii_int, default=DEFAULT_LIKELIHOOD_STEPS,
                         help="grid points of the accurate likelihood (RK4 on a grid concentrated "
                              "near t = 1) that FlowMaps' KL uses, with its integration error "
                              "against twice the intervals; 0: only the paper's grid")
-    parser.add_argument("--likelihood-draws", type=int, default=DEFAULT_LIKELIHOOD_DRAWS,
+    parser.add_argument("--likelihood-draws", type=ascii_int, default=DEFAULT_LIKELIHOOD_DRAWS,
                         help="the accurate likelihood uses the first N of each query's KL draws "
                              "(it costs ~10x the paper grid per point)")
     parser.add_argument("--method", choices=SOLVERS, default="midpoint",
                         help="ODE solver for sampling and the paper's likelihood grid "
                              "(accurate: RK4 on the stiff grid)")
-    parser.add_argument("--chunk-envs", type=int, default=DEFAULT_CHUNK_ENVS,
+    parser.add_argument("--chunk-envs", type=ascii_int, default=DEFAULT_CHUNK_ENVS,
                         help="environments per compiled batch")
     parser.add_argument("--scenes", default=None,
                         help="evaluate on scenes from an .npz (flowsim.scenes.save_scenes) instead "
                              "of the validation split")
-    parser.add_argument("--devices", type=int, default=None, metavar="N",
+    parser.add_argument("--devices", type=ascii_int, default=None, metavar="N",
                         help="split the environments over N devices (default: every device "
                              "JAX sees); results do not depend on it beyond float "
                              "summation order (about 1e-6 relative in the KL)")
     parser.add_argument("--world", default=None, metavar="NAME",
                         help="FlowSim world of the scenes: routine, preferences, dynamic or "
                              "mixed (default: the world of --checkpoint's config)")
-    parser.add_argument("--history", type=int, default=None, metavar="H",
+    parser.add_argument("--history", type=ascii_int, default=None, metavar="H",
                         help="observations the exact posterior is given (default: the most maps "
                              "any evaluated model reads, at least 8 in a world with habits "
                              "other than the routine)")
-    parser.add_argument("--queries", type=int, default=None, metavar="Q",
+    parser.add_argument("--queries", type=ascii_int, default=None, metavar="Q",
                         help="FlowSim homes: queries per home (default 3)")
     parser.add_argument("--regime", default=None,
                         help="FlowSim homes: the schedule regime of the evaluation homes "

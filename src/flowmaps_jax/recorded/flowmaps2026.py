@@ -54,6 +54,7 @@ import numpy as np
 from flowmaps_jax.atomic_files import make_output_dir, write_files
 from flowmaps_jax.recorded.format import (
     FORMAT,
+    MAX_TEXT,
     VERSION,
     Environment,
     Recorded,
@@ -137,10 +138,12 @@ def environment_folders(root) -> list[tuple[str, pathlib.Path]]:
 
 
 def _scan_files(folder: pathlib.Path) -> list[pathlib.Path]:
-    if (folder / SCAN_MERGED).is_file():
-        return [folder / SCAN_MERGED]
-    pieces = sorted((int(m.group(1)), folder / f) for f in os.listdir(folder)
-                    if (m := SCAN_PIECE.match(f)) and (folder / f).is_file())
+    merged = folder / SCAN_MERGED
+    pieces = [(0, merged)] if os.path.lexists(merged) else sorted(
+        (int(m.group(1)), folder / f) for f in os.listdir(folder) if (m := SCAN_PIECE.match(f)))
+    for _, path in pieces:  # a FIFO or a folder there: named, not skipped
+        if not path.is_file():
+            raise ValueError(f"{os.fspath(path)}: (file): not a regular file")
     for (a, first), (b, second) in itertools.pairwise(pieces):
         if a == b:
             raise ValueError(f"{os.fspath(folder)}: (folder): {first.name} and {second.name} "
@@ -235,8 +238,12 @@ def _json(folder: pathlib.Path, name: str) -> tuple[Any, str]:
 
 def _id_list(folder: pathlib.Path, name: str) -> tuple[list[str], str]:
     ids, file = _json(folder, name)
-    if not isinstance(ids, list) or not all(isinstance(i, str) and i for i in ids):
+    if not isinstance(ids, list):
         raise ValueError(f"{file}: (top level): must be a list of id strings")
+    for k, i in enumerate(ids):  # here, not later as a field of another file
+        if not isinstance(i, str) or not i or len(i) > MAX_TEXT or not i.isprintable():
+            raise ValueError(f"{file}: [{k}]: must be a non-empty printable string of at most "
+                             f"{MAX_TEXT} characters; got {i!r}"[:300])
     if len(set(ids)) != len(ids):
         twice = next(i for i in ids if ids.count(i) > 1)
         raise ValueError(f"{file}: {twice}: listed twice")

@@ -66,7 +66,7 @@ from flowmaps_jax.validation import (
     check_real,
     check_seed,
 )
-from flowmaps_jax.validation.scalars import int_list
+from flowmaps_jax.validation.scalars import ascii_float, ascii_int, int_list
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -85,19 +85,19 @@ def build_parser() -> argparse.ArgumentParser:
     add("--baseline", nargs="+", action="extend", default=[], metavar="MODEL",
         help="more models as rows (directories or pretrained:NAME), e.g. the MLP baselines")
     add("--out", default=None, help="output directory (default: <checkpoint>/search)")
-    add("--num-envs", type=int, default=pr.DEFAULT_NUM_ENVS, help="validation environments")
-    add("--times-per-env", type=int, default=pr.DEFAULT_TIMES_PER_ENV,
+    add("--num-envs", type=ascii_int, default=pr.DEFAULT_NUM_ENVS, help="validation environments")
+    add("--times-per-env", type=ascii_int, default=pr.DEFAULT_TIMES_PER_ENV,
         help="(τ, τ_q) draws per environment; every object is searched for in each")
     add("--horizons", type=int_list, default=None,
         help="instead of random draws: fixed horizons Δτ, e.g. 1,2,4,8 (one row each)")
     add("--world", default=None, metavar="NAME",
         help=f"FlowSim world of the searched scenes ({', '.join(WORLDS)}; default: the world "
              "of the first model's config)")
-    add("--history", type=int, default=None, metavar="H",
+    add("--history", type=ascii_int, default=None, metavar="H",
         help="observations the exact reference posterior is given (default: the largest "
              f"model.history among the models, at least {HABITS_HISTORY} in a world with "
              "habits other than the routine)")
-    add("--samples", type=int, default=pr.DEFAULT_SAMPLES,
+    add("--samples", type=ascii_int, default=pr.DEFAULT_SAMPLES,
         help="samples per query for the model rows' table probabilities")
     add("--table-method", choices=TABLE_METHODS, default="weights",
         help="how FlowMaps' table probabilities are read: the read-out head's mixture weights "
@@ -105,15 +105,15 @@ def build_parser() -> argparse.ArgumentParser:
              "counts of --samples samples (the MLP baselines are always sampled)")
     add("--policies", nargs="+", default=list(pr.MAIN_POLICIES), choices=pr.MAIN_POLICIES,
         help="policies every prior is driven by")
-    add("--budget", type=int, default=sim.DEFAULT_BUDGET, help="looks per episode")
-    add("--p-miss", type=float, default=0.0, help="chance a look at the right table misses")
+    add("--budget", type=ascii_int, default=sim.DEFAULT_BUDGET, help="looks per episode")
+    add("--p-miss", type=ascii_float, default=0.0, help="chance a look at the right table misses")
     add("--start", choices=ep.STARTS, default="centre", help="where the robot starts")
-    add("--seed", type=int, default=0, help="seed of the queries, samples and misses")
+    add("--seed", type=ascii_int, default=0, help="seed of the queries, samples and misses")
     add("--which", choices=("best", "latest"), default="best", help="checkpoint to load")
-    add("--chunk-rows", type=int, default=50, help="scene rows per model call")
-    add("--devices", type=int, default=None, metavar="N",
+    add("--chunk-rows", type=ascii_int, default=50, help="scene rows per model call")
+    add("--devices", type=ascii_int, default=None, metavar="N",
         help="split the model calls over N devices (default: every device JAX sees)")
-    add("--queries", type=int, default=None, metavar="Q",
+    add("--queries", type=ascii_int, default=None, metavar="Q",
         help="FlowSim homes: queries (episodes) per home (default 3)")
     add("--regime", default=None,
         help="FlowSim homes: the schedule regime of the homes (preferences, balanced, frequent, "

@@ -5,6 +5,8 @@ stored weights fit it. Read from a checkpoint's ``config`` item or a pretrained 
 from __future__ import annotations
 
 import dataclasses
+import functools
+from collections.abc import Mapping
 
 import jax
 import numpy as np
@@ -80,15 +82,22 @@ model and :class:`~flowmaps_jax.flowsim.homes.HomesConfig`), by family name; the
 are read into a :class:`ModelSpec`."""
 
 
+def _leaves(tree) -> dict:
+    return {leaf_name(path): (tuple(np.shape(leaf)), np.dtype(getattr(leaf, "dtype", object)))
+            for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+@functools.lru_cache(maxsize=16)
+def _initialised(spec) -> dict:
+    return _leaves(spec.abstract_params())
+
+
 def check_params(params, spec: ModelSpec, where: str) -> None:
     """``ValueError`` unless ``params`` has the leaves (paths, shapes and dtypes) that
     ``spec``'s family initialises (weights that do not fit their config), naming the first
     leaf that differs."""
-    def leaves(tree) -> dict:
-        return {leaf_name(path): (tuple(np.shape(leaf)), np.dtype(leaf.dtype))
-                for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
-
-    got, want = leaves(params), leaves(spec.abstract_params())
+    check_instance(where, params, Mapping)
+    got, want = _leaves(params), _initialised(spec)
     if got != want:
         key = next(k for k in sorted(got.keys() | want.keys()) if got.get(k) != want.get(k))
         def what(leaf):

@@ -51,6 +51,7 @@ from flowmaps_jax.training import resume
 from flowmaps_jax.training.config import (
     DEFAULT_PRESET,
     PRESETS,
+    RECORDED_PRESETS,
     RUN_CONFIGS,
     TrainConfig,
     get_preset,
@@ -60,6 +61,7 @@ from flowmaps_jax.training.config import (
 from flowmaps_jax.training.loop import run
 from flowmaps_jax.training.overrides import replace_fields
 from flowmaps_jax.validation import check_output_dir
+from flowmaps_jax.validation.scalars import ascii_int
 from flowmaps_jax.worlds import world
 
 EXIT_OK, EXIT_NAN, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 1, 74, 130
@@ -83,14 +85,14 @@ def build_parser() -> argparse.ArgumentParser:
                              "a new run needs an empty or missing one")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --run-dir from its latest checkpoint")
-    parser.add_argument("--from-step", type=int, default=None, metavar="N",
+    parser.add_argument("--from-step", type=ascii_int, default=None, metavar="N",
                         help="with --resume: continue from the saved step N instead (e.g. when "
                              "the newest step is damaged); later steps are moved aside")
     parser.add_argument("--overwrite", action="store_true",
                         help="start a new run in a non-empty --run-dir after moving the old run "
                              "to <run-dir>.old-<timestamp>")
-    parser.add_argument("--steps", type=int, default=None, help="total training steps")
-    parser.add_argument("--stop-at", type=int, default=None,
+    parser.add_argument("--steps", type=ascii_int, default=None, help="total training steps")
+    parser.add_argument("--stop-at", type=ascii_int, default=None,
                         help="stop (with a checkpoint) after this step; resume later")
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE",
@@ -127,9 +129,21 @@ def split_world(overrides: typing.Iterable[str]) -> tuple[list[str], str | None]
     return rest, world
 
 
-_KEPT = ("cannot change on --resume: a resumed run uses the run's saved config (--preset, "
-         "--family and --set world=..., which changes the data, cannot change); change fields "
-         "with --set")
+_KEPT = ("cannot change on --resume: a resumed run uses the run's saved config (repeat the "
+         "run's own --preset, --family, --data and --set world=..., or leave them out); change "
+         "fields with --set")
+
+
+def _unchanged(cfg: TrainConfig, flag: str, value: str) -> bool:
+    """Whether ``flag value`` of the original command, repeated with --resume, is the run's."""
+    if flag == "--preset":
+        table = RECORDED_PRESETS if cfg.world == "recorded" else PRESETS
+        return value in table and table[value]().preset == cfg.preset
+    if flag == "--family":
+        return value == getattr(cfg, "family", None)
+    if flag == "--data":
+        return cfg.world == "recorded" and os.path.abspath(value) == cfg.data
+    return with_world(cfg, value) == cfg
 
 
 def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]:
@@ -142,17 +156,23 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
     if args.resume:
         if run_dir is None:
             raise ValueError("--resume needs --run-dir (the run to continue)")
-        for flag, value in (("--preset", args.preset), ("--family", args.family),
-                            ("--set world=...", world), ("--data", args.data)):
-            if value is not None:
-                raise ValueError(f"{flag} {_KEPT}")
         if args.overwrite:
             raise ValueError("--overwrite and --resume exclude each other")
         cfg = resume.resume_config(run_dir, args.from_step)
+        for flag, value in (("--preset", args.preset), ("--family", args.family),
+                            ("--set world=...", world), ("--data", args.data)):
+            if value is not None and not _unchanged(cfg, flag, value):
+                raise ValueError(f"{flag} {_KEPT}")
+        world = None  # the run's own, repeated
     elif args.data is not None:
         cfg = recorded_config(args.preset, args.data)
     else:
         cfg = get_preset(args.preset or DEFAULT_PRESET)
+    for text in overrides:  # what the run derives from --data itself
+        key = text.partition("=")[0].strip()
+        if key == "data_digest" or (key == "data" and cfg.world == "recorded"):
+            raise ValueError(f"--set {key}: not a setting; the run stores the path of --data "
+                             f"and the digest of its contents itself: give the data with --data")
     if world is not None:
         cfg = with_world(cfg, world)
     typed = {name: value for name, value in (("family", args.family), ("steps", args.steps),

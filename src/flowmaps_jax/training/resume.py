@@ -105,17 +105,21 @@ def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int |
     return restored
 
 
-def resume_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig:
+def resume_config(run_dir: pathlib.Path, from_step: int | None,
+                  log: Callable[[str], None] = print) -> TrainConfig:
     """The config a resumed run starts from: the checkpoint's, with the fields --resume may
     change taken from ``config.json`` when that file is readable (it holds the last run's
-    --steps etc. even when no checkpoint was saved since)."""
+    --steps etc. even when no checkpoint was saved since); one that is not is said in a line."""
     unsaved = _unsaved_config(run_dir, from_step)
     if unsaved is not None:  # no checkpoint yet: the run starts again with its config.json
         return unsaved
     saved = load_config(rundir.checkpoint_root(run_dir), step=from_step)
     try:
         latest = config_from_stored(read_json("", run_dir / "config.json"))
-    except (OSError, ValueError, TypeError):  # missing or unreadable: the checkpoint's config
+    except (OSError, ValueError, TypeError) as err:  # the checkpoint's config
+        if not isinstance(err, FileNotFoundError):
+            log(f"{run_dir / 'config.json'} is unreadable ({' '.join(str(err).split())[:200]}): "
+                f"resuming with the config saved in the checkpoint, which replaces it")
         return saved
     check_resumable(saved, latest, run_dir / "config.json")
     return dataclasses.replace(saved, **{name: getattr(latest, name)

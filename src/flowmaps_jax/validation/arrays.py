@@ -196,7 +196,8 @@ def check_probabilities(name: str, value: Any, shape: tuple | None = None, *,
         if np.any(np.abs(total - 1.0) > atol):
             worst = total.ravel()[np.argmax(np.abs(total - 1.0).ravel())]
             over = " over its last axis" if p.ndim > 1 else ""
-            raise ValueError(f"{name} must sum to 1{over}; found a sum of {worst:.6g}{got}")
+            raise ValueError(f"{name} must sum to 1{over} (within {atol:g}); found a sum of "
+                             f"{worst:.12g}{got}")
     if support is not None:
         inside = np.asarray(support, bool)
         if np.any(np.abs(np.where(inside, 0.0, p[..., :inside.shape[-1]])) > atol):

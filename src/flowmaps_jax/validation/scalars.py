@@ -151,6 +151,24 @@ def check_key(key: Any, name: str = "key", shapes: Sequence[tuple[int, ...]] = (
 _ASCII_INT = re.compile(r"[+-]?[0-9]+")
 
 
+def ascii_int(text: str) -> int:
+    """An ``argparse`` type: an integer written with ASCII digits (``int`` also reads "٢" and
+    "1_0"); ``argparse.ArgumentTypeError`` otherwise, which argparse reports with the flag."""
+    if not _ASCII_INT.fullmatch(text.strip()):
+        raise argparse.ArgumentTypeError(f"expected an integer (ASCII digits); got {text!r}")
+    return int(text)
+
+
+def ascii_float(text: str) -> float:
+    """An ``argparse`` type: a number written in ASCII, as :func:`ascii_int`."""
+    try:
+        if text.isascii() and "_" not in text:
+            return float(text)
+    except ValueError:
+        pass
+    raise argparse.ArgumentTypeError(f"expected a number (ASCII digits); got {text!r}")
+
+
 def int_list(text: str) -> list[int]:
     """An ``argparse`` type: comma-separated integers (``"1,4,16"`` -> [1, 4, 16]), at least
     one, each written with ASCII digits (as ``--set`` reads them; spaces around one are

@@ -16,7 +16,13 @@ from flax import struct
 
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.homes.world import Homes
-from flowmaps_jax.validation import check_instance, check_int, check_int_array, is_concrete
+from flowmaps_jax.validation import (
+    check_array,
+    check_instance,
+    check_int,
+    check_int_array,
+    is_concrete,
+)
 
 DEFAULT_HORIZONS = (1, 3, 6, 12, 24, 72, 168)
 """Query horizons τ_q − τ in hours: an hour, a morning, half a day, a day, three days, a week."""
@@ -69,7 +75,10 @@ def draw_queries(key, homes: Homes, config: HomesConfig, num_queries: int, *,
 
 def check_queries(queries: HomesQueries, homes: Homes, config: HomesConfig) -> HomesQueries:
     """``ValueError`` naming the field unless ``queries`` fits ``homes``: (E, Q) ints, objects
-    valid, 0 <= τ < τ_q <= T − 1 (values checked when concrete)."""
+    valid, 0 <= τ < τ_q <= T − 1 (values checked when concrete); arrays, not lists."""
+    check_instance("queries", queries, HomesQueries)
+    for field in ("object_index", "tau", "tau_q"):
+        check_array(f"queries.{field}", getattr(queries, field))
     e, t = homes.object_valid.shape[0], config.num_hours
     obj = check_int_array("queries.object_index", queries.object_index, 0,
                           config.max_objects - 1, shape=(e, None))
