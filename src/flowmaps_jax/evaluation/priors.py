@@ -253,11 +253,11 @@ def oracle_samples_prior(config: HomesConfig, key, num_samples: int = 100,
 COUNT_ROW, STAY_ROW = "count table (hour of day)", "last seen, fitted stay"
 BANDWIDTHS = (0.5, 1.0, 2.0, 4.0, 8.0, 1e3)
 """Hours: the kernel bandwidths :func:`fit_count_table` tries (1e3: no hour-of-day effect)."""
-ALPHAS = (0.1, 0.5, 2.0, 8.0)
+ALPHAS = (0.1, 0.5, 2.0, 8.0, 32.0)
 """Pseudo-counts of the class back-off tried."""
 DAY_FACTORS = (1.0, 0.2)
 """Weight of an hour of the other day type (weekday / weekend) tried (1: day type ignored)."""
-STAYS = (0.5, 0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97, 0.98, 0.99, 0.995, 0.999)
+STAYS = (0.2, 0.35, 0.5, 0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97, 0.98, 0.99, 0.995, 0.999)
 """Hourly stay probabilities s₁ tried."""
 CLASS_PSEUDO = 0.5
 """Add-β of the class table (per receptacle class and hour of day)."""
