@@ -26,9 +26,10 @@ the model) per object class: by log score, and by SR@1 in navigation.
   bins, against how often the realised receptacle was that one (a table and
   ``reliability.png``), and the expected calibration error (ECE, the count-weighted mean gap).
 
-Navigation (``search``): the policies of :mod:`flowmaps_jax.navigation.navigation` with each row as
-the belief and the realised receptacle as the target; the searcher starts at receptacle slot 0
-(a recorded home has no start point of its own) and walks the recorded walking distances.
+Navigation (``search``): the policies of :mod:`flowmaps_jax.search.navigation` with each row as
+the belief and the realised receptacle as the target; the searcher starts at the home's most
+central receptacle (:func:`start_distance`; a recorded home has no start point of its own) and
+walks the recorded walking distances.
 """
 
 from __future__ import annotations
@@ -50,14 +51,15 @@ from flowmaps_jax.atomic_files import make_output_dir, save_figure, write_file
 from flowmaps_jax.evaluation import priors as pr
 from flowmaps_jax.evaluation.receptacle_scores import best_lines, best_rows, stats, summarise
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
-from flowmaps_jax.navigation import navigation as nav
 from flowmaps_jax.recorded.format import content_digest
+from flowmaps_jax.search import navigation as nav
 from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
 from flowmaps_jax.validation import check_int, check_output_dir, check_seed, prefix_errors
 from flowmaps_jax.worlds import recorded as rw
 from flowmaps_jax.worlds import recorded_references as references
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
+START = "the receptacle nearest all the others (smallest sum of walking distances)"
 EVAL_SEED = 35_000_047
 """Seed of the evaluation queries (with ``--seed`` folded in)."""
 DEFAULT_QUERIES = 32
@@ -253,14 +255,27 @@ def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
         names = rw.split_environments(recorded.names(), *split[:2], split[3])
         what = (f"the run's held-out test part ({len(names['test'])} environments: "
                 f"{_names([recorded.names()[i] for i in names['test']])}"
-                + (f", and the last {split[2]:.0%} of the training environments' hours"
-                   if split[2] > 0 else "") + f"; split_seed={split[3]})")
+                + (f", and the last {split[2] / (1 + (not names['val'])):.0%} of the "
+                   "training environments' hours" if split[2] > 0 else "")
+                + f"; split_seed={split[3]})")
         index = rw.part_index(recorded, split, "test")
         return (rw.part_of(recorded, config, split, "test"), what,
                 tuple(recorded.environments[i] for i in index))
     return (rw.recorded_homes(recorded, config),
             f"all {len(recorded.environments)} environments ({_names(recorded.names())}); "
             f"{_trained_on(stored, recorded)}", tuple(recorded.environments))
+
+
+def start_distance(homes) -> jax.Array:
+    """(E, R) walking distances from the searcher's start: the receptacle with the smallest sum
+    of walking distances to the others (sums in mm; ties: the smallest box centre x, then y),
+    whatever the order of the data's receptacle list."""
+    d = np.asarray(homes.receptacle_distance, np.float64)
+    valid = np.asarray(homes.receptacle_valid)
+    total = np.where(valid, np.round((d * valid[:, None, :]).sum(-1), 3), np.inf)
+    box = np.asarray(homes.receptacle_box)
+    start = [np.lexsort((b[:, 1], b[:, 0], t))[0] for t, b in zip(total, box, strict=True)]
+    return jnp.asarray(d[np.arange(len(d)), start], jnp.float32)
 
 
 def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed: int,
@@ -319,7 +334,7 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
         "eval_seed": EVAL_SEED, "seed": seed, "queries_per_environment": num_queries,
         "queries": int(valid.sum()), "environments": int(homes.num_homes),
         "horizons": horizons, "history": predictor.model.history, "p_floor": P_FLOOR,
-        "bins": BINS, "start": "receptacle slot 0", "budget": budget, "references": note,
+        "bins": BINS, "start": START, "budget": budget, "references": note,
         "unseen_at_tau": stats(np.asarray(
             ~np.asarray(data.observed)[np.arange(homes.num_homes)[:, None],
                                        np.asarray(queries.tau),
@@ -340,8 +355,7 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
         results["posterior"] = posterior
         best["posterior"] = best_rows(posterior, learned, "log_score", "object_class", True)
     if "navigation" in parts:
-        start = np.asarray(homes.receptacle_distance)[:, 0]  # (E, R): from receptacle slot 0
-        start = jnp.asarray(start)
+        start = start_distance(homes)
         realised = jax.nn.one_hot(target, allowed.shape[-1], dtype=jnp.float32)
         navigation = {}
         for name, p in beliefs.items():

@@ -26,10 +26,12 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import io
+import itertools
 import json
 import os
 import pathlib
 import re
+import shlex
 from typing import Any
 
 import numpy as np
@@ -72,6 +74,8 @@ _PART = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]{0,63}")
 MAX_NAME = 255
 MAX_TEXT = 256
 SYMMETRY_ATOL = 1e-3
+AUTHORS_SCAN = re.compile(r"scan_(merged|[0-9]+)\.parquet")
+"""The authors' scan files: a folder holding one needs ``import-flowmaps2026`` (named on load)."""
 """How far apart (metres) ``distance[i, j]`` and ``distance[j, i]`` may be (float round-off of
 a shortest-path computation)."""
 
@@ -277,6 +281,19 @@ def _check_array(where: _Where, field: str, value: Any, dtype, shape: tuple,
     return value
 
 
+def _check_integers(where: _Where, field: str, value: Any, dtype, shape: tuple,
+                    symbols: str) -> np.ndarray:
+    """As :func:`_check_array`, for an array of any integer dtype whose values fit ``dtype``
+    (returned as ``dtype``; numpy's default int64 for ``location``, say)."""
+    if isinstance(value, np.ndarray) and value.dtype.kind in "iu" and value.dtype != dtype:
+        info = np.iinfo(dtype)
+        if value.size and (value.min() < info.min or value.max() > info.max):
+            bad = value.min() if value.min() < info.min else value.max()
+            raise where.fail(field, f"holds {bad}, outside the range of {np.dtype(dtype)}")
+        value = value.astype(dtype)
+    return _check_array(where, field, value, dtype, shape, symbols)
+
+
 def _check_finite(where: _Where, field: str, value: np.ndarray) -> None:
     if not np.all(np.isfinite(value)):
         raise where.fail(field, "holds NaN or inf")
@@ -294,10 +311,11 @@ def _check_range(where: _Where, field: str, value: np.ndarray, low: int, high: i
 
 
 def validate_environment(env: Any, *, _files: dict[str, str] | None = None) -> Environment:
-    """``env`` if it is a well-formed ``Environment`` (the checks ``load_recorded`` applies);
-    else ``ValueError`` ``"environment '<name>': <field>: what is wrong"``.
+    """``env`` if it is a well-formed ``Environment`` (the checks ``load_recorded`` applies;
+    ``hours`` and ``location`` of another integer dtype whose values fit come back as int64 and
+    int32); else ``ValueError`` ``"environment '<name>': <field>: what is wrong"``.
 
-    Types, shapes and dtypes exactly as documented; T, M, R >= 1; ids distinct; hours >= 0 and
+    Types, shapes and dtypes as documented; T, M, R >= 1; ids distinct; hours >= 0 and
     strictly increasing; location, allowed, room and door indices in range; every object allowed
     somewhere and observed only on receptacles it may stand on; finite boxes, corners and
     distances (distance symmetric, >= 0, 0 on the diagonal); room boxes with x1 > x0, y1 > y0;
@@ -306,7 +324,7 @@ def validate_environment(env: Any, *, _files: dict[str, str] | None = None) -> E
         raise ValueError(f"environment must be an Environment; got {type(env).__name__}")
     name = check_environment_name(env.name)
     where = _Where(name, _files)
-    hours = _check_array(where, "hours", env.hours, np.int64, (None,), "(T,)")
+    hours = _check_integers(where, "hours", env.hours, np.int64, (None,), "(T,)")
     t = hours.shape[0]
     _check_strings(where, "receptacle_ids", env.receptacle_ids, None, distinct=True)
     r = len(env.receptacle_ids)
@@ -322,7 +340,7 @@ def validate_environment(env: Any, *, _files: dict[str, str] | None = None) -> E
     _check_strings(where, "room_classes", env.room_classes, None)
     k = len(env.room_classes)
     # arrays: shapes and dtypes
-    location = _check_array(where, "location", env.location, np.int32, (t, m), "(T, M)")
+    location = _check_integers(where, "location", env.location, np.int32, (t, m), "(T, M)")
     corners = _check_array(where, "receptacle_corners", env.receptacle_corners, np.float32,
                            (r, 8, 3), "(R, 8, 3)")
     allowed = _check_array(where, "allowed", env.allowed, np.bool_, (m, r), "(M, R)")
@@ -396,6 +414,8 @@ def validate_environment(env: Any, *, _files: dict[str, str] | None = None) -> E
         json.dumps(env.source, allow_nan=False)
     except (TypeError, ValueError) as err:
         raise where.fail("source", f"must be JSON-able ({err})") from None
+    if hours is not env.hours or location is not env.location:  # another integer dtype
+        env = dataclasses.replace(env, hours=hours, location=location)
     return env
 
 
@@ -406,8 +426,7 @@ def validate_recorded(recorded: Any) -> Recorded:
         raise ValueError(f"recorded must be a Recorded; got {type(recorded).__name__}")
     if not isinstance(recorded.environments, tuple) or not recorded.environments:
         raise ValueError("recorded.environments must be a non-empty tuple of Environment")
-    for env in recorded.environments:
-        validate_environment(env)
+    recorded = Recorded(tuple(validate_environment(env) for env in recorded.environments))
     _check_distinct_names(recorded.names(), "recorded.environments")
     return recorded
 
@@ -513,7 +532,7 @@ def save_recorded(recorded: Recorded, path) -> pathlib.Path:
     environment, all written aside and renamed into place together; a symbolic link at any
     name written, or at a folder under ``path``, is refused. Returns the ``recorded.json``
     path."""
-    validate_recorded(recorded)
+    recorded = validate_recorded(recorded)
     root = pathlib.Path(check_output_dir("path", path))
     files: dict[pathlib.Path, str | bytes] = {}
     for env in recorded.environments:
@@ -682,6 +701,13 @@ def load_environment(root, name: str, budget: int | None = None) -> Environment:
     return _environment_from_json(name, data, arrays, files)
 
 
+def _authors_layout(root: pathlib.Path, folders: int = 1000) -> bool:
+    """Whether a scan file of the authors' 2026 layout (``flowmaps2026``) lies under ``root``
+    (among its first ``folders`` folders)."""
+    walk = itertools.islice(os.walk(root), folders)
+    return any(AUTHORS_SCAN.fullmatch(f) for _, _, files in walk for f in files)
+
+
 def load_recorded(path) -> Recorded:
     """Read the recorded world in the folder ``path`` (see the module's docstring);
     ``ValueError`` ``"<file>: <field>: what is wrong"`` for a bad file. The files are
@@ -690,8 +716,11 @@ def load_recorded(path) -> Recorded:
     root = pathlib.Path(check_dir("path", path))
     index_file = os.fspath(root / INDEX_FILE)
     if not os.path.isfile(index_file):
+        hint = (f"; it is in the authors' 2026 layout: convert it first with python -m "
+                f"flowmaps_jax.data import-flowmaps2026 {shlex.quote(os.fspath(root))} --out "
+                f"OUT" if _authors_layout(root) else "")
         raise ValueError(f"{index_file}: (file): missing; {os.fspath(root)!r} is not a "
-                         f"recorded world (no {INDEX_FILE})")
+                         f"recorded world (no {INDEX_FILE}){hint}")
     index = _keys(index_file, "(top level)", read_json("", index_file), _INDEX_KEYS)
     if index["format"] != FORMAT:
         raise ValueError(f"{index_file}: format: is {index['format']!r}, not {FORMAT!r}"[:300])

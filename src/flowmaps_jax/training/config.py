@@ -366,8 +366,9 @@ class RecordedTrainConfig(HomesTrainConfig):
     :mod:`flowmaps_jax.worlds.recorded`): :class:`HomesTrainConfig`'s fields (``homes`` is
     derived from the data, :func:`recorded_config`; ``chunk_homes``, ``chunk_steps`` and
     ``val_homes`` are not read) and ``data`` (the dataset's folder), the split by environment
-    (``val_fraction``, ``test_fraction`` of them held out, seeded by ``split_seed``) and by time
-    (``time_fraction``: the last hours of every training environment held out for test).
+    (``val_fraction``, ``test_fraction`` of them held out, 10 % each in every recipe, seeded by
+    ``split_seed``) and by time (``time_fraction``: the last hours of every training
+    environment held out; ``worlds.recorded.part_of``).
     ``data_digest``: :func:`flowmaps_jax.recorded.format.content_digest` of the data when the
     run began (set by :func:`recorded_config`): a resume refuses changed data, and evaluation
     knows a copy of the data elsewhere for the run's own. ``config.json`` stores
@@ -593,8 +594,7 @@ def recorded_smoke_preset() -> RecordedTrainConfig:
     return RecordedTrainConfig(
         model=dataclasses.replace(smoke.model, history_observed=True), batch_size=4,
         queries_per_scene=2, steps=6, warmup_steps=1, max_horizon=24,
-        val_batches=2, log_every=2, val_every=3, ckpt_every=3, val_fraction=0.2,
-        test_fraction=0.2, preset="recorded-smoke")
+        val_batches=2, log_every=2, val_every=3, ckpt_every=3, preset="recorded-smoke")
 
 
 def recorded_homes_preset() -> RecordedTrainConfig:
@@ -650,11 +650,17 @@ def get_preset(name: str = DEFAULT_PRESET) -> TrainConfig | HomesTrainConfig:
 _UNPRINTED = ("flowsim.furniture_kinds", "flowsim.categories", "homes.room_types",
               "homes.receptacle_classes", "homes.object_classes")
 """The class tables of the worlds' configs, left out of the run's printed config."""
+_RECORDED_PRINTED = ("homes.num_hours", "homes.max_tokens", "homes.max_vocabulary")
+"""A recorded run prints only these of ``homes`` (the rest are FlowSim generator fields) and
+none of the fields it does not read (``chunk_homes``, ``chunk_steps``, ``val_homes``)."""
 
 
 def format_config(cfg: TrainConfig | HomesTrainConfig) -> str:
     """Human-readable multi-line dump of the resolved config (printed at the start of a run)."""
     flat = flatten(cfg.to_dict())
+    if isinstance(cfg, RecordedTrainConfig):
+        flat = {k: v for k, v in flat.items() if k in _RECORDED_PRINTED or not k.startswith(
+            ("homes.", "chunk_homes", "chunk_steps", "val_homes"))}
     width = max(len(k) for k in flat)
     return "\n".join(f"  {k:<{width}} = {v}" for k, v in flat.items()
                      if not k.startswith(_UNPRINTED))

@@ -13,13 +13,17 @@
    ``ckpt_every``.
 3. **Summary.** The last checkpoint, the routine curve and the commands to evaluate or resume.
 
-The run directory holds ``config.json``, ``metrics.jsonl`` and ``checkpoints/``
-(:mod:`flowmaps_jax.training.runlog`; one run per directory: :mod:`flowmaps_jax.store.rundir`).
-The batch and noise of step i depend only on the state's keys and i, so a resumed run continues
-exactly, and its records are those of a run never stopped. Everything world-specific comes from
-:func:`flowmaps_jax.worlds.world`. Ctrl-C saves a checkpoint and returns; a NaN/inf loss, or a
-state with NaN/inf that a save refuses, stops the run without saving the bad state (the last
-good checkpoint stays).
+A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` and
+``checkpoints/`` (:mod:`flowmaps_jax.training.runlog`, :mod:`flowmaps_jax.store.checkpoints`)
+and belongs to one run (:mod:`flowmaps_jax.store.rundir`). The batch and noise of step i
+depend only on the state's keys and i, so a resumed run continues exactly, and the metrics of
+the steps since the last train record travel in the checkpoint, so the records of a resumed run
+are those of a run never stopped. Everything that depends on the world (its data, batches,
+objective, resource estimate) comes from the run config's world
+(:func:`flowmaps_jax.worlds.world`); the loop itself is the same for every world. Ctrl-C
+saves a checkpoint and returns; a NaN/inf loss, or a state with NaN/inf that a save refuses,
+stops the run without saving the bad state (the last good checkpoint stays). The command line
+is :mod:`flowmaps_jax.training.cli`.
 """
 
 from __future__ import annotations
@@ -80,7 +84,9 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     stop_at: stop after this step (saving a checkpoint) without changing the schedule, which
         always spans ``cfg.steps``. on_step(step, metrics): called after every step (tests).
 
-    A failed checkpoint write raises
+    Nothing in ``run_dir`` is written before every check has passed, and ``run_dir/.lock``
+    keeps other processes out while the run lasts (see :mod:`flowmaps_jax.store.rundir`). A
+    failed checkpoint write (e.g. a full disk) raises
     :class:`~flowmaps_jax.store.checkpoint_store.CheckpointSaveError`.
     """
     # ---- Prelude: every check, then the run's pieces; nothing is written before the last one.
@@ -170,9 +176,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
                         log(f"  compiled (train step, validation) and ran the first step in "
                             f"{time.perf_counter() - compile_start:.1f} s")
                     book.add_step(metrics, None if step == start else seconds)
-                    bar.show(done, loss=f"{metrics['loss']:.4f}",
-                             val=f"{val_loss:.4f}" if val_loss is not None else "-",
-                             next=f"{routine['offset_+1']:.2f}" if routine else "-")
+                    bar.show(done, **postfix(metrics, val_loss, routine, probe is not None))
 
                     if done % cfg.log_every == 0 or done == end:
                         book.write_train(done, samples_per_step)
@@ -373,6 +377,16 @@ class StopFlag:
     def __exit__(self, *exc):
         if self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)
+
+
+def postfix(metrics: dict, val_loss: float | None, routine: dict | None,
+            routine_on: bool) -> dict[str, str]:
+    """The progress bar's loss, val loss and, when the routine diagnostic is on, ``next``."""
+    shown = {"loss": f"{metrics['loss']:.4f}",
+             "val": f"{val_loss:.4f}" if val_loss is not None else "-"}
+    if routine_on:
+        shown["next"] = f"{routine['offset_+1']:.2f}" if routine else "-"
+    return shown
 
 
 class _ProgressBar:

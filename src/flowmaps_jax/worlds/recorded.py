@@ -24,9 +24,11 @@ geometry (``furnish.cycles``); ``receptacle_distance`` ``Environment.walking_dis
 The split (:func:`split_environments`) is by environment, seeded: ``test_fraction`` and
 ``val_fraction`` of them held out, the rest trained on; with ``time_fraction`` > 0 the last
 ``time_fraction`` of every training environment's hours are held out too (training targets
-before the cut, test targets after it). Training draws each home at one map hour τ with queries
-only on (object, τ_q) pairs that were observed (targets are the receptacle seen at τ_q); a
-query's object may be unseen at τ (its inputs then say where and how long ago it was last seen).
+before the cut, test targets after it; with no validation environment, validation targets in
+the first half of the held-out hours, test targets in the second). Training draws each home
+at one map hour τ with queries only on (object, τ_q) pairs that were observed (targets are the
+receptacle seen at τ_q); a query's object may be unseen at τ (its inputs then say where and how
+long ago it was last seen).
 
 ``cfg`` is a ``flowmaps_jax.training.config.RecordedTrainConfig`` throughout.
 """
@@ -67,6 +69,8 @@ DEFAULT_OBJECT_SIZE = (0.1, 0.1, 0.1)
 MIN_SIZE = 1e-3
 """Metres: the smallest box side (a flat recorded box is this thick)."""
 SPLITS = ("train", "val", "test")
+MIN_HELD_OUT = 3
+"""Validation or test by environment on fewer environments draws a warning (describe_split)."""
 
 
 @struct.dataclass
@@ -337,21 +341,31 @@ def time_cut(recorded, index, time_fraction: float) -> np.ndarray:
 
 
 def describe_split(recorded, split: dict, time_fraction: float) -> str:
-    """One line per part: its environments' names."""
+    """One line per part: its environments' names; then the time split, and a warning when
+    validation or test rests on fewer than ``MIN_HELD_OUT`` environments."""
     names = recorded.names()
     lines = [f"  {part} ({len(split[part])}): "
              + ", ".join(names[i] for i in split[part][:8])
              + (" ..." if len(split[part]) > 8 else "") for part in SPLITS]
     if time_fraction > 0:
         lines.append(f"  and the last {time_fraction:.0%} of every training environment's "
-                     "hours held out for test")
+                     "hours held out for " + ("test" if split["val"] else
+                                              "validation (first half) and test (second)"))
+    few = [f"{part} {len(split[part])}" for part in ("val", "test")
+           if len(split[part]) < MIN_HELD_OUT and not (time_fraction > 0 and (
+               part == "test" or not split["val"]))]
+    if few:
+        lines.append(f"  warning: {' and '.join(few)} environments (fewer than {MIN_HELD_OUT}); "
+                     "with few environments hold out the last days of every one instead: "
+                     "--set val_fraction=0 --set test_fraction=0 --set time_fraction=0.25")
     return "\n".join(lines)
 
 
 def part_of(recorded, config: HomesConfig, cfg_split: tuple, part: str) -> RecordedHomes:
     """The part ``part`` of the split ``cfg_split`` = (val_fraction, test_fraction,
     time_fraction, seed): its environments as homes, their target hours set (test: the held-out
-    environments whole, and the held-out hours of the training ones)."""
+    environments whole, and the held-out hours of the training ones; with no validation
+    environment, the first half of those hours validates, the second tests)."""
     val_fraction, test_fraction, time_fraction, seed = cfg_split
     split = split_environments(recorded.names(), val_fraction, test_fraction, seed)
     train = split["train"]
@@ -359,9 +373,12 @@ def part_of(recorded, config: HomesConfig, cfg_split: tuple, part: str) -> Recor
     index = part_index(recorded, cfg_split, part)
     if part == "train":
         return recorded_homes(recorded, config, index, stop=cut)
+    mid = cut if split["val"] else time_cut(recorded, train, time_fraction / 2)
     if part == "test" and time_fraction > 0:
-        start = np.concatenate([np.zeros(len(split["test"]), np.int32), cut])
+        start = np.concatenate([np.zeros(len(split["test"]), np.int32), mid])
         return recorded_homes(recorded, config, index, start=start)
+    if part == "val" and time_fraction > 0 and not split["val"]:  # validation by time
+        return recorded_homes(recorded, config, index, start=cut, stop=mid)
     if not index:
         raise ValueError(f"the split has no {part} environment (val_fraction / test_fraction)")
     return recorded_homes(recorded, config, index)
@@ -370,11 +387,13 @@ def part_of(recorded, config: HomesConfig, cfg_split: tuple, part: str) -> Recor
 def part_index(recorded, cfg_split: tuple, part: str) -> tuple[int, ...]:
     """The environments (indices into ``recorded``) of :func:`part_of`'s homes, in its order:
     the part's environments, and for ``"test"`` with a time cut the training ones after
-    them."""
+    them (for ``"val"`` by time, the training ones alone)."""
     val_fraction, test_fraction, time_fraction, seed = cfg_split
     split = split_environments(recorded.names(), val_fraction, test_fraction, seed)
     if part == "test" and time_fraction > 0:
         return (*split["test"], *split["train"])
+    if part == "val" and time_fraction > 0 and not split["val"]:
+        return split["train"]
     return split[part]
 
 
@@ -498,10 +517,10 @@ def splits(cfg, log: Callable[[str], None] = print, mesh=None):
                              "to train on")
         names = recorded.names()
         check_drawable(train, [names[i] for i in split["train"]], cfg, "training")
-        val_part = "val" if split["val"] else "train"
+        val_part = "val" if split["val"] or cfg.time_fraction > 0 else "train"
         val = part_of(recorded, cfg.homes, _split_of(cfg), val_part)
-        check_drawable(val, [names[i] for i in split[val_part]], cfg,
-                       "validation" if split["val"] else "training")
+        check_drawable(val, [names[i] for i in part_index(recorded, _split_of(cfg), val_part)],
+                       cfg, "validation" if val_part == "val" else "training")
     log(f"  data ready in {time.perf_counter() - start:.1f} s")
     return train, val
 
