@@ -28,7 +28,7 @@ import numpy as np
 from flowmaps_jax.evaluation import priors as pr
 from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes
 from flowmaps_jax.flowsim.homes.queries import draw_queries
-from flowmaps_jax.search import navigation as nav
+from flowmaps_jax.navigation import navigation as nav
 
 
 def median_seconds(fn, repeats: int) -> float:

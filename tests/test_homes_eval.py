@@ -29,7 +29,7 @@ from flowmaps_jax.flowsim.homes import (
     homes_posterior,
 )
 from flowmaps_jax.flowsim.homes.queries import HomesQueries, draw_queries
-from flowmaps_jax.search import navigation as nav
+from flowmaps_jax.navigation import navigation as nav
 
 CONFIG = HomesConfig(regime="mixed", num_hours=192)
 HISTORY = 24

@@ -98,15 +98,16 @@ def reach(name: str) -> dict[str, str]:
     return chains
 
 
-def _cycles() -> list[list[str]]:
-    """The strongly connected components with more than one module (Tarjan)."""
+def _cycles(nodes=MODULES, out_of=edges) -> list[list[str]]:
+    """The strongly connected components with more than one node (Tarjan); by default of the
+    modules, along the written edges."""
     index, low, stack, on_stack, out = {}, {}, [], set(), []
 
     def visit(v):
         index[v] = low[v] = len(index)
         stack.append(v)
         on_stack.add(v)
-        for w in edges(v):
+        for w in out_of(v):
             if w not in index:
                 visit(w)
                 low[v] = min(low[v], low[w])
@@ -123,7 +124,7 @@ def _cycles() -> list[list[str]]:
             if len(component) > 1:
                 out.append(sorted(component))
 
-    for v in sorted(MODULES):
+    for v in sorted(nodes):
         if v not in index:
             visit(v)
     return out
@@ -146,6 +147,55 @@ def test_no_import_circles():
     assert _cycles() == []
 
 
+PACKAGES = sorted(name for name, path in MODULES.items() if path.name == "__init__.py")
+
+
+def _child(package: str, module: str) -> str | None:
+    """The module or subpackage directly in ``package`` that holds ``module`` (None: outside)."""
+    if not module.startswith(package + "."):
+        return None
+    return f"{package}.{module[len(package) + 1:].split('.')[0]}"
+
+
+def package_graph(package: str) -> dict[str, set[str]]:
+    """The import graph between the direct members of ``package`` (its modules and subpackages,
+    each standing for everything inside it): an edge wherever a module of one imports a module
+    of another. The package's own ``__init__`` is no member."""
+    graph: dict[str, set[str]] = {}
+    for name in MODULES:
+        source = _child(package, name)
+        if source is None:
+            continue
+        graph.setdefault(source, set())
+        for target in edges(name):
+            member = _child(package, target)
+            if member is not None and member != source:
+                graph[source].add(member)
+    return graph
+
+
+def test_the_package_graph_is_read():
+    top = package_graph(PACKAGE)
+    assert f"{PACKAGE}.navigation" in top[f"{PACKAGE}.evaluation"]
+    assert f"{PACKAGE}.evaluation" in top[f"{PACKAGE}.search"]
+    assert f"{PACKAGE}.training.config" in \
+        package_graph(f"{PACKAGE}.training")[f"{PACKAGE}.training.loop"]
+    # the circle evaluation <-> search (search.navigation) would be found
+    top[f"{PACKAGE}.navigation"].add(f"{PACKAGE}.search")
+    assert [f"{PACKAGE}.evaluation", f"{PACKAGE}.navigation", f"{PACKAGE}.search"] in \
+        _cycles(top, lambda member: sorted(top[member]))
+    assert len(PACKAGES) > 10
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_no_package_imports_a_package_that_imports_it(package):
+    """Between the members of every package (the top level: ``evaluation/``, ``search/``,
+    ``predictor``, ...; and inside each subpackage), no circle of any length: a package's modules
+    never import, lazily or not, a package that imports it."""
+    graph = package_graph(package)
+    assert _cycles(graph, lambda member: sorted(graph[member])) == []
+
+
 LAYERS = (
     ("validation", "atomic_files", "untrusted_files", "resources", "boxes", "distributed"),
     ("tokens", "flow", "tables"),
@@ -153,6 +203,7 @@ LAYERS = (
     ("worlds",),
     ("store",),
     ("predictor", "export"),
+    ("navigation",),
     ("evaluation", "search"),
     ("training",),
     ("train", "evaluate", "data"),

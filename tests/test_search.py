@@ -17,9 +17,9 @@ import pytest
 
 from flowmaps_jax import tables
 from flowmaps_jax.flowsim import exact_posterior
+from flowmaps_jax.navigation import policies as P
 from flowmaps_jax.search import cli, figures, protocol, report
 from flowmaps_jax.search import episodes as E
-from flowmaps_jax.search import policies as P
 from flowmaps_jax.search import probabilities as T
 from flowmaps_jax.search import scores as S
 from flowmaps_jax.tokens import OBJECT

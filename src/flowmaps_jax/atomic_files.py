@@ -1,24 +1,9 @@
-"""The one writer every command's output files go through (reports, JSON, Markdown, PNG, pretrained
-weights, a run's config and metrics): nothing is ever written through a symbolic link.
-
-* :func:`write_file` writes bytes or text to a path: a symbolic link at the path is refused
-  (``ValueError`` naming it), the data goes to ``<path>.tmp`` (created exclusively, never
-  following a link; a leftover there is removed first) and is renamed into place, so a crash or
-  a full disk never leaves a half-written file and no file outside the output folder changes;
-  :func:`write_files` writes several files as one output (all temporaries, then the renames).
-* :func:`make_output_dir` creates an output folder and the parents it lacks, one by one; a
-  component that turns out to be a symbolic link (planted while it was being created) is
-  refused. An existing folder given by the caller (``--out``) is used as it is.
-* :func:`output_folder` writes a whole output folder (a data command's ``--out``) into a fresh
-  folder beside it, renamed into place at the end: nothing half-written, no link followed, and
-  a folder that holds anything is replaced only when told to (it is moved aside).
-* :func:`save_figure` renders a matplotlib figure in memory and writes it with
-  :func:`write_file`.
-* :func:`check_no_links` refuses, up front, links at the names a command is about to write, so
-  that a command refuses before it runs for minutes rather than after;
-  :func:`check_tree_no_links` refuses a link anywhere under a folder a command owns (a run
-  directory: its checkpoints, their steps, its logs), so that nothing is read, written or
-  deleted through one.
+"""The one writer every command's output files go through: nothing is ever written through a
+symbolic link, and nothing is left half-written (a temporary beside the target, then a
+rename). :func:`write_file` / :func:`write_files`, :func:`make_output_dir`,
+:func:`output_folder` (a whole folder, renamed into place), :func:`save_figure`, and the
+up-front refusals :func:`check_no_links` and :func:`check_tree_no_links`; each ``ValueError``
+names the path.
 """
 
 from __future__ import annotations

@@ -1,21 +1,10 @@
-"""Devices and hosts: one 1-D data-parallel mesh, the shardings on it, and multi-host start-up.
+"""Devices and hosts: one 1-D data-parallel mesh (axis ``"data"``), the shardings on it, and
+multi-host start-up.
 
-Everything that scales out goes through JAX's own SPMD partitioner (``jax.sharding``): a
-:class:`jax.sharding.Mesh` with one axis, ``"data"``, over the devices; batches (scenes,
-environments, scenes × queries) are split along their leading axis over it
-(:func:`batch_sharding`), and parameters, EMA and optimiser state are replicated
-(:func:`replicated`). ``jax.jit`` with these shardings then compiles one program that XLA
-partitions, adding the gradient all-reduce itself. There is no hand-written parallel scheme.
-
-* :func:`data_mesh` builds the mesh (all devices, or the first ``num_devices``).
-* :func:`check_divides` is the one ``ValueError`` for a size that does not split evenly.
-* :func:`shard_rows` pads a batch to a multiple of the mesh size and places it on the mesh (the
-  inference paths: results are per row, so padding rows are dropped afterwards).
-* :func:`initialize` starts ``jax.distributed`` when a cluster environment is present, and
-  :func:`host_part` says which share of a dataset this host generates.
-
-On one device all of this is the identity: one-device meshes are never built by the training
-loop (:func:`training_mesh` returns None), so a single-device run compiles what it always did.
+Batches are split along their leading axis (:func:`batch_sharding`), parameters, EMA and
+optimiser state replicated (:func:`replicated`); ``jax.jit`` with these shardings lets XLA
+partition the step and add the gradient all-reduce. On one device the training loop builds no
+mesh (:func:`training_mesh` returns None).
 """
 
 from __future__ import annotations

@@ -1,14 +1,7 @@
-"""``python -m flowmaps_jax.export``: export a checkpoint's EMA weights as a pretrained model.
-
-A thin command over :func:`flowmaps_jax.store.pretrained.export_pretrained`, which writes
-``<name>.npz`` and ``<name>.json`` (atomically: temporary files, then renames), e.g.
-``python -m flowmaps_jax.export --checkpoint runs/X --name mlp`` (the best-by-validation
-step, the one evaluate and search load by default: one default path; ``--which latest`` exports
-the last step instead).
-
-The files go into the run's own ``export/`` folder (``runs/X/export/``, next to its
-``checkpoints/``) unless ``--out`` names another folder: the packaged weights
-(``flowmaps_jax/pretrained/``) are replaced only when ``--out`` names that folder.
+"""``python -m flowmaps_jax.export``: a checkpoint's EMA weights as a pretrained model, a thin
+command over :func:`flowmaps_jax.store.pretrained.export_pretrained` (``<name>.npz`` and
+``<name>.json``, atomically). ``--which`` best (default, what evaluate and search load) or
+latest; the files go into ``<run>/export/`` unless ``--out`` names another folder.
 """
 
 from __future__ import annotations

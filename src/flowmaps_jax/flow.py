@@ -65,14 +65,8 @@ def time_grid(num_steps: int, method: str = "midpoint") -> np.ndarray:
     """The ``num_steps`` grid points in [0, 1] (float64 numpy, increasing) a solver steps through.
 
     ``"midpoint"`` / ``"euler"``: uniform (the paper's ``linspace(0, 1, n)``). ``"accurate"``:
-    concentrated where the field is stiff. Near t = 1 the velocity towards a target of width σ
-    changes on the time scale 1 − t ≈ σ, and FlowMaps' size widths are σ ≈ 1e-3: there a uniform
-    grid of 10–160 points has one step or none, and the divergence integral is wrong by nats
-    (docs/results.md, "A likelihood you can trust"). This grid is t = 1 − (1 − s)^4 for s
-    uniform in [0, 1]: steps shrink like (1 − t)^¾, so 1 − t ≈ 1e-3 still gets steps of ~1/3 of
-    itself, while the middle of the path, where samples choose their component, keeps steps of a
-    few per cent. (Measured against a closed form, tests/test_route.py: 48 points are within
-    0.01 nats, 96 within 0.001; a grid geometric in 1 − t needs twice as many points.)
+    t = 1 − (1 − s)^4 for s uniform in [0, 1], steps shrinking like (1 − t)^¾ where the field is
+    stiff (docs/results.md, "A likelihood you can trust").
     """
     if method != "accurate":
         return np.linspace(0.0, 1.0, num_steps)

@@ -5,32 +5,13 @@
     boxes = predictor.sample(tokens, queries, num_samples=25, key=jax.random.key(0))
     log_p = predictor.log_prob(tokens, queries, boxes)               # (B, Q, 25)
 
-Shapes: ``tokens`` is a :class:`~flowmaps_jax.tokens.SceneTokens` with leading dim (B,), ``queries``
-a :class:`~flowmaps_jax.tokens.Queries` with dims (B, Q). Boxes are normalised ``(y, x, h, w)``;
-``pixels=True`` returns pixel corners ``(y0, x0, y1, x1)`` instead.
-
-How it runs. Inputs are validated on the host (clear ``ValueError`` naming the argument), then one
-``jax.jit``-compiled core of the model's family (:mod:`flowmaps_jax.model.families`) does the work:
-
-* FlowMaps: the map of every scene is encoded **once**; X_0 ~ N(0, I_4) of shape (B, Q, N, 4) is
-  integrated from t = 0 to 1 by :func:`flowmaps_jax.flow.integrate` (a ``lax.scan`` over the time
-  grid). The N samples of a query are N rows of one velocity call, so they share the query's
-  context and, at every step, its conditioning. ``log_prob`` integrates the augmented ODE backwards
-  with the exact 4-D divergence (:func:`flowmaps_jax.flow.log_prob`).
-* MLP baseline: one forward pass gives a diagonal Gaussian per query; samples are
-  ``mean + std · ε`` and the log-density is closed form.
-
-Random numbers: the samples of scene b come from ``split(key, B)[b]`` (or from ``key[b]`` when a
-batch of B keys is passed), so a scene's samples do not depend on which other scenes share the
-batch when per-scene keys are given.
-
-Several devices: ``predictor.sharded()`` splits the scenes of every call over all devices
-(:mod:`flowmaps_jax.distributed`; params replicated). Per-scene keys make the results the same
-as on one device.
-
-Loading needs neither optax nor the training code: :func:`load` reads checkpoints through
-:mod:`flowmaps_jax.store.checkpoints`, :func:`load_pretrained` the pretrained weights through
-:mod:`flowmaps_jax.store.pretrained`.
+Shapes: ``tokens`` a :class:`~flowmaps_jax.tokens.SceneTokens` (B,), ``queries`` a
+:class:`~flowmaps_jax.tokens.Queries` (B, Q); boxes normalised ``(y, x, h, w)`` (``pixels=True``:
+pixel corners ``(y0, x0, y1, x1)``). Inputs are validated on the host (``ValueError`` naming the
+argument), then one jitted core of the model's family runs. Scene b's samples come from
+``split(key, B)[b]``, or ``key[b]`` for a batch of B keys (then independent of the other scenes
+in the batch, and the same under ``predictor.sharded()``). Loading needs neither optax nor the
+training code (:mod:`flowmaps_jax.store`).
 """
 
 from __future__ import annotations

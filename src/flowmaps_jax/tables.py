@@ -1,24 +1,16 @@
-"""Where boxes land: the protocol's assignment of boxes to places, and a model's table masses.
+"""Where boxes land: the protocol's assignment of boxes to places, and a model's table masses;
+below the predictor, so that evaluation and search share one rule.
 
-Below the predictor and the evaluation, so that both, and the search, share one rule:
+* **Assignment** (protocol v2, docs/protocol.md): a box goes to the slot k whose object centre is
+  nearest its centre, "off" beyond the slot's radius max(:data:`ASSIGN_RADIUS`,
+  :data:`ASSIGN_SIGMAS` · σ_c), σ_c = :data:`CENTRE_SIGMA_SCALE` × the object's longer side.
+  :func:`empirical_slots`: the share (..., K + 1) of samples (..., N, 4) on each slot, then off.
+* **Table masses** (:func:`table_probabilities`): ``probs`` (B, Q, S + 1) over every table of
+  the map (zero on object tokens and padding), the last entry off; from samples, or from a
+  read-out head's weights (``method="weights"``).
 
-* **The assignment** (protocol v2, docs/protocol.md): a box goes to the place (slot) k whose
-  object *centre* (y + h/2, x + w/2 of b_k) is nearest to the box's centre, and to "off" when
-  that distance exceeds the slot's radius max(:data:`ASSIGN_RADIUS`, :data:`ASSIGN_SIGMAS` · σ_c),
-  σ_c = :data:`CENTRE_SIGMA_SCALE` × the object's longer side (the centre std of the protocol's
-  smoothed q, :mod:`flowmaps_jax.evaluation.kl`). :func:`empirical_slots` gives the share
-  (..., K + 1) of samples (..., N, 4) on each of K slots, then off; the evaluation's slots are
-  the K places of the object's kind (:mod:`flowmaps_jax.evaluation.slots`).
-* **Table masses** (:func:`table_probabilities`, what ``Predictor.table_probabilities`` and
-  the search's priors call): the slots are every table of the map, ``probs`` (B, Q, S + 1) with
-  entry ``[b, q, s]`` the mass on furniture token s (zero on object tokens and padding) and the
-  last entry the mass on no table. A sampling model's N samples are assigned as above (the
-  object's size read from its own token at τ, :func:`table_boxes`); a model with explicit table
-  weights can be read without sampling (``method="weights"``).
-
-Shapes: ``...`` free leading dims (one per query), ``K`` slots, ``slot_mask`` (..., K) True on
-real slots; tokens (B, S), queries (B, Q). Public functions check their arguments once; callers
-that built the arrays themselves run the jitted kernels, which check nothing:
+Shapes: ``...`` free leading dims, K slots, ``slot_mask`` (..., K); tokens (B, S), queries
+(B, Q). Public functions check once; the jitted kernels check nothing:
 ``histogram(assign_slots(samples, slot_boxes, slot_mask, radius), K)`` is :func:`empirical_slots`.
 """
 

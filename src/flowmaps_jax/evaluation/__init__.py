@@ -1,18 +1,6 @@
-"""Evaluation against FlowSim's exact posterior (the protocol of docs/design.md).
-
-Module map, in the order data flows::
-
-    kl.py        the ground-truth Gaussian mixture q (σ, log q, draws) and the KL(q‖p) estimate
-    slots.py     slot assignment, p̂, TV / top-1 / search cost, reference slot predictors,
-                 route-offset mass
-    protocol.py  the queries (EvalSet, build_eval_queries; with a history in worlds with
-                 habits) and one RowResult per predictor (reference_rows, evaluate_predictor)
-    report.py    rows → results.json / results.md (summarise_rows, summarise_habits,
-                 markdown_table, write_report)
-    figures.py   the report's figures (plot_kl, plot_by_horizon, plot_samples, plot_slot_bars)
-    run.py       run_evaluation: all of the above in one call
-    routine.py   the routine diagnostic the training loop logs, and its learning-curve figure
-    cli.py       ``python -m flowmaps_jax.evaluate``
+"""Evaluation against the exact posterior (the protocol: docs/protocol.md; the module map:
+docs/design.md). :func:`run.run_evaluation` runs the 2-D protocol in one call; ``cli`` is
+``python -m flowmaps_jax.evaluate``.
 """
 
 from flowmaps_jax.evaluation.figures import (

@@ -1,33 +1,16 @@
-"""``python -m flowmaps_jax.evaluate``: evaluate a model and baselines against the exact posterior.
+"""``python -m flowmaps_jax.evaluate``: evaluate a model and baselines against the exact posterior
+(the protocol: docs/protocol.md).
 
     python -m flowmaps_jax.evaluate --checkpoint runs/flowmaps-cpu-X \\
         --baseline runs/mlp-cpu-Y [--baseline ...] [--out DIR] [--num-envs 200] \\
         [--samples 25,100] [--kl-draws 100] [--seed 0] [--world NAME] [--history H]
 
-Writes into ``--out`` (default ``<checkpoint>/eval``) ``results.json``, ``results.md`` (with the
-route-offset mass one step ahead: the routine diagnostic) and the figures ``kl.png`` (paper
-Fig. 2), ``by_horizon.png``, ``samples.png`` (paper Fig. 3) and ``slots.png``.
-``--checkpoint``/``--baseline`` take run or checkpoint directories, or ``pretrained:NAME``.
-
-A FlowSim homes model (``--checkpoint pretrained:flowmaps-homes`` or a homes run) is scored by
-the homes protocol instead (every prior against the exact posterior over receptacles: KL, TV,
-top-1, rank cost, overall, by regime and by horizon; ``results.md``, ``results.json``,
-``rank_cost_by_horizon.png``), with the homes options ``--queries`` (per home), ``--regime`` and
-``--horizons``; ``--num-envs`` counts homes, ``--samples`` is one count. The CLI finds the
-model's world from its stored family (:data:`flowmaps_jax.worlds.WORLDS`), and refuses the
-options that do not apply to it.
-
-A homes-network model with ``--data PATH`` (a recorded dataset; a run trained with ``--data``
-reads its own by default) is scored against the realised receptacles of the data's held-out
-part (:mod:`flowmaps_jax.evaluation.realised`: log score, top-1, top-5, rank, the reliability
-table and ``reliability.png``; ``--queries`` per environment).
-
-``--world`` (a ``flowsim.WORLDS`` name; default the world of ``--checkpoint``'s config) picks the
-habits the validation scenes are generated with (``flowsim.world_config``), so a model can be
-scored on another world than its own. ``--history`` H: the observations the exact posterior is
-given (default: the most maps any evaluated model reads, and at least 8 in a world with
-non-routine habits). Then the report adds the rows "exact, H = 1" and "empirical frequency,
-H = …" and one table per habit, and each model reads its own last ``model.history`` maps.
+Writes ``results.json``, ``results.md`` and figures into ``--out`` (default
+``<checkpoint>/eval``). ``--checkpoint`` / ``--baseline``: run or checkpoint directories, or
+``pretrained:NAME``. The model's world comes from its stored family
+(:data:`flowmaps_jax.worlds.WORLDS`): a FlowSim homes model is scored by the homes protocol, a
+homes-network model with ``--data PATH`` against the realised receptacles
+(:mod:`flowmaps_jax.evaluation.realised`); options that do not apply are refused.
 """
 
 from __future__ import annotations

@@ -7,12 +7,10 @@ with unit Jacobian, so log q evaluated at c(x) *is* the log-density of boxes x i
 samples are drawn in centre coordinates and returned as (y, x, h, w), and densities are evaluated
 the other way round. KL(q‖p) = E_{x~q}[log q(x) − log p(x)] is estimated from draws of q.
 
-Shapes: ``...`` are free leading batch dims (one per query); ``K`` slots per query, padded to a
-common size, ``slot_mask`` (..., K) True on real slots (padded slots carry q_k = 0). Public
-functions validate their inputs once (shapes always, values on concrete arrays) and run a jitted
-kernel, which checks nothing (:func:`mixture_log_prob`, :func:`mixture_samples`,
-:func:`kl_estimate`): the evaluation's own modules run the kernels on the arrays they built
-(:mod:`.protocol`).
+Shapes: ``...`` free leading dims (one per query), K slots padded to a common size,
+``slot_mask`` (..., K) True on real slots (q_k = 0 on padding). Public functions validate once
+and run a jitted kernel that checks nothing (:func:`mixture_log_prob`, :func:`mixture_samples`,
+:func:`kl_estimate`).
 """
 
 from __future__ import annotations

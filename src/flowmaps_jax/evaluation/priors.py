@@ -42,7 +42,8 @@ vmapped over homes and queries (no Python loop over either):
 Both read ``homes.receptacle`` −1 as "not seen" (:func:`seen_only`), and their parameters
 (:class:`CountFit`) are chosen on a training part by :func:`fit_count_table`.
 
-"Nearest first" needs no prior: it is a navigation policy (:mod:`flowmaps_jax.search.navigation`).
+"Nearest first" needs no prior: it is a navigation policy
+(:mod:`flowmaps_jax.navigation.navigation`).
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from flowmaps_jax.flowsim.homes import HomesConfig, homes_history_posterior
-from flowmaps_jax.flowsim.homes.queries import HomesQueries
+from flowmaps_jax.flowsim.homes.queries import HomesQueries, allowed_slots, receptacle_at
 from flowmaps_jax.flowsim.homes.world import Homes
 from flowmaps_jax.tables import histogram
 from flowmaps_jax.validation import (
@@ -148,17 +149,6 @@ def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
 
 
 # --------------------------------------------------------------------------- homes: receptacles
-
-
-def allowed_slots(homes: Homes, queries: HomesQueries) -> jax.Array:
-    """(E, Q, R) bool: the queried object's allowed receptacles."""
-    return jnp.take_along_axis(homes.object_allowed, queries.object_index[..., None], axis=1)
-
-
-def receptacle_at(homes: Homes, hour, object_index) -> jax.Array:
-    """(E, Q) int32: where object ``object_index`` (E, Q) stands at ``hour`` (E, Q)."""
-    e = jnp.arange(homes.receptacle.shape[0])[:, None]
-    return homes.receptacle[e, hour, object_index]
 
 
 def _per_query(fn):

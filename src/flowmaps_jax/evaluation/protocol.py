@@ -1,30 +1,15 @@
-"""The evaluation protocol: which queries are asked, and one row of per-query numbers per predictor.
+"""The evaluation protocol: which queries are asked, and one row of per-query numbers per
+predictor (the protocol and its numbers: docs/protocol.md).
 
-* E validation environments (``flowsim.scenes.validation_split``; 200 by default). For each
-  environment one state time τ ~ U{0..T−2} and one query time τ_q ~ U{τ+1..T−1}; each of its M
-  objects is queried (E·M = 600 queries). The map at τ is encoded once and shared by its M queries.
-* Ground truth: the exact posterior q (M objects × F slots, zero beyond the K real slots) of
-  ``flowsim.exact_posterior`` and the boxes b_k the object would have at slot k
-  (``flowsim.scenes.slot_boxes``).
-* Worlds with habits (``flowsim.worlds``) and histories: with ``history`` H > 1 or a config whose
-  objects may follow a non-routine habit, q is instead ``flowsim.habits.history_posterior``
-  given the last min(H, τ + 1) observations of the object (its hidden habit marginalised
-  exactly), and the EvalSet also holds each query's habit family and two more reference slot
-  distributions ("exact, H = 1" and "empirical frequency, H = H"; only for H > 1). The τ / τ_q
-  draws are the same; the routine world with H = 1 is the paper's protocol bit for bit.
-* Continuous KL(q‖p) with q the Gaussian mixture of :mod:`.kl`, from ``kl_draws`` draws per query.
-  The draws are made once and shared by every row (common random numbers, so row differences are
-  less noisy). log p is exact: change of variables for FlowMaps, closed form for the MLP, and for
-  the slot predictors (oracle / last-seen / uniform) the same mixture with their slot weights.
-* Slot metrics (:mod:`.slots`) from n samples (n in ``sample_counts``; the first n of the largest
-  n drawn). The reference rows use their slot distribution directly (no sampling), so the oracle
-  has TV 0.
+E validation environments, one τ ~ U{0..T−2} and τ_q ~ U{τ+1..T−1} each, every object queried;
+ground truth the exact posterior q over slots (given the last min(H, τ + 1) observations in
+worlds with habits or H > 1, which add the rows "exact, H = 1" and "empirical frequency") and
+the slot boxes; KL(q‖p) from ``kl_draws`` draws of :mod:`.kl`'s mixture shared by every row;
+slot metrics (:mod:`.slots`) from the first n of the largest n samples.
 
 :func:`build_eval_queries` makes the :class:`EvalSet`; :func:`reference_rows` and
-:func:`evaluate_predictor` score it into :class:`RowResult` rows. Each checks its own arguments
-once (:func:`.run.run_evaluation` leaves them to it). An EvalSet's arrays are built here from
-checked inputs, so the rows score it with the jitted kernels of :mod:`.kl`, :mod:`.slots` and
-:mod:`flowmaps_jax.tables`, not their public checks.
+:func:`evaluate_predictor` score it into :class:`RowResult` rows, each checking its own
+arguments once and then running the unchecked jitted kernels.
 """
 
 from __future__ import annotations

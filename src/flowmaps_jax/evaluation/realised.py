@@ -26,7 +26,7 @@ the model) per object class: by log score, and by SR@1 in navigation.
   bins, against how often the realised receptacle was that one (a table and
   ``reliability.png``), and the expected calibration error (ECE, the count-weighted mean gap).
 
-Navigation (``search``): the policies of :mod:`flowmaps_jax.search.navigation` with each row as
+Navigation (``search``): the policies of :mod:`flowmaps_jax.navigation.navigation` with each row as
 the belief and the realised receptacle as the target; the searcher starts at the home's most
 central receptacle (:func:`start_distance`; a recorded home has no start point of its own) and
 walks the recorded walking distances.
@@ -51,8 +51,8 @@ from flowmaps_jax.atomic_files import make_output_dir, save_figure, write_file
 from flowmaps_jax.evaluation import priors as pr
 from flowmaps_jax.evaluation.receptacle_scores import best_lines, best_rows, stats, summarise
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
+from flowmaps_jax.navigation import navigation as nav
 from flowmaps_jax.recorded.format import content_digest
-from flowmaps_jax.search import navigation as nav
 from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
 from flowmaps_jax.validation import check_int, check_output_dir, check_seed, prefix_errors
 from flowmaps_jax.worlds import recorded as rw

@@ -1,31 +1,17 @@
-"""The homes protocol: the posterior and navigation tables of a FlowSim homes model.
-
-    python -m flowmaps_jax.evaluate --checkpoint pretrained:flowmaps-homes --out runs/homes-eval
-    python -m flowmaps_jax.search --checkpoint pretrained:flowmaps-homes --out runs/homes-eval
+"""The homes protocol: the posterior and navigation tables of a FlowSim homes model
+(docs/flowsim.md, "FlowMaps on homes").
 
 The one ``evaluate`` and ``search`` commands run it for a homes model (:func:`run_command`):
-``evaluate`` the posterior part, ``search`` the navigation part, each from the same queries.
-
-Evaluation homes are ``generate_homes(jax.random.key(EVAL_SEED), config, --homes)``: a fixed
-set, the same for every run, apart from the training homes (which use other seeds). Each home
-gets ``--queries`` queries (``homes.draw_queries``: a valid object, a horizon from
-``--horizons``, τ leaving ``--history`` hours before it), seeded by ``--seed``. The default
-``--regime mixed`` gives every object one of the four regimes; every table is also reported per
-regime.
-
-Rows (:mod:`.priors`): the exact posterior given the map and the last ``--history`` hours; the
-same given the map alone (H = 1); oracle samples (``--samples`` draws from it); FlowMaps
-(``--checkpoint``: its probabilities, and ``--samples`` sampled boxes assigned to receptacles);
-the count table and last seen with a fitted stay (their parameters chosen on ``FIT_HOMES``
-training homes of ``FIT_SEED``, :func:`fitted_counts`); the frequency prior; last-seen; uniform.
-The report names the best of the reference rows learned from data (the exact rows and the
-model excluded) per regime: by KL, and by SR@1 in navigation. Navigation (:mod:`.navigation`):
-every prior row drives the Bayes-optimal-travel planner and most-probable-first, plus nearest
-first.
-
-``evaluate`` writes ``results.md``, ``results.json`` and ``rank_cost_by_horizon.png`` into
-``--out``; ``search`` writes ``search.md``, ``search.json`` and ``success_vs_looks.png``. Exit
-status 0; 2 on a bad argument (one line naming it); 74 when the files cannot be written.
+``evaluate`` the posterior part, ``search`` the navigation part, from the same queries.
+Evaluation homes are ``generate_homes(jax.random.key(EVAL_SEED), config, --homes)``, apart from
+every training home; ``--queries`` per home (``homes.draw_queries``), seeded by ``--seed``; the
+default ``--regime mixed``; every table also per regime. Rows (:mod:`.priors`): exact given
+``--history`` hours, exact H = 1, oracle samples, the model (probabilities and ``--samples``
+sampled boxes), the count table and last seen with a fitted stay (fitted on ``FIT_HOMES`` homes
+of ``FIT_SEED``, :func:`fitted_counts`), frequency, last-seen, uniform; the best learned
+reference row per regime is named. Navigation (:mod:`flowmaps_jax.navigation.navigation`):
+every prior by the optimal and most-probable-first policies, plus nearest first. Exit status 0;
+2 on a bad argument (one line naming it); 74 when the files cannot be written.
 """
 
 from __future__ import annotations
@@ -57,8 +43,8 @@ from flowmaps_jax.evaluation.receptacle_scores import (
 from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig, generate_homes
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, check_horizons, draw_queries
 from flowmaps_jax.flowsim.homes.rollout import homes_bytes_per_home
+from flowmaps_jax.navigation import navigation as nav
 from flowmaps_jax.resources import check_request_size
-from flowmaps_jax.search import navigation as nav
 from flowmaps_jax.store.pretrained import PREFIX as PRETRAINED_PREFIX
 from flowmaps_jax.validation import (
     check_choice,

@@ -1,13 +1,9 @@
 """The results: per-query rows summarised into ``results.json`` and ``results.md``.
 
-Every number is reported overall, by category and by horizon Δτ = τ_q − τ, as mean ± standard
-error over queries; the route-offset mass one step ahead is the routine diagnostic's table
-(left out of the Markdown when no queried object follows the routine). An eval set with a
-history (a world with habits, or H > 1: ``EvalSet.habit`` set) adds
-``results["by_habit"]`` (:func:`summarise_habits`) and one small Markdown table per habit: the
-same rows on that habit's queries only, since a habit a history reveals (preferences) and one it
-cannot (routine) tell different stories in one average. JSON holds no NaN: a missing standard
-error (a group of one) is ``null``.
+Every number is reported overall, by category and by horizon Δτ, as mean ± standard error over
+queries (``null``, never NaN, for a group of one). An eval set with a history
+(``EvalSet.habit`` set) adds ``results["by_habit"]`` (:func:`summarise_habits`) and one table
+per habit.
 """
 
 from __future__ import annotations

@@ -1,18 +1,10 @@
 """Routine diagnostic: does a predictor know *which* table comes next, not only which kind?
 
-FlowSim's objects walk their visiting order (stay 0.2, advance 0.7, skip 0.1), so one step ahead
-the exact posterior puts 0.2 / 0.7 / 0.1 on route offsets 0 / +1 / +2. A model that only knows the
-kind of table spreads its mass evenly. This module measures that, cheaply enough to run at every
-validation interval of a training run:
-
-* :class:`RoutineProbe` — two small fixed query sets built from validation environments with
-  :func:`.protocol.build_eval_queries`: every object one step ahead (Δτ = 1), and the protocol's
-  horizon mixture.
-* :func:`routine_metrics` — samples a predictor and returns the mass at route offsets
-  0 / +1 / +2 / +3 / beyond / off one step ahead (:func:`.slots.route_offset_mass`) and slot TV,
-  top-1 and rank cost (``search_cost_ratio``) on both sets. The training loop logs these into
-  ``metrics.jsonl`` (records with ``"kind": "routine"``).
-* :func:`plot_learning_curve` — the figure of those records against the training step.
+One step ahead FlowSim's exact posterior puts 0.2 / 0.7 / 0.1 on route offsets 0 / +1 / +2.
+:class:`RoutineProbe`: two small fixed query sets (every object one step ahead, and the
+protocol's horizon mixture); :func:`routine_metrics`: the mass at route offsets 0 / +1 / +2 /
++3 / beyond / off and slot TV, top-1 and rank cost on both (``"kind": "routine"`` records of
+``metrics.jsonl``); :func:`plot_learning_curve`.
 """
 
 from __future__ import annotations

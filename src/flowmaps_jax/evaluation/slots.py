@@ -1,27 +1,15 @@
 """Slot metrics: where samples land among the places an object can be, scored against q.
 
-Assignment (protocol v2, docs/protocol.md; :func:`flowmaps_jax.tables.empirical_slots`, below
-the predictor, which the search's table masses share): a sample goes to the slot k whose object
-*centre* (y + h/2, x + w/2 of b_k) is nearest to the sample's centre, and to the "off" bin when that
-distance exceeds the slot's radius max(``ASSIGN_RADIUS``, ``ASSIGN_SIGMAS`` · σ_c), with
-σ_c = 0.35 × the object's longer side (the centre std of the smoothed q of :mod:`.kl`). Draws from
-that q land off about 1 % of the time, so a model that matches q is not punished. (The first
-rule, v1: L2 over the four numbers (y, x, h, w) below ``ASSIGN_RADIUS``, put 6.7 % of q's own
-draws off; docs/results.md, issue 21.) A slot distribution p̂ has
-``K + 1`` entries: the K slots, then "off". Against the exact posterior q (K entries) the protocol
-scores total variation, top-1 and the search-cost ratio (:func:`slot_scores`). The reference
-predictors (oracle, oracle samples, last-seen, uniform: :mod:`.priors`, the one module of the
-reference priors of every world) and the route-offset mass of the routine diagnostic are slot
-distributions too.
+The assignment (protocol v2, docs/protocol.md) is :func:`flowmaps_jax.tables.empirical_slots`.
+A slot distribution p̂ has K + 1 entries: the K slots, then "off"; against the exact posterior q
+(K entries) :func:`slot_scores` gives total variation, top-1 and the search-cost ratio. The
+reference predictors are :mod:`.priors`.
 
-Shapes: ``...`` are free leading batch dims (one per query); ``K`` slots padded to a common size,
+Shapes: ``...`` free leading dims (one per query), K slots padded to a common size,
 ``slot_mask`` (..., K) True on real slots. Public functions validate once and run a jitted
-kernel, which checks nothing: :func:`score_slots`, :func:`offset_mass`. The evaluation's own
-modules (and the search) run the kernels on the arrays they built.
-
-Ties: top-1 and the search cost break ties between slots with equal p̂ uniformly at random and
-report the expectation: deterministic, and independent of how slots happen to be numbered. Scores
-within ``TIE_ATOL`` of each other count as tied.
+kernel that checks nothing (:func:`score_slots`, :func:`offset_mass`). Ties (within
+``TIE_ATOL``) in top-1 and the search cost are broken uniformly at random and the expectation
+reported: deterministic, independent of slot numbering.
 """
 
 from __future__ import annotations

@@ -1,18 +1,10 @@
-"""Object dynamics along the visiting order, and their exact posterior.
+"""Object dynamics along the visiting order, and their exact posterior (docs/flowsim.md,
+"Dynamics" and "The reference code's dynamics").
 
-Two dynamics, chosen by ``FlowSimConfig.dynamics``:
-
-* ``"markov"`` (the paper's): every timestep, independently per object, the position k along the
-  cyclic visiting order of K slots stays with p0, advances one with p1, advances two with p2
-  (``transition_probs``, default 0.2 / 0.7 / 0.1), modulo K. The exact posterior Δτ steps ahead is
-  the Δτ-fold convolution of (p0, p1, p2) shifted by the current slot and folded modulo K, which
-  equals the Δτ-th power of the K × K transition matrix (``transition_matrix``).
-* ``"schedule_jitter"`` (the reference code's): slot_t = (t + o_t) mod K for t >= 1 with an
-  independent offset o_t in {-1, 0, +1} drawn with ``jitter_probs`` (0.1 / 0.7 / 0.2); slot_0 = 0.
-  Offsets are independent, so the posterior at query time τ_q depends only on τ_q = τ + Δτ (the
-  absolute time), not on the slot observed at τ.
-
-Every object starts at slot 0 (index 0 of its visiting order).
+``"markov"``: stay / advance one / advance two with ``transition_probs`` modulo K; the posterior
+Δτ ahead is onehot(slot) @ ``transition_matrix``^Δτ. ``"schedule_jitter"``: slot_t = (t + o_t)
+mod K with o_t ∈ {−1, 0, +1} drawn with ``jitter_probs``, so the posterior depends only on
+τ + Δτ. Every object starts at slot 0.
 """
 
 from __future__ import annotations

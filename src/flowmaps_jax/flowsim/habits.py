@@ -1,31 +1,12 @@
-"""Habits: each object's own transition law over its places, and the exact posterior given what
-was seen of it.
+"""Habits: each object's own transition law over its slots, and the exact posterior given a
+history (docs/flowsim.md, "Habits").
 
-A *habit* is a transition matrix over an object's slots (the positions along its visiting
-order, i.e. the K tables of its kind). Every object of an environment gets one habit, drawn
-once from the mixture ``FlowSimConfig.habits`` names. Three families (``HABITS``):
-
-* **routine** — the paper's cyclic chain: stay / advance one / advance two with
-  ``transition_probs`` (0.2 / 0.7 / 0.1).
-* **preferences** — stay with 1 − ρ (``preference_move`` = ρ); otherwise move to a place drawn
-  from π. π puts ``preference_mass`` on one or two *favourite* places (split evenly) and the rest
-  evenly on the others. Which places are favourites is one of a finite, uniform set of
-  hypotheses: every single slot and every pair of slots.
-* **dynamic** — stay with ``dynamic_stay``; otherwise move to another place j with probability
-  ∝ exp(−d(i, j) / ``dynamic_length``), d the distance between table centres in map sides.
-
-**Hypotheses** are fixed by F alone (static): index 0 is the routine; 1 … F the single
-favourites 0 … F−1; then the pairs (i < j) in lexicographic order; the last is the dynamic
-habit. A hypothesis with a favourite at slot ≥ K does not exist for an object with K places.
-The prior of a hypothesis is its family's weight in ``habits``, split evenly over the family's
-hypotheses that exist for that object. Routine and dynamic have one hypothesis each: the map
-shows the visiting order and the table positions, so only the favourites are hidden.
-
-**The exact posterior given a history** (``history_posterior``): an object seen at slots
-s_{τ−n+1} … s_τ (n ≤ H observations, one per timestep, the object starting at slot 0 at t = 0)
-has hypothesis weights ∝ prior(h) · [e₀ P_h^{τ−n+1}](s_{τ−n+1}) · Π P_h(s_i, s_{i+1}); the place
-at τ + Δτ is Σ_h w_h · onehot(s_τ) P_h^{Δτ}. With one observation and the routine habit this is
-``dynamics.exact_posterior``.
+Families (``HABITS``): routine, preferences (one or two favourite slots), dynamic (distance
+kernel). Hypotheses are fixed by F alone: index 0 the routine, 1 … F the single favourites,
+then the pairs (i < j) in lexicographic order, the last the dynamic habit; a favourite at slot
+≥ K does not exist for an object with K places. ``history_posterior``: hypothesis weights ∝
+prior(h) · [e₀ P_h^{τ−n+1}](s_{τ−n+1}) · Π P_h(s_i, s_{i+1}), the place at τ + Δτ is
+Σ_h w_h · onehot(s_τ) P_h^{Δτ}.
 """
 
 from __future__ import annotations

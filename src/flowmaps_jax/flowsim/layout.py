@@ -1,21 +1,14 @@
 """Furniture placement (vectorised rejection sampling), visiting orders and object boxes.
 
-Batch functions over E environments. Arrays here carry the environment axis LAST (e.g. boxes
-(F, 4, E)) so that XLA vectorises every operation across environments; ``generate`` transposes
-to the public env-first ``Scenes`` layout at the end. The config is split in two (see
-``config.sim_shape`` / ``config.sim_params``): ``shape`` is static, ``params`` is a dict of
-numbers that may be traced, so configs differing only in numbers share one compiled function.
-
-One layout attempt: every piece gets a kind (``min_per_kind`` of each kind, the extras uniform,
-then shuffled) and a height and width, each a uniform integer in ``config.table_side_range``.
-Pieces are placed one after another; piece i proposes ``candidate_counts(shape)[i]`` uniform
-top-left corners that keep it inside the map and takes the first that overlaps none of the
-pieces already placed (touching is allowed). If no candidate fits, the attempt fails and the
-whole layout is redrawn by ``generate`` (a piece is never dropped).
-
-Randomness: one ``jax.random.bits`` call per environment and attempt; each 32-bit word gives two
-16-bit draws, mapped to an integer range by ``(bits * n) >> 16`` (non-uniformity at most
-n / 65536, i.e. < 0.4 % for a 256 px map). The PRNG is the dominant cost of the simulator.
+Batch functions over E environments, with the environment axis LAST (boxes (F, 4, E)) so that
+XLA vectorises across environments; ``generate`` transposes to the env-first ``Scenes``. The
+config is split into a static ``shape`` and traceable ``params`` (``config.sim_shape`` /
+``config.sim_params``). One attempt: kinds (``min_per_kind`` each, the extras uniform,
+shuffled), integer sides in ``config.table_side_range``; piece i takes the first of
+``candidate_counts(shape)[i]`` uniform corners that overlaps no placed piece (touching allowed),
+else the whole layout is redrawn by ``generate``. Randomness: one ``jax.random.bits`` call per
+environment and attempt, each 32-bit word two 16-bit draws mapped by ``(bits * n) >> 16``
+(non-uniformity < n / 65536).
 """
 
 from __future__ import annotations

@@ -1,18 +1,10 @@
 """Matplotlib drawings of FlowSim scenes: one map, a timeline, visiting orders, posteriors.
 
-Every function returns a :class:`matplotlib.figure.Figure` (or draws into a given ``ax`` and
-returns its figure); nothing calls ``plt.show()`` and no global pyplot state is touched, so the
-module works with the Agg backend in tests and scripts.
-
-Drawing conventions
--------------------
-* Pixel coordinates as in :class:`~flowmaps_jax.flowsim.generate.Scenes`: boxes are
-  ``(y0, x0, y1, x1)`` and **y grows downwards** (image coordinates), so the y axis is inverted.
-* Furniture pieces are rectangles filled with their kind's colour; objects are drawn with their
-  category's shape (``config.SHAPES``) and colour. All colours and names come from
-  the config, so a new category or furniture kind renders without code changes.
-* Artists carry a ``gid`` (``"furniture"``, ``"object"``, ``"ghost"``, ``"move"``, ``"order"``,
-  ``"posterior"``, ``"overlay"``) so callers and tests can find them.
+Every function returns a :class:`matplotlib.figure.Figure` (or draws into a given ``ax``); no
+``plt.show()``, no global pyplot state (Agg works). Pixel boxes ``(y0, x0, y1, x1)`` as in
+:class:`~flowmaps_jax.flowsim.generate.Scenes`, y down (the axis is inverted); colours, shapes
+and names come from the config. Artists carry a ``gid`` (``"furniture"``, ``"object"``,
+``"ghost"``, ``"move"``, ``"order"``, ``"posterior"``, ``"overlay"``).
 """
 
 from __future__ import annotations

@@ -1,14 +1,8 @@
 """MLP-Gaussian baseline: the same Map Encoder, masked mean pool, MLP head → a Gaussian box.
 
-Head input per query: [pooled map (D), Embed(query descriptor), Embed(τ), Embed(τ_q)] → MLP →
-mean (4) (+ log-variance (4) for the ``"learned"`` variant; the ``"mean"`` variant has unit
-variance, as the paper's reference). ``config.baseline_variance`` picks the variant.
-
-This file is the whole family (the worked example of docs/design.md, "Adding a model family"):
-the network, its loss (:func:`baseline_loss`, as the family's :func:`mlp_loss`), its jitted
-inference cores (:func:`gaussian_sample`,
-:func:`gaussian_log_prob`, :func:`gaussian_sample_with_log_prob`) and :data:`FAMILY`, registered
-in :mod:`flowmaps_jax.model.families`.
+Head input per query: [pooled map (D), Embed(descriptor), Embed(τ), Embed(τ_q)] → MLP → mean (4)
+(+ log-variance (4) for ``baseline_variance="learned"``; ``"mean"``: unit variance). The whole
+family in one file (docs/design.md, "Adding a model family"): network, loss, cores, :data:`FAMILY`.
 """
 
 from __future__ import annotations

@@ -9,17 +9,11 @@ c (B, Q, D) — and the context tokens (B, S, D) with their padding mask (B, S):
     x  += gate_ca  · CrossAttn(query = LN(x) ⊙ (1 + scale_ca) + shift_ca, keys/values = m)
     x  += gate_mlp · MLP(LN(x) ⊙ (1 + scale_mlp) + shift_mlp)
 
-All LayerNorms here have no learned affine; the modulation Dense is zero-initialised (AdaLN-Zero),
-so every block starts as the identity, and the final layer's output projection is zero-initialised,
-so the network starts at velocity exactly 0.
-
-Cross-attention is computed by :func:`cross_attention`: with one row per query (training) by
-:func:`absorbed_cross_attention`, which never forms the per-query modulated context m (see its
-docstring); with several rows per query (sampling) by :func:`shared_kv_cross_attention`, which
-projects m once per query and shares it across the rows. :func:`plain_cross_attention` is the
-textbook version with the same weights, kept as the reference that tests compare against.
-Each form's optional ``dtype`` is the matmul operand dtype (None: float32; bfloat16 for
-``precision="bf16"``, see :mod:`flowmaps_jax.model.precision`); results are float32 either way.
+LayerNorms have no learned affine; the modulation Dense and the final projection are
+zero-initialised (AdaLN-Zero: every block starts as the identity, the velocity at 0).
+:func:`cross_attention` picks :func:`absorbed_cross_attention` (one row per query) or
+:func:`shared_kv_cross_attention` (several); :func:`plain_cross_attention` is the reference.
+``dtype``: the matmul operand dtype (None: float32); results are float32.
 """
 
 from __future__ import annotations

@@ -44,39 +44,29 @@ class ModelConfig:
     baseline_hidden: hidden width of the MLP baseline's head.
     box_offset, box_scale: FlowMaps' flow runs on z = box_scale · (box − box_offset) instead of
         the normalised box itself (samples are mapped back; ``log_prob`` adds the Jacobian).
-        Centring and scaling up raises the data's signal-to-noise ratio against X_0 ~ N(0, I);
-        measured on the cpu preset it sharpened h, w but scattered y, x (docs/results.md,
-        "Sharper boxes"). (0, 1), the default, is the paper's identity map.
+        (0, 1), the default, is the paper's identity map.
     head: the velocity read-out: ``"velocity"`` (the paper's linear head), ``"pointer"`` (a
         Gaussian mixture over the map's tokens, :mod:`flowmaps_jax.model.readout`) or ``"route"``
         (the pointer with a one-step transition raised to Δτ, :mod:`flowmaps_jax.model.route`) or
         ``"mixture"`` (explicit table weights from their own CDiT rows and a flow placing the
         object on the chosen table, :mod:`flowmaps_jax.model.mixture`).
     weight_blocks: blocks of the mixture head's table-weight rows (``head="mixture"``).
-    weight_attention: how those rows attend (``head="mixture"``): ``"cross"`` (CDiT blocks: each
-        row cross-attends to the map's context tokens) or ``"self"`` (pre-norm transformer
-        layers over one object's rows, so that each row sees every other table's relation to the
-        table the object stands on).
+    weight_attention: how those rows attend (``head="mixture"``): ``"cross"`` (CDiT blocks over
+        the map's context tokens) or ``"self"`` (transformer layers over one object's rows).
     weight_geometry: what each table-weight row knows of where its table lies (``head="mixture"``):
-        ``"none"`` (only its context token) or ``"relative"`` (also Fourier features of its centre
-        relative to the table the object stands on, and of its angle around the map centre
-        relative to that table's: the quantities FlowSim's orders are defined by) or
-        ``"offsets"`` (the centre features and the distance, no angle: nothing that only means
-        something on FlowSim's maps).
+        ``"none"`` (its context token), ``"relative"`` (Fourier features of its centre and of its
+        angle around the map centre, relative to the object's table) or ``"offsets"`` (the
+        centre features and the distance, no angle).
     pointer_width_scale: the pointer/route widths' log-variance is this × its parameter, so Adam
         moves it this much faster.
-    pointer_widths: ``"absolute"`` (the pointer's widths in flow units, as first shipped) or
-        ``"relative"`` (fractions of the object's own height and width, as the protocol's q:
-        one number fits objects of every size).
+    pointer_widths: ``"absolute"`` (flow units) or ``"relative"`` (fractions of the object's
+        own height and width, as the protocol's q).
     condition_on_dtau: add an embedding of Δτ = τ_q − τ to the CDiT conditioning.
     precision: compute precision of matmuls and attention, ``"float32"`` or ``"bf16"`` (bfloat16
         operands, float32 accumulation; :mod:`flowmaps_jax.model.precision`); params, optimiser
-        state, LayerNorm, softmax and the loss stay float32. bf16 is for accelerators (on CPU it
-        is slower).
+        state, LayerNorm, softmax and the loss stay float32.
     history: H, the maps the Map Encoder reads: the one at τ and the H − 1 before it (their
-        object tokens carry an embedding of their age τ − t). 1, the default, is the paper's
-        single map and adds no parameter; habits worlds need H > 1 to learn which places an
-        object favours (``flowsim.habits``).
+        object tokens carry an embedding of their age τ − t). 1 is the paper's single map.
     """
 
     dim: int = 256

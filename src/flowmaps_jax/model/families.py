@@ -1,13 +1,8 @@
 """The model families by name: ``MODEL_FAMILIES[name]`` is a :class:`ModelFamily`, the one registry.
 
-The name is what a run config holds (``TrainConfig.family``, stored in ``config.json`` under the
-older key ``"model_kind"``) and what :class:`flowmaps_jax.predictor.Predictor` carries
-(``Predictor.family_name``, ``ModelSpec.family_name``; a pretrained model's ``.json`` stores it
-as ``"kind"``). The on-disk keys keep their old names so that every checkpoint and the
-pretrained weights read as before. Adding a
-family is one module that defines its ``FAMILY`` (network, loss, cores; see
-:mod:`flowmaps_jax.model.baseline`) plus one line here; training then finds its loss through
-the family (``ModelFamily.loss``).
+The name is a run config's ``family`` (``"model_kind"`` in ``config.json``), the Predictor's
+``family_name`` and a pretrained ``.json``'s ``"kind"``. Adding a family is one module defining
+its ``FAMILY`` (see :mod:`flowmaps_jax.model.baseline`) plus one line here.
 """
 
 from __future__ import annotations

@@ -1,17 +1,11 @@
 """What a model family gives the pipeline (:class:`ModelFamily`), and helpers its cores share.
 
-A *model family* (FlowMaps, the MLP baseline) is one model's init, its training loss, its jitted
-inference cores, its working-memory estimate and its report label, bundled in one
-:class:`ModelFamily` object that the family's own module defines
-(:data:`flowmaps_jax.model.flowmaps_family.FAMILY`, :data:`flowmaps_jax.model.baseline.FAMILY`)
-and :mod:`flowmaps_jax.model.families` registers by name. :class:`flowmaps_jax.predictor.Predictor`
-calls the cores after validating its inputs; training asks the family for its loss
-(:func:`flowmaps_jax.training.objectives.objective_for`). The losses are pure JAX: neither they
-nor anything here imports optax or the training code.
-
-The cores are unvalidated, ``jax.jit``-compiled pure functions of canonical inputs
-(:func:`canonical_inputs`). Shapes: tokens (B, S), queries (B, Q), keys (B,) one PRNG key per
-scene, boxes (B, Q, N, 4) normalised (y, x, h, w), log-densities (B, Q, N).
+A family (FlowMaps, the MLP baseline, the homes network) bundles its init, training loss, jitted
+inference cores, working-memory estimate and report label in one :class:`ModelFamily`, defined
+in its own module and registered by :mod:`flowmaps_jax.model.families`. The losses are pure JAX
+(no optax). The cores are unvalidated, jitted pure functions of canonical inputs
+(:func:`canonical_inputs`): tokens (B, S), queries (B, Q), keys (B,) one PRNG key per scene,
+boxes (B, Q, N, 4) normalised (y, x, h, w), log-densities (B, Q, N).
 """
 
 from __future__ import annotations

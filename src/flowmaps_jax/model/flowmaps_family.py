@@ -1,20 +1,11 @@
-"""The FlowMaps family: its training loss, its jitted inference cores and its registry entry.
+"""The FlowMaps family: its training loss (:func:`flowmaps_loss`: :func:`cfm_loss` or, for the
+mixture head, :func:`mixture_loss`), its jitted inference cores and :data:`FAMILY`.
 
-The network itself (Map Encoder, CDiT velocity field, read-out heads) is
-:mod:`flowmaps_jax.model.flowmaps`; this module is everything else the family is. FlowMaps
-integrates its velocity field with :mod:`flowmaps_jax.flow` in the flow's data space
-z = box_scale · (box − box_offset) (:func:`to_flow_space`); training regresses towards z too.
-
-* The loss (pure JAX, no optax): conditional flow matching on the linear path (:func:`cfm_loss`,
-  with the optional pointer loss on the table the target stands on, :func:`supporting_token`),
-  or for the mixture head :func:`mixture_loss`; :func:`flowmaps_loss` picks by the head.
-* The cores: :func:`flow_sample`, :func:`flow_log_prob`, :func:`flow_sample_with_log_prob`, and
-  for the read-out heads :func:`table_weights` and :func:`route_mixture_log_prob`.
-* :data:`FAMILY` bundles them for :mod:`flowmaps_jax.model.families`; the validated, user-facing
-  wrapper is :class:`flowmaps_jax.predictor.Predictor`.
-
-Shapes: tokens (B, S), queries (B, Q), keys (B,) one PRNG key per scene, boxes (B, Q, N, 4)
-normalised (y, x, h, w), log-densities (B, Q, N). Inputs as :func:`family.canonical_inputs` gives.
+The network is :mod:`flowmaps_jax.model.flowmaps`; the flow runs in
+z = box_scale · (box − box_offset) (:func:`to_flow_space`). Shapes: tokens (B, S), queries
+(B, Q), keys (B,), boxes (B, Q, N, 4) normalised (y, x, h, w), log-densities (B, Q, N); inputs
+as :func:`family.canonical_inputs` gives. The checked wrapper is
+:class:`flowmaps_jax.predictor.Predictor`.
 """
 
 from __future__ import annotations
@@ -86,9 +77,8 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
     squared error to X_1 − X_0 averaged over the 4 numbers (X_1 is the target box in the flow's
     space, :func:`to_flow_space`), then over queries and scenes.
     ``deterministic=True`` turns dropout off (validation).
-    ``pointer_loss`` > 0 (pointer head only; departs from the paper) adds that weight times the
-    cross-entropy of the head's anchor logits against the table the target stands on
-    (:func:`supporting_token`): direct supervision of *which* table, as a pointer probe gets.
+    ``pointer_loss`` > 0 (pointer head only) adds that weight times the cross-entropy of the
+    anchor logits against the target's table (:func:`supporting_token`).
     aux: ``{"loss": scalar, "mse_per_query": (B, Q)}`` (+ ``"pointer_ce"`` when used).
     """
     noise_key, t_key, enc_key, vel_key = jax.random.split(key, 4)
@@ -216,11 +206,7 @@ def table_weights(params, config: ModelConfig, tokens: SceneTokens, queries: Que
     """The mixture weight (B, Q, S) a read-out head puts on each token of the map, no sampling.
 
     ``head="route"``: the mixture's weights themselves (x- and t-free). ``head="pointer"``: the
-    anchor softmax at t = 0 and x = 0. The pointer's anchor logits are trained (pointer loss) to
-    predict the target's table from (x_t, t); at t = 0 x_t is pure noise and tells nothing, so
-    there they estimate the posterior over tables given the map and the query alone, and the
-    flow starts from exactly that mixture. (Along the path the logits may drift, so the samples'
-    table frequencies can differ a little; tests/test_route.py and docs/results.md compare them.)
+    anchor softmax at t = 0 and x = 0 (the samples' table frequencies may differ a little).
     """
     context = encode(params, config, tokens)
     if config.head == "mixture":

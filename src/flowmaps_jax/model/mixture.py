@@ -1,10 +1,6 @@
 """Mixture read-out: explicit table weights π_s, and a flow that places the object on table s.
 
-Why. The exact posterior of FlowSim is a mixture over the tables of the object's kind: the
-probability π_s that the object stands on table s at τ_q, times a placement density on that
-table. The pointer head (:mod:`.readout`) folds the choice of table into the flow (its anchor
-logits depend on x_t and t), so the table probabilities are only read off approximately and the
-samples that have not chosen a table land between two. This head makes the model that family:
+The model is the family of FlowSim's exact posterior, a mixture over tables:
 
     p_θ(box | map, query) = Σ_s π_s(map, query, Δτ) · p_θ(box | s, map, query)
 

@@ -1,14 +1,8 @@
 """Pointer read-out: the velocity of a Gaussian mixture whose components are copied out of the map.
 
-Why. FlowMaps' answer is always "the object's box on one of the tables in the map". With the
-paper's linear velocity head the CDiT rows must *regress* a table's coordinates out of
-cross-attention features (sinusoidal, high-frequency), which takes thousands of steps before the
-choice of table can matter (docs/results.md, "Learning the routines"). This head instead lets the
-network *point* at tokens and copy their box numbers, as a supervised pointer probe does in a few
-hundred steps, while the sampler still integrates an ODE from Gaussian noise.
-
-What. From the CDiT rows h (B, Q, N, D), the context tokens (B, S, D) and their normalised boxes
-(B, S, 4), with x_t (B, Q, N, 4) and t (B, Q):
+Why it exists: docs/design.md, "Learning the routines". From the CDiT rows h (B, Q, N, D),
+the context tokens (B, S, D) and their normalised boxes (B, S, 4), with x_t (B, Q, N, 4) and
+t (B, Q):
 
     a_s  = softmax_s(<W_a h, K_a ctx_s> / √D)            anchor logits (which table)
     b_s  = softmax_s(<W_b h, K_b ctx_s> / √D)            source pointer (whose size)
@@ -28,9 +22,7 @@ zero-initialised residual Dense₀(h) lets the network depart from that form. Ev
 routines need (which table comes next, given the query and Δτ) lives in the anchor logits.
 
 Initialisation: A = diag(1, 1, 0, 0), B = diag(0, 0, 1, 1), β = 0, i.e. "centred on the anchor
-token, with the size of the source token": the prior that an object stands on a piece of furniture
-and keeps its own size. Both maps are trained; only the starting point is this prior (from an
-identity start, Adam needs thousands of steps to move these entries by ~1).
+token, with the size of the source token"; both maps are trained.
 """
 
 from __future__ import annotations

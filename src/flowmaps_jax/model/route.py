@@ -1,15 +1,8 @@
 """Route read-out: the pointer head with a one-step transition over the map's tables, raised to Δτ.
 
-Why. The pointer head (:mod:`.readout`) learns one set of anchor logits per (query, Δτ): to be
-right two steps ahead it must know the table after the next one, three steps ahead the one after
-that, and so on, each learned separately. FlowSim's objects (and people's habits) move by a
-Markov chain, so the posterior Δτ steps ahead is the one-step law applied Δτ times. This head
-learns the one-step law and applies it: what it learns one step ahead carries to every horizon,
-and every horizon's data trains the same one-step law (docs/design.md, "The posterior at every
-horizon").
-
-What. From the context tokens ctx (B, S, D), the query's descriptor embedding e (B, Q, D) and
-Δτ (B, Q):
+The one-step law is learned once and applied Δτ times (docs/design.md, "The posterior at
+every horizon"). From the context tokens ctx (B, S, D), the query's descriptor embedding
+e (B, Q, D) and Δτ (B, Q):
 
     T_ij  = softmax_j(<FiLM_e(MLP(ctx_i)), W ctx_j> / √D)  over the map's tables j (B, Q, S, S)
             (the MLP runs once per token; the query only scales and shifts its output, so the

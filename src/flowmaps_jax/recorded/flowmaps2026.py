@@ -1,42 +1,11 @@
 """The authors' 2026 dataset layout (FlowMaps 2026, ``src/dataset/sim_dataset.py``), both ways:
 ``import_flowmaps2026(root) -> Recorded`` and ``export_flowmaps2026(recorded, root)``.
 
-Their layout, one folder per environment (at any depth under ``root``)::
-
-    <env>/scan_merged.parquet         one row per hour: columns
-                                      assignment        [N_objs, N_recepts] one-hot (int)
-                                      rotation          [N_objs] float
-                                      aabb_cornerPoints [N_objs, 8, 3] float (per-hour boxes)
-       (or scan_N.parquet pieces, concatenated by N as their merge script does)
-    <env>/pickupable_names.json       [object id, ...]      ids as "<Class>|...": class before
-    <env>/receptacle_names.json       [receptacle id, ...]  the first "|"
-    <env>/receptacles_oobb.json       {receptacle id: {"cornerPoints": [[x, y, z] x 8]}}
-    <env>/pickupable_to_receptacle.json  {object id: [receptacle id, ...]} (allowed)
-    lookup.json (in <env> or a folder above it)
-                                      {"pickupable2id": {Class: id}, "receptacle2id": {...}}
-
-Their coordinates have y up (x, z on the floor); a recorded world's have z up: a point
-(X, Y, Z) of theirs is (X, Z, Y) here, and back (the same swap).
-
-Not observed: an hour at which an object was not seen has an all-zero ``assignment`` row (their
-loader reads the one-hot row as given; a row that sums to 0 marks no receptacle). Export writes
-one parquet row per hour 0 .. hours[-1] (row t is hour t); hours the recorded world does not
-list are rows of all-zero assignments. When a recorded environment has no ``object_corners``
-(``object_rotation``), export writes derived ones: a ``DERIVED_OBJECT_SIZE`` cube on the top of
-the receptacle the object was last seen on (first seen, before it was ever seen; zeros if never)
-(rotation 0).
-
-What their layout cannot hold (texts, rooms, doors, each receptacle's room, walking distances,
-the recorded hours, provenance, whether boxes were derived) export writes beside the other
-files in ``flowmaps_recorded.json`` (their loader ignores it); import reads it when present and
-checks it against the other files, so that recorded -> authors' layout -> recorded gives the
-same environments. Without it, import derives texts from class names ("CellPhone" ->
-"cell phone"), knows no rooms, doors or distances, and counts hours 0 .. T-1.
-
-Import refuses, with one ``ValueError`` line naming the file and the field, a folder that
-contradicts itself: name lists against the parquet's sizes, an id missing from
-``receptacles_oobb.json`` or ``pickupable_to_receptacle.json``, a class missing from
-``lookup.json``, an assignment row that is not one-hot or zero, pieces of different sizes.
+The layout, the axes (their y is up: (X, Y, Z) there is (X, Z, Y) here), unobserved hours
+(all-zero ``assignment`` rows), derived object boxes (``DERIVED_OBJECT_SIZE``) and the side file
+``flowmaps_recorded.json`` (what their layout cannot hold, so that recorded → theirs → recorded
+is the identity) are docs/data.md, "The converters". Import refuses a folder that contradicts
+itself with one ``ValueError`` line naming the file and the field.
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
-"""FlowSim homes as a recorded world: ``from_homes(homes, config, mask_fraction=..., seed=...)``.
+"""FlowSim homes as a recorded world: ``from_homes(homes, config, mask_fraction=..., seed=...)``
+(docs/data.md, "from-homes").
 
-One environment per home (``home{e}`` unless named): only its valid receptacles and objects, in
-slot order (ids ``<class>|<slot>``, e.g. ``sofa|4``), its rooms and doors, the homes' geodesic
-``receptacle_distance`` as ``distance``, hours 0..T-1, classes and texts from the config's
-vocabulary. The hidden schedule parameters (regime, favourites, cycle) are dropped.
-
-Masking, as a robot that misses rooms would see the home: each room is independently visited
-or not, in alternating runs of hours (geometric lengths; unvisited runs last
-``MASK_RUN_HOURS`` hours on average when ``mask_fraction`` <= 0.5); an object is not observed
-(location -1) at an hour when the room it stands in is unvisited. Each hour's chance of a room
-being unvisited is ``mask_fraction`` (the runs start in their stationary state), so about that
-fraction of the object-hours is hidden, by whole rooms. Home e's mask depends only on
-(seed, e): ``numpy.random.default_rng([seed, e])``, so homes converted in chunks
-(``first_home``) get the masks of one call.
+One environment per home (``home{e}`` unless named): its valid receptacles and objects in slot
+order (ids ``<class>|<slot>``), rooms, doors, ``receptacle_distance`` as ``distance``, hours
+0..T-1; the hidden schedule parameters are dropped. Rooms are unvisited in alternating runs of
+hours (``MASK_RUN_HOURS`` on average), each hour's chance ``mask_fraction``; an object in an
+unvisited room is not observed (−1). Home e's mask depends only on (seed, e)
+(``numpy.random.default_rng([seed, e])``), so chunks (``first_home``) match one call.
 """
 
 from __future__ import annotations

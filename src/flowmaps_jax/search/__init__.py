@@ -1,29 +1,23 @@
-"""Object search with a placement prior: look at a table, fail, update the belief, look again.
-
-A robot searches the tables of the object's kind for it. Each look drives to a table (Euclidean
-travel between box centres, pixels) and finds the object if it is there (missing it with
-probability ``p_miss``); after every failed look the belief is updated by Bayes' rule and the
-policy re-plans. FlowSim's exact posterior drives the Bayes-optimal searcher, so every prior —
-FlowMaps, the MLP baseline, uniform over the kind, last-seen — is scored against the optimum.
-The protocol is documented in docs/search.md.
+"""Object search with a placement prior: look at a table, fail, update the belief, look again
+(the protocol: docs/search.md).
 
     from flowmaps_jax import search
     probs = search.table_probabilities(predictor, tokens, queries, 100, jax.random.key(0))
-    # (B, Q, S + 1): mass on each table token, then "off"; search.table_dict(probs, tokens)
     s = search.build_search_set(scenes, config, jax.random.key(0))
     episodes, _ = search.make_episodes(s, search.exact_tables(s))
-    outcome = search.run_episodes(episodes, "optimal")
-    scores = search.episode_scores(outcome)            # sr@1..3, looks, travel, spl per episode
+    scores = search.episode_scores(search.run_episodes(episodes, "optimal"))
 
-Modules: ``probabilities`` (table probabilities of the exact priors, plain-dict form; a model's
-are :mod:`flowmaps_jax.tables`, below the predictor), ``policies``
-(most-probable, greedy, exact optimal DP, nearest), ``simulator`` (episodes, Bayes update, the
-jitted episode loop: no FlowSim), ``episodes`` (the FlowSim search set, its priors and the
-episodes they make), ``scores`` (SR@k, looks, travel, SPL, ratios), ``protocol`` (every prior
-by every policy), ``report`` and ``figures`` (JSON, Markdown, figures) and ``cli``
-(``python -m flowmaps_jax.search``).
+Modules: ``probabilities``, ``simulator`` (no FlowSim), ``episodes`` (the FlowSim search set),
+``scores``, ``protocol``, ``report``, ``figures``, ``cli``; the policies are
+:mod:`flowmaps_jax.navigation.policies`.
 """
 
+from flowmaps_jax.navigation.policies import (
+    MAX_OPTIMAL_TABLES,
+    POLICIES,
+    optimal_expected_travel,
+    plan_costs,
+)
 from flowmaps_jax.search.episodes import (
     STARTS,
     SearchSet,
@@ -35,13 +29,7 @@ from flowmaps_jax.search.episodes import (
     truth_probs,
     uniform_tables,
 )
-from flowmaps_jax.search.policies import (
-    MAX_OPTIMAL_TABLES,
-    POLICIES,
-    optimal_expected_travel,
-    plan_costs,
-)
-from flowmaps_jax.search.probabilities import slots_to_tables, table_dict
+from flowmaps_jax.search.probabilities import table_dict
 from flowmaps_jax.search.scores import (
     SCORES,
     episode_scores,
@@ -88,7 +76,6 @@ __all__ = [
     "ratios",
     "run_episodes",
     "simulate",
-    "slots_to_tables",
     "spl",
     "success_curves",
     "summarise_scores",

@@ -1,35 +1,13 @@
-"""``python -m flowmaps_jax.search``: search episodes driven by FlowMaps, baselines and the exact
-posterior, on FlowSim's validation split.
+"""``python -m flowmaps_jax.search``: search episodes driven by a model, baselines and the exact
+posterior (the protocol: docs/search.md; homes navigation: docs/flowsim.md, "Navigation").
 
     python -m flowmaps_jax.search --checkpoint pretrained:flowmaps \\
         --baseline pretrained:mlp pretrained:mlp-learned --out docs/results_search
 
-Writes ``search.json``, ``search.md`` and the figures ``episodes.png``, ``success_vs_looks.png``
-and ``success_vs_distance.png`` into ``--out`` (default ``<checkpoint>/search``). Models are
-run or checkpoint directories (their best-by-validation step unless ``--which latest``), or
-``pretrained:NAME`` for a pretrained model packaged with flowmaps-jax; the checkpoint and step
-of each are printed before the search starts and recorded in ``search.json``. The protocol is
-documented in docs/search.md.
-
-``--world NAME`` searches scenes of another FlowSim world (``flowsim.WORLDS``: routine,
-preferences, dynamic, mixed; default: the world of the first model's config). ``--history H``:
-the observations the exact reference posterior is given (default: the largest ``model.history``
-among the models, and at least ``flowsim.worlds.HABITS_HISTORY`` = 8 in a world with habits
-other than the routine). With habits or H > 1 the report gains the rows "exact, H = 1" and
-"empirical frequency, H = …" and a section per habit; the paper's world with H = 1 is the
-paper's protocol, unchanged.
-
-    python -m flowmaps_jax.search --checkpoint pretrained:flowmaps-preferences \\
-        --baseline runs/habits-pref-h1-endless --world preferences --out /tmp/search-prefs
-
-A FlowSim homes model (``--checkpoint pretrained:flowmaps-homes`` or a homes run) drives the
-homes navigation instead (start at the centre of room 0, geodesic travel through doors, a
-perfect detector; every prior by the optimal and most-probable-first policies, plus nearest
-first; SR@k, mSR, SPL@1, mSPL, steps, E[travel] ÷ the Bayes-optimal searcher's; ``search.md``,
-``search.json``, ``success_vs_looks.png``), with the homes options ``--queries`` (per home) and
-``--regime``; ``--num-envs`` counts homes and ``--horizons`` are the query horizons in hours.
-The CLI finds the model's world from its stored family and refuses the options that do not
-apply to it.
+Writes ``search.json``, ``search.md`` and figures into ``--out`` (default
+``<checkpoint>/search``). Models are run or checkpoint directories (best step unless ``--which
+latest``) or ``pretrained:NAME``; each one's checkpoint and step are printed and recorded. The
+model's world comes from its stored family, and options that do not apply to it are refused.
 """
 
 from __future__ import annotations

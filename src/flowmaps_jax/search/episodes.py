@@ -1,24 +1,14 @@
 """Search episodes in FlowSim scenes: the search set, each prior's table probabilities on it,
 and the :class:`Episodes` they make for the simulator (:mod:`.simulator`).
 
-:func:`build_search_set` draws the queries (as the evaluation protocol: every object of an
-environment, τ ~ U{0..T−2}, τ_q ~ U{τ+1..T−1}; or fixed horizons) with their exact posterior
-and true tables; :func:`exact_tables`, :func:`uniform_tables`, :func:`last_seen_tables`,
-:func:`extra_tables` and :func:`predictor_tables` give each prior's table probabilities
-(:func:`history_tokens`: the tokens of a model that reads several maps); :func:`make_episodes`
-turns one of them into :class:`Episodes` over the K tables of the object's kind (its visiting
-order: candidate k is the k-th table of the route, so ``target`` is the slot at τ_q).
-
-In a FlowSim world with habits (``flowsim.worlds``), or with ``history`` H > 1, the exact
-posterior is the one given the object's last H observations (``flowsim.habits``), and the set
-also carries each object's habit family and the extra reference slot distributions
-(:data:`EXACT_H1_ROW` and the empirical frequency of the last H observations).
-
-A :class:`SearchSet` is built, and everything it is built from checked, by
-:func:`build_search_set`; the functions that read one (the priors, :func:`history_tokens`,
-:func:`make_episodes`) check only their other arguments. The simulator's names (``Episodes``,
-``run_episodes``, ``bayes_update``, ...) are importable from here too, as they were before the
-simulator had its own module.
+:func:`build_search_set` draws the queries (as the evaluation protocol, or fixed horizons) with
+their exact posterior (given the last H observations with habits or H > 1, plus the habit
+family and :data:`EXACT_H1_ROW` and empirical-frequency rows) and true tables, and checks
+everything it is built from; the priors (:func:`exact_tables`, :func:`uniform_tables`,
+:func:`last_seen_tables`, :func:`extra_tables`, :func:`predictor_tables`),
+:func:`history_tokens` and :func:`make_episodes` (over the K tables of the object's kind in
+visiting order: ``target`` is the slot at τ_q) check only their other arguments. The
+simulator's names are importable from here too.
 """
 
 from __future__ import annotations

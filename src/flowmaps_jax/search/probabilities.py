@@ -1,29 +1,10 @@
 """Table probabilities of the exact priors, and every prior's as plain Python dicts.
 
-One layout for every prior, the array a planner consumes::
-
-    probs = table_probabilities(predictor, tokens, queries, num_samples=100, key=key)
-    probs.shape == (B, Q, S + 1)   # S token slots of the map, then the "off" mass
-
-Entry ``[b, q, s]`` is the mass on furniture token ``s`` of scene ``b`` for query ``q``; entries
-of object tokens and padding are exactly zero; the last entry is the mass on no table ("off").
-Each row sums to 1.
-
-* **Sampled priors** (FlowMaps, the MLP baseline) and models with explicit table weights:
-  :func:`flowmaps_jax.tables.table_probabilities` (below the predictor, which offers it as
-  ``Predictor.table_probabilities``; ``search.table_probabilities`` is the same function): the
-  samples assigned to the tables by the evaluation protocol's rule.
-* **Exact priors** (FlowSim's exact posterior, uniform over the kind, last-seen) are slot
-  distributions along the object's visiting order; :func:`slots_to_tables` puts slot ``k``'s mass
-  on the table ``visit_order[k]`` (furniture tokens come first in ``scene_tokens``, so a furniture
-  index is its token index). Their off mass is 0.
-
-:func:`table_dict` gives the same numbers as plain Python dicts keyed by table (token) index,
-for planners outside JAX.
-
-:func:`slots_to_tables` checks its arguments once and runs the jitted kernel
-:func:`spread_over_tables`, which checks nothing and which the search set (:mod:`.episodes`) runs
-on the FlowSim arrays it built.
+One layout for every prior: ``probs`` (B, Q, S + 1), entry ``[b, q, s]`` the mass on furniture
+token ``s`` (exactly zero on object tokens and padding), the last entry the "off" mass; rows
+sum to 1. A model's are :func:`flowmaps_jax.tables.table_probabilities`; the exact priors' are
+slot distributions along the visiting order, spread by :func:`spread_over_tables` (off mass 0);
+:func:`table_dict` gives plain dicts keyed by table token index, for planners outside JAX.
 """
 
 from __future__ import annotations
@@ -35,7 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from flowmaps_jax.tokens import FURNITURE, SceneTokens
-from flowmaps_jax.validation import check_int, check_int_array
 
 OFF = "off"
 """Key of the off-table mass in :func:`table_dict`."""
@@ -46,34 +26,14 @@ OFF = "off"
 
 @functools.partial(jax.jit, static_argnames="num_tokens")
 def spread_over_tables(slot_probs, visit_order, num_tokens: int):
-    """The kernel of :func:`slots_to_tables` (no checks): slot_probs (..., F) or (..., F + 1)
-    (its off bin dropped), visit_order (..., F) int, −1 padded → (..., S + 1)."""
+    """Slot k's mass on table ``visit_order[k]``, no checks (the search set runs it on the
+    FlowSim arrays it built): slot_probs (..., F), or (..., F + 1) with its off bin dropped;
+    visit_order (..., F) int, −1 padded → (..., S + 1), off 0."""
     if slot_probs.shape[-1] == visit_order.shape[-1] + 1:
         slot_probs = slot_probs[..., :-1]
     target = jnp.where(visit_order >= 0, visit_order, num_tokens)  # padding → the off bin
     onehot = jax.nn.one_hot(target, num_tokens + 1, dtype=jnp.float32)  # (..., F, S + 1)
     return jnp.einsum("...f,...fs->...s", slot_probs, onehot)
-
-
-def slots_to_tables(slot_probs, visit_order, num_tokens: int) -> jnp.ndarray:
-    """A slot distribution along a visiting order as table probabilities.
-
-    slot_probs: (..., F) mass on position k of the visiting order (zero beyond K), e.g.
-    ``flowsim.exact_posterior``, or (..., F + 1) with an off bin last (``uniform_slots``,
-    ``last_seen_slots``; its off mass must be 0). visit_order: (..., F) int furniture
-    (token) index of each position, −1 padded (``Scenes.visit_order``). num_tokens: S.
-    Returns (..., S + 1): slot k's mass on token ``visit_order[k]``, zeros elsewhere, off 0.
-    """
-    num_tokens = check_int("num_tokens", num_tokens)
-    visit_order = check_int_array("visit_order", visit_order, None, num_tokens - 1)
-    probs = jnp.asarray(slot_probs, jnp.float32)
-    order = np.shape(visit_order)
-    if probs.shape[:-1] != order[:-1] or probs.shape[-1] not in (order[-1], order[-1] + 1):
-        raise ValueError(f"slot_probs must have shape {order} or {(*order[:-1], order[-1] + 1)} "
-                         f"to match visit_order; got {probs.shape}")
-    if probs.shape[-1] == order[-1] + 1 and not bool(jnp.all(probs[..., -1] == 0)):
-        raise ValueError("slot_probs has off mass; an exact prior puts all mass on slots")
-    return spread_over_tables(probs, jnp.asarray(visit_order, jnp.int32), num_tokens)
 
 
 # --------------------------------------------------------------------------- plain dicts

@@ -1,23 +1,12 @@
-"""The search protocol: every prior (row) driven by every policy on the same FlowSim episodes.
+"""The search protocol: every prior (row) driven by every policy on the same FlowSim episodes
+(docs/search.md).
 
-Rows, in report order: the exact posterior (the Bayes-optimal searcher), the models (FlowMaps,
-the MLP baselines: their table probabilities from samples), uniform over the kind, last-seen
-first (all mass on the table the object was seen on; after that fails, uniform over the rest),
-and nearest table first (no prior, travel only: the "nearest" policy, the same under every
-policy column). Each row × policy is scored per episode (``scores.episode_scores``), summarised
-overall, by category and by horizon Δτ, and divided by the exact-posterior row under the same
-policy. With a perfect detector, every row is also scored in exact expectation over the true
-table (``simulator.expected_outcomes`` weighted by the exact posterior: no rollout noise).
-Each prior is checked once (``episodes.make_episodes``) and the policies, budget and sizes once
-(:func:`score_priors`), before any episode runs; the runs are the simulator's unchecked jitted
-simulation (``simulator.simulate``, ``simulator.simulate_every_target``).
-
-In a FlowSim world with habits, or with ``history`` H > 1 (``episodes.uses_history``), the exact
-posterior is the one given the last H observations, two more reference rows follow the models
-("exact, H = 1": what a one-map model can know; "empirical frequency, H = …": a visit-count
-memory), a model reading several maps (``model.history`` > 1) gets the tokens of its maps, each
-model row is labelled with its H, and every summary is also split by the objects' habit family
-(:func:`habit_sections`: search.json's "habits", search.md's "By habit").
+Rows, in report order: the exact posterior, the models, uniform over the kind, last-seen, and
+nearest first (no prior); with habits or H > 1 also "exact, H = 1" and "empirical frequency",
+and every summary split by habit (:func:`habit_sections`). Each row × policy is scored per
+episode, summarised overall, by category and by Δτ, divided by the exact row under the same
+policy, and with a perfect detector also in exact expectation over the true table. Priors,
+policies, budget and sizes are checked once (:func:`score_priors`) before any episode runs.
 """
 
 from __future__ import annotations

@@ -1,19 +1,9 @@
-"""Search metrics over a batch of episodes, overall and by group, and ratios between rows.
+"""Search metrics over a batch of episodes, overall and by group, and ratios between rows (the
+definitions: docs/search.md, "Metrics").
 
-Per episode (:func:`episode_scores`):
-
-* ``sr@k``: found within k looks (k = 1, 2, 3; ``success_at`` has every k up to the budget);
-* ``looks``: looks made (until found, or the whole budget);
-* ``travel``: pixels driven (until found, or in the whole budget);
-* ``spl``: success weighted by path length (Anderson et al., 2018), S · ℓ / max(p, ℓ) with S
-  found (0/1), ℓ the straight-line distance from the start to the true table (the shortest path
-  to it) and p the path driven; 1 for an object found at the start point (ℓ = p = 0);
-* ``found``: found within the budget.
-
-Means ± standard errors over episodes come from ``summarise`` (overall, by category, by
-horizon Δτ). A row's *ratio* is its mean over the mean of the exact-posterior row driven by the
-same policy (same episodes, same hiding places): 1 for the Bayes-optimal searcher itself;
-> 1 is worse for looks and travel, < 1 is worse for the success rates and SPL.
+Per episode (:func:`episode_scores`): ``sr@k`` (k = 1, 2, 3), ``looks``, ``travel`` (pixels),
+``spl`` (1 for an object found at the start point) and ``found``. A row's ratio is its mean over
+the exact-posterior row's with the same policy (1 for the Bayes-optimal searcher).
 """
 
 from __future__ import annotations

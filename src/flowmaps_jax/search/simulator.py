@@ -1,27 +1,16 @@
-"""The episode simulator: a robot looks at tables one by one until it finds the object.
+"""The episode simulator: a robot looks at tables one by one until it finds the object
+(the protocol: docs/search.md).
 
-One episode, all arrays of :class:`Episodes` without the batch axis:
+One episode is :class:`Episodes` without the batch axis: the object hides on ``target``, the
+robot starts at ``start`` (pixels), each look drives straight to a table's centre and misses
+with probability ``p_miss``; a failed look at j sets b_j ← p_miss · b_j and renormalises
+(nothing left: uniform over the tables looked at least often); the episode ends when found or
+after ``budget`` looks.
 
-* the object hides on table ``target`` (in FlowSim: its table at τ_q in the rollout);
-* the robot starts at ``start`` (pixels; the map centre or the object's last-seen table);
-* each look drives in a straight line to a table's centre (Euclidean travel, pixels) and finds the
-  object if it is there, except with probability ``p_miss`` (an imperfect detector);
-* after a failed look at table j the belief is updated by Bayes' rule:
-  b_j ← p_miss · b_j, then renormalised (p_miss = 0: zero it and renormalise). If nothing is left
-  (a prior that ruled the true table out), the belief becomes uniform over the tables looked at
-  least often (with a perfect detector: the tables not searched yet);
-* the episode ends when the object is found or after ``budget`` looks.
-
-:func:`run_episodes` runs a batch: ``jax.vmap`` over episodes of one ``lax.scan`` over the
-``budget`` looks, jit-compiled once per (N, K, budget) for all policies (the policy is a traced
-index). :func:`expected_outcomes` runs every possible hiding place at once (the K · N episodes
-in one batch) for exact expectations under a truth distribution.
-
-Nothing here knows FlowSim: :mod:`.episodes` builds :class:`Episodes` from FlowSim scenes.
-The public functions (:func:`run_episodes`, :func:`expected_outcomes`, :func:`bayes_update`)
-check their arguments once; the jitted simulation they run (:func:`simulate`,
-:func:`simulate_every_target`, on a policy's :func:`policy_index`) checks nothing: the search
-protocol runs it on the episodes it built and checked.
+:func:`run_episodes` (``vmap`` over episodes of a ``lax.scan`` over looks, one compile per
+(N, K, budget) for every policy) and :func:`expected_outcomes` (every hiding place at once)
+check their arguments; :func:`simulate` and :func:`simulate_every_target` check nothing. No
+FlowSim here: :mod:`.episodes` builds the episodes.
 """
 
 from __future__ import annotations
@@ -33,13 +22,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from flowmaps_jax.resources import check_resources
-from flowmaps_jax.search.policies import (
+from flowmaps_jax.navigation.policies import (
     MAX_OPTIMAL_TABLES,
     POLICIES,
     choose_indexed,
     distances,
 )
+from flowmaps_jax.resources import check_resources
 from flowmaps_jax.validation import (
     PROB_ATOL,
     check_choice,
@@ -253,7 +242,7 @@ def simulate(episodes: Episodes, key, p_miss, policy_index, budget: int) -> Outc
 
 def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
                  budget: int = DEFAULT_BUDGET, p_miss: float = 0.0) -> Outcome:
-    """Run N episodes with ``policy`` (see :mod:`flowmaps_jax.search.policies`) → Outcome (N, ...).
+    """Run N episodes with ``policy`` (:mod:`flowmaps_jax.navigation.policies`) → Outcome (N, ...).
 
     key: typed PRNG key for the detector's misses (only matters when p_miss > 0; default
     key(0)). budget: looks per episode (≥ 1). p_miss: in [0, 1). Raises ``ValueError`` for bad

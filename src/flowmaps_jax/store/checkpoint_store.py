@@ -1,13 +1,10 @@
 """Writing a run's checkpoints: the last k saves and the best by validation loss.
 
-:class:`CheckpointStore` holds the two orbax managers of :mod:`.checkpoints` (``last/`` keeps
-``keep_last`` recent steps, ``best/`` the one with the lowest validation loss, so the best
-survives when it falls out of the last k). Each save holds the whole training state, the run's
-config and the ``meta`` item of :mod:`.integrity` (checksums and the loop's unlogged metrics
-window). Saves are synchronous and atomic: orbax writes a temporary directory and renames it
-when complete, so an interrupted save never appears as a step. A state holding NaN or inf is
-never saved (:class:`~.integrity.NonFiniteStateError`); a failed write (a full disk) raises
-:class:`CheckpointSaveError` with one line, and the partial save is removed.
+:class:`CheckpointStore` holds the two orbax managers of :mod:`.checkpoints`. Each save holds
+the training state, the run's config and the ``meta`` item of :mod:`.integrity`; saves are
+synchronous and atomic (an interrupted save never appears as a step). A non-finite state is
+never saved (:class:`~.integrity.NonFiniteStateError`); a failed write raises
+:class:`CheckpointSaveError` and the partial save is removed.
 """
 
 from __future__ import annotations

@@ -10,11 +10,8 @@ Layout (by default ``<run_dir>/checkpoints``)::
 keys), ``config`` the run's config as JSON, ``meta`` the checksums of :mod:`.integrity`; the
 writer is :class:`~.checkpoint_store.CheckpointStore`.
 
-Reading: :func:`saved_steps` and :func:`restore` (one step, verified: checksums recomputed,
-finiteness checked); a missing, partial, altered or non-finite step raises ``ValueError``
-naming it and the newest intact step. Steps written before checksums existed (no ``meta``) are
-checked for finiteness only. :func:`load_weights` is a step's weights and the model its config
-describes (what :func:`flowmaps_jax.predictor.load` and the exporter read).
+A missing, partial, altered or non-finite step is a ``ValueError`` naming it and the newest
+intact step; a step without ``meta`` is checked for finiteness only.
 """
 
 from __future__ import annotations

@@ -1,27 +1,14 @@
 """The pretrained models packaged with flowmaps-jax: which there are, reading them safely, and
-writing them from a checkpoint.
+writing them from a checkpoint (docs/results.md, "Shipped weights").
 
-The EMA weights of the `cpu`-preset runs documented in docs/results.md ("Shipped weights") live in
-the data folder ``flowmaps_jax/pretrained/``: ``<name>.npz`` (float32 parameter arrays keyed by
-their path in the params pytree) next to ``<name>.json`` (the run's config, model family, step,
-source, which checkpoint of the run it is, ``"which": "best"`` or ``"latest"``, and why, the
-SHA-256 of the .npz, and its ``seal``: one SHA-256 over the whole ``.json`` (every field but the
-seal, in a canonical form) and the ``.npz`` bytes together, so a changed config is refused as a
-changed weight is; :func:`seal` computes it, :mod:`flowmaps_jax.store.reseal` adds it to files
-written before seals existed). Files written before ``which`` was recorded lack it:
-:func:`describe` reports ``"unknown"`` for them. A plain ``pip install .`` carries them; nothing
-is downloaded. Reading trusts neither file: the ``.json`` is size-limited and its fields are
-checked (a name, a model family, a step that is a count, ``which`` if present), nothing in it
-is used and the ``.npz`` is not parsed before the seal matches; then the ``.npz`` is read with
-its members whitelisted (exactly the model's parameters, their declared shapes checked before
-anything is decompressed) and every weight finite.
-
-    from flowmaps_jax.predictor import load_pretrained
-    predictor = load_pretrained("flowmaps")      # or "mlp", "mlp-learned"
-
-:func:`read_weights` is what :func:`flowmaps_jax.predictor.load_pretrained` calls;
-:func:`export_pretrained` writes the files from a checkpoint (the command is
-``python -m flowmaps_jax.export --checkpoint runs/X/checkpoints --name mlp``).
+In ``flowmaps_jax/pretrained/``: ``<name>.npz`` (float32 parameters keyed by their path in the
+params pytree) and ``<name>.json`` (config, family, step, source, ``which`` and why, the
+``.npz``'s SHA-256, and its ``seal``: one SHA-256 over the canonical ``.json`` and the ``.npz``
+bytes, :func:`seal`). Reading trusts neither file: the ``.json`` is size-limited and checked,
+nothing is used before the seal matches, then the ``.npz`` is read with its members
+whitelisted (shapes checked before decompression) and every weight finite
+(:func:`read_weights`, what :func:`flowmaps_jax.predictor.load_pretrained` calls).
+:func:`export_pretrained` writes the files (``python -m flowmaps_jax.export``).
 """
 
 from __future__ import annotations

@@ -1,14 +1,7 @@
-"""``python -m flowmaps_jax.store.reseal DIRECTORY``: seal pretrained weights written before
-seals existed, once.
-
-A weights ``.json`` written by :func:`~flowmaps_jax.store.pretrained.export_pretrained` now
-carries a ``seal`` (:func:`~flowmaps_jax.store.pretrained.seal`: one SHA-256 over the ``.json``
-and the ``.npz`` together), and loading refuses a ``.json`` without one. This command adds the
-seal to every unsealed model in ``DIRECTORY`` whose ``.npz`` still matches the SHA-256 its
-``.json`` recorded (a damaged one is refused, not sealed). Only the ``.json`` is rewritten
-(through a temporary file and a rename); the ``.npz`` bytes are not touched. A model already
-sealed is left as it is. The package's own folder is changed only when it is the
-``DIRECTORY`` named: ``python -m flowmaps_jax.store.reseal src/flowmaps_jax/pretrained``.
+"""``python -m flowmaps_jax.store.reseal DIRECTORY``: add the ``seal``
+(:func:`~flowmaps_jax.store.pretrained.seal`) to every unsealed model in ``DIRECTORY`` whose
+``.npz`` still matches the SHA-256 its ``.json`` recorded (a damaged one is refused). Only the
+``.json`` is rewritten, atomically; a sealed model is left as it is.
 """
 
 from __future__ import annotations

@@ -1,27 +1,20 @@
 """A run directory belongs to one run, written by one process at a time.
 
 * :func:`claim` (a context manager) takes the directory for a run. A new run (no ``resume``)
-  needs an empty or missing directory, or one whose run never saved a checkpoint (killed or
-  interrupted before its first save: its leftovers are removed, with a message); ``overwrite``
-  first moves an old run aside to ``<dir>.old-<timestamp>``. Nothing in the directory, at any
-  depth, may be a symbolic link (:func:`check_own_files`: ``checkpoints/last``, a step folder,
-  ``metrics.jsonl`` ...), so nothing is read, written or cleaned up (orbax's keep-last deletes
-  old steps) outside the directory: such a directory is refused before anything is done (the
-  leftovers of a run that saved nothing are removed first, links as links). The
-  lock file ``<dir>/.lock`` (created with ``O_EXCL``, holding ``<pid> <host>``) keeps a second
-  process out while the first one runs; a lock left by a process that no longer exists (kill -9,
-  power loss) is taken over with a message. The lock is released on exit, and a directory the
-  claim created is removed again if nothing was written. On a multi-host job process 0 holds
-  the directory and every process learns whether it could. The path itself is checked by the
-  public entry point that claims it (``check_output_dir`` in ``training.loop.run``, for every
-  world): a file, a path under a file or a read-only place is a ``ValueError``
-  there; one that still cannot be created (``/proc/x``) is one here.
-* :func:`write_atomic` writes a file through a temporary file and a rename, so a crash or a full
-  disk never leaves it half-written (the shared writer,
-  :func:`flowmaps_jax.atomic_files.write_file`); :func:`open_append` opens a log for appending.
-  Both refuse a symbolic link.
-* The metrics file :data:`METRICS` (one JSON record per line): :func:`kept_records` are the
-  lines a resumed run keeps. The checkpoints: :func:`checkpoint_root`, :func:`only_best_saved`.
+  needs an empty or missing directory, or one whose run never saved a checkpoint (its leftovers
+  are removed, with a message); ``overwrite`` first moves an old run aside to
+  ``<dir>.old-<timestamp>``. A symbolic link anywhere in the directory
+  (:func:`check_own_files`) is refused before anything is done, so nothing is read, written or
+  deleted outside it. The lock file ``<dir>/.lock`` (``O_EXCL``, holding ``<pid> <host>``) keeps
+  a second process out; a lock of a process that no longer exists is taken over with a message.
+  The lock is released on exit, and a directory the claim created is removed if nothing was
+  written. On a multi-host job process 0 holds the directory. The path itself is checked by the
+  caller (``check_output_dir`` in ``training.loop.run``); one that still cannot be created is a
+  ``ValueError`` here.
+* :func:`write_atomic` (through :func:`flowmaps_jax.atomic_files.write_file`) and
+  :func:`open_append` refuse a symbolic link.
+* The metrics file :data:`METRICS`: :func:`kept_records` are the lines a resumed run keeps. The
+  checkpoints: :func:`checkpoint_root`, :func:`only_best_saved`.
 """
 
 from __future__ import annotations

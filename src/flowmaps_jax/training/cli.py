@@ -15,21 +15,9 @@ Examples::
     python -m flowmaps_jax.train --data PATH --run-dir runs/mine   # a recorded dataset
     python -m flowmaps_jax.train --preset smoke --data PATH        # ... a tiny model on it
 
-A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` (one JSON record
-per log interval: ``"kind": "train"`` with mean loss/grad_norm/lr and steps/s and samples/s over
-the compiled steps only, or ``"kind": "val"`` with the EMA validation loss) and ``checkpoints/``
-(see :mod:`flowmaps_jax.store.checkpoints`). It belongs to one run
-(:mod:`flowmaps_jax.store.rundir`): a new run needs an empty directory (or ``--overwrite``,
-or one whose run saved no checkpoint: ``--resume`` also starts that one again from step 0), one
-process writes it at a time, and nothing in it is written before every check has passed,
-resource bounds included (:func:`flowmaps_jax.training.config.check_run_resources`).
-
-``--resume`` continues a run exactly (:func:`flowmaps_jax.training.loop.run`) and may change
-only the fields in :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`. Ctrl-C saves a
-checkpoint and exits; a NaN/inf loss, or a state with NaN/inf that a save refuses, stops the
-run without saving the bad state (the last good checkpoint stays). A failed write (a full disk)
-stops with one line naming it. Exit codes: 0 ok, 1 non-finite loss or state, 2 bad arguments,
-74 a failed write, 130 interrupted.
+The run directory, ``--resume``, Ctrl-C and non-finite losses: :mod:`flowmaps_jax.training.loop`.
+Exit codes: 0 ok, 1 non-finite loss or state, 2 bad arguments, 74 a failed write (one line
+naming it), 130 interrupted.
 
 The typed flags (``--family``, ``--steps``, ``--init-from``) set their config fields as the
 values argparse parsed (:func:`flowmaps_jax.training.overrides.replace_fields`); only ``--set``

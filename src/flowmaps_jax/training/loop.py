@@ -13,17 +13,13 @@
    ``ckpt_every``.
 3. **Summary.** The last checkpoint, the routine curve and the commands to evaluate or resume.
 
-A run directory holds ``config.json`` (the resolved config), ``metrics.jsonl`` and
-``checkpoints/`` (:mod:`flowmaps_jax.training.runlog`, :mod:`flowmaps_jax.store.checkpoints`)
-and belongs to one run (:mod:`flowmaps_jax.store.rundir`). The batch and noise of step i
-depend only on the state's keys and i, so a resumed run continues exactly, and the metrics of
-the steps since the last train record travel in the checkpoint, so the records of a resumed run
-are those of a run never stopped. Everything that depends on the world (its data, batches,
-objective, resource estimate) comes from the run config's world
-(:func:`flowmaps_jax.worlds.world`); the loop itself is the same for every world. Ctrl-C
-saves a checkpoint and returns; a NaN/inf loss, or a state with NaN/inf that a save refuses,
-stops the run without saving the bad state (the last good checkpoint stays). The command line
-is :mod:`flowmaps_jax.training.cli`.
+The run directory holds ``config.json``, ``metrics.jsonl`` and ``checkpoints/``
+(:mod:`flowmaps_jax.training.runlog`; one run per directory: :mod:`flowmaps_jax.store.rundir`).
+The batch and noise of step i depend only on the state's keys and i, so a resumed run continues
+exactly, and its records are those of a run never stopped. Everything world-specific comes from
+:func:`flowmaps_jax.worlds.world`. Ctrl-C saves a checkpoint and returns; a NaN/inf loss, or a
+state with NaN/inf that a save refuses, stops the run without saving the bad state (the last
+good checkpoint stays).
 """
 
 from __future__ import annotations
@@ -84,9 +80,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     stop_at: stop after this step (saving a checkpoint) without changing the schedule, which
         always spans ``cfg.steps``. on_step(step, metrics): called after every step (tests).
 
-    Nothing in ``run_dir`` is written before every check has passed, and ``run_dir/.lock``
-    keeps other processes out while the run lasts (see :mod:`flowmaps_jax.store.rundir`). A
-    failed checkpoint write (e.g. a full disk) raises
+    A failed checkpoint write raises
     :class:`~flowmaps_jax.store.checkpoint_store.CheckpointSaveError`.
     """
     # ---- Prelude: every check, then the run's pieces; nothing is written before the last one.

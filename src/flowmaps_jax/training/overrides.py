@@ -1,18 +1,8 @@
-"""Config dataclasses from text: ``key=value`` overrides and the JSON round trip.
-
-* :func:`apply_overrides` replaces fields of a config dataclass (``TrainConfig``) from strings
-  such as ``model.dim=64`` (the command line's ``--set``), converting each to its field's type.
-* :func:`replace_fields` sets fields from values already typed (the command line's typed flags,
-  ``--steps``, ``--family``, ``--init-from``), together with the text overrides, and checks the
-  result once.
-* :func:`config_to_dict` / :func:`config_from_dict` turn a config into nested JSON dicts and
-  back (``TrainConfig.to_dict`` / ``from_dict``, a run directory's ``config.json``); nested
-  configs with a ``to_dict`` / ``from_dict`` of their own (``FlowSimConfig``) use it. A field
-  whose metadata names ``"stored_as"`` is stored under that key (the name older versions wrote:
-  ``TrainConfig.family`` is ``"model_kind"`` on disk); both keys read back.
-* :func:`flatten`: a nested dict as ``{"model.dim": 64, ...}``.
-
-Nothing here knows ``TrainConfig`` itself: every function works on the dataclass it is given.
+"""Config dataclasses from text: ``key=value`` overrides (:func:`apply_overrides`, ``--set``),
+typed values (:func:`replace_fields`, the typed flags), the JSON round trip
+(:func:`config_to_dict` / :func:`config_from_dict`; a field's metadata ``"stored_as"`` names the
+key it has on disk, and both keys read back) and :func:`flatten`. Nothing here knows
+``TrainConfig``: every function works on the dataclass it is given.
 """
 
 from __future__ import annotations

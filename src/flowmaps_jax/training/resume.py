@@ -1,14 +1,7 @@
-"""Resume policy: which checkpoint ``--resume`` continues and with which config.
-
-* :func:`load_config`: the run config (``TrainConfig``, ``HomesTrainConfig``) stored with a
-  checkpoint.
-* :func:`check_resumable`: only the config's ``resumable_fields`` may change
-  on resume.
-* :func:`restore_for_resume`: the verified checkpoint a resumed run continues (None for a run
-  that saved none yet: it starts again from step 0).
-* :func:`resume_config`: the config a resumed run starts from.
-
-Reading and verifying the checkpoints is :mod:`flowmaps_jax.store.checkpoints`.
+"""Resume policy: which checkpoint ``--resume`` continues and with which config
+(:func:`load_config`, :func:`check_resumable`: only ``resumable_fields`` may change,
+:func:`restore_for_resume`: None for a run that saved nothing yet, :func:`resume_config`).
+Reading and verifying checkpoints is :mod:`flowmaps_jax.store.checkpoints`.
 """
 
 from __future__ import annotations

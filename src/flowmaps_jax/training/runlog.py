@@ -1,18 +1,11 @@
 """A run's records: ``metrics.jsonl``, its checkpoints, the best val step and the closing
-summary. :mod:`flowmaps_jax.training.loop` calls these; none of them trains.
+summary; :mod:`flowmaps_jax.training.loop` calls these.
 
-* :class:`RunBook` keeps ``metrics.jsonl``, one JSON record per interval: ``"kind": "train"``
-  (mean loss / grad_norm / lr over the steps since the last record, and steps/s and samples/s
-  over the compiled steps only), ``"kind": "val"`` (the EMA loss on the fixed validation
-  batches, and whether it is the best so far) and ``"kind": "routine"`` (the routine
-  diagnostic). It also writes the checkpoints (last k, and ``best`` by val loss; through
-  :class:`flowmaps_jax.store.checkpoint_store.CheckpointStore`), each carrying the unlogged
-  steps since the last train record, so that a resumed run writes the records of a run never
-  stopped.
-* :class:`RunResult`, :func:`print_summary` and :func:`write_routine_curve`: the end of a run.
-
-The run directory itself (the claim, the lock, atomic writes) is :mod:`flowmaps_jax.store.rundir`;
-the resume policy is :mod:`flowmaps_jax.training.resume`.
+:class:`RunBook` writes the records (``"kind"``: ``"train"`` means over the steps since the
+last record, steps/s and samples/s over compiled steps only; ``"val"``, the EMA loss and
+whether it is the best; ``"routine"``) and the checkpoints (last k and ``best``), each carrying
+the unlogged steps, so a resumed run writes the records of a run never stopped.
+:class:`RunResult`, :func:`print_summary` and :func:`write_routine_curve` end a run.
 """
 
 from __future__ import annotations

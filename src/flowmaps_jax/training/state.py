@@ -1,29 +1,14 @@
 """Training state and the jitted update: optimiser, EMA, train step, validation loss.
 
-Everything here is a pure function of explicit pytrees:
-
-* :class:`TrainState` holds the step counter, params, EMA params, optimiser state and two PRNG
-  keys (``rng`` for dropout / flow noise, ``data_key`` for batches). The batch and the noise of
-  step ``i`` come from ``fold_in(data_key, i)`` and ``fold_in(rng, i)``, so a restored state
-  continues a run exactly.
-* :func:`make_train_step` returns one ``jax.jit``-compiled ``(state, batch, key) -> (state,
-  metrics)`` doing loss, gradients, the optax update and the EMA update, with the state donated.
-* :func:`make_fused_train_step` additionally draws the batch inside the same compiled function
-  from the scenes arrays (no host round trip): ``(state, scenes) -> (state, metrics)``. With
-  endless data the scenes argument is swapped for fresh environments every few steps
-  (the run's world's ``endless`` hook, :mod:`flowmaps_jax.worlds`).
-* :func:`make_eval_loss` scores EMA params on fixed validation batches with a fixed key and no
-  dropout, so values are comparable across evaluations.
-
-Data parallelism: given a ``mesh`` (:mod:`flowmaps_jax.distributed`), the state is replicated on
-every device, each step's batch is split over the devices along its scene axis, and ``jax.jit``
-gets these shardings explicitly; XLA partitions the step and all-reduces the gradients. The
-batch is still drawn whole from the same key, so the numbers do not depend on the device count
-(up to the summation order of the loss and gradients). Without a mesh nothing is sharded.
-
-The model family (FlowMaps flow matching or the MLP Gaussian baseline) is hidden behind an
-:class:`~flowmaps_jax.training.objectives.Objective` (``init`` + ``loss``); tests may pass a
-stand-in objective.
+Pure functions of explicit pytrees. :class:`TrainState`: step, params, EMA params, optimiser
+state, ``rng`` (dropout, flow noise) and ``data_key`` (batches); step i's batch and noise come
+from ``fold_in(data_key, i)`` and ``fold_in(rng, i)``, so a restored state continues exactly.
+:func:`make_train_step` / :func:`make_fused_train_step` (the batch drawn inside the same
+compiled function) donate the state; :func:`make_eval_loss` scores EMA params on fixed batches
+with a fixed key and no dropout. Given a ``mesh``, the state is replicated and each batch split
+along its scene axis; the batch is drawn whole from the same key, so the numbers do not depend
+on the device count (up to summation order). The family is hidden behind an
+:class:`~flowmaps_jax.training.objectives.Objective` (``init`` + ``loss``).
 """
 
 from __future__ import annotations

@@ -1,31 +1,12 @@
 """Argument checks shared by the public APIs: run on the host, before anything is jitted.
 
-One function per concept. Each raises ``ValueError`` whose message starts with the argument's
-name and says what was expected and what was given; each returns the value in the form the
-caller should go on with (a Python ``int``/``float``/``bool``, a numpy array, a typed key, a path
-string). Array checks read only ``shape`` and ``dtype`` of tracers (values are checked when the
-array is concrete), so a public function may run them and still be traced by ``jax.jit``; the
-jitted cores behind the public functions do not check again.
-
-Modules (everything is importable from ``flowmaps_jax.validation``; the names are listed below):
-
-* :mod:`.scalars`: ints, reals, flags, choices, instances, seeds, PRNG keys.
-* :mod:`.arrays`: arrays, shapes, real and integer arrays, masks, probabilities (with
-  :data:`PROB_ATOL` for computed float32 distributions). A shape is a tuple of int sizes,
-  ``None`` (any size) and a leading ``...`` (any leading dims); a caller computes the sizes
-  from its arguments (``(num_envs, k + 1)``) and passes them in.
-* :mod:`.files`: paths, readable files and folders, writable outputs, plain names (a preset or
-  file name, a metadata field: no path, no markup).
-* :mod:`.fields`: the config dataclasses' schemas only: :func:`check_fields` (a config's fields,
-  from a ``{field: rule}`` table), :func:`check_table`, :func:`check_mixture`, :func:`check_keys`
-  (the dict a ``from_dict`` reads). A public function checks its arguments in its own body,
-  with the plain checks above.
-* :mod:`.errors`: :func:`prefix_errors`, a block whose ``ValueError`` messages get one prefix
-  (the file or command they concern).
-
-Not checks, and so not here: the atomic writer of output files is
-:mod:`flowmaps_jax.atomic_files`, the reader of untrusted files
-:mod:`flowmaps_jax.untrusted_files`, the memory and work budgets :mod:`flowmaps_jax.resources`.
+Each raises ``ValueError`` whose message starts with the argument's name and says what was
+expected and what was given, and returns the value in the form the caller goes on with. Array
+checks read only ``shape`` and ``dtype`` of tracers (values when concrete), so a traced public
+function may run them; the jitted cores do not check again. A shape is a tuple of int sizes,
+``None`` (any size) and a leading ``...``. Modules: ``scalars``, ``arrays`` (with
+:data:`PROB_ATOL`), ``files``, ``fields`` (config schemas only), ``errors``
+(:func:`prefix_errors`); the map is docs/design.md.
 """
 
 from flowmaps_jax.validation.arrays import (

@@ -16,7 +16,6 @@ from flowmaps_jax.flowsim.homes.config import (
     REGIMES,
     HomesConfig,
     context_of,
-    hour_of_day,
 )
 from flowmaps_jax.flowsim.homes.export import homes_schema, load_homes, save_homes
 from flowmaps_jax.flowsim.homes.floorplan import geodesic_distances, room_adjacency
@@ -55,7 +54,6 @@ __all__ = [
     "homes_history_posterior",
     "homes_posterior",
     "homes_schema",
-    "hour_of_day",
     "load_homes",
     "object_boxes",
     "room_adjacency",

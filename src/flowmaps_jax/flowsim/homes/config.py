@@ -381,11 +381,6 @@ Python numbers); ``validate`` then checks ``rooms``, the bounds the vocabulary s
 DEFAULT_HOMES_CONFIG = HomesConfig()
 
 
-def hour_of_day(t):
-    """Hour of day of hour t (works on ints and arrays)."""
-    return t % 24
-
-
 def context_of(t, phases: tuple[int, ...] = DEFAULT_PHASES):
     """Preference context of hour t (an int or an array, NumPy or JAX): the phase of the day
     (the last of ``phases`` <= t mod 24; the last phase before the first) + 4 on weekends."""

@@ -1,17 +1,8 @@
-"""Homes on disk: one ``.npz`` of plain arrays plus a JSON schema, and a loader that refuses bad
-files.
-
-``save_homes(path, homes, config)`` writes ``path`` (an ``.npz``: every ``Homes`` field as an
-array named after it, ``format_version`` (int64), ``config_json`` and ``schema_json`` (UTF-8
-strings)) and, beside it, ``<stem>.schema.json``: the same schema, for tools that read the
-arrays without this package (numpy, or any zip + .npy reader). The schema names every field's
-shape (symbols and sizes), dtype, unit and meaning, the vocabulary (class names and text
-descriptors, in id order), the regimes and the time convention. Both files are written aside
-and renamed into place together (``atomic_files.write_files``), never through a symbolic link.
-
-``load_homes(path)`` returns (homes, config) and raises ``ValueError`` naming the file for
-anything ``save_homes`` could not have written: another format or schema version, missing or
-unexpected members, wrong shapes or dtypes, non-finite values, ids or masks out of range.
+"""Homes on disk: ``save_homes(path, homes, config)`` writes one ``.npz`` (every ``Homes``
+field, ``format_version``, ``config_json``, ``schema_json``) and ``<stem>.schema.json`` beside
+it (every field's shape, dtype, unit and meaning, the vocabulary, the regimes, the time
+convention), both renamed into place together. ``load_homes(path) -> (homes, config)`` raises
+``ValueError`` naming the file for anything ``save_homes`` could not have written.
 """
 
 from __future__ import annotations

@@ -1,21 +1,10 @@
-"""Floor plans: rooms on a grid of cells joined by doors, and geodesic distances through doors.
+"""Floor plans: rooms on a grid of cells joined by doors, and geodesic distances through doors
+(the rules: docs/flowsim.md, "Homes").
 
-Coordinates are metres: x along the home's width, y along its depth, z up; a top view has the
-origin at a corner, x to the right and y up. One home (vmap these over homes).
-
-* **Rooms.** The footprint W × D is split into C = len(rooms) / rows columns of widths
-  ∝ 1 + j·U[−1, 1] (``split_jitter`` = j); each column, on its own, into ``grid_rows`` rooms of
-  depths drawn the same way. Room k = column · rows + row; room types are the config's
-  ``rooms`` shuffled over the cells. A room box is (x0, y0, x1, y1).
-* **Doors.** Two rooms stacked in a column always share a door. Across each column boundary,
-  every pair of rooms whose shared wall is at least ``door_width`` + 2·``wall_margin`` long may
-  get one: one such pair (uniformly) always does, each other with ``extra_door_prob``. So every
-  home is connected. A door is a point on its wall (uniform, ``wall_margin`` + half a door from
-  the wall's ends) and the pair of rooms it joins; door slots are static (``door_pairs``).
-* **Geodesics.** Rooms are convex, so two points in one room see each other. The walking
-  distance between points is the shortest path over the graph whose nodes are the points and
-  the doors, with straight-line edges between nodes that share a room: all-pairs shortest paths
-  by Floyd–Warshall (``geodesic_distances``; N nodes, N³ work).
+Metres: x along the home's width, y along its depth, z up; origin at a corner. One home (vmap
+over homes). Room k = column · rows + row, a room box is (x0, y0, x1, y1); every home is
+connected; door slots are static (``door_pairs``). ``geodesic_distances``: all-pairs shortest
+paths over points and doors, straight edges within a (convex) room, Floyd–Warshall (N³ work).
 """
 
 from __future__ import annotations

@@ -1,22 +1,13 @@
-"""Receptacles placed in rooms by type, dynamic objects on the receptacles they may stand on.
+"""Receptacles placed in rooms by type, dynamic objects on the receptacles they may stand on
+(the rules: docs/flowsim.md, "Homes").
 
-One home (vmap these over homes); metres, coordinates as in :mod:`.floorplan`.
-
-* **Receptacles.** Room k has S = ``receptacles_per_room[1]`` slots, receptacle index
-  k · S + s. It gets n ∈ ``receptacles_per_room`` (uniform) receptacles of distinct classes,
-  drawn uniformly among the classes its room type holds. The room is split into 2 × 2 cells;
-  the receptacles take distinct random cells. A box is (cx, cy, cz, w, d, h): the class's size
-  × (1 + ``size_jitter``·U[−1, 1]) per side, its longer footprint side along its cell's longer
-  side, shrunk to fit the cell less ``wall_margin`` on every side, at a uniform position in the
-  cell, standing on the floor (cz = h / 2). Unused slots: class −1, box 0, invalid.
-* **Objects.** M = ``objects_per_home[1]`` slots; n ∈ ``objects_per_home`` of them are used,
-  by distinct classes drawn uniformly, preferring classes that can stand on some receptacle of
-  this home. An object's *allowed* receptacles are the home's receptacles of the classes it may
-  stand on. Unused slots have class −1; a used slot whose class can stand on nothing in this
-  home (only when fewer than n classes can) is masked out (``object_valid`` False, nothing
-  allowed), never put on a receptacle it may not stand on.
-* **Cycles.** Each object's allowed receptacles in clockwise order of their centres around the
-  home's centre (angle 0 along +y), the routine's and the balanced regime's visiting order.
+One home (vmap over homes); metres, coordinates as in :mod:`.floorplan`. Receptacle index
+k · S + s for slot s of room k (S = ``receptacles_per_room[1]``), a box (cx, cy, cz, w, d, h);
+unused slots: class −1, box 0, invalid. M = ``objects_per_home[1]`` object slots; an object's
+allowed receptacles are the home's receptacles of the classes it may stand on; a used slot
+whose class can stand on nothing here is masked out (``object_valid`` False). **Cycles**: each
+object's allowed receptacles clockwise around the home's centre (angle 0 along +y), the routine
+and balanced regimes' visiting order.
 """
 
 from __future__ import annotations

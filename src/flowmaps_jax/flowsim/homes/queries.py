@@ -92,3 +92,14 @@ def check_queries(queries: HomesQueries, homes: Homes, config: HomesConfig) -> H
         if np.any(tau_q <= tau):
             raise ValueError("queries.tau_q must be > queries.tau")
     return queries
+
+
+def allowed_slots(homes: Homes, queries: HomesQueries) -> jax.Array:
+    """(E, Q, R) bool: the queried object's allowed receptacles."""
+    return jnp.take_along_axis(homes.object_allowed, queries.object_index[..., None], axis=1)
+
+
+def receptacle_at(homes: Homes, hour, object_index) -> jax.Array:
+    """(E, Q) int32: where object ``object_index`` (E, Q) stands at ``hour`` (E, Q)."""
+    e = jnp.arange(homes.receptacle.shape[0])[:, None]
+    return homes.receptacle[e, hour, object_index]

@@ -1,33 +1,13 @@
-"""Schedule regimes: each object's hourly transition law over its allowed receptacles.
+"""Schedule regimes: each object's hourly transition law over its A allowed receptacles
+(docs/flowsim.md, "Homes").
 
-Every regime is a time-inhomogeneous Markov chain over the object's A allowed receptacles
-(n = |A|) whose hourly matrix, from hour t to t + 1, is
-
-    P_t = (1 − m_t) I_A + m_t B_{c(t)},
-
-m_t = ``move`` of the object at hour of day t mod 24 and B a row-stochastic *move kernel* over
-A (rows and columns outside A are zero). So P_t is a pure function of (home, object, hour of
-week). The regimes (``REGIMES``; activity a_h = ``HomesConfig.activity``):
-
-* **preferences** — m = ρ_p · a_h; B_c = 1 π_cᵀ: the object goes to a place drawn from π_c,
-  which puts ``preference_mass`` on the favourite f_c of the context c(t) (4 phases of the day ×
-  weekday / weekend, ``config.context_of``; a law carries c of each hour of the week,
-  ``week_contexts``) and the rest evenly on the other allowed places. The
-  favourites are drawn once per object, uniformly over A for each context: they are the hidden
-  part of the law (``posterior.homes_history_posterior`` marginalises them).
-* **balanced** — m = ρ_b · a_h; B = c S + (1 − c)(J − I)/(n − 1): to the next place of the
-  object's cycle with c = ``balanced_cycle``, else to one of all n − 1 other places uniformly
-  (the next one included). B is doubly
-  stochastic, so occupancy stays spread uniformly over A.
-* **frequent** — m = ρ_f · a_h (ρ_f = ``frequent_move``, high); B(i, j) ∝ exp(−g(i, j) / L)
-  over allowed j ≠ i, g the geodesic distance through doors, L = ``frequent_length``
-  (``flowsim.kernels.distance_weights``: no row underflows, however short L).
-* **routine** — FlowSim's chain on the cycle: m = 1, B = p₀ I + p₁ S + p₂ S²
-  (``routine_probs``, stay 0.2 / advance 0.7 / skip 0.1), time-homogeneous: it moves at every
-  hour, night included (activity does not apply).
-
-With n = 1 every kernel is the identity (the object never moves). The cycle (``furnish.cycles``)
-and the distances are seen on the map; only the favourites are hidden.
+P_t = (1 − m_t) I_A + m_t B_{c(t)}, m_t the object's ``move`` at hour of day t mod 24 and B a
+row-stochastic move kernel over A (zero outside A): a pure function of (home, object, hour of
+week). Regimes (``REGIMES``): **preferences** (B_c = 1 π_cᵀ, π_c with ``preference_mass`` on
+the hidden favourite of context c(t)), **balanced** (doubly stochastic: the cycle's next place
+with ``balanced_cycle``, else uniform over the others), **frequent** (B(i, j) ∝ exp(−g(i, j) /
+``frequent_length``), g geodesic) and **routine** (m = 1, B = p₀ I + p₁ S + p₂ S²). With n = 1
+every kernel is the identity.
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
 """The homes vocabulary, as data: room types, receptacle classes and object classes.
 
-Every class has a ``name`` (a plain identifier) and a ``text`` descriptor (what a text encoder
-would embed, e.g. "coffee mug"). Receptacle classes carry a typical 3-D size (w, d, h) in metres
-(w along x, d along y, h up) and the room types they are placed in; object classes carry a size
-and the receptacle classes they may stand on. Adding a class is a change of data only: pass
+Every class has a ``name`` (a plain identifier) and a ``text`` descriptor. Receptacle classes
+carry a size (w, d, h) in metres (w along x, d along y, h up) and their room types; object
+classes a size and the receptacle classes they may stand on. Adding a class is data only:
 longer tuples to ``HomesConfig``.
-
-Sizes follow ordinary furniture (a bed 1.6 × 2.0 × 0.55 m, a coffee table 1.1 × 0.6 × 0.45 m);
-the object lists follow where such things are usually put away (a mug on a countertop, a table
-or a desk; a remote on a sofa, a coffee table or a TV stand).
 """
 
 from __future__ import annotations

@@ -1,40 +1,16 @@
-"""Object navigation in homes, scored as the field scores it (FlowMaps 2026, SGM, HOMER).
+"""Object navigation in homes, scored as the field scores it (FlowMaps 2026, SGM, HOMER);
+the protocol is docs/flowsim.md, "Navigation".
 
-**Episode.** One per query (home e, object i, τ, τ_q): the searcher knows the home at τ and a
-prior over the object's allowed receptacles at τ_q; the object stands where the rollout has it,
-``homes.receptacle[τ_q, i]``. The searcher starts at ``start_points``: the centre of room 0,
-the room at the footprint's origin corner (x0, y0) — a fixed point independent of the object. It
-walks geodesically on the floor plan, through doors (``homes.receptacle_distance`` between
-receptacles, ``flowsim.homes.geodesic_distances`` from the start), looks at one allowed
-receptacle at a time, and the episode succeeds on the look at the true one (a perfect detector).
-
-**Policies** give each episode a visiting order of the object's allowed receptacles, decided
-before the first look (with a perfect detector a failed look only zeroes that receptacle's
-belief and renormalises the rest, which changes no policy's next choice):
-
-* ``"most-probable"``: decreasing prior; ties (within ``BELIEF_ATOL``) go to the receptacle
-  nearest to where the searcher stands, then to the lowest index.
-* ``"nearest"``: the nearest receptacle not yet looked at (ignores the prior).
-* ``"optimal"``: the order with the least expected travel under the prior, exact by dynamic
-  programming over subsets of the allowed receptacles (:func:`optimal_orders`); with the exact
-  posterior it is the Bayes-optimal searcher. At most ``MAX_OPTIMAL_RECEPTACLES`` = 12 allowed
-  receptacles (2^A · A values per episode; the default vocabulary allows at most 12).
-
-**Metrics** (:func:`episode_metrics`), per episode, then means over episodes:
-
-* SR@k: found within k looks (k = 1, 5, 10); mSR: the mean of SR@k over k = 1 … ``budget``
-  (= 10, the area under the success-vs-looks curve);
-* SPL@1: success on the first look × ℓ*/max(ℓ, ℓ*) (Anderson et al., 2018), ℓ* the geodesic
-  distance from the start to the true receptacle, ℓ the distance walked. With exact geodesic
-  travel a first-look success walks ℓ*, so here SPL@1 = SR@1; kept for the paper's layout;
-* mSPL: SPL of the whole episode within the look budget (found within ``budget`` looks);
-* steps: metres walked (until found, or over the whole budget) / ``STEP_LENGTH`` = 0.25 m;
-* E[travel] ÷ exact: the episode's expected walk until found under the exact posterior (every
-  allowed receptacle the object could be on, weighted by q; no budget), mean over episodes,
-  over the same mean of the Bayes-optimal searcher (the least possible: ratio ≥ 1).
-
-Everything per episode is jitted and vmapped over homes and queries; the dynamic programme is
-grouped by its size on the host (``DP_SIZES``), one compiled program per size.
+One episode per query (home e, object i, τ, τ_q): the searcher starts at ``start_points`` (the
+centre of room 0), walks geodesically (``homes.receptacle_distance``) and looks at one allowed
+receptacle at a time; it succeeds on the look at ``homes.receptacle[τ_q, i]``. Each policy
+fixes a visiting order before the first look (a perfect detector): ``"most-probable"`` (ties
+within ``BELIEF_ATOL`` to the nearest, then the lowest index), ``"nearest"`` and ``"optimal"``
+(exact subset DP, :func:`optimal_orders`, at most ``MAX_OPTIMAL_RECEPTACLES`` allowed
+receptacles). :func:`episode_metrics`: SR@k, mSR over k = 1 … ``budget``, SPL@1, mSPL, steps
+(metres / ``STEP_LENGTH``), and E[travel] ÷ the Bayes-optimal searcher's under the exact
+posterior. Jitted and vmapped over homes and queries; the DP is grouped by size on the host
+(``DP_SIZES``).
 """
 
 from __future__ import annotations
@@ -45,11 +21,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.evaluation.priors import allowed_slots, receptacle_at
 from flowmaps_jax.flowsim.homes import HomesConfig, geodesic_distances
-from flowmaps_jax.flowsim.homes.queries import HomesQueries
+from flowmaps_jax.flowsim.homes.queries import HomesQueries, allowed_slots, receptacle_at
 from flowmaps_jax.flowsim.homes.world import Homes
-from flowmaps_jax.search.policies import BELIEF_ATOL, COST_RTOL, pick, subset_values
+from flowmaps_jax.navigation.policies import BELIEF_ATOL, COST_RTOL, pick, subset_values
 from flowmaps_jax.validation import check_choice, check_int
 
 POLICIES = ("most-probable", "optimal", "nearest")

@@ -1,26 +1,14 @@
-"""Search policies: which table to look at next, given the belief and where the robot stands.
+"""Search policies: which table to look at next, given the belief and where the robot stands
+(docs/search.md, "Policies").
 
-Every function here works on ONE episode (arrays without a batch axis) and is pure and jit-able;
-batches are ``jax.vmap`` of them (:func:`flowmaps_jax.search.simulator.run_episodes` does
-that).
-K is the (padded) number of candidate tables; ``valid`` (K,) marks the real ones.
-
-Policies (``POLICIES``), each re-planned after every failed look:
-
-* ``"most-probable"``: the table with the highest belief.
-* ``"greedy"``: the highest belief per pixel of travel, b_j / max(d_j, ``MIN_DISTANCE``).
-* ``"optimal"``: the first table of the plan with the least expected travel distance under the
-  current belief, exact by dynamic programming over subsets (:func:`plan_costs`). With a perfect
-  detector (p_miss = 0) this is the Bayes-optimal searcher for travel; with p_miss > 0 the plan
-  assumes each table is looked at once, and re-planning after every look corrects it.
-  The simulator refuses more than ``MAX_OPTIMAL_TABLES`` = 7 tables: its table has 2^K · K
-  entries per look.
-* ``"nearest"``: travel only, no prior: the nearest table among those looked at least often
-  (i.e. not yet looked at, with a perfect detector).
-
-Ties (beliefs within ``BELIEF_ATOL``, plan costs within ``COST_RTOL``) go to the nearest table,
-then to the lowest index. The robot never looks at the table it stands at twice in a row (a
-detector's misses are independent only between visits), unless it is the only table.
+Every function works on ONE episode (no batch axis), pure and jit-able; the simulator vmaps
+them. K is the padded number of candidate tables, ``valid`` (K,) marks the real ones.
+``POLICIES``: ``"most-probable"``, ``"greedy"`` (b_j / max(d_j, ``MIN_DISTANCE``)),
+``"optimal"`` (the first table of the least-expected-travel plan, exact subset DP,
+:func:`plan_costs`; at most ``MAX_OPTIMAL_TABLES`` tables) and ``"nearest"``. Ties (beliefs
+within ``BELIEF_ATOL``, plan costs within ``COST_RTOL``) go to the nearest table, then the
+lowest index; the robot never looks twice in a row at the table it stands at, unless it is the
+only one.
 """
 
 from __future__ import annotations
