@@ -1,35 +1,15 @@
 """Scores without an exact posterior: a homes-network model on a recorded dataset, against the
-realised (observed) receptacle of every query.
+realised (observed) receptacle of every query (the protocol: docs/protocol.md).
 
-Queries (:func:`realised_queries`): on the held-out part of the data (the environments the run's
-split held out for test, and its held-out hours; every environment of a dataset the run was not
-trained on), ``num_queries`` per environment, each at its own map hour τ, the object and
-τ_q = τ + Δ (Δ from the default horizons that fit) drawn among the observed (object, hour)
-pairs: the target is where the object was seen at τ_q. The object may be unseen at τ.
-
-Per row (the model, and the reference rows of :mod:`flowmaps_jax.evaluation.priors`: uniform
-over the allowed receptacles; last seen, where the object was last seen up to τ (uniform while
-it was never seen); the frequency prior, add-one counts over the hours of the model's history
-window in which the object was seen; the count table and last seen with a fitted stay
-(:func:`fit_counts`: chosen on the run's training environments, before the time cut, or on the
-evaluated ones when the run did not train on this data); and, when every evaluated environment
-is FlowSim homes written by ``from-homes``, the exact posterior and the known-parameters filter
-of :mod:`flowmaps_jax.worlds.recorded_references`, else one line in the report saying why not).
-The report names the best of the reference rows learned from data (not the exact ones, not
-the model) per object class: by log score, and by SR@1 in navigation.
-
-* log score: log p(realised receptacle), nats (higher is better; p floored at ``P_FLOOR``);
-* top-1 and top-5: whether the realised receptacle is the most probable / among the 5 most
-  probable; rank: its place when the allowed receptacles are sorted by probability (1 = the
-  most probable); ties are broken uniformly at random, in expectation (uniform's top-1 is 1/n);
-* reliability: every (query, allowed receptacle) pair's probability, binned in ``BINS`` equal
-  bins, against how often the realised receptacle was that one (a table and
-  ``reliability.png``), and the expected calibration error (ECE, the count-weighted mean gap).
-
-Navigation (``search``): the policies of :mod:`flowmaps_jax.navigation.navigation` with each row as
-the belief and the realised receptacle as the target; the searcher starts at the home's most
-central receptacle (:func:`start_distance`; a recorded home has no start point of its own) and
-walks the recorded walking distances.
+Queries (:func:`realised_queries`): on the held-out part of the data (every environment of a
+dataset the run was not trained on), ``num_queries`` per environment, among the observed
+(object, hour) pairs at τ_q; the object may be unseen at τ. Rows: the model and the reference
+rows of :mod:`flowmaps_jax.evaluation.priors` (count-table parameters from :func:`fit_counts`),
+plus the exact rows of :mod:`flowmaps_jax.worlds.recorded_references` when every environment
+comes from ``from-homes``. Scores: log score (nats, p floored at ``P_FLOOR``), top-1, top-5,
+rank (ties in expectation), reliability in ``BINS`` bins and ECE; the best learned reference
+row per object class is named. Navigation (``search``): :mod:`flowmaps_jax.navigation.navigation`
+with each row as the belief, from :func:`start_distance`, over the recorded walking distances.
 """
 
 from __future__ import annotations

@@ -1,24 +1,14 @@
 """Recorded worlds on disk: plain JSON and ``.npz`` files, the in-memory ``Recorded`` and a loader
-that refuses bad files (docs/data.md).
+that refuses bad files (the format: docs/data.md).
 
-A recorded world is a folder ``PATH``::
-
-    PATH/recorded.json             {"format": "flowmaps-recorded", "version": 1,
-                                    "environments": [names, in order], "units": ..., "time": ...}
-    PATH/<name>/environment.json   receptacles (id, class, text, room), objects (id, class, text,
-                                   allowed), rooms (class, box), doors (rooms, position), source
-    PATH/<name>/arrays.npz         hours (T,) int64, location (T, M) int32 (-1: not observed),
-                                   receptacle_corners (R, 8, 3) float32; optional distance
-                                   (R, R), object_corners (T, M, 8, 3), object_rotation (T, M)
-
-An environment's name is a relative POSIX path (``train/env0``). Lengths in metres, time in
-hours (hour t counts from Monday 00:00 of the first week); coordinates x, y on the floor, z up.
-
-``load_recorded(path)`` raises ``ValueError`` with one line, ``"<file>: <field>: what is
-wrong"``, for anything ``save_recorded`` could not have written. ``save_recorded`` writes every
-file aside and renames them into place together (``atomic_files.write_files``), never through a
-symbolic link. ``validate_environment`` applies the loader's checks to an in-memory builder's
-``Environment``.
+``PATH/recorded.json`` (the index), ``PATH/<name>/environment.json`` and
+``PATH/<name>/arrays.npz`` (hours (T,) int64, location (T, M) int32, −1 not observed,
+receptacle_corners (R, 8, 3) float32; optional distance (R, R), object_corners (T, M, 8, 3),
+object_rotation (T, M)). Names are relative POSIX paths; metres and hours, z up.
+``load_recorded(path)`` raises one-line ``ValueError`` ``"<file>: <field>: what is wrong"`` for
+anything ``save_recorded`` could not have written; ``save_recorded`` writes every file aside and
+renames them together, never through a symbolic link; ``validate_environment`` applies the
+loader's checks to an in-memory ``Environment``.
 """
 
 from __future__ import annotations
