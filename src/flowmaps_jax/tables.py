@@ -205,13 +205,10 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
     baseline; :class:`SamplingModel`). tokens: SceneTokens (B, S). queries: Queries (B, Q).
     num_samples: N boxes per query.
     key: one typed PRNG key (``jax.random.key``) or one per scene (B,), as ``Predictor.sample``.
-    Entry s < S is the fraction of the N samples assigned to furniture token s (see the module
-    doc: tolerance :data:`ASSIGN_TOLERANCE`), entry S the fraction on no table. Extra keyword
-    arguments (``num_steps``, ``solver``) go to ``predictor.sample`` (``solver`` as its
-    ``method``).
-    ``method="weights"``: a read-out head's explicit mixture weights instead
-    (``predictor.table_weights``, :class:`WeightsModel`; ``num_samples`` and ``key`` unused),
-    no sampling noise.
+    Entry s < S is the fraction of the N samples assigned to furniture token s, entry S the
+    fraction on no table; ``num_steps`` and ``solver`` go to ``predictor.sample``.
+    ``method="weights"``: a read-out head's mixture weights instead (:class:`WeightsModel`;
+    ``num_samples`` and ``key`` unused).
     """
     method = check_choice("method", method, TABLE_METHODS)
     # "weights" does not use num_samples: >= 0 will do

@@ -1,11 +1,8 @@
 """The arrays that cross from the simulator to the model: scene tokens and query batches.
 
-This module is the contract between :mod:`flowmaps_jax.flowsim` (which produces these pytrees) and
-:mod:`flowmaps_jax.model` / :mod:`flowmaps_jax.flow` (which consume them). It knows nothing of
-either.
+The contract between :mod:`flowmaps_jax.flowsim` (producer) and the model (consumer); it knows
+neither.
 
-Conventions
------------
 * A box is ``(y, x, h, w)``: top-left corner and size, normalised to [0, 1] by dividing pixels by
   ``map_size - 1`` (as the reference code does). Centres are ``(y + h/2, x + w/2)``.
 * Token order inside one scene: the F furniture pieces, then the M objects, then padding.

@@ -292,19 +292,11 @@ def slot_shares(evalset: EvalSet, samples) -> jnp.ndarray:
 
 def reference_rows(evalset: EvalSet, sample_counts: Sequence[int] = DEFAULT_SAMPLES,
                    key: jax.Array | None = None) -> list[RowResult]:
-    """The reference rows: oracle (q itself), oracle samples (n draws from q: the finite-sample
-    ceiling of any sampler's slot metrics), smoothed-q samples (n draws of boxes from the
-    continuous q of the KL, assigned to slots like a model's samples: under the protocol's
-    assignment it matches oracle samples within noise, which is the proof that the assignment
-    does not punish a model that matches q), last-seen (stays at its slot), uniform (K slots).
-    An eval set with a history of H > 1 observations adds, before last-seen, "exact, H = 1" (the
-    exact posterior given the map at τ alone) and "empirical frequency, H = H" (the fraction of
-    the observed history at each slot); the oracle is then the exact posterior given H.
-
-    Their KL uses the ground-truth mixture with the row's slot weights as the density, on the
-    shared draws: 0 for the oracle, and the oracle's for oracle samples (a perfect sampler's
-    density is q; only its slot histogram is noisy), as for smoothed-q samples.
-    ``key``: the draws of "oracle samples" and "smoothed-q samples" (default ``key(0)``).
+    """The reference rows (docs/protocol.md): oracle, oracle samples, smoothed-q samples,
+    last-seen, uniform; with a history of H > 1 also "exact, H = 1" and "empirical frequency"
+    before last-seen. Their KL uses the ground-truth mixture with the row's slot weights on the
+    shared draws (a sampled row's is its source's). ``key``: the draws of "oracle samples" and
+    "smoothed-q samples" (default ``key(0)``).
     """
     counts = _check_sample_counts(sample_counts)
     key = jax.random.key(0) if key is None else key

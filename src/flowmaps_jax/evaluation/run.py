@@ -56,20 +56,12 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
                    likelihood_draws: int = DEFAULT_LIKELIHOOD_DRAWS, figures: bool = True,
                    progress: bool = True, history: int | None = None,
                    ) -> tuple[dict, list[RowResult], EvalSet]:
-    """Evaluate ``predictors`` (baselines first, FlowMaps last, as they should appear) on every
-    environment of ``scenes``; write the report and figures into out_dir if given.
-    A flow's KL uses the accurate likelihood on ``likelihood_steps`` grid points (with its
-    integration error; None: the paper's grid only), and the paper's grid is reported beside it.
-    ``history``: the observations the exact posterior is given (default
-    :func:`default_history`). In a world with habits or with H > 1 the report adds the history's
-    reference rows, one table per habit, and the model rows are labelled with the maps each reads
-    ("FlowMaps (H = 8)"); the routine world with H = 1 is the paper's report, unchanged.
-
-    The predictors and ``out_dir`` are checked here before anything runs; the config, the
-    history and ``kl_draws`` by :func:`.protocol.build_eval_queries`, the sample counts and the
-    solver settings by :func:`.protocol.reference_rows` and :func:`.protocol.evaluate_predictor`,
-    which score the rows (before any model runs). Returns
-    (results dict as written to results.json, the RowResults, the EvalSet).
+    """Evaluate ``predictors`` (in report order) on every environment of ``scenes``; write the
+    report and figures into ``out_dir`` if given. A flow's KL uses the accurate likelihood on
+    ``likelihood_steps`` grid points (None: the paper's grid only). ``history``: the
+    observations the exact posterior is given (default :func:`default_history`). Every argument
+    is checked before any model runs. Returns (the results.json dict, the RowResults, the
+    EvalSet).
     """
     if not isinstance(predictors, (tuple, list)) or not predictors:
         raise ValueError(f"predictors must be a tuple of Predictor objects; got {predictors!r}")

@@ -106,26 +106,21 @@ class FlowSimConfig:
     num_timesteps: T.
     max_tokens: S, scene tokens are padded to this length.
     layout_budget: at most this many layout redraws per environment before ``generate`` gives up
-        (at least 1: about one first attempt in 16 of the paper's map needs a redraw, so a budget
-        of 0 cannot place the layouts of even a small split).
+        (at least 1).
     layout_candidates: random positions proposed for the last furniture piece of a layout
         attempt (piece i of F gets ceil(layout_candidates * i / (F - 1)), at least 1); if none
         fits next to the pieces already placed, the whole layout is redrawn.
     dynamics: one of ``DYNAMICS``.
     habits: the mixture each object's habit is drawn from, once per environment: pairs
-        (name in ``HABITS``, probability) summing to 1. Default: routine only (the paper's
-        world, generated exactly as before habits existed).
+        (name in ``HABITS``, probability) summing to 1. Default: routine only (the paper's).
     preference_move, preference_mass: the preferences habit moves with probability ρ per step,
         to a place drawn from π with this mass on its one or two favourites.
     dynamic_stay, dynamic_length: the dynamic habit stays with this probability, else moves to
         another place with weight exp(−distance / dynamic_length), distance in map sides.
     furniture_kinds, categories: the category table.
 
-    Numpy numbers are stored as Python ``int``/``float`` (the config stays JSON-able). Configs
-    that cannot produce valid scenes are refused: tables under one pixel, more table area than
-    the map, fewer pieces than ``min_per_kind`` × kinds, objects larger than the smallest table
-    (one on such a table at the map's edge would leave the map: the paper's fractions need
-    ``map_size >= 50``), and ``max_tokens`` < F + M.
+    Numpy numbers are stored as Python ``int``/``float``. Configs that cannot produce valid
+    scenes are refused (``ValueError`` naming the field).
     """
 
     map_size: int = 256

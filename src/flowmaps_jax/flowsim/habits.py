@@ -189,11 +189,8 @@ def habit_rollout(words, num_slots, slot_centres, params, num_timesteps: int,
     built over that many places only (``SimShape.max_places``: 4 of FlowSim's 10). Returns
     (slots (T,) int32 starting at 0, hypothesis () int32).
 
-    Step t uses one uniform u_t. Routine and preferences need no sequential loop: the routine's
-    advance (0 / 1 / 2 places) does not depend on the slot, so its slots are a cumulative sum mod
-    K; the preferences habit moves when u_t ≥ 1 − ρ, to a place drawn from π by the rest of
-    u_t, so its slot is the target of the last move. Only the dynamic habit (whose law depends
-    on where the object is) scans over its transition matrix's CDF.
+    Step t uses one uniform u_t. The routine's slots are a cumulative sum mod K, the
+    preferences habit's the target of its last move; only the dynamic habit scans.
     """
     f = slot_centres.shape[0]
     u = _uniform24(words)

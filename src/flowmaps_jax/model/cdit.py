@@ -62,9 +62,8 @@ def absorbed_cross_attention(x, context_norm, mask, shift, scale, weights, dtype
     * Σ_s a_s (W_v^h m_s + b_v^h) = W_v^h ((Σ_s a_s n_s) ⊙ (1 + scale_q) + shift_q) + b_v^h,
       because Σ_s a_s = 1.
 
-    So the key projection is absorbed into the query and the value projection is applied after
-    averaging: per query row the cost is O(H·S·D + D²) instead of O(S·D²). Exactly equal (up to
-    rounding) to :func:`plain_cross_attention`.
+    Per query row O(H·S·D + D²) instead of O(S·D²); equal to :func:`plain_cross_attention`
+    up to rounding.
     """
     b, q, n, d = x.shape
     heads, head_dim = weights["wq"].shape[1:]
@@ -91,9 +90,8 @@ def shared_kv_cross_attention(x, context_norm, mask, shift, scale, weights, dtyp
 
     Same arguments and result as :func:`absorbed_cross_attention`. Cost per query: 2·S·D² for the
     keys and values of m = n ⊙ (1 + scale) + shift (one flat GEMM over all queries), then per row
-    2·D² (query and output projections) + 2·S·D. Cheaper than the absorbed form as soon as a query
-    has several rows (sampling: N samples per query), and its products are plain GEMMs or batched
-    matmuls with the batch dims leading, which XLA on CPU runs well.
+    2·D² (query and output projections) + 2·S·D: cheaper than the absorbed form with several
+    rows per query.
     """
     b, q, n, d = x.shape
     heads, head_dim = weights["wq"].shape[1:]

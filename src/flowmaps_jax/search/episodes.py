@@ -180,15 +180,11 @@ def build_search_set(scenes: Scenes, config: FlowSimConfig, key: jax.Array,
                      horizons: Sequence[int] | None = None, history: int = 1) -> SearchSet:
     """Search queries for every environment of ``scenes``: every object is queried.
 
-    Default: ``times_per_env`` rows per environment, each with τ ~ U{0..T−2} and τ_q ~
-    U{τ+1..T−1} (the evaluation protocol's draws). ``horizons``: instead one row per environment
-    and fixed Δτ in ``horizons`` (τ ~ U{0..T−1−Δτ}). Row r's times depend on ``key`` and r only
-    (not on ``history``).
-
-    ``history`` H (1..T): with H > 1 or a ``config`` with habits (:func:`uses_history`) the exact
-    posterior is ``flowsim.history_posterior`` given the last min(H, τ + 1) observations, and the
-    set carries ``habit`` and ``extra_slots`` (see :class:`SearchSet`); otherwise (the paper's
-    world, H = 1) it is bit for bit the paper's protocol.
+    Default: ``times_per_env`` rows per environment (the evaluation protocol's τ, τ_q draws);
+    ``horizons``: one row per environment and fixed Δτ. Row r's times depend on ``key`` and r
+    only. ``history`` H (1..T): with H > 1 or habits (:func:`uses_history`) the exact posterior
+    is given the last min(H, τ + 1) observations and the set carries ``habit`` and
+    ``extra_slots``.
     """
     check_instance("scenes", scenes, Scenes)
     check_instance("config", config, FlowSimConfig)

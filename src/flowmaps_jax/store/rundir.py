@@ -201,10 +201,7 @@ def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
     ``overwrite`` moves an old run aside for a new one; a resumed run (``resume``) continues in
     place, so it ignores ``overwrite`` (the command line refuses both).
 
-    On a multi-host job the first process owns the run directory (lock, config, metrics; every
-    process takes part in the checkpoint saves, which the checkpointer coordinates). The others
-    learn whether it could claim it, so a refused run stops every process at once with the
-    reason.
+    On a multi-host job the first process owns the directory; a refusal stops every process.
     """
     if jax.process_count() == 1:
         with _claim_here(run_dir, resume=resume, overwrite=overwrite, log=log) as lock:

@@ -43,12 +43,9 @@ class RunBook:
     no metrics (they take part in the checkpoint saves). start_step: the step the run starts
     from (0 for a new run, or one started again).
 
-    The best val loss a val pass must beat is the best *as of* ``start_step``: the one the
-    checkpoint's window carried, else the last ``"best": true`` record kept, else the kept
-    ``best`` checkpoint if it is not later than ``start_step``. A best checkpoint from after
-    ``start_step`` (a run killed between its ``best/N`` and ``last/N`` saves) is the same run's
-    future: the replay saves it again when it gets there, so the records of a resumed run are
-    those of a run never stopped, whichever save a kill fell between.
+    The best val loss to beat is the best *as of* ``start_step`` (the window's, else the last
+    ``"best": true`` record kept, else a kept ``best`` checkpoint not later than ``start_step``),
+    so a resumed run's records are those of a run never stopped.
     """
 
     def __init__(self, run_dir: pathlib.Path, cfg: TrainConfig, *, kept: list[str] | None,

@@ -45,9 +45,7 @@ class TrainState:
     opt_state: optax state (AdamW moments, schedule count, ...).
     rng: (2,) uint32 PRNG key for dropout and flow noise; step i uses fold_in(rng, i).
     data_key: (2,) uint32 PRNG key for batches; step i draws batch fold_in(data_key, i).
-
-    The two keys are kept as raw key data (uint32), not typed keys: checkpoints store them as
-    plain arrays, and resumed runs read them back unchanged. Everywhere else keys are typed.
+    The keys are raw key data (uint32) so checkpoints store them as plain arrays.
     """
 
     step: jax.Array

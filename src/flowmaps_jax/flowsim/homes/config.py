@@ -1,10 +1,7 @@
 """``HomesConfig``: the numbers and the vocabulary of the homes world (a static jit argument).
 
-Frozen and hashable, so it can be a static argument of ``jax.jit``; ``validate()`` (run when
-the config is built) raises ``ValueError`` naming the field for anything that could not make
-valid homes: an unknown room type, receptacle class or object class, an object class that may
-stand on nothing (or on nothing any room of the home holds), sizes not in (0, MAX_METRES], a floor
-plan too small for its doors, a vocabulary or a scene larger than the token budget.
+Frozen and hashable (a static ``jax.jit`` argument); ``validate()`` (run when the config is
+built) raises ``ValueError`` naming the field for anything that could not make valid homes.
 
 Time: hour t = 0 … ``num_hours`` − 1 starts on a Monday at 00:00; hour of day t mod 24, day of
 week ⌊t / 24⌋ mod 7 (0 = Monday, 5 and 6 the weekend). The preferences regime has

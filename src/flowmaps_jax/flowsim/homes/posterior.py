@@ -31,14 +31,9 @@ hour 0). With history = τ + 1 (a = 0) the term is 1 / n; with history = 1 it is
 at τ alone says about the favourites. The other regimes' laws are seen on the map (cycle,
 distances), so for them the history changes nothing: the chain is Markov.
 
-``filtered_posterior(home, i, observed, τ, τ_q)`` is the posterior of an observer who knows
-the whole law (favourites included) but sees the object only at the hours ``observed`` marks:
-a forward filter from the simulator's start (uniform over the allowed receptacles at hour 0),
-p ← p P_t every hour, and at every observed hour t ≤ τ p ← p · 1[r = s_t] / Σ (conditioning on
-where it was seen), then the forward pass on to τ_q. One ``lax.scan`` over the T − 1 hours,
-R² work each. With every hour observed it is ``homes_posterior`` (the chain is Markov given its
-law); with hours hidden it is the best any predictor of that partial history can do on
-average (a ceiling of the realised log score).
+``filtered_posterior(home, i, observed, τ, τ_q)``: an observer who knows the whole law but sees
+the object only at the ``observed`` hours (docs/flowsim.md): a forward filter from the uniform
+start at hour 0, conditioned at every observed hour t ≤ τ, then the forward pass to τ_q.
 
 ``home`` is one home (``Homes.home(i)``); every function is jittable and vmappable (over
 homes, objects, hours). Concrete inputs are checked (``ValueError`` naming the argument); a

@@ -12,8 +12,7 @@ u < m_t · mass, else one of the others uniformly), and the balanced and routine
 along the cycle that do not depend on where the object is (+1 if u < m_t · c, else one of the
 n − 1 others uniformly; the routine's 0 / 1 / 2 from u), so their positions are cumulative sums.
 Only the frequent regime (whose move depends on the current receptacle) runs a ``lax.scan``,
-inverting the CDF of its kernel's row at u / m_t (u = 0 read as the middle of its 2⁻¹⁶ cell: at
-its edge, the first place of any mass, however small, would take the whole cell).
+inverting the CDF of its kernel's row at u / m_t (u = 0 read as the middle of its 2⁻¹⁶ cell).
 """
 
 from __future__ import annotations
