@@ -206,7 +206,7 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
     num_samples: N boxes per query.
     key: one typed PRNG key (``jax.random.key``) or one per scene (B,), as ``Predictor.sample``.
     Entry s < S is the fraction of the N samples assigned to furniture token s, entry S the
-    fraction on no table; ``num_steps`` and ``solver`` go to ``predictor.sample``.
+    fraction on no table; ``num_steps`` and ``solver`` (as ``method``) go to ``predictor.sample``.
     ``method="weights"``: a read-out head's mixture weights instead (:class:`WeightsModel`;
     ``num_samples`` and ``key`` unused).
     """

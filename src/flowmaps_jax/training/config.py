@@ -1,26 +1,11 @@
-"""Training configuration: the ``TrainConfig`` dataclass, named presets and command-line overrides.
+"""Training configuration: the run configs of each world and their named presets.
 
-A run is fully described by one frozen :class:`TrainConfig` (which nests the model's
-:class:`~flowmaps_jax.model.ModelConfig` and the simulator's
-:class:`~flowmaps_jax.flowsim.FlowSimConfig`). It round-trips through JSON (``to_dict`` /
-``from_dict``) so a run directory's ``config.json`` is enough to rebuild the run.
-
-Presets (``get_preset(name)``):
-
-* ``paper`` — the paper's hyper-parameters: D = 256, 8 encoder layers, 8 CDiT blocks, 8 heads,
-  dropout 0.1, batch 256, 30k steps, AdamW β = (0.95, 0.999), cosine schedule from 1e-4, EMA 0.9999.
-* ``cpu`` — the default: a smaller model and schedule that trains in about 20 minutes on a
-  2-core CPU, with the recipe that learns the routines (pointer head; see :func:`cpu_preset`).
-* ``smoke`` — a tiny model on a tiny dataset that trains in seconds; used by the tests.
-
-Every field declares its role in a run (:data:`ROLES`): whether the compiled train step depends
-on it (:func:`compile_key`, the compile cache's key) and whether ``--resume`` may change it
-(:data:`RESUMABLE_FIELDS`). Both are derived from that one declaration.
-
-Any field, including nested ones (``model.dim``, ``flowsim.num_timesteps``), can be overridden from
-strings ``key=value`` (:func:`apply_overrides`, in :mod:`flowmaps_jax.training.overrides`); values
-are converted to the field's type and unknown keys or bad values raise ``ValueError`` naming the
-key.
+A run is one frozen config (:class:`TrainConfig` on 2-D FlowSim, :class:`HomesTrainConfig`,
+:class:`RecordedTrainConfig`) that round-trips through JSON (``config.json`` rebuilds the run).
+Presets: ``get_preset(name)`` (each preset function says what it is). Every field declares its
+role (:data:`ROLES`), from which :func:`compile_key` (the compile cache's key) and
+:data:`RESUMABLE_FIELDS` (what ``--resume`` may change) derive. ``key=value`` overrides:
+:mod:`flowmaps_jax.training.overrides`.
 """
 
 from __future__ import annotations
@@ -119,9 +104,8 @@ class TrainConfig:
     model: network sizes (``ModelConfig``); also used by the MLP baseline's Map Encoder.
     family: the model family, a :data:`~flowmaps_jax.model.families.MODEL_FAMILIES` name:
         "flowmaps" (flow matching, CDiT) or "mlp" (Gaussian baseline; its variant is
-        ``model.baseline_variance``, "mean" or "learned"). Stored in ``config.json`` under the
-        key older versions wrote, ``"model_kind"`` (read back, and accepted by ``--set``, too),
-        so that every saved run and pretrained model reads as before.
+        ``model.baseline_variance``). Stored in ``config.json`` as ``"model_kind"`` (also
+        accepted by ``--set``).
     flowsim: simulator settings for the generated train/validation splits.
     batch_size: scenes per step (B); queries_per_scene: queries sharing one encoder pass (Q).
     steps: total optimiser steps; the cosine schedule decays over exactly this many.
@@ -152,10 +136,8 @@ class TrainConfig:
         query; 0 environments = off.
     seed: the single seed from which params, dropout and data keys are derived.
     log_every, val_every, ckpt_every: intervals in steps; keep_last: recent checkpoints kept.
-    devices: train data-parallel over this many devices (None = every device JAX sees; see
-        :mod:`flowmaps_jax.distributed`). ``batch_size`` must divide by it. The global batch,
-        and so the numbers, do not depend on it (up to float summation order), and a checkpoint
-        continues on any device count.
+    devices: train data-parallel over this many devices (None = every device JAX sees);
+        ``batch_size`` must divide by it; the numbers do not depend on it.
     preset: name of the preset this config started from (informational, used in run names).
 
     Each field declares its role (:data:`ROLES`): ``recipe``, ``extent``, ``source`` or
@@ -530,15 +512,9 @@ def smoke_preset() -> TrainConfig:
 
 
 def habits_preset() -> TrainConfig:
-    """The ``cpu`` preset as it was before the mixture head (issue 21's recipe: the pointer
-    read-out with relative widths and its auxiliary pointer loss) on the preferences world
-    (``flowsim.worlds``), reading the last ``HABITS_HISTORY`` maps so that it can learn which
-    places each object favours.
-
-    Fresh environments every chunk (``data="endless"``): on the fixed 2,500-environment split
-    the validation loss rose after 2,000 of 4,000 steps (each object's hidden favourites are
-    fixed per environment, so a fixed split can be memorised; docs/results.md, issue 18).
-    3,000 steps, about 16 minutes on 2 cores."""
+    """The pointer read-out with relative widths and its pointer loss on the preferences world,
+    reading the last ``HABITS_HISTORY`` maps; fresh environments every chunk
+    (``data="endless"``: a fixed split's hidden favourites can be memorised); 3,000 steps."""
     base = dataclasses.replace(
         cpu_preset(),
         model=ModelConfig(dim=128, encoder_layers=4, cdit_blocks=4, heads=4, dropout=0.0,
