@@ -1,22 +1,13 @@
-"""Reference rows with an exact answer, for recorded data made from FlowSim homes.
+"""Reference rows with an exact answer, for recorded data made from FlowSim homes
+(docs/protocol.md, "Exact reference rows").
 
-``python -m flowmaps_jax.data from-homes --homes N --seed S`` writes home e of
-``generate_homes(jax.random.key(S), config, N)`` (key ``jax.random.split(key(S), N)[e]``, through
-``homes_from_keys``) as an environment whose ``source`` keeps the config, e, S and N. Those homes
-can be regenerated, hidden law included, so two rows are known exactly
-(:func:`reference_rows`):
-
-* ``EXACT_ROW``: ``flowsim.homes.homes_history_posterior`` on the regenerated home, the
-  favourites hidden, given the object's true receptacles over the last week up to τ (hidden
-  hours included). At 0 % masking it is the ground truth a model of that data should reach.
-* ``FILTER_ROW``: ``flowsim.homes.filtered_posterior``, an observer who knows every object's
-  law (regime, favourites) and sees the same partial history as the model (only the observed
-  hours <= τ): with hours hidden, the ceiling of the realised log score.
-
-Both are computed on the regenerated homes (their slot numbering) and mapped to the recorded
-order (only valid receptacles and objects kept, in slot order: receptacle j of the environment
-is slot ``slots[j]``, object m is slot ``objects[m]``). Data from anywhere else (another
-converter, an edited file, a mixed dataset) gets no such rows, and a one-line note says why.
+An environment written by ``python -m flowmaps_jax.data from-homes`` keeps the config, the home
+e, the seed S and the count N in its ``source``, so home e of ``generate_homes(key(S), config,
+N)`` is regenerated (``homes_from_keys``), hidden law included. :func:`reference_rows` gives
+``EXACT_ROW`` (``homes_history_posterior`` given the true receptacles of the last week, the
+favourites hidden) and ``FILTER_ROW`` (``filtered_posterior`` over the observed hours only),
+both mapped to the recorded order (receptacle j is slot ``slots[j]``, object m slot
+``objects[m]``). Other data gets no such rows, and a one-line note says why.
 """
 
 from __future__ import annotations

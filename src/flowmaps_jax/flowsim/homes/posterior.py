@@ -4,32 +4,11 @@
 receptacle at τ_q given where it is at τ and its law (:mod:`.schedules`), computed exactly by a
 ``lax.fori_loop`` over the hours (each step p ← (1 − m_t) p + m_t p B_{c(t)}, R² work).
 
-``homes_history_posterior(home, i, τ, τ_q, history)`` is the posterior given the object's last
-``history`` observations s_a … s_τ (a = τ − history + 1) when the preferences regime's
-favourites f = (f_1 … f_C) are hidden (uniform over the n allowed receptacles, independently
-per context). The weight of an assignment f is p(s_a | f) Π_c L_c(f_c), with the window's
-transitions grouped by context,
-
-    L_c(k) = Π_{a ≤ t < τ, c(t) = c} [(1 − m_t) δ(s_t, s_{t+1}) + m_t π_k(s_{t+1})],
-
-π_k the targets with favourite k, and the probability of the window's first state: the object
-starts uniformly at hour 0 and each step maps p to (1 − m_t) p + m_t π_{c(t)}, so
-
-    p(s_a | f) = α / n + Σ_c W_c π_{f_c}(s_a),   α = Π_{t<a} (1 − m_t),
-    W_c = Σ_{t<a, c(t)=c} m_t Π_{t<u<a} (1 − m_u)
-
-(α + Σ_c W_c = 1). That term ties the contexts before a, so the weight does *not* factorise
-over contexts. The forward pass from τ is affine in each π_c, so the posterior is that pass
-with π_c replaced by its posterior mean, i.e. with the exact marginal w_c of f_c
-(``favourite_weights``): with ℓ_c ∝ L_c (normalised), μ_c(j) = E_ℓc[π_{f_c}(j)] and
-Z = α / n + Σ_d W_d μ_d(s_a),
-
-    w_c(k) = ℓ_c(k) · [1 + W_c (π_k(s_a) − μ_c(s_a)) / Z]
-
-— O(C · n), exact, not an approximation (tested against enumeration of the whole process from
-hour 0). With history = τ + 1 (a = 0) the term is 1 / n; with history = 1 it is what the map
-at τ alone says about the favourites. The other regimes' laws are seen on the map (cycle,
-distances), so for them the history changes nothing: the chain is Markov.
+``homes_history_posterior(home, i, τ, τ_q, history)``: the posterior given the last
+``history`` observations s_a … s_τ with the preferences regime's favourites hidden: the forward
+pass from τ with each π_c replaced by its posterior mean, from the exact marginals of the
+favourites (``favourite_weights``, O(C · n); the derivation: docs/flowsim.md, "Homes"). For
+the other regimes the chain is Markov given the map, and the history changes nothing.
 
 ``filtered_posterior(home, i, observed, τ, τ_q)``: an observer who knows the whole law but sees
 the object only at the ``observed`` hours (docs/flowsim.md): a forward filter from the uniform
