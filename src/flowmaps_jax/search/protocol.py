@@ -201,11 +201,8 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     is named "NAME (H = h)", and ``results`` gains "habits" (:func:`habit_sections`) and the
     protocol's "world" and "history".
 
-    ``results`` is what ``report.write_report`` writes as search.json (without figures).
-    ``table_method``: how a model's table probabilities are read, "weights" (the default: a
-    read-out head's explicit mixture weights,
-    ``Predictor.table_weights``; models without them, such as the MLP baseline, are sampled) or
-    "samples" (``num_samples`` per query).
+    ``results`` is search.json's content. ``table_method``: "weights" (default: a read-out
+    head's mixture weights; models without them are sampled) or "samples" (``num_samples``).
     """
     seed = check_int("seed", seed, None)
     num_samples = check_int("num_samples", num_samples)

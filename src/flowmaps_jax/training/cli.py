@@ -1,19 +1,12 @@
 """``python -m flowmaps_jax.train``: train FlowMaps (or the MLP baseline) on a world (2-D
 FlowSim, or FlowSim homes with ``--preset homes``).
 
-Examples::
+Examples (more in the README)::
 
     python -m flowmaps_jax.train                          # cpu preset, FlowMaps
-    python -m flowmaps_jax.train --preset smoke --family mlp --set model.baseline_variance=learned
     python -m flowmaps_jax.train --steps 5000 --set model.dim=96 --set lr=5e-4
-    python -m flowmaps_jax.train --preset habits --set world=dynamic   # a FlowSim world
-    python -m flowmaps_jax.train --preset habits --init-from pretrained:flowmaps   # warm start
-    python -m flowmaps_jax.train --resume --run-dir runs/flowmaps-cpu-20250101-120000
     python -m flowmaps_jax.train --resume --run-dir runs/X --from-step 500   # an older save
-    python -m flowmaps_jax.train --overwrite --run-dir runs/X   # old run moved to X.old-<time>
-    python -m flowmaps_jax.train --preset homes --run-dir runs/homes   # FlowSim homes
     python -m flowmaps_jax.train --data PATH --run-dir runs/mine   # a recorded dataset
-    python -m flowmaps_jax.train --preset smoke --data PATH        # ... a tiny model on it
 
 The run directory, ``--resume``, Ctrl-C and non-finite losses: :mod:`flowmaps_jax.training.loop`.
 Exit codes: 0 ok, 1 non-finite loss or state, 2 bad arguments, 74 a failed write (one line

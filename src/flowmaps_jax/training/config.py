@@ -478,16 +478,10 @@ def paper_preset() -> TrainConfig:
 def cpu_preset() -> TrainConfig:
     """Default: the model a 2-core CPU trains in about 30 minutes, and that learns the routines.
 
-    Size (docs/results.md, "Choosing the cpu preset"): D = 128 with 4 + 4 layers (+ 2 CDiT
-    blocks for the table weights), B = 64 scenes × Q = 8 queries, 7,000 steps. Recipe
-    (docs/results.md, "The posterior at the floor"; docs/design.md says why): the mixture
-    read-out (explicit table weights trained by cross-entropy, a flow placing the object on the
-    chosen table), fresh FlowSim homes for every chunk of steps (``data="endless"``), Δτ
-    conditioning, half the queries one step ahead, targets jittered by the protocol's σ, lr 1e-3
-    and no dropout. The table-weight rows attend to each other and know where their table lies
-    (``weight_attention="self"``, ``weight_geometry="relative"``; docs/results.md, "Table-weight
-    rows that know their geometry": validation table CE 1.006 at step 2,500 against 1.165).
-    ``--preset paper`` keeps the paper's recipe.
+    D = 128 with 4 + 4 layers (+ 2 CDiT blocks for the table weights), B = 64 scenes × Q = 8
+    queries, 7,000 steps; the mixture read-out with self-attending, geometry-aware weight rows,
+    endless data, Δτ conditioning, half the queries one step ahead, jittered targets, lr 1e-3,
+    no dropout (why: docs/design.md; the measurements: docs/results.md).
     """
     return TrainConfig(
         model=ModelConfig(dim=128, encoder_layers=4, cdit_blocks=4, heads=4, dropout=0.0,
