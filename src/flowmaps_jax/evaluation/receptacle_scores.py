@@ -1,24 +1,11 @@
 """Posterior scores of a prior against the exact posterior, per query, and their summaries.
 
-Per query (:func:`posterior_scores`; p, q (..., R) over receptacle slots, ``allowed`` (..., R)
-the object's allowed receptacles; docs/protocol.md's definitions on a finite support; TV, top-1
-and rank cost are the 2-D slot metrics' kernels, :func:`flowmaps_jax.evaluation.slots.score_slots`,
-with the off bin 1 − Σ_r p_r):
-
-* ``kl``: KL(q ‖ p) = Σ_{q_r > 0} q_r log(q_r / p_r) in nats, sample-free for probability rows
-  (p floored at ``KL_FLOOR`` so that a row putting no mass where q has some scores large, not
-  inf). Not reported for sample rows (a histogram's zeros).
-* ``tv``: ½ Σ_r |p_r − q_r| + ½ (1 − Σ_r p_r): mass a sample row puts off every allowed
-  receptacle (:func:`assign_samples`) counts fully.
-* ``top1``: is p's most probable receptacle a mode of q? Ties in q: any mode counts; ties in p:
-  the fraction of p's tied best receptacles that are modes of q (the expectation of a uniform
-  tie break). Scores within ``evaluation.slots.TIE_ATOL`` tie.
-* ``rank_cost``: visit the allowed receptacles by decreasing p and pay the rank of the one the
-  object is on, Σ_r rank_r q_r (tied receptacles share their group's mean rank), over the same
-  sum visiting by decreasing q (the least possible): ≥ 1, 1 when p ranks them as q does.
-
-:func:`summarise` gives mean ± standard error over queries, overall, by regime (the queried
-object's ``homes.regime``) and by horizon τ_q − τ.
+Per query (:func:`posterior_scores`; p, q (..., R) over receptacle slots, ``allowed`` (..., R)):
+``kl`` = Σ_{q_r > 0} q_r log(q_r / p_r) in nats (p floored at ``KL_FLOOR``; not reported for
+sample rows); ``tv``, ``top1`` and ``rank_cost`` are the 2-D slot metrics' kernels
+(:func:`flowmaps_jax.evaluation.slots.score_slots`, docs/protocol.md) with the off bin
+1 − Σ_r p_r (mass a sample row puts off every allowed receptacle, :func:`assign_samples`).
+:func:`summarise`: mean ± standard error over queries, overall, by regime and by horizon.
 """
 
 from __future__ import annotations
