@@ -108,8 +108,7 @@ class FlowSimConfig:
     layout_budget: at most this many layout redraws per environment before ``generate`` gives up
         (at least 1).
     layout_candidates: random positions proposed for the last furniture piece of a layout
-        attempt (piece i of F gets ceil(layout_candidates * i / (F - 1)), at least 1); if none
-        fits next to the pieces already placed, the whole layout is redrawn.
+        attempt (piece i of F gets ceil(layout_candidates * i / (F - 1)), at least 1).
     dynamics: one of ``DYNAMICS``.
     habits: the mixture each object's habit is drawn from, once per environment: pairs
         (name in ``HABITS``, probability) summing to 1. Default: routine only (the paper's).

@@ -45,11 +45,9 @@ class ModelConfig:
     box_offset, box_scale: FlowMaps' flow runs on z = box_scale · (box − box_offset) instead of
         the normalised box itself (samples are mapped back; ``log_prob`` adds the Jacobian).
         (0, 1), the default, is the paper's identity map.
-    head: the velocity read-out: ``"velocity"`` (the paper's linear head), ``"pointer"`` (a
-        Gaussian mixture over the map's tokens, :mod:`flowmaps_jax.model.readout`) or ``"route"``
-        (the pointer with a one-step transition raised to Δτ, :mod:`flowmaps_jax.model.route`) or
-        ``"mixture"`` (explicit table weights from their own CDiT rows and a flow placing the
-        object on the chosen table, :mod:`flowmaps_jax.model.mixture`).
+    head: the velocity read-out: ``"velocity"`` (the paper's linear head), ``"pointer"``
+        (:mod:`~flowmaps_jax.model.readout`), ``"route"`` (:mod:`~flowmaps_jax.model.route`) or
+        ``"mixture"`` (:mod:`~flowmaps_jax.model.mixture`).
     weight_blocks: blocks of the mixture head's table-weight rows (``head="mixture"``).
     weight_attention: how those rows attend (``head="mixture"``): ``"cross"`` (CDiT blocks over
         the map's context tokens) or ``"self"`` (transformer layers over one object's rows).

@@ -92,20 +92,17 @@ class HomesConfig:
     split_jitter: cell widths (and each column's cell depths) ∝ 1 + j·U[−1, 1].
     door_width, wall_margin: metres; receptacles keep ``wall_margin`` from the walls of their
         cell, doors keep it from the ends of their wall.
-    extra_door_prob: each further wall between neighbouring columns long enough for a door gets
-        one with this probability (one door per column boundary, and one between every two rooms
-        stacked in a column, always: every home is connected).
+    extra_door_prob: the chance of a door on each further wall long enough for one (every home
+        is connected).
     receptacles_per_room: (lo, hi) receptacles in each room, uniform, distinct classes.
     objects_per_home: (lo, hi) dynamic objects drawn (distinct classes); hi <= MAX_OBJECTS.
     num_hours: T, hourly steps (default 4 weeks).
     regime: one of ``REGIMES`` or "mixed".
     routine_probs: the routine's (stay, advance one, advance two) each hour.
     preference_move, preference_mass: preferences move with ρ · activity per hour to a place
-        drawn from π_c, with this mass (in (0, 1): at 0 or 1 a move rules favourites out, and
-        the posterior's log-likelihood is log 0) on the context's favourite.
+        drawn from π_c, with this mass (in (0, 1)) on the context's favourite.
     balanced_move, balanced_cycle: balanced moves with ρ · activity, to the next place of its
-        cycle with this probability, else to one of all n − 1 other places uniformly (the next
-        one included).
+        cycle with this probability, else uniformly to another.
     frequent_move, frequent_length: frequent moves with ρ · activity to another place j with
         weight exp(−geodesic distance / length), metres.
     activity: 24 hourly multipliers in [0, 1] (of every regime's move but the routine's).
