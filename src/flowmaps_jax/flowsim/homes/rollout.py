@@ -1,18 +1,12 @@
 """``generate_homes(key, config, num_homes)``: homes and hourly trajectories, jitted and vmapped.
 
-Home e depends only on its own key ``jax.random.split(key, num_homes)[e]``: its layout (floor
-plan, receptacles, objects, regimes and favourites) reads uniforms from one ``bits`` call of
-``fold_in(home_key, 0)``, its trajectories from one of ``fold_in(home_key, 1)``. An object
-starts, at hour 0, on one of its allowed receptacles drawn uniformly; each hour it moves by its
-law (:mod:`.schedules`). Each 32-bit word gives two uniforms u on a 2⁻¹⁶ grid, one per (object,
-hour) (so probabilities are used to within 2⁻¹⁶, as in FlowSim): the object moves if u < m_t,
-and where to is read from the rest of u. The preferences, balanced and routine regimes need no
-sequential loop: a preferences object is where its last move took it (the favourite if
-u < m_t · mass, else one of the others uniformly), and the balanced and routine moves are steps
-along the cycle that do not depend on where the object is (+1 if u < m_t · c, else one of the
-n − 1 others uniformly; the routine's 0 / 1 / 2 from u), so their positions are cumulative sums.
-Only the frequent regime (whose move depends on the current receptacle) runs a ``lax.scan``,
-inverting the CDF of its kernel's row at u / m_t (u = 0 read as the middle of its 2⁻¹⁶ cell).
+Home e depends only on ``jax.random.split(key, num_homes)[e]``: its layout reads one ``bits``
+call of ``fold_in(home_key, 0)``, its trajectories one of ``fold_in(home_key, 1)``. An object
+starts uniformly on an allowed receptacle at hour 0 and moves each hour by its law
+(:mod:`.schedules`), one uniform u on a 2⁻¹⁶ grid per (object, hour): it moves if u < m_t, and
+the rest of u says where. Preferences, balanced and routine positions are cumulative (no
+sequential loop); only the frequent regime runs a ``lax.scan``, inverting its row's CDF at
+u / m_t (u = 0 read as the middle of its cell).
 """
 
 from __future__ import annotations
