@@ -1,15 +1,11 @@
 """Model-facing views of FlowSim scenes: normalised boxes, tokens, queries, batches, splits, I/O.
 
-* Boxes for the model are ``(y, x, h, w)`` divided by ``map_size - 1`` (as the reference code).
-* ``scene_tokens``: the F furniture tokens, then the M object tokens, padded to
-  ``config.max_tokens`` (see ``flowmaps_jax.tokens``).
-* Queries follow PAPER.md: a scene uniformly, τ uniform in 0..T−2, τ_q uniform in τ+1..T−1, the
-  object uniform over the M categories.
-* Splits: ``train_split`` (2500 environments, seed ``TRAIN_SEED`` = 0) and ``validation_split``
-  (200, seed ``VALIDATION_SEED`` = 1). Each split also folds its own tag into the key
-  (``fold_in(key(seed), tag)``, tags 0 train / 1 validation), so the splits
-  are disjoint streams even if the same seed is passed to both.
-* ``save_scenes`` / ``load_scenes``: one ``.npz`` with ``FORMAT_VERSION`` and the config as JSON.
+Boxes ``(y, x, h, w)`` divided by ``map_size - 1``; ``scene_tokens``: F furniture, then M
+object tokens, padded to ``config.max_tokens`` (:mod:`flowmaps_jax.tokens`); queries as the
+paper draws them (:func:`draw_query_times`). Splits: ``train_split`` (2500 environments, seed
+``TRAIN_SEED``) and ``validation_split`` (200, ``VALIDATION_SEED``), each folding its own tag
+into the key, so they are disjoint streams even for one seed. ``save_scenes`` /
+``load_scenes``: one ``.npz`` with ``FORMAT_VERSION`` and the config as JSON.
 """
 
 from __future__ import annotations

@@ -1,17 +1,13 @@
 """The orbax checkpoint directory of a run: its layout, finding, restoring and verifying steps,
 and setting later steps aside.
 
-Layout (by default ``<run_dir>/checkpoints``)::
-
     <dir>/last/<step>/{state, config, meta}   the ``keep_last`` most recent saves
     <dir>/best/<step>/{state, config, meta}   the single save with the lowest validation loss
 
-``state`` is the whole training state (step, params, EMA params, optimiser state, PRNG and data
-keys), ``config`` the run's config as JSON, ``meta`` the checksums of :mod:`.integrity`; the
-writer is :class:`~.checkpoint_store.CheckpointStore`.
-
-A missing, partial, altered or non-finite step is a ``ValueError`` naming it and the newest
-intact step; a step without ``meta`` is checked for finiteness only.
+(``<dir>`` by default ``<run_dir>/checkpoints``; ``meta``: :mod:`.integrity`; the writer:
+:class:`~.checkpoint_store.CheckpointStore`). A missing, partial, altered or non-finite step is
+a ``ValueError`` naming it and the newest intact step; a step without ``meta`` is checked for
+finiteness only.
 """
 
 from __future__ import annotations
