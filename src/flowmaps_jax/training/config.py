@@ -523,10 +523,8 @@ def habits_preset() -> TrainConfig:
 
 def homes_preset() -> HomesTrainConfig:
     """The shipped homes model's recipe: D = 64, 2 encoder layers, 2 weight block pairs, 2
-    placement blocks (0.6M parameters), whose receptacle rows also read the per-context counts
-    of the week (``history_counts``); 32 homes × 8 queries per step, 10,000 steps (about 35
-    minutes on an idle 2-core CPU)."""
-    return HomesTrainConfig(model=HomesModelConfig(history_counts=True), steps=10000)
+    placement blocks; 32 homes × 8 queries per step, 10,000 steps."""
+    return HomesTrainConfig(model=HomesModelConfig(), steps=10000)
 
 
 def homes_rhythms_preset() -> HomesTrainConfig:
@@ -542,7 +540,7 @@ def homes_smoke_preset() -> HomesTrainConfig:
     return HomesTrainConfig(
         model=HomesModelConfig(dim=16, encoder_layers=1, weight_blocks=1, cdit_blocks=1,
                                heads=2, mlp_ratio=2, freq_bands=4, history=24,
-                               history_counts=True),
+                               history_heads=2),
         homes=HomesConfig(regime="mixed", num_hours=96), batch_size=4, queries_per_scene=2,
         steps=6, warmup_steps=1, chunk_homes=8, chunk_steps=3, max_horizon=24, val_homes=8,
         val_batches=2, log_every=2, val_every=3, ckpt_every=3, preset="homes-smoke")
@@ -569,9 +567,8 @@ def recorded_smoke_preset() -> RecordedTrainConfig:
 
 def recorded_homes_preset() -> RecordedTrainConfig:
     """The homes recipe on a recorded dataset (``--data PATH``, or ``--preset homes --data``):
-    the model also reads the partial-observation features (``history_observed``)."""
-    return RecordedTrainConfig(model=HomesModelConfig(history_counts=True,
-                                                      history_observed=True), steps=10000)
+    queries must say which hours were observed (``history_observed``)."""
+    return RecordedTrainConfig(model=HomesModelConfig(history_observed=True), steps=10000)
 
 
 RECORDED_PRESETS = {"smoke": recorded_smoke_preset, "homes-smoke": recorded_smoke_preset,
