@@ -284,7 +284,7 @@ def test_large_integers_convert_exactly():
 
 @pytest.mark.parametrize("argv, fragment", [
     (["--resume"], "--run-dir"),
-    (["--resume", "--run-dir", "RUN", "--preset", "smoke"], "does not exist"),  # a repeated --preset is allowed
+    (["--resume", "--run-dir", "RUN", "--preset", "smoke"], "does not exist"),  # repeat allowed
     (["--resume", "--run-dir", "RUN"], "does not exist"),
     (["--preset", "smoke", "--set", "model.width=3"], "model.width"),
     (["--preset", "smoke", "--stop-at", "999"], "stop_at"),
