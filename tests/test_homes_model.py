@@ -461,3 +461,13 @@ def test_large_requests_run_in_chunks_of_queries_with_the_same_answers(run_dir, 
     np.testing.assert_array_equal(predictor.probabilities(homes, queries, CONFIG), whole)
     boxes = predictor.sample(jax.random.key(0), homes, queries, CONFIG, 2)
     assert boxes.shape == (homes.num_homes, 3, 2, 6) and np.all(np.isfinite(boxes))
+
+
+def test_the_history_read_out_is_sized_before_a_run_starts():
+    """model.history_heads is a size: the run's estimate counts the read-out and refuses it."""
+    from flowmaps_jax.training.config import apply_overrides, check_run_resources
+
+    cfg = get_preset("homes")
+    check_run_resources(cfg)
+    with pytest.raises(ValueError, match=r"model.history_heads=60000\) would need about"):
+        check_run_resources(apply_overrides(cfg, ["model.history_heads=60000"]))

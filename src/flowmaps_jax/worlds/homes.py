@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
 from flowmaps_jax.flowsim.homes.rollout import generate_homes
-from flowmaps_jax.model.homes_family import FAMILY_NAME, homes_loss, init_params
+from flowmaps_jax.model.homes_family import FAMILY_NAME, HISTORY_KEY, homes_loss, init_params
 from flowmaps_jax.model.homes_inputs import HomesBatch, shared_tau_batch
 from flowmaps_jax.worlds.world import World, chunk_key
 
@@ -121,8 +121,10 @@ def resource_estimate(cfg, devices: int = 1) -> list[tuple[str, int, int]]:
     b, q = -(-cfg.batch_size // max(1, int(devices))), cfg.queries_per_scene
     rows = b * q * (r + 1)  # the weight rows and the placement row of every query
     tokens = b * s + rows
-    act = 4 * tokens * d * (net.mlp_ratio + 8) * blocks * 2 + 4 * b * net.heads * s * s * blocks
-    step_flops = 6 * (tokens * per_block * blocks + b * q * r * hist * 64)
+    events = b * q * hist * (net.history_heads * (HISTORY_KEY + 4 * r) + 2 * r)  # the read-out
+    act = (4 * tokens * d * (net.mlp_ratio + 8) * blocks * 2 + 4 * b * net.heads * s * s * blocks
+           + 4 * 3 * events)
+    step_flops = 6 * (tokens * per_block * blocks + b * q * r * hist * 64 + events * 32)
     home_bytes = 4 * (homes.num_hours * m + m * r + r * r + s * 8)
     return [
         (f"the model (model.dim={d}, model.encoder_layers={net.encoder_layers}, "
@@ -130,7 +132,8 @@ def resource_estimate(cfg, devices: int = 1) -> list[tuple[str, int, int]]:
          f"model.mlp_ratio={net.mlp_ratio}, homes.max_vocabulary={homes.max_vocabulary}: about "
          f"{params:,} parameters, with EMA, optimiser state and gradients)", 4 * 5 * params, 0),
         (f"a train step (batch_size={cfg.batch_size} x queries_per_scene={q} at model.dim={d}, "
-         f"homes.max_tokens={s}, model.history={hist})", act, step_flops),
+         f"homes.max_tokens={s}, model.history={hist}, model.history_heads="
+         f"{net.history_heads})", act, step_flops),
         (f"the validation batches (val_batches={cfg.val_batches} of batch_size="
          f"{cfg.batch_size})", cfg.val_batches * 4 * b * (s * 10 + q * r * (hist + 8)),
          cfg.val_batches * step_flops // 3),
