@@ -1,49 +1,10 @@
-"""The reference priors of every world, one module: what a model is compared with.
+"""The reference priors of every world (docs/flowsim.md "FlowMaps on homes", docs/protocol.md).
 
-**2-D maps** (slot distributions (..., K + 1): the K slots of the object's kind, then "off";
-:mod:`.slots` scores them): :func:`oracle_slots` (q itself), :func:`sampled_oracle_slots` (n
-draws from q, histogrammed: the floor of any sampler), :func:`last_seen_slots` (the object
-stays), :func:`uniform_slots` (1/n on the real slots); each validates once and runs its jitted
-kernel (:func:`with_off_bin`, :func:`draw_slot_histogram`, :func:`one_hot_slots`,
-:func:`uniform_over_slots`), which the protocol and the search call on arrays they built. The
-exact posterior itself comes from the simulator (``flowsim.dynamics``, ``flowsim.habits``).
-
-**Receptacle worlds (FlowSim homes)**: priors ``prior(homes, queries) -> (E, Q, R)`` float32
-(:mod:`flowmaps_jax.flowsim.homes.queries`). Each row's probabilities over the home's R
-receptacle slots for the queried object at τ_q, with mass only on the object's allowed
-receptacles (rows sum to 1). All are pure functions of the homes and the queries, jitted and
-vmapped over homes and queries (no Python loop over either):
-
-* :func:`exact_prior` — the exact posterior given the map at τ and the object's last
-  ``history`` hours (``flowsim.homes.homes_history_posterior``: the preferences regime's hidden
-  favourites marginalised, the window's first state included; for the other regimes the plain
-  posterior). The window is min(history, τ + 1) hours. ``history=1`` is "what one map can
-  give": where the object stands at τ also weighs the current contexts' favourites.
-* :func:`uniform_prior` — 1/n on each of the object's n allowed receptacles.
-* :func:`last_seen_prior` — "nothing moves": 1 − ε where the object is at τ, ε spread evenly
-  over its other allowed receptacles, so that KL(q ‖ p) is finite. ε = ``LAST_SEEN_EPS`` = 0.01
-  by default (the 2-D protocol scores last-seen through a smoothed density and has no discrete ε;
-  this one is ours, and a smaller ε only raises last-seen's KL: log(1/ε) per unit of q's mass
-  away from where the object was).
-* :func:`frequency_prior` — SGM's / HOMER's counting: (count_r + 1) / (H + n) over the allowed
-  receptacles, count_r the hours of the window τ − H + 1 … τ (H = min(history, τ + 1)) the
-  object stood on r (add-one, Laplace, so nothing allowed has zero mass).
-* :func:`oracle_samples_prior` — ``num_samples`` draws from the exact posterior, histogrammed:
-  a perfect sampler seen through N samples, the floor of any sampler's TV (the 2-D protocol's
-  "oracle samples").
-* :func:`count_table_prior` — per object × hour of day Dirichlet counts: hour h of the window
-  weighs K_b(hour of day of h − that of τ_q) (a circular Gaussian kernel of bandwidth b hours,
-  × ``day_factor`` when h and τ_q are not both weekdays or both weekend days), plus α × the
-  class back-off P(receptacle class | object class, hour of day of τ_q) (training counts
-  smoothed by the same kernel), uniform among the allowed receptacles of a class.
-* :func:`stay_prior` — s₁^Δ on the receptacle where the object was last seen (Δ hours before
-  τ_q, any hour up to τ), the rest by the count table; the count table alone if never seen.
-
-Both read ``homes.receptacle`` −1 as "not seen" (:func:`seen_only`), and their parameters
-(:class:`CountFit`) are chosen on a training part by :func:`fit_count_table`.
-
-"Nearest first" needs no prior: it is a navigation policy
-(:mod:`flowmaps_jax.navigation.navigation`).
+2-D maps: slot distributions (..., K + 1), the K slots of the object's kind then "off", each a
+checked entry and its jitted kernel that the protocol and the search call on built arrays.
+Receptacle worlds: ``prior(homes, queries) -> (E, Q, R)`` float32 over the home's receptacle
+slots, mass only on the object's allowed receptacles, jitted and vmapped over homes and queries.
+The count rows read ``homes.receptacle`` −1 as "not seen" (:func:`seen_only`).
 """
 
 from __future__ import annotations
@@ -91,8 +52,7 @@ def oracle_slots(q: jnp.ndarray) -> jnp.ndarray:
 
 @jax.jit
 def with_off_bin(q):
-    """The kernel of :func:`oracle_slots` (no checks): q (..., K) float32 with an empty off
-    bin."""
+    """The kernel of :func:`oracle_slots`: q (..., K) float32 with an empty off bin."""
     return jnp.concatenate([q, jnp.zeros_like(q[..., :1])], axis=-1)
 
 
@@ -104,11 +64,7 @@ def draw_slot_histogram(key, q, n):
 
 
 def sampled_oracle_slots(key: jax.Array, q: jnp.ndarray, n: int) -> jnp.ndarray:
-    """A perfect sampler seen through n samples: slot counts / n of n draws from q itself.
-
-    (..., K) → (..., K + 1) (off bin empty). Its slot scores are the best any sampler can expect
-    from n samples: the gap to the exact oracle is pure finite-sample noise.
-    """
+    """Slot counts / n of n draws from q (..., K) → (..., K + 1): a perfect sampler."""
     q = check_probabilities("q", q, (..., None), atol=PROB_ATOL, min_value=-PROB_ATOL)
     n = check_int("n", n)
     return draw_slot_histogram(key, jnp.asarray(q, jnp.float32), n)
@@ -121,10 +77,7 @@ def one_hot_slots(slot_now, num_slots: int):
 
 
 def last_seen_slots(slot_now: jnp.ndarray, num_slots: int) -> jnp.ndarray:
-    """Last-seen predictor: the object stays where it is. slot_now (...) ints → (..., K + 1).
-
-    num_slots: K, the padded slot count. slot_now indexes the same slot axis as q.
-    """
+    """Last-seen predictor: slot_now (...) ints in 0..K − 1 → (..., K + 1), K = num_slots."""
     num_slots = check_int("num_slots", num_slots)
     slot_now = check_int_array("slot_now", slot_now, 0, num_slots - 1)
     return one_hot_slots(jnp.asarray(slot_now), num_slots)
@@ -139,10 +92,7 @@ def uniform_over_slots(count, num_slots: int):
 
 
 def uniform_slots(count: jnp.ndarray, num_slots: int) -> jnp.ndarray:
-    """Uniform predictor over the real slots. count (...) ints in 1..K → (..., K + 1).
-
-    Real slots are the first ``count`` of the K padded ones (as in ``Scenes.visit_order``).
-    """
+    """Uniform over the first ``count`` (...) ints in 1..K real slots → (..., K + 1)."""
     num_slots = check_int("num_slots", num_slots)
     count = check_int_array("count", count, 1, num_slots)
     return uniform_over_slots(jnp.asarray(count), num_slots)
@@ -219,15 +169,13 @@ def frequency_prior(history: int = DEFAULT_HISTORY) -> Prior:
 
 
 def histogram_draws(key, probs, num_samples: int) -> jax.Array:
-    """(..., R): counts / N of ``num_samples`` categorical draws from ``probs`` (..., R): the
-    2-D oracle samples' kernel (:func:`draw_slot_histogram`) without its empty off bin."""
+    """(..., R): counts / N of ``num_samples`` categorical draws from ``probs`` (..., R)."""
     return draw_slot_histogram(key, probs, num_samples)[..., :-1]
 
 
 def oracle_samples_prior(config: HomesConfig, key, num_samples: int = 100,
                          history: int = DEFAULT_HISTORY) -> Prior:
-    """``num_samples`` draws from the exact posterior (``exact_prior(config, history)``,
-    which checks ``config`` and ``history``), histogrammed; ``key`` fixes the draws."""
+    """``num_samples`` draws from ``exact_prior(config, history)``, histogrammed."""
     key = check_key(key)
     num_samples = check_int("num_samples", num_samples)
     exact = exact_prior(config, history)
@@ -335,7 +283,8 @@ def _stay(homes: Homes, queries: HomesQueries, fit: CountFit, history: int):
 
 
 def count_table_prior(fit: CountFit, history: int = DEFAULT_HISTORY) -> Prior:
-    """The count table over the ``history`` hours up to τ (module docstring)."""
+    """Per object × hour-of-day kernel counts over the ``history`` hours up to τ, plus α × the
+    class back-off."""
     check_instance("fit", fit, CountFit)
     return functools.partial(_count_table, fit=fit, history=check_int("history", history))
 
@@ -348,10 +297,9 @@ def stay_prior(fit: CountFit, history: int = DEFAULT_HISTORY) -> Prior:
 
 def fit_count_table(homes: Homes, queries: HomesQueries, target, valid, num_classes: tuple,
                     history: int = DEFAULT_HISTORY) -> CountFit:
-    """The :class:`CountFit` of a training part: ``homes`` (−1 where not seen; the class
-    table counts every sighting), its ``queries`` (E, Q), their realised ``target``
-    receptacles (E, Q) where ``valid`` (E, Q) bool; ``num_classes`` (Co, Cr). b, α and the
-    day factor maximise the count table's mean log score on the grids, then s₁ the stay row's."""
+    """The :class:`CountFit` maximising the mean log score of the realised ``target`` (E, Q)
+    where ``valid`` (E, Q) over a training part's ``homes`` (−1 where not seen) and ``queries``
+    (E, Q); ``num_classes`` (Co, Cr)."""
     shape = tuple(check_int("num_classes", n) for n in num_classes)
     if len(shape) != 2:
         raise ValueError(f"num_classes must be (object classes, receptacle classes); got {shape}")

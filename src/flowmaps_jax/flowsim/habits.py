@@ -38,11 +38,8 @@ def num_hypotheses(num_furniture: int) -> int:
 
 @functools.lru_cache(maxsize=16)
 def hypothesis_table(num_furniture: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The static hypothesis table for F places.
-
-    Returns (family (NH,) int32 index into ``HABITS``, favourites (NH, F) bool, needs (NH,)
-    int32: the fewest places K for which the hypothesis exists).
-    """
+    """(family (NH,) int32 index into ``HABITS``, favourites (NH, F) bool, needs (NH,) int32:
+    the fewest places K for which the hypothesis exists) for F places."""
     f = num_furniture
     sets = [()] + [(i,) for i in range(f)] + [(i, j) for i in range(f) for j in range(i + 1, f)]
     family = np.array([ROUTINE] + [PREFERENCES] * (len(sets) - 1) + [DYNAMIC], np.int32)
@@ -64,10 +61,8 @@ def hypothesis_names(num_furniture: int) -> list[str]:
 def habit_prior(num_slots, habit_probs, num_furniture: int) -> jnp.ndarray:
     """Prior (..., NH) float32 over the hypotheses of objects with ``num_slots`` (...) places.
 
-    habit_probs: (3,) weights of the families in ``HABITS`` order (summing to 1).
-    Concrete arguments are checked (``ValueError`` naming the argument: ``habit_probs`` must be
-    3 finite, non-negative probabilities summing to 1, ``num_slots`` in 1..``num_furniture``);
-    traced ones (under ``jit``) are used as given.
+    habit_probs: (3,) probabilities of the families in ``HABITS`` order. Concrete arguments are
+    checked (ValueError naming the argument); traced ones are used as given.
     """
     num_furniture = check_int("num_furniture", num_furniture)
     num_slots = check_int_array("num_slots", num_slots, 1, num_furniture)
@@ -114,13 +109,9 @@ def _dynamic_matrix(k, centres, stay, length) -> jnp.ndarray:
 
 
 def hypothesis_matrix(hypothesis, num_slots, slot_centres, params) -> jnp.ndarray:
-    """Transition matrix (F, F) float32 of one hypothesis for one object.
-
-    hypothesis: () int index into the hypothesis table (may be traced).
-    num_slots: () int K. slot_centres: (F, 2) table centres along the visiting order, in map
-    sides (padding rows are ignored). params: ``sim_params`` of the config.
-    Entry [i, j] = P(slot j next | slot i now); rows and columns ≥ K are zero.
-    """
+    """Transition matrix (F, F) float32, [i, j] = P(slot j next | slot i now), zero at rows and
+    columns ≥ K, of hypothesis () int for one object: num_slots () int K, slot_centres (F, 2)
+    table centres along the visiting order in map sides, params ``sim_params``."""
     f = slot_centres.shape[0]
     family, favourites, _ = (jnp.asarray(a) for a in hypothesis_table(f))
     fam = family[hypothesis]
@@ -137,11 +128,8 @@ def hypothesis_matrix(hypothesis, num_slots, slot_centres, params) -> jnp.ndarra
 
 
 def transition_matrices(num_slots, slot_centres, params) -> jnp.ndarray:
-    """Every hypothesis's transition matrix: (..., NH, F, F) float32.
-
-    num_slots: (...) int K; slot_centres: (..., F, 2) table centres along the visiting order, in
-    map sides.
-    """
+    """Every hypothesis's transition matrix (..., NH, F, F) float32; num_slots (...) int K,
+    slot_centres (..., F, 2)."""
     f = slot_centres.shape[-2]
     lead = jnp.shape(num_slots)
     flat_k = jnp.reshape(num_slots, (-1,))
@@ -181,16 +169,11 @@ def draw_hypothesis(u_family, u_member, num_slots, habit_probs, num_furniture: i
 def habit_rollout(words, num_slots, slot_centres, params, num_timesteps: int,
                   families: tuple[int, ...] = (ROUTINE, PREFERENCES, DYNAMIC),
                   max_places: int | None = None):
-    """One object's habit and slots over T timesteps (vmap it over objects and environments).
+    """One object's (slots (T,) int32 starting at 0, hypothesis () int32); vmap it over objects.
 
-    words: (rollout_num_words(T),) uint32. num_slots: () int K. slot_centres: (F, 2) in map
-    sides. ``families``: the ``HABITS`` indices the world can draw (static; the others are not
-    computed). ``max_places``: a static bound on K (default F); the dynamic habit's matrix is
-    built over that many places only (``SimShape.max_places``: 4 of FlowSim's 10). Returns
-    (slots (T,) int32 starting at 0, hypothesis () int32).
-
-    Step t uses one uniform u_t. The routine's slots are a cumulative sum mod K, the
-    preferences habit's the target of its last move; only the dynamic habit scans.
+    words: (rollout_num_words(T),) uint32, one uniform per step. num_slots: () int K.
+    slot_centres: (F, 2) in map sides. ``families``: the ``HABITS`` indices the world can draw
+    (static). ``max_places``: a static bound on K (default F) for the dynamic habit's matrix.
     """
     f = slot_centres.shape[0]
     u = _uniform24(words)
@@ -245,12 +228,10 @@ def _matrix_power_apply(vectors, matrices, power, max_power: int):
 
 
 def history_posterior_one(transitions, prior, history, valid, tau, horizon, num_timesteps: int):
-    """Exact posterior (F,) of one object's slot at τ + Δτ given its observed history.
+    """(exact posterior (F,) of one object's slot at τ + Δτ, hypothesis weights (NH,)).
 
-    transitions: (NH, F, F) every hypothesis's matrix; prior: (NH,).
-    history: (H,) int32 slots seen at τ − H + 1 … τ (last entry at τ); valid: (H,) bool, True
-    on the observed entries (a suffix: padding comes first). tau, horizon: () int.
-    Also returns the hypothesis weights (NH,).
+    transitions: (NH, F, F); prior: (NH,). history: (H,) int32 slots at τ − H + 1 … τ; valid:
+    (H,) bool, a suffix (padding first). tau, horizon: () int.
     """
     nh, f, _ = transitions.shape
     n = jnp.sum(valid)
@@ -277,8 +258,7 @@ def history_posterior_batch(transitions, prior, history, valid, tau, horizon, nu
 
 
 def empirical_frequency(history, valid, num_furniture: int) -> jnp.ndarray:
-    """(..., F) fraction of the observed history spent at each slot: the simplest habit learner
-    (a scene-graph memory's visit counts). history (..., H) int; valid (..., H) bool."""
+    """(..., F) fraction of the observed history (..., H) int, valid (..., H) at each slot."""
     counts = jnp.sum(jax.nn.one_hot(history, num_furniture, dtype=jnp.float32)
                      * valid[..., None], axis=-2)
     return counts / jnp.maximum(jnp.sum(counts, axis=-1, keepdims=True), 1.0)
@@ -312,12 +292,9 @@ def scene_hypotheses(scenes, config, env, obj) -> tuple[jnp.ndarray, jnp.ndarray
 
 
 def observed_history(scenes, env, obj, tau, history_len, max_history: int | None = None):
-    """The slots an observer saw of objects ``obj`` in ``env`` at τ − H + 1 … τ.
-
-    env, obj, tau, history_len: (Q,) ints (history_len may be one int for all).
-    Returns (history (Q, H_max) int32, valid (Q, H_max) bool): the last entry is the slot at τ;
-    entries before the first observation are padding (valid False, slot 0).
-    """
+    """(history (Q, H_max) int32, valid (Q, H_max) bool): the slots of objects ``obj`` in
+    ``env`` at τ − H + 1 … τ (last entry at τ; padding first, slot 0). env, obj, tau,
+    history_len: (Q,) ints (history_len may be one int)."""
     tau = jnp.asarray(tau, jnp.int32)
     h = jnp.broadcast_to(jnp.asarray(history_len, jnp.int32), tau.shape)
     width = int(np.max(np.asarray(history_len))) if max_history is None else max_history
@@ -327,8 +304,6 @@ def observed_history(scenes, env, obj, tau, history_len, max_history: int | None
 
 @functools.partial(jax.jit, static_argnames=("width",))
 def _observed_history(slot, env, obj, tau, h, width: int):
-    """One compiled gather for :func:`observed_history` (eagerly it was ~10 small programs per
-    shape)."""
     lag = jnp.arange(width - 1, -1, -1)  # H_max - 1 … 0
     time = tau[:, None] - lag[None, :]
     valid = (lag[None, :] < h[:, None]) & (time >= 0)
@@ -337,8 +312,7 @@ def _observed_history(slot, env, obj, tau, h, width: int):
 
 
 def _check_query(name: str, value, q: int | None, low: int, high, high_name: str | None = None):
-    """A query argument of :func:`history_posterior`: (Q,) integers (Q set by ``env``, the
-    first; ``q`` None), then their values in ``low..high`` (concrete ones only)."""
+    """A (Q,) integer query argument of :func:`history_posterior` in ``low..high``."""
     value = check_int_array(name, value)
     if np.ndim(value) != 1 or (q is not None and np.shape(value)[0] != q):
         count = "" if q is None else f" with Q = {q} (env's queries)"
@@ -348,13 +322,11 @@ def _check_query(name: str, value, q: int | None, low: int, high, high_name: str
 
 
 def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
-    """Exact posterior (Q, F) over the slot of object ``obj`` in ``env`` at τ + Δτ, given its
-    slots at τ − H + 1 … τ (H = ``history_len``), under the habit mixture of ``config``.
+    """Exact posterior (Q, F) over the slot of object ``obj`` in ``env`` at τ + Δτ given its
+    slots in ``scenes.slot`` at τ − H + 1 … τ, the habit marginalised over ``config``'s mixture.
 
     env, obj, tau, horizon: (Q,) ints; history_len: an int or (Q,) ints in 1 … τ + 1.
-    The history is read from ``scenes.slot``; the hidden habit is marginalised exactly over
-    the finite hypothesis set. With history_len = 1 and the paper's world it equals
-    ``dynamics.exact_posterior``. Raises ``ValueError`` naming the argument on bad input.
+    ValueError naming the argument on bad input.
     """
     check_instance("config", config, FlowSimConfig)
     t = config.num_timesteps
@@ -373,8 +345,6 @@ def history_posterior(scenes, config, env, obj, tau, horizon, history_len=1):
 
 @functools.partial(jax.jit, static_argnames=("config", "width"))
 def _history_posterior(scenes, config, env, obj, tau, horizon, history_len, width: int):
-    """The checked body of :func:`history_posterior`, one compiled program per query count and
-    history width (the hypotheses' matrices built eagerly were hundreds of small programs)."""
     transitions, prior = scene_hypotheses(scenes, config, env, obj)
     history, valid = _observed_history(scenes.slot, env, obj, tau, history_len, width)
     posterior, _ = history_posterior_batch(transitions, prior, history, valid, tau, horizon,
@@ -383,40 +353,34 @@ def _history_posterior(scenes, config, env, obj, tau, horizon, history_len, widt
 
 
 def habit_family(scenes, env, obj) -> np.ndarray:
-    """(...) int32 index into ``HABITS`` of the habit each queried object follows; env, obj
-    broadcastable int arrays (a query's environment and object)."""
+    """(...) int32 ``HABITS`` index of the habit of each queried (env, obj) (broadcastable)."""
     family = hypothesis_table(int(np.asarray(scenes.visit_order).shape[-1]))[0]
     return family[np.asarray(scenes.habit)[np.asarray(env), np.asarray(obj)]]
 
 
 def available_history(tau, history_len: int) -> np.ndarray:
-    """min(H, τ + 1) for each τ: the observations a history of ``history_len`` maps holds at a
-    query made at τ (fewer at the start of an episode; the model's masks do the same)."""
+    """min(H, τ + 1) for each τ: the observations a history of ``history_len`` maps holds."""
     return np.minimum(int(history_len), np.asarray(tau) + 1).astype(np.int32)
 
 
 EXACT_H1_ROW = "exact, H = 1"
-"""Reference row: the exact posterior given only the last observation (what a one-map model can
-know)."""
+"""Reference row: the exact posterior given only the last observation."""
 
 
 def empirical_row(history: int) -> str:
-    """Name of the reference row "empirical frequency, H = {history}": the fraction of the last
-    H observations the object spent at each place (a visit-count memory)."""
+    """Name of the reference row: the fraction of the last H observations at each place."""
     return f"empirical frequency, H = {int(history)}"
 
 
 def uses_history(config, history: int = 1) -> bool:
-    """Whether queries of ``config``'s world with ``history`` observations are scored against the
-    history posterior (any habit other than the routine, or H > 1) rather than the paper's
-    one-observation ``exact_posterior`` (the evaluation's and the search's protocols alike)."""
+    """Whether queries are scored against the history posterior (a habit other than the
+    routine, or H > 1) rather than the paper's one-observation ``exact_posterior``."""
     return bool(config.has_habits or int(history) > 1)
 
 
 def default_history(config, reads: int = 1) -> int:
-    """The observations the exact reference posterior is given by default: ``reads`` (the most
-    maps any scored model reads), at least ``worlds.HABITS_HISTORY`` in a world with habits other
-    than the routine (where the history tells the habit apart), at most T."""
+    """The reference posterior's default history: ``reads`` (the most maps a scored model
+    reads), at least ``worlds.HABITS_HISTORY`` in a world with habits, at most T."""
     return min(max(int(reads), HABITS_HISTORY if config.has_habits else 1),
                config.num_timesteps)
 
@@ -425,11 +389,9 @@ _REFERENCE_CHUNK = 4096  # queries per history_posterior call (each holds NH × 
 
 
 def history_references(scenes, config, env, tau, horizon, history: int):
-    """The history path's ground truth for R query rows, every object queried: env, tau (R,),
-    horizon (R, M). Returns (q (R, M, F) float32, the exact posterior given the last
-    min(H, τ + 1) observations; habit (R, M) int32 ``HABITS`` index; extra {``EXACT_H1_ROW``,
-    ``empirical_row(H)``: (R, M, F) float32}, or None for H = 1, where they would repeat q and
-    last-seen). Posteriors run in chunks of one padded shape, so each length compiles once."""
+    """Ground truth for R query rows, every object: env, tau (R,), horizon (R, M). Returns
+    (q (R, M, F) float32 exact posterior given min(H, τ + 1) observations, habit (R, M) int32,
+    extra {``EXACT_H1_ROW``, ``empirical_row(H)``: (R, M, F)} or None for H = 1)."""
     rows, m, f = int(np.shape(env)[0]), config.num_objects, config.num_furniture
     q_env = np.repeat(np.asarray(env), m)
     q_obj = np.tile(np.arange(m, dtype=np.int32), rows)

@@ -1,21 +1,6 @@
-"""``python -m flowmaps_jax.train``: train FlowMaps (or the MLP baseline) on a world (2-D
-FlowSim, or FlowSim homes with ``--preset homes``).
-
-Examples (more in the README)::
-
-    python -m flowmaps_jax.train                          # cpu preset, FlowMaps
-    python -m flowmaps_jax.train --steps 5000 --set model.dim=96 --set lr=5e-4
-    python -m flowmaps_jax.train --resume --run-dir runs/X --from-step 500   # an older save
-    python -m flowmaps_jax.train --data PATH --run-dir runs/mine   # a recorded dataset
-
-The run directory, ``--resume``, Ctrl-C and non-finite losses: :mod:`flowmaps_jax.training.loop`.
-Exit codes: 0 ok, 1 non-finite loss or state, 2 bad arguments, 74 a failed write (one line
-naming it), 130 interrupted.
-
-The typed flags (``--family``, ``--steps``, ``--init-from``) set their config fields as the
-values argparse parsed (:func:`flowmaps_jax.training.overrides.replace_fields`); only ``--set``
-is text, converted to each field's type.
-"""
+"""``python -m flowmaps_jax.train``: train a model on a world (examples in the README; the run
+directory, ``--resume`` and Ctrl-C: docs/guarantees.md). Exit codes: 0 ok, 1 non-finite loss or
+state, 2 bad arguments, 74 a failed write (one line naming it), 130 interrupted."""
 
 from __future__ import annotations
 
@@ -168,17 +153,15 @@ def _one_line(err: OSError) -> str:
 
 
 def _exit_now(code: int) -> typing.NoReturn:
-    """Leave the process without interpreter teardown. After Ctrl-C outside the step loop (data
-    generation, compilation) XLA may still be working in its own threads, and tearing the
-    interpreter down under them ends in SIGSEGV; the run's lock is already released."""
+    """Leave without interpreter teardown: XLA threads still working after a Ctrl-C outside the
+    step loop would crash it (SIGSEGV); the run's lock is already released."""
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI entry point; returns the exit code (0 ok, 1 non-finite loss or state, 74 a write
-    failed, e.g. a full disk, 130 interrupted)."""
+    """CLI entry point; returns the exit code (module docstring)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

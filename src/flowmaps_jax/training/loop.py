@@ -1,26 +1,8 @@
-"""The training loop: :func:`run` trains a model on its world (2-D FlowSim or FlowSim homes).
-
-:func:`run` reads top to bottom, as flax's ``examples/imagenet/train.py`` does:
-
-1. **Prelude.** Every check first, resource bounds included
-   (:func:`flowmaps_jax.training.config.check_run_resources`); then the run directory is claimed
-   (:func:`flowmaps_jax.store.rundir.claim`), a resumed run's checkpoint restored, the
-   functions compiled (:func:`compiled_functions`), the data generated and the state built.
-   Nothing in the run directory is written before every check has passed.
-2. **The step loop.** One train step per iteration, then the periodic blocks: a train record
-   every ``log_every`` steps, a val pass every ``val_every`` (the EMA loss on the fixed
-   validation batches, the ``best`` checkpoint, the routine diagnostic) and a checkpoint every
-   ``ckpt_every``.
-3. **Summary.** The last checkpoint, the routine curve and the commands to evaluate or resume.
-
-The run directory holds ``config.json``, ``metrics.jsonl`` and ``checkpoints/``
-(:mod:`flowmaps_jax.training.runlog`; one run per directory: :mod:`flowmaps_jax.store.rundir`).
-The batch and noise of step i depend only on the state's keys and i, so a resumed run continues
-exactly, and its records are those of a run never stopped. Everything world-specific comes from
-:func:`flowmaps_jax.worlds.world`. Ctrl-C saves a checkpoint and returns; a NaN/inf loss, or a
-state with NaN/inf that a save refuses, stops the run without saving the bad state (the last
-good checkpoint stays).
-"""
+"""The training loop: :func:`run` trains a model on its world, in three parts: the prelude
+(every check, then the run directory is claimed, the functions compiled and the data built;
+nothing is written before the last check), the step loop with its periodic train, val and
+checkpoint blocks, and the summary. What a run writes and promises (resume, Ctrl-C, NaN, a
+failed write): docs/guarantees.md."""
 
 from __future__ import annotations
 
@@ -66,21 +48,15 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         overwrite: bool = False, from_step: int | None = None, stop_at: int | None = None,
         progress: bool = True, on_step: Callable[[int, dict], None] | None = None,
         log: Callable[[str], None] = print) -> RunResult:
-    """Train per ``cfg`` (a :data:`~flowmaps_jax.training.config.RUN_CONFIGS` instance: its
-    world says where the data comes from) into ``run_dir``; see the module docstring for what is
-    written.
+    """Train per ``cfg`` (a :data:`~flowmaps_jax.training.config.RUN_CONFIGS` instance) into
+    ``run_dir``.
 
-    resume: continue from the latest checkpoint in ``run_dir`` (or the saved step
-        ``from_step``); ValueError if there is none, if it is damaged (the message names the
-        newest intact step) or if ``cfg`` differs from the checkpoint's config outside
-        :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`. Later saved steps are moved
-        aside when ``from_step`` is given.
-    overwrite: a new run in a non-empty ``run_dir`` first moves the old run to
-        ``<run_dir>.old-<timestamp>``; without it (and without ``resume``) that is a ValueError.
-    stop_at: stop after this step (saving a checkpoint) without changing the schedule, which
-        always spans ``cfg.steps``. on_step(step, metrics): called after every step (tests).
-
-    A failed checkpoint write raises
+    resume: continue from the latest checkpoint (or the saved step ``from_step``, later steps
+        moved aside); ValueError if there is none, it is damaged, or ``cfg`` differs outside
+        :data:`~flowmaps_jax.training.config.RESUMABLE_FIELDS`.
+    overwrite: move an old run in ``run_dir`` to ``<run_dir>.old-<timestamp>`` first.
+    stop_at: stop after this step (saving a checkpoint); the schedule still spans ``cfg.steps``.
+    on_step(step, metrics): called after every step. A failed checkpoint write raises
     :class:`~flowmaps_jax.store.checkpoint_store.CheckpointSaveError`.
     """
     # ---- Prelude: every check, then the run's pieces; nothing is written before the last one.
@@ -202,9 +178,8 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
 
 
 def _start_params(cfg, log: Callable[[str], None]):
-    """The weights ``cfg.init_from`` names (their EMA params), checked against the model: None
-    without ``init_from``; ValueError naming ``init_from`` when they cannot be read or belong to
-    another model family or architecture."""
+    """The EMA params ``cfg.init_from`` names (None without it); ValueError naming it when they
+    cannot be read or fit another family or architecture."""
     if cfg.init_from is None:
         return None
     with prefix_errors(f"init_from={cfg.init_from!r}: "):
@@ -223,9 +198,8 @@ def _start_params(cfg, log: Callable[[str], None]):
 
 def _val_pass(step: int, state, compiled: Compiled, val_batches, probe: Callable | None,
               book: runlog.RunBook) -> tuple[float, dict | None]:
-    """The periodic val block: the EMA loss on the fixed validation batches (a new best is
-    saved as the ``best`` checkpoint), then the routine diagnostic when it is on. Returns
-    (val loss, routine metrics or None), both shown on the progress bar."""
+    """The EMA loss on the validation batches (a new best saved as ``best``), then the routine
+    diagnostic when on. Returns (val loss, routine metrics or None)."""
     val_loss = float(compiled.eval_loss(state.ema_params, val_batches))
     book.write_val(state, step, val_loss)
     routine = probe(state) if probe is not None else None
@@ -247,12 +221,9 @@ class Compiled(typing.NamedTuple):
 
 
 def compiled_functions(cfg: TrainConfig, mesh=None) -> Compiled:
-    """:class:`Compiled` for ``cfg`` on ``mesh`` (None: one device); cached by
-    :func:`~flowmaps_jax.training.config.compile_key`, so that several runs with the same
-    computation in one process (tests, resume) compile once. On a multi-host job the train step
-    takes a batch assembled from every host's share
-    (:func:`~flowmaps_jax.training.state.make_train_step`); otherwise it draws the batch itself
-    (:func:`~flowmaps_jax.training.state.make_fused_train_step`)."""
+    """:class:`Compiled` for ``cfg`` on ``mesh`` (None: one device), cached by
+    :func:`~flowmaps_jax.training.config.compile_key`. On a multi-host job the train step takes
+    a batch assembled from every host's share; otherwise it draws the batch itself."""
     return _compiled_functions(compile_key(cfg), mesh, jax.process_count() > 1)
 
 
@@ -265,13 +236,9 @@ def _compiled_functions(cfg: TrainConfig, mesh, multi_host: bool) -> Compiled:
 
 
 def _step_taker(cfg: TrainConfig, step_fn: Callable, mesh) -> Callable:
-    """``take(state, train_scenes, step) -> (state, metrics)`` for this job's layout.
-
-    One host: the fused step draws the batch itself from the (replicated) scenes. Several hosts:
-    each host draws its share of the global batch from its own scenes, with the step's batch
-    key folded with its process index, and the shares form one global batch split over the
-    mesh (:func:`flowmaps_jax.distributed.from_hosts`); no data crosses hosts.
-    """
+    """``take(state, train_scenes, step) -> (state, metrics)``. On several hosts each draws its
+    share of the batch from its own scenes (batch key folded with its process index); the
+    shares form one global batch (:func:`flowmaps_jax.distributed.from_hosts`)."""
     if jax.process_count() == 1:
         return lambda state, scenes, step: step_fn(state, scenes)
     hosts, index = jax.process_count(), jax.process_index()
@@ -308,9 +275,8 @@ def _place_scenes(scenes, mesh):
 
 
 def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any], dict] | None:
-    """``probe(state) -> metrics``: the routine diagnostic of every val pass, on
-    ``cfg.routine_envs`` validation environments with the state's EMA weights; None when off,
-    or for a run config without the diagnostic (``routine_envs``)."""
+    """``probe(state) -> metrics``: the routine diagnostic on ``cfg.routine_envs`` validation
+    environments with the EMA weights; None when off or not in the run config."""
     if getattr(cfg, "routine_envs", 0) <= 0:
         return None
     probe = routine.build_probe(val_scenes, cfg.flowsim,
@@ -318,8 +284,6 @@ def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any],
                                 history=cfg.model.history)
 
     def run_probe(state) -> dict:
-        # Sampled over the training mesh on one host; on a multi-host job each host samples its
-        # own copy (the probe is small).
         if jax.process_count() > 1:
             params, on = jax.device_get(state.ema_params), None
         else:
@@ -335,14 +299,9 @@ def _routine_probe(cfg: TrainConfig, val_scenes, mesh) -> Callable[[typing.Any],
 
 
 class StopFlag:
-    """Ctrl-C during a run.
-
-    Before the step loop (data, compilation) it raises ``KeyboardInterrupt`` as usual, and
-    remembers that it did: Python swallows one raised inside a garbage-collection callback (it
-    prints "Exception ignored in ... _xla_gc_callback" and carries on), so :meth:`start_steps`
-    raises it again. From :meth:`start_steps` on, the first Ctrl-C only sets ``requested``
-    (checked between steps, so that the state is saved) and a second one raises.
-    """
+    """Ctrl-C during a run. Before the step loop it raises ``KeyboardInterrupt`` and remembers
+    it (one raised in a GC callback is swallowed, so :meth:`start_steps` raises it again); from
+    :meth:`start_steps` on the first Ctrl-C only sets ``requested`` and a second one raises."""
 
     def __init__(self):
         self.requested = False
@@ -384,8 +343,7 @@ def postfix(metrics: dict, val_loss: float | None, routine: dict | None,
 
 
 class _ProgressBar:
-    """The tqdm bar of a run, shown from the first step on, so that its rate leaves out the
-    compilation."""
+    """The tqdm bar of a run, from the first step on (its rate leaves out the compilation)."""
 
     def __init__(self, total: int, enabled: bool):
         self.total, self.enabled, self._bar = total, enabled, None
