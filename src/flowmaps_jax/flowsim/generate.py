@@ -1,13 +1,6 @@
-"""FlowSim scenes: the ``Scenes`` pytree and ``generate(key, num_envs, config)``.
-
-Every environment gets its own key (``jax.random.split(key, num_envs)``); its layout attempts use
-``fold_in(layout_key, attempt)``, so an environment's content depends only on its own key, never on
-the batch it was generated in. Layout attempts run in fixed-size blocks of environments inside one
-``lax.while_loop``: first every environment's first attempt, then the (about 10 %) failed ones
-are redrawn until all succeed or ``config.layout_budget`` redraws are used up (then ``generate``
-raises). Visiting orders and rollouts (``lax.scan`` over time, see ``dynamics.rollout``) are
-vectorised over the whole batch.
-"""
+"""FlowSim scenes: the ``Scenes`` pytree and ``generate(key, num_envs, config)``. An
+environment's content depends only on its own key (``jax.random.split(key, num_envs)``), never on
+the batch it was generated in (docs/flowsim.md)."""
 
 from __future__ import annotations
 
@@ -54,8 +47,7 @@ class Scenes:
     slot: (E, T, M) int32 position along visit_order at each timestep (0 at t = 0).
     object_boxes: (E, T, M, 4) float32 pixels (y0, x0, y1, x1), centred on the current table.
     layout_redraws: (E,) int32 how many times each environment's layout was redrawn.
-    habit: (E, M) int32 each object's habit hypothesis (an index into
-        ``habits.hypothesis_table(F)``; 0, the routine, in the paper's world).
+    habit: (E, M) int32 each object's index into ``habits.hypothesis_table(F)`` (0: routine).
     """
 
     furniture_boxes: jnp.ndarray
@@ -87,31 +79,22 @@ def _field_shapes(e: int, f: int, m: int, t: int) -> dict[str, tuple[int, ...]]:
 
 
 def scenes_bytes_per_env(config: FlowSimConfig) -> int:
-    """Bytes of one environment's ``Scenes`` arrays (all 4-byte numbers): a lower bound on
-    what ``generate`` needs per environment."""
+    """Bytes of one environment's ``Scenes`` arrays (a lower bound per environment)."""
     shapes = _field_shapes(1, config.num_furniture, config.num_objects, config.num_timesteps)
     return sum(array_bytes(shape) for shape in shapes.values())
 
 
 def layout_bytes(config: FlowSimConfig, num_envs: int) -> int:
-    """Working memory of laying out ``num_envs`` environments' furniture: a block of at most
-    :data:`BLOCK` attempts, each with its random words (``layout_candidates`` proposals per
-    piece) and every proposal's box tested against the F pieces."""
+    """Working memory of laying out ``num_envs`` environments (a block of :data:`BLOCK`)."""
     words = layout.layout_num_words(config)
     return min(int(num_envs), BLOCK) * words * 4 * (4 + config.num_furniture)
 
 
 def validate_scenes(scenes, config: FlowSimConfig | None = None, *, values: bool = True,
                     name: str = "scenes") -> None:
-    """Raise ``ValueError`` naming the field if ``scenes`` is not a well-formed ``Scenes``.
-
-    Always (also on tracers, no device transfer): every field is an array of the right kind
-    (float boxes and sizes, integer ids, orders and slots) and of the shapes of ``Scenes``,
-    with F, M, T those of ``config`` when given (else those of the first field that has them).
-    With ``values`` (concrete arrays): boxes finite, non-negative and, with ``config``, within
-    the map, with positive sides; object sizes positive; descriptor ids those of the config;
-    visit orders valid furniture indices exactly on the first num_slots places; num_slots in
-    1..F; slots in 0..num_slots − 1; redraw counts >= 0.
+    """Raise ``ValueError`` naming the field if ``scenes`` is not a well-formed ``Scenes``:
+    dtypes and shapes always (F, M, T of ``config`` when given), and with ``values`` (concrete
+    arrays) the value ranges (boxes in the map, ids of the config, orders, slots).
     """
     if config is not None:
         check_instance("config", config, FlowSimConfig)
@@ -179,17 +162,12 @@ def _check_positive(name: str, values: np.ndarray, what: str = "") -> None:
 
 BLOCK = 512
 """Layout attempts run in blocks of this many environments inside one ``lax.while_loop``: first
-the blocks of first attempts, then blocks of redraws of the failed ones. One block shape means
-one compiled attempt, and a block's working set stays in cache."""
+attempts, then redraws of the failed ones."""
 
 
 def _place_furniture(layout_keys, params, shape: SimShape):
-    """Layouts for per-environment keys (E,), redrawing failed attempts (environment axis last).
-
-    Attempt a of environment e uses ``fold_in(layout_keys[e], a)``, so the result does not depend
-    on the batch. Returns (boxes (F, 4, E) int32, kind (F, E) int32 kind index, redraws (E,)
-    int32, ok (E,) bool — False only if ``layout_budget`` redraws did not suffice).
-    """
+    """Layouts for per-environment keys (E,), attempt a from ``fold_in(layout_keys[e], a)``.
+    Returns (boxes (F, 4, E) int32, kind (F, E) int32, redraws (E,) int32, ok (E,) bool)."""
     num_envs = layout_keys.shape[0]
     block = min(num_envs, BLOCK)
     num_words = layout.layout_num_words(shape)
@@ -229,12 +207,8 @@ def _place_furniture(layout_keys, params, shape: SimShape):
 
 @functools.partial(jax.jit, static_argnames=("shape",))
 def scenes_from_env_keys(env_keys, params, shape: SimShape):
-    """Scenes for one PRNG key per environment (E,). Returns (Scenes, ok (E,) bool).
-
-    Environment e depends only on ``env_keys[e]`` (not on E or its position in the batch).
-    ``params`` / ``shape``: ``sim_params`` / ``sim_shape`` of the config. Does not raise:
-    check ``ok`` (``generate`` does).
-    """
+    """(Scenes, ok (E,) bool) for one PRNG key per environment (E,); ``params`` / ``shape``:
+    ``sim_params`` / ``sim_shape``. Does not raise: check ``ok``."""
     num_envs = env_keys.shape[0]
     layout_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(env_keys, 0)
     dynamics_keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(env_keys, 1)
@@ -268,9 +242,7 @@ def scenes_from_env_keys(env_keys, params, shape: SimShape):
 
 
 def _habit_rollouts(env_keys, boxes, order, num_slots, params, shape: SimShape):
-    """Habits and slots of every object (environment axis last, like ``dynamics.rollout``).
-
-    Uses its own stream (``fold_in(env_key, 2)``). Returns (slot (T, M, E), habit (M, E))."""
+    """(slot (T, M, E), habit (M, E)) of every object, from ``fold_in(env_key, 2)``."""
     num_words = habits.rollout_num_words(shape.num_timesteps)
     keys = jax.vmap(jax.random.fold_in, in_axes=(0, None))(env_keys, 2)
     words = jax.vmap(lambda k: jax.random.bits(k, (shape.num_objects, num_words),
@@ -290,16 +262,10 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh
              part: slice | None = None) -> Scenes:
     """Generate ``num_envs`` FlowSim environments (layouts, visiting orders, T-step rollouts).
 
-    key: a JAX PRNG key; the same key, num_envs and config give the same Scenes.
-    mesh: a 1-D device mesh (:func:`flowmaps_jax.distributed.data_mesh`) to split the
-        environments over; the result is the same, element for element, as without one.
-    part: generate only these environments of the ``num_envs`` (a slice, e.g. this host's
-        :func:`flowmaps_jax.distributed.host_part`); they equal the same rows of the full set.
-    Raises ``ValueError`` on bad arguments (also when ``num_envs`` environments would not fit in
-    memory, see ``resources.check_request_size``) and :class:`LayoutError` (a ``ValueError`` and a
-    ``RuntimeError``) if some layout could not be placed within ``config.layout_budget`` redraws
-    (the config is too crowded). Not for use
-    inside ``jit`` (it checks the layouts on the host); there, call ``scenes_from_env_keys``.
+    mesh: a 1-D device mesh to split the environments over (same result). part: only these
+    environments (a slice); they equal the same rows of the full set. ValueError on bad
+    arguments or too much memory; :class:`LayoutError` if some layout could not be placed. Not
+    inside ``jit`` (use ``scenes_from_env_keys``).
     """
     key = check_key(key)
     num_envs = check_int("num_envs", num_envs)
@@ -330,15 +296,12 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh
 
 
 class LayoutError(ValueError, RuntimeError):
-    """Some layouts could not be placed within ``config.layout_budget`` redraws: the config asks
-    for a map more crowded than its budget can lay out. A ``ValueError`` (a command reports it
-    as a bad argument, exit code 2, in one line) and, as before, a ``RuntimeError``."""
+    """Some layouts could not be placed within ``config.layout_budget`` redraws (a bad argument:
+    ValueError; also a RuntimeError)."""
 
 
 def _generate_on(env_keys, config: FlowSimConfig, mesh):
-    """``scenes_from_env_keys`` on one device, or split over ``mesh``: each device generates its
-    block of keys (``shard_map``), which gives the same environments because environment e
-    depends only on its key. Padding keys (to a multiple of the mesh size) are dropped."""
+    """``scenes_from_env_keys`` on one device, or each device its block of keys over ``mesh``."""
     params, shape = sim_params(config), sim_shape(config)
     if mesh is None or mesh.size == 1:
         return scenes_from_env_keys(env_keys, params, shape)

@@ -1,12 +1,7 @@
-"""The FlowMaps family: its training loss (:func:`flowmaps_loss`: :func:`cfm_loss` or, for the
-mixture head, :func:`mixture_loss`), its jitted inference cores and :data:`FAMILY`.
-
-The network is :mod:`flowmaps_jax.model.flowmaps`; the flow runs in
-z = box_scale · (box − box_offset) (:func:`to_flow_space`). Shapes: tokens (B, S), queries
-(B, Q), keys (B,), boxes (B, Q, N, 4) normalised (y, x, h, w), log-densities (B, Q, N); inputs
-as :func:`family.canonical_inputs` gives. The checked wrapper is
-:class:`flowmaps_jax.predictor.Predictor`.
-"""
+"""The FlowMaps family: its training loss, its jitted inference cores and :data:`FAMILY`.
+The flow runs in z = box_scale · (box − box_offset); shapes: tokens (B, S), queries (B, Q), keys
+(B,), boxes (B, Q, N, 4) normalised (y, x, h, w), log-densities (B, Q, N). No validation: the
+checked wrapper is :class:`flowmaps_jax.predictor.Predictor`."""
 
 from __future__ import annotations
 
@@ -60,8 +55,7 @@ def flow_space_log_det(config: ModelConfig) -> float:
 
 
 def supporting_token(tokens: SceneTokens, boxes: jnp.ndarray) -> jnp.ndarray:
-    """Index (B, Q) of the furniture token whose centre is nearest each box's centre (B, Q, 4):
-    the table an object box stands on. Normalised (y, x, h, w) boxes."""
+    """Index (B, Q) of the furniture token nearest each box's centre (B, Q, 4): its table."""
     centre, token_centre = to_centre(boxes)[..., :2], to_centre(tokens.boxes)[..., :2]
     d = jnp.sum(jnp.square(centre[:, :, None] - token_centre[:, None]), -1)  # (B, Q, S)
     ok = (tokens.mask.astype(bool) & (tokens.kind == FURNITURE))[:, None, :]
@@ -70,16 +64,10 @@ def supporting_token(tokens: SceneTokens, boxes: jnp.ndarray) -> jnp.ndarray:
 
 def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
              t_sampler: str = "beta", deterministic: bool = False, pointer_loss: float = 0.0):
-    """Conditional flow-matching loss on one batch; returns ``(loss, aux)``.
-
-    The map of each of the B scenes is encoded once and shared by its Q queries. Per query:
-    X_0 ~ N(0, I_4), t ~ ``t_sampler``, x_t on the linear path (B, Q, 1, 4), and the loss is the
-    squared error to X_1 − X_0 averaged over the 4 numbers (X_1 is the target box in the flow's
-    space, :func:`to_flow_space`), then over queries and scenes.
-    ``deterministic=True`` turns dropout off (validation).
-    ``pointer_loss`` > 0 (pointer head only) adds that weight times the cross-entropy of the
-    anchor logits against the target's table (:func:`supporting_token`).
-    aux: ``{"loss": scalar, "mse_per_query": (B, Q)}`` (+ ``"pointer_ce"`` when used).
+    """Conditional flow-matching loss ``(loss, aux)``: the squared error of v(x_t, t) to
+    X_1 − X_0 on the linear path, averaged; ``pointer_loss`` > 0 adds that weight × the anchor
+    cross-entropy against the target's table. aux: ``loss``, ``mse_per_query`` (B, Q)
+    (+ ``pointer_ce``). ``deterministic=True``: no dropout.
     """
     noise_key, t_key, enc_key, vel_key = jax.random.split(key, 4)
     if deterministic:
@@ -106,15 +94,9 @@ def cfm_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
 def mixture_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
                  t_sampler: str = "beta", deterministic: bool = False, table_loss: float = 1.0,
                  num_objects: int = 3):
-    """The mixture head's loss (``head="mixture"``); returns ``(loss, aux)``.
-
-    ``table_loss`` × the cross-entropy of the table weights against the table the target stands
-    on (:func:`supporting_token`), the proper scoring rule of π, plus the flow-matching loss of
-    the placement flow on that table, in its local frame (:mod:`flowmaps_jax.model.mixture`).
-    aux: ``loss``, ``mse_per_query`` (B, Q), ``table_ce`` and ``selection`` (= ``table_ce``: what
-    the best checkpoint is chosen by). The table weights are computed once per (scene, object)
-    for the scene's ``num_objects`` current objects (:func:`mixture.scene_objects`), at every
-    horizon, and each query reads its object's row at its Δτ.
+    """The mixture head's loss ``(loss, aux)``: ``table_loss`` × the table cross-entropy plus
+    the placement flow's flow-matching loss on the target's table, in its local frame. aux:
+    ``loss``, ``mse_per_query`` (B, Q), ``table_ce`` and ``selection`` (= ``table_ce``).
     """
     noise_key, t_key, enc_key, w_key, vel_key = jax.random.split(key, 5)
     if deterministic:
@@ -144,9 +126,7 @@ def mixture_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array,
 
 def flowmaps_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array, train: bool,
                   options: LossOptions):
-    """FlowMaps' training loss ``(loss, aux)`` (``ModelFamily.loss``): :func:`mixture_loss` for
-    the mixture head (its table cross-entropy weighted by ``options.pointer_loss``),
-    :func:`cfm_loss` otherwise; ``train=False`` turns dropout off."""
+    """``ModelFamily.loss``: :func:`mixture_loss` for the mixture head, else :func:`cfm_loss`."""
     if config.head == "mixture":
         return mixture_loss(params, config, batch, key, options.t_sampler,
                             deterministic=not train, table_loss=options.pointer_loss,
@@ -160,8 +140,7 @@ def flowmaps_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array
 
 def _field_and_noise(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
                      keys: jax.Array, num_samples: int):
-    """FlowMaps' velocity field for B scenes (maps encoded once) and its start noise
-    X_0 (B, Q, N, 4), scene b's noise from keys[b]."""
+    """The velocity field for B scenes and its start noise X_0 (B, Q, N, 4) from keys (B,)."""
     context = encode(params, config, tokens)
     x0 = scene_noise(keys, (queries.tau_q.shape[1], num_samples, 4))
     return make_velocity_fn(params, config, context, queries), x0
@@ -171,11 +150,7 @@ def _field_and_noise(params, config: ModelConfig, tokens: SceneTokens, queries: 
 def flow_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
                 keys: jax.Array, num_samples: int, num_steps: int = DEFAULT_NUM_STEPS,
                 method: str = "midpoint") -> jnp.ndarray:
-    """FlowMaps samples (B, Q, N, 4) normalised (y, x, h, w); keys (B,) one PRNG key per scene.
-
-    Encodes the B maps once, then integrates all B·Q·N noise rows together (``lax.scan`` over the
-    num_steps − 1 intervals). No validation: use :meth:`flowmaps_jax.predictor.Predictor.sample`.
-    """
+    """FlowMaps samples (B, Q, N, 4); keys (B,) one PRNG key per scene."""
     if config.head == "mixture":
         return _mixture_sample(params, config, tokens, queries, keys, num_samples, num_steps,
                                method)
@@ -187,11 +162,7 @@ def flow_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queri
 def flow_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
                   x: jnp.ndarray, num_steps: int = DEFAULT_NUM_STEPS,
                   method: str = "midpoint") -> jnp.ndarray:
-    """Exact log-density (B, Q, N) of boxes x (B, Q, N, 4) under FlowMaps (change of variables).
-
-    Encodes the maps once; the backward ODE for all rows runs in one ``lax.scan`` in the flow's
-    space (``ModelConfig.box_scale``/``box_offset``), plus that map's constant log-Jacobian.
-    """
+    """Exact log-density (B, Q, N) of boxes x (B, Q, N, 4) (backward ODE, change of variables)."""
     if config.head == "mixture":
         return _mixture_log_prob(params, config, tokens, queries, x, num_steps, method)
     context = encode(params, config, tokens)
@@ -203,11 +174,8 @@ def flow_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Que
 @functools.partial(jax.jit, static_argnames=("config",))
 def table_weights(params, config: ModelConfig, tokens: SceneTokens, queries: Queries
                   ) -> jnp.ndarray:
-    """The mixture weight (B, Q, S) a read-out head puts on each token of the map, no sampling.
-
-    ``head="route"``: the mixture's weights themselves (x- and t-free). ``head="pointer"``: the
-    anchor softmax at t = 0 and x = 0 (the samples' table frequencies may differ a little).
-    """
+    """The weight (B, Q, S) a read-out head puts on each token (pointer: the anchor softmax at
+    t = 0, x = 0)."""
     context = encode(params, config, tokens)
     if config.head == "mixture":
         return jax.nn.softmax(table_logits(params, config, context, queries), axis=-1)
@@ -224,8 +192,7 @@ def table_weights(params, config: ModelConfig, tokens: SceneTokens, queries: Que
 def route_mixture_log_prob(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
                            x: jnp.ndarray) -> jnp.ndarray:
     """Closed-form log-density (B, Q, N) of boxes x (B, Q, N, 4) under the route head's mixture
-    (``head="route"``): FlowMaps' exact log-density while the head's residual is zero, the
-    reference the accurate likelihood is checked against."""
+    (exact while the head's residual is zero)."""
     log_w, means, log_var = route_mixture(params, config, encode(params, config, tokens), queries)
     return mixture_log_prob(log_w, means, log_var, to_flow_space(x, config)) + \
         flow_space_log_det(config)
@@ -236,9 +203,8 @@ def flow_sample_with_log_prob(params, config: ModelConfig, tokens: SceneTokens, 
                               keys: jax.Array, num_samples: int,
                               num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint"
                               ) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """FlowMaps samples (B, Q, N, 4) with their exact log-density (B, Q, N) from one forward
-    solve of the augmented ODE (:func:`flowmaps_jax.flow.sample_with_log_prob`). The samples
-    equal :func:`flow_sample`'s for the same keys (to float rounding)."""
+    """:func:`flow_sample`'s samples (B, Q, N, 4) with their exact log-density (B, Q, N), from
+    one solve of the augmented ODE."""
     if config.head == "mixture":  # the density needs every near table's term: a second solve
         boxes = _mixture_sample(params, config, tokens, queries, keys, num_samples, num_steps,
                                 method)
@@ -259,8 +225,8 @@ def _placement_fn(params, config: ModelConfig, context, queries: Queries, table)
 
 def _mixture_sample(params, config: ModelConfig, tokens: SceneTokens, queries: Queries,
                     keys: jax.Array, num_samples: int, num_steps: int, method: str):
-    """The mixture head's samples (B, Q, N, 4): a table s ~ π per row (from fold_in(key, 1) of
-    the scene's key), then the placement flow from noise (the scene's key) in s's frame."""
+    """The mixture head's samples (B, Q, N, 4): a table s ~ π per row, then the placement flow
+    in s's frame."""
     context = encode(params, config, tokens)
     logits = table_logits(params, config, context, queries)  # (B, Q, S)
     q = queries.tau_q.shape[1]

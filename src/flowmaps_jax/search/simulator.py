@@ -1,17 +1,6 @@
 """The episode simulator: a robot looks at tables one by one until it finds the object
-(the protocol: docs/search.md).
-
-One episode is :class:`Episodes` without the batch axis: the object hides on ``target``, the
-robot starts at ``start`` (pixels), each look drives straight to a table's centre and misses
-with probability ``p_miss``; a failed look at j sets b_j ← p_miss · b_j and renormalises
-(nothing left: uniform over the tables looked at least often); the episode ends when found or
-after ``budget`` looks.
-
-:func:`run_episodes` (``vmap`` over episodes of a ``lax.scan`` over looks, one compile per
-(N, K, budget) for every policy) and :func:`expected_outcomes` (every hiding place at once)
-check their arguments; :func:`simulate` and :func:`simulate_every_target` check nothing. No
-FlowSim here: :mod:`.episodes` builds the episodes.
-"""
+(docs/search.md). :func:`run_episodes` and :func:`expected_outcomes` check their arguments;
+:func:`simulate` and :func:`simulate_every_target` check nothing."""
 
 from __future__ import annotations
 
@@ -43,8 +32,7 @@ from flowmaps_jax.validation import (
 )
 
 DEFAULT_BUDGET = 10
-"""Looks per episode (FlowSim has at most 4 tables of a kind: every policy finds the object
-within K looks with a perfect detector)."""
+"""Looks per episode (FlowSim has at most 4 tables of a kind)."""
 _TINY = 1e-30
 
 
@@ -53,13 +41,9 @@ _TINY = 1e-30
 
 @struct.dataclass
 class Episodes:
-    """N search episodes over (padded) K candidate tables.
-
-    belief: (N, K) prior probabilities of the object's table (sum 1 over the real tables, 0 on
-        padding). centres: (N, K, 2) table centres (y, x) in pixels (0 on padding).
-        valid: (N, K) bool, real tables. start: (N, 2) the robot's start (y, x) in pixels.
-        target: (N,) int32 the table the object is on.
-    """
+    """N search episodes over (padded) K candidate tables: belief (N, K) prior of the object's
+    table (0 on padding), centres (N, K, 2) (y, x) pixels, valid (N, K) bool real tables, start
+    (N, 2) pixels, target (N,) int32 the object's table."""
 
     belief: jnp.ndarray
     centres: jnp.ndarray
@@ -79,13 +63,9 @@ class Episodes:
 
 @struct.dataclass
 class Outcome:
-    """What happened in N episodes of ``budget`` = L looks.
-
-    found: (N,) bool found within the budget. looks: (N,) int32 looks made (until found, or L).
-    travel: (N,) float32 pixels driven (until found, or in all L looks). shortest: (N,) pixels
-    from the start straight to the true table. path: (N, L) int32 table of each look, −1 after
-    the episode ended. travel_at: (N, L) pixels driven after each look. belief: (N, L, K) the
-    belief each look was decided on (the prior, then after each failure; repeated after the end).
+    """N episodes of L = ``budget`` looks: found (N,) bool, looks (N,) int32, travel (N,) pixels
+    driven, shortest (N,) pixels straight to the true table, path (N, L) int32 table of each look
+    (−1 after the end), travel_at (N, L), belief (N, L, K) the belief each look was decided on.
     """
 
     found: jnp.ndarray
@@ -102,10 +82,8 @@ class Outcome:
 
 def check_episodes(episodes: Episodes, policy: str, budget: int,
                    every_target: bool = False) -> Episodes:
-    """Validate the fields (``ValueError`` naming the field) and the size of the N episodes
-    (K · N with ``every_target``) of ``budget`` looks under ``policy``
-    (:func:`check_episodes_size`); returns them canonical: float32, int32, 0 for the centres of
-    padded tables (what :func:`simulate` takes)."""
+    """The episodes checked (ValueError naming the field; their size by
+    :func:`check_episodes_size`, K · N with ``every_target``) and canonical for :func:`simulate`."""
     valid = check_mask("episodes.valid", episodes.valid, (None, None))
     n, k = valid.shape
     check_probabilities("episodes.belief", episodes.belief, (n, k), atol=PROB_ATOL,
@@ -142,10 +120,8 @@ def look_flops(num_tables: int, policy: str) -> int:
 
 def check_episodes_size(num_episodes: int, num_tables: int, budget: int, policy: str,
                         copies: int = 1, real_tables: int | None = None) -> None:
-    """``ValueError`` when ``policy`` is "optimal" with more than ``MAX_OPTIMAL_TABLES`` real
-    tables in an episode (``real_tables``, default ``num_tables``), or naming ``budget`` when
-    ``copies`` × ``num_episodes`` episodes of ``budget`` looks over ``num_tables`` tables would
-    be over the memory or work budget (:func:`flowmaps_jax.resources.check_resources`)."""
+    """ValueError for "optimal" over more than ``MAX_OPTIMAL_TABLES`` real tables, or naming
+    ``budget`` when ``copies`` × ``num_episodes`` episodes would exceed the resource bounds."""
     k = num_tables if real_tables is None else real_tables
     if policy == "optimal" and k > MAX_OPTIMAL_TABLES:
         raise ValueError(
@@ -174,13 +150,9 @@ def _update(belief, looked, p_miss, valid, looks_at):
 
 
 def bayes_update(belief, looked, p_miss: float = 0.0, valid=None, looks_at=None) -> jnp.ndarray:
-    """The belief (..., K) after a failed look at table ``looked`` (...) int.
-
-    P(table j | not found at ``looked``) ∝ b_j · (p_miss if j = looked else 1). With p_miss = 0
-    the looked-at table gets 0. If no mass is left, the result is uniform over the ``valid``
-    tables (default all) looked at least often, counting this look (``looks_at`` (..., K) int:
-    looks so far *including* this one; default: only this one).
-    """
+    """The belief (..., K) after a failed look at table ``looked`` (...) int: ∝ b_j · (p_miss
+    if j = looked else 1); with no mass left, uniform over the ``valid`` tables looked at least
+    often (``looks_at`` (..., K) int, counting this look; default only this one)."""
     p_miss = check_real("p_miss", p_miss, 0.0, 1.0, high_open=True)
     belief = check_probabilities("belief", belief, (..., None), atol=PROB_ATOL,
                                  min_value=-PROB_ATOL)
@@ -230,9 +202,8 @@ def _episode(belief, centres, valid, start, target, key, p_miss, policy_index, *
 
 @functools.partial(jax.jit, static_argnames="budget")
 def simulate(episodes: Episodes, key, p_miss, policy_index, budget: int) -> Outcome:
-    """Every episode of the batch (vmap) → Outcome (N, ...); one compiled program per
-    (N, K, budget) for all policies. policy_index: int32 index into ``POLICIES`` (traced).
-    No validation (usable inside a planner's own ``jit``): :func:`run_episodes` checks first."""
+    """Every episode → Outcome (N, ...); policy_index int32 into ``POLICIES`` (traced). No
+    validation."""
     keys = jax.random.split(key, episodes.num_episodes)
     one = functools.partial(_episode, budget=budget)
     return jax.vmap(one, in_axes=(0, 0, 0, 0, 0, 0, None, None))(
@@ -242,13 +213,9 @@ def simulate(episodes: Episodes, key, p_miss, policy_index, budget: int) -> Outc
 
 def run_episodes(episodes: Episodes, policy: str, key: jax.Array | None = None,
                  budget: int = DEFAULT_BUDGET, p_miss: float = 0.0) -> Outcome:
-    """Run N episodes with ``policy`` (:mod:`flowmaps_jax.navigation.policies`) → Outcome (N, ...).
-
-    key: typed PRNG key for the detector's misses (only matters when p_miss > 0; default
-    key(0)). budget: looks per episode (≥ 1). p_miss: in [0, 1). Raises ``ValueError`` for bad
-    episodes, an unknown policy, p_miss outside [0, 1), a budget < 1, or "optimal" with more than
-    7 tables. Compiled once per (N, K, budget), shared by all policies.
-    """
+    """Run N episodes with ``policy`` → Outcome (N, ...). key: typed PRNG key for the
+    detector's misses (default key(0)); budget ≥ 1 looks; p_miss in [0, 1). ValueError on bad
+    input."""
     check_instance("episodes", episodes, Episodes)
     policy = check_choice("policy", policy, POLICIES)
     if key is not None:
@@ -266,10 +233,8 @@ def policy_index(policy: str) -> jnp.ndarray:
 
 
 def simulate_every_target(episodes: Episodes, policy_index, budget: int) -> Outcome:
-    """Every episode once per possible hiding table t, with a perfect detector (the K · N
-    episodes in one batch; ``episodes.target`` is ignored) → Outcome with leading axes (K, N).
-    No validation, as :func:`simulate` (canonical episodes, as :func:`check_episodes` returns
-    them): :func:`expected_outcomes` checks first."""
+    """Every episode once per hiding table, perfect detector → Outcome (K, N, ...). No
+    validation."""
     k, n = episodes.num_tables, episodes.num_episodes
     tiled = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (k, *a.shape)).reshape(
         k * n, *a.shape[1:]), episodes)
@@ -280,14 +245,8 @@ def simulate_every_target(episodes: Episodes, policy_index, budget: int) -> Outc
 
 def expected_outcomes(episodes: Episodes, truth, policy: str,
                       budget: int = DEFAULT_BUDGET) -> tuple[Outcome, jnp.ndarray]:
-    """Exact expectations over where the object hides, with a perfect detector.
-
-    Runs every episode once per possible hiding table t (the K · N episodes in one batch;
-    ``episodes.target`` is ignored) → (Outcome with leading axes (K, N, ...), weights (K, N) =
-    ``truth`` transposed). truth: (N, K) the distribution of the object's table (e.g. the exact
-    posterior). ``search.scores.expected_scores`` averages any score with these weights;
-    :func:`at_targets` picks each episode's own target (its ``run_episodes`` outcome).
-    """
+    """Exact expectations over where the object hides (perfect detector): (Outcome (K, N, ...)
+    of every hiding table, weights (K, N) = ``truth`` (N, K) transposed)."""
     check_instance("episodes", episodes, Episodes)
     policy = check_choice("policy", policy, POLICIES)
     budget = check_int("budget", budget)
@@ -300,9 +259,8 @@ def expected_outcomes(episodes: Episodes, truth, policy: str,
 
 
 def at_targets(every: Outcome, target) -> Outcome:
-    """From an every-target Outcome (K, N, ...) (:func:`expected_outcomes`), episode n's outcome
-    with the object on ``target[n]`` → Outcome (N, ...): with a perfect detector, exactly what
-    :func:`run_episodes` returns for those targets."""
+    """Episode n's outcome with the object on ``target[n]`` from an every-target Outcome
+    (K, N, ...) → Outcome (N, ...)."""
     index = jnp.asarray(target, jnp.int32)
     n = jnp.arange(index.shape[0])
     return jax.tree_util.tree_map(lambda a: a[index, n], every)

@@ -1,14 +1,7 @@
-"""The orbax checkpoint directory of a run: its layout, finding, restoring and verifying steps,
-and setting later steps aside.
-
-    <dir>/last/<step>/{state, config, meta}   the ``keep_last`` most recent saves
-    <dir>/best/<step>/{state, config, meta}   the single save with the lowest validation loss
-
-(``<dir>`` by default ``<run_dir>/checkpoints``; ``meta``: :mod:`.integrity`; the writer:
-:class:`~.checkpoint_store.CheckpointStore`). A missing, partial, altered or non-finite step is
-a ``ValueError`` naming it and the newest intact step; a step without ``meta`` is checked for
-finiteness only.
-"""
+"""The orbax checkpoint directory of a run (``<dir>/last/<step>`` the ``keep_last`` recent
+saves, ``<dir>/best/<step>`` the lowest validation loss; each {state, config, meta}): finding,
+restoring, verifying and setting aside steps. A damaged step is a ValueError naming it and the
+newest intact step (docs/guarantees.md)."""
 
 from __future__ import annotations
 
@@ -36,11 +29,9 @@ LATEST = "latest"
 BEST = "best"
 WHICH = (BEST, LATEST)
 SUBDIRS = {LATEST: "last", BEST: "best"}
-"""On disk the recent saves live in last/ (k of them), the best one in best/."""
 ITEMS = ("state", "config", "meta")
-# Files orbax (OCDBT format) always writes for a pytree item; checked before restoring. Each
-# process that wrote part of the state (array_metadatas/process_<i>) has its data folder
-# ocdbt.process_<i>/ holding d/ (its data files); the top-level d/ holds the index.
+# Files orbax (OCDBT) always writes for a pytree item; each writing process also has
+# ocdbt.process_<i>/d/.
 _STATE_FILES = ("_METADATA", "manifest.ocdbt")
 _STEP_METADATA = "_CHECKPOINT_METADATA"  # orbax's per-step file; lists the saved items
 
@@ -49,8 +40,8 @@ logging.getLogger("absl").setLevel(logging.WARNING)
 
 
 class Restored(NamedTuple):
-    """A verified checkpoint: ``state``, ``config`` (dict), ``meta`` (dict, None for steps saved
-    before checksums existed), ``step`` and the step directory ``path``."""
+    """A verified checkpoint: ``state``, ``config`` (dict), ``meta`` (dict or None), ``step`` and
+    the step directory ``path``."""
 
     state: Any
     config: dict
@@ -88,9 +79,8 @@ def _reader(sub: pathlib.Path):
 
 
 def resolve_checkpoint_dir(directory: str | pathlib.Path) -> pathlib.Path:
-    """The checkpoint root for ``directory``: the root itself or a run directory holding
-    ``checkpoints/``. Raises ValueError if neither exists, or if anything in the root is a
-    symbolic link (a step is read, set aside or cleaned up only where the run wrote it)."""
+    """The checkpoint root for ``directory`` (the root or a run directory holding
+    ``checkpoints/``); ValueError if neither, or if anything in it is a symbolic link."""
     path = pathlib.Path(check_dir("checkpoint_dir", directory)).absolute()
     last, best = SUBDIRS[LATEST], SUBDIRS[BEST]
     if (path / "checkpoints").is_dir() and not (path / last).is_dir():
@@ -110,8 +100,7 @@ def _steps_in(sub: pathlib.Path) -> list[int]:
 
 
 def saved_copies(root: pathlib.Path) -> list[tuple[int, pathlib.Path]]:
-    """Every saved (step, subdirectory) under the checkpoint root ``root``, newest step first,
-    last/ before best/."""
+    """Every saved (step, subdirectory) under ``root``, newest first, last/ before best/."""
     pairs = [(step, root / SUBDIRS[which]) for which in (LATEST, BEST)
              for step in _steps_in(root / SUBDIRS[which])]
     return sorted(pairs, key=lambda pair: -pair[0])
@@ -132,9 +121,8 @@ def _step_for(root: pathlib.Path, which: str) -> tuple[pathlib.Path, int]:
 
 
 def saved_steps(directory: str | pathlib.Path, which: str | None = None) -> list[int]:
-    """The steps saved under ``directory`` (a checkpoint root or a run directory), ascending:
-    every step (in last/ or best/) by default; with ``which`` ("latest" or "best") the one step
-    a restore of that checkpoint reads, or [] if there is none."""
+    """The steps saved under ``directory``, ascending; with ``which`` the one step a restore of
+    it reads ([] if none)."""
     if which is not None:
         check_choice("which", which, WHICH)
     root = resolve_checkpoint_dir(directory)
@@ -151,8 +139,7 @@ def saved_steps(directory: str | pathlib.Path, which: str | None = None) -> list
 
 
 def _saved_items(step_dir: pathlib.Path) -> list[str]:
-    """The items orbax recorded for this step (``meta`` is absent from steps saved before
-    checksums existed)."""
+    """The items orbax recorded for this step."""
     try:
         raw = (step_dir / _STEP_METADATA).read_bytes()
         handlers = parse_json(_STEP_METADATA, raw)["item_handlers"]
@@ -163,9 +150,7 @@ def _saved_items(step_dir: pathlib.Path) -> list[str]:
 
 
 def _missing_state_files(state_dir: pathlib.Path) -> list[str]:
-    """What a saved state lacks of the files and folders orbax writes (``state/...`` names):
-    checked before tensorstore reads it, which on a missing data file prints thousands of
-    lines."""
+    """The ``state/...`` files and folders orbax writes that a saved state lacks."""
     missing = [f"state/{name}" for name in _STATE_FILES if not (state_dir / name).is_file()]
     processes = state_dir / "array_metadatas"
     names = sorted(p.name for p in processes.iterdir()) if processes.is_dir() else []
@@ -182,12 +167,9 @@ def _missing_state_files(state_dir: pathlib.Path) -> list[str]:
 
 @contextlib.contextmanager
 def _silenced():
-    """Nothing orbax and tensorstore print reaches the terminal while a step is read: a damaged
-    step makes them print thousands of lines (tracebacks from their threads, "Exception ignored
-    ... Event loop is closed", the TensorStore spec), which :class:`Damaged` sums up in one.
-    The process's stderr (file descriptor 2) goes to a temporary file meanwhile and the
-    unraisable-exception hook is a no-op; what was printed is shown again after a read that
-    succeeded, and dropped after one that failed."""
+    """Hold back what orbax and tensorstore print (fd 2 and unraisable exceptions) while a step
+    is read: shown again after a read that succeeded, dropped after one that failed (a
+    :class:`Damaged` sums it up)."""
     sys.stderr.flush()
     saved_fd, saved_hook, text = os.dup(2), sys.unraisablehook, io.StringIO()
     failed = True
@@ -212,9 +194,7 @@ def _silenced():
 
 
 def _saved_structure(state_dir: pathlib.Path):
-    """The saved state's structure, shapes and dtypes, placed on this process's first device:
-    the restore target when the caller gives none (a checkpoint saved on N devices restores on
-    one)."""
+    """The saved state's structure, shapes and dtypes on this process's first device."""
     metadata = ocp.StandardCheckpointHandler().metadata(state_dir)
     device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     return jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=device),
@@ -261,8 +241,7 @@ def _read_step(sub: pathlib.Path, step: int, target_state=None, *,
 
 
 def _first_line(err: Exception) -> str:
-    """The first line of an orbax or tensorstore error, short (not the TensorStore spec it
-    embeds)."""
+    """The first line of an orbax or tensorstore error, short."""
     text = str(err).strip().splitlines()
     line = text[0] if text else ""
     line = line.split(" See full TensorStore details")[0]
@@ -276,8 +255,7 @@ def _run_dir_of(root: pathlib.Path) -> pathlib.Path | None:
 
 
 def _intact_hint(root: pathlib.Path, target_state=None, skip=()) -> str:
-    """A sentence naming the newest step with an intact copy (other than the copies ``skip``,
-    as (step, subdirectory) pairs) and how to load it or resume from it."""
+    """A sentence naming the newest intact step (not in ``skip``) and how to load or resume it."""
     for step, sub in saved_copies(root):
         if (step, sub) in skip:
             continue
@@ -308,8 +286,7 @@ def _restore_copies(root: pathlib.Path, copies: list[tuple[int, pathlib.Path]], 
 
 
 def _select(root: pathlib.Path, which: str, step: int | None) -> list[tuple[int, pathlib.Path]]:
-    """The saved copies that ``which``/``step`` designate (the same step may sit in last/ and
-    best/)."""
+    """The saved copies (in last/ and best/) that ``which``/``step`` designate."""
     if step is None:
         sub, found = _step_for(root, which)
         return [(found, sub)]
@@ -323,13 +300,11 @@ def _select(root: pathlib.Path, which: str, step: int | None) -> list[tuple[int,
 def restore(directory: str | pathlib.Path, target_state=None, *, which: str = LATEST,
             step: int | None = None, with_state: bool = True) -> Restored:
     """The verified :class:`Restored` checkpoint ``which`` ("latest" or "best") under
-    ``directory``, or the saved ``step`` (from last/ or best/) when given.
+    ``directory``, or the saved ``step``.
 
-    target_state: a TrainState (or its ``jax.eval_shape``) giving the structure to restore into;
-    None restores the saved structure as nested dicts of arrays on this process's first device.
-    with_state=False reads and checks the config alone (``state`` is None). Raises
-    ``ValueError`` for a missing, damaged or non-finite checkpoint, naming the newest intact
-    step when there is one.
+    target_state: the structure to restore into (a TrainState or its ``jax.eval_shape``; None:
+    nested dicts on this process's first device). with_state=False reads the config alone.
+    ValueError for a missing, damaged or non-finite checkpoint.
     """
     check_choice("which", which, WHICH)
     step = None if step is None else check_int("step", step, 0)
@@ -358,8 +333,8 @@ def _loadable(root: pathlib.Path, which: str, step: int | None) -> str:
 
 
 def stored_config(directory: str | pathlib.Path, which: str = BEST) -> dict:
-    """The run config stored with the checkpoint :func:`load_weights` would load (a dict),
-    read without its state: what a command needs to know before loading."""
+    """The run config (dict) of the checkpoint :func:`load_weights` would load, without its
+    state."""
     check_choice("which", which, WHICH)
     root = resolve_checkpoint_dir(directory)
     restored = _restore_copies(root, _select(root, _loadable(root, which, None), None), None,
@@ -368,17 +343,15 @@ def stored_config(directory: str | pathlib.Path, which: str = BEST) -> dict:
 
 
 def stored_family(directory: str | pathlib.Path, which: str = BEST) -> str:
-    """The model family of the checkpoint :func:`load_weights` would load (its stored config's
-    ``"model_kind"``), read without its state: what a command needs to know before loading."""
+    """The model family (``"model_kind"``) of the checkpoint :func:`load_weights` would load."""
     return stored_config(directory, which).get("model_kind", DEFAULT_FAMILY)
 
 
 def load_weights(directory: str | pathlib.Path, which: str = BEST, use_ema: bool = True,
                  step: int | None = None) -> Weights:
-    """The weights of the ``which`` checkpoint under ``directory`` (or of the saved ``step``),
-    checked against the model their config describes. ``which="best"`` falls back to the
-    latest save when no validation has run yet; ``use_ema``: the EMA weights (default) or the
-    raw training weights. ``ValueError`` for a missing, damaged or non-finite checkpoint."""
+    """The weights (EMA with ``use_ema``) of the ``which`` checkpoint (or the saved ``step``),
+    checked against their config's model; "best" falls back to the latest before any
+    validation. ValueError for a missing, damaged or non-finite checkpoint."""
     check_choice("which", which, WHICH)
     use_ema = check_flag("use_ema", use_ema)
     step = None if step is None else check_int("step", step, 0)
@@ -395,9 +368,8 @@ def load_weights(directory: str | pathlib.Path, which: str = BEST, use_ema: bool
 
 def set_aside(directory: str | pathlib.Path, after_step: int) -> tuple[pathlib.Path | None,
                                                                       list[int]]:
-    """Move every saved step later than ``after_step`` (in last/ and best/) into
-    ``<root>/set-aside-<timestamp>/``, so that a run resumed from ``after_step`` writes its own
-    later steps. Returns (that folder or None if nothing moved, the moved steps)."""
+    """Move every saved step later than ``after_step`` into ``<root>/set-aside-<timestamp>/``.
+    Returns (that folder or None, the moved steps)."""
     root = resolve_checkpoint_dir(directory)
     later = [(step, sub) for step, sub in saved_copies(root) if step > after_step]
     if not later:

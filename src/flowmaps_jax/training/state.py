@@ -1,15 +1,6 @@
-"""Training state and the jitted update: optimiser, EMA, train step, validation loss.
-
-Pure functions of explicit pytrees. :class:`TrainState`: step, params, EMA params, optimiser
-state, ``rng`` (dropout, flow noise) and ``data_key`` (batches); step i's batch and noise come
-from ``fold_in(data_key, i)`` and ``fold_in(rng, i)``, so a restored state continues exactly.
-:func:`make_train_step` / :func:`make_fused_train_step` (the batch drawn inside the same
-compiled function) donate the state; :func:`make_eval_loss` scores EMA params on fixed batches
-with a fixed key and no dropout. Given a ``mesh``, the state is replicated and each batch split
-along its scene axis; the batch is drawn whole from the same key, so the numbers do not depend
-on the device count (up to summation order). The family is hidden behind an
-:class:`~flowmaps_jax.training.objectives.Objective` (``init`` + ``loss``).
-"""
+"""Training state and the jitted update: optimiser, EMA, train step, validation loss. Step i's
+batch and noise come from ``fold_in(data_key, i)`` and ``fold_in(rng, i)``, so a restored state
+continues exactly; with a ``mesh`` the state is replicated and each batch split by scenes."""
 
 from __future__ import annotations
 
@@ -38,15 +29,8 @@ Params = Any
 
 @struct.dataclass
 class TrainState:
-    """Everything a run needs to continue exactly (all arrays; a pytree).
-
-    step: () int32, optimiser steps taken so far.
-    params / ema_params: model parameters and their exponential moving average.
-    opt_state: optax state (AdamW moments, schedule count, ...).
-    rng: (2,) uint32 PRNG key for dropout and flow noise; step i uses fold_in(rng, i).
-    data_key: (2,) uint32 PRNG key for batches; step i draws batch fold_in(data_key, i).
-    The keys are raw key data (uint32) so checkpoints store them as plain arrays.
-    """
+    """Everything a run needs to continue exactly: step () int32, params / ema_params,
+    opt_state (optax), rng and data_key (2,) uint32 raw PRNG keys (noise and batches)."""
 
     step: jax.Array
     params: Params
@@ -89,11 +73,8 @@ def ema_update(ema_params: Params, params: Params, decay: float) -> Params:
 def init_state(cfg: TrainConfig, key: jax.Array | None = None,
                objective: Objective | None = None, mesh: Mesh | None = None,
                start_params: Params | None = None) -> TrainState:
-    """Fresh state at step 0: params from ``key`` (default ``PRNGKey(cfg.seed)``), EMA = params.
-
-    start_params: weights to start from (``cfg.init_from``), laid over the fresh params by
-    :func:`overlay_params`. The arrays are committed to the first device, or replicated over
-    ``mesh``."""
+    """Fresh state at step 0 from ``key`` (default ``PRNGKey(cfg.seed)``), EMA = params, with
+    ``start_params`` laid over (:func:`overlay_params`); on the first device or over ``mesh``."""
     check_instance("cfg", cfg, RUN_CONFIGS)
     objective = objective or objective_for(cfg)
     if key is None:
@@ -106,21 +87,16 @@ def init_state(cfg: TrainConfig, key: jax.Array | None = None,
     state = TrainState(step=jnp.zeros((), jnp.int32), params=params,
                        ema_params=jax.tree.map(jnp.copy, params), opt_state=opt_state,
                        rng=rng, data_key=data_key)
-    # Commit the arrays to the device, as a restored checkpoint's are: jit specialises on
-    # committed-ness, so a fresh and a resumed run then share one compiled train step.
+    # Committed, as a restored state is: fresh and resumed runs share one compiled step.
     if mesh is None:
         return jax.device_put(state, state_sharding(None))
     return distributed.replicate(state, mesh)
 
 
 def overlay_params(fresh: Params, start: Params, where: str = "init_from") -> Params:
-    """``fresh`` with every leaf that ``start`` holds replaced by ``start``'s (a warm start).
-
-    Leaves are matched by their path in the tree. ``start`` may lack leaves of ``fresh`` (they
-    keep their fresh value: e.g. the age embedding a history model adds to a one-map model);
-    every leaf it holds must be one of ``fresh`` with the same shape, else ValueError naming
-    ``where`` (the weights belong to another architecture). Traceable: ``jax.eval_shape`` of it
-    is the check alone (``training.loop`` runs it before anything is written)."""
+    """``fresh`` with every leaf ``start`` holds (matched by path) replaced by ``start``'s;
+    leaves ``start`` lacks keep their fresh value. A leaf not in ``fresh`` or of another shape is
+    a ValueError naming ``where``. Traceable (``jax.eval_shape`` of it is the check alone)."""
     fresh_shapes = {path: tuple(x.shape)
                     for path, x in jax.tree_util.tree_flatten_with_path(fresh)[0]}
     start_leaves = jax.tree_util.tree_flatten_with_path(start)[0]
@@ -146,10 +122,7 @@ def state_sharding(mesh: Mesh | None) -> jax.sharding.Sharding:
 
 def abstract_state(cfg: TrainConfig, objective: Objective | None = None,
                    mesh: Mesh | None = None) -> TrainState:
-    """Shapes, dtypes and shardings of :func:`init_state` without computing anything: the
-    restore target of a checkpoint. The sharding is that of this process (``mesh`` or the first
-    device), not the one the checkpoint was saved with, so a state saved on N devices restores
-    on any other number."""
+    """Shapes, dtypes and this process's shardings of :func:`init_state`: a restore target."""
     shapes = jax.eval_shape(lambda: init_state(cfg, objective=objective))
     sharding = state_sharding(mesh)
     return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding),
@@ -192,12 +165,8 @@ def _update_fn(cfg: TrainConfig, objective: Objective):
 
 def make_train_step(cfg: TrainConfig, objective: Objective | None = None,
                     mesh: Mesh | None = None):
-    """Jitted ``(state, batch, key) -> (state, metrics)``; ``state`` is donated.
-
-    metrics: dict of scalars ``loss``, ``grad_norm``, ``lr`` (of the step taken) plus the
-    objective's diagnostics. With ``mesh``, ``batch`` is a global array split over the mesh by
-    scenes (multi-host runs assemble it from each host's share) and the state is replicated.
-    """
+    """Jitted ``(state, batch, key) -> (state, metrics)``, ``state`` donated; metrics: scalars
+    ``loss``, ``grad_norm``, ``lr`` and the objective's diagnostics."""
     update = _update_fn(cfg, objective or objective_for(cfg))
     if mesh is None:
         return jax.jit(update, donate_argnums=0)
@@ -208,14 +177,8 @@ def make_train_step(cfg: TrainConfig, objective: Objective | None = None,
 
 def make_fused_train_step(cfg: TrainConfig, objective: Objective | None = None,
                           batch_fn: BatchFn | None = None, mesh: Mesh | None = None):
-    """Jitted ``(state, scenes) -> (state, metrics)``: draws the step's batch and takes the step.
-
-    The batch of step i is ``batch_fn(fold_in(data_key, i), scenes)`` and the noise key
-    ``fold_in(rng, i)``, all inside one compiled function (no host round trip); ``state`` is
-    donated. ``scenes`` is an argument (not a constant) so it is not baked into the program.
-    With ``mesh``, state and scenes are replicated and the drawn batch is split over the
-    devices by scenes (one host; multi-host runs use :func:`make_train_step`).
-    """
+    """Jitted ``(state, scenes) -> (state, metrics)``: draws step i's batch
+    ``batch_fn(fold_in(data_key, i), scenes)`` and takes the step in one program (one host)."""
     update = _update_fn(cfg, objective or objective_for(cfg))
     batch_fn = batch_fn or world(cfg.world).batch_fn(cfg)
 
@@ -238,14 +201,9 @@ def make_fused_train_step(cfg: TrainConfig, objective: Objective | None = None,
 
 def make_eval_loss(cfg: TrainConfig, objective: Objective | None = None,
                    mesh: Mesh | None = None):
-    """Jitted ``(params, val_batches) -> mean loss`` over stacked batches (leading axis): the
-    objective's ``selection`` diagnostic where it has one (the mixture head's table
-    cross-entropy, which tracks the posterior), else its loss. The ``best`` checkpoint is the
-    step where this is lowest.
-
-    Deterministic: no dropout, and the flow noise of batch j is always ``fold_in(eval_key, j)``,
-    so calls at different training steps differ only through ``params`` (pass the EMA params).
-    With ``mesh``, params are replicated and each batch is split over the devices by scenes.
+    """Jitted ``(params, val_batches) -> mean loss`` over stacked batches: the objective's
+    ``selection`` diagnostic where it has one, else its loss (the ``best`` checkpoint's
+    criterion). Deterministic: no dropout, batch j's noise ``fold_in(eval_key, j)``.
     """
     objective = objective or objective_for(cfg)
     eval_key = jax.random.PRNGKey(cfg.seed + _EVAL_NOISE_SALT)
