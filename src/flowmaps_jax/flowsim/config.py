@@ -1,10 +1,6 @@
 """FlowSim configuration: the category table (data, not code) and the simulator's numbers.
-
-``FlowSimConfig`` is a frozen, hashable dataclass so it can be a static argument of ``jax.jit``.
-Every field is checked when the config is built; a bad value raises ``ValueError`` naming the field.
-Adding an object category (or a furniture kind) is a change of data only: pass longer
-``categories`` / ``furniture_kinds`` tuples.
-"""
+``FlowSimConfig`` is frozen and hashable (a static ``jax.jit`` argument); a bad field raises
+``ValueError`` naming it."""
 
 from __future__ import annotations
 
@@ -44,9 +40,7 @@ DYNAMICS = ("markov", "schedule_jitter")
 reference code's variant, slot = (t + offset) mod K with an independent offset in {-1, 0, +1}."""
 
 HABITS = ("routine", "preferences", "dynamic")
-"""Habit families an object may follow (see :mod:`flowmaps_jax.flowsim.habits`): ``routine``
-(the paper's cyclic chain), ``preferences`` (returns to one or two favourite places),
-``dynamic`` (moves almost every step, to nearby places more often)."""
+"""Habit families an object may follow (:mod:`flowmaps_jax.flowsim.habits`)."""
 
 PAPER_HABITS = (("routine", 1.0),)
 """The paper's world: every object follows the routine."""
@@ -63,12 +57,8 @@ class FurnitureKind:
 
 @dataclasses.dataclass(frozen=True)
 class ObjectCategory:
-    """One object category: exactly one object of it lives in every environment.
-
-    furniture_kind: name of the ``FurnitureKind`` the object always sits on.
-    ordering: one of ``ORDERINGS``, the rule ordering that kind's tables into a cyclic route.
-    shape: one of ``SHAPES``, only used for drawing.
-    """
+    """One object category (one object of it per environment), sitting on ``furniture_kind``
+    tables visited by ``ordering`` (``ORDERINGS``); ``shape`` (``SHAPES``) for drawing."""
 
     name: str
     descriptor: int
@@ -117,9 +107,6 @@ class FlowSimConfig:
     dynamic_stay, dynamic_length: the dynamic habit stays with this probability, else moves to
         another place with weight exp(−distance / dynamic_length), distance in map sides.
     furniture_kinds, categories: the category table.
-
-    Numpy numbers are stored as Python ``int``/``float``. Configs that cannot produce valid
-    scenes are refused (``ValueError`` naming the field).
     """
 
     map_size: int = 256
@@ -159,8 +146,7 @@ class FlowSimConfig:
         if self.has_habits and self.dynamics != "markov":
             raise ValueError(f"habits other than the routine need dynamics='markov'; got "
                              f"dynamics={self.dynamics!r} with habits={self.habits!r}")
-        # Refuse configs that cannot produce valid scenes (no field's rule can say these); tables
-        # under one pixel (lo = 0) are smaller than any object (min_object_px >= 1), refused below.
+        # Configs that cannot produce valid scenes (tables of 0 px are refused as too small).
         lo, _ = self.table_side_range
         if self.num_furniture * lo * lo > self.map_size ** 2:
             raise ValueError(
@@ -191,14 +177,9 @@ class FlowSimConfig:
                              f"{self.num_objects} objects)")
 
     def _largest_object(self, map_size: int) -> tuple[int, int]:
-        """(largest object side, the start-table side giving it) in px on a ``map_size`` map.
-
-        An object is centred on its table, and a table of the smallest side can touch the map's
-        edge, so objects stay on the map iff none is larger than the smallest table. An
-        object's side is fixed by its start table (as ``layout.object_sizes`` computes it, in
-        float32), which can be the largest table unless no kind ever has two tables (then the
-        object never moves, and only ``min_object_px`` can exceed its table).
-        """
+        """(largest object side, the start-table side giving it) in px on a ``map_size`` map, as
+        ``layout.object_sizes`` computes it: objects stay on the map iff it is at most the
+        smallest table."""
         movable = (self.min_per_kind > 1
                    or self.num_furniture > self.min_per_kind * len(self.furniture_kinds))
         start = math.floor((self.table_max_frac if movable else self.table_min_frac) * map_size)
@@ -219,8 +200,7 @@ class FlowSimConfig:
 
     @property
     def has_habits(self) -> bool:
-        """Whether any object may follow a habit other than the routine (then ``generate``
-        draws habits; otherwise it runs the paper's rollout, bit for bit)."""
+        """Whether any object may follow a habit other than the routine."""
         return self.habit_probs != (1.0, 0.0, 0.0)
 
     @property
@@ -281,7 +261,6 @@ class FlowSimConfig:
 _FRACTION = Real(0.0, 1.0, low_open=True)
 _ENTRY_RULES = {"name": Text(strip=False), "descriptor": Int(0, INT32_MAX),
                 "colour": Text(strip=False)}
-"""What each entry of the category tables may hold (names and ids unique over the tables)."""
 _CATEGORY_RULES = {**_ENTRY_RULES, "ordering": Choice(ORDERINGS), "shape": Choice(SHAPES)}
 _RULES = {
     "map_size": Int(2, MAX_MAP_SIZE, why="positions are drawn from 16 random bits"),
@@ -297,9 +276,7 @@ _RULES = {
     "dynamic_length": Real(1e-6, 1.0),  # a float32 normal number: its kernel cannot underflow
     "dynamic_stay": Real(0.0, 1.0, high_open=True),  # < 1: a dynamic object moves
 }
-"""What each field of :class:`FlowSimConfig` may hold (numbers are stored as Python numbers, so
-the config stays JSON-able and hashes like one built from Python numbers); the habits and the
-category tables follow in ``__post_init__``."""
+"""What each field of :class:`FlowSimConfig` may hold (the tables: ``__post_init__``)."""
 
 DEFAULT_CONFIG = FlowSimConfig()
 """The paper's configuration (used as the default argument everywhere)."""
@@ -307,11 +284,8 @@ DEFAULT_CONFIG = FlowSimConfig()
 
 @dataclasses.dataclass(frozen=True)
 class SimShape:
-    """The part of a config that fixes array shapes and control flow (a static jit argument).
-
-    Configs differing only in numbers (map size, fractions, probabilities, descriptor ids) share
-    one ``SimShape`` and therefore one compiled simulator.
-    """
+    """The part of a config that fixes array shapes and control flow (a static jit argument):
+    configs differing only in numbers share one compiled simulator."""
 
     num_furniture: int
     num_kinds: int

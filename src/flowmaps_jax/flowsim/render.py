@@ -1,11 +1,6 @@
 """Matplotlib drawings of FlowSim scenes: one map, a timeline, visiting orders, posteriors.
-
-Every function returns a :class:`matplotlib.figure.Figure` (or draws into a given ``ax``); no
-``plt.show()``, no global pyplot state (Agg works). Pixel boxes ``(y0, x0, y1, x1)`` as in
-:class:`~flowmaps_jax.flowsim.generate.Scenes`, y down (the axis is inverted); colours, shapes
-and names come from the config. Artists carry a ``gid`` (``"furniture"``, ``"object"``,
-``"ghost"``, ``"move"``, ``"order"``, ``"posterior"``, ``"overlay"``).
-"""
+Every function returns a Figure (or draws into ``ax``), no global pyplot state; pixel boxes
+(y0, x0, y1, x1), y down; artists carry a ``gid`` (``"furniture"``, ``"object"``, ...)."""
 
 from __future__ import annotations
 
@@ -48,9 +43,7 @@ _PANEL_SIZE = 4.0  # inches per map panel
 # --------------------------------------------------------------------------------------------
 
 def _check_scene_env(scenes: Scenes, env: int, config: FlowSimConfig) -> int:
-    """Every figure's ``config``, ``scenes`` (shapes and dtypes; the scenes' own sizes, not the
-    config's, bound the indices: a descriptor the config lacks is named when it is looked up)
-    and ``env`` (an environment of the scenes), as an int."""
+    """Every figure's ``config``, ``scenes`` (shapes and dtypes) and ``env``, as an int."""
     check_instance("config", config, FlowSimConfig)
     validate_scenes(scenes, values=False)
     return check_int("env", env, 0, scenes.num_envs - 1)
@@ -243,13 +236,9 @@ def _draw_order_arrows(ax: Axes, view: _EnvView, obj: int, numbers: bool = True,
 def draw_scene(scenes: Scenes, env: int, tau: int, config: FlowSimConfig, ax: Axes | None = None,
                show_orders: bool = False, highlight: int | None = None, legend: bool = True,
                title: str | None = None) -> Figure:
-    """Draw environment ``env`` of ``scenes`` at timestep ``tau``; return the figure.
-
-    Furniture rectangles are coloured by kind, objects drawn with their category shape at their
-    box at ``tau``. ``show_orders`` overlays each category's visiting order (cyclic arrows in
-    the category colour); ``highlight`` (object index in [0, M)) rings one object. With
-    ``ax=None`` a new figure is made; otherwise the drawing goes into ``ax`` (e.g. a panel of a
-    larger figure) and ``ax.figure`` is returned. ``legend`` adds a furniture/object legend.
+    """Draw environment ``env`` at timestep ``tau`` (into ``ax``, or a new figure); return the
+    figure. ``show_orders``: each category's visiting order as arrows; ``highlight``: ring
+    object index in [0, M); ``legend``: a furniture/object legend.
     """
     env = _check_scene_env(scenes, env, config)
     tau = check_int("tau", tau, 0, scenes.slot.shape[1] - 1)
@@ -285,12 +274,8 @@ def _draw_scene(view: _EnvView, env: int, tau: int, ax: Axes | None, show_orders
 
 
 def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSimConfig) -> Figure:
-    """A row of panels showing environment ``env`` at the strictly increasing timesteps ``taus``.
-
-    From the second panel on, each object's box at the previous panel's time is drawn as a dashed
-    ghost with an arrow to where it is now, and the panel's x-label lists how many places along its
-    visiting order each object advanced (modulo the number of places K). Paper Fig. 1.
-    """
+    """Panels of environment ``env`` at strictly increasing ``taus``, each object's previous box
+    a dashed ghost with an arrow to where it is now (paper Fig. 1)."""
     env = _check_scene_env(scenes, env, config)
     taus = check_int_array("taus", taus, 0, scenes.slot.shape[1] - 1, shape=(None,))
     taus = [int(t) for t in np.asarray(taus).tolist()]
@@ -331,13 +316,7 @@ def draw_timeline(scenes: Scenes, env: int, taus: Sequence[int], config: FlowSim
 
 
 def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure:
-    """One panel per object category: its visiting order as numbered, cyclic arrows.
-
-    Numbers 1..K mark the order of the category's furniture pieces (the object starts at 1); the
-    dashed arrow closes the cycle from the last piece back to the first. Other furniture is faded.
-    The map centre (the pivot of the angular orderings) is marked with a cross; for angular
-    orderings dotted rays join it to each table, and a short grey ray marks angle 0 (up).
-    """
+    """One panel per object category: its visiting order as numbered (1..K), cyclic arrows."""
     env = _check_scene_env(scenes, env, config)
     view = _EnvView(scenes, env, config)
     m_count = view.num_objects
@@ -373,13 +352,8 @@ def draw_visit_orders(scenes: Scenes, env: int, config: FlowSimConfig) -> Figure
 
 def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, config: FlowSimConfig,
                    ax: Axes | None = None) -> Figure:
-    """Shade the places object ``obj`` could occupy by probability, over the scene at ``tau``.
-
-    ``probs`` is a 1-D array over positions along the object's visiting order, of length
-    ``num_slots`` or padded to F with zeros (as returned by ``exact_posterior``); it need not sum
-    to 1 (e.g. empirical slot frequencies). Each place is the object's box centred on that piece of
-    furniture, filled with an opacity proportional to its probability and labelled with it.
-    """
+    """Shade the places of object ``obj`` by ``probs`` (num_slots,) or zero-padded (F,), not
+    necessarily normalised, over the scene at ``tau``."""
     env = _check_scene_env(scenes, env, config)
     obj = check_int("obj", obj, 0, scenes.object_kind.shape[1] - 1)
     tau = check_int("tau", tau, 0, scenes.slot.shape[1] - 1)
@@ -427,12 +401,8 @@ def draw_posterior(scenes: Scenes, env: int, obj: int, tau: int, probs: Any, con
 
 def overlay_boxes(ax: Axes, boxes_norm: Any, config: FlowSimConfig, label: str | None = None,
                   **style: Any) -> PatchCollection:
-    """Draw normalised (y, x, h, w) boxes (e.g. model samples) over a map drawn in ``ax``.
-
-    ``boxes_norm``: (N, 4) or (4,), coordinates in [0, 1] of the map (pixels / (map_size − 1));
-    values outside are drawn as they are (clipped by the axes). ``style`` overrides the
-    PatchCollection defaults (unfilled black outlines). ``label``: an entry for the boxes in the
-    map's legend (added beside the map if it has none). Returns the added collection.
+    """Draw normalised (y, x, h, w) boxes ``boxes_norm`` (N, 4) or (4,) over the map in ``ax``
+    (``style`` for the PatchCollection, ``label`` a legend entry); returns the collection.
     """
     check_instance("ax", ax, Axes)
     boxes_norm = check_real_array("boxes_norm", boxes_norm)

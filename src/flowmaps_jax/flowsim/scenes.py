@@ -1,12 +1,6 @@
-"""Model-facing views of FlowSim scenes: normalised boxes, tokens, queries, batches, splits, I/O.
-
-Boxes ``(y, x, h, w)`` divided by ``map_size - 1``; ``scene_tokens``: F furniture, then M
-object tokens, padded to ``config.max_tokens`` (:mod:`flowmaps_jax.tokens`); queries as the
-paper draws them (:func:`draw_query_times`). Splits: ``train_split`` (2500 environments, seed
-``TRAIN_SEED``) and ``validation_split`` (200, ``VALIDATION_SEED``), each folding its own tag
-into the key, so they are disjoint streams even for one seed. ``save_scenes`` /
-``load_scenes``: one ``.npz`` with ``FORMAT_VERSION`` and the config as JSON.
-"""
+"""Model-facing views of FlowSim scenes: normalised boxes (y, x, h, w) / (map_size − 1), tokens,
+queries, batches, the train and validation splits (disjoint streams even for one seed) and
+``.npz`` I/O."""
 
 from __future__ import annotations
 
@@ -56,10 +50,7 @@ def normalise_boxes(boxes_px, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.nda
 
 
 def denormalise_boxes(boxes, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.ndarray:
-    """Inverse of ``normalise_boxes``: (..., 4) (y, x, h, w) → pixels (y0, x0, y1, x1).
-
-    NaN or inf pass through (model samples are converted as they are; check them separately).
-    """
+    """Inverse of ``normalise_boxes``: (..., 4) → pixels (y0, x0, y1, x1); NaN or inf pass."""
     boxes = check_real_array("boxes", boxes, (..., 4), finite=False)
     check_instance("config", config, FlowSimConfig)
     return box_geometry.denormalise(jnp.asarray(boxes, jnp.float32), config.map_size)
@@ -73,7 +64,7 @@ def _tokens(scenes: Scenes, env, tau, config: FlowSimConfig, history: int = 1
     """Unchecked, jit-able body of ``scene_tokens``."""
     f, m, s = config.num_furniture, config.num_objects, config.max_tokens
     n = env.shape[0]
-    if history == 1:  # one map: the paper's tokens, the same program as before histories
+    if history == 1:  # one map: the paper's tokens
         pad = s - f - m
         boxes = jnp.concatenate([
             box_geometry.normalise(scenes.furniture_boxes[env], config.map_size),
@@ -125,8 +116,7 @@ def check_history(history, config: FlowSimConfig) -> int:
 
 
 def _check_env_rows(scenes: Scenes, env, config: FlowSimConfig):
-    """The config and scenes of :func:`scene_tokens` and :func:`slot_boxes` (shapes and dtypes:
-    fine under jit), and ``env`` (N,) environments of the scenes, as checked."""
+    """``env`` (N,) checked, with the shapes and dtypes of ``scenes`` and ``config``."""
     check_instance("config", config, FlowSimConfig)
     validate_scenes(scenes, config, values=False)
     return check_int_array("env", env, 0, scenes.num_envs - 1, shape=(None,))
@@ -134,13 +124,9 @@ def _check_env_rows(scenes: Scenes, env, config: FlowSimConfig):
 
 def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFIG,
                  history: int = 1) -> tok.SceneTokens:
-    """Tokens of environments ``env`` (N,) at state times ``tau`` (N,): SceneTokens (N, S).
-
-    F furniture tokens, then M object tokens (object boxes at time tau), padded to
-    S = config.max_tokens. With ``history`` = H > 1, also the M object tokens of each of the
-    maps at τ − 1 … τ − H + 1 (after the current ones; ``age`` says which map, and maps before
-    t = 0 are masked out): furniture does not move in FlowSim, so the past maps add only their
-    objects. Raises ``ValueError`` if the tokens exceed S. jit-able (a gather).
+    """SceneTokens (N, S) of environments ``env`` (N,) at times ``tau`` (N,): F furniture, then
+    M object tokens at τ, then (``history`` H > 1) the M object tokens of each map at
+    τ − 1 … τ − H + 1 (``age``; maps before t = 0 masked), padded to S = ``config.max_tokens``.
     """
     env = _check_env_rows(scenes, env, config)
     tau = check_int_array("tau", tau, 0, config.num_timesteps - 1, shape=env.shape)
@@ -149,8 +135,6 @@ def scene_tokens(scenes: Scenes, env, tau, config: FlowSimConfig = DEFAULT_CONFI
     return _tokens_jit(scenes, env, tau, config, history)
 
 
-# One compiled gather per (config, history, N) for the checked entry point; the training batch
-# (``_train_batch``) calls the plain ``_tokens`` inside its own compiled function.
 _tokens_jit = jax.jit(_tokens, static_argnames=("config", "history"))
 
 
@@ -179,14 +163,10 @@ def _slot_boxes(scenes: Scenes, env, obj, config: FlowSimConfig):
 
 def draw_query_times(key, shape_tau, shape_q, config: FlowSimConfig, short_frac: float = 0.0,
                      short_max: int = 3, horizon=None):
-    """The paper's query times, traceable: τ uniform in 0..T−2 with shape ``shape_tau``; τ_q
-    uniform in τ+1..T−1 with ``shape_q`` (shape_tau a prefix of it). Used by the training
-    batches, the evaluation protocol and the search alike. Unvalidated (call it inside jit).
-
-    With ``short_frac`` > 0, that fraction of the queries instead gets τ_q = min(τ + d, T − 1)
-    with d uniform in 1..short_max (more of the sharp, short-horizon posteriors).
-    With ``horizon`` (an int, or an int array of shape ``shape_tau``), a fixed Δτ instead:
-    τ uniform in 0..T−1−Δτ and τ_q = τ + Δτ (shape ``shape_tau``).
+    """The paper's query times (unvalidated, traceable): τ uniform in 0..T−2 (``shape_tau``),
+    τ_q uniform in τ+1..T−1 (``shape_q``, shape_tau a prefix), or with probability
+    ``short_frac`` min(τ + U{1..short_max}, T − 1). With ``horizon`` (int or ``shape_tau``
+    ints): τ uniform in 0..T−1−Δτ and τ_q = τ + Δτ.
     """
     t = config.num_timesteps
     key_tau, key_q = jax.random.split(key)
@@ -223,11 +203,8 @@ def _train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
 def make_train_batch(key, scenes: Scenes, batch_size: int, queries_per_scene: int,
                      config: FlowSimConfig = DEFAULT_CONFIG, short_frac: float = 0.0,
                      short_max: int = 3, history: int = 1) -> tok.TrainBatch:
-    """A TrainBatch: B scenes drawn uniformly, τ uniform in 0..T−2 per scene, then Q queries per
-    scene (object uniform over M, τ_q uniform in τ+1..T−1, or with probability ``short_frac``
-    τ_q = τ + U{1..short_max} capped at T−1); target = the queried object's normalised
-    (y, x, h, w) box at τ_q, shape (B, Q, 4). Compiled once per (B, Q, config, short_*).
-    ``history``: tokens of the last H maps (see ``scene_tokens``).
+    """A TrainBatch of B uniform scenes × Q queries (object uniform, times by
+    :func:`draw_query_times`); target (B, Q, 4) the object's normalised box at τ_q.
     """
     key = check_key(key)
     batch_size = check_int("batch_size", batch_size)
@@ -253,28 +230,21 @@ def _split_key(seed: int, tag: int) -> jax.Array:
 
 def train_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 2500,
                 seed: int = TRAIN_SEED, *, mesh=None, part: slice | None = None) -> Scenes:
-    """The fixed training environments: ``generate(fold_in(key(seed), 0), num_envs, config)``.
-
-    mesh / part: as in :func:`~flowmaps_jax.flowsim.generate.generate` (split the work over
-    devices; generate only this host's share). Neither changes an environment."""
+    """The training environments ``generate(fold_in(key(seed), 0), num_envs, config)``."""
     return generate(_split_key(seed, _TRAIN_TAG), num_envs, config, mesh=mesh, part=part)
 
 
 def validation_split(config: FlowSimConfig = DEFAULT_CONFIG, num_envs: int = 200,
                      seed: int = VALIDATION_SEED, *, mesh=None) -> Scenes:
-    """The held-out environments: ``generate(fold_in(key(seed), 1), num_envs, config)``;
-    a different seed and tag from ``train_split``. mesh: split the work over devices."""
+    """The held-out environments ``generate(fold_in(key(seed), 1), num_envs, config)``."""
     return generate(_split_key(seed, _VALIDATION_TAG), num_envs, config, mesh=mesh)
 
 
 # ------------------------------------------------------------------------------ .npz I/O
 
 def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) -> None:
-    """Write scenes and their config to one ``.npz`` (with ``FORMAT_VERSION``) at ``path``.
-
-    Everything is checked first (the path's folder exists and is writable, the scenes match the
-    config in every array); the file appears whole or not at all (written aside, then renamed).
-    """
+    """Write scenes and their config to one ``.npz`` at ``path``, checked first, whole or not
+    at all."""
     path = check_output_file("path", path)
     check_instance("config", config, FlowSimConfig)
     validate_scenes(scenes, config)
@@ -286,13 +256,8 @@ def save_scenes(path, scenes: Scenes, config: FlowSimConfig = DEFAULT_CONFIG) ->
 
 
 def load_scenes(path) -> tuple[Scenes, FlowSimConfig]:
-    """Read a file written by ``save_scenes``. Raises ``ValueError`` naming ``path`` if it is
-    missing, a directory, not an ``.npz``, of another format version, lacks arrays or holds
-    arrays that ``save_scenes`` could not have written: wrong shapes or dtypes, boxes not finite
-    or off the map, ids, visit orders or slots out of range (see ``validate_scenes``). The file
-    is untrusted: a member ``save_scenes`` does not write, Python objects, or arrays declared
-    larger than the memory budget are refused before anything is decompressed
-    (:func:`flowmaps_jax.untrusted_files.read_npz`)."""
+    """Read a file written by ``save_scenes`` (untrusted: ``read_npz``, then ``validate_scenes``);
+    ValueError naming ``path`` for anything ``save_scenes`` could not have written."""
     with prefix_errors("load_scenes: "):
         path = check_file("path", path)
         contents = read_npz(repr(path), path, allowed=("format_version", "config_json", *_FIELDS),
