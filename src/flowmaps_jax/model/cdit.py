@@ -10,10 +10,8 @@ c (B, Q, D) — and the context tokens (B, S, D) with their padding mask (B, S):
     x  += gate_mlp · MLP(LN(x) ⊙ (1 + scale_mlp) + shift_mlp)
 
 LayerNorms have no learned affine; the modulation Dense and the final projection are
-zero-initialised (AdaLN-Zero: every block starts as the identity, the velocity at 0).
-:func:`cross_attention` picks :func:`absorbed_cross_attention` (one row per query) or
-:func:`shared_kv_cross_attention` (several); :func:`plain_cross_attention` is the reference.
-``dtype``: the matmul operand dtype (None: float32); results are float32.
+zero-initialised (AdaLN-Zero). ``dtype``: the matmul operand dtype (None: float32); results are
+float32.
 """
 
 from __future__ import annotations
@@ -54,16 +52,9 @@ def absorbed_cross_attention(x, context_norm, mask, shift, scale, weights, dtype
     shift, scale (B, Q, D) context modulation of each query; weights: dict with wq, wk, wv
     (D, H, Dh), bq, bk, bv (H, Dh), wo (H, Dh, D), bo (D,). Returns (B, Q, N, D).
 
-    The keys/values would be m_s = n_s ⊙ (1 + scale_q) + shift_q, which differ per query, so the
-    textbook form costs S·D² per query for the K/V projections. Instead, per head h:
-
-    * score_{q,s} = q_h · (W_k^h m_s + b_k^h) = ((W_k^h)ᵀ q_h ⊙ (1 + scale_q)) · n_s + const_q,
-      and softmax over s ignores the per-query constant (it holds the shift and key-bias terms);
-    * Σ_s a_s (W_v^h m_s + b_v^h) = W_v^h ((Σ_s a_s n_s) ⊙ (1 + scale_q) + shift_q) + b_v^h,
-      because Σ_s a_s = 1.
-
-    Per query row O(H·S·D + D²) instead of O(S·D²); equal to :func:`plain_cross_attention`
-    up to rounding.
+    With m_s = n_s ⊙ (1 + scale_q) + shift_q, per head: score = ((W_k)ᵀ q ⊙ (1 + scale_q)) · n_s
+    + const_q (softmax drops the constant), and Σ_s a_s (W_v m_s + b_v) = W_v ((Σ_s a_s n_s) ⊙
+    (1 + scale_q) + shift_q) + b_v: O(H·S·D + D²) per row instead of O(S·D²).
     """
     b, q, n, d = x.shape
     heads, head_dim = weights["wq"].shape[1:]
@@ -88,10 +79,8 @@ def absorbed_cross_attention(x, context_norm, mask, shift, scale, weights, dtype
 def shared_kv_cross_attention(x, context_norm, mask, shift, scale, weights, dtype=None):
     """Cross-attention that projects the modulated context once per query, shared by its N rows.
 
-    Same arguments and result as :func:`absorbed_cross_attention`. Cost per query: 2·S·D² for the
-    keys and values of m = n ⊙ (1 + scale) + shift (one flat GEMM over all queries), then per row
-    2·D² (query and output projections) + 2·S·D: cheaper than the absorbed form with several
-    rows per query.
+    Same arguments and result as :func:`absorbed_cross_attention`; cheaper with several rows
+    per query.
     """
     b, q, n, d = x.shape
     heads, head_dim = weights["wq"].shape[1:]
@@ -111,23 +100,15 @@ def shared_kv_cross_attention(x, context_norm, mask, shift, scale, weights, dtyp
 
 
 def cross_attention(x, context_norm, mask, shift, scale, weights, dtype=None):
-    """Modulated cross-attention, picking the faster exact form from the (static) row count N.
-
-    One row per query (training): :func:`absorbed_cross_attention` (no S·D² per query). Several
-    rows per query (sampling): :func:`shared_kv_cross_attention`, whose per-query K/V cost is
-    shared by the rows. Measured on a 2-core CPU at D = 256, S = 13: at N = 1 (fwd+bwd) the two are
-    within ~10 % (absorbed ahead); at N = 25 (forward) the shared-K/V form is ~5× faster.
-    """
+    """Modulated cross-attention: :func:`absorbed_cross_attention` for one row per query,
+    :func:`shared_kv_cross_attention` for several (the faster exact form for the static N)."""
     rows = x.shape[2]
     form = absorbed_cross_attention if rows == 1 else shared_kv_cross_attention
     return form(x, context_norm, mask, shift, scale, weights, dtype)
 
 
 def plain_cross_attention(x, context_norm, mask, shift, scale, weights, dtype=None):
-    """Reference cross-attention that forms the modulated context per query (O(S·D²) per query).
-
-    Same arguments and result as :func:`absorbed_cross_attention`; used only to test it.
-    """
+    """Reference cross-attention forming the modulated context per query (tests only)."""
     head_dim = weights["wq"].shape[-1]
     m = modulate(context_norm[:, None], shift[:, :, None, :], scale[:, :, None, :])  # (B,Q,S,D)
     q = einsum("bqnd,dhk->bqnhk", x, weights["wq"], dtype) + weights["bq"]

@@ -1,14 +1,7 @@
-"""FlowMaps: Map Encoder + CDiT velocity network, exposed as pure functions over a params pytree.
-
-* ``init_params(key, config) -> params`` (the ``"params"`` collection of the flax module).
-* ``encode(params, config, tokens) -> Context``: run the Map Encoder once per scene.
-* ``velocity(params, config, context, x_t, t, queries) -> v``: the vector field, reusing a context.
-  x_t (B, Q, N, 4), t (B, Q), queries (B, Q) → v (B, Q, N, 4). The N rows of a query share its
-  conditioning c = Embed(τ_q) + Embed(descriptor) + SinusoidalMLP(t), so N samples of one query are
-  N rows of one cross-attention call (training uses N = 1).
-* ``forward(...)`` = ``velocity(encode(...))``; ``check_inputs`` refuses bad inputs.
-
-``dropout_key=None`` means deterministic (no dropout). ``config`` is a static jit argument.
+"""FlowMaps: Map Encoder + CDiT velocity network as pure functions over a params pytree:
+``init_params(key, config)``, ``encode(params, config, tokens) -> Context`` (once per scene) and
+``velocity(params, config, context, x_t, t, queries) -> v``; the N rows of a query share its
+conditioning. ``dropout_key=None``: no dropout. ``config`` is a static jit argument.
 """
 
 from __future__ import annotations
@@ -47,11 +40,8 @@ class Context:
 
 
 class FlowMaps(nn.Module):
-    """The flax module behind the pure functions; use ``encode``/``velocity`` methods via apply.
-
-    ``config.precision`` is passed to every submodule that multiplies (see
-    :mod:`flowmaps_jax.model.precision`); parameter names and shapes do not depend on it.
-    """
+    """The flax module behind the pure functions (``encode``/``velocity`` via apply);
+    ``config.precision`` reaches every submodule that multiplies."""
 
     config: ModelConfig
 
@@ -124,9 +114,7 @@ class FlowMaps(nn.Module):
 
     def object_table_logits(self, context: Context, descriptors, deterministic: bool = True):
         """The mixture head's table logits for every horizon (B, R, S, tau_max) of the objects
-        named by ``descriptors`` (B, R), a very negative number off the furniture: one CDiT row
-        per (object, map token), conditioned on the object's descriptor and the map's τ only,
-        so one pass serves every Δτ (column Δτ) and nothing depends on x_t or t."""
+        named by ``descriptors`` (B, R), very negative off the furniture; free of x_t and t."""
         c = (self.weight_tau_embed(context.tau)[:, None, :]
              + self.descriptor_embed(descriptors))  # (B, R, D)
         _, _, start = mixture.placement_frame(context, descriptors)
@@ -222,10 +210,8 @@ def encode(params, config: ModelConfig, tokens: SceneTokens, *, dropout_key=None
 @functools.partial(jax.jit, static_argnames="config")
 def velocity(params, config: ModelConfig, context: Context, x_t, t, queries: Queries, *,
              dropout_key=None):
-    """Velocity u_θ(x_t, t | map, query).
-
-    context: from :func:`encode`; x_t (B, Q, N, 4); t (B, Q); queries (B, Q) → v (B, Q, N, 4).
-    """
+    """Velocity u_θ(x_t, t | map, query): context from :func:`encode`, x_t (B, Q, N, 4), t (B, Q),
+    queries (B, Q) → v (B, Q, N, 4)."""
     return FlowMaps(config).apply({"params": params}, context, x_t, t, queries,
                                   dropout_key is None, method=FlowMaps.velocity,
                                   rngs=_rngs(dropout_key))
@@ -263,7 +249,7 @@ def placement_velocity(params, config: ModelConfig, context: Context, z_t, t, qu
 def route_mixture(params, config: ModelConfig, context: Context, queries: Queries):
     """The route head's mixture over the map's tables (``head="route"`` only): log-weights
     (B, Q, S) (−inf off the tables), means (B, Q, S, 4) and log-variances (B, Q, 4), in the
-    flow's space. Without the residual the flow's samples follow exactly this mixture."""
+    flow's space."""
     return FlowMaps(config).apply({"params": params}, context, queries,
                                   method=FlowMaps.mixture)
 
@@ -294,11 +280,8 @@ def forward(params, config: ModelConfig, tokens: SceneTokens, x_t, t, queries: Q
 
 def make_velocity_fn(params, config: ModelConfig, context: Context,
                      queries: Queries) -> Callable[[jnp.ndarray, jnp.ndarray], jnp.ndarray]:
-    """Close over a context and queries: returns ``fn(x (B, Q, N, 4), t scalar) -> v``.
-
-    This is the ``velocity_fn`` that :func:`flowmaps_jax.flow.integrate` and
-    :func:`flowmaps_jax.flow.log_prob` expect (deterministic: no dropout).
-    """
+    """``fn(x (B, Q, N, 4), t scalar) -> v`` over a context and queries, no dropout (the
+    ``velocity_fn`` of :mod:`flowmaps_jax.flow`)."""
     def velocity_fn(x, t):
         t_bq = jnp.broadcast_to(jnp.asarray(t, x.dtype), x.shape[:2])
         return velocity(params, config, context, x, t_bq, queries)
@@ -307,12 +290,9 @@ def make_velocity_fn(params, config: ModelConfig, context: Context,
 
 def check_inputs(config: ModelConfig, tokens: SceneTokens, queries: Queries, x_t=None, t=None,
                  object_descriptors: Collection[int] | None = None) -> None:
-    """Raise ``ValueError`` naming the argument if model inputs are malformed (call outside jit).
-
-    tokens: SceneTokens (B, S), boxes in [0, 1], known descriptors, 0 <= tau < tau_max - 1.
-    queries: (B, Q), B and Q >= 1, with known descriptors and tau < tau_q < tau_max.
-    x_t: (B, Q, N, 4) finite. t: (B, Q) in [0, 1]. ``object_descriptors``, if given: the
-    descriptors a query may name (an object category, not a furniture kind).
+    """``ValueError`` naming the argument if model inputs are malformed (outside jit): tokens
+    (B, S), queries (B, Q) with tau < tau_q < tau_max and known descriptors (``object_descriptors``
+    if given), x_t (B, Q, N, 4) finite, t (B, Q) in [0, 1].
     """
     check_instance("tokens", tokens, SceneTokens)
     b = check_array("tokens.mask", tokens.mask, (None, None)).shape[0]

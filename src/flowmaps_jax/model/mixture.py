@@ -1,25 +1,13 @@
-"""Mixture read-out: explicit table weights π_s, and a flow that places the object on table s.
-
-The model is the family of FlowSim's exact posterior, a mixture over tables:
+"""Mixture read-out: explicit table weights π_s, and a flow that places the object on table s
+(docs/design.md, "The posterior at the floor"):
 
     p_θ(box | map, query) = Σ_s π_s(map, query, Δτ) · p_θ(box | s, map, query)
 
-* **Table weights** π (B, Q, S), independent of x_t and t: one CDiT row per map token (its
-  context token, plus a learned vector on the table the queried object stands on at τ), run
-  through ``weight_blocks`` CDiT blocks that cross-attend to the map, conditioned by AdaLN-Zero on
-  τ_q, the query descriptor and Δτ (no flow time); a zero-initialised AdaLN final layer gives one
-  logit per row, masked to the furniture tokens. Trained by cross-entropy against the table the
-  target stands on: the proper scoring rule, minimised by the exact posterior over tables.
-* **Placement** p_θ(box | s): the CDiT vector field (AdaLN-Zero on τ_q, descriptor, Δτ and t)
-  with the chosen table's context token added to the query row, integrated from Gaussian noise
-  in the table's *local frame* (:func:`to_local`): z = (c(box) − μ_s) / scale, where c is the
-  centre form (cy, cx, h, w), μ_s = (table s's centre, the object's own h, w) and
-  scale = ``LOCAL_SCALE`` × the object's (h, w, h, w). The frame is a fixed affine map, so
-  log p(box | s) = log p(z) − Σ log scale exactly (the centre form has unit Jacobian).
-
-Sampling draws s ~ π, then integrates the flow on table s: every sample is placed relative to a
-table. The density sums the ``MIXTURE_TERMS`` tables nearest each box (:func:`nearest_tables`);
-a table farther away holds the box many local widths out, where its term is negligible.
+π (B, Q, S) is free of x_t and t (one CDiT row per map token, trained by cross-entropy against
+the target's table). The placement flow runs in table s's local frame (:func:`to_local`):
+z = (c(box) − μ_s) / scale, c the centre form, μ_s = (table s's centre, the object's h, w),
+scale = ``LOCAL_SCALE`` × the object's (h, w, h, w), so log p(box | s) = log p(z) − Σ log scale.
+The density sums the ``MIXTURE_TERMS`` tables nearest each box (:func:`nearest_tables`).
 """
 
 from __future__ import annotations
@@ -108,8 +96,7 @@ def nearest_tables(box, context, terms: int = MIXTURE_TERMS):
 
 def scene_objects(tokens, num_objects: int):
     """Descriptors (B, num_objects) of the first ``num_objects`` object tokens of the current map
-    (age 0) of each scene, in token order: the objects a training batch queries, so that the
-    table weights are computed once per (scene, object) and shared by its queries."""
+    (age 0), in token order."""
     current = tokens.mask.astype(bool) & (tokens.kind == OBJECT)
     if tokens.age is not None:
         current &= tokens.age == 0

@@ -1,8 +1,7 @@
 """Pointer read-out: the velocity of a Gaussian mixture whose components are copied out of the map.
 
-Why it exists: docs/design.md, "Learning the routines". From the CDiT rows h (B, Q, N, D),
-the context tokens (B, S, D) and their normalised boxes (B, S, 4), with x_t (B, Q, N, 4) and
-t (B, Q):
+(docs/design.md, "Learning the routines"). From the CDiT rows h (B, Q, N, D), the context tokens
+(B, S, D), their normalised boxes (B, S, 4), x_t (B, Q, N, 4) and t (B, Q):
 
     a_s  = softmax_s(<W_a h, K_a ctx_s> / √D)            anchor logits (which table)
     b_s  = softmax_s(<W_b h, K_b ctx_s> / √D)            source pointer (whose size)
@@ -16,13 +15,8 @@ t (B, Q):
     w_s  ∝ exp(ℓ_s) · N(x_t; t μ_s, var)                 ℓ_s = anchor logit: the mixture weight
     v    = Σ_s w_s [(1 − t) μ_s − ((1 − t) − t σ²) x_t] / var  +  Dense₀(h)
 
-For fixed weights, means and widths this is exactly E[X_1 − X_0 | X_t = x_t] for the linear path
-and X_1 ~ Σ_s π_s N(μ_s, σ²) (no division by 1 − t anywhere, so it is finite at t = 1). The
-zero-initialised residual Dense₀(h) lets the network depart from that form. Everything the
-routines need (which table comes next, given the query and Δτ) lives in the anchor logits.
-
-Initialisation: A = diag(1, 1, 0, 0), B = diag(0, 0, 1, 1), β = 0, i.e. "centred on the anchor
-token, with the size of the source token"; both maps are trained.
+For fixed weights, means and widths this is exactly E[X_1 − X_0 | X_t = x_t] for X_1 ~ Σ_s π_s
+N(μ_s, σ²), finite at t = 1. Initialisation: A = diag(1, 1, 0, 0), B = diag(0, 0, 1, 1), β = 0.
 """
 
 from __future__ import annotations
@@ -47,22 +41,16 @@ def diagonal_init(*values):
 
 
 def _pointer_logits(h, context, name: str, dim: int, precision: str = "float32"):
-    """Bilinear scores <W h_row, K ctx_s> / √dim, products at ``precision``.
-
-    h (B, Q, N, D), context (B, S, D) → (B, Q, N, S)."""
+    """Scores <W h_row, K ctx_s> / √dim: h (B, Q, N, D), context (B, S, D) → (B, Q, N, S)."""
     query = FlatDense(dim, name=f"{name}_query", precision=precision)(h)
     key = FlatDense(dim, name=f"{name}_key", precision=precision)(context)
     return einsum("bqnd,bsd->bqns", query, key, compute_dtype(precision)) / math.sqrt(dim)
 
 
 def mixture_velocity(logits, means, log_var, x_t, t):
-    """Velocity of the linear path towards a Gaussian mixture, given its parameters.
-
-    logits (B, Q, N, S) mixture log-weights (−inf or very negative on excluded components);
-    means (B, Q, N, S, 4); log_var (B, Q, 1, 1, 4) or (B, Q, N, 1, 4) per-number log σ²;
-    x_t (B, Q, N, 4); t (B, Q).
-    Returns v (B, Q, N, 4) = E[X_1 − X_0 | X_t = x_t].
-    """
+    """v (B, Q, N, 4) = E[X_1 − X_0 | X_t = x_t] of the linear path towards a Gaussian mixture:
+    logits (B, Q, N, S) log-weights, means (B, Q, N, S, 4), log_var (B, Q, 1 or N, 1, 4), x_t
+    (B, Q, N, 4), t (B, Q)."""
     tt = t[:, :, None, None, None]
     var0 = jnp.exp(log_var)
     var = jnp.square(tt) * var0 + jnp.square(1.0 - tt)  # (B, Q, 1, 1, 4)
@@ -75,12 +63,8 @@ def mixture_velocity(logits, means, log_var, x_t, t):
 
 
 class PointerReadout(nn.Module):
-    """The pointer head. See the module docstring for the maths and the shapes.
-
-    ``precision`` applies to the D-wide products (pointer logits, Dense layers); the box-space
-    arithmetic (4-wide maps, pointer-weighted boxes, the mixture) stays float32 at any precision:
-    it costs O(S) per row, and bf16 would round the copied boxes by up to ~2⁻⁹ (half a pixel).
-    """
+    """The pointer head (module docstring). ``precision`` applies to the D-wide products; the
+    box-space arithmetic stays float32."""
 
     dim: int
     box_scale: float = 1.0

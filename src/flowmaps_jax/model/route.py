@@ -1,27 +1,18 @@
 """Route read-out: the pointer head with a one-step transition over the map's tables, raised to Δτ.
 
-The one-step law is learned once and applied Δτ times (docs/design.md, "The posterior at
-every horizon"). From the context tokens ctx (B, S, D), the query's descriptor embedding
-e (B, Q, D) and Δτ (B, Q):
+(docs/design.md, "The posterior at every horizon"). From the context tokens ctx (B, S, D), the
+query's descriptor embedding e (B, Q, D) and Δτ (B, Q):
 
     T_ij  = softmax_j(<FiLM_e(MLP(ctx_i)), W ctx_j> / √D)  over the map's tables j (B, Q, S, S)
-            (the MLP runs once per token; the query only scales and shifts its output, so the
-            per-query cost is one (S × S × D) product)
-    π_0   = one-hot of the table the queried object stands on at τ (its token's box, nearest
-            table centre: read off the map, nothing learned)
+    π_0   = one-hot of the table the queried object stands on at τ (nearest table centre)
     π     = π_0 T^Δτ                                     table weights (B, Q, S)
     μ_s   = from_centre(A · c(box_s) + B · c(object box) + β)   the object on table s
     σ     = exp(θ / 2) ⊙ (h, w, h, w) of the object       widths relative to the object's size
     v     = mixture velocity of Σ_s π_s N(μ_s, σ²) (:func:`.readout.mixture_velocity`) + Dense₀(h)
 
-The weights, means and widths depend on the map and the query only, not on x_t or t, so without
-the zero-initialised residual Dense₀(h) the flow carries noise exactly onto that mixture:
-``table_weights`` reads the mass of each table without sampling, and the mixture's log-density
-is the flow's log-density in closed form (the accurate likelihood is checked against it).
-
-Initialisation: A = diag(1, 1, 0, 0), B = diag(0, 0, 1, 1), β = 0 ("the object centred on the
-table, with its own size", exactly FlowSim's slot boxes); widths 0.25 × side for the position
-and 0.05 × side for the size; the transition logits start near uniform.
+The mixture is free of x_t and t, so with a zero residual its log-density is the flow's in
+closed form. Initialisation: A = diag(1, 1, 0, 0), B = diag(0, 0, 1, 1), β = 0; widths 0.25 ×
+side (position) and 0.05 × side (size); near-uniform transition logits.
 """
 
 from __future__ import annotations
@@ -42,9 +33,8 @@ _TINY = 1e-30
 
 
 def object_box(boxes, descriptor, kind, mask, query_descriptor):
-    """The box (B, Q, 4) of the object token named by each query (zeros if the map has none).
-
-    boxes (B, S, 4), descriptor / kind / mask (B, S), query_descriptor (B, Q)."""
+    """The box (B, Q, 4) of the object token named by each query_descriptor (B, Q) (zeros if
+    none); boxes (B, S, 4), descriptor / kind / mask (B, S)."""
     match = (mask & (kind == OBJECT))[:, None, :] & (
         query_descriptor[:, :, None] == descriptor[:, None, :])
     match = match.astype(jnp.float32)
@@ -61,8 +51,7 @@ def start_table(boxes, tables, obj_box):
 
 def propagate(start, transition, steps, max_steps: int):
     """π_0 T^steps for per-query step counts: start (B, Q, S), transition (B, Q, S, S) row-
-    stochastic, steps (B, Q) ints in [0, max_steps] → (B, Q, S). A ``lax.scan`` of max_steps
-    vector-matrix products, each kept only while k < steps."""
+    stochastic, steps (B, Q) ints in [0, max_steps] → (B, Q, S)."""
     def step(w, k):
         moved = jnp.einsum("bqs,bqst->bqt", w, transition)
         return jnp.where((k < steps)[..., None], moved, w), None
@@ -139,7 +128,7 @@ class RouteReadout(nn.Module):
 def mixture_log_prob(log_w, means, log_var, z):
     """log Σ_s w_s N(z; μ_s, diag σ²) of points z (B, Q, N, 4), for the mixture of
     :meth:`RouteReadout.__call__` with ``mixture_only`` (log_w (B, Q, S), means (B, Q, S, 4),
-    log_var (B, Q, 4)) → (B, Q, N). The route head's flow density when its residual is zero."""
+    log_var (B, Q, 4)) → (B, Q, N)."""
     var = jnp.exp(log_var)[:, :, None, None, :]
     diff = z[:, :, :, None, :] - means[:, :, None]
     comp = -0.5 * jnp.sum(diff**2 / var + jnp.log(2.0 * jnp.pi * var), axis=-1)  # (B, Q, N, S)
