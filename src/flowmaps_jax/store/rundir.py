@@ -1,20 +1,7 @@
-"""A run directory belongs to one run, written by one process at a time.
-
-* :func:`claim` (a context manager) takes the directory for a run. A new run (no ``resume``)
-  needs an empty or missing directory, or one whose run never saved a checkpoint (its leftovers
-  are removed, with a message); ``overwrite`` first moves an old run aside to
-  ``<dir>.old-<timestamp>``. A symbolic link anywhere in the directory
-  (:func:`check_own_files`) is refused before anything is done, so nothing is read, written or
-  deleted outside it. The lock file ``<dir>/.lock`` (``O_EXCL``, holding ``<pid> <host>``) keeps
-  a second process out; a lock of a process that no longer exists is taken over with a message.
-  The lock is released on exit, and a directory the claim created is removed if nothing was
-  written. On a multi-host job process 0 holds the directory. The path itself is checked by the
-  caller (``check_output_dir`` in ``training.loop.run``); one that still cannot be created is a
-  ``ValueError`` here.
-* :func:`write_atomic` (through :func:`flowmaps_jax.atomic_files.write_file`) and
-  :func:`open_append` refuse a symbolic link.
-* The metrics file :data:`METRICS`: :func:`kept_records` are the lines a resumed run keeps. The
-  checkpoints: :func:`checkpoint_root`, :func:`only_best_saved`.
+"""A run directory belongs to one run, written by one process at a time (docs/guarantees.md,
+"One writer per run"): :func:`claim` takes it (lock ``<dir>/.lock`` created with ``O_EXCL``,
+holding ``<pid> <host>``; symbolic links refused), :func:`write_atomic` / :func:`open_append`
+write in it, :func:`kept_records` are the metrics lines a resumed run keeps.
 """
 
 from __future__ import annotations
@@ -42,17 +29,14 @@ RUN_FILES = ("config.json", METRICS, "routine_curve.png", "checkpoints")
 _TEMPORARY = tuple(f"{name}.tmp" for name in RUN_FILES[:3])  # write_atomic's, if it was killed
 DISK_ERRNOS = frozenset(getattr(errno, name) for name in ("ENOSPC", "EDQUOT", "EFBIG", "EIO")
                         if hasattr(errno, name))
-"""Failed writes that are the machine's state (a full disk, a quota, a file-size limit, an I/O
-error), not a bad argument: reported with exit code 74."""
+"""Failed writes that are the machine's state, not a bad argument (exit code 74)."""
 
 
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 
 
 def write_atomic(path: pathlib.Path, data: str | bytes) -> None:
-    """Write ``data`` to ``path`` via ``<path>.tmp`` and a rename (no half-written file), with
-    the one writer of every command (:func:`flowmaps_jax.atomic_files.write_file`): a symbolic
-    link at ``path`` is refused (``ValueError``), one at the temporary name is removed."""
+    """Write ``data`` to ``path`` whole or not at all (``atomic_files.write_file``)."""
     write_file(path, data, name="run file")
 
 
@@ -69,8 +53,7 @@ def open_append(path: pathlib.Path):
 
 
 def check_own_files(run_dir: pathlib.Path) -> None:
-    """``ValueError`` naming the path if anything in ``run_dir`` (at any depth) is a symbolic
-    link: a run follows none (see the module docstring)."""
+    """``ValueError`` naming the path if anything in ``run_dir`` is a symbolic link."""
     if pathlib.Path(run_dir).is_dir():
         check_tree_no_links("run directory file", run_dir)
 
@@ -196,13 +179,9 @@ def _entries(run_dir: pathlib.Path) -> list[str]:
 @contextlib.contextmanager
 def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
           log: Callable[[str], None] = print) -> Iterator[RunLock | None]:
-    """Hold ``run_dir`` for one run (see the module docstring); ValueError if it is not free.
-    Yields the lock (None on the processes of a multi-host job other than the first).
-    ``overwrite`` moves an old run aside for a new one; a resumed run (``resume``) continues in
-    place, so it ignores ``overwrite`` (the command line refuses both).
-
-    On a multi-host job the first process owns the directory; a refusal stops every process.
-    """
+    """Hold ``run_dir`` for one run; ValueError if it is not free. Yields the lock (None on the
+    other processes of a multi-host job). ``overwrite`` moves an old run aside for a new one
+    (ignored with ``resume``)."""
     if jax.process_count() == 1:
         with _claim_here(run_dir, resume=resume, overwrite=overwrite, log=log) as lock:
             yield lock
@@ -225,8 +204,7 @@ def claim(run_dir: pathlib.Path, *, resume: bool, overwrite: bool = False,
 @contextlib.contextmanager
 def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
                 log: Callable[[str], None]) -> Iterator[RunLock]:
-    """:func:`claim` by this process alone. ``run_dir`` was checked by the caller
-    (``check_output_dir`` in ``training.loop.run``), so it is not checked again."""
+    """:func:`claim` by this process alone (``run_dir`` checked by the caller)."""
     run_dir = pathlib.Path(run_dir)
     if overwrite and not resume:
         here = pathlib.Path.cwd().resolve()
@@ -282,9 +260,8 @@ def _claim_here(run_dir: pathlib.Path, *, resume: bool, overwrite: bool,
 
 def kept_records(run_dir: pathlib.Path, resumed_step: int | None,
                  log: Callable[[str], None]) -> list[str]:
-    """The lines of ``metrics.jsonl`` that a resumed run keeps: those up to the restored step
-    ``resumed_step`` (none for a run that starts again from step 0). A half-written last line (a
-    crash mid-write) is dropped with a message; a bad line elsewhere is a ValueError naming it."""
+    """The lines of ``metrics.jsonl`` up to ``resumed_step`` (None: none). A half-written last
+    line is dropped with a message; a bad line elsewhere is a ValueError naming it."""
     path = run_dir / METRICS
     if resumed_step is None or not path.exists():
         return []
@@ -324,8 +301,7 @@ def checkpoint_root(run_dir: pathlib.Path) -> pathlib.Path:
 
 
 def only_best_saved(run_dir: pathlib.Path) -> bool:
-    """Whether the run's checkpoints hold a finished ``best`` step and no ``last`` one (a run
-    killed between its first ``best/N`` and ``last/N`` saves)."""
+    """Whether the run's checkpoints hold a finished ``best`` step and no ``last`` one."""
     root = run_dir / "checkpoints"
     if not root.is_dir() or root.is_symlink():
         return False

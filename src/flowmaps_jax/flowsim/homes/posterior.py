@@ -1,23 +1,9 @@
-"""The exact posterior of an object's receptacle at a later hour: a forward pass of P_t.
-
-``homes_posterior(home, i, τ, τ_q)`` is onehot(s_τ) P_τ P_{τ+1} … P_{τ_q − 1}, the object's
-receptacle at τ_q given where it is at τ and its law (:mod:`.schedules`), computed exactly by a
-``lax.fori_loop`` over the hours (each step p ← (1 − m_t) p + m_t p B_{c(t)}, R² work).
-
-``homes_history_posterior(home, i, τ, τ_q, history)``: the posterior given the last
-``history`` observations s_a … s_τ with the preferences regime's favourites hidden: the forward
-pass from τ with each π_c replaced by its posterior mean, from the exact marginals of the
-favourites (``favourite_weights``, O(C · n); the derivation: docs/flowsim.md, "Homes"). For
-the other regimes the chain is Markov given the map, and the history changes nothing.
-
-``filtered_posterior(home, i, observed, τ, τ_q)``: an observer who knows the whole law but sees
-the object only at the ``observed`` hours (docs/flowsim.md): a forward filter from the uniform
-start at hour 0, conditioned at every observed hour t ≤ τ, then the forward pass to τ_q.
-
-``home`` is one home (``Homes.home(i)``); every function is jittable and vmappable (over
-homes, objects, hours). Concrete inputs are checked (``ValueError`` naming the argument); a
-traced query out of range (τ_q ≤ τ, τ_q beyond the rollout, an object index outside
-0 … M − 1 or a masked object, an hour outside 0 … T − 2) gives NaNs.
+"""Exact posteriors of an object's receptacle at a later hour (docs/flowsim.md, "Homes"):
+``homes_posterior`` (a forward pass of P_t from where it is at τ), ``homes_history_posterior``
+(the preferences regime's favourites hidden, given the last ``history`` hours) and
+``filtered_posterior`` (seen only at the ``observed`` hours). ``home`` is one home
+(``Homes.home(i)``); every function is jittable and vmappable. Concrete inputs are checked
+(``ValueError`` naming the argument); a traced query out of range gives NaNs.
 """
 
 from __future__ import annotations
@@ -53,8 +39,7 @@ def _forward(law: dict, p, tau, tau_q):
 
 
 def _object_ok(home: Homes, object_index):
-    """Whether ``object_index`` is a valid object slot of ``home``: in range (a traced index out
-    of range must not read a clamped slot) and not masked."""
+    """Whether ``object_index`` is an in-range, unmasked object slot of ``home``."""
     m = home.object_valid.shape[0]
     inside = (object_index >= 0) & (object_index < m)
     return inside & home.object_valid[jnp.clip(object_index, 0, m - 1)]
@@ -75,11 +60,8 @@ def _posterior(home: Homes, object_index, tau, tau_q, config: HomesConfig):
 
 
 def favourite_weights(home: Homes, object_index, tau, history, config: HomesConfig):
-    """(C, R) float32: the posterior marginal of each context's favourite of a preferences
-    object given its receptacles at hours a … τ (a = τ − history + 1), exact: the window's
-    transitions and its first state s_a, whose probability depends on the favourites of the
-    contexts before a (module docstring). Uniform over the allowed receptacles for a context
-    neither informs."""
+    """(C, R) float32: the exact posterior marginal of each context's favourite of a preferences
+    object given its receptacles at hours τ − history + 1 … τ (uniform where uninformed)."""
     law = object_law(home, object_index, config)
     allowed, num = law["allowed"], home.num_allowed[object_index]
     s = home.receptacle[:, object_index]
@@ -136,9 +118,7 @@ def _after(bound):
 
 
 def _check_query(home: Homes, object_index, tau, tau_q, config: HomesConfig):
-    """A query's arguments (values checked when concrete), in the form to go on with: ints as
-    0-d numpy arrays when concrete. ``home`` must be one home of ``config`` (shapes and dtypes),
-    in which ``object_index`` is not a masked slot when the whole query is concrete."""
+    """A query's arguments checked (values when concrete; ``home`` one home of ``config``)."""
     check_instance("config", config, HomesConfig)
     t = config.num_hours
     object_index = check_int_array("object_index", object_index, 0, config.max_objects - 1,
@@ -156,10 +136,7 @@ def _check_query(home: Homes, object_index, tau, tau_q, config: HomesConfig):
 def homes_posterior(home: Homes, object_index, tau, tau_q,
                     config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """(R,) float32: P(object ``object_index`` on receptacle r at hour ``tau_q`` | where it is
-    at ``tau``), exact; mass only on its allowed receptacles, sums to 1.
-
-    home: one home (``Homes.home(i)``, fields without the E axis); object_index, tau, tau_q:
-    int scalars (or traced ones, under jit / vmap), 0 <= tau < tau_q <= T − 1.
+    at ``tau``), exact; object_index, tau, tau_q int scalars, 0 <= tau < tau_q <= T − 1.
     """
     object_index, tau, tau_q = _check_query(home, object_index, tau, tau_q, config)
     return _posterior(home, object_index, tau, tau_q, config)
@@ -168,9 +145,7 @@ def homes_posterior(home: Homes, object_index, tau, tau_q,
 def homes_history_posterior(home: Homes, object_index, tau, tau_q, history,
                             config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """(R,) float32: the posterior at ``tau_q`` given the object's receptacles at the
-    ``history`` hours τ − history + 1 … τ, the preferences regime's favourites hidden (see the
-    module's docstring); for the other regimes it equals ``homes_posterior``. 1 <= history
-    <= tau + 1 (history 1: only where it is now)."""
+    ``history`` hours τ − history + 1 … τ (1 <= history <= tau + 1)."""
     object_index, tau, tau_q = _check_query(home, object_index, tau, tau_q, config)
     history = check_int_array("history", history, 1, _after(tau), shape=())
     return _history_posterior(home, object_index, tau, tau_q, history, config)
@@ -209,14 +184,8 @@ def _filtered_posterior(home: Homes, object_index, observed, tau, tau_q, config:
 def filtered_posterior(home: Homes, object_index, observed, tau, tau_q,
                        config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """(R,) float32: P(object ``object_index`` on receptacle r at hour ``tau_q`` | its
-    receptacles at the hours t <= ``tau`` where ``observed`` is True), the law (regime,
-    favourites, cycle) known: the forward filter of the module's docstring, from the uniform
-    start at hour 0. Mass only on its allowed receptacles, sums to 1.
-
-    home: one home (``Homes.home(i)``); observed: (T, M) bool (or 0/1), the hours each object
-    was seen (only column ``object_index`` and hours <= tau are read; where it was seen is
-    ``home.receptacle``); object_index, tau, tau_q: int scalars (or traced), 0 <= tau < tau_q
-    <= T − 1. With ``observed`` all True it equals ``homes_posterior``.
+    receptacles at the hours t <= ``tau`` where ``observed`` (T, M) bool is True), the law known,
+    from the uniform start at hour 0.
     """
     object_index, tau, tau_q = _check_query(home, object_index, tau, tau_q, config)
     observed = check_mask("observed", observed, (config.num_hours, config.max_objects))
@@ -227,8 +196,7 @@ def filtered_posterior(home: Homes, object_index, observed, tau, tau_q,
 def transition_matrix(home: Homes, object_index, hour,
                       config: HomesConfig = DEFAULT_HOMES_CONFIG) -> jax.Array:
     """P_hour (R, R) float32 of one object: [i, j] = P(j at hour + 1 | i at hour); zero outside
-    its allowed receptacles. A pure function of (home, object, hour of week). Traced, an
-    object index or hour out of range gives NaNs."""
+    its allowed receptacles."""
     check_instance("config", config, HomesConfig)
     object_index = check_int_array("object_index", object_index, 0, config.max_objects - 1,
                                    shape=())
