@@ -1,17 +1,8 @@
-"""Where boxes land: the protocol's assignment of boxes to places, and a model's table masses;
-below the predictor, so that evaluation and search share one rule.
-
-* **Assignment** (protocol v2, docs/protocol.md): a box goes to the slot k whose object centre is
-  nearest its centre, "off" beyond the slot's radius max(:data:`ASSIGN_RADIUS`,
-  :data:`ASSIGN_SIGMAS` · σ_c), σ_c = :data:`CENTRE_SIGMA_SCALE` × the object's longer side.
-  :func:`empirical_slots`: the share (..., K + 1) of samples (..., N, 4) on each slot, then off.
-* **Table masses** (:func:`table_probabilities`): ``probs`` (B, Q, S + 1) over every table of
-  the map (zero on object tokens and padding), the last entry off; from samples, or from a
-  read-out head's weights (``method="weights"``).
-
-Shapes: ``...`` free leading dims, K slots, ``slot_mask`` (..., K); tokens (B, S), queries
-(B, Q). Public functions check once; the jitted kernels check nothing:
-``histogram(assign_slots(samples, slot_boxes, slot_mask, radius), K)`` is :func:`empirical_slots`.
+"""Where boxes land, shared by evaluation and search: the protocol's assignment of boxes to
+slots (protocol v2, docs/protocol.md; :func:`empirical_slots`, the share (..., K + 1) of samples
+(..., N, 4) on each slot, then off) and a model's table masses (:func:`table_probabilities`,
+(B, Q, S + 1) over every table of the map, the last entry off). Public functions check once;
+the jitted kernels check nothing.
 """
 
 from __future__ import annotations

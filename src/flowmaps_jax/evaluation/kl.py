@@ -1,16 +1,8 @@
-"""The continuous KL(q‖p) of the protocol: the ground-truth Gaussian mixture q and its estimate.
-
-q(x) = Σ_k q_k N(c(b_k), diag(σ_k²)) lives in centre coordinates c = (cy, cx, h, w), with q_k the
-exact slot posterior, b_k the object's box at slot k and
-σ_k = (0.35 h_k, 0.35 w_k, 0.02 h_k, 0.02 w_k). The map (y, x, h, w) → (cy, cx, h, w) is a shear
-with unit Jacobian, so log q evaluated at c(x) *is* the log-density of boxes x in (y, x, h, w):
-samples are drawn in centre coordinates and returned as (y, x, h, w), and densities are evaluated
-the other way round. KL(q‖p) = E_{x~q}[log q(x) − log p(x)] is estimated from draws of q.
-
-Shapes: ``...`` free leading dims (one per query), K slots padded to a common size,
-``slot_mask`` (..., K) True on real slots (q_k = 0 on padding). Public functions validate once
-and run a jitted kernel that checks nothing (:func:`mixture_log_prob`, :func:`mixture_samples`,
-:func:`kl_estimate`).
+"""The continuous KL(q‖p) of the protocol (docs/protocol.md): the ground-truth Gaussian mixture
+q(x) = Σ_k q_k N(c(b_k), diag(σ_k²)) in centre coordinates c = (cy, cx, h, w) (a shear of unit
+Jacobian, so log q at c(x) is the density of boxes x in (y, x, h, w)), and KL(q‖p) estimated
+from draws of q. Shapes: ``...`` free leading dims, K slots, ``slot_mask`` (..., K). Public
+functions validate once and run a jitted kernel that checks nothing.
 """
 
 from __future__ import annotations

@@ -1,15 +1,7 @@
-"""Slot metrics: where samples land among the places an object can be, scored against q.
-
-The assignment (protocol v2, docs/protocol.md) is :func:`flowmaps_jax.tables.empirical_slots`.
-A slot distribution p̂ has K + 1 entries: the K slots, then "off"; against the exact posterior q
-(K entries) :func:`slot_scores` gives total variation, top-1 and the search-cost ratio. The
-reference predictors are :mod:`.priors`.
-
-Shapes: ``...`` free leading dims (one per query), K slots padded to a common size,
-``slot_mask`` (..., K) True on real slots. Public functions validate once and run a jitted
-kernel that checks nothing (:func:`score_slots`, :func:`offset_mass`). Ties (within
-``TIE_ATOL``) in top-1 and the search cost are broken uniformly at random and the expectation
-reported: deterministic, independent of slot numbering.
+"""Slot metrics (docs/protocol.md): a slot distribution p̂ (..., K + 1) (K slots, then "off")
+against the exact posterior q (..., K): total variation, top-1 and the search-cost ratio (ties
+within ``TIE_ATOL`` broken uniformly, the expectation reported). ``slot_mask`` (..., K) True on
+real slots. Public functions validate once and run a jitted kernel that checks nothing.
 """
 
 from __future__ import annotations

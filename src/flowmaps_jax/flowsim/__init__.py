@@ -1,15 +1,6 @@
-"""FlowSim: procedurally generated maps in which household objects move along routines.
-
-The specification (the map, furniture, objects, visiting orders, the Markov dynamics and
-``schedule_jitter``, habits, the exact posterior) is docs/flowsim.md; the defaults are the
-paper's (``FlowSimConfig``).
-
-Entry points: ``generate(key, num_envs, config) -> Scenes`` (jitted, vectorised over
-environments); ``exact_posterior``, ``transition_matrix``, ``history_posterior``; model-facing
-views in ``flowsim.scenes`` (normalised boxes, ``scene_tokens``, ``slot_boxes``,
-``draw_query_times``, ``make_train_batch``, the splits, ``save_scenes`` / ``load_scenes``);
-``validate_scenes``. Every public function checks its arguments before anything is jitted
-(``ValueError`` naming the argument).
+"""FlowSim: procedurally generated maps in which household objects move along routines
+(specification: docs/flowsim.md; defaults: the paper's). Every public function checks its
+arguments before anything is jitted (``ValueError`` naming the argument).
 """
 
 from flowmaps_jax.flowsim.config import (
@@ -36,14 +27,14 @@ from flowmaps_jax.flowsim.scenes import (
     train_split,
     validation_split,
 )
-from flowmaps_jax.flowsim.worlds import WORLDS, world_config, world_of
+from flowmaps_jax.flowsim.worlds import HABIT_WORLDS, world_config, world_of
 
 __all__ = [
     "DYNAMICS",
     "HABITS",
+    "HABIT_WORLDS",
     "ORDERINGS",
     "SHAPES",
-    "WORLDS",
     "FlowSimConfig",
     "FurnitureKind",
     "ObjectCategory",

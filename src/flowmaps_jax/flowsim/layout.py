@@ -1,14 +1,7 @@
-"""Furniture placement (vectorised rejection sampling), visiting orders and object boxes.
-
-Batch functions over E environments, with the environment axis LAST (boxes (F, 4, E)) so that
-XLA vectorises across environments; ``generate`` transposes to the env-first ``Scenes``. The
-config is split into a static ``shape`` and traceable ``params`` (``config.sim_shape`` /
-``config.sim_params``). One attempt: kinds (``min_per_kind`` each, the extras uniform,
-shuffled), integer sides in ``config.table_side_range``; piece i takes the first of
-``candidate_counts(shape)[i]`` uniform corners that overlaps no placed piece (touching allowed),
-else the whole layout is redrawn by ``generate``. Randomness: one ``jax.random.bits`` call per
-environment and attempt, each 32-bit word two 16-bit draws mapped by ``(bits * n) >> 16``
-(non-uniformity < n / 65536).
+"""Furniture placement (vectorised rejection sampling), visiting orders and object boxes
+(docs/flowsim.md). Batch functions over E environments with the environment axis LAST (boxes
+(F, 4, E)); the config is split into a static ``shape`` and traceable ``params``. Each 32-bit
+random word gives two 16-bit draws mapped by ``(bits * n) >> 16``.
 """
 
 from __future__ import annotations

@@ -1,16 +1,8 @@
-"""Object navigation in homes, scored as the field scores it (FlowMaps 2026, SGM, HOMER);
-the protocol is docs/flowsim.md, "Navigation".
-
-One episode per query (home e, object i, τ, τ_q): the searcher starts at ``start_points`` (the
-centre of room 0), walks geodesically (``homes.receptacle_distance``) and looks at one allowed
-receptacle at a time; it succeeds on the look at ``homes.receptacle[τ_q, i]``. Each policy
-fixes a visiting order before the first look (a perfect detector): ``"most-probable"`` (ties
-within ``BELIEF_ATOL`` to the nearest, then the lowest index), ``"nearest"`` and ``"optimal"``
-(exact subset DP, :func:`optimal_orders`, at most ``MAX_OPTIMAL_RECEPTACLES`` allowed
-receptacles). :func:`episode_metrics`: SR@k, mSR over k = 1 … ``budget``, SPL@1, mSPL, steps
-(metres / ``STEP_LENGTH``), and E[travel] ÷ the Bayes-optimal searcher's under the exact
-posterior. Jitted and vmapped over homes and queries; the DP is grouped by size on the host
-(``DP_SIZES``).
+"""Object navigation in homes, scored as the field scores it (FlowMaps 2026, SGM, HOMER); the
+protocol is docs/flowsim.md, "Navigation". One episode per query; each policy (``POLICIES``)
+fixes a visiting order of the allowed receptacles before the first look (perfect detector);
+:func:`episode_metrics` scores them. Jitted and vmapped over homes and queries; the optimal
+policy's DP is grouped by size on the host (``DP_SIZES``).
 """
 
 from __future__ import annotations

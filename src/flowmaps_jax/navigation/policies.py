@@ -1,14 +1,7 @@
 """Search policies: which table to look at next, given the belief and where the robot stands
-(docs/search.md, "Policies").
-
-Every function works on ONE episode (no batch axis), pure and jit-able; the simulator vmaps
-them. K is the padded number of candidate tables, ``valid`` (K,) marks the real ones.
-``POLICIES``: ``"most-probable"``, ``"greedy"`` (b_j / max(d_j, ``MIN_DISTANCE``)),
-``"optimal"`` (the first table of the least-expected-travel plan, exact subset DP,
-:func:`plan_costs`; at most ``MAX_OPTIMAL_TABLES`` tables) and ``"nearest"``. Ties (beliefs
-within ``BELIEF_ATOL``, plan costs within ``COST_RTOL``) go to the nearest table, then the
-lowest index; the robot never looks twice in a row at the table it stands at, unless it is the
-only one.
+(docs/search.md, "Policies"). Every function works on ONE episode (K padded candidate tables,
+``valid`` (K,)), pure and jit-able. Ties (beliefs within ``BELIEF_ATOL``, plan costs within
+``COST_RTOL``) go to the nearest table, then the lowest index.
 """
 
 from __future__ import annotations

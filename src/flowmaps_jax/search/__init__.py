@@ -6,10 +6,6 @@
     s = search.build_search_set(scenes, config, jax.random.key(0))
     episodes, _ = search.make_episodes(s, search.exact_tables(s))
     scores = search.episode_scores(search.run_episodes(episodes, "optimal"))
-
-Modules: ``probabilities``, ``simulator`` (no FlowSim), ``episodes`` (the FlowSim search set),
-``scores``, ``protocol``, ``report``, ``figures``, ``cli``; the policies are
-:mod:`flowmaps_jax.navigation.policies`.
 """
 
 from flowmaps_jax.navigation.policies import (

@@ -1,14 +1,8 @@
-"""Table-driven checks of a config dataclass's fields, and of the dicts configs are read back from.
-
-A config dataclass declares one rule per field (a ``{field: rule}`` table: a schema) and checks
-them all with one call, :func:`check_fields`. A rule is any ``rule(name, value)`` that returns
-the value in the form to go on with or raises ``ValueError`` whose message starts with ``name``:
-one of the small classes below (:class:`Int`, :class:`Real`, :class:`Choice`, :class:`Text`,
-:class:`Optional`, :class:`Each`, :class:`Pair`, :class:`Probabilities`), or a plain check of
-:mod:`flowmaps_jax.validation` as it is (``check_flag``, ``check_seed``, ``check_plain_name``).
-What depends on another field is checked in the config's ``__post_init__``, in plain code, as
-are its tables of categories (:func:`check_table`) and mixtures (:func:`check_mixture`).
-:func:`check_keys` is the one check of a ``from_dict`` argument.
+"""Table-driven checks of a config dataclass's fields: one ``rule(name, value)`` per field (a
+``{field: rule}`` schema) checked by :func:`check_fields`; a rule returns the value to go on with
+or raises ``ValueError`` starting with ``name``. Cross-field checks live in the config's
+``__post_init__`` (with :func:`check_table` and :func:`check_mixture`); :func:`check_keys`
+checks a ``from_dict`` argument.
 """
 
 from __future__ import annotations

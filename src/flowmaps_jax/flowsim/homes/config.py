@@ -1,14 +1,7 @@
-"""``HomesConfig``: the numbers and the vocabulary of the homes world (a static jit argument).
-
-Frozen and hashable (a static ``jax.jit`` argument); ``validate()`` (run when the config is
-built) raises ``ValueError`` naming the field for anything that could not make valid homes.
-
-Time: hour t = 0 … ``num_hours`` − 1 starts on a Monday at 00:00; hour of day t mod 24, day of
-week ⌊t / 24⌋ mod 7 (0 = Monday, 5 and 6 the weekend). The preferences regime has
-``NUM_CONTEXTS`` = 8 contexts: four phases of the day on weekdays and on weekends; the phases start
-at the hours ``day_phases`` (default 00, 06, 12, 18: 00–06, 06–12, 12–18, 18–24), and an hour
-before the first start belongs to the last phase (``day_phases=(7, 9, 17, 18)``: 07–09, 09–17,
-17–18, 18–07).
+"""``HomesConfig``: the numbers and the vocabulary of the homes world, frozen and hashable (a
+static jit argument); ``validate()`` raises ``ValueError`` naming the field. Hour t = 0 starts
+on a Monday at 00:00; the preferences regime's ``NUM_CONTEXTS`` = 8 contexts are four phases of
+the day (starting at ``day_phases``) on weekdays and weekends (docs/flowsim.md, "Homes").
 """
 
 from __future__ import annotations
