@@ -1,12 +1,6 @@
-"""A run's records: ``metrics.jsonl``, its checkpoints, the best val step and the closing
-summary; :mod:`flowmaps_jax.training.loop` calls these.
-
-:class:`RunBook` writes the records (``"kind"``: ``"train"`` means over the steps since the
-last record, steps/s and samples/s over compiled steps only; ``"val"``, the EMA loss and
-whether it is the best; ``"routine"``) and the checkpoints (last k and ``best``), each carrying
-the unlogged steps, so a resumed run writes the records of a run never stopped.
-:class:`RunResult`, :func:`print_summary` and :func:`write_routine_curve` end a run.
-"""
+"""A run's records (``metrics.jsonl``: ``"train"``, ``"val"`` and ``"routine"`` records), its
+checkpoints, the best val step and the closing summary; :mod:`flowmaps_jax.training.loop` calls
+these."""
 
 from __future__ import annotations
 
@@ -35,17 +29,11 @@ from flowmaps_jax.untrusted_files import read_json
 
 class RunBook:
     """``metrics.jsonl`` and the checkpoint store of a run, with the metrics of the steps since
-    the last train record (the window) and the best val loss and its step.
+    the last train record (the window) and the best val loss and its step as of ``start_step``.
 
-    kept: on resume, the lines ``metrics.jsonl`` is first rewritten with (atomically; see
-    :func:`kept_records`); None appends to it as it is. window: the window a resumed run's
-    checkpoint carried. primary: False on the other processes of a multi-host job, which write
-    no metrics (they take part in the checkpoint saves). start_step: the step the run starts
-    from (0 for a new run, or one started again).
-
-    The best val loss to beat is the best *as of* ``start_step`` (the window's, else the last
-    ``"best": true`` record kept, else a kept ``best`` checkpoint not later than ``start_step``),
-    so a resumed run's records are those of a run never stopped.
+    kept: on resume, the lines ``metrics.jsonl`` is first rewritten with (None: append).
+    window: the window a resumed run's checkpoint carried. primary: False on the other
+    processes of a multi-host job (no metrics written).
     """
 
     def __init__(self, run_dir: pathlib.Path, cfg: TrainConfig, *, kept: list[str] | None,
@@ -165,14 +153,9 @@ def _best_as_of(window: dict, kept: list[str] | None, store: CheckpointStore,
 
 @dataclasses.dataclass
 class RunResult:
-    """Outcome of :func:`flowmaps_jax.training.loop.run`.
-
-    status: "done" (reached cfg.steps), "stopped" (reached stop_at), "interrupted" (Ctrl-C) or
-        "nan" (non-finite loss or state; nothing saved for that state).
-    step: steps completed in the final state; state: that TrainState (None after "nan").
-    run_dir, checkpoint_dir: where outputs went; best_val_loss: best val loss seen, at step
-    best_step (the step ``evaluate`` loads by default); None when no val pass after step 0 has
-    run.
+    """Outcome of :func:`flowmaps_jax.training.loop.run`: status "done", "stopped" (stop_at),
+    "interrupted" or "nan"; step completed and that state (None after "nan"); best_val_loss at
+    best_step (None before a val pass after step 0).
     """
 
     status: str
@@ -217,9 +200,7 @@ def print_summary(result: RunResult, total_steps: int, latest: int | None,
 
 
 def _export_name(run_dir: pathlib.Path) -> str:
-    """The pretrained name a run's model exports as (from its config.json): its family's name,
-    with "-learned" for a Gaussian family whose variance is learned ("mlp-learned");
-    "flowmaps" when the config cannot be read."""
+    """The pretrained name a run's model exports as (from its config.json)."""
     try:
         config = read_json("", run_dir / "config.json")
         kind, model = str(config.get("model_kind", "flowmaps")), config.get("model", {})
