@@ -1,12 +1,5 @@
-"""Training objectives: a run config's world and model family bound into an :class:`Objective`.
-
-Each world brings the objective of the models it trains (``World.objective``): the 2-D FlowSim
-world binds the run's model family (``ModelFamily.loss``, in the family's module under
-:mod:`flowmaps_jax.model`: FlowMaps' flow-matching loss, the MLP baseline's Gaussian
-negative log-likelihood) to the run's recipe; the homes world the homes network's loss.
-:func:`objective_for` asks the run's world for it. Adding a model is a family module, adding a
-world a world module, not an ``if`` branch here.
-"""
+"""Training objectives: a run config's world and model family bound into an :class:`Objective`
+(each world brings it, ``World.objective``; :func:`objective_for` asks the run's world)."""
 
 from __future__ import annotations
 
@@ -26,12 +19,8 @@ LossFn = Callable[[Params, Any, jax.Array, bool], tuple[jax.Array, dict]]
 
 @dataclasses.dataclass(frozen=True)
 class Objective:
-    """How to initialise and score one model.
-
-    init(key) -> params.
-    loss(params, batch, key, train) -> (loss, aux): scalar training loss and a dict of scalar
-        diagnostics; ``train=False`` must be deterministic given ``key`` (no dropout).
-    """
+    """``init(key) -> params`` and ``loss(params, batch, key, train) -> (loss, aux)`` (a scalar
+    and a dict of scalar diagnostics; ``train=False``: deterministic given ``key``)."""
 
     init: Callable[[jax.Array], Params]
     loss: LossFn

@@ -22,28 +22,17 @@ SHORTHANDS = {"precision": "model.precision"}
 
 
 def apply_overrides(cfg, overrides: typing.Iterable[str] | dict[str, Any]):
-    """Return ``cfg`` with fields replaced, e.g. ``["model.dim=64", "lr=1e-3", "clip_norm=none"]``.
-
-    Keys are dotted paths into nested dataclasses. String values are converted to the field's
-    annotated type (int, float, bool, str, ``X | None`` where "none"/"null" gives None); a dict
-    may also carry already-typed values. All overrides are applied before the result is checked,
-    so coupled fields (``flowsim.num_timesteps`` and ``model.tau_max``) can change together.
-    Unknown keys, unconvertible values and invalid results raise ``ValueError`` naming the key.
-    Keys in :data:`SHORTHANDS` are short for a nested path: ``precision=bf16`` sets
-    ``model.precision``.
+    """Return ``cfg`` with fields replaced, e.g. ``["model.dim=64", "lr=1e-3", "clip_norm=none"]``
+    (dotted paths, or :data:`SHORTHANDS`; text converted to the field's type, "none" to None).
+    All are applied before the result is checked; ValueError naming the key.
     """
     return replace_fields(cfg, overrides)
 
 
 def replace_fields(cfg, overrides: typing.Iterable[str] | dict[str, Any] = (),
                    typed: dict[str, Any] | None = None):
-    """Return ``cfg`` with the text ``overrides`` (as :func:`apply_overrides`) and then the
-    ``typed`` values set, every change checked once, together.
-
-    typed: ``{key: value}`` with values already of the field's type, set as they are (no text
-    conversion: ``"none"`` stays the string ``"none"``); keys as in :func:`apply_overrides`.
-    A typed value wins over a text override of the same key. ``ValueError`` naming the keys for
-    an unknown key or an invalid result.
+    """Return ``cfg`` with the text ``overrides`` (as :func:`apply_overrides`), then the
+    ``typed`` ``{key: value}`` set as they are (no text conversion), checked once together.
     """
     items = _override_items(overrides)
     typed_items = list((typed or {}).items())
@@ -120,10 +109,7 @@ _FALSE_WORDS = ("false", "0", "no", "off")
 
 def _convert(text: str, hint: Any, key: str) -> Any:
     """A command-line string as the annotated type ``hint`` (a tuple from comma-separated
-    items, ``homes.day_phases=7,9,17,18``). Text that does not convert is
-    returned as it is: the config's own rule for the field (its ``check_fields`` table; every
-    field of a settable type has one) then refuses it, naming the key, so it is not checked
-    twice."""
+    items); text that does not convert is returned as it is, for the field's rule to refuse."""
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         args = typing.get_args(hint)
@@ -196,10 +182,8 @@ _REMOVED_KEYS = {"TrainConfig": ("run_dir",)}
 
 
 def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:
-    """Inverse of :func:`config_to_dict`: dataclass ``cls`` from a dict. Nested configs are
-    built with their own ``from_dict`` when they have one; lists become tuples. Unknown keys
-    (other than the removed fields that old configs still carry) raise ``ValueError`` naming
-    ``where``. A field reads from its stored key or from its name (not both)."""
+    """Inverse of :func:`config_to_dict`: dataclass ``cls`` from a dict (a field under its stored
+    key or its name); unknown keys raise ``ValueError`` naming ``where``."""
     removed = _REMOVED_KEYS.get(cls.__name__, ())
     check_keys(where, data, [*_field_names(cls), *_field_of_key(cls), *removed],
                what=f"has keys that are no field of {cls.__name__}:")

@@ -53,13 +53,9 @@ def check_resumable(saved: TrainConfig, cfg: TrainConfig, config_json: pathlib.P
 
 
 def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig | None:
-    """The ``config.json`` of a run that saved no checkpoint yet (killed or interrupted before
-    its first save), which ``--resume`` starts again from step 0; None when the run directory
-    holds a checkpoint (or anything else). ValueError if there is nothing to start from.
-
-    A run killed between its first ``best/N`` save and its ``last/N`` save holds only a best
-    checkpoint: without ``from_step`` it too starts again from step 0 (it saved no state to
-    continue; the replay saves the same best again)."""
+    """The ``config.json`` of a run that saved no ``last`` checkpoint yet, which ``--resume``
+    starts again from step 0; None when it holds one. ValueError if there is nothing to start
+    from."""
     rundir.check_own_files(run_dir)  # before anything in it is read
     only_best = from_step is None and rundir.only_best_saved(run_dir)
     if not run_dir.is_dir() or (rundir.has_checkpoint(run_dir) and not only_best):
@@ -80,9 +76,8 @@ def _unsaved_config(run_dir: pathlib.Path, from_step: int | None) -> TrainConfig
 
 def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int | None,
                        mesh, log: Callable[[str], None] = print) -> checkpoints.Restored | None:
-    """The verified checkpoint to continue from (onto ``mesh``, whatever device count it was
-    saved from), after checking that ``cfg`` may resume it; None for a run that saved no
-    checkpoint yet (it starts again from step 0 with its ``config.json``)."""
+    """The verified checkpoint to continue from (onto ``mesh``), ``cfg`` checked against it;
+    None for a run that saved no checkpoint yet."""
     unsaved = _unsaved_config(run_dir, from_step)
     root = None if unsaved is not None else rundir.checkpoint_root(run_dir)
     check_resumable(load_config(root, step=from_step) if root is not None else unsaved, cfg)
@@ -100,9 +95,8 @@ def restore_for_resume(cfg: TrainConfig, run_dir: pathlib.Path, from_step: int |
 
 def resume_config(run_dir: pathlib.Path, from_step: int | None,
                   log: Callable[[str], None] = print) -> TrainConfig:
-    """The config a resumed run starts from: the checkpoint's, with the fields --resume may
-    change taken from ``config.json`` when that file is readable (it holds the last run's
-    --steps etc. even when no checkpoint was saved since); one that is not is said in a line."""
+    """The config a resumed run starts from: the checkpoint's, with the resumable fields from a
+    readable ``config.json``."""
     unsaved = _unsaved_config(run_dir, from_step)
     if unsaved is not None:  # no checkpoint yet: the run starts again with its config.json
         return unsaved
