@@ -1,10 +1,6 @@
-"""Devices and hosts: one 1-D data-parallel mesh (axis ``"data"``), the shardings on it, and
-multi-host start-up.
-
-Batches are split along their leading axis (:func:`batch_sharding`), parameters, EMA and
-optimiser state replicated (:func:`replicated`); ``jax.jit`` with these shardings lets XLA
-partition the step and add the gradient all-reduce. On one device the training loop builds no
-mesh (:func:`training_mesh` returns None).
+"""Devices and hosts: one 1-D data-parallel mesh (axis ``"data"``), batches split along their
+leading axis, state replicated, and multi-host start-up (docs/scaling.md). On one device the
+training loop builds no mesh.
 """
 
 from __future__ import annotations
@@ -33,12 +29,7 @@ _CLUSTER_MARKERS = {
 
 
 def cluster_environment(env: Mapping[str, str] | None = None) -> str | None:
-    """The variable that marks this process as one of several in a job, or None (one host).
-
-    A Slurm or Open MPI job with a single task, and a coordinator address with
-    ``JAX_NUM_PROCESSES`` unset or 1, are single-host runs. A Cloud TPU pod slice lists its
-    workers in ``TPU_WORKER_HOSTNAMES``.
-    """
+    """The variable that marks this process as one of several in a job, or None (one host)."""
     env = os.environ if env is None else env
     for name, count in _CLUSTER_MARKERS.items():
         if name in env and _int_or(env.get(count, "1"), 1) > 1:
@@ -56,17 +47,9 @@ def _int_or(text: str, default: int) -> int:
 
 
 def initialize(env: Mapping[str, str] | None = None) -> bool:
-    """Start ``jax.distributed`` (multi-host) when a cluster environment is present.
-
-    Call it before anything touches a device (the CLIs do). Returns True when this call
-    connected the processes, False on a single host or when already connected.
-
-    * Any launcher: set ``JAX_COORDINATOR_ADDRESS=host:port`` (process 0's host),
-      ``JAX_NUM_PROCESSES`` and ``JAX_PROCESS_ID`` on every process.
-    * Slurm (``srun``), Open MPI (``mpirun``) and Cloud TPU pod slices: JAX reads its own
-      variables; nothing to set.
-
-    A job JAX cannot connect raises ``ValueError`` saying what to set.
+    """Start ``jax.distributed`` when a cluster environment is present, before anything touches
+    a device (docs/scaling.md says what to set). Returns whether this call connected the
+    processes; ValueError saying what to set when JAX cannot connect.
     """
     env = os.environ if env is None else env
     marker = cluster_environment(env)
@@ -113,9 +96,7 @@ def training_mesh(num_devices: int | None = None) -> Mesh | None:
 
 def local_mesh(num_devices: int | None = None) -> Mesh | None:
     """A mesh over this host's own devices (all, or the first ``num_devices``), or None if that
-    is one device: for work each host does on its own, such as generating its share of
-    environments or sampling (:meth:`flowmaps_jax.predictor.Predictor.sharded`). On one host it is
-    :func:`training_mesh`."""
+    is one device."""
     devices = _first(jax.local_devices(), num_devices)
     return Mesh(np.asarray(devices), (DATA_AXIS,)) if len(devices) > 1 else None
 
@@ -160,12 +141,8 @@ def num_padded(size: int, mesh: Mesh | None) -> int:
 
 
 def shard_rows(tree: Any, mesh: Mesh | None) -> Any:
-    """Place a pytree of arrays with a common leading axis (rows) on the mesh, split by rows.
-
-    Rows are padded up to a multiple of the mesh size by repeating the last row; callers whose
-    results are per row (sampling, log-densities, generation) drop the padding afterwards with
-    ``[:size]``. Without a mesh the tree is returned unchanged.
-    """
+    """A pytree of arrays with a common leading axis split by rows over the mesh, padded to a
+    multiple of its size with the last row (callers drop it with ``[:size]``)."""
     if mesh is None:
         return tree
     leaves = jax.tree.leaves(tree)

@@ -1,11 +1,6 @@
-"""Flow-matching maths that knows no model: linear path, t-samplers, ODE solvers, exact
-log-likelihood.
-
-Conventions: noise X_0 ~ N(0, I_d) at t = 0, data X_1 at t = 1, linear path
-X_t = t·X_1 + (1 − t)·X_0 with target velocity X_1 − X_0. Solvers take any
-``velocity_fn(x, t)`` (x of shape (..., d), t a scalar array) that closes over everything else
-(for FlowMaps: context and queries, :func:`flowmaps_jax.model.make_velocity_fn`). The training
-objective that uses the path lives in :mod:`flowmaps_jax.training.objectives`.
+"""Flow-matching maths that knows no model: noise X_0 ~ N(0, I_d) at t = 0, data X_1 at t = 1,
+X_t = t·X_1 + (1 − t)·X_0 with target velocity X_1 − X_0; t-samplers, ODE solvers over any
+``velocity_fn(x (..., d), t scalar)``, exact log-likelihood.
 """
 
 from __future__ import annotations
@@ -62,12 +57,8 @@ def check_solver_args(num_steps: int, method: str) -> tuple[int, str]:
 
 
 def time_grid(num_steps: int, method: str = "midpoint") -> np.ndarray:
-    """The ``num_steps`` grid points in [0, 1] (float64 numpy, increasing) a solver steps through.
-
-    ``"midpoint"`` / ``"euler"``: uniform (the paper's ``linspace(0, 1, n)``). ``"accurate"``:
-    t = 1 − (1 − s)^4 for s uniform in [0, 1], steps shrinking like (1 − t)^¾ where the field is
-    stiff (docs/results.md, "A likelihood you can trust").
-    """
+    """The ``num_steps`` grid points in [0, 1] (float64, increasing): uniform, or for
+    ``"accurate"`` t = 1 − (1 − s)^4, s uniform (docs/design.md, "The likelihood")."""
     if method != "accurate":
         return np.linspace(0.0, 1.0, num_steps)
     return 1.0 - (1.0 - np.linspace(0.0, 1.0, num_steps)) ** STIFF_GRID_POWER
@@ -106,13 +97,8 @@ def _odeint(fn, state, t_start: float, t_end: float, num_steps: int, method: str
 
 def integrate(velocity_fn: VelocityFn, x0: jnp.ndarray, num_steps: int = 10,
               method: str = "midpoint", t0: float = 0.0, t1: float = 1.0) -> jnp.ndarray:
-    """Solve dx/dt = velocity_fn(x, t) from t0 to t1 with a fixed-step solver (``lax.scan``).
-
-    num_steps is the number of **grid points** including both ends (the reference's
-    ``linspace(0, 1, 10)``), i.e. ``num_steps - 1`` intervals. ``"midpoint"`` evaluates the
-    velocity twice per interval (default 10 points → 9 intervals → 18 evaluations), ``"euler"``
-    once (9 evaluations), ``"accurate"`` four times (RK4) on the stiff grid of
-    :func:`time_grid`. x0: any shape (..., 4) → x at t1, same shape.
+    """Solve dx/dt = velocity_fn(x, t) from t0 to t1 over ``num_steps`` **grid points** (both ends
+    included) with a fixed-step solver; x0 (..., 4) → x at t1.
     """
     return _odeint(velocity_fn, x0, t0, t1, num_steps, method)
 
@@ -120,10 +106,8 @@ def integrate(velocity_fn: VelocityFn, x0: jnp.ndarray, num_steps: int = 10,
 def divergence(velocity_fn: VelocityFn, x: jnp.ndarray, t: jnp.ndarray):
     """Exact divergence of the field at every row: returns ``(v, div)`` with v (..., 4), div (...).
 
-    Assumes rows are independent (each row's velocity depends only on that row, true for FlowMaps:
-    no attention between query rows). Then the Jacobian-vector products with the same basis vector
-    e_i on every row give each row's column i of its own 4×4 Jacobian, and the trace is exact:
-    one linearisation plus 4 vmapped JVPs (forward-mode ``jacfwd`` over a batch of rows).
+    Assumes each row's velocity depends only on that row (true for FlowMaps): one linearisation
+    plus 4 JVPs give the exact trace.
     """
     dim = x.shape[-1]
     v, jvp = jax.linearize(lambda y: velocity_fn(y, t), x)
@@ -151,11 +135,8 @@ def log_prob(velocity_fn: VelocityFn, x1: jnp.ndarray, num_steps: int = 10,
              method: str = "midpoint") -> jnp.ndarray:
     """Exact log-density of x1 under the flow (instantaneous change of variables).
 
-    Integrates the augmented ODE (x, ℓ) with dx/dt = v(x, t), dℓ/dt = div v(x, t) backwards from
-    t = 1 (x = x1, ℓ = 0) to t = 0, giving x0 and ℓ = −∫_0^1 div v dt; then
-    log p_1(x1) = log N(x0; 0, I) + ℓ. The divergence is exact (see :func:`divergence`), so the
-    only error is the ODE discretisation (``num_steps`` grid points as in :func:`integrate`).
-    x1 (..., d) → (...).
+    The augmented ODE (x, ℓ), dℓ/dt = div v, backwards from t = 1 to 0: log p_1(x1) =
+    log N(x0; 0, I) − ∫_0^1 div v dt. x1 (..., d) → (...).
     """
     state = (x1, jnp.zeros(x1.shape[:-1], x1.dtype))
     x0, delta = _odeint(_augmented(velocity_fn, 1.0), state, 1.0, 0.0, num_steps, method)
@@ -166,11 +147,7 @@ def sample_with_log_prob(velocity_fn: VelocityFn, x0: jnp.ndarray, num_steps: in
                          method: str = "midpoint") -> tuple[jnp.ndarray, jnp.ndarray]:
     """Samples and their exact log-density in one forward solve: x0 (..., d) → (x1, log p (...)).
 
-    The same augmented ODE as :func:`log_prob`, run forwards from the noise: ℓ starts at
-    log N(x0; 0, I) and accumulates −∫_0^1 div v dt, so log p_1(x1) = ℓ(1) with no second,
-    backward solve. The samples equal :func:`integrate`'s on the same grid (to float rounding);
-    the density is that of the discretised forward map (it agrees with :func:`log_prob` as the
-    grid is refined).
+    The augmented ODE of :func:`log_prob` run forwards; the samples equal :func:`integrate`'s.
     """
     state = (x0, standard_normal_log_prob(x0))
     return _odeint(_augmented(velocity_fn, -1.0), state, 0.0, 1.0, num_steps, method)

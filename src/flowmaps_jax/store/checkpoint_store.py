@@ -1,9 +1,5 @@
-"""Writing a run's checkpoints: the last k saves and the best by validation loss.
-
-:class:`CheckpointStore` holds the two orbax managers of :mod:`.checkpoints`. Each save holds
-the training state, the run's config and the ``meta`` item of :mod:`.integrity`; saves are
-synchronous and atomic (an interrupted save never appears as a step). A non-finite state is
-never saved (:class:`~.integrity.NonFiniteStateError`); a failed write raises
+"""Writing a run's checkpoints (the last k saves and the best by validation loss; layout:
+:mod:`.checkpoints`): synchronous and atomic, never a non-finite state; a failed write raises
 :class:`CheckpointSaveError` and the partial save is removed.
 """
 
@@ -74,14 +70,8 @@ def _save_error(err: BaseException, step: int, sub: pathlib.Path) -> CheckpointS
 
 
 class CheckpointStore:
-    """Writes checkpoints of one run: ``save`` (last k) and ``save_if_best`` (best by val loss).
-
-    directory: checkpoint root (created if needed; ``ValueError`` if anything in it is a
-    symbolic link); keep_last: recent checkpoints kept (k >= 1).
-    Both saves raise :class:`~.integrity.NonFiniteStateError` (nothing written) for a state
-    holding NaN or inf, and :class:`CheckpointSaveError` when the write fails (the partial save
-    is removed).
-    """
+    """Writes checkpoints of one run into ``directory`` (created if needed; no symbolic links):
+    ``save`` (the ``keep_last`` recent) and ``save_if_best`` (best by val loss)."""
 
     def __init__(self, directory: str | pathlib.Path, keep_last: int = 2):
         keep_last = check_int("keep_last", keep_last)
@@ -106,9 +96,8 @@ class CheckpointStore:
             raise _save_error(err, step, sub) from err
 
     def save(self, state, config: dict, *, log_window: dict | None = None) -> int:
-        """Save ``state`` (a TrainState) and ``config`` (JSON dict) under its step; returns the
-        step. Saving a step that is already saved is a no-op. ``log_window``: JSON data the
-        training loop needs to resume its metrics window exactly (kept in ``meta``)."""
+        """Save ``state`` and ``config`` (JSON dict) under its step (a no-op if saved); returns the
+        step. ``log_window``: the loop's metrics window (kept in ``meta``)."""
         step = int(state.step)
         if step not in self._last.all_steps():
             self._write(self._last, step, state, config, describe_state(state, config, log_window))
@@ -136,11 +125,9 @@ class CheckpointStore:
 
     def save_best(self, state, config: dict, val_loss: float, *,
                   log_window: dict | None = None) -> bool:
-        """Save ``state`` to ``best`` as an improvement the caller has decided on (a resumed run
-        replaying steps before a best its first run saved: the same save comes again later), a
-        save of the same step replaced. A kept best of a later step with a val loss at most
-        ``val_loss`` stays, as orbax's best-of-one would keep it (nothing is written); returns
-        whether it saved."""
+        """Save ``state`` to ``best`` as an improvement the caller has decided on (a save of the
+        same step replaced; a kept later best at most ``val_loss`` stays); returns whether it
+        saved."""
         step = int(state.step)
         kept_step, kept_loss = self._best.best_step(), self.best_val_loss
         if kept_step is not None and kept_step > step and kept_loss is not None \

@@ -1,10 +1,6 @@
-"""What makes a stored state trustworthy: SHA-256 checksums, finiteness and the ``meta`` format.
-
-Every checkpoint step carries a JSON ``meta`` item (:func:`describe_state`): the SHA-256 of every
-array leaf of the state (by :func:`leaf_name`) and of the config, plus the training loop's
-unlogged metrics window. A save refuses a state holding NaN or inf
-(:class:`NonFiniteStateError`); a restore recomputes the checksums and checks finiteness
-(:func:`verify`).
+"""What makes a stored state trustworthy (docs/guarantees.md, "Integrity checks"): the ``meta``
+item of every step (:func:`describe_state`: SHA-256 of every array leaf and of the config, plus
+the unlogged metrics window), :class:`NonFiniteStateError` on save and :func:`verify` on restore.
 """
 
 from __future__ import annotations

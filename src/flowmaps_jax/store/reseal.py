@@ -1,7 +1,5 @@
-"""``python -m flowmaps_jax.store.reseal DIRECTORY``: add the ``seal``
-(:func:`~flowmaps_jax.store.pretrained.seal`) to every unsealed model in ``DIRECTORY`` whose
-``.npz`` still matches the SHA-256 its ``.json`` recorded (a damaged one is refused). Only the
-``.json`` is rewritten, atomically; a sealed model is left as it is.
+"""``python -m flowmaps_jax.store.reseal DIRECTORY``: add the ``seal`` to every unsealed model
+whose ``.npz`` still matches its recorded SHA-256 (only the ``.json`` is rewritten, atomically).
 """
 
 from __future__ import annotations
@@ -19,9 +17,8 @@ from flowmaps_jax.validation import check_dir
 
 
 def reseal(directory: str | pathlib.Path) -> dict[str, str]:
-    """Seal the unsealed models in ``directory``; returns {name: "sealed" or "already
-    sealed"}. ``ValueError`` naming the model (nothing written for it or after it) when its
-    ``.json`` is unreadable or its ``.npz`` no longer matches the recorded SHA-256."""
+    """Seal the unsealed models in ``directory``; returns {name: "sealed" or "already sealed"}.
+    ValueError naming a damaged model (nothing written for it or after it)."""
     root = pathlib.Path(check_dir("directory", directory))
     done = {}
     for name in pretrained.available(root):
