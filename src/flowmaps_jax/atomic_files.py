@@ -1,9 +1,5 @@
-"""The one writer every command's output files go through: nothing is ever written through a
-symbolic link, and nothing is left half-written (a temporary beside the target, then a
-rename). :func:`write_file` / :func:`write_files`, :func:`make_output_dir`,
-:func:`output_folder` (a whole folder, renamed into place), :func:`save_figure`, and the
-up-front refusals :func:`check_no_links` and :func:`check_tree_no_links`; each ``ValueError``
-names the path.
+"""The one writer every command's output files go through: never through a symbolic link, never
+half-written (a temporary beside the target, then a rename); each ``ValueError`` names the path.
 """
 
 from __future__ import annotations
@@ -41,9 +37,7 @@ def check_no_links(name: str, folder: Any, filenames: Iterable[str]) -> None:
 
 
 def check_tree_no_links(name: str, folder: Any) -> None:
-    """``ValueError`` naming the path (``"<name> '<path>' is a symbolic link"``) if anything
-    under ``folder`` (at any depth, ``folder`` itself excluded) is a symbolic link; links are
-    never followed while looking."""
+    """``ValueError`` naming the path if anything under ``folder`` is a symbolic link."""
     for here, dirs, files in os.walk(folder, followlinks=False):
         for entry in sorted(dirs) + sorted(files):
             path = os.path.join(here, entry)
@@ -58,11 +52,8 @@ def check_tree_no_links(name: str, folder: Any) -> None:
 
 
 def make_output_dir(name: str, path: Any, files: Iterable[str] = ()) -> pathlib.Path:
-    """The folder ``path``, created with the parents it lacks (each one by this call, with
-    ``mkdir``, which never follows a link); ``ValueError`` naming ``name`` if a component it
-    creates is, or becomes, a symbolic link or a file, or if a symbolic link sits at a name of
-    ``files`` (the files about to be written there, so that none is written if one would be
-    refused). Returns it as a Path."""
+    """The folder ``path`` as a Path, created with its parents; ``ValueError`` naming ``name`` if a
+    component is a symbolic link or a file, or a link sits at a name of ``files``."""
     path = pathlib.Path(path)
     missing = []
     probe = path
@@ -104,10 +95,9 @@ def move_aside(path: pathlib.Path) -> pathlib.Path:
 @contextlib.contextmanager
 def output_folder(name: str, path: Any, *, overwrite: bool = False,
                   log: Callable[[str], None] = print) -> Iterator[pathlib.Path]:
-    """Yields a fresh temporary folder beside ``path`` to write a whole output into; on leaving
-    it is renamed to ``path``, and on an error (a refusal, a full disk, an interrupt) removed.
-    A symbolic link at ``path`` is a ``ValueError`` naming ``name``; so is a folder there that
-    holds anything, unless ``overwrite``: it is then moved to ``<path>.old-<timestamp>``."""
+    """Yields a temporary folder beside ``path``, renamed to ``path`` on leaving (removed on an
+    error). A link or a non-empty folder at ``path`` is a ValueError, unless ``overwrite``
+    (moved to ``<path>.old-<timestamp>``)."""
     given, path = os.fspath(path), pathlib.Path(os.path.abspath(path))
     if path.is_symlink():
         raise _link_error(name, given)
@@ -138,9 +128,7 @@ def output_folder(name: str, path: Any, *, overwrite: bool = False,
 
 
 def _write_temporary(path: pathlib.Path, raw: bytes, name: str) -> pathlib.Path:
-    """``raw`` written and synced to ``<path>.tmp`` (created exclusively, never through a link);
-    returns that temporary path. A symbolic link at ``path`` or a directory there is a
-    ``ValueError`` naming ``name`` (nothing is written)."""
+    """``raw`` written and synced to ``<path>.tmp`` (created exclusively); returns that path."""
     if path.is_symlink():
         raise _link_error(name, path)
     if path.is_dir():
@@ -161,11 +149,8 @@ def _write_temporary(path: pathlib.Path, raw: bytes, name: str) -> pathlib.Path:
 
 
 def write_files(files: dict[Any, str | bytes], *, name: str = "output file") -> None:
-    """Write several files as one output (a model's ``.npz`` and ``.json``): every one first to
-    its ``<path>.tmp`` (as :func:`write_file`), then all renamed into place, so a refusal (a
-    link or a directory at one of the names) or a failed write of the data (a full disk)
-    leaves none of them new and no temporary file behind (only the renames, which write no
-    data, come after the first file is in place)."""
+    """Write several files as one output: each to its ``<path>.tmp``, then all renamed, so a
+    refusal or a failed write leaves none of them new."""
     paths = [pathlib.Path(path) for path in files]
     for path in paths:  # every refusal before anything is written
         if path.is_symlink():
@@ -188,12 +173,9 @@ def write_files(files: dict[Any, str | bytes], *, name: str = "output file") -> 
 
 
 def write_file(path: Any, data: str | bytes, *, name: str = "output file") -> pathlib.Path:
-    """Write ``data`` (text as UTF-8, or bytes) to ``path`` through ``<path>.tmp`` and a rename.
-
-    A symbolic link at ``path`` is a ``ValueError`` naming ``name`` (nothing is written); one at
-    the temporary name is removed, never followed. The temporary file is created exclusively
-    (``O_EXCL | O_NOFOLLOW``), synced, then renamed over ``path``. An ``OSError`` (a full disk)
-    removes the temporary file and propagates. Returns ``path`` as a Path."""
+    """Write ``data`` (text as UTF-8, or bytes) to ``path`` through ``<path>.tmp`` and a rename;
+    returns ``path``. A link at ``path`` is a ValueError naming ``name``; an OSError removes the
+    temporary file and propagates."""
     path = pathlib.Path(path)
     write_files({path: data}, name=name)
     return path

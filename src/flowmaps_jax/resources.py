@@ -1,9 +1,6 @@
-"""Resource budgets: every size that scales memory or time is checked against them up front.
-
-A request above the budget is a ``ValueError`` naming it, the estimate and the limit
-(:func:`check_resources`). The budgets: memory, :data:`MAX_BYTES_ENV` (default the accelerator's
-memory, else the host's); work, :data:`MAX_FLOPS_ENV` (default :data:`DEFAULT_MAX_FLOPS`
-floating-point operations per uninterruptible call).
+"""Resource budgets, checked up front: a request above one is a ``ValueError`` naming it, the
+estimate and the limit (:func:`check_resources`); memory :data:`MAX_BYTES_ENV`, work
+:data:`MAX_FLOPS_ENV`.
 """
 
 from __future__ import annotations
@@ -23,15 +20,11 @@ MAX_BYTES_ENV = "FLOWMAPS_MAX_BYTES"
 MAX_FLOPS_ENV = "FLOWMAPS_MAX_FLOPS"
 """Environment variable overriding the work budget of one uninterruptible call (FLOPs)."""
 DEFAULT_MAX_FLOPS = 10**17
-"""Default work budget, by the generous estimates here: about 200 default evaluations of the cpu
-preset's models (2 minutes each on a 2-core CPU) or 30 of a paper-size model; it refuses sizes
-that would run for days (``--num-steps 10**9``). Raise it with :data:`MAX_FLOPS_ENV`."""
+"""Default work budget: refuses sizes that would run for days (raise it with
+:data:`MAX_FLOPS_ENV`)."""
 SEQUENTIAL_FLOPS = 10**12
-"""What one step of a sequential loop (an ODE solver's network evaluation) counts for in the work
-budget at the least, however small the batch: the steps run one after another, so their
-latency, not their arithmetic, sets the time (``num_steps=10**6`` on four samples runs for
-minutes). With the default budget a call may take 10**5 sequential evaluations (a midpoint
-solve on 50 000 grid points; the default is 10)."""
+"""The least one step of a sequential loop (an ODE solver's evaluation) counts for in the work
+budget: latency, not arithmetic, sets its time."""
 _SUFFIXES = {"": 1, "K": 10**3, "M": 10**6, "G": 10**9, "T": 10**12, "P": 10**15,
              "KI": 2**10, "MI": 2**20, "GI": 2**30, "TI": 2**40, "PI": 2**50}
 
@@ -138,9 +131,8 @@ def solver_evaluations(num_steps: int, method: str = "midpoint") -> int:
 
 
 def embedding_bytes(model: Any, scalars: int) -> int:
-    """Bytes of the sinusoidal features of ``scalars`` scalars of one row or token (their
-    arguments, sines, cosines and the concatenation fed to the first dense layer: 5 floats per
-    scalar and band): what ``model.freq_bands`` adds to every row's working memory."""
+    """Bytes of the sinusoidal features of ``scalars`` scalars of one row (5 floats per scalar
+    and band)."""
     return 4 * 5 * int(scalars) * int(model.freq_bands)
 
 

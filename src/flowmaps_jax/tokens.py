@@ -1,17 +1,7 @@
-"""The arrays that cross from the simulator to the model: scene tokens and query batches.
-
-The contract between :mod:`flowmaps_jax.flowsim` (producer) and the model (consumer); it knows
-neither.
-
-* A box is ``(y, x, h, w)``: top-left corner and size, normalised to [0, 1] by dividing pixels by
-  ``map_size - 1`` (as the reference code does). Centres are ``(y + h/2, x + w/2)``.
-* Token order inside one scene: the F furniture pieces, then the M objects, then padding.
-  ``mask`` is True for real tokens and False for padding.
-* ``kind`` is the token's type flag: 0 = furniture, 1 = object.
-* ``descriptor`` is the integer descriptor id (colour id in FlowSim: fork 0, bottle 1, remote 2,
-  kitchen_table 3, office_desk 4, dining_table 5).
-* Times ``tau`` (state time of the map) and ``tau_q`` (query time) are integer timesteps with
-  ``0 <= tau < tau_q < num_timesteps``.
+"""The arrays that cross from the simulator to the model (the contract; it knows neither): scene
+tokens and query batches. A box is ``(y, x, h, w)`` normalised by ``map_size - 1``; tokens are
+the F furniture pieces, then the M objects, then padding (``mask`` False); ``kind`` 0 furniture,
+1 object; ``descriptor`` an integer id; ``0 <= tau < tau_q < num_timesteps``.
 """
 
 from __future__ import annotations
@@ -46,9 +36,7 @@ class SceneTokens:
     kind: (..., S) int32 type flag, FURNITURE or OBJECT; 0 on padding.
     mask: (..., S) bool, True for real tokens.
     tau: (...,) int32 state time of the map.
-    age: None (one map, the paper's input), or (..., S) int32 how many steps before τ each
-        token was seen: 0 for the map at τ, a for the object tokens of the map at τ − a (a
-        model with ``ModelConfig.history`` = H reads the last H maps this way).
+    age: None (one map), or (..., S) int32 how many steps before τ each token was seen.
     """
 
     boxes: jnp.ndarray
@@ -65,11 +53,8 @@ class SceneTokens:
 
 @struct.dataclass
 class Queries:
-    """Q queries per scene. Leading batch dims match the SceneTokens they refer to.
-
-    descriptor: (..., Q) int32 descriptor id of the queried object.
-    tau_q: (..., Q) int32 query time, strictly greater than the scene's tau.
-    """
+    """Q queries per scene: descriptor (..., Q) int32 of the queried object, tau_q (..., Q) int32
+    query time > the scene's tau."""
 
     descriptor: jnp.ndarray
     tau_q: jnp.ndarray
@@ -77,12 +62,8 @@ class Queries:
 
 @struct.dataclass
 class TrainBatch:
-    """What one training step consumes: B scenes, Q queries each, with their ground truth.
-
-    tokens: SceneTokens with leading dim (B,).
-    queries: Queries with dims (B, Q).
-    target: (B, Q, 4) float32 normalised (y, x, h, w) box of the queried object at tau_q.
-    """
+    """One training step's input: tokens (B,), queries (B, Q) and target (B, Q, 4) float32, the
+    queried object's box at tau_q."""
 
     tokens: SceneTokens
     queries: Queries
@@ -97,12 +78,9 @@ def _array(name: str, value):
 
 def validate_tokens(tokens: SceneTokens, num_descriptors: int, max_tokens: int | None = None,
                     num_timesteps: int | None = None) -> None:
-    """Raise ``ValueError`` naming the field if ``tokens`` is malformed: arrays (not lists) of
-    shapes (*B, S, 4) boxes and (*B, S) descriptor, kind, mask (and age) for the boxes' *B and
-    S (``max_tokens`` when given), (*B,) tau; boxes in [0, 1] (finite everywhere), descriptors
-    in 0..num_descriptors − 1 and kinds 0/1 on real tokens (padding is masked out anyway), tau
-    in 0..num_timesteps − 2 when given, and a real token in every scene. Concrete arrays only:
-    call it at public API boundaries."""
+    """Raise ``ValueError`` naming the field if ``tokens`` (concrete arrays) is malformed: shapes,
+    boxes in [0, 1], known descriptors and kinds on real tokens, tau in 0..num_timesteps − 2,
+    a real token in every scene."""
     num_descriptors = check_int("num_descriptors", num_descriptors)
     if max_tokens is not None:
         max_tokens = check_int("max_tokens", max_tokens)
@@ -134,11 +112,8 @@ def validate_tokens(tokens: SceneTokens, num_descriptors: int, max_tokens: int |
 
 def validate_queries(queries: Queries, tau, num_descriptors: int, tau_max: int,
                      object_descriptors: Collection[int] | None = None) -> None:
-    """Raise ``ValueError`` if ``queries`` is malformed: not integer arrays of shape (*B, Q) for
-    ``tau`` (*B,) the scenes' state times, a descriptor outside 0..num_descriptors − 1 or, when
-    ``object_descriptors`` is given, not one of them (a query names an object category, not a
-    furniture kind, e.g. ``FlowSimConfig.object_descriptors``), or ``tau_q`` outside
-    (tau, tau_max)."""
+    """Raise ``ValueError`` if ``queries`` are not (*B, Q) integers for scenes at ``tau`` (*B,),
+    with known descriptors (``object_descriptors`` when given) and tau < tau_q < tau_max."""
     num_descriptors = check_int("num_descriptors", num_descriptors)
     tau_max = check_int("tau_max", tau_max)
     tau = check_int_array("tau", tau)
@@ -160,9 +135,8 @@ def validate_queries(queries: Queries, tau, num_descriptors: int, tau_max: int,
 
 
 def check_train_batch(batch: TrainBatch) -> None:
-    """A train step's batch: a :class:`TrainBatch` whose arrays agree on B (scenes), S (tokens)
-    and Q (queries per scene), else a ValueError naming the array (not an XLA error). Shapes
-    only, so it runs on tracers too (inside ``jit``)."""
+    """A :class:`TrainBatch` whose arrays agree on B, S and Q, else a ValueError naming the array
+    (shapes only: runs on tracers)."""
     if not isinstance(batch, TrainBatch):
         raise ValueError(f"batch must be a TrainBatch; got {type(batch).__name__}")
     tokens, queries = batch.tokens, batch.queries
@@ -183,15 +157,8 @@ def check_train_batch(batch: TrainBatch) -> None:
 
 
 def trim_padding(tokens: SceneTokens, num_tokens: int) -> SceneTokens:
-    """Keep the first ``num_tokens`` token slots, dropping trailing padding.
-
-    Padding is masked out of every attention and pooling, so a model's output is unchanged as long
-    as only padding is dropped (FlowSim scenes have F + M real tokens first). Training and
-    inference call this with ``num_tokens = F + M`` to skip the attention work on empty slots.
-    ``num_tokens`` must be static (a Python int in 1..S; its callers' configs ensure it:
-    ``FlowSimConfig``/``TrainConfig`` check max_tokens >= F + M·history). Shapes:
-    (..., S, ·) → (..., num_tokens, ·).
-    """
+    """Keep the first ``num_tokens`` (static) token slots, (..., S, ·) → (..., num_tokens, ·):
+    the output is unchanged as long as only padding is dropped."""
     return tokens.replace(boxes=tokens.boxes[..., :num_tokens, :],
                           descriptor=tokens.descriptor[..., :num_tokens],
                           kind=tokens.kind[..., :num_tokens],

@@ -1,12 +1,7 @@
-"""Reading files this project did not write, or that may have been changed since: nothing in
-them is trusted before it is checked.
-
-* :func:`read_npz`: the arrays of an untrusted ``.npz``; member names whitelisted, the declared
-  sizes checked before anything is decompressed, no pickles.
-* :func:`parse_json` / :func:`read_json`: untrusted JSON, its size and nesting depth bounded
-  (never a ``RecursionError``).
-
-Any failure is a ``ValueError`` naming the file (the ``name`` argument).
+"""Reading files this project did not write, or that may have changed since: :func:`read_npz`
+(members whitelisted, declared sizes checked before decompressing, no pickles) and
+:func:`parse_json` / :func:`read_json` (size and nesting bounded). Any failure is a
+``ValueError`` naming the file.
 """
 
 from __future__ import annotations
@@ -28,14 +23,10 @@ def read_npz(name: str, source: Any, *, allowed: Sequence[str] | None = None,
              required: Sequence[str] = (), max_bytes: int | None = None,
              expected: dict[str, tuple[tuple[int, ...], Any]] | None = None
              ) -> dict[str, np.ndarray]:
-    """The arrays of an untrusted ``.npz`` (a path, or its bytes as a file object), read safely.
-
-    Before any data is decompressed: the file must be a zip whose members are ``<key>.npy`` for
-    keys in ``allowed`` (None: any key) with ``required`` present, no member twice; the zip
-    directory's declared sizes, then the total of the ``.npy`` headers' shapes and dtypes, must
-    be at most ``max_bytes`` (default :func:`memory_limit`); ``expected`` ({key: (shape, dtype)})
-    pins members exactly; objects (pickles) are refused. Each member's data is then read once,
-    into its array. Any failure is a ``ValueError`` naming ``name``.
+    """The arrays of an untrusted ``.npz`` (a path or a file object): members ``<key>.npy`` for
+    keys in ``allowed`` (None: any) with ``required`` present, declared sizes at most
+    ``max_bytes``, ``expected`` ({key: (shape, dtype)}) exact, no pickles, all checked before
+    anything is decompressed. ValueError naming ``name``.
     """
     limit = memory_limit() if max_bytes is None else int(max_bytes)
     try:
