@@ -96,10 +96,8 @@ def plot_by_horizon(results: dict, rows: Sequence[str] | None = None) -> Figure:
 def pick_queries(evalset: EvalSet, config: FlowSimConfig,
                  categories: Sequence[str] = ("fork", "remote", "bottle"),
                  horizons: tuple[int, int] = (2, 4)) -> list[tuple[int, int]]:
-    """One (environment row, object) per category for the figures: among queries with
-    Δτ in ``horizons`` (inclusive; a few steps ahead, so q is multimodal but not yet uniform),
-    the one whose exact posterior has the most entropy; any horizon if none qualifies.
-    Categories missing from the config are skipped."""
+    """One (environment row, object) per category: the query with Δτ in ``horizons`` whose exact
+    posterior has the most entropy (any horizon if none)."""
     names = [c.name for c in config.categories]
     q = np.asarray(evalset.slot_probs, np.float64)
     entropy = -np.sum(np.where(q > 0, q * np.log(np.where(q > 0, q, 1.0)), 0.0), axis=-1)
@@ -129,9 +127,8 @@ def _picks(evalset: EvalSet, config: FlowSimConfig,
 
 def plot_samples(scenes, evalset: EvalSet, rows: Sequence[RowResult], config: FlowSimConfig,
                  picks: Sequence[tuple[int, int]] | None = None, num_shown: int = 25) -> Figure:
-    """Paper Fig. 3: for each picked query (default: fork, remote, bottle), the map at τ with the
-    exact posterior over the object's places shaded and labelled (its modes), and ``num_shown``
-    samples of each model row overlaid (one row of panels per model)."""
+    """Paper Fig. 3: per picked query, the map at τ with the exact posterior shaded and
+    ``num_shown`` samples of each model overlaid (a row of panels per model)."""
     rows = [r for r in rows if r.samples is not None]
     if not rows:
         raise ValueError("rows must include at least one model row with samples")

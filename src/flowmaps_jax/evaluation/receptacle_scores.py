@@ -1,11 +1,6 @@
-"""Posterior scores of a prior against the exact posterior, per query, and their summaries.
-
-Per query (:func:`posterior_scores`; p, q (..., R) over receptacle slots, ``allowed`` (..., R)):
-``kl`` = Σ_{q_r > 0} q_r log(q_r / p_r) in nats (p floored at ``KL_FLOOR``; not reported for
-sample rows); ``tv``, ``top1`` and ``rank_cost`` are the 2-D slot metrics' kernels
-(:func:`flowmaps_jax.evaluation.slots.score_slots`, docs/protocol.md) with the off bin
-1 − Σ_r p_r (mass a sample row puts off every allowed receptacle, :func:`assign_samples`).
-:func:`summarise`: mean ± standard error over queries, overall, by regime and by horizon.
+"""Posterior scores of a prior against the exact posterior per query (p, q (..., R) over
+receptacle slots): ``kl`` in nats (p floored at ``KL_FLOOR``), and the 2-D slot metrics' ``tv``,
+``top1`` and ``rank_cost`` (docs/protocol.md) with the off bin 1 − Σ_r p_r; :func:`summarise`.
 """
 
 from __future__ import annotations
@@ -49,9 +44,8 @@ def _with_off_bin(p, allowed):
 
 
 def check_reference(q, tolerance: float = REFERENCE_TOLERANCE) -> None:
-    """``ValueError`` unless every row of the reference posterior q (..., R) (its allowed
-    receptacles) is finite and sums to 1 within ``tolerance``: a score against a posterior that
-    lost (or gained) mass is never published."""
+    """``ValueError`` unless every row of the reference posterior q (..., R) is finite and sums to
+    1 within ``tolerance``."""
     total = np.asarray(jnp.sum(q, axis=-1))
     bad = ~np.isfinite(total) | (np.abs(total - 1.0) > tolerance)
     if np.any(bad):
@@ -103,10 +97,8 @@ def _assign(samples, positions, allowed, footprint):
 
 def assign_samples(samples, homes: Homes, queries: HomesQueries,
                    config: HomesConfig) -> jax.Array:
-    """(E, Q, R) fractions of sampled boxes (E, Q, N, 6) (cx, cy, cz, w, d, h) on each allowed
-    receptacle: a sample counts for the allowed receptacle whose object position
-    (:func:`object_positions`) is nearest to its centre, unless farther than half that
-    receptacle's footprint diagonal plus ``ASSIGN_MARGIN``; then it is off (1 − the sum)."""
+    """(E, Q, R) fractions of sampled boxes (E, Q, N, 6) on each allowed receptacle (the nearest
+    object position, off beyond half its footprint diagonal plus ``ASSIGN_MARGIN``)."""
     check_instance("queries", queries, HomesQueries)
     e, q = check_array("queries.object_index", queries.object_index, (None, None)).shape
     check_array("samples", samples, (e, q, None, 6))

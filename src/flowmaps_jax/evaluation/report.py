@@ -1,9 +1,6 @@
-"""The results: per-query rows summarised into ``results.json`` and ``results.md``.
-
-Every number is reported overall, by category and by horizon Δτ, as mean ± standard error over
-queries (``null``, never NaN, for a group of one). An eval set with a history
-(``EvalSet.habit`` set) adds ``results["by_habit"]`` (:func:`summarise_habits`) and one table
-per habit.
+"""The results: per-query rows summarised into ``results.json`` and ``results.md``, overall, by
+category and by horizon Δτ (mean ± standard error; ``null``, never NaN, for a group of one), and
+by habit when the eval set has one.
 """
 
 from __future__ import annotations
@@ -35,13 +32,9 @@ def _stats(values: np.ndarray) -> dict:
 
 
 def summarise(values, groups=None) -> dict:
-    """Mean, standard error and count, overall and per group id (numpy; not a hot path).
-
-    values: (Q,) or any shape, per-query numbers. groups: same shape, group ids (ints or strings,
-    e.g. category or horizon Δτ), or None. Returns
-    ``{"overall": {"mean", "stderr", "count"}, "by_group": {id: {...}}}`` (``by_group`` only with
-    groups; ids as Python scalars, sorted). stderr is NaN for a group of one.
-    """
+    """``{"overall": {"mean", "stderr", "count"}, "by_group": {id: {...}}}`` of per-query
+    ``values`` (``by_group`` only with ``groups``, ids of the same shape, sorted); stderr is NaN
+    for a group of one."""
     v = np.asarray(values, dtype=np.float64)
     if v.size == 0:
         raise ValueError("values is empty")
@@ -84,12 +77,8 @@ def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimC
     """{row name: {"kl": breakdown, "slots": {n: {metric: breakdown}}, "info": {...}}}.
 
     A breakdown is {"overall": {mean, stderr, count}, "by_category": {name: ...},
-    "by_horizon": {Δτ: ...}}. The KL stderr is over queries (it includes the Monte-Carlo error);
-    "kl_mc_stderr" is the mean per-query Monte-Carlo standard error; "kl_integration_error" the
-    accurate likelihood's integration error (0 for closed-form densities, null if unknown);
-    "kl_paper_grid" a flow's KL with the paper's likelihood grid (null otherwise).
-    "route_offsets_one_step": the mean route-offset mass over the Δτ = 1 queries (largest sample
-    count).
+    "by_horizon": {Δτ: ...}}; "info" holds "kl_mc_stderr", "kl_integration_error",
+    "kl_paper_grid" and "route_offsets_one_step".
     """
     out = {}
     one_step = np.asarray(evalset.horizon) == 1
@@ -117,12 +106,9 @@ def summarise_rows(rows: Sequence[RowResult], evalset: EvalSet, config: FlowSimC
 
 
 def summarise_habits(rows: Sequence[RowResult], evalset: EvalSet) -> dict:
-    """Each row's numbers on the queries of each habit present in ``evalset`` (``habit`` set).
-
-    Returns ``{habit: {"count": queries, "rows": {row name: {"kl": stat, "slots": {n: {"tv",
-    "top1", "search_cost_ratio", "off": stat}}}}}}`` with stat {mean, stderr, count} and "off"
-    the mass p̂ puts on no table; habits in ``flowsim.HABITS`` order. The counts add up to the
-    number of queries.
+    """``{habit: {"count": queries, "rows": {row name: {"kl": stat, "slots": {n: {"tv", "top1",
+    "search_cost_ratio", "off": stat}}}}}}`` over the habits present in ``evalset``, in
+    ``flowsim.HABITS`` order; stat {mean, stderr, count}.
     """
     if evalset.habit is None:
         raise ValueError("evalset has no habits (it was built without a history)")
@@ -239,9 +225,7 @@ def _history_sentence(p: dict) -> str:
 
 
 def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathlib.Path]:
-    """Write ``results.json`` and ``results.md`` into out_dir (created); returns their paths.
-    Both go through the shared writer (:func:`flowmaps_jax.atomic_files.write_file`: a temporary
-    file and a rename; a symbolic link at either name is a ``ValueError``)."""
+    """Write ``results.json`` and ``results.md`` into out_dir (created); returns their paths."""
     out = make_output_dir("out_dir", out_dir, files=("results.json", "results.md"))
     paths = {"json": out / "results.json", "markdown": out / "results.md"}
     text = json.dumps(results, indent=2, allow_nan=False) + "\n"  # refused before any write

@@ -1,10 +1,6 @@
-"""Routine diagnostic: does a predictor know *which* table comes next, not only which kind?
-
-One step ahead FlowSim's exact posterior puts 0.2 / 0.7 / 0.1 on route offsets 0 / +1 / +2.
-:class:`RoutineProbe`: two small fixed query sets (every object one step ahead, and the
-protocol's horizon mixture); :func:`routine_metrics`: the mass at route offsets 0 / +1 / +2 /
-+3 / beyond / off and slot TV, top-1 and rank cost on both (``"kind": "routine"`` records of
-``metrics.jsonl``); :func:`plot_learning_curve`.
+"""Routine diagnostic: does a predictor know *which* table comes next, not only which kind? Two
+small fixed query sets (one step ahead, and the horizon mixture); the mass at route offsets and
+the slot scores become the ``"routine"`` records of ``metrics.jsonl``.
 """
 
 from __future__ import annotations
@@ -41,11 +37,8 @@ class RoutineProbe:
 
 def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
                 history: int = 1) -> RoutineProbe:
-    """The probe from the first ``num_envs`` environments of ``scenes`` (3 queries each).
-
-    history: H of the model it scores. With H > 1 its tokens are the last H maps
-    (``scene_tokens(..., history=H)``, within ``config.max_tokens``) and, as in the evaluation,
-    the ground truth is the exact posterior given the last min(H, τ + 1) observations."""
+    """The probe from the first ``num_envs`` environments of ``scenes`` (3 queries each), for a
+    model reading the last ``history`` maps."""
     num_envs = check_int("num_envs", num_envs)
     if num_envs > scenes.num_envs:
         raise ValueError(f"num_envs must be <= {scenes.num_envs} (the environments in scenes); "
@@ -67,12 +60,9 @@ def build_probe(scenes, config, num_envs: int = 20, seed: int = 0,
 
 def routine_metrics(predictor, probe: RoutineProbe, key: jax.Array | None = None,
                     num_samples: int = 32) -> dict[str, float]:
-    """Sample ``predictor`` on the probe; a flat dict of floats (JSON-ready).
-
-    Keys: ``offset_0``, ``offset_+1``, ``offset_+2``, ``offset_+3``, ``offset_beyond``,
-    ``offset_off`` (one step ahead, mean over queries); ``one_step_tv``, ``one_step_top1``,
-    ``one_step_search_cost_ratio``; ``tv``, ``top1``, ``search_cost_ratio`` (horizon mixture).
-    """
+    """Sample ``predictor`` on the probe: floats ``offset_0`` … ``offset_+3``, ``offset_beyond``,
+    ``offset_off``, ``one_step_{tv,top1,search_cost_ratio}`` and ``tv``, ``top1``,
+    ``search_cost_ratio`` (horizon mixture)."""
     check_instance("probe", probe, RoutineProbe)
     num_samples = check_int("num_samples", num_samples)
     key = jax.random.key(0) if key is None else key

@@ -1,11 +1,6 @@
-"""The whole evaluation in one call: queries, reference rows, each predictor, report and figures.
-
-``python -m flowmaps_jax.evaluate`` (:mod:`.cli`) is this function behind a command line.
-The world is the one of the ``config`` the scenes were generated with; ``history`` H is the
-observations the exact reference posterior is given (default :func:`default_history`). Each
-model reads the maps it was trained on: a model with ``model.history`` = h > 1 is scored on the
-same queries with tokens of the last h maps (``flowsim.scenes.scene_tokens(..., history=h)``),
-so an H = 1 model and an H = 8 model face the same ground truth and differ only in what they see.
+"""The whole evaluation in one call (behind ``python -m flowmaps_jax.evaluate``): queries,
+reference rows, each predictor, report and figures. Each model reads the maps it was trained on;
+``history`` H is what the exact reference posterior is given.
 """
 
 from __future__ import annotations
@@ -56,12 +51,10 @@ def run_evaluation(predictors: Sequence[Predictor], scenes, config: FlowSimConfi
                    likelihood_draws: int = DEFAULT_LIKELIHOOD_DRAWS, figures: bool = True,
                    progress: bool = True, history: int | None = None,
                    ) -> tuple[dict, list[RowResult], EvalSet]:
-    """Evaluate ``predictors`` (in report order) on every environment of ``scenes``; write the
-    report and figures into ``out_dir`` if given. A flow's KL uses the accurate likelihood on
-    ``likelihood_steps`` grid points (None: the paper's grid only). ``history``: the
-    observations the exact posterior is given (default :func:`default_history`). Every argument
-    is checked before any model runs. Returns (the results.json dict, the RowResults, the
-    EvalSet).
+    """Evaluate ``predictors`` (in report order) on every environment of ``scenes``, writing
+    the report and figures into ``out_dir`` if given; a flow's KL uses the accurate likelihood
+    on ``likelihood_steps`` grid points (None: the paper's grid only). Every argument is checked
+    first. Returns (the results.json dict, the RowResults, the EvalSet).
     """
     if not isinstance(predictors, (tuple, list)) or not predictors:
         raise ValueError(f"predictors must be a tuple of Predictor objects; got {predictors!r}")
@@ -142,10 +135,8 @@ def model_token_config(config: FlowSimConfig, predictor: Predictor) -> FlowSimCo
 
 def model_view(evalset: EvalSet, scenes, config: FlowSimConfig,
                predictor: Predictor) -> EvalSet:
-    """``evalset`` as ``predictor`` reads it: for a model of ``model.history`` = h > 1 the tokens
-    of the last h maps (SceneTokens (E, S) with ``age``, S its ``flowsim.max_tokens``), the
-    queries and ground truth unchanged; the same tokens again for a one-map model (rebuilt only
-    when its token count is smaller than the evaluation config's)."""
+    """``evalset`` with the tokens ``predictor`` reads (the last h maps of ``model.history``);
+    queries and ground truth unchanged."""
     h = predictor.model.history
     if h == 1 and predictor.flowsim.max_tokens >= config.max_tokens:
         return evalset
