@@ -1,7 +1,5 @@
-"""``python -m flowmaps_jax.export``: a checkpoint's EMA weights as a pretrained model, a thin
-command over :func:`flowmaps_jax.store.pretrained.export_pretrained` (``<name>.npz`` and
-``<name>.json``, atomically). ``--which`` best (default, what evaluate and search load) or
-latest; the files go into ``<run>/export/`` unless ``--out`` names another folder.
+"""``python -m flowmaps_jax.export``: a checkpoint's EMA weights as a pretrained model
+(:func:`flowmaps_jax.store.pretrained.export_pretrained`), into ``<run>/export/`` or ``--out``.
 """
 
 from __future__ import annotations
@@ -21,9 +19,7 @@ EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
 
 def default_out(checkpoint: str | pathlib.Path) -> pathlib.Path:
-    """Where an export of ``checkpoint`` (a run or its checkpoint directory) goes without
-    ``--out``: the run's own ``export/`` folder, next to its ``checkpoints/`` (never the
-    package's pretrained/ folder). ``ValueError`` if ``checkpoint`` holds no checkpoints."""
+    """The run's own ``export/`` folder next to its ``checkpoints/`` (ValueError if none)."""
     root = resolve_checkpoint_dir(checkpoint)
     return (root.parent if root.name == "checkpoints" else root) / "export"
 

@@ -1,8 +1,5 @@
-"""Figures of the search report: episodes on the map, success against looks and distance.
-
-Every function returns a :class:`matplotlib.figure.Figure` (or draws into given axes); no pyplot
-state. Maps are drawn in pixels with y growing downwards, like the simulator.
-"""
+"""Figures of the search report: episodes on the map, success against looks and distance. Each
+returns a Figure (no pyplot state); maps in pixels, y down."""
 
 from __future__ import annotations
 
@@ -25,9 +22,8 @@ _TEXT = 8.5  # points: table names, look numbers, belief values, ticks
 
 def pick_episodes(search_set: SearchSet, count: int = 2, horizons: tuple[int, int] = (2, 4),
                   score=None) -> list[int]:
-    """Episode indices (into the R · M episodes) worth drawing: one per category, up to
-    ``count``, each the episode with the highest ``score`` (N,) (default: the entropy of the
-    exact posterior) among those with Δτ in ``horizons`` (inclusive; any Δτ if none)."""
+    """Up to ``count`` episode indices, one per category: the highest ``score`` (N,) (default the
+    exact posterior's entropy) with Δτ in ``horizons`` (any Δτ if none)."""
     m = search_set.queries.descriptor.shape[1]
     if score is None:
         q = np.asarray(search_set.slot_probs, np.float64)
@@ -120,10 +116,8 @@ def draw_episode_beliefs(ax: Axes, episodes: Episodes, outcome: Outcome, n: int)
 
 def plot_episodes(search_set: SearchSet, runs: Mapping[str, tuple[Episodes, Outcome]],
                   picks: Sequence[int], config: FlowSimConfig, policy: str = "optimal") -> Figure:
-    """For each picked episode, a column pair with one row per prior (``runs``' rows): the
-    episode on the map, and beside it the belief before every look. ``runs``: {row name:
-    (Episodes, Outcome with beliefs)}. About 5 inches wide per picked episode (500 px at the
-    report's 100 dpi), 2.9 inches tall per row."""
+    """Per picked episode and prior in ``runs`` ({row name: (Episodes, Outcome)}): the episode on
+    the map and the belief before every look."""
     if not runs or not picks:
         raise ValueError("runs and picks must not be empty")
     names = list(runs)

@@ -1,10 +1,6 @@
-"""Table probabilities of the exact priors, and every prior's as plain Python dicts.
-
-One layout for every prior: ``probs`` (B, Q, S + 1), entry ``[b, q, s]`` the mass on furniture
-token ``s`` (exactly zero on object tokens and padding), the last entry the "off" mass; rows
-sum to 1. A model's are :func:`flowmaps_jax.tables.table_probabilities`; the exact priors' are
-slot distributions along the visiting order, spread by :func:`spread_over_tables` (off mass 0);
-:func:`table_dict` gives plain dicts keyed by table token index, for planners outside JAX.
+"""Table probabilities of the exact priors, and every prior's as plain Python dicts. One layout:
+``probs`` (B, Q, S + 1), the mass on each furniture token (zero on object tokens and padding),
+then "off"; rows sum to 1.
 """
 
 from __future__ import annotations
@@ -26,8 +22,7 @@ OFF = "off"
 
 @functools.partial(jax.jit, static_argnames="num_tokens")
 def spread_over_tables(slot_probs, visit_order, num_tokens: int):
-    """Slot k's mass on table ``visit_order[k]``, no checks (the search set runs it on the
-    FlowSim arrays it built): slot_probs (..., F), or (..., F + 1) with its off bin dropped;
+    """Slot k's mass on table ``visit_order[k]`` (no checks): slot_probs (..., F or F + 1),
     visit_order (..., F) int, −1 padded → (..., S + 1), off 0."""
     if slot_probs.shape[-1] == visit_order.shape[-1] + 1:
         slot_probs = slot_probs[..., :-1]
@@ -40,9 +35,7 @@ def spread_over_tables(slot_probs, visit_order, num_tokens: int):
 
 
 def table_dict(probs, tokens: SceneTokens) -> list:
-    """Table probabilities (B, Q, S + 1) as plain Python: ``out[b][q]`` is a dict
-    ``{table token index: probability, ..., "off": off mass}`` over every furniture token of scene
-    b (floats and ints only, no arrays), for planners outside JAX."""
+    """``out[b][q] = {table token index: probability, ..., "off": off mass}`` (plain Python)."""
     p = np.asarray(probs, np.float64)
     table = np.asarray(tokens.mask, bool) & (np.asarray(tokens.kind) == FURNITURE)
     if p.ndim != 3 or table.ndim != 2 or p.shape[0] != table.shape[0] \

@@ -1,12 +1,5 @@
-"""The search report: ``search.json`` and ``search.md`` from :func:`protocol.run_search` results.
-
-``search.md`` holds one table per policy (SR@1/2/3, mean looks, mean travel, SPL, each row's
-ratios to the exact-posterior searcher under the same policy; under most-probable first a note
-on why flat priors can score below the exact searcher there, :data:`FLAT_PRIOR_NOTE`), then by
-horizon Δτ and by category: the travel ratio (in exact expectation over the true table when the
-detector is perfect, which removes the rollout's noise) and SR@1. Results with habits
-(``protocol.habit_sections``: a FlowSim world with habits, or a history H > 1) also get "By
-habit": per habit and policy, the policy table's columns on that habit's episodes only.
+"""The search report: ``search.json`` and ``search.md`` from :func:`protocol.run_search` results
+(one table per policy, then by horizon, by category and, with habits, by habit; docs/search.md).
 """
 
 from __future__ import annotations
@@ -167,9 +160,7 @@ def compact_json(results: dict) -> str:
 
 
 def write_report(results: dict, out_dir: str | pathlib.Path) -> dict[str, pathlib.Path]:
-    """Write ``search.json`` and ``search.md`` into out_dir (created); returns their paths.
-    Both go through the shared writer (:func:`flowmaps_jax.atomic_files.write_file`: a temporary
-    file and a rename; a symbolic link at either name is a ``ValueError``)."""
+    """Write ``search.json`` and ``search.md`` into out_dir (created); returns their paths."""
     out = make_output_dir("out_dir", out_dir, files=("search.json", "search.md"))
     paths = {"json": out / "search.json", "markdown": out / "search.md"}
     text = compact_json(results) + "\n"

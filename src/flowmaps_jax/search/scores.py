@@ -1,9 +1,6 @@
-"""Search metrics over a batch of episodes, overall and by group, and ratios between rows (the
-definitions: docs/search.md, "Metrics").
-
-Per episode (:func:`episode_scores`): ``sr@k`` (k = 1, 2, 3), ``looks``, ``travel`` (pixels),
-``spl`` (1 for an object found at the start point) and ``found``. A row's ratio is its mean over
-the exact-posterior row's with the same policy (1 for the Bayes-optimal searcher).
+"""Search metrics over a batch of episodes, overall and by group, and ratios between rows
+(docs/search.md, "Metrics"): per episode ``sr@k`` (k = 1, 2, 3), ``looks``, ``travel`` (pixels),
+``spl`` and ``found``; a ratio is a row's mean over the exact-posterior row's, same policy.
 """
 
 from __future__ import annotations
@@ -71,9 +68,7 @@ def mean_stat(values) -> dict:
 def summarise_scores(scores: dict[str, np.ndarray],
                      groups: dict[str, np.ndarray] | None = None) -> dict:
     """{"overall": {"count": n, score: {mean, stderr}}, "by_<group>": {id: {"count": n,
-    score: ...}}} for the scalar scores of :func:`episode_scores`; ``groups`` maps a group name
-    (e.g. "category", "horizon") to per-episode labels (N,). JSON-safe (NaN → None; 4 significant
-    digits); group ids as strings."""
+    score: ...}}} of :func:`episode_scores`; ``groups``: {name: labels (N,)}. JSON-safe."""
     out: dict = {"overall": {"count": int(np.size(scores[SCORES[0]]))}}
     for name in SCORES:
         out["overall"][name] = _stat(summarise(scores[name])["overall"])
