@@ -1,11 +1,6 @@
-"""FlowMaps model (Map Encoder + CDiT velocity network) and the MLP-Gaussian baseline.
-
-Pure functions over explicit params pytrees; see ``docs/design.md`` for the shapes. Each model
-family (:class:`ModelFamily`: init, training loss, jitted inference cores, memory estimate,
-label) lives in one module (:mod:`~flowmaps_jax.model.flowmaps_family` over the network in
-:mod:`~flowmaps_jax.model.flowmaps`; :mod:`~flowmaps_jax.model.baseline`) and is registered by
-name in :data:`MODEL_FAMILIES` (:mod:`flowmaps_jax.model.families`), the one registry.
-"""
+"""FlowMaps model (Map Encoder + CDiT velocity network) and the MLP-Gaussian baseline: pure
+functions over explicit params pytrees; each family lives in one module and is registered in
+:data:`MODEL_FAMILIES` (docs/design.md)."""
 
 from flowmaps_jax.model.baseline import (
     baseline_log_prob,

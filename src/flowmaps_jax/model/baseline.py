@@ -1,8 +1,7 @@
 """MLP-Gaussian baseline: the same Map Encoder, masked mean pool, MLP head → a Gaussian box.
 
 Head input per query: [pooled map (D), Embed(descriptor), Embed(τ), Embed(τ_q)] → MLP → mean (4)
-(+ log-variance (4) for ``baseline_variance="learned"``; ``"mean"``: unit variance). The whole
-family in one file (docs/design.md, "Adding a model family"): network, loss, cores, :data:`FAMILY`.
+(+ log-variance (4) for ``baseline_variance="learned"``; ``"mean"``: unit variance).
 """
 
 from __future__ import annotations
@@ -77,11 +76,8 @@ def baseline_log_prob(mean: jnp.ndarray, log_var: jnp.ndarray, x: jnp.ndarray) -
 
 
 def baseline_loss(params, config: ModelConfig, batch: TrainBatch, key: jax.Array | None = None):
-    """Mean Gaussian NLL of the target boxes; returns ``(loss, aux)``.
-
-    For the ``"mean"`` variant (unit variance) this is ½·squared error + const. ``key`` drives
-    dropout (None = deterministic). aux: ``{"loss", "mse"}`` (mse averaged over the 4 numbers).
-    """
+    """Mean Gaussian NLL of the target boxes ``(loss, aux {"loss", "mse"})``; ``key`` drives
+    dropout (None: deterministic)."""
     mean, log_var = baseline_predict(params, config, batch.tokens, batch.queries, dropout_key=key)
     loss = -jnp.mean(baseline_log_prob(mean, log_var, batch.target))
     mse = jnp.mean(jnp.square(mean - batch.target))

@@ -1,10 +1,6 @@
-"""``ModelConfig``: the sizes of the FlowMaps network and of the MLP baseline (a frozen dataclass).
-
-Frozen so it is hashable and can be a static argument of ``jax.jit``. The defaults are the paper's
-size (D = 256, 8 encoder layers, 8 CDiT blocks, 8 heads, dropout 0.1); training presets live in
-:mod:`flowmaps_jax.training.config`. :meth:`ModelConfig.from_dict` reads the ``model`` section of a
-stored run config (a checkpoint's or a pretrained model's).
-"""
+"""``ModelConfig``: the sizes of the FlowMaps network and of the MLP baseline, frozen (a static
+``jax.jit`` argument); the defaults are the paper's size, the presets live in
+:mod:`flowmaps_jax.training.config`."""
 
 from __future__ import annotations
 
@@ -38,13 +34,12 @@ class ModelConfig:
     tau_max: number of timesteps; ``tau`` and ``tau_q`` lie in ``[0, tau_max)``.
     freq_bands: sinusoidal frequencies per scalar (each gives a sin and a cos feature).
     max_frequency: highest angular frequency (radians per unit); frequencies are geometric in
-        ``[1, max_frequency]``. 1000 resolves a pixel (1/255) on a box coordinate in [0, 1].
+        ``[1, max_frequency]``.
     baseline_variance: MLP baseline variant, ``"mean"`` (unit variance, as the paper's reference) or
         ``"learned"`` (diagonal log-variance trained by Gaussian NLL).
     baseline_hidden: hidden width of the MLP baseline's head.
-    box_offset, box_scale: FlowMaps' flow runs on z = box_scale · (box − box_offset) instead of
-        the normalised box itself (samples are mapped back; ``log_prob`` adds the Jacobian).
-        (0, 1), the default, is the paper's identity map.
+    box_offset, box_scale: FlowMaps' flow runs on z = box_scale · (box − box_offset) ((0, 1):
+        the identity).
     head: the velocity read-out: ``"velocity"`` (the paper's linear head), ``"pointer"``
         (:mod:`~flowmaps_jax.model.readout`), ``"route"`` (:mod:`~flowmaps_jax.model.route`) or
         ``"mixture"`` (:mod:`~flowmaps_jax.model.mixture`).
@@ -55,16 +50,13 @@ class ModelConfig:
         ``"none"`` (its context token), ``"relative"`` (Fourier features of its centre and of its
         angle around the map centre, relative to the object's table) or ``"offsets"`` (the
         centre features and the distance, no angle).
-    pointer_width_scale: the pointer/route widths' log-variance is this × its parameter, so Adam
-        moves it this much faster.
+    pointer_width_scale: the pointer/route widths' log-variance is this × its parameter.
     pointer_widths: ``"absolute"`` (flow units) or ``"relative"`` (fractions of the object's
         own height and width, as the protocol's q).
     condition_on_dtau: add an embedding of Δτ = τ_q − τ to the CDiT conditioning.
-    precision: compute precision of matmuls and attention, ``"float32"`` or ``"bf16"`` (bfloat16
-        operands, float32 accumulation; :mod:`flowmaps_jax.model.precision`); params, optimiser
-        state, LayerNorm, softmax and the loss stay float32.
-    history: H, the maps the Map Encoder reads: the one at τ and the H − 1 before it (their
-        object tokens carry an embedding of their age τ − t). 1 is the paper's single map.
+    precision: matmul and attention precision, ``"float32"`` or ``"bf16"``
+        (:mod:`flowmaps_jax.model.precision`).
+    history: H, the maps the Map Encoder reads (the one at τ and the H − 1 before it).
     """
 
     dim: int = 256
@@ -104,9 +96,8 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> ModelConfig:
-        """The config a ``dataclasses.asdict`` / JSON dict describes (a stored run config's
-        ``model`` section). Unknown keys raise ``ValueError`` naming them; the fields in
-        :data:`REMOVED_FIELDS` are dropped."""
+        """The config a JSON dict describes (unknown keys: ``ValueError`` naming them; the
+        :data:`REMOVED_FIELDS` dropped)."""
         known = [*(field.name for field in dataclasses.fields(cls)), *REMOVED_FIELDS]
         data = check_keys("the model config (ModelConfig.from_dict)", data, known,
                           what="unknown keys")

@@ -1,9 +1,5 @@
-"""Sinusoidal features and the small MLP embedders built on them.
-
-Every continuous input of the model (the 4 box numbers of a scene token, the 4 numbers of the
-noisy query box X_t, the flow time t) goes through ``sinusoidal_embedding`` then an MLP; integer
-inputs (descriptor, type flag, τ, τ_q) use ``flax.linen.Embed`` tables directly.
-"""
+"""Sinusoidal features and the small MLP embedders built on them (continuous inputs); integer
+inputs use ``flax.linen.Embed`` tables."""
 
 from __future__ import annotations
 
@@ -16,14 +12,8 @@ default_kernel_init = nn.initializers.lecun_normal()
 
 
 class FlatDense(nn.Module):
-    """``nn.Dense`` that flattens leading dims first: (..., K) → (..., features).
-
-    Same parameters (``kernel`` (K, features), ``bias``) and result as ``nn.Dense``, but the matmul
-    (and its backward) is a single 2-D GEMM: XLA on CPU runs the weight gradient of a dot with
-    several contracted batch dims 2–5× slower than the same product on a (rows, K) matrix.
-    ``precision`` ("float32" or "bf16", :mod:`~flowmaps_jax.model.precision`) sets the matmul's
-    operand dtype; the kernel is stored and the result returned in float32 either way.
-    """
+    """``nn.Dense`` (same parameters and result) as one 2-D GEMM over the flattened leading dims:
+    (..., K) → (..., features); ``precision`` sets the operand dtype (float32 result)."""
 
     features: int
     kernel_init: nn.initializers.Initializer = default_kernel_init
@@ -40,10 +30,8 @@ class FlatDense(nn.Module):
 
 
 def sinusoidal_embedding(x: jnp.ndarray, num_freqs: int, max_frequency: float) -> jnp.ndarray:
-    """Sin/cos features of each scalar at ``num_freqs`` geometric frequencies in [1, max_frequency].
-
-    x: (..., K) scalars → (..., K * 2 * num_freqs), laid out per scalar as [sin..., cos...].
-    """
+    """Sin/cos features at ``num_freqs`` geometric frequencies in [1, max_frequency]: x (..., K)
+    → (..., K * 2 * num_freqs), per scalar [sin..., cos...]."""
     freqs = jnp.geomspace(1.0, max_frequency, num_freqs, dtype=jnp.float32)
     angles = x[..., None].astype(jnp.float32) * freqs  # (..., K, F)
     feats = jnp.concatenate([jnp.sin(angles), jnp.cos(angles)], axis=-1)  # (..., K, 2F)

@@ -2,10 +2,8 @@
 
 Token embedding = SinusoidalMLP(box y, x, h, w) + Embed(descriptor) + Embed(type flag)
 + Embed(τ) (+ Embed(age) with ``history`` > 1: how many steps before τ a token was seen), then
-``encoder_layers`` pre-norm transformer layers (self-attention with a key-padding mask, GELU MLP,
-dropout on the MLP hidden layer and on both residual branches) and a final LayerNorm. There is
-no positional embedding over tokens, so the encoder is equivariant to permuting tokens. Padding
-rows of the output are set to zero.
+``encoder_layers`` pre-norm transformer layers and a final LayerNorm; no positional embedding
+(equivariant to permuting tokens); padding rows of the output are zero.
 """
 
 from __future__ import annotations
@@ -36,11 +34,7 @@ class FeedForward(nn.Module):
 
 
 class SelfAttention(nn.Module):
-    """Multi-head self-attention over tokens with a key-padding mask. x (B, S, D), mask (B, S).
-
-    Fused QKV projection as one flat GEMM, then ``jax.nn.dot_product_attention``. In bf16 it gets
-    bf16 q, k, v (it takes the logits and softmax in float32) and its output goes back to float32.
-    """
+    """Multi-head self-attention over tokens with a key-padding mask. x (B, S, D), mask (B, S)."""
 
     dim: int
     heads: int

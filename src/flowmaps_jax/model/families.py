@@ -1,8 +1,5 @@
-"""The model families by name: ``MODEL_FAMILIES[name]`` is a :class:`ModelFamily`, the one registry.
-
-The name is a run config's ``family`` (``"model_kind"`` in ``config.json``), the Predictor's
-``family_name`` and a pretrained ``.json``'s ``"kind"``. Adding a family is one module defining
-its ``FAMILY`` (see :mod:`flowmaps_jax.model.baseline`) plus one line here.
+"""The model families by name: ``MODEL_FAMILIES[name]`` is a :class:`ModelFamily`, the one
+registry (the name is a run config's ``family``, ``"model_kind"`` on disk).
 """
 
 from __future__ import annotations

@@ -1,11 +1,7 @@
-"""What a model family gives the pipeline (:class:`ModelFamily`), and helpers its cores share.
-
-A family (FlowMaps, the MLP baseline, the homes network) bundles its init, training loss, jitted
-inference cores, working-memory estimate and report label in one :class:`ModelFamily`, defined
-in its own module and registered by :mod:`flowmaps_jax.model.families`. The losses are pure JAX
-(no optax). The cores are unvalidated, jitted pure functions of canonical inputs
-(:func:`canonical_inputs`): tokens (B, S), queries (B, Q), keys (B,) one PRNG key per scene,
-boxes (B, Q, N, 4) normalised (y, x, h, w), log-densities (B, Q, N).
+"""What a model family gives the pipeline (:class:`ModelFamily`, registered by
+:mod:`flowmaps_jax.model.families`), and helpers its cores share. The cores are unvalidated,
+jitted pure functions of canonical inputs (:func:`canonical_inputs`): tokens (B, S), queries
+(B, Q), keys (B,), boxes (B, Q, N, 4) normalised (y, x, h, w), log-densities (B, Q, N).
 """
 
 from __future__ import annotations
@@ -30,12 +26,8 @@ def _never(config: ModelConfig) -> bool:
 
 
 class LossOptions(NamedTuple):
-    """The training recipe's knobs that a family's loss reads (``TrainConfig`` fills them in).
-
-    t_sampler: the flow-time law (:data:`flowmaps_jax.flow.T_SAMPLERS`).
-    pointer_loss: weight of the cross-entropy of the table weights (FlowMaps' read-out heads).
-    num_objects: the scene's current objects (``flowsim.num_objects``; the mixture head's rows).
-    """
+    """The recipe's knobs a family's loss reads: t_sampler (``flow.T_SAMPLERS``), pointer_loss
+    (weight of the table-weight cross-entropy), num_objects (the scene's current objects)."""
 
     t_sampler: str = "beta"
     pointer_loss: float = 0.0
@@ -56,10 +48,8 @@ class ModelFamily:
     log_prob(params, model_cfg, tokens, queries, x (B, Q, N, 4), *, num_steps, method)
         -> (B, Q, N).
     label(model_cfg) -> the row name in reports.
-    row_bytes(model_cfg) -> working memory of one sampled box (float32 activations of one
-        network call, kept for the solver step); see :meth:`request_bytes`.
-    uses_solver: whether ``num_steps`` / ``method`` matter (an ODE is integrated); a family
-        without one takes and ignores them (:func:`without_solver`).
+    row_bytes(model_cfg) -> working memory of one sampled box.
+    uses_solver: whether ``num_steps`` / ``method`` matter (else ignored, :func:`without_solver`).
     table_weights(params, model_cfg, tokens, queries) -> (B, Q, S) mixture weight per token,
         read without sampling, for the configs where ``has_table_weights(model_cfg)``.
     gaussian(params, model_cfg, tokens, queries) -> (mean, log_var) (B, Q, 4) each, for a
@@ -98,11 +88,8 @@ def scene_noise(keys: jax.Array, shape: tuple[int, ...]) -> jnp.ndarray:
 
 
 def canonical_inputs(tokens: SceneTokens, queries: Queries) -> tuple[SceneTokens, Queries]:
-    """Tokens and queries as the cores take them: canonical dtypes (so every call with the same
-    shapes hits one compiled function) and without the token slots after the last real token of
-    every scene (``tokens.trim_padding``). Padding is masked anyway, so results are identical,
-    and the encoder and cross-attention skip empty slots (FlowSim maps have 13 real tokens of
-    the 20 slots). Host-side: the inputs must be concrete."""
+    """Tokens and queries as the cores take them (concrete): canonical dtypes, and without the
+    token slots after the last real token of every scene (results identical)."""
     used = np.flatnonzero(np.asarray(tokens.mask).reshape(-1, np.shape(tokens.mask)[-1]).any(0))
     tokens = trim_padding(tokens, int(used[-1]) + 1)
     tokens = SceneTokens(boxes=jnp.asarray(tokens.boxes, jnp.float32),

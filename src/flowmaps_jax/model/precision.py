@@ -1,11 +1,6 @@
-"""Compute precision of the network's matmuls (``ModelConfig.precision``).
-
-``"float32"``: every product is the plain float32 ``x @ w`` / ``jnp.einsum`` (the default; results
-are bit-identical to code without this module). ``"bf16"``: the two operands of each product are
-cast to bfloat16 and the product accumulates and returns float32, so parameters, activations,
-LayerNorm, softmax and the loss all stay float32; only the multiplies run at bfloat16 (fast on
-accelerators, slower on CPU).
-"""
+"""Compute precision of the network's matmuls (``ModelConfig.precision``): ``"float32"`` plain
+products; ``"bf16"`` bfloat16 operands with float32 accumulation and result (everything else
+stays float32)."""
 
 from __future__ import annotations
 
