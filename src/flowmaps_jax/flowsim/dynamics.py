@@ -1,10 +1,6 @@
 """Object dynamics along the visiting order, and their exact posterior (docs/flowsim.md,
-"Dynamics" and "The reference code's dynamics").
-
-``"markov"``: stay / advance one / advance two with ``transition_probs`` modulo K; the posterior
-Δτ ahead is onehot(slot) @ ``transition_matrix``^Δτ. ``"schedule_jitter"``: slot_t = (t + o_t)
-mod K with o_t ∈ {−1, 0, +1} drawn with ``jitter_probs``, so the posterior depends only on
-τ + Δτ. Every object starts at slot 0.
+"Dynamics"): ``"markov"`` (stay / advance one / advance two) and ``"schedule_jitter"``.
+Every object starts at slot 0.
 """
 
 from __future__ import annotations
@@ -40,8 +36,7 @@ def rollout(words: jnp.ndarray, num_slots: jnp.ndarray, params: dict,
             shape: SimShape) -> jnp.ndarray:
     """Slots of M objects over T timesteps, environment axis last.
 
-    words: (rollout_num_words(shape), E) uint32 random words; each gives two uniforms on a
-        2**-16 grid, so the step probabilities are used to within 2**-16.
+    words: (rollout_num_words(shape), E) uint32, two uniforms on a 2**-16 grid each.
     num_slots: (M, E) int32 number of slots K of each object's visiting order.
     Returns (T, M, E) int32 position along the visiting order, 0 at t = 0.
     """
@@ -112,12 +107,9 @@ def exact_posterior(num_slots, slot_now, horizon, config: FlowSimConfig = DEFAUL
     slot_now: (...) int slot observed at state time tau (0..K-1).
     horizon: (...) int Δτ in 0..T-1 (horizon 0 gives the observed slot).
     dynamics: "markov" or "schedule_jitter"; default ``config.dynamics``.
-    tau: (...) int state time; only needed (and required) for "schedule_jitter", whose
-        posterior depends on the absolute query time τ + Δτ rather than on ``slot_now``.
-    Leading dims broadcast. Entries beyond K are zero; each row sums to 1.
-    Concrete inputs are validated (``ValueError`` naming the argument). Traced ones (under
-    ``jit``) cannot be: a row whose num_slots, slot_now, horizon (or tau, tau + horizon) is out
-    of range is all NaN, never the answer of another, in-range input.
+    tau: (...) int state time, required for "schedule_jitter".
+    Leading dims broadcast; entries beyond K are zero. Concrete inputs are validated (ValueError
+    naming the argument); a traced row out of range is all NaN.
     """
     check_instance("config", config, FlowSimConfig)
     max_h = config.num_timesteps - 1
@@ -181,9 +173,7 @@ def transition_matrix(num_slots, config: FlowSimConfig = DEFAULT_CONFIG) -> jnp.
     """Markov transition matrix (..., F, F) float32: entry [i, j] = P(slot j next | slot i now).
 
     The top-left K × K block (K = num_slots, (...) int) is the cyclic kernel of
-    ``config.transition_probs``; the rest is zero. ``onehot(slot) @ P^h`` equals
-    ``exact_posterior(K, slot, h)``. A concrete ``num_slots`` out of 1..F is a ``ValueError``;
-    a traced one (under ``jit``) gives an all-NaN matrix.
+    ``config.transition_probs``, the rest zero; a traced K out of range gives NaN.
     """
     check_instance("config", config, FlowSimConfig)
     num_slots = check_int_array("num_slots", num_slots, 1, config.num_furniture)

@@ -1,12 +1,6 @@
-"""Distance kernels that cannot underflow: weights ∝ exp(−d / L) for any accepted length L.
-
-A move kernel B(i, j) ∝ exp(−d(i, j) / L) over the places j a row may reach loses its row when
-every exp(−d / L) underflows in float32 (d / L above about 100: a short L, or far places): the
-row's weights are all zero and its mass is gone, or the chain silently never moves.
-:func:`distance_weights` gives each row's weights and their total as before wherever the plain
-exponentials keep their precision (so results there do not change, to the bit), and otherwise
-the row's softmax less its largest logit (the nearest place gets weight 1), which cannot
-underflow.
+"""Distance kernels that cannot underflow: weights ∝ exp(−d / L) for any accepted length L
+(where every exp(−d / L) of a row would underflow, the row's softmax less its largest logit;
+elsewhere the plain exponentials, to the bit).
 """
 
 from __future__ import annotations

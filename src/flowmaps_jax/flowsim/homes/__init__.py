@@ -1,13 +1,5 @@
-"""FlowSim homes: 3-D multi-room homes, hourly object schedules and their exact posterior.
-
-Modules, one idea each: ``vocabulary`` (room types, receptacle and object classes, as data),
-``config`` (``HomesConfig``), ``floorplan`` (rooms on a grid, doors, geodesic distances),
-``furnish`` (receptacles in rooms by type, objects on allowed receptacles, cycles),
-``schedules`` (the four regimes' hourly transition laws), ``world`` (the ``Homes`` pytree and
-its field table), ``rollout`` (``generate_homes``), ``posterior`` (the exact posterior, also
-given a history, or filtered over a partial one), ``export`` (``save_homes`` /
-``load_homes``). See docs/flowsim.md, "Homes".
-"""
+"""FlowSim homes: 3-D multi-room homes, hourly object schedules and their exact posterior
+(docs/flowsim.md, "Homes")."""
 
 from flowmaps_jax.flowsim.homes.config import (
     DEFAULT_HOMES_CONFIG,

@@ -361,9 +361,8 @@ _RULES = {
     "door_width": _METRES, "wall_margin": Real(0.0, MAX_METRES),
     "max_tokens": Int(1, MAX_TOKENS),
 }
-"""What the other fields of :class:`HomesConfig` may hold on their own (numbers are stored as
-Python numbers); ``validate`` then checks ``rooms``, the bounds the vocabulary sets
-(``objects_per_home``, ``max_vocabulary``) and how the fields fit together."""
+"""What the other fields of :class:`HomesConfig` may hold on their own (``validate`` checks the
+rest and how the fields fit together)."""
 
 DEFAULT_HOMES_CONFIG = HomesConfig()
 

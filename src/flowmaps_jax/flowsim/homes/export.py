@@ -85,9 +85,8 @@ def save_homes(path, homes: Homes, config: HomesConfig) -> pathlib.Path:
 
 
 def load_homes(path) -> tuple[Homes, HomesConfig]:
-    """Read a file written by ``save_homes``; ``ValueError`` naming it if it is not one (see
-    the module's docstring). The file is untrusted: members are whitelisted and their declared
-    sizes checked before anything is decompressed (``untrusted_files.read_npz``)."""
+    """Read a file written by ``save_homes`` (untrusted, ``untrusted_files.read_npz``);
+    ``ValueError`` naming it if it is not one."""
     with prefix_errors("load_homes: "):
         path = check_file("path", path)
         contents = read_npz(repr(path), path, allowed=(*_META, *FIELDS),

@@ -1,10 +1,6 @@
 """Floor plans: rooms on a grid of cells joined by doors, and geodesic distances through doors
-(the rules: docs/flowsim.md, "Homes").
-
-Metres: x along the home's width, y along its depth, z up; origin at a corner. One home (vmap
-over homes). Room k = column · rows + row, a room box is (x0, y0, x1, y1); every home is
-connected; door slots are static (``door_pairs``). ``geodesic_distances``: all-pairs shortest
-paths over points and doors, straight edges within a (convex) room, Floyd–Warshall (N³ work).
+(docs/flowsim.md, "Homes"). Metres (x along the width, y along the depth, z up); one home (vmap
+over homes); room k = column · rows + row, a room box (x0, y0, x1, y1); door slots are static.
 """
 
 from __future__ import annotations
@@ -121,9 +117,8 @@ def geodesic_distances(points, point_room, point_valid, door_position, door_room
                        door_valid, num_rooms: int) -> jnp.ndarray:
     """Walking distances (P, P) float32 between points (P, 2) through doors, metres.
 
-    point_room: (P,) int32 the room of each point; point_valid: (P,) bool. Doors: (D, 2)
-    positions, (D, 2) rooms, (D,) valid. Straight lines within a room; a pair with an invalid
-    point is inf (0 on the diagonal).
+    point_room: (P,) int32; point_valid: (P,) bool (inf for an invalid point, 0 on the
+    diagonal). Doors: (D, 2) positions, (D, 2) rooms, (D,) valid.
     """
     nodes = jnp.concatenate([points, door_position], axis=0)  # (P + D, 2)
     member_points = jax.nn.one_hot(point_room, num_rooms, dtype=bool) & point_valid[:, None]

@@ -1,13 +1,7 @@
-"""Receptacles placed in rooms by type, dynamic objects on the receptacles they may stand on
-(the rules: docs/flowsim.md, "Homes").
-
-One home (vmap over homes); metres, coordinates as in :mod:`.floorplan`. Receptacle index
-k · S + s for slot s of room k (S = ``receptacles_per_room[1]``), a box (cx, cy, cz, w, d, h);
-unused slots: class −1, box 0, invalid. M = ``objects_per_home[1]`` object slots; an object's
-allowed receptacles are the home's receptacles of the classes it may stand on; a used slot
-whose class can stand on nothing here is masked out (``object_valid`` False). **Cycles**: each
-object's allowed receptacles clockwise around the home's centre (angle 0 along +y), the routine
-and balanced regimes' visiting order.
+"""Receptacles placed in rooms by type, dynamic objects on the receptacles they may stand on,
+and each object's cycle (docs/flowsim.md, "Homes"). One home; receptacle index k · S + s for
+slot s of room k, a box (cx, cy, cz, w, d, h) m; unused slots: class −1; an object whose class
+can stand on nothing here is masked out (``object_valid`` False).
 """
 
 from __future__ import annotations

@@ -1,10 +1,7 @@
-"""Queries on homes: which object, the map's hour τ and the query hour τ_q.
-
-A prior answers ``prior(homes, queries) -> (E, Q, R)`` float32: for home e and query j the
-probability that object ``queries.object_index[e, j]`` stands on receptacle slot r at hour
-``queries.tau_q[e, j]``, given the home at hour ``queries.tau[e, j]`` and (where the prior uses
-it) the object's receptacles over the ``history`` hours up to τ. Rows sum to 1 and put mass only
-on the object's allowed receptacles.
+"""Queries on homes (object, map hour τ, query hour τ_q), and the prior's contract:
+``prior(homes, queries) -> (E, Q, R)`` float32, the probability that the object stands on
+receptacle slot r at τ_q given the home at τ (and its history), rows summing to 1 on the
+object's allowed receptacles.
 """
 
 from __future__ import annotations

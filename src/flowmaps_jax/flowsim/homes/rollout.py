@@ -1,12 +1,7 @@
 """``generate_homes(key, config, num_homes)``: homes and hourly trajectories, jitted and vmapped.
-
-Home e depends only on ``jax.random.split(key, num_homes)[e]``: its layout reads one ``bits``
-call of ``fold_in(home_key, 0)``, its trajectories one of ``fold_in(home_key, 1)``. An object
-starts uniformly on an allowed receptacle at hour 0 and moves each hour by its law
-(:mod:`.schedules`), one uniform u on a 2⁻¹⁶ grid per (object, hour): it moves if u < m_t, and
-the rest of u says where. Preferences, balanced and routine positions are cumulative (no
-sequential loop); only the frequent regime runs a ``lax.scan``, inverting its row's CDF at
-u / m_t (u = 0 read as the middle of its cell).
+Home e depends only on ``jax.random.split(key, num_homes)[e]``; an object starts uniformly on an
+allowed receptacle and moves each hour by its law (:mod:`.schedules`), one uniform per (object,
+hour); only the frequent regime runs a ``lax.scan``.
 """
 
 from __future__ import annotations
@@ -93,9 +88,8 @@ def _hours(t0, steps: int, config: HomesConfig):
 def sample_paths(home: dict, start, t0, u, config: HomesConfig) -> jnp.ndarray:
     """Receptacles (S, M) int32 at hours t0 + 1 … t0 + S of every object of one home.
 
-    home: one home's fields (``Homes`` names); start: (M,) receptacles at hour t0 (−1 for
-    masked objects); u: (S, M) uniforms in [0, 1). Exactly the chain P_t of :mod:`.schedules`
-    (each regime's fast path, see the module's docstring, is the same law).
+    home: one home's fields; start: (M,) receptacles at hour t0 (−1 masked); u: (S, M)
+    uniforms in [0, 1). Exactly the chain P_t of :mod:`.schedules`.
     """
     steps = u.shape[0]
     hour, context = _hours(t0, steps, config)
@@ -189,12 +183,8 @@ def homes_bytes_per_home(config: HomesConfig) -> int:
 
 
 def generate_homes(key, config: HomesConfig = DEFAULT_HOMES_CONFIG, num_homes: int = 1) -> Homes:
-    """Generate ``num_homes`` homes with ``config.num_hours`` hourly trajectories.
-
-    key: a JAX PRNG key; the same key, config and num_homes give the same homes, and home e is
-    the same in any batch (it depends on its own key only). Raises ``ValueError`` naming the
-    argument on bad input, or when the homes would not fit in memory.
-    """
+    """Generate ``num_homes`` homes with ``config.num_hours`` hourly trajectories; ValueError
+    naming the argument on bad input or when they would not fit in memory."""
     key = check_key(key)
     check_instance("config", config, HomesConfig)
     num_homes = check_int("num_homes", num_homes)

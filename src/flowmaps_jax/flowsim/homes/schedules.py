@@ -2,12 +2,8 @@
 (docs/flowsim.md, "Homes").
 
 P_t = (1 − m_t) I_A + m_t B_{c(t)}, m_t the object's ``move`` at hour of day t mod 24 and B a
-row-stochastic move kernel over A (zero outside A): a pure function of (home, object, hour of
-week). Regimes (``REGIMES``): **preferences** (B_c = 1 π_cᵀ, π_c with ``preference_mass`` on
-the hidden favourite of context c(t)), **balanced** (doubly stochastic: the cycle's next place
-with ``balanced_cycle``, else uniform over the others), **frequent** (B(i, j) ∝ exp(−g(i, j) /
-``frequent_length``), g geodesic) and **routine** (m = 1, B = p₀ I + p₁ S + p₂ S²). With n = 1
-every kernel is the identity.
+row-stochastic move kernel over A (zero outside A), per regime (``REGIMES``): preferences,
+balanced, frequent and routine.
 """
 
 from __future__ import annotations

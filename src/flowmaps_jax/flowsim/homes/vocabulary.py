@@ -1,9 +1,5 @@
-"""The homes vocabulary, as data: room types, receptacle classes and object classes.
-
-Every class has a ``name`` (a plain identifier) and a ``text`` descriptor. Receptacle classes
-carry a size (w, d, h) in metres (w along x, d along y, h up) and their room types; object
-classes a size and the receptacle classes they may stand on. Adding a class is data only:
-longer tuples to ``HomesConfig``.
+"""The homes vocabulary, as data: room types, receptacle classes (a size (w, d, h) in metres and
+their room types) and object classes (a size and the receptacle classes they may stand on).
 """
 
 from __future__ import annotations
@@ -21,12 +17,7 @@ class RoomType:
 
 @dataclasses.dataclass(frozen=True)
 class ReceptacleClass:
-    """A receptacle class (furniture an object can stand on).
-
-    size: typical (w, d, h) in metres; each placed receptacle jitters it by
-        ``HomesConfig.size_jitter`` and shrinks it to fit its cell.
-    rooms: names of the room types it may be placed in.
-    """
+    """A receptacle class: typical ``size`` (w, d, h) in metres, the room types it may be in."""
 
     name: str
     text: str
@@ -36,11 +27,8 @@ class ReceptacleClass:
 
 @dataclasses.dataclass(frozen=True)
 class ObjectClass:
-    """A dynamic object class.
-
-    size: typical (w, d, h) in metres (the object's box, standing on its receptacle's top).
-    receptacles: names of the receptacle classes it may stand on.
-    """
+    """A dynamic object class: ``size`` (w, d, h) in metres, the receptacle classes it may
+    stand on."""
 
     name: str
     text: str

@@ -121,12 +121,9 @@ def object_boxes(homes: Homes, hour, config: HomesConfig) -> jax.Array:
 
 def validate_homes(homes, config: HomesConfig, *, batched: bool = True, values: bool = True,
                    name: str = "homes") -> None:
-    """``ValueError`` naming the field unless ``homes`` is a well-formed ``Homes`` of ``config``.
-
-    Shapes and dtypes always (tracers too); with ``values`` on concrete arrays: finite boxes
-    and distances, non-negative sizes, ids in range, masks consistent, every valid object on
-    one of its allowed receptacles at every hour. ``batched``: fields carry the leading E axis
-    (False: one home, as ``Homes.home(i)`` gives); ``name``: what the messages call ``homes``.
+    """``ValueError`` naming the field unless ``homes`` is a well-formed ``Homes`` of ``config``:
+    shapes and dtypes always, with ``values`` (concrete) the values too. ``batched``: with the
+    leading E axis; ``name``: what the messages call ``homes``.
     """
     check_instance(name, homes, Homes)
     check_instance("config", config, HomesConfig)
