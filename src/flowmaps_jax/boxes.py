@@ -1,12 +1,5 @@
-"""Box geometry: the conversions between the box forms the project uses. Pure jnp, jit-able, no
-checks (the public functions that take boxes from users check them first).
-
-Forms, always on the last axis of size 4:
-
-* **corners** ``(y0, x0, y1, x1)`` in pixels, ``y1``/``x1`` exclusive (the simulator's form);
-* **boxes** ``(y, x, h, w)``: top-left corner and size, normalised by ``map_size - 1`` (the
-  model's form, see :mod:`flowmaps_jax.tokens`);
-* **centre form** ``(cy, cx, h, w)`` with ``cy = y + h / 2``, ``cx = x + w / 2``.
+"""Box geometry, pure jnp, no checks: corners ``(y0, x0, y1, x1)`` in pixels (y1/x1 exclusive),
+boxes ``(y, x, h, w)`` normalised by ``map_size - 1``, centre form ``(cy, cx, h, w)``.
 """
 
 from __future__ import annotations

@@ -1,12 +1,7 @@
-"""Argument checks shared by the public APIs: run on the host, before anything is jitted.
-
-Each raises ``ValueError`` whose message starts with the argument's name and says what was
-expected and what was given, and returns the value in the form the caller goes on with. Array
-checks read only ``shape`` and ``dtype`` of tracers (values when concrete), so a traced public
-function may run them; the jitted cores do not check again. A shape is a tuple of int sizes,
-``None`` (any size) and a leading ``...``. Modules: ``scalars``, ``arrays`` (with
-:data:`PROB_ATOL`), ``files``, ``fields`` (config schemas only), ``errors``
-(:func:`prefix_errors`); the map is docs/design.md.
+"""Argument checks shared by the public APIs, run on the host before anything is jitted: each
+raises ``ValueError`` starting with the argument's name and returns the value in the form to go
+on with. Array checks read only shape and dtype of tracers. A shape is a tuple of int sizes,
+``None`` (any size) and a leading ``...``.
 """
 
 from flowmaps_jax.validation.arrays import (

@@ -1,8 +1,5 @@
 """Array argument checks: arrays, shapes, real and integer arrays, masks and probabilities.
-
-Shapes and dtypes are read from tracers too, so a public function may run these checks and still
-be traced by ``jax.jit``; values are checked only when the array is concrete (:func:`is_concrete`).
-Each raises ``ValueError`` whose message starts with the argument's name.
+Shapes and dtypes are read from tracers too; values only when concrete (:func:`is_concrete`).
 """
 
 from __future__ import annotations
@@ -16,9 +13,7 @@ import numpy as np
 from flowmaps_jax.validation.scalars import is_real_dtype
 
 PROB_ATOL = 1e-4
-"""Tolerance for probabilities computed in float32 (a slot distribution, a search belief, a
-prior's table probabilities): their sum may miss 1, and masked-out entries or round-off negatives
-may reach, this much (``check_probabilities(..., atol=PROB_ATOL, min_value=-PROB_ATOL)``)."""
+"""Tolerance for probabilities computed in float32 (their sum, masked entries, round-off)."""
 
 
 def is_concrete(*arrays) -> bool:
@@ -27,9 +22,8 @@ def is_concrete(*arrays) -> bool:
 
 
 def check_concrete(what: str, *trees) -> None:
-    """``ValueError`` (one line) when a leaf of ``trees`` is a tracer: ``what`` (e.g.
-    "Predictor.sample") checks values and picks compiled shapes on the host, so it takes
-    concrete arrays and cannot run under ``jax.jit`` / ``vmap``."""
+    """``ValueError`` (one line) when a leaf of ``trees`` is a tracer: ``what`` takes concrete
+    arrays."""
     if not is_concrete(*jax.tree.leaves(trees)):
         raise ValueError(f"{what} takes concrete arrays (it checks their values and compiles "
                          f"its own programs); call it outside jax.jit / jax.vmap")
@@ -51,9 +45,8 @@ def _shape_text(shape: tuple) -> str:
 
 def check_shape(name: str, actual: tuple[int, ...], expected: tuple | None,
                 reason: str = "") -> None:
-    """``actual`` (a shape) must match ``expected``: int sizes, ``None`` for any size, a leading
-    ``...`` for any leading dims (``expected`` None: anything). ``reason`` says why, for the
-    message (e.g. "the leading dims of slot_boxes")."""
+    """``actual`` (a shape) must match ``expected`` (None: anything); ``reason`` is for the
+    message."""
     if expected is None:
         return
     lead = bool(expected) and expected[0] is Ellipsis
@@ -91,11 +84,8 @@ def check_array(name: str, value: Any, shape: tuple | None = None):
 
 def check_real_array(name: str, value: Any, shape: tuple | None = None, *, finite: bool = True,
                      low: float | None = None, high: float | None = None, what: str = ""):
-    """A real-valued (integer or float) array: booleans, complex numbers, strings and objects
-    are refused, as are NaN and ±inf when ``finite``, and values outside ``[low, high]`` when
-    given (values of concrete arrays only; ``what`` says what the values are, for that message).
-
-    Returns a numpy array for concrete inputs with values checked, else the input itself.
+    """A real-valued (integer or float) array, finite when ``finite``, in ``[low, high]`` when
+    given (``what`` for that message); numpy for concrete inputs, else the input itself.
     """
     arr = _as_array(name, value)
     if not is_real_dtype(arr.dtype):
@@ -118,11 +108,8 @@ def check_real_array(name: str, value: Any, shape: tuple | None = None, *, finit
 
 def check_int_array(name: str, value: Any, low: int | None = None, high=None, *,
                     shape: tuple | None = None, high_name: str | None = None):
-    """An integer array with every value in ``low..high`` (inclusive; None: unbounded).
-
-    ``high`` may be an array broadcasting against ``value`` (each value below its own bound);
-    name it with ``high_name`` for the message. Floats (even 3.0) and booleans are refused.
-    Values are checked on concrete arrays only; returns numpy for those, else the input.
+    """An integer array (not floats or booleans) with every value in ``low..high`` (None:
+    unbounded; ``high`` may broadcast, named ``high_name``); numpy for concrete inputs.
     """
     arr = _as_array(name, value)
     if arr.dtype == np.bool_ or not jnp.issubdtype(arr.dtype, jnp.integer):
@@ -170,14 +157,9 @@ def check_mask(name: str, value: Any, shape: tuple | None = None):
 def check_probabilities(name: str, value: Any, shape: tuple | None = None, *,
                         normalised: bool = True, atol: float = 1e-6, min_value: float = 0.0,
                         support: Any = None, support_name: str = "support") -> np.ndarray:
-    """Probabilities over the last axis as float64: real numbers (a float32 array passes; strings
-    and booleans are refused as such), finite, at least ``min_value`` (default 0; a computed
-    distribution may allow round-off, ``-PROB_ATOL``) and, if ``normalised``, summing to 1 within
-    ``atol``. ``support``: optional bool (..., K') marking where mass may lie among the first K'
-    entries of the last axis (entries beyond K', such as an off bin, are free); mass above
-    ``atol`` elsewhere is refused, naming ``support_name``. ``value`` may be a sequence of numbers
-    or an array; shapes are checked on tracers too, values only on concrete arrays (a tracer is
-    returned as it is)."""
+    """Probabilities over the last axis as float64: finite reals at least ``min_value``, summing
+    to 1 within ``atol`` if ``normalised``, mass only where ``support`` (..., K') (bool, over the
+    first K' entries) allows, named ``support_name``. A tracer is returned as it is."""
     if isinstance(value, (list, tuple)) and any(
             isinstance(v, (str, bytes, bool, np.bool_, complex)) for v in value):
         raise ValueError(f"{name} must be real numbers; got {value!r}")

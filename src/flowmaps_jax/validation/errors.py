@@ -1,10 +1,5 @@
-"""One place that says where an error happened: :func:`prefix_errors`.
-
-A loader checks many things about one file, each with a check that names only the part it
-reads (``format_version``, ``scenes.slot``); wrapping them all in ``with prefix_errors(...)``
-puts the file (or the command) in front of every such message once, instead of one
-``try``/``except``/``raise`` around each check.
-"""
+"""One place that says where an error happened: :func:`prefix_errors` puts the file (or the
+command) in front of every check's message inside its block."""
 
 from __future__ import annotations
 

@@ -144,13 +144,9 @@ class Pair:
 
 def check_fields(obj: Any, rules: Mapping[str, Rule], *, prefix: str = "",
                  store: bool = True, labels: Mapping[str, str] | None = None) -> dict[str, Any]:
-    """Check every field of ``obj`` named in ``rules`` against its rule, in the table's order;
-    the message names ``prefix + field`` (or ``prefix + labels[field]``). Returns the checked
-    values ``{field: value}``; with ``store``, also keeps the checked form (Python numbers,
-    tuples) on ``obj``, a frozen dataclass included. Without ``store``, a number given as a
-    numpy or JAX scalar (``np.int64(8)``, ``np.float32(1e-3)``, a 0-d array) is still replaced
-    by the Python number its rule returned, so a config never holds one (``to_dict`` and JSON
-    would fail on it later); Python values are kept as given."""
+    """Check every field of ``obj`` named in ``rules``, in order (messages name ``prefix + field``
+    or ``labels``); returns ``{field: value}``. With ``store`` the checked form is kept on
+    ``obj``; without, numpy or JAX scalars are still replaced by Python numbers."""
     labels = labels or {}
     checked: dict[str, Any] = {}
     for field, rule in rules.items():
@@ -167,12 +163,9 @@ _PYTHON_NUMBERS = (int, float, bool)
 def check_table(name: str, value: Any, cls: type, rules: Mapping[str, Rule], *,
                 unique: Sequence[str] = (), earlier: Sequence[Any] = (),
                 refers: Sequence[str] = (), labels: Mapping[str, str] | None = None) -> tuple:
-    """A config's table of categories: a non-empty tuple of ``cls`` entries (each with a
-    ``name``), every entry's fields checked against ``rules`` (messages name ``table: 'entry'
-    field``, or the field's ``labels``), the ``unique`` fields distinct across this table and
-    the ``earlier`` one (a table checked before it), each ``refers`` field naming an entry of
-    ``earlier``. Returns the tuple, an entry rebuilt where a rule changed a value (a numpy id
-    -> int)."""
+    """A config's non-empty table of ``cls`` entries, each checked against ``rules``, the
+    ``unique`` fields distinct across it and ``earlier``, each ``refers`` field naming an entry
+    of ``earlier``. Returns the tuple, entries rebuilt where a rule changed a value."""
     if not isinstance(value, tuple) or not value:
         raise ValueError(f"{name} must be a non-empty tuple of {cls.__name__}")
     for entry in value:

@@ -1,8 +1,5 @@
-"""File and name checks: paths, readable files and folders, writable outputs, plain names.
-(Reading an untrusted file is :mod:`flowmaps_jax.untrusted_files`.)
-
-Each raises ``ValueError`` whose message starts with the argument's name.
-"""
+"""File and name checks: paths, readable files and folders, writable outputs, plain names; each
+``ValueError`` starts with the argument's name."""
 
 from __future__ import annotations
 
@@ -108,11 +105,8 @@ def check_output_file(name: str, value: Any, *, overwrite: bool = True) -> str:
 
 def check_output_dir(name: str, value: Any, *, empty: bool = False,
                      files: Sequence[str] = ()) -> str:
-    """A directory that exists (or can be created) and is writable; with ``empty``, one that
-    holds nothing yet. A path that is a file, or lies under a file, is refused, and so is one
-    with a name longer than the file system allows, one that cannot be created (``/proc/x``:
-    tried, then removed again), or one where a symbolic link or a directory sits at a name of
-    ``files`` (the files a command is about to write there: refused before it runs)."""
+    """A directory that exists (or can be created, tried and removed again) and is writable;
+    with ``empty``, one holding nothing; no link or directory at a name of ``files``."""
     path = check_path(name, value)
     _check_name_lengths(name, path)
     check_no_links(name, path, files)
@@ -145,9 +139,8 @@ _DISK_ERRNOS = frozenset(getattr(errno, code) for code in ("ENOSPC", "EDQUOT", "
 
 
 def _probe_write(name: str, path: str, folder: str) -> None:
-    """``ValueError`` if no file can be created in the existing ``folder`` (``/proc``, ``/sys``:
-    permissions say yes to root, the file system says no): a hidden file is created there and
-    removed again. A full disk is the machine's state: its ``OSError`` propagates."""
+    """``ValueError`` if no file can be created in the existing ``folder`` (tried, removed again;
+    a full disk's ``OSError`` propagates)."""
     try:
         fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=folder)
     except OSError as err:
@@ -161,10 +154,8 @@ def _probe_write(name: str, path: str, folder: str) -> None:
 
 
 def _probe_create(name: str, path: str, parent: str) -> None:
-    """``ValueError`` if the first missing folder of ``path`` (under the existing ``parent``)
-    cannot be created (``/proc/x``: permissions say yes, the file system says no); it is
-    created and removed again, so nothing is left. A full disk is the machine's state: its
-    ``OSError`` propagates."""
+    """``ValueError`` if the first missing folder of ``path`` cannot be created (tried, removed
+    again; a full disk's ``OSError`` propagates)."""
     first = os.path.abspath(path)
     while os.path.dirname(first) != os.path.abspath(parent):
         first = os.path.dirname(first)

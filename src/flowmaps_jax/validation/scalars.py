@@ -1,8 +1,5 @@
-"""Scalar argument checks: ints, reals, flags, choices, instances, seeds and PRNG keys.
-
-Each raises ``ValueError`` whose message starts with the argument's name and returns the value in
-the form the caller should go on with (a Python ``int``/``float``/``bool``, a typed key).
-"""
+"""Scalar argument checks: ints, reals, flags, choices, instances, seeds and PRNG keys, each
+returning the Python ``int``/``float``/``bool`` or typed key to go on with."""
 
 from __future__ import annotations
 
@@ -43,11 +40,8 @@ def _interval(low, high, low_open: bool = False, high_open: bool = False) -> str
 
 
 def check_int(name: str, value: Any, minimum: int | None = 1, maximum: int | None = None) -> int:
-    """``value`` as a Python int in ``minimum..maximum`` (None: unbounded), else ``ValueError``.
-
-    Python and numpy integers and 0-d integer arrays pass; booleans (an int to Python but never
-    a count here), floats (even 3.0) and strings do not.
-    """
+    """``value`` (an integer, not a bool or float) as a Python int in ``minimum..maximum``
+    (None: unbounded), else ``ValueError``."""
     bounds = ("" if minimum is None and maximum is None
               else f" >= {minimum}" if maximum is None
               else f" <= {maximum}" if minimum is None else f" in {minimum}..{maximum}")
@@ -65,13 +59,8 @@ def check_int(name: str, value: Any, minimum: int | None = 1, maximum: int | Non
 
 def check_real(name: str, value: Any, low: float | None = None, high: float | None = None, *,
                low_open: bool = False, high_open: bool = False) -> float:
-    """``value`` as a finite Python float within the bounds, else ``ValueError``.
-
-    Python and numpy real numbers (and 0-d real arrays) pass; booleans, complex numbers,
-    strings, NaN and ±inf do not. ``low_open``/``high_open`` exclude the bound itself; a value
-    that must be > 0 must also be at least :data:`FLOAT32_TINY` (a subnormal one is 0 to the
-    float32 computation).
-    """
+    """``value`` (a real, not a bool) as a finite Python float within the bounds (``*_open``
+    exclude them; > 0 means at least :data:`FLOAT32_TINY`), else ``ValueError``."""
     where = "" if low is None and high is None else " " + _interval(low, high, low_open,
                                                                        high_open)
     if isinstance(value, (bool, np.bool_)) or not (
@@ -127,11 +116,7 @@ def check_seed(name: str, value: Any) -> int:
 
 def check_key(key: Any, name: str = "key", shapes: Sequence[tuple[int, ...]] = ((),)
               ) -> jax.Array:
-    """A PRNG key (or key array) as a typed key of one of the allowed key-array ``shapes``.
-
-    Typed keys (``jax.random.key``) pass unchanged; raw uint32 keys (``jax.random.PRNGKey``,
-    trailing dim 2) are wrapped, so both kinds share compiled code. Works on tracers.
-    """
+    """A PRNG key (typed, or raw uint32 wrapped) as a typed key of one of ``shapes``."""
     allowed = " or ".join(str(tuple(s)) for s in shapes)
     if isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
         typed = key
@@ -170,10 +155,8 @@ def ascii_float(text: str) -> float:
 
 
 def int_list(text: str) -> list[int]:
-    """An ``argparse`` type: comma-separated integers (``"1,4,16"`` -> [1, 4, 16]), at least
-    one, each written with ASCII digits (as ``--set`` reads them; spaces around one are
-    allowed); an empty item (``"1,,2"``, a trailing comma) is refused, not skipped.
-    ``argparse.ArgumentTypeError`` otherwise, which argparse reports with the flag."""
+    """An ``argparse`` type: comma-separated ASCII integers (``"1,4,16"`` -> [1, 4, 16]), no
+    empty item; ``argparse.ArgumentTypeError`` otherwise."""
     items = [item.strip() for item in text.split(",")]
     if not text.strip():
         raise argparse.ArgumentTypeError(f"expected at least one integer; got {text!r}")
