@@ -36,9 +36,7 @@ centre always counts for the nearest slot."""
 ASSIGN_SIGMAS = 3.0
 """The radius grows to this many centre stds σ_c of the smoothed q (0.35 × the longer side)."""
 ASSIGN_TOLERANCE = ASSIGN_RADIUS
-"""The least assignment radius of table masses (normalised units; the evaluation protocol's): a
-sample whose centre is this close to a table's centre counts for the nearest table. On a 256 px
-map 0.05 is 12.75 px."""
+"""The least assignment radius (normalised units; the evaluation protocol's)."""
 
 
 @jax.jit
@@ -132,9 +130,7 @@ def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp
 
     tokens: SceneTokens (B, S); queries: Queries (B, Q). Returns ``boxes`` (B, Q, S, 4) normalised
     (y, x, h, w) (zeros on non-tables) and ``mask`` (B, Q, S) bool, True on furniture tokens.
-    The object's (h, w) is that of its token in ``tokens`` (same descriptor, kind OBJECT); raises
-    ``ValueError`` naming ``queries.descriptor`` unless a queried object has one token in its map
-    (in the map at τ, for tokens of a history: ``age`` 0).
+    The object's (h, w) is that of its token (:func:`check_query_objects`).
     """
     check_query_objects(tokens, queries)
     return _table_boxes(tokens, queries)
@@ -142,10 +138,7 @@ def table_boxes(tokens: SceneTokens, queries: Queries) -> tuple[jnp.ndarray, jnp
 
 def check_query_objects(tokens: SceneTokens, queries: Queries) -> None:
     """``ValueError`` naming ``queries.descriptor`` unless every queried object has exactly one
-    token in its map (in the map at τ, for tokens of a history: ``age`` 0): a question about an
-    object absent from the map, or present twice, has no answer on its tables. Every method
-    that answers with table masses (:func:`table_probabilities`'s samples and weights,
-    ``Predictor.table_weights``) refuses such a query here."""
+    token in its map at τ (``age`` 0)."""
     check_concrete("the table masses", tokens, queries)
     check_instance("tokens", tokens, SceneTokens)
     check_array("tokens.boxes", tokens.boxes, (None, None, 4))
@@ -192,14 +185,10 @@ def table_probabilities(predictor: Any, tokens: SceneTokens, queries: Queries,
                         **sample_kwargs) -> jnp.ndarray:
     """Mass on each table of the map from a sampling model → (B, Q, S + 1) float32.
 
-    predictor: anything with :meth:`flowmaps_jax.predictor.Predictor.sample` (FlowMaps or the MLP
-    baseline; :class:`SamplingModel`). tokens: SceneTokens (B, S). queries: Queries (B, Q).
-    num_samples: N boxes per query.
-    key: one typed PRNG key (``jax.random.key``) or one per scene (B,), as ``Predictor.sample``.
-    Entry s < S is the fraction of the N samples assigned to furniture token s, entry S the
-    fraction on no table; ``num_steps`` and ``solver`` (as ``method``) go to ``predictor.sample``.
-    ``method="weights"``: a read-out head's mixture weights instead (:class:`WeightsModel`;
-    ``num_samples`` and ``key`` unused).
+    predictor: a :class:`SamplingModel`; tokens (B, S); queries (B, Q); num_samples N per query;
+    key: one typed PRNG key or one per scene (B,). Entry s < S is the fraction of samples on
+    furniture token s, entry S off every table. ``method="weights"``: a read-out head's mixture
+    weights instead (:class:`WeightsModel`; ``num_samples`` and ``key`` unused).
     """
     method = check_choice("method", method, TABLE_METHODS)
     # "weights" does not use num_samples: >= 0 will do

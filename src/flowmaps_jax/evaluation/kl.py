@@ -95,8 +95,7 @@ def _active_components(slot_probs, slot_boxes, slot_mask):
 @jax.jit
 def mixture_log_prob(x, slot_probs, slot_boxes, slot_mask):
     """The kernel of :func:`gt_mixture_log_prob` (no checks; ``x`` float32, ``slot_mask``
-    required):
-    the mixture's log-density, the evaluation's only Gaussian density (components inline)."""
+    required)."""
     log_w, mu, sigma = _active_components(slot_probs, slot_boxes, slot_mask)
     z = (to_centre(x)[..., :, None, :] - mu[..., None, :, :]) / sigma[..., None, :, :]
     log_comp = (-0.5 * jnp.sum(z**2, axis=-1) - jnp.sum(jnp.log(sigma), axis=-1)[..., None, :]

@@ -51,8 +51,7 @@ def _top1(p_hat, q, slot_mask):
 def _visit_ranks(scores, valid):
     """(..., K) mean rank (1 = visited first) of each real slot, visiting by decreasing score.
 
-    Tied slots share the mean rank of their group. Padded slots are visited after all real ones
-    (they carry no probability, so their rank never matters) and do not push real slots back.
+    Tied slots share their group's mean rank; padded slots come after all real ones.
     """
     k = scores.shape[-1]
     s_i, s_j = scores[..., :, None], scores[..., None, :]
@@ -121,12 +120,9 @@ def route_offset_mass(p_hat: jnp.ndarray, slot_now: jnp.ndarray,
                       num_slots: jnp.ndarray) -> jnp.ndarray:
     """Where along the visiting order a slot distribution puts its mass, relative to now.
 
-    p_hat: (..., K + 1) slot distribution (positions along the object's visiting order, last bin
-    "off"), e.g. :func:`empirical_slots` or :func:`.priors.oracle_slots`. slot_now: (...) int
-    position at τ. num_slots: (...) int number of real slots.
-    Returns (..., 6), labelled :data:`ROUTE_OFFSET_LABELS`: mass at route offsets 0, +1, +2, +3
-    (offsets ≥ the route length are not counted there), at every larger offset ("beyond"), and
-    off every slot. One step ahead the exact posterior gives 0.2 / 0.7 / 0.1 / 0 / 0 / 0.
+    p_hat: (..., K + 1) slot distribution (last bin "off"); slot_now: (...) int position at τ;
+    num_slots: (...) int. Returns (..., 6) (:data:`ROUTE_OFFSET_LABELS`): mass at route offsets
+    0, +1, +2, +3, beyond, and off every slot.
     """
     p_hat = check_array("p_hat", p_hat, (..., None))
     batch, k = tuple(p_hat.shape[:-1]), p_hat.shape[-1] - 1

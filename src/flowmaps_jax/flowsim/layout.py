@@ -47,10 +47,7 @@ def uniform16(bits: jnp.ndarray) -> jnp.ndarray:
 
 
 def stable_ranks(values: jnp.ndarray) -> jnp.ndarray:
-    """Ranks (F, E) int32 of ``values`` (F, E) along axis 0, ties broken by index.
-
-    F×F comparisons instead of a sort: cheaper for F ≈ 10 and vectorised over E.
-    """
+    """Ranks (F, E) int32 of ``values`` (F, E) along axis 0, ties broken by index."""
     f = values.shape[0]
     index = jnp.arange(f)[:, None, None]
     other = jnp.arange(f)[None, :, None]

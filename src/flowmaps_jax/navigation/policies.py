@@ -53,9 +53,7 @@ def subset_values(belief: jnp.ndarray, legs: jnp.ndarray) -> jnp.ndarray:
     subset S (a bit mask) and stands at place i: V(S, i) = min_{j ∉ S} d(i, j) · m(S) +
     V(S ∪ {j}, j), m(S) = Σ_{t ∉ S} b_t the belief not yet looked at, V(all, ·) = 0.
 
-    belief: (K,) probabilities; legs: (K, K) distances between the places. The exact dynamic
-    programme over subsets, its K − 1 layers (subset sizes) unrolled (K is static): 2^K · K
-    values, 2^K · K² work. The one DP of the search policies and the homes navigation."""
+    belief: (K,) probabilities; legs: (K, K) distances between the places (K static)."""
     k = belief.shape[-1]
     table = jnp.zeros((2 ** k, k), belief.dtype)
     for rows, out, nxt, free in _layers(k):
@@ -70,10 +68,7 @@ def plan_costs(belief: jnp.ndarray, centres: jnp.ndarray, position: jnp.ndarray)
     """Least expected travel (K,) of a plan that looks at table j first, for every j.
 
     belief: (K,) probabilities (zero on padding); centres: (K, 2) table centres; position: (2,).
-    A plan visits every table once and stops when the object is found (perfect detector); its
-    expected travel is Σ_legs (leg length) · (mass not yet looked at): the distance to j times
-    the whole belief, plus V({j}, j) of :func:`subset_values`. Tables with zero belief
-    (padding, searched tables) are visited last at no cost.
+    Expected travel: Σ_legs (leg length) · (mass not yet looked at), perfect detector.
     """
     k = belief.shape[-1]
     first = subset_values(belief, distances(centres, centres))[1 << np.arange(k), np.arange(k)]
@@ -130,8 +125,6 @@ def choose(policy: str, belief: jnp.ndarray, centres: jnp.ndarray, position: jnp
 def choose_indexed(policy_index: jnp.ndarray, belief: jnp.ndarray, centres: jnp.ndarray,
                    position: jnp.ndarray, allowed: jnp.ndarray,
                    looks_at: jnp.ndarray) -> jnp.ndarray:
-    """:func:`choose` with the policy as a traced index into ``POLICIES`` (``lax.switch``): one
-    compiled program serves every policy; under ``vmap`` with one index for the whole batch it
-    stays a branch, so only the chosen policy runs."""
+    """:func:`choose` with the policy as a traced index into ``POLICIES`` (``lax.switch``)."""
     branches = [functools.partial(choose, p) for p in POLICIES]
     return jax.lax.switch(policy_index, branches, belief, centres, position, allowed, looks_at)
