@@ -1,0 +1,345 @@
+"""FlowMaps beside SGM's agents on SGM's simulator (issue 56, item 5).
+
+    python experiments/peers/sgm.py --sgm PATH --sgm-python PY --out DIR \\
+        [--scenes small,large] [--steps N] [--seeds 0] [--train-sim-steps N] [--train-steps N]
+
+SGM ("Modeling Dynamic Environments with Scene Graph Memory", Kurenkov et al., ICML 2023) is
+andreykurenkov/modeling_env_dynamics, GPL-3: it runs from the checkout ``--sgm`` under its own
+Python ``--sgm-python`` (numpy, scipy, networkx, hydra-core, omegaconf, coloredlogs, matplotlib,
+tqdm, tensorboardX, pyyaml; no torch: the graph-network agents are not run), through
+``sgm_driver.py`` (which applies the three runtime fixes; nothing of SGM is copied here).
+
+For each scene size: the driver runs SGM's six non-learning agents on the evaluation seeds in
+their own protocol (each agent looks where it predicted) and in the shared-observer one (one
+uniform look per step, the same for every agent; written as a log in ``import-log``'s schema,
+one simulator step = one hour, a scene = an environment, hours 0 … eps_per_scene − 1); it also
+writes a training log of other seeds (``--train-seed`` on). The logs are split into
+environments of at most ``MAX_OBJECTS`` objects each (``<scene>/part<j>``: every look is copied
+to every part; the homes network takes at most that many objects), converted with
+``python -m flowmaps_jax.data import-log``, FlowMaps trains on the training log
+(``python -m flowmaps_jax.train --data``, the default recipe, ``--train-steps``) and answers
+every shared query at τ_q = its hour from the log up to τ = τ_q − 1 (the look of τ_q comes after
+the query, as in SGM's loop). SGM's accuracy: the share of queries whose predicted receptacle
+holds an object of the query's description; FlowMaps and the count rows predict their most
+probable receptacle. A query FlowMaps cannot read (hour 0, an object never seen in the whole
+log, or a class the training log never showed) gets a uniform guess over the environment's
+receptacles (its expected accuracy and log score), counted in the table. Writes
+``DIR/results.md`` (printed) and ``DIR/results.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import functools
+import json
+import math
+import os
+import pathlib
+import shlex
+import subprocess
+import sys
+from collections import defaultdict
+
+import numpy as np
+
+AGENTS = ("random", "priors", "memorization", "frequentist", "bayesian", "upper_bound")
+DRIVER = pathlib.Path(__file__).with_name("sgm_driver.py")
+P_FLOOR = 1e-9
+MAX_OBJECTS = 15
+"""The homes network's objects per environment (flowmaps_jax.flowsim.homes.config)."""
+
+
+def check_sgm(path) -> pathlib.Path:
+    """``path`` as a checkout of SGM, or ``ValueError`` naming ``--sgm``."""
+    root = pathlib.Path(path)
+    if not root.is_dir():
+        raise ValueError(f"--sgm: {path} is not a folder (a checkout of "
+                         f"andreykurenkov/modeling_env_dynamics)")
+    for need in ("memsearch/scene.py", "memsearch/agents.py", "configs/scene_gen/small_scenes.yaml",
+                 "priors/detailed_prior_graph.pickle"):
+        if not (root / need).is_file():
+            raise ValueError(f"--sgm: {path} is not a checkout of SGM "
+                             f"(andreykurenkov/modeling_env_dynamics): it has no {need}")
+    return root.resolve()
+
+
+def read_csv(path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def write_csv(path, rows: list[dict], columns=None) -> None:
+    tmp = pathlib.Path(str(path) + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns or list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+
+
+def split_log(rows: list[dict], max_objects: int = MAX_OBJECTS) -> tuple[list[dict], dict]:
+    """(rows, part): the log with each environment split into ``<env>/part<j>`` environments of
+    at most ``max_objects`` objects each (sorted ids, parts as even as can be), every
+    object-less row (a look) copied to every part; ``part[(env, object)]`` names the object's."""
+    objects = defaultdict(set)
+    for r in rows:
+        if r["object"]:
+            objects[r["environment"]].add(r["object"])
+    part, parts = {}, {}
+    for env, ids in objects.items():
+        ids = sorted(ids)
+        n = math.ceil(len(ids) / max_objects)
+        parts[env] = [f"{env}/part{j}" for j in range(n)]
+        for i, o in enumerate(ids):
+            part[env, o] = parts[env][i * n // len(ids)]
+    out = []
+    for r in rows:
+        if r["object"]:
+            out.append({**r, "environment": part[r["environment"], r["object"]]})
+        else:
+            out += [{**r, "environment": p} for p in parts.get(r["environment"], ())]
+    return out, part
+
+
+def sgm_accuracy(predicted: list[str], correct: list[str]) -> float:
+    """SGM's metric: the share of queries whose prediction is among the receptacles holding an
+    object of the query's description (``correct``: ';'-joined ids)."""
+    hits = [p in c.split(";") for p, c in zip(predicted, correct, strict=True)]
+    return float(np.mean(hits)) if hits else float("nan")
+
+
+def class_pairs(recorded) -> set:
+    """(object class, receptacle class) of every sighting in ``recorded``."""
+    pairs = set()
+    for env in recorded.environments:
+        t, m = np.nonzero(np.asarray(env.location) >= 0)
+        r = np.asarray(env.location)[t, m]
+        pairs |= {(env.object_classes[i], env.receptacle_classes[j])
+                  for i, j in zip(m, r, strict=True)}
+    return pairs
+
+
+def readable(recorded, config, pairs: set) -> tuple[list, int]:
+    """``recorded``'s environments as the model can read them without the future: objects of
+    classes ``config`` lacks removed (environments with such receptacle or room classes, or no
+    object left, dropped), ``allowed`` the training log's class ``pairs`` (every receptacle for
+    an object with none; import-log's own comes from this log's sightings, future ones
+    included); and the number of objects removed."""
+    voc = {f: {c.text for c in getattr(config, f)} for f in
+           ("object_classes", "receptacle_classes", "room_types")}
+    envs, removed = [], 0
+    for env in recorded.environments:
+        keep = np.asarray([c in voc["object_classes"] for c in env.object_classes])
+        removed += int((~keep).sum())
+        if not keep.any() or not set(env.receptacle_classes) <= voc["receptacle_classes"] \
+                or not set(env.room_classes) <= voc["room_types"]:
+            removed += int(keep.sum())
+            continue
+        pick = functools.partial(_keep, keep)
+        classes = pick(env.object_classes)
+        allowed = np.asarray([[(o, r) in pairs for r in env.receptacle_classes]
+                              for o in classes]).reshape(len(classes), -1)
+        allowed[~allowed.any(1)] = True
+        envs.append(dataclasses.replace(
+            env, object_ids=pick(env.object_ids), object_classes=classes,
+            object_texts=pick(env.object_texts), allowed=allowed,
+            location=pick(env.location), not_at=pick(env.not_at),
+            object_corners=pick(env.object_corners), object_rotation=pick(env.object_rotation)))
+    return envs, removed
+
+
+def _keep(keep, a, axis=1):
+    """``a`` (a tuple of names, or an array along ``axis``) where ``keep``."""
+    if isinstance(a, tuple):
+        return tuple(x for x, k in zip(a, keep, strict=True) if k)
+    return None if a is None else np.compress(keep, a, axis)
+
+
+def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dict,
+                  batch: int = 16) -> dict:
+    """{row: (probabilities {receptacle id: p} or None per query)} for FlowMaps and the
+    reference rows (count rows fitted on the run's training part), None where the row cannot
+    read the query; and ``removed``: objects of unknown classes."""
+    import jax.numpy as jnp
+
+    from flowmaps_jax.evaluation import realised
+    from flowmaps_jax.flowsim.homes.queries import HomesQueries
+    from flowmaps_jax.predictor import load_model, stored_run
+    from flowmaps_jax.recorded.format import Recorded, load_recorded
+    from flowmaps_jax.worlds import recorded as rw
+
+    predictor = load_model(str(run_dir))
+    _, stored = stored_run(str(run_dir))
+    train, _ = rw.load_data(str(train_data))
+    *_, train_part = realised.evaluation_part(train, predictor.homes, stored, str(train_data))
+    fit = realised.fit_counts(train_part, predictor.homes, predictor.model.history, 24)
+    envs, removed = readable(load_recorded(str(eval_data)), predictor.homes, class_pairs(train))
+    recorded = Recorded(tuple(envs))
+    index = {e.name: i for i, e in enumerate(envs)}
+    asked = defaultdict(list)  # env index -> [(query number, object slot, hour)]
+    for n, q in enumerate(queries):
+        name, hour = part.get((q["environment"], q["object"])), int(q["timestamp"])
+        env = envs[index[name]] if name in index else None
+        if env is not None and 0 < hour <= min(env.hours[-1] + 1, predictor.homes.num_hours - 1) \
+                and q["object"] in env.object_ids:
+            asked[index[name]].append((n, env.object_ids.index(q["object"]), hour))
+    out = defaultdict(lambda: [None] * len(queries))
+    width = max((len(v) for v in asked.values()), default=1)
+    order = sorted(asked)
+    for start in range(0, len(order), batch):
+        chunk = order[start:start + batch]
+        data = rw.recorded_homes(recorded, predictor.homes, index=chunk)
+        cols = np.zeros((3, len(chunk), width), np.int32)
+        cols[1], cols[2] = 0, 1
+        for row, e in enumerate(chunk):
+            for col, (_, obj, hour) in enumerate(asked[e]):
+                cols[:, row, col] = obj, hour - 1, hour
+        queries_ = HomesQueries(*(jnp.asarray(c) for c in cols))
+        for name, p in realised.row_probabilities(predictor, data, queries_, fit).items():
+            p = np.asarray(p)
+            for row, e in enumerate(chunk):
+                ids = envs[e].receptacle_ids
+                for col, (n, _, _) in enumerate(asked[e]):
+                    out[name][n] = {ids[r]: float(p[row, col, r]) for r in range(len(ids))}
+    return {"rows": dict(out), "removed": removed,
+            "receptacles": {e.name: e.receptacle_ids for e in envs}, "step": predictor.step}
+
+
+def score_row(answers: list, queries: list[dict], part: dict, receptacles: dict) -> dict:
+    """SGM accuracy (the most probable receptacle; first on ties) and the mean log score of the
+    query object's receptacle over ``answers``; a query without an answer gets a uniform guess
+    over its environment's receptacles (none known: accuracy 0, log score at the floor)."""
+    acc, logs, fallback = [], [], 0
+    for a, q in zip(answers, queries, strict=True):
+        correct = [q["receptacle"], *(c for c in q["receptacles"].split(";")
+                                      if c != q["receptacle"])]
+        if a is None:
+            fallback += 1
+            ids = receptacles.get(part.get((q["environment"], q["object"])), ())
+            hit = sum(c in ids for c in correct)
+            acc.append(hit / len(ids) if ids else 0.0)
+            logs.append(math.log(1 / len(ids)) if ids and correct[0] in ids
+                        else math.log(P_FLOOR))
+            continue
+        best = max(a, key=a.get)
+        acc.append(float(best in correct))
+        logs.append(math.log(max(a.get(correct[0], 0.0), P_FLOOR)))
+    return {"accuracy": float(np.mean(acc)), "log_score": float(np.mean(logs)),
+            "uniform_fallback": fallback}
+
+
+def sh(cmd: list[str], log, **kw) -> None:
+    """Runs ``cmd`` niced, its output to ``log``; ``RuntimeError`` with its tail on failure."""
+    print("$", shlex.join(cmd), flush=True)
+    with open(log, "a") as f:
+        done = subprocess.run(["nice", "-n", "19", *cmd], stdout=f, stderr=subprocess.STDOUT, **kw)
+    if done.returncode:
+        tail = pathlib.Path(log).read_text().splitlines()[-15:]
+        raise RuntimeError(f"{cmd[0]} … exited {done.returncode}; {log}:\n" + "\n".join(tail))
+
+
+def run_scenes(args, scenes: str, out: pathlib.Path) -> dict:
+    """Everything for one scene size; returns its results."""
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "log.txt"
+    driver = [args.sgm_python, str(DRIVER), "--sgm", str(args.sgm), "--scenes", scenes]
+    queries, own, shared, trace = [], defaultdict(list), defaultdict(list), []
+    for seed in args.seeds:
+        d = out / f"eval-s{seed}"
+        if not (d / "driver.json").is_file():
+            sh([*driver, "--seed", str(seed), "--out", str(d), "--prefix", f"{scenes}-s{seed}-",
+                         "--observation-prob", str(args.observation_prob),
+                         *(["--steps", str(args.steps)] if args.steps else [])], log)
+        result = json.loads((d / "driver.json").read_text())
+        for k in ("own", "shared"):
+            for a, v in result.get(k, {}).items():
+                (own if k == "own" else shared)[a].append(v)
+        queries += read_csv(d / "queries.csv")
+        trace += read_csv(d / "trace.csv")
+    t = out / "train-sim"
+    if not (t / "driver.json").is_file():
+        sh([*driver, "--seed", str(args.train_seed), "--out", str(t), "--agents", "",
+                     "--protocols", "shared", "--steps", str(args.train_sim_steps),
+                     "--prefix", f"{scenes}-train-", "--observation-prob",
+                     str(args.observation_prob)], log)
+    datasets = {}
+    for name, rows in (("train", read_csv(t / "trace.csv")), ("eval", trace)):
+        table, part = split_log(rows)
+        if name == "eval":
+            eval_part = part
+        path = out / f"{name}_log.csv"
+        write_csv(path, table)
+        datasets[name] = out / f"{name}_data"
+        if not (datasets[name] / "recorded.json").is_file():
+            sh([sys.executable, "-m", "flowmaps_jax.data", "import-log", str(path), "--out",
+                str(datasets[name])], log)
+    run_dir = out / "run"
+    if not (run_dir / "checkpoints").is_dir():
+        sh([sys.executable, "-m", "flowmaps_jax.train", "--data", str(datasets["train"]),
+            "--run-dir", str(run_dir), "--steps", str(args.train_steps), "--no-progress"], log)
+    answers = flowmaps_rows(run_dir, datasets["train"], datasets["eval"], queries, eval_part)
+    rows = {a: {"own": float(np.mean(own[a])) if own.get(a) else None,
+                "shared": sgm_accuracy([q[a] for q in queries],
+                                       [q["receptacles"] for q in queries])}
+            for a in shared}
+    for name, ans in answers["rows"].items():
+        rows[name] = {"own": None, **score_row(ans, queries, eval_part, answers["receptacles"])}
+    return {"queries": len(queries), "objects_of_unknown_class": answers["removed"],
+            "flowmaps_step": answers["step"], "rows": rows}
+
+
+def markdown(results: dict, command: str) -> str:
+    lines = [f"`{command}`", ""]
+    for scenes, r in results["scenes"].items():
+        lines += [f"**{scenes} scenes** ({r['queries']} queries; FlowMaps at step "
+                  f"{r['flowmaps_step']}; {r['objects_of_unknown_class']} evaluation objects of "
+                  "classes the training log never showed)", "",
+                  "| agent | SGM accuracy, own looks | SGM accuracy, shared looks | log score "
+                  "(nats) | uniform fallbacks |", "| --- | --- | --- | --- | --- |"]
+        for name, row in r["rows"].items():
+            f = lambda v, d=3: "–" if v is None else f"{v:.{d}f}"  # noqa: E731
+            lines.append(f"| {name} | {f(row.get('own'))} | "
+                         f"{f(row.get('shared', row.get('accuracy')))} | "
+                         f"{f(row.get('log_score'))} | {row.get('uniform_fallback', '–')} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--sgm", required=True,
+                   help="a checkout of andreykurenkov/modeling_env_dynamics")
+    p.add_argument("--sgm-python", default=sys.executable, help="the Python that runs SGM")
+    p.add_argument("--out", required=True)
+    p.add_argument("--scenes", default="small,large")
+    p.add_argument("--steps", type=int, default=None, help="simulator steps per evaluation seed "
+                   "(default: the config's, 11,000)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0])
+    p.add_argument("--train-seed", type=int, default=1000)
+    p.add_argument("--train-sim-steps", type=int, default=22000)
+    p.add_argument("--train-steps", type=int, default=1500)
+    p.add_argument("--observation-prob", type=float, default=1.0)
+    args = p.parse_args(argv)
+    try:
+        args.sgm = check_sgm(args.sgm)
+        scenes = [s for s in args.scenes.split(",") if s]
+        if not scenes or set(scenes) - {"small", "large"}:
+            raise ValueError(f"--scenes must list small and/or large; got {args.scenes!r}")
+    except ValueError as err:
+        p.error(str(err))
+    out = pathlib.Path(args.out)
+    command = "python experiments/peers/sgm.py " + shlex.join(sys.argv[1:] if argv is None
+                                                               else list(argv))
+    results = {"command": command,
+               "scenes": {s: run_scenes(args, s, out / s) for s in scenes}}
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    text = markdown(results, command)
+    (out / "results.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
