@@ -5,6 +5,7 @@
     python -m flowmaps_jax.data export-flowmaps2026 PATH --out ROOT [--overwrite]
     python -m flowmaps_jax.data from-homes --homes N [--regime mixed] [--hours T] [--mask 0.3]
         [--seed S] [--names PREFIX] --out PATH [--overwrite]
+    python -m flowmaps_jax.data import-log TABLE [--layout FILE] --out PATH [--overwrite]
     python -m flowmaps_jax.data validate PATH
 
 ``import-flowmaps2026`` reads every environment folder under ROOT in the authors' 2026 layout
@@ -12,8 +13,9 @@
 recorded.format`) to PATH; ``export-flowmaps2026`` writes a recorded world in that layout;
 ``from-homes`` generates N FlowSim homes (``generate_homes(jax.random.key(S), config, N)``) and
 writes them as a recorded world, about ``--mask`` of the object-hours hidden by whole rooms
-(:mod:`~flowmaps_jax.recorded.from_homes`); ``validate`` loads PATH and prints a summary and
-the default recipe's split. Every writing command writes its whole ``--out`` folder
+(:mod:`~flowmaps_jax.recorded.from_homes`); ``import-log`` reads a CSV or parquet table of
+sightings (:mod:`~flowmaps_jax.recorded.import_log`); ``validate`` loads PATH and prints a
+summary and the default recipe's split. Every writing command writes its whole ``--out`` folder
 aside and renames it into place (:func:`~flowmaps_jax.atomic_files.output_folder`): a link
 there is refused, and so is a folder holding anything unless ``--overwrite`` (it is then moved
 to ``<out>.old-<time>``). Exit codes: 0 ok, 2 bad arguments or a bad input
@@ -78,9 +80,16 @@ def build_parser() -> argparse.ArgumentParser:
                        help="environment e is named PREFIX<e> (default home: home0, home1, "
                             "...); a path prefix such as train/env gives train/env0, ...")
     homes.add_argument("--out", required=True, metavar="PATH", help="the recorded world's folder")
+    log = commands.add_parser("import-log", help="a table of sightings (CSV or parquet) -> a "
+                                                 "recorded world")
+    log.add_argument("table", metavar="TABLE", help="a .csv or .parquet table, one row per "
+                                                    "sighting or search (docs/data.md)")
+    log.add_argument("--layout", metavar="FILE", help="JSON of receptacle boxes, room boxes and "
+                                                      "doors per environment (default: none)")
+    log.add_argument("--out", required=True, metavar="PATH", help="the recorded world's folder")
     val = commands.add_parser("validate", help="check a recorded world and summarise it")
     val.add_argument("path", metavar="PATH", help="a recorded world's folder")
-    for sub in (imp, exp, homes):
+    for sub in (imp, exp, homes, log):
         sub.add_argument("--no-progress", action="store_true", help="no progress bar")
         sub.add_argument("--overwrite", action="store_true", help="replace a --out folder that "
                          "holds anything (it is moved to <out>.old-<time>)")
@@ -128,6 +137,19 @@ def _export(args) -> str:
         export_flowmaps2026(recorded, out, progress=_bar(args, "writing", "env"))
     return (f"wrote {len(recorded.environments)} environment folders and "
             f"{os.path.join(args.out, 'lookup.json')} ({describe(recorded)})")
+
+
+def _import_log(args) -> str:
+    from flowmaps_jax.recorded.import_log import import_log
+
+    with _out(args) as out:
+        recorded = import_log(args.table, args.layout, progress=_bar(args, "reading", "row"))
+        save_recorded(recorded, out)
+    envs = recorded.environments
+    negative = sum(int(e.not_at.any(axis=-1).sum()) for e in envs) / sum(
+        e.num_hours * e.num_objects for e in envs)
+    return (f"wrote {args.out}: {describe(recorded)}, {100 * negative:.1f} % with negative "
+            f"evidence")
 
 
 def homes_config(args) -> HomesConfig:
@@ -218,7 +240,7 @@ def _validate(args) -> str:
 
 
 COMMANDS = {"import-flowmaps2026": _import, "export-flowmaps2026": _export,
-            "from-homes": _from_homes, "validate": _validate}
+            "from-homes": _from_homes, "import-log": _import_log, "validate": _validate}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
