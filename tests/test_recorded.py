@@ -146,7 +146,7 @@ def _set(key, value):
 
 INDEX_CASES = {
     "format": (_set("format", "flowmaps-homes"), "format"),
-    "version": (_set("version", 2), "version"),
+    "version": (_set("version", 3), "version"),
     "missing": (lambda d: d.pop("units"), r"\(top level\): missing \['units'\]"),
     "unexpected": (_set("extra", 1), r"unexpected \['extra'\]"),
     "no environments": (_set("environments", []), "environments: is empty"),

@@ -2,9 +2,11 @@
 that refuses bad files (the format: docs/data.md).
 
 ``PATH/recorded.json`` (the index), ``PATH/<name>/environment.json`` and
-``PATH/<name>/arrays.npz`` (hours (T,) int64, location (T, M) int32, −1 not observed,
-receptacle_corners (R, 8, 3) float32; optional distance (R, R), object_corners (T, M, 8, 3),
-object_rotation (T, M)). Names are relative POSIX paths; metres and hours, z up.
+``PATH/<name>/arrays.npz`` (hours (T,) int64, location (T, M) int32, −1 not observed;
+receptacle_corners (R, 8, 3) float32, absent in version 2 = no geometry; optional distance
+(R, R), object_corners (T, M, 8, 3), object_rotation (T, M), and in version 2 not_at_bits
+(T, M, ⌈R / 8⌉) uint8 = ``numpy.packbits(not_at, axis=-1)``). Names are relative POSIX paths;
+metres and hours, z up. A dataset is written as version 1 unless it uses a version-2 field.
 ``load_recorded(path)`` raises one-line ``ValueError`` ``"<file>: <field>: what is wrong"`` for
 anything ``save_recorded`` could not have written; ``save_recorded`` writes every file aside and
 renames them together, never through a symbolic link; ``validate_environment`` applies the
@@ -37,15 +39,22 @@ from flowmaps_jax.untrusted_files import read_json, read_npz
 from flowmaps_jax.validation import check_dir, check_output_dir
 
 FORMAT = "flowmaps-recorded"
-VERSION = 1
+VERSION = 2
+VERSIONS = (1, 2)
 INDEX_FILE = "recorded.json"
 ENVIRONMENT_FILE = "environment.json"
 ARRAYS_FILE = "arrays.npz"
 UNITS = {"length": "metres", "time": "hours"}
 TIME = "hour t counts from Monday 00:00 of the first week"
 
-REQUIRED_ARRAYS = ("hours", "location", "receptacle_corners")
-OPTIONAL_ARRAYS = ("distance", "object_corners", "object_rotation")
+REQUIRED_ARRAYS = ("hours", "location")
+OPTIONAL_ARRAYS = ("receptacle_corners", "distance", "object_corners", "object_rotation")
+ARRAYS = (*REQUIRED_ARRAYS, *OPTIONAL_ARRAYS, "not_at")
+ROOM_CHANGE_COST = 5.0
+EXAMINE_COST = 4.0
+"""Without geometry a walk costs ``ROOM_CHANGE_COST`` per room change and ``EXAMINE_COST`` per
+receptacle examined, as SGM's find-object task counts them (5 to travel to another room; 1 up
+to the room, 1 down to the furniture and 2 to examine it)."""
 _JSON_NAMES = {"receptacle_ids": ("receptacles", "id"),
                "receptacle_classes": ("receptacles", "class"),
                "receptacle_texts": ("receptacles", "text"),
@@ -78,16 +87,20 @@ class Environment:
     """One recorded environment: R receptacles, M objects, T timestamps (hours).
 
     receptacle_room: int32 (R,), index into ``room_classes`` (-1: unknown);
-    receptacle_corners: float32 (R, 8, 3), the receptacle's oriented box (x, y, z up), metres;
+    receptacle_corners: float32 (R, 8, 3), the receptacle's oriented box (x, y, z up), metres,
+    or None (no geometry: a scene graph of rooms, receptacles and objects);
     allowed: bool (M, R), the receptacles each object may stand on;
     hours: int64 (T,), strictly increasing, >= 0; location: int32 (T, M), the receptacle each
     object was seen on at each hour, -1 = not observed;
     room_boxes: float32 (K, 4) (x0, y0, x1, y1); door_rooms: int32 (D, 2); door_positions:
-    float32 (D, 2) (None when there are no rooms / doors);
+    float32 (D, 2) (None when there are no rooms / doors; boxes and positions may be None
+    without geometry);
     distance: float32 (R, R) walking distances as stored (None: derived, see
     ``walking_distance``); object_corners: float32 (T, M, 8, 3) and object_rotation: float32
     (T, M), optional per-hour object boxes (the authors' ``aabb_cornerPoints`` and
-    ``rotation``); source: free-form provenance (JSON).
+    ``rotation``); source: free-form provenance (JSON); not_at: bool (T, M, R) or None,
+    object m was looked for on receptacle r at hour index t and was not there (False where
+    it was seen).
     """
 
     name: str
@@ -95,7 +108,7 @@ class Environment:
     receptacle_classes: tuple[str, ...]
     receptacle_texts: tuple[str, ...]
     receptacle_room: np.ndarray
-    receptacle_corners: np.ndarray
+    receptacle_corners: np.ndarray | None
     object_ids: tuple[str, ...]
     object_classes: tuple[str, ...]
     object_texts: tuple[str, ...]
@@ -110,6 +123,7 @@ class Environment:
     object_corners: np.ndarray | None = None
     object_rotation: np.ndarray | None = None
     source: dict = dataclasses.field(default_factory=dict)
+    not_at: np.ndarray | None = None
 
     @property
     def num_hours(self) -> int:
@@ -131,9 +145,16 @@ class Environment:
         """bool (T, M): whether each object was seen at each hour."""
         return np.asarray(self.location) >= 0
 
+    @property
+    def version(self) -> int:
+        """The format version the environment needs: 2 without geometry or with ``not_at``."""
+        return 2 if self.receptacle_corners is None or self.not_at is not None else 1
+
     def receptacle_boxes(self) -> np.ndarray:
         """float32 (R, 6): the axis-aligned box (cx, cy, cz, w, d, h) around each receptacle's
-        corners, metres."""
+        corners, metres (zeros without geometry)."""
+        if self.receptacle_corners is None:
+            return np.zeros((self.num_receptacles, 6), np.float32)
         corners = np.asarray(self.receptacle_corners, np.float32)
         low, high = corners.min(axis=1), corners.max(axis=1)
         return np.concatenate([(low + high) / 2, high - low], axis=-1).astype(np.float32)
@@ -144,9 +165,11 @@ class Environment:
         Derived: geodesic through doors (straight lines within a room, between box centres on
         the floor, through door positions) when rooms, doors and every receptacle's room are
         known; otherwise, and for pairs that no door path joins, the straight-line distance
-        between the box centres on the floor (x, y)."""
+        between the box centres on the floor (x, y). Without geometry: :meth:`room_costs`."""
         if self.distance is not None:
             return np.asarray(self.distance, np.float32)
+        if self.receptacle_corners is None:
+            return self.room_costs()
         centre = self.receptacle_boxes()[:, :2].astype(np.float64)
         straight = np.linalg.norm(centre[:, None] - centre[None], axis=-1)
         room = np.asarray(self.receptacle_room)
@@ -156,6 +179,25 @@ class Environment:
         geodesic = _geodesic(centre, room, np.asarray(self.door_positions, np.float64),
                              np.asarray(self.door_rooms), len(self.room_classes))
         return np.where(np.isfinite(geodesic), geodesic, straight).astype(np.float32)
+
+    def room_costs(self) -> np.ndarray:
+        """float32 (R, R): the cost of going from receptacle i to examine j, ``EXAMINE_COST`` +
+        ``ROOM_CHANGE_COST`` × the room changes (fewest doors between their rooms; every pair
+        of rooms one change apart without doors; a receptacle of unknown room one change from
+        every other; K changes where no door path joins them). The diagonal is
+        ``EXAMINE_COST`` (examining where one stands)."""
+        room, k = np.asarray(self.receptacle_room), len(self.room_classes)
+        hops = np.where(np.eye(k, dtype=bool), 0.0, 1.0 if self.door_rooms is None else np.inf)
+        for a, b in ([] if self.door_rooms is None else np.asarray(self.door_rooms)):
+            hops[a, b] = hops[b, a] = min(hops[a, b], 1.0)
+        for via in range(k):  # Floyd-Warshall over K rooms
+            hops = np.minimum(hops, hops[:, via:via + 1] + hops[via:via + 1])
+        known = (room[:, None] >= 0) & (room[None] >= 0)
+        changes = np.where(known, hops[np.maximum(room, 0)][:, np.maximum(room, 0)] if k else 0,
+                           1.0)
+        changes = np.where(np.eye(len(room), dtype=bool), 0.0,
+                           np.where(np.isfinite(changes), changes, k))
+        return (EXAMINE_COST + ROOM_CHANGE_COST * changes).astype(np.float32)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -221,7 +263,7 @@ class _Where:
         if self.files is None:
             return ValueError(f"environment {self.env_name!r}: {field}: {what}")
         base, _, index = field.partition("[")
-        if base in (*REQUIRED_ARRAYS, *OPTIONAL_ARRAYS):
+        if base in ARRAYS:
             return ValueError(f"{self.files['arrays']}: {field}: {what}")
         if base in _JSON_NAMES:  # the dataclass field as the JSON path it was read from
             entry, key = _JSON_NAMES[base]
@@ -331,8 +373,8 @@ def validate_environment(env: Any, *, _files: dict[str, str] | None = None) -> E
     k = len(env.room_classes)
     # arrays: shapes and dtypes
     location = _check_integers(where, "location", env.location, np.int32, (t, m), "(T, M)")
-    corners = _check_array(where, "receptacle_corners", env.receptacle_corners, np.float32,
-                           (r, 8, 3), "(R, 8, 3)")
+    corners = None if env.receptacle_corners is None else _check_array(
+        where, "receptacle_corners", env.receptacle_corners, np.float32, (r, 8, 3), "(R, 8, 3)")
     allowed = _check_array(where, "allowed", env.allowed, np.bool_, (m, r), "(M, R)")
     room = _check_array(where, "receptacle_room", env.receptacle_room, np.int32, (r,), "(R,)")
     # time
@@ -346,7 +388,8 @@ def validate_environment(env: Any, *, _files: dict[str, str] | None = None) -> E
     # indices and geometry
     _check_range(where, "location", location, -1, r - 1, "a receptacle index, or -1 = not "
                                                           "observed")
-    _check_finite(where, "receptacle_corners", corners)
+    if corners is not None:
+        _check_finite(where, "receptacle_corners", corners)
     _check_range(where, "receptacle_room", room, -1, k - 1, "a room index, or -1 = unknown")
     none = np.flatnonzero(~allowed.any(axis=1))
     if none.size:
@@ -367,20 +410,25 @@ def validate_environment(env: Any, *, _files: dict[str, str] | None = None) -> E
             if getattr(env, field) is not None and np.size(getattr(env, field)):
                 raise where.fail(field, "is given but room_classes is empty (no rooms)")
     else:
-        boxes = _check_array(where, "room_boxes", env.room_boxes, np.float32, (k, 4), "(K, 4)")
-        _check_finite(where, "room_boxes", boxes)
-        if np.any(boxes[:, 2:] <= boxes[:, :2]):
-            raise where.fail("room_boxes", "must have x1 > x0 and y1 > y0")
-        if (env.door_rooms is None) != (env.door_positions is None):
-            raise where.fail("door_rooms", "and door_positions must be given together")
+        graph = corners is None  # a scene graph: room boxes and door positions optional
+        if not (graph and env.room_boxes is None):
+            boxes = _check_array(where, "room_boxes", env.room_boxes, np.float32, (k, 4),
+                                 "(K, 4)")
+            _check_finite(where, "room_boxes", boxes)
+            if np.any(boxes[:, 2:] <= boxes[:, :2]):
+                raise where.fail("room_boxes", "must have x1 > x0 and y1 > y0")
+        if (env.door_rooms is None) != (env.door_positions is None) and not (
+                graph and env.door_positions is None):
+            raise where.fail("door_rooms", "and door_positions must be given together (door "
+                                           "positions may be left out only without geometry)")
         if env.door_rooms is not None:
             doors = _check_array(where, "door_rooms", env.door_rooms, np.int32, (None, 2),
                                  "(D, 2)")
-            d = doors.shape[0]
-            positions = _check_array(where, "door_positions", env.door_positions, np.float32,
-                                     (d, 2), "(D, 2)")
             _check_range(where, "door_rooms", doors, 0, k - 1, "room indices")
-            _check_finite(where, "door_positions", positions)
+            if env.door_positions is not None:
+                _check_finite(where, "door_positions", _check_array(
+                    where, "door_positions", env.door_positions, np.float32,
+                    (doors.shape[0], 2), "(D, 2)"))
     # optional arrays
     if env.distance is not None:
         distance = _check_array(where, "distance", env.distance, np.float32, (r, r), "(R, R)")
@@ -398,6 +446,14 @@ def validate_environment(env: Any, *, _files: dict[str, str] | None = None) -> E
     if env.object_rotation is not None:
         _check_finite(where, "object_rotation", _check_array(
             where, "object_rotation", env.object_rotation, np.float32, (t, m), "(T, M)"))
+    if env.not_at is not None:
+        not_at = _check_array(where, "not_at", env.not_at, np.bool_, (t, m, r), "(T, M, R)")
+        clash = np.flatnonzero(not_at[seen_t, seen_m, location[seen_t, seen_m]])
+        if clash.size:
+            tt, mm = int(seen_t[clash[0]]), int(seen_m[clash[0]])
+            raise where.fail("not_at", f"object {mm} ({env.object_ids[mm]!r}) was seen on "
+                                       f"receptacle {location[tt, mm]} at hour {hours[tt]}, "
+                                       f"where not_at says it was not")
     if not isinstance(env.source, dict):
         raise where.fail("source", f"must be a dict; got {type(env.source).__name__}")
     try:
@@ -443,13 +499,13 @@ def environment_json(env: Environment) -> dict:
     """The ``environment.json`` of ``env`` (a dict)."""
     room = np.asarray(env.receptacle_room)
     allowed = np.asarray(env.allowed)
-    rooms = [] if not env.room_classes else [
-        {"class": c, "box": [float(v) for v in box]}
-        for c, box in zip(env.room_classes, np.asarray(env.room_boxes), strict=True)]
-    doors = [] if env.door_rooms is None else [
-        {"rooms": [int(a), int(b)], "position": [float(x), float(y)]}
-        for (a, b), (x, y) in zip(np.asarray(env.door_rooms), np.asarray(env.door_positions),
-                                  strict=True)]
+    boxes = [None] * len(env.room_classes) if env.room_boxes is None else env.room_boxes
+    rooms = [{"class": c, "box": None if box is None else [float(v) for v in box]}
+             for c, box in zip(env.room_classes, boxes, strict=True)]
+    pairs = [] if env.door_rooms is None else np.asarray(env.door_rooms)
+    at = [None] * len(pairs) if env.door_positions is None else env.door_positions
+    doors = [{"rooms": [int(a), int(b)], "position": None if p is None else [float(v) for v in p]}
+             for (a, b), p in zip(pairs, at, strict=True)]
     return {
         "receptacles": [{"id": i, "class": c, "text": t, "room": int(r) if r >= 0 else None}
                         for i, c, t, r in zip(env.receptacle_ids, env.receptacle_classes,
@@ -476,10 +532,10 @@ def dumps_entries(data: dict) -> str:
 
 
 def _npz_bytes(env: Environment) -> bytes:
-    arrays = {"hours": env.hours, "location": env.location,
-              "receptacle_corners": env.receptacle_corners}
-    arrays.update({name: getattr(env, name) for name in OPTIONAL_ARRAYS
-                   if getattr(env, name) is not None})
+    arrays = {name: getattr(env, name) for name in (*REQUIRED_ARRAYS, *OPTIONAL_ARRAYS)
+              if getattr(env, name) is not None}
+    if env.not_at is not None:
+        arrays["not_at_bits"] = np.packbits(env.not_at, axis=-1)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **{k: np.asarray(v) for k, v in arrays.items()})
     return buffer.getvalue()
@@ -487,12 +543,15 @@ def _npz_bytes(env: Environment) -> bytes:
 
 def content_digest(recorded: Recorded) -> str:
     """A SHA-256 (hex) of what ``recorded`` holds, in order: each environment's name, its
-    ``environment.json`` entries and its hours, locations and receptacle boxes. Copies of one
-    dataset share it wherever they sit; a run stores it to recognise its own data."""
+    ``environment.json`` entries and its hours, locations, receptacle boxes and ``not_at``
+    (those given). Copies of one dataset share it wherever they sit; a run stores it to
+    recognise its own data."""
     digest = hashlib.sha256()
     for env in recorded.environments:
         digest.update(json.dumps([env.name, environment_json(env)], sort_keys=True).encode())
-        for array in (env.hours, env.location, env.receptacle_corners):
+        for array in (env.hours, env.location, env.receptacle_corners, env.not_at):
+            if array is None:
+                continue
             array = np.ascontiguousarray(array)
             digest.update(f"{array.dtype.str}{array.shape}".encode())
             digest.update(array.tobytes())
@@ -512,7 +571,8 @@ def check_no_link_below(path: pathlib.Path, name: str, what: str = "path") -> No
 
 def index_json(recorded: Recorded) -> dict:
     """The ``recorded.json`` of ``recorded`` (a dict)."""
-    return {"format": FORMAT, "version": VERSION, "environments": list(recorded.names()),
+    return {"format": FORMAT, "version": max(e.version for e in recorded.environments),
+            "environments": list(recorded.names()),
             "units": dict(UNITS), "time": TIME}
 
 
@@ -625,19 +685,22 @@ def _environment_from_json(name: str, data: Any, arrays: dict[str, np.ndarray],
         if len(set(listed)) != len(listed):
             raise ValueError(f"{file}: objects[{i}].allowed: lists a receptacle twice")
         allowed[i, listed] = True
-    boxes = [_number_list(file, f"rooms[{i}].box", e["box"], 4, False)
-             for i, e in enumerate(rooms)]
+    boxes, door_positions = ([None if e[key] is None and all(f[key] is None for f in listed)
+                              else _number_list(file, f"{name}[{i}].{key}", e[key], size, False)
+                              for i, e in enumerate(listed)]
+                             for name, listed, key, size in (("rooms", rooms, "box", 4),
+                                                             ("doors", doors, "position", 2)))
     door_rooms = [_number_list(file, f"doors[{i}].rooms", e["rooms"], 2, True)
                   for i, e in enumerate(doors)]
-    door_positions = [_number_list(file, f"doors[{i}].position", e["position"], 2, False)
-                      for i, e in enumerate(doors)]
     if doors and not rooms:
         raise ValueError(f"{file}: doors: doors are given but rooms is empty")
     if any(not -2**31 <= v < 2**31 for pair in door_rooms for v in pair):
         raise ValueError(f"{file}: doors: a room index is out of range")
     with np.errstate(over="ignore"):
-        room_boxes = np.asarray(boxes, np.float32).reshape(-1, 4) if rooms else None
-        positions = np.asarray(door_positions, np.float32).reshape(-1, 2) if doors else None
+        room_boxes = (np.asarray(boxes, np.float32).reshape(-1, 4)
+                      if rooms and boxes[0] is not None else None)
+        positions = (np.asarray(door_positions, np.float32).reshape(-1, 2)
+                     if doors and door_positions[0] is not None else None)
     strings = {}
     for key, entries_, fields in (("receptacles", rec, ("id", "class", "text")),
                                   ("objects", obj, ("id", "class", "text")),
@@ -654,7 +717,7 @@ def _environment_from_json(name: str, data: Any, arrays: dict[str, np.ndarray],
         receptacle_classes=strings["receptacles", "class"],
         receptacle_texts=strings["receptacles", "text"],
         receptacle_room=np.asarray(room, np.int32).reshape(r),
-        receptacle_corners=arrays["receptacle_corners"],
+        receptacle_corners=arrays.get("receptacle_corners"),
         object_ids=strings["objects", "id"],
         object_classes=strings["objects", "class"],
         object_texts=strings["objects", "text"],
@@ -668,14 +731,31 @@ def _environment_from_json(name: str, data: Any, arrays: dict[str, np.ndarray],
         distance=arrays.get("distance"),
         object_corners=arrays.get("object_corners"),
         object_rotation=arrays.get("object_rotation"),
-        source=source)
+        source=source, not_at=_not_at(files["arrays"], arrays, len(strings["objects", "id"]), r))
     return validate_environment(env, _files=files)
 
 
-def load_environment(root, name: str, budget: int | None = None) -> Environment:
+def _not_at(file: str, arrays: dict, m: int, r: int) -> np.ndarray | None:
+    """``not_at`` (T, M, R) bool unpacked from ``not_at_bits`` (T, M, ⌈R / 8⌉) uint8."""
+    bits = arrays.get("not_at_bits")
+    if bits is None:
+        return None
+    shape = (np.shape(arrays["hours"])[0], m, -(-r // 8))
+    if bits.dtype != np.uint8 or bits.shape != shape:
+        raise ValueError(f"{file}: not_at_bits: has shape {bits.shape} and dtype {bits.dtype}; "
+                         f"expected (T, M, ⌈R / 8⌉) = {shape} and uint8")
+    not_at = np.unpackbits(bits, axis=-1, count=r).astype(bool)
+    if not np.array_equal(np.packbits(not_at, axis=-1), bits):
+        raise ValueError(f"{file}: not_at_bits: sets padding bits past receptacle {r - 1}")
+    return not_at
+
+
+def load_environment(root, name: str, budget: int | None = None,
+                     version: int = VERSION) -> Environment:
     """The environment ``name`` of the recorded world in the folder ``root`` (checked as
     ``load_recorded`` checks it); the sizes its files give must fit in ``budget`` bytes
-    (default :func:`~flowmaps_jax.resources.memory_limit`) before anything is allocated."""
+    (default :func:`~flowmaps_jax.resources.memory_limit`) before anything is allocated;
+    ``version``: the index's (version 1 needs ``receptacle_corners``)."""
     folder = pathlib.Path(root) / name
     files = {"json": os.fspath(folder / ENVIRONMENT_FILE),
              "arrays": os.fspath(folder / ARRAYS_FILE)}
@@ -686,7 +766,8 @@ def load_environment(root, name: str, budget: int | None = None) -> Environment:
     budget = memory_limit() if budget is None else budget
     data = read_json("", files["json"])
     arrays = read_npz(files["arrays"], files["arrays"],
-                      allowed=(*REQUIRED_ARRAYS, *OPTIONAL_ARRAYS), required=REQUIRED_ARRAYS,
+                      allowed=(*REQUIRED_ARRAYS, *OPTIONAL_ARRAYS, "not_at_bits"),
+                      required=REQUIRED_ARRAYS + ("receptacle_corners",) * (version == 1),
                       max_bytes=max(budget - _json_bytes(files["json"], data, budget), 0))
     return _environment_from_json(name, data, arrays, files)
 
@@ -714,9 +795,9 @@ def load_recorded(path) -> Recorded:
     index = _keys(index_file, "(top level)", read_json("", index_file), _INDEX_KEYS)
     if index["format"] != FORMAT:
         raise ValueError(f"{index_file}: format: is {index['format']!r}, not {FORMAT!r}"[:300])
-    if index["version"] != VERSION or isinstance(index["version"], bool):
+    if index["version"] not in VERSIONS or isinstance(index["version"], bool):
         raise ValueError(f"{index_file}: version: is {index['version']!r}; this code reads "
-                         f"version {VERSION}"[:300])
+                         f"versions {list(VERSIONS)}"[:300])
     if index["units"] != UNITS:
         raise ValueError(f"{index_file}: units: must be {UNITS}; got {index['units']!r}"[:300])
     _string(index_file, "time", index["time"])
@@ -735,10 +816,12 @@ def load_recorded(path) -> Recorded:
         raise ValueError(f"{index_file}: {err}") from None
     environments, left = [], memory_limit()  # one budget for all the environments
     for name in names:
-        environments.append(load_environment(root, name, left))
+        environments.append(load_environment(root, name, left, index["version"]))
         env = environments[-1]
         left -= env.num_objects * env.num_receptacles + sum(
-            getattr(env, f).nbytes for f in (*REQUIRED_ARRAYS, *OPTIONAL_ARRAYS)
-            if getattr(env, f) is not None)
+            getattr(env, f).nbytes for f in ARRAYS if getattr(env, f) is not None)
+        if env.version > index["version"]:
+            raise ValueError(f"{index_file}: version: is 1, but the environment {name!r} uses "
+                             f"a version-2 field (no receptacle_corners, or not_at_bits)")
     return Recorded(tuple(environments))
 
