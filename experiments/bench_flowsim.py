@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flowmaps_jax.flowsim import WORLDS, FlowSimConfig, generate, world_config
+from flowmaps_jax.flowsim import HABIT_WORLDS, FlowSimConfig, generate, world_config
 from flowmaps_jax.flowsim.homes import REGIMES, HomesConfig, generate_homes
 
 
@@ -45,7 +45,7 @@ def main(argv=None) -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 100000])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--dynamics", default="markov", choices=["markov", "schedule_jitter"])
-    parser.add_argument("--world", nargs="+", default=["routine"], choices=list(WORLDS))
+    parser.add_argument("--world", nargs="+", default=["routine"], choices=list(HABIT_WORLDS))
     parser.add_argument("--history", type=int, default=1,
                         help="also gather each object's last H observations at every timestep")
     parser.add_argument("--homes", nargs="*", default=["preferences"],

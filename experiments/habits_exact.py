@@ -20,7 +20,7 @@ import jax
 import numpy as np
 
 from flowmaps_jax.evaluation.slots import slot_scores
-from flowmaps_jax.flowsim import WORLDS, empirical_frequency, generate, world_config
+from flowmaps_jax.flowsim import HABIT_WORLDS, empirical_frequency, generate, world_config
 from flowmaps_jax.flowsim.habits import history_posterior, observed_history
 
 HISTORIES = (1, 2, 4, 8)
@@ -74,7 +74,8 @@ def score_world(world: str, num_envs: int, seed: int) -> dict[str, dict[str, flo
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--worlds", nargs="+", default=list(WORLDS), choices=list(WORLDS))
+    parser.add_argument("--worlds", nargs="+", default=list(HABIT_WORLDS),
+                        choices=list(HABIT_WORLDS))
     parser.add_argument("--num-envs", type=int, default=400)
     parser.add_argument("--seed", type=int, default=7)
     args = parser.parse_args(argv)

@@ -439,7 +439,7 @@ def test_homes_queries_must_be_homes_queries_of_arrays():
             (dict(zip(("object_index", "tau", "tau_q"), fields, strict=True)),
              "queries must be a HomesQueries; got dict")):
         for call in (lambda q: homes_model.probabilities(homes, q),
-                     lambda q: homes_model.sample(jax.random.key(1), homes, q, None, 2),
+                     lambda q: homes_model.sample(homes, q, 2, jax.random.key(1)),
                      lambda q: homes_model.as_prior()(homes, q)):
             with pytest.raises(ValueError, match=f"^{re.escape(message)}"):
                 call(queries)

@@ -152,14 +152,14 @@ def test_a_time_split_validates_and_tests_on_the_last_hours_of_every_home(tmp_pa
     recorded = load_recorded(_dataset(tmp_path / "d", 3))
     config = rw.homes_config_of(recorded)
     split = (0.0, 0.0, 0.25, 0)
-    parts = {p: rw.part_of(recorded, config, split, p) for p in rw.SPLITS}
+    parts = {p: rw.part_of(recorded, config, rw.split(recorded, split), p) for p in rw.SPLITS}
     for part, (start, stop) in {"train": (0, 54), "val": (54, 63), "test": (63, 72)}.items():
         assert parts[part].num_homes == 3
         assert list(np.asarray(parts[part].start)) == [start] * 3, part
         assert list(np.asarray(parts[part].stop)) == [stop] * 3, part
-    assert rw.part_index(recorded, split, "val") == (0, 1, 2)
+    assert rw.split(recorded, split)["val"][0] == (0, 1, 2)
     # with validation environments the whole held-out quarter tests, as before
-    test = rw.part_of(recorded, config, (0.2, 0.0, 0.25, 0), "test")
+    test = rw.part_of(recorded, config, rw.split(recorded, (0.2, 0.0, 0.25, 0)), "test")
     assert list(np.asarray(test.start)) == [54, 54]
 
 

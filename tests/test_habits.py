@@ -342,14 +342,14 @@ def test_a_file_from_before_habits_loads_with_every_object_on_the_routine(small_
 
 
 def test_train_set_world_puts_a_preset_on_a_world_and_refuses_an_unknown_one(tmp_path):
-    from flowmaps_jax.flowsim import WORLDS, world_of
+    from flowmaps_jax.flowsim import HABIT_WORLDS, world_of
     from flowmaps_jax.training import cli
 
     args = cli.build_parser().parse_args(
         ["--preset", "habits", "--set", "world=dynamic", "--set", "lr=1e-3",
          "--run-dir", str(tmp_path / "run")])
     cfg, _ = cli.resolve_config(args)
-    assert world_of(cfg.flowsim) == "dynamic" and cfg.flowsim.habits == WORLDS["dynamic"]
+    assert world_of(cfg.flowsim) == "dynamic" and cfg.flowsim.habits == HABIT_WORLDS["dynamic"]
     assert cfg.lr == 1e-3 and cfg.model.history == 8  # the other fields still apply
     bad = cli.build_parser().parse_args(["--preset", "smoke", "--set", "world=bogus",
                                          "--run-dir", str(tmp_path / "bad")])

@@ -67,7 +67,7 @@ class StandIn:
     def probabilities(self, homes, queries, config):
         return self.exact(homes, queries)
 
-    def sample(self, key, homes, queries, config, num_samples):
+    def sample(self, homes, queries, num_samples, key, config=None):
         p = self.exact(homes, queries)
         draws = jax.random.categorical(key, jnp.log(p)[..., None, :], shape=(*p.shape[:-1],
                                                                              num_samples))
@@ -198,7 +198,7 @@ def test_samples_are_assigned_to_the_receptacle_they_stand_on(homes, queries, ex
     p = np.asarray(assign_samples(boxes, homes, queries, CONFIG))
     expected = 0.5 * (np.arange(p.shape[-1]) == first[..., None])
     np.testing.assert_allclose(p, expected, atol=1e-6)
-    sampled = StandIn(CONFIG, HISTORY).sample(jax.random.key(0), homes, queries, CONFIG, 50)
+    sampled = StandIn(CONFIG, HISTORY).sample(homes, queries, 50, jax.random.key(0), config=CONFIG)
     hist = np.asarray(assign_samples(sampled, homes, queries, CONFIG))
     np.testing.assert_allclose(hist.sum(-1), 1.0, atol=1e-6)  # on their receptacles, none off
     assert np.all(hist[exact == 0] == 0)
@@ -363,8 +363,8 @@ def _homes_cli(monkeypatch):
     from flowmaps_jax.evaluation import cli as evaluate_cli
     from flowmaps_jax.search import cli as search_cli
 
-    monkeypatch.setattr(evaluate_cli, "stored_family",  # both commands read it through
-                        lambda spec, which: "flowmaps-homes")  # evaluate's run_for_world
+    monkeypatch.setattr(evaluate_cli, "stored_run",  # both commands read it through
+                        lambda spec, which: ("flowmaps-homes", {}))  # evaluate's run_for_world
     monkeypatch.setattr(ev, "load_model",
                         lambda source, which="best": StandIn(HomesConfig(), 24))
     return evaluate_cli.main, search_cli.main

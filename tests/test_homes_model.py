@@ -337,7 +337,7 @@ def test_the_train_cli_trains_the_smoke_preset_and_the_predictor_loads_its_best(
     np.testing.assert_allclose(p.sum(-1), 1.0, atol=1e-5)
     assert np.all(p[~np.asarray(jax.vmap(lambda a, o: a[o])(homes.object_allowed,
                                                             queries.object_index))] == 0)
-    boxes, table = predictor.sample(jax.random.key(0), homes, queries, CONFIG, 4,
+    boxes, table = predictor.sample(homes, queries, 4, jax.random.key(0), config=CONFIG,
                                     return_receptacles=True)
     assert boxes.shape == (homes.num_homes, 3, 4, 6) and table.shape == (homes.num_homes, 3, 4)
     rec = np.take_along_axis(np.asarray(homes.receptacle_box)[:, None],
@@ -417,15 +417,15 @@ def test_the_predictor_checks_its_inputs(run_dir, homes, queries):
     with pytest.raises(ValueError, match=r"config.max_tokens"):
         predictor.probabilities(homes, queries, other)
     with pytest.raises(ValueError, match="num_samples"):
-        predictor.sample(jax.random.key(0), homes, queries, CONFIG, 0)
+        predictor.sample(homes, queries, 0, jax.random.key(0), config=CONFIG)
     with pytest.raises(ValueError, match="num_steps"):  # bounded work, refused up front
-        predictor.sample(jax.random.key(0), homes, queries, CONFIG, 2, num_steps=10 ** 7)
+        predictor.sample(homes, queries, 2, jax.random.key(0), num_steps=10 ** 7, config=CONFIG)
     with pytest.raises(ValueError, match="return_receptacles"):
-        predictor.sample(jax.random.key(0), homes, queries, CONFIG, 2, return_receptacles=1)
+        predictor.sample(homes, queries, 2, jax.random.key(0), config=CONFIG,
+                         return_receptacles=1)
 
 
 def test_the_store_reads_both_families():
-    assert model_spec.HOMES_FAMILY == homes_model.FAMILY_NAME
     assert "flowmaps-homes" in pretrained.NAMES
     spec = model_spec.model_spec(CFG.to_dict())
     assert spec.family_name == homes_model.FAMILY_NAME
@@ -459,7 +459,7 @@ def test_large_requests_run_in_chunks_of_queries_with_the_same_answers(run_dir, 
     monkeypatch.setattr(homes_predictor, "ROWS_PER_CALL",
                         homes.num_homes * CONFIG.max_receptacles * 2)  # 2 of the 3 queries
     np.testing.assert_array_equal(predictor.probabilities(homes, queries, CONFIG), whole)
-    boxes = predictor.sample(jax.random.key(0), homes, queries, CONFIG, 2)
+    boxes = predictor.sample(homes, queries, 2, jax.random.key(0), config=CONFIG)
     assert boxes.shape == (homes.num_homes, 3, 2, 6) and np.all(np.isfinite(boxes))
 
 

@@ -137,8 +137,8 @@ def test_the_graph_is_read():
     assert f"{PACKAGE}.predictor" in edges(f"{PACKAGE}.training.loop")
     assert {f"{PACKAGE}.store", f"{PACKAGE}.export"} <= set(INFERENCE)
     assert len(STORE) > 5
-    # the store reads stored homes configs through the homes family's module
-    assert f"{PACKAGE}.model.homes_family" in edges(f"{PACKAGE}.store.model_spec")
+    # the store reads stored configs through their world
+    assert f"{PACKAGE}.worlds" in edges(f"{PACKAGE}.store.model_spec")
     # no package by world: the homes' parts live in the layers (issue 49)
     assert not any(m == f"{PACKAGE}.homes" or m.startswith(f"{PACKAGE}.homes.") for m in MODULES)
 

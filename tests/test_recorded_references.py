@@ -184,8 +184,8 @@ def test_the_test_part_lists_its_environments_in_the_homes_order(full_dir):
     recorded = load_recorded(full_dir)
     config = rw.homes_config_of(recorded)
     split = (0.0, 0.34, 0.25, 0)
-    data = rw.part_of(recorded, config, split, "test")
-    index = rw.part_index(recorded, split, "test")
+    parts = rw.split(recorded, split)
+    data, index = rw.part_of(recorded, config, parts, "test"), parts["test"][0]
     assert len(index) == data.num_homes == HOMES
     alone = rw.recorded_homes(recorded, config, index)
     np.testing.assert_array_equal(np.asarray(alone.homes.receptacle),

@@ -124,12 +124,12 @@ def test_the_split_is_seeded_by_environment_and_by_time(recorded):
     cut = rw.time_cut(recorded, [0], 0.25)
     assert cut[0] == 54  # the last quarter of 72 hours held out
     cfg = rw.homes_config_of(recorded)
-    test = rw.part_of(recorded, cfg, (0.2, 0.2, 0.25, 0), "test")  # + the training hours
+    test = rw.part_of(recorded, cfg, rw.split(recorded, (0.2, 0.2, 0.25, 0)), "test")  # + train
     assert test.num_homes == 2 and list(np.asarray(test.start)) == [0, 54]
 
 
 def test_training_batches_query_only_observed_targets(cfg, recorded):
-    data = rw.part_of(recorded, cfg.homes, (0.0, 0.0, 0.25, 0), "train")
+    data = rw.part_of(recorded, cfg.homes, rw.split(recorded, (0.0, 0.0, 0.25, 0)), "train")
     batch = jax.jit(lambda k: rw.draw_batch(k, data, cfg))(jax.random.key(3))
     queries = rw.draw_queries(jax.random.key(3), jax.tree.map(lambda a: a[:3], data), 50,
                               cfg.max_horizon, cfg.default_horizon_frac)
@@ -355,10 +355,10 @@ def test_a_copy_of_the_training_data_is_scored_on_its_test_part_and_changed_data
     copy = tmp_path / "copy"
     save_recorded(recorded, copy)
     stored = cfg.to_dict()
-    _, what, envs = evaluation_part(load_recorded(copy), cfg.homes, stored, str(copy))
+    _, what, envs, _ = evaluation_part(load_recorded(copy), cfg.homes, stored, str(copy))
     assert "held-out test part" in what and len(envs) == 1  # not the training environments
     other = dict(stored, data_digest="0" * 64)
-    _, what, envs = evaluation_part(load_recorded(copy), cfg.homes, other, str(copy))
+    _, what, envs, _ = evaluation_part(load_recorded(copy), cfg.homes, other, str(copy))
     assert what.startswith("all 3 environments (home0, home1, home2); ") and len(envs) == 3
     # a resume whose data changed under it is refused, naming the digest
     changed = dataclasses.replace(cfg, data_digest="0" * 64)

@@ -694,7 +694,7 @@ def homes_model():
 
 _HOMES_CALLS = {
     "probabilities": lambda m, h, q: m.probabilities(h, q, HOMES),
-    "sample": lambda m, h, q: m.sample(jax.random.key(0), h, q, HOMES, 2, 2),
+    "sample": lambda m, h, q: m.sample(h, q, 2, jax.random.key(0), 2, config=HOMES),
 }
 
 
@@ -813,7 +813,7 @@ def test_a_homes_model_under_jit_says_it_takes_concrete_arrays(homes_model):
     _one_line_tracing_error(jax.jit(lambda h: model.probabilities(h, queries, HOMES)), homes)
     _one_line_tracing_error(jax.jit(lambda q: model.probabilities(homes, q, HOMES)), queries)
     _one_line_tracing_error(
-        jax.jit(lambda k: model.sample(k, homes, queries, HOMES, 2, 2)), jax.random.key(0))
+        jax.jit(lambda k: model.sample(homes, queries, 2, k, 2, config=HOMES)), jax.random.key(0))
 
 
 def test_a_scene_model_under_jit_says_it_takes_concrete_arrays(scene_model):

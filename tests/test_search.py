@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from flowmaps_jax import tables
-from flowmaps_jax.flowsim import exact_posterior
+from flowmaps_jax.flowsim import FlowSimConfig, exact_posterior
 from flowmaps_jax.navigation import policies as P
 from flowmaps_jax.search import cli, figures, protocol, report
 from flowmaps_jax.search import episodes as E
@@ -35,6 +35,9 @@ class EchoPredictor:
 
     name = "echo"
     kind = "echo"
+
+    def __init__(self, flowsim: FlowSimConfig | None = None):
+        self.flowsim = flowsim  # the config it was "trained" on: the search's
 
     def sample(self, tokens, queries, num_samples, key):
         same = np.asarray(queries.descriptor)[:, :, None] == np.asarray(tokens.descriptor)[:, None]
@@ -234,8 +237,8 @@ def test_sampled_table_probabilities_and_their_dict_form(search_set):
 
 @pytest.fixture(scope="module")
 def results(scenes, flowsim_config):
-    return protocol.run_search([EchoPredictor()], scenes, flowsim_config, seed=3, num_samples=8,
-                               times_per_env=1, progress=False)
+    return protocol.run_search([EchoPredictor(flowsim_config)], scenes, flowsim_config, seed=3,
+                               num_samples=8, times_per_env=1, progress=False)
 
 
 def test_protocol_rows_ratios_and_monotone_success(results):

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 
 from flowmaps_jax.flowsim import (
+    HABIT_WORLDS,
     HABITS,
-    WORLDS,
     FlowSimConfig,
     exact_posterior,
     generate,
@@ -226,7 +226,7 @@ def test_search_world_defaults():
     config, history = cli.search_world([_model(paper)])
     assert config is paper and history == 1  # the paper's protocol
     config, history = cli.search_world([_model(paper)], "preferences")
-    assert config.habits == WORLDS["preferences"] and history == 8
+    assert config.habits == HABIT_WORLDS["preferences"] and history == 8
     config, history = cli.search_world([_model(paper), _model(MIXED, H)])
     assert config.habits == paper.habits and history == H
     assert config.max_tokens == paper.num_furniture + paper.num_objects * H  # room for its maps
@@ -258,6 +258,6 @@ def test_cli_searches_the_world_it_is_given(capsys, monkeypatch, tmp_path):
     monkeypatch.setattr(cli.pr, "run_search", stop)
     assert cli.main(["--checkpoint", "pretrained:flowmaps", "--world", "mixed",
                      "--out", str(tmp_path / "search"), "--no-progress"]) == 2
-    assert seen["config"].habits == WORLDS["mixed"] and seen["split"] is seen["config"]
+    assert seen["config"].habits == HABIT_WORLDS["mixed"] and seen["split"] is seen["config"]
     assert seen["history"] == 8
     assert "mixed world (exact posterior given the last 8 observations)" in capsys.readouterr().out

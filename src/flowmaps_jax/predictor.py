@@ -18,8 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import pathlib
-from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -30,13 +29,11 @@ from flowmaps_jax import distributed, flow, tables
 from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.homes.config import HomesConfig
 from flowmaps_jax.flowsim.scenes import denormalise_boxes
-from flowmaps_jax.model import homes_inference
 from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR, ModelFamily, canonical_inputs
 from flowmaps_jax.model.flowmaps import check_inputs
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
-from flowmaps_jax.model.homes_family import HomesSpec
 from flowmaps_jax.resources import (
     check_resources,
     embedding_bytes,
@@ -44,7 +41,7 @@ from flowmaps_jax.resources import (
     solver_evaluations,
 )
 from flowmaps_jax.store import checkpoints, pretrained
-from flowmaps_jax.store.model_spec import ModelSpec, check_params
+from flowmaps_jax.store.model_spec import DEFAULT_FAMILY, check_params
 from flowmaps_jax.tokens import FURNITURE, Queries, SceneTokens
 from flowmaps_jax.validation import (
     check_array,
@@ -55,7 +52,7 @@ from flowmaps_jax.validation import (
     check_key,
     check_real_array,
 )
-from flowmaps_jax.worlds import world_of_family
+from flowmaps_jax.worlds import Inference, world_of_family
 
 SOLVERS = flow.SOLVERS
 FAR_LIMIT = 1e3
@@ -97,7 +94,7 @@ class Predictor:
     family_name: the name of its model family, as its run config's ``family``: "flowmaps"
         (flow matching) or "mlp" (Gaussian baseline; variant in ``model.baseline_variance``)
         on 2-D maps (:attr:`family` is the family itself), "flowmaps-homes" on homes. Its world
-        (:func:`flowmaps_jax.worlds.world_of_family`) says how it runs (:data:`_INFERENCE`).
+        (:func:`flowmaps_jax.worlds.world_of_family`) says how it runs (its ``inference``).
     flowsim: the 2-D simulator config the model was trained on (map size for pixel boxes).
     homes: a homes model's :class:`~flowmaps_jax.flowsim.homes.HomesConfig` (None on 2-D).
     source: where the params came from (checkpoint path) and step, for reports.
@@ -122,18 +119,16 @@ class Predictor:
 
     def __post_init__(self):
         self._inference.check(self)  # ValueError naming the field (or listing the families)
-        check_params(self.params, ModelSpec(self.family_name, self.model, self.flowsim)
-                     if self._inference.scenes else
-                     HomesSpec(self.family_name, self.model, self.homes), "params")
+        check_params(self.params, self._inference.spec_of(self), "params")
         if self.mesh is not None:
             check_instance("mesh", self.mesh, Mesh)
             # Replicate once, not at every call (a frozen dataclass: set the field directly).
             object.__setattr__(self, "params", distributed.replicate(self.params, self.mesh))
 
     @property
-    def _inference(self) -> _WorldInference:
-        """How this model's world runs (:data:`_INFERENCE`, by the family's world)."""
-        return _INFERENCE[world_of_family(self.family_name).name]
+    def _inference(self) -> Inference:
+        """How this model's world runs it (its family's world's inference)."""
+        return world_of_family(self.family_name).inference
 
     def _scenes_only(self, method: str, *arguments) -> None:
         """ValueError unless this model reads 2-D scene tokens (``method`` names the call) and
@@ -142,8 +137,8 @@ class Predictor:
         if not self._inference.scenes:
             raise ValueError(f"{method} takes 2-D FlowSim scene tokens; this is a "
                              f"{self.family_name!r} model of FlowSim homes: use "
-                             "probabilities(homes, queries, config) or sample(key, homes, "
-                             "queries, config, num_samples)")
+                             "probabilities(homes, queries, config) or sample(homes, "
+                             "queries, num_samples, key, config=config)")
 
     def sharded(self, devices: int | None = None) -> Predictor:
         """This predictor with every call split over ``devices`` of this host's devices (None:
@@ -230,17 +225,19 @@ class Predictor:
 
     # ----------------------------------------------------------------------- inference
 
-    def sample(self, *args, **kwargs):
-        """Samples of the model, in its world's inputs:
+    def sample(self, inputs, queries, num_samples: int, key,
+               num_steps: int = DEFAULT_NUM_STEPS, **options):
+        """``num_samples`` samples per query of the model, in its world's inputs and options:
 
-        * 2-D maps: ``sample(tokens, queries, num_samples, key, num_steps=10,
-          method="midpoint", pixels=False, return_log_prob=False)`` → boxes (B, Q, N, 4)
+        * 2-D maps: ``inputs`` scene tokens, ``options`` ``method="midpoint"``,
+          ``pixels=False``, ``return_log_prob=False`` → boxes (B, Q, N, 4)
           (:meth:`_sample_scenes`);
-        * homes: ``sample(key, homes, queries, config, num_samples, num_steps=10, *,
-          return_receptacles=False, observed=None)`` → boxes (E, Q, N, 6) in metres
+        * homes: ``inputs`` homes, ``options`` ``config=None``, ``observed=None``,
+          ``return_receptacles=False`` → boxes (E, Q, N, 6) in metres
           (:func:`flowmaps_jax.model.homes_inference.sample`).
         """
-        return self._inference.sample(self, *args, **kwargs)
+        return self._inference.sample(self, inputs, queries, num_samples, key, num_steps,
+                                      **options)
 
     def probabilities(self, homes, queries, config=None, observed=None) -> jnp.ndarray:
         """A homes model's receptacle weights (E, Q, R) for ``homes`` and ``queries`` (``config``:
@@ -377,9 +374,9 @@ def _from_weights(weights, source: str) -> Predictor:
     """The predictor of verified weights (a checkpoint's or a pretrained model's): their
     family, model config and the world config their spec holds (``flowsim`` or ``homes``)."""
     spec = weights.spec
-    world = {name: getattr(spec, name) for name in ("flowsim", "homes") if hasattr(spec, name)}
     return Predictor(params=weights.params, model=spec.model, family_name=spec.family_name,
-                     source=source, step=weights.step, **world)
+                     source=source, step=weights.step,
+                     **world_of_family(spec.family_name).inference.fields(spec))
 
 
 def load(checkpoint_dir: str | pathlib.Path, which: str = "best",
@@ -425,69 +422,11 @@ def load_model(spec: str, which: str = "best", devices: int | None = None) -> Pr
     return predictor.sharded(devices)
 
 
-def stored_family(spec: str, which: str = "best") -> str:
-    """The model family of what a CLI's ``--checkpoint`` names (a run or checkpoint directory,
-    or ``pretrained:NAME``), read from its stored config without its weights: the CLIs find the
-    model's world from it (``flowmaps_jax.worlds.world_of_family``) before loading."""
+def stored_run(spec: str, which: str = "best") -> tuple[str, dict]:
+    """(model family, run config) stored with what a CLI's ``--checkpoint`` names (a run or
+    checkpoint directory, or ``pretrained:NAME``: its family and {}), read once and without
+    the weights: the CLIs find the model's world from them before loading it."""
     if spec.startswith(PRETRAINED_PREFIX):
-        return pretrained.describe(spec[len(PRETRAINED_PREFIX):])["kind"]
-    return checkpoints.stored_family(spec, which)
-
-
-def stored_config(spec: str, which: str = "best") -> dict:
-    """The run config stored with what a CLI's ``--checkpoint`` names (a dict, read without
-    the weights; {} for ``pretrained:NAME``): e.g. its ``"world"`` and ``"data"``, where a
-    recorded run stores them."""
-    if spec.startswith(PRETRAINED_PREFIX):
-        return {}
-    return checkpoints.stored_config(spec, which)
-
-
-# --------------------------------------------------------------------------- the worlds
-
-
-class _WorldInference(NamedTuple):
-    """How a :class:`Predictor` runs the models of one world (:data:`_INFERENCE`).
-
-    check(predictor): its fields, at construction (ValueError naming the field).
-    sample(predictor, *args, **kwargs): :meth:`Predictor.sample` in the world's inputs.
-    probabilities(predictor, homes, queries, config), as_prior(predictor, config): the
-        receptacle weights of a world that has them.
-    scenes: whether the model reads 2-D scene tokens (the 2-D methods apply).
-    label(predictor): the row name in reports.
-    """
-
-    check: Callable
-    sample: Callable
-    probabilities: Callable
-    as_prior: Callable
-    scenes: bool
-    label: Callable
-
-
-def _check_scene_model(predictor: Predictor) -> None:
-    model_family(predictor.family_name)  # ValueError listing the families
-    check_instance("model", predictor.model, ModelConfig)
-    check_instance("flowsim", predictor.flowsim, FlowSimConfig)
-    if predictor.homes is not None:
-        raise ValueError(f"homes must be None for a {predictor.family_name!r} model (it reads "
-                         "2-D FlowSim maps)")
-
-
-def _no_receptacles(predictor: Predictor, *args, **kwargs):
-    raise ValueError(f"probabilities and as_prior take homes; this is a "
-                     f"{predictor.family_name!r} model of 2-D FlowSim maps: use table_weights "
-                     "or table_probabilities(tokens, queries, ...)")
-
-
-_INFERENCE = {
-    "flowsim": _WorldInference(
-        check=_check_scene_model, sample=Predictor._sample_scenes,
-        probabilities=_no_receptacles, as_prior=_no_receptacles, scenes=True,
-        label=lambda predictor: predictor.family.label(predictor.model)),
-    "homes": _WorldInference(
-        check=homes_inference.check_model, sample=homes_inference.sample,
-        probabilities=homes_inference.probabilities, as_prior=homes_inference.as_prior,
-        scenes=False, label=lambda predictor: "FlowMaps"),
-}
-"""How each world's models run, by :data:`flowmaps_jax.worlds.WORLDS` name."""
+        return pretrained.describe(spec[len(PRETRAINED_PREFIX):])["kind"], {}
+    config = checkpoints.stored_config(spec, which)
+    return config.get("model_kind", DEFAULT_FAMILY), config

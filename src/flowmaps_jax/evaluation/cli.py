@@ -7,10 +7,8 @@
 
 Writes ``results.json``, ``results.md`` and figures into ``--out`` (default
 ``<checkpoint>/eval``). ``--checkpoint`` / ``--baseline``: run or checkpoint directories, or
-``pretrained:NAME``. The model's world comes from its stored family
-(:data:`flowmaps_jax.worlds.WORLDS`): a FlowSim homes model is scored by the homes protocol, a
-homes-network model with ``--data PATH`` against the realised receptacles
-(:mod:`flowmaps_jax.evaluation.realised`); options that do not apply are refused.
+``pretrained:NAME``. The model's world (:mod:`flowmaps_jax.worlds`; ``--data PATH``: the world
+of datasets on disk) evaluates it; options that world does not read are refused.
 """
 
 from __future__ import annotations
@@ -34,7 +32,7 @@ from flowmaps_jax.evaluation.protocol import (
 from flowmaps_jax.evaluation.report import markdown_table
 from flowmaps_jax.evaluation.run import FIGURES, REPORT_FILES, model_token_config, run_evaluation
 from flowmaps_jax.flowsim.scenes import load_scenes, validation_split
-from flowmaps_jax.flowsim.worlds import WORLDS, world_config, world_of
+from flowmaps_jax.flowsim.worlds import HABIT_WORLDS, world_config, world_of
 from flowmaps_jax.model.families import model_family
 from flowmaps_jax.model.family import DENSITY_FACTOR
 from flowmaps_jax.predictor import (
@@ -42,13 +40,12 @@ from flowmaps_jax.predictor import (
     PRETRAINED_PREFIX,
     SOLVERS,
     load_model,
-    stored_config,
-    stored_family,
+    stored_run,
 )
 from flowmaps_jax.resources import check_resources, network_flops, solver_evaluations
 from flowmaps_jax.validation import check_choice, check_int, check_output_dir, check_seed
 from flowmaps_jax.validation.scalars import ascii_int, int_list
-from flowmaps_jax.worlds import world_of_family, world_of_files
+from flowmaps_jax.worlds import world, world_of_family, world_of_files
 
 EXIT_USAGE, EXIT_WRITE_FAILED = 2, 74
 
@@ -166,80 +163,58 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; returns the exit code (0 on success, 2 on a bad argument, 74 on a failed
-    write). The protocol is the one of ``--checkpoint``'s world (:data:`_BY_WORLD`)."""
+    write). The protocol is the one of ``--checkpoint``'s world (its ``evaluate``)."""
     parser = build_parser()
-    return run_for_world(parser, parser.parse_args(argv), argv, _BY_WORLD)
+    return run_for_world(parser, parser.parse_args(argv), argv, "evaluate")
+
+
+COMMON = ("checkpoint", "out", "num_envs", "seed", "which", "no_figures", "no_progress")
+"""The options of evaluate and search that every world reads."""
 
 
 def run_for_world(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                  argv: Sequence[str] | None, by_world: dict) -> int:
-    """The command of ``--checkpoint``'s world (``by_world[world name](parser, args, argv)``):
-    first the options every world reads (``--out``, ``--num-envs``, ``--seed``, ``--history``,
-    ``--world``), then the stored model's family, before any model is loaded. The evaluate and
-    search commands share it; exit 2 with one line on a bad option."""
+                  argv: Sequence[str] | None, command: str) -> int:
+    """``command`` (``"evaluate"`` or ``"search"``) of ``--checkpoint``'s world, called as
+    ``hook(parser, args, argv, stored)`` with the run config stored with it (read once; {} for
+    ``pretrained:NAME``): first the options every world reads, then the stored model's family
+    and world (``--data``: the world that reads files), then any option given that the world
+    does not read is refused, before any model is loaded. Exit 2 with one line on a bad
+    option."""
     try:
         check_int("--num-envs", args.num_envs, 1)
         check_seed("--seed", args.seed)
         if args.history is not None:
             check_int("--history", args.history, 1)
-        if args.world is not None:
-            check_choice("--world", args.world, tuple(WORLDS))
         if args.out:
             check_output_dir("--out", args.out)
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         return EXIT_USAGE
     try:
-        family = stored_family(args.checkpoint, args.which)
+        family, stored = stored_run(args.checkpoint, args.which)
+        plugin = world(stored["world"]) if "world" in stored else world_of_family(family)
     except ValueError as err:
         print(f"error: --checkpoint {args.checkpoint!r}: {err}", file=sys.stderr)
         return EXIT_USAGE
-    name = _stored_world(args) or world_of_family(family).name
-    if getattr(args, "data", None) is not None:  # a dataset on disk: the world that reads it
-        files = world_of_files()
-        if family not in files.families:
-            print(f"error: --data needs a model of the {list(files.families)} families; "
+    if args.data is not None:  # a dataset on disk: the world that reads it
+        plugin = world_of_files()
+        if family not in plugin.families:
+            print(f"error: --data needs a model of the {list(plugin.families)} families; "
                   f"{args.checkpoint} is a {family!r} model", file=sys.stderr)
             return EXIT_USAGE
-        name = files.name
-    if name not in by_world:
-        print(f"error: --checkpoint {args.checkpoint!r}: no protocol for its world {name!r}",
-              file=sys.stderr)
-        return EXIT_USAGE
-    return by_world[name](parser, args, argv)
+    reads = (*COMMON, *plugin.options[command])
+    for name, value in vars(args).items():
+        if name not in reads and value != parser.get_default(name):
+            print(f"error: --{name.replace('_', '-')} does not apply to {args.checkpoint}, a "
+                  f"model of the {plugin.name} world", file=sys.stderr)
+            return EXIT_USAGE
+    return plugin.hook(command)(parser, args, argv, stored)
 
 
-def _stored_world(args: argparse.Namespace) -> str | None:
-    """The world stored with ``--checkpoint``'s run (a recorded run stores ``"world"``), or
-    None: then the first world that trains its family."""
-    try:
-        return stored_config(args.checkpoint, args.which).get("world")
-    except ValueError:  # read once already (its family): nothing stored beside it
-        return None
-
-
-def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                argv: Sequence[str] | None) -> int:
-    """The homes protocol's posterior part
-    (:func:`flowmaps_jax.evaluation.receptacle_protocol.run_command`)."""
-    from flowmaps_jax.evaluation import receptacle_protocol as homes_evaluate
-
-    return homes_evaluate.run_command(
-        parser, args, "posterior", "python -m flowmaps_jax.evaluate", argv,
-        flowsim_only=("baseline", "scenes", "world", "devices", "kl_draws", "num_steps",
-                      "logp_steps", "likelihood_steps", "likelihood_draws", "method",
-                      "chunk_envs"))
-
-
-def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                  argv: Sequence[str] | None) -> int:
+def evaluate_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                     argv: Sequence[str] | None, stored: dict) -> int:
     """The 2-D FlowSim protocol (:func:`flowmaps_jax.evaluation.run.run_evaluation`)."""
-    try:
-        for name in ("queries", "regime", "horizons"):
-            if getattr(args, name) is not None:
-                raise ValueError(f"--{name} applies to FlowSim homes models; "
-                                 f"{args.checkpoint} is a 2-D FlowSim model")
-        # the options, before any model is loaded
+    try:  # the options, before any model is loaded
         check_int("--num-envs", args.num_envs, 1)
         check_int("--kl-draws", args.kl_draws, 2)
         check_int("--num-steps", args.num_steps, 2)
@@ -251,7 +226,7 @@ def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
             check_int("--likelihood-steps", args.likelihood_steps, 3)
         check_int("--likelihood-draws", args.likelihood_draws, 2)
         if args.world is not None:
-            check_choice("--world", args.world, tuple(WORLDS))
+            check_choice("--world", args.world, tuple(HABIT_WORLDS))
         if args.history is not None:
             check_int("--history", args.history, 1)
         likelihood_steps = args.likelihood_steps or None  # 0: only the paper's grid
@@ -307,18 +282,3 @@ def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
           + "".join(f", {out / f}" for f in results["figures"])
           + f" in {results['seconds']:.1f} s")
     return 0
-
-
-def _main_recorded(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                   argv: Sequence[str] | None) -> int:
-    """The realised-outcome scores on a recorded dataset
-    (:func:`flowmaps_jax.evaluation.realised.run_command`)."""
-    from flowmaps_jax.evaluation import realised
-
-    return realised.run_command(parser, args, "posterior", "python -m flowmaps_jax.evaluate",
-                                argv)
-
-
-_BY_WORLD = {"flowsim": _main_flowsim, "homes": _main_homes, "recorded": _main_recorded}
-"""The evaluation protocol of each world, by :data:`flowmaps_jax.worlds.WORLDS` name."""
-

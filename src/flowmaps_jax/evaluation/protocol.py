@@ -44,7 +44,6 @@ from flowmaps_jax.flowsim.habits import (
     uses_history,
 )
 from flowmaps_jax.flowsim.scenes import draw_query_times, normalise_boxes, scene_tokens, slot_boxes
-from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.predictor import DEFAULT_NUM_STEPS, Predictor
 from flowmaps_jax.tables import assign_slots, histogram
 from flowmaps_jax.tokens import Queries, SceneTokens
@@ -371,7 +370,7 @@ def evaluate_predictor(predictor: Predictor, evalset: EvalSet, key: jax.Array,
     sample_key = jax.random.fold_in(key, _SALT_SAMPLES)
     env_keys = jax.vmap(lambda e: jax.random.fold_in(sample_key, e))(jnp.asarray(evalset.env))
     samples = []
-    family = MODEL_FAMILIES.get(predictor.family_name)  # None: a stand-in sampler
+    family = getattr(predictor, "family", None)  # None: a stand-in sampler
     flow_density = family is not None and family.uses_solver  # its likelihood: an ODE solve
     accurate = likelihood_steps is not None and flow_density
     solves = {"paper": (logp_steps, method)}

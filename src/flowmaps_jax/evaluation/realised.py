@@ -56,10 +56,6 @@ FIT_SEED, FIT_QUERIES = 35_000_048, 64
 """The count rows' fitting queries: ``FIT_QUERIES`` per environment, seeded apart."""
 REPORT = {"posterior": ("results", "reliability.png"),
           "navigation": ("search", "success_vs_looks.png")}
-OPTIONS = ("checkpoint", "out", "data", "queries", "seed", "which", "no_figures", "no_progress",
-           "budget", "num_envs")
-"""The options the recorded scores read (``--num-envs``: at most this many environments);
-any other given is refused."""
 
 
 # --------------------------------------------------------------------------- queries
@@ -186,15 +182,13 @@ def _trained_on(stored: dict, recorded) -> str:
     if not path:
         return "the run trained on generated FlowSim homes, none of them"
     try:
-        original = rw.load_recorded(path)
-    except (ValueError, OSError):
-        original = None
-    if original is None or content_digest(original) != digest:
+        original, original_digest = rw.load_data(path)
+    except ValueError:
+        original_digest = None
+    if original_digest != digest:
         return (f"whether the run trained on any of them is not known: its data {path} is gone "
                 f"or changed")
-    train = rw.split_environments(original.names(), stored.get("val_fraction", 0.0),
-                                  stored.get("test_fraction", 0.0),
-                                  stored.get("split_seed", 0))["train"]
+    train = rw.split(original, rw.split_of(stored))["environments"]["train"]
     ours = {content_digest(type(recorded)((original.environments[i],))) for i in train}
     seen = [e.name for e in recorded.environments
             if content_digest(type(recorded)((e,))) in ours]
@@ -202,48 +196,39 @@ def _trained_on(stored: dict, recorded) -> str:
             if seen else "the run trained on none of them")
 
 
-def _run_split(recorded, stored: dict, data_path: str) -> tuple | None:
-    """The run's split (val, test, time fractions, seed) when it trained on ``recorded``."""
-    digest = stored.get("data_digest")
+def evaluation_part(recorded, config, stored: dict, data_path: str,
+                    digest: str | None = None) -> tuple:
+    """(RecordedHomes, what it is, its environments, the run's training part or None): the
+    test part of the run's own split (:func:`flowmaps_jax.worlds.recorded.split`) when
+    ``recorded`` (read from ``data_path``; ``digest``: its content digest) is the dataset the
+    run trained on (its ``data_digest``, wherever it sits), else every environment of the data,
+    ``what`` naming them and saying whether the run trained on any; the environments in the
+    homes' order. ``ValueError`` if the run's own data folder no longer matches its digest."""
+    stored_digest = stored.get("data_digest")
     folder = bool(stored.get("data")) and pathlib.Path(stored["data"]).resolve() == \
         pathlib.Path(data_path).resolve()
-    same = content_digest(recorded) == digest if digest else folder
+    digest = digest or (content_digest(recorded) if stored_digest else None)
+    same = digest == stored_digest if stored_digest else folder
     if folder and not same:
         raise ValueError(f"{data_path} changed since the run trained on it (it no longer matches "
                          f"data_digest in the run's config.json): its split would now mix "
                          f"training environments into the test part; score a copy of the data "
                          f"the run trained on, or new environments in a folder of their own")
-    return (stored.get("val_fraction", 0.0), stored.get("test_fraction", 0.0),
-            stored.get("time_fraction", 0.0), stored.get("split_seed", 0)) if same else None
-
-
-def training_part(recorded, config, stored: dict, data_path: str) -> rw.RecordedHomes | None:
-    """The run's training environments (``stop``: its time cut) when it trained on
-    ``recorded``, else None."""
-    split = _run_split(recorded, stored, data_path)
-    return rw.part_of(recorded, config, split, "train") if split else None
-
-
-def evaluation_part(recorded, config, stored: dict, data_path: str) -> tuple:
-    """(RecordedHomes, what it is, its environments): the test part of the run's own split
-    when ``recorded`` (read from ``data_path``) is the dataset the run trained on (its
-    ``data_digest``, wherever it sits), else every environment of the data, ``what`` naming
-    them and saying whether the run trained on any; the environments in the homes' order.
-    ``ValueError`` if the run's own data folder no longer matches its digest."""
-    split = _run_split(recorded, stored, data_path)
-    if split:
-        names = rw.split_environments(recorded.names(), *split[:2], split[3])
-        what = (f"the run's held-out test part ({len(names['test'])} environments: "
-                f"{_names([recorded.names()[i] for i in names['test']])}"
-                + (f", and the last {split[2] / (1 + (not names['val'])):.0%} of the "
-                   "training environments' hours" if split[2] > 0 else "")
-                + f"; split_seed={split[3]})")
-        index = rw.part_index(recorded, split, "test")
-        return (rw.part_of(recorded, config, split, "test"), what,
-                tuple(recorded.environments[i] for i in index))
-    return (rw.recorded_homes(recorded, config),
-            f"all {len(recorded.environments)} environments ({_names(recorded.names())}); "
-            f"{_trained_on(stored, recorded)}", tuple(recorded.environments))
+    if not same:
+        return (rw.recorded_homes(recorded, config),
+                f"all {len(recorded.environments)} environments ({_names(recorded.names())}); "
+                f"{_trained_on(stored, recorded)}", tuple(recorded.environments), None)
+    cfg_split = rw.split_of(stored)
+    parts = rw.split(recorded, cfg_split)
+    names = parts["environments"]
+    what = (f"the run's held-out test part ({len(names['test'])} environments: "
+            f"{_names([recorded.names()[i] for i in names['test']])}"
+            + (f", and the last {cfg_split[2] / (1 + (not names['val'])):.0%} of the "
+               "training environments' hours" if cfg_split[2] > 0 else "")
+            + f"; split_seed={cfg_split[3]})")
+    return (rw.part_of(recorded, config, parts, "test"), what,
+            tuple(recorded.environments[i] for i in parts["test"][0]),
+            rw.part_of(recorded, config, parts, "train"))
 
 
 def start_distance(homes) -> jax.Array:
@@ -475,21 +460,28 @@ def write_figure(results: dict, out: pathlib.Path, part: str) -> str:
 # --------------------------------------------------------------------------- command line
 
 
+def evaluate(parser, args, argv, stored) -> int:
+    """``python -m flowmaps_jax.evaluate`` on recorded data: the posterior scores."""
+    return run_command(parser, args, "posterior", "python -m flowmaps_jax.evaluate", argv,
+                       stored)
+
+
+def search(parser, args, argv, stored) -> int:
+    """``python -m flowmaps_jax.search`` on recorded data: navigation."""
+    return run_command(parser, args, "navigation", "python -m flowmaps_jax.search", argv,
+                       stored)
+
+
 def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part: str,
-                prog: str, argv: Sequence[str] | None) -> int:
-    """``evaluate`` (``part`` "posterior") or ``search`` ("navigation") of ``--checkpoint`` on
-    ``--data`` (default: the data the run trained on). Exit 0, 2 on bad input (one line), 74
-    on a failed write."""
-    from flowmaps_jax.predictor import load_model, stored_config
+                prog: str, argv: Sequence[str] | None, stored: dict) -> int:
+    """``evaluate`` (``part`` "posterior") or ``search`` ("navigation") of ``--checkpoint``
+    (``stored``: its run config, {} for a pretrained model) on ``--data`` (default: the data
+    the run trained on). Exit 0, 2 on bad input (one line), 74 on a failed write."""
+    from flowmaps_jax.predictor import load_model
 
     stem, figure = REPORT[part]
     try:
-        for name, value in vars(args).items():
-            if name not in OPTIONS and value != parser.get_default(name):
-                raise ValueError(f"--{name.replace('_', '-')} does not apply to recorded data "
-                                 "(--data)")
-        stored = stored_config(args.checkpoint, args.which)
-        data_path = args.data if getattr(args, "data", None) else stored.get("data")
+        data_path = args.data or stored.get("data")
         if not data_path:
             raise ValueError("--data PATH is required (the recorded dataset to score on)")
         if args.out is None and str(args.checkpoint).startswith(PRETRAINED_PREFIX):
@@ -504,14 +496,10 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
         budget = check_int("--budget", getattr(args, "budget", nav.LOOK_BUDGET), 1)
         with prefix_errors(f"--checkpoint {args.checkpoint!r}: "):
             model = load_model(args.checkpoint, args.which)
-        if model.homes is None:
-            raise ValueError(f"--data needs a homes-network model; {args.checkpoint} is a "
-                             f"{model.family_name!r} model of 2-D FlowSim maps")
         with prefix_errors("--data: "):
-            recorded = rw.load_recorded(data_path)
-            data, what, environments = evaluation_part(recorded, model.homes, stored,
-                                                       data_path)
-            train = training_part(recorded, model.homes, stored, data_path)
+            recorded, digest = rw.load_data(data_path)
+            data, what, environments, train = evaluation_part(recorded, model.homes, stored,
+                                                              data_path, digest)
         if args.num_envs != parser.get_default("num_envs") and args.num_envs < data.num_homes:
             data = jax.tree.map(lambda a: a[:args.num_envs], data)
             environments = environments[:args.num_envs]
@@ -530,7 +518,7 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
         print(f"error: {' '.join(str(err).split())}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as err:
-        print(f"error: --data {getattr(args, 'data', None)}: {err.strerror or err}",
+        print(f"error: --data {args.data}: {err.strerror or err}",
               file=sys.stderr)
         return EXIT_USAGE
     results["data"], results["part"] = str(data_path), what

@@ -94,11 +94,12 @@ def evaluation_homes(config: HomesConfig, num_homes: int):
 
 def model_rows(model, config: HomesConfig, key, num_samples: int) -> list[Row]:
     """FlowMaps rows of ``model`` (``probabilities(homes, queries, config)`` and, with
-    ``num_samples`` > 0 and a ``sample`` method, its sampled boxes assigned to receptacles)."""
+    ``num_samples`` > 0, its sampled boxes assigned to receptacles)."""
     rows = [Row("FlowMaps", lambda h, q: jnp.asarray(model.probabilities(h, q, config)))]
-    if num_samples and hasattr(model, "sample"):
+    if num_samples:
         def sampled(h, q):
-            return assign_samples(model.sample(key, h, q, config, num_samples), h, q, config)
+            return assign_samples(model.sample(h, q, num_samples, key, config=config), h, q,
+                                  config)
 
         rows.append(Row(f"FlowMaps samples (N = {num_samples})", sampled, samples=True,
                         navigate=False))
@@ -283,22 +284,26 @@ def _one_count(samples) -> int:
     return counts[0]
 
 
+def evaluate(parser, args, argv, stored) -> int:
+    """``python -m flowmaps_jax.evaluate`` of a homes model: the posterior part."""
+    return run_command(parser, args, "posterior", "python -m flowmaps_jax.evaluate", argv)
+
+
+def search(parser, args, argv, stored) -> int:
+    """``python -m flowmaps_jax.search`` of a homes model: the navigation part."""
+    return run_command(parser, args, "navigation", "python -m flowmaps_jax.search", argv)
+
+
 def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part: str,
-                prog: str, argv: Sequence[str] | None, flowsim_only: Sequence[str] = ()) -> int:
+                prog: str, argv: Sequence[str] | None) -> int:
     """The ``part`` (``"posterior"`` for ``evaluate``, ``"navigation"`` for ``search``) of the
-    homes protocol for ``--checkpoint``, from the parsed ``args`` of ``prog``. Options in
-    ``flowsim_only`` that differ from their defaults are refused (they apply to 2-D FlowSim
-    models); without ``--out`` the files go to :data:`DEFAULT_OUT` (a pretrained model needs
-    ``--out``). Returns the exit code (0, 2 on a bad
-    argument, 74 on a failed write), one line on stderr."""
+    homes protocol for ``--checkpoint``, from the parsed ``args`` of ``prog``; without ``--out``
+    the files go to :data:`DEFAULT_OUT` (a pretrained model needs ``--out``). Returns the exit
+    code (0, 2 on a bad argument, 74 on a failed write), one line on stderr."""
     from flowmaps_jax.evaluation import receptacle_report as report
 
     stem, figure = REPORT_STEM[part], FIGURE_OF[part]
     try:
-        for name in flowsim_only:
-            if getattr(args, name) != parser.get_default(name):
-                raise ValueError(f"--{name.replace('_', '-')} applies to 2-D FlowSim models; "
-                                 f"{args.checkpoint} is a FlowSim homes model")
         if args.out is None and str(args.checkpoint).startswith(PRETRAINED_PREFIX):
             raise ValueError("--out is required when --checkpoint is pretrained:NAME")
         regime = check_choice("--regime", "mixed" if args.regime is None else args.regime,

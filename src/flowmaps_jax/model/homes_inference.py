@@ -2,7 +2,7 @@
 
     predictor = load_model("runs/homes")        # or load_pretrained("flowmaps-homes")
     p = predictor.probabilities(homes, queries, config)          # (E, Q, R), rows sum to 1
-    boxes = predictor.sample(jax.random.key(0), homes, queries, config, num_samples=16)
+    boxes = predictor.sample(homes, queries, 16, jax.random.key(0), config=config)
     p = predictor.probabilities(homes, queries, config, observed=observed)  # partial logs
 
 ``observed`` (E, T, M) bool says which hours each object was seen (``homes.receptacle`` holds
@@ -164,9 +164,9 @@ def probabilities(predictor, homes: Homes, queries: HomesQueries,
     return _chunked(run, queries, predictor.homes.max_receptacles)
 
 
-def sample(predictor, key, homes: Homes, queries: HomesQueries, config: HomesConfig | None,
-           num_samples: int, num_steps: int = DEFAULT_NUM_STEPS, *,
-           return_receptacles: bool = False, observed=None):
+def sample(predictor, homes: Homes, queries: HomesQueries, num_samples: int, key,
+           num_steps: int = DEFAULT_NUM_STEPS, *, config: HomesConfig | None = None,
+           observed=None, return_receptacles: bool = False):
     """(E, Q, N, 6) float32 boxes (cx, cy, cz, w, d, h) in metres: a receptacle drawn from
     the weights, then the placement flow on it (``num_steps`` midpoint grid points). With
     ``return_receptacles``: (boxes, receptacles (E, Q, N) int32)."""

@@ -22,7 +22,7 @@ from flowmaps_jax import distributed
 from flowmaps_jax.atomic_files import make_output_dir, save_figure
 from flowmaps_jax.evaluation.cli import run_for_world
 from flowmaps_jax.flowsim import (
-    WORLDS,
+    HABIT_WORLDS,
     FlowSimConfig,
     validation_split,
     world_config,
@@ -69,8 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     add("--horizons", type=int_list, default=None,
         help="instead of random draws: fixed horizons Δτ, e.g. 1,2,4,8 (one row each)")
     add("--world", default=None, metavar="NAME",
-        help=f"FlowSim world of the searched scenes ({', '.join(WORLDS)}; default: the world "
-             "of the first model's config)")
+        help=f"FlowSim world of the searched scenes ({', '.join(HABIT_WORLDS)}; default: the "
+             "world of the first model's config)")
     add("--history", type=ascii_int, default=None, metavar="H",
         help="observations the exact reference posterior is given (default: the largest "
              f"model.history among the models, at least {HABITS_HISTORY} in a world with "
@@ -153,31 +153,15 @@ def search_world(models: Sequence, world: str | None = None,
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI entry point; 0 on success, 2 on a bad argument, 74 on a failed write (a full disk);
     one line on stderr. Every argument, ``--out`` and the run's size are checked first. The
-    protocol is the one of ``--checkpoint``'s world (:data:`_BY_WORLD`)."""
+    protocol is the one of ``--checkpoint``'s world (its ``search``)."""
     parser = build_parser()
-    return run_for_world(parser, parser.parse_args(argv), argv, _BY_WORLD)
+    return run_for_world(parser, parser.parse_args(argv), argv, "search")
 
 
-def _main_homes(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                argv: Sequence[str] | None) -> int:
-    """The homes navigation (:func:`flowmaps_jax.evaluation.receptacle_protocol.run_command`)."""
-    from flowmaps_jax.evaluation import receptacle_protocol as homes_evaluate
-
-    return homes_evaluate.run_command(
-        parser, args, "navigation", "python -m flowmaps_jax.search", argv,
-        flowsim_only=("baseline", "times_per_env", "world", "table_method", "policies",
-                      "p_miss", "start", "chunk_rows", "devices"))
-
-
-def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                  argv: Sequence[str] | None) -> int:
+def search_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                   argv: Sequence[str] | None, stored: dict) -> int:
     """The 2-D FlowSim search (:func:`flowmaps_jax.search.protocol.run_search`)."""
-    try:
-        for name in ("queries", "regime"):
-            if getattr(args, name) is not None:
-                raise ValueError(f"--{name} applies to FlowSim homes models; "
-                                 f"{args.checkpoint} is a 2-D FlowSim model")
-        # the options, before any model is loaded
+    try:  # the options, before any model is loaded
         check_int("--num-envs", args.num_envs)
         check_int("--times-per-env", args.times_per_env)
         check_int("--samples", args.samples)
@@ -185,7 +169,7 @@ def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
         check_int("--chunk-rows", args.chunk_rows)
         check_seed("--seed", args.seed)
         if args.world is not None:
-            check_choice("--world", args.world, tuple(WORLDS))
+            check_choice("--world", args.world, tuple(HABIT_WORLDS))
         if args.history is not None:
             check_int("--history", args.history)
         # the chance a look at the right table misses
@@ -238,17 +222,3 @@ def _main_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
           + "".join(f", {out / f}" for f in results["figures"])
           + f" ({results['seconds']:.0f} s of search)")
     return 0
-
-
-def _main_recorded(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                   argv: Sequence[str] | None) -> int:
-    """Navigation on a recorded dataset, the realised receptacle as the target
-    (:func:`flowmaps_jax.evaluation.realised.run_command`)."""
-    from flowmaps_jax.evaluation import realised
-
-    return realised.run_command(parser, args, "navigation", "python -m flowmaps_jax.search",
-                                argv)
-
-
-_BY_WORLD = {"flowsim": _main_flowsim, "homes": _main_homes, "recorded": _main_recorded}
-"""The search protocol of each world, by :data:`flowmaps_jax.worlds.WORLDS` name."""

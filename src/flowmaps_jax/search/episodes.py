@@ -38,7 +38,6 @@ from flowmaps_jax.flowsim.habits import (  # noqa: F401  (names this module re-e
     history_references,
     uses_history,
 )
-from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.resources import check_resources, network_flops, solver_evaluations
 from flowmaps_jax.search.probabilities import spread_over_tables
@@ -108,16 +107,14 @@ def check_search_size(config: FlowSimConfig, num_rows: int, *, budget: int,
                     num_bytes=set_bytes + prior_bytes + kept + every,
                     flops=jobs * k * n * budget * look)
     for predictor in predictors:
-        model = getattr(predictor, "model", None)
-        family_name = getattr(predictor, "family_name", None)
-        if model is None or family_name not in MODEL_FAMILIES:
+        family = getattr(predictor, "family", None)  # None: a stand-in prior
+        if family is None:
             continue
-        per_query, per_map = network_flops(model, s,
-                                           MODEL_FAMILIES[family_name].gaussian is not None)
-        evaluations = (solver_evaluations(DEFAULT_NUM_STEPS)
-                       if MODEL_FAMILIES[family_name].uses_solver else 1)
+        model = predictor.model
+        per_query, per_map = network_flops(model, s, family.gaussian is not None)
+        evaluations = solver_evaluations(DEFAULT_NUM_STEPS) if family.uses_solver else 1
         check_resources(
-            f"samples={num_samples} per query for {getattr(predictor, 'name', family_name)} on "
+            f"samples={num_samples} per query for {predictor.name} on "
             f"{n} queries of {rows_text}",
             num_bytes=4 * min(chunk_rows, rows) * m * num_samples * (4 * model.dim * (
                 model.mlp_ratio + 4) + 4 * (s + 4)),

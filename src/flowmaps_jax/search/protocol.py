@@ -194,6 +194,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
                **sample_kwargs) -> tuple[dict, dict[tuple[str, str], RowRun], ep.SearchSet]:
     """The protocol on every environment of ``scenes``: queries, priors (the reference rows and
     one row per predictor, in the order given), every row × policy → (results, runs, search set).
+    A predictor (a Predictor or a stand-in) names the ``flowsim`` config it was trained on.
 
     ``config`` is the world ``scenes`` come from (``flowsim.world_config``); ``history``: the
     observations the exact posterior is given (``episodes.build_search_set``). On the habits
@@ -209,9 +210,7 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     table_method = check_choice("table_method", table_method, TABLE_METHODS)
     policies = tuple(policies)
     for p in predictors:
-        flowsim = getattr(p, "flowsim", None)
-        if flowsim is not None and (flowsim.map_size != config.map_size
-                                    or flowsim.categories != config.categories):
+        if p.flowsim.map_size != config.map_size or p.flowsim.categories != config.categories:
             raise ValueError(f"predictors: {getattr(p, 'name', p)} was trained on another FlowSim "
                              "config (map size or categories) than the search scenes")
     started = time.perf_counter()
@@ -229,12 +228,11 @@ def run_search(predictors: Sequence[Any], scenes: Scenes, config: FlowSimConfig,
     for predictor, name in zip(predictors, names, strict=True):
         t0 = time.perf_counter()
         method = table_method if _has_weights(predictor) else "samples"
-        flowsim = getattr(predictor, "flowsim", None)
         # a model reading H maps gets them all, each model no more tokens than it takes
         with prefix_errors(f"predictors: {name} reads {model_history(predictor)} maps, which do "
                            "not fit its tokens: "):
             its_set = ep.history_tokens(search_set, scenes, config, model_history(predictor),
-                                        None if flowsim is None else flowsim.max_tokens)
+                                        predictor.flowsim.max_tokens)
         priors[name] = ep.predictor_tables(predictor, its_set, num_samples,
                                            jax.random.fold_in(key, _SALT_MODELS), chunk_rows,
                                            progress, desc=f"{method} of {name}", method=method,

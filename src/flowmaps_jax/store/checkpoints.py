@@ -21,7 +21,7 @@ import orbax.checkpoint as ocp
 
 from flowmaps_jax.atomic_files import check_tree_no_links
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
-from flowmaps_jax.store.model_spec import DEFAULT_FAMILY, ModelSpec, check_params, model_spec
+from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
 from flowmaps_jax.untrusted_files import parse_json
 from flowmaps_jax.validation import check_choice, check_dir, check_flag, check_int, prefix_errors
 
@@ -340,11 +340,6 @@ def stored_config(directory: str | pathlib.Path, which: str = BEST) -> dict:
     restored = _restore_copies(root, _select(root, _loadable(root, which, None), None), None,
                                with_state=False)
     return dict(restored.config)
-
-
-def stored_family(directory: str | pathlib.Path, which: str = BEST) -> str:
-    """The model family (``"model_kind"``) of the checkpoint :func:`load_weights` would load."""
-    return stored_config(directory, which).get("model_kind", DEFAULT_FAMILY)
 
 
 def load_weights(directory: str | pathlib.Path, which: str = BEST, use_ema: bool = True,

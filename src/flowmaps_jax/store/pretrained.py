@@ -27,7 +27,7 @@ from flax import traverse_util
 from flowmaps_jax.atomic_files import make_output_dir, write_files
 from flowmaps_jax.store import checkpoints
 from flowmaps_jax.store.checkpoints import WHICH
-from flowmaps_jax.store.model_spec import HOMES_FAMILY, ModelSpec, model_spec
+from flowmaps_jax.store.model_spec import ModelSpec, model_spec
 from flowmaps_jax.untrusted_files import parse_json, read_npz
 from flowmaps_jax.validation import (
     check_choice,
@@ -47,7 +47,7 @@ NAMES = ("flowmaps", "mlp", "mlp-learned",
          "flowmaps-preferences-h1", "flowmaps-dynamic-h1", "flowmaps-mixed-h1",
          "flowmaps-homes")
 """The pretrained models: FlowMaps and the two MLP baselines (the paper's world, ``routine``),
-and one FlowMaps per habits world (``flowsim.WORLDS``), trained with ``--preset habits --set
+and one FlowMaps per habits world (``flowsim.HABIT_WORLDS``), trained with ``--preset habits --set
 world=NAME``: ``flowmaps-<world>`` reads the last 8 maps, ``flowmaps-<world>-h1`` is the same
 recipe reading one map (the "H = 1 model" reference row); ``flowmaps-homes`` is the FlowSim
 homes model (``--preset homes``, :class:`flowmaps_jax.predictor.Predictor`). A name
@@ -62,7 +62,7 @@ SEAL_FORMAT = 1
 
 
 HOLDS = {**{name: ("flowmaps", None) for name in NAMES}, "mlp": ("mlp", "mean"),
-         "mlp-learned": ("mlp", "learned"), "flowmaps-homes": (HOMES_FAMILY, None)}
+         "mlp-learned": ("mlp", "learned"), "flowmaps-homes": ("flowmaps-homes", None)}
 """What each pretrained name holds: (its model family, the MLP's ``baseline_variance`` or
 None)."""
 

@@ -16,11 +16,9 @@ from flowmaps_jax import distributed
 from flowmaps_jax.training import resume
 from flowmaps_jax.training.config import (
     DEFAULT_PRESET,
-    PRESETS,
-    RECORDED_PRESETS,
-    RUN_CONFIGS,
     TrainConfig,
     get_preset,
+    presets,
     recorded_config,
     with_world,
 )
@@ -28,11 +26,9 @@ from flowmaps_jax.training.loop import run
 from flowmaps_jax.training.overrides import replace_fields
 from flowmaps_jax.validation import check_output_dir
 from flowmaps_jax.validation.scalars import ascii_int
-from flowmaps_jax.worlds import world
+from flowmaps_jax.worlds import families, world
 
 EXIT_OK, EXIT_NAN, EXIT_WRITE_FAILED, EXIT_INTERRUPTED = 0, 1, 74, 130
-_FAMILIES = tuple(dict.fromkeys(f for cls in RUN_CONFIGS for f in world(cls.world).families))
-"""Every model family some world trains (its run config's ``family``)."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,10 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m flowmaps_jax.train",
         description="Train FlowMaps (flow matching) or the MLP baseline on FlowSim, or the "
                     "homes model on FlowSim homes (--preset homes).")
-    parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
+    parser.add_argument("--preset", choices=sorted(presets()), default=None,
                         help=f"named configuration (default {DEFAULT_PRESET}; homes and "
                              "homes-smoke train on FlowSim homes)")
-    parser.add_argument("--family", "--model", dest="family", choices=_FAMILIES, default=None,
+    parser.add_argument("--family", "--model", dest="family", choices=families(), default=None,
                         help="the model family: flowmaps (default) or mlp (Gaussian baseline); "
                              "--model is its older spelling")
     parser.add_argument("--run-dir", default=None,
@@ -83,8 +79,8 @@ def default_run_dir(cfg: TrainConfig) -> pathlib.Path:
 
 
 def split_world(overrides: typing.Iterable[str]) -> tuple[list[str], str | None]:
-    """``--set world=NAME`` (a ``flowsim.WORLDS`` name) apart from the field overrides: a world
-    names a whole habit mixture, not one field. The last ``world=`` wins."""
+    """``--set world=NAME`` (a ``flowsim.HABIT_WORLDS`` name) apart from the field overrides: a
+    world names a whole habit mixture, not one field. The last ``world=`` wins."""
     rest, world = [], None
     for text in overrides:
         key, sep, value = text.partition("=")
@@ -103,12 +99,12 @@ _KEPT = ("cannot change on --resume: a resumed run uses the run's saved config (
 def _unchanged(cfg: TrainConfig, flag: str, value: str) -> bool:
     """Whether ``flag value`` of the original command, repeated with --resume, is the run's."""
     if flag == "--preset":
-        table = RECORDED_PRESETS if cfg.world == "recorded" else PRESETS
+        table = world(cfg.world).hook("presets")
         return value in table and table[value]().preset == cfg.preset
     if flag == "--family":
         return value == getattr(cfg, "family", None)
     if flag == "--data":
-        return cfg.world == "recorded" and os.path.abspath(value) == cfg.data
+        return world(cfg.world).reads_files and os.path.abspath(value) == cfg.data
     return with_world(cfg, value) == cfg
 
 
@@ -136,7 +132,7 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
         cfg = get_preset(args.preset or DEFAULT_PRESET)
     for text in overrides:  # what the run derives from --data itself
         key = text.partition("=")[0].strip()
-        if key == "data_digest" or (key == "data" and cfg.world == "recorded"):
+        if key == "data_digest" or (key == "data" and world(cfg.world).reads_files):
             raise ValueError(f"--set {key}: not a setting; the run stores the path of --data "
                              f"and the digest of its contents itself: give the data with --data")
     if world is not None:

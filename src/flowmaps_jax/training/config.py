@@ -42,16 +42,15 @@ from flowmaps_jax.validation import (
     prefix_errors,
 )
 from flowmaps_jax.validation.fields import Choice, Int, Optional, Real, Text, check_fields
-from flowmaps_jax.worlds import world, world_of_family
+from flowmaps_jax.worlds import WORLDS, world, world_of_family
 
 DATA_SOURCES = ("train", "endless")
 
-__all__ = ["DATA_SOURCES", "DEFAULT_PRESET", "PRESETS", "RESUMABLE_FIELDS", "ROLES", "RUN_CONFIGS",
-           "SHORTHANDS", "HomesTrainConfig", "RecordedTrainConfig", "Role", "TrainConfig",
-           "apply_overrides",
+__all__ = ["DATA_SOURCES", "DEFAULT_PRESET", "PRESETS", "RESUMABLE_FIELDS", "ROLES", "SHORTHANDS",
+           "HomesTrainConfig", "RecordedTrainConfig", "Role", "TrainConfig", "apply_overrides",
            "check_run_resources", "compile_key", "config_from_stored", "cpu_preset",
-           "format_config", "get_preset", "paper_preset", "recorded_config", "resumable_fields",
-           "smoke_preset"]
+           "format_config", "get_preset", "paper_preset", "presets", "recorded_config",
+           "resumable_fields", "run_configs", "smoke_preset"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -392,8 +391,10 @@ _RECORDED_RULES = {
     "time_fraction": Real(0.0, 1.0, high_open=True), "split_seed": check_seed,
 }
 
-RUN_CONFIGS = (TrainConfig, HomesTrainConfig, RecordedTrainConfig)
-"""The run config classes, one per world (each names its world: ``cls.world``)."""
+
+def run_configs() -> tuple[type, ...]:
+    """The run config classes of the registered worlds (each names its world: ``cls.world``)."""
+    return tuple(dict.fromkeys(w.hook("config") for w in WORLDS.values()))
 
 
 def config_from_stored(data: dict, where: str = "config") -> TrainConfig | HomesTrainConfig:
@@ -404,11 +405,11 @@ def config_from_stored(data: dict, where: str = "config") -> TrainConfig | Homes
     family = data.get("model_kind", data.get("family", TrainConfig().family))
     if not isinstance(family, str):
         raise ValueError(f"{where}: model_kind must be a string; got {family!r}")
-    stored_world = data.get("world", world_of_family(family).name)  # a world stored beside
-    cls = next((c for c in RUN_CONFIGS if c.world == stored_world), None)  # the family's own
-    if cls is None or family not in world(cls.world).families:
-        raise ValueError(f"{where}: world {stored_world!r} does not train {family!r} models")
-    return config_from_dict(cls, {k: v for k, v in data.items() if k != "world"}, where)
+    plugin = world(data["world"]) if "world" in data else world_of_family(family)
+    if family not in plugin.families:
+        raise ValueError(f"{where}: world {plugin.name!r} does not train {family!r} models")
+    return config_from_dict(plugin.hook("config"), {k: v for k, v in data.items()
+                                                    if k != "world"}, where)
 
 
 def _fields_whose_role(cls: type, prop: str, value: bool) -> tuple[str, ...]:
@@ -547,9 +548,9 @@ def homes_smoke_preset() -> HomesTrainConfig:
 
 
 def with_world(cfg: TrainConfig, habits: str) -> TrainConfig:
-    """``cfg`` on the FlowSim habit world ``habits`` (a ``flowsim.WORLDS`` name; ValueError
+    """``cfg`` on the FlowSim habit world ``habits`` (a ``flowsim.HABIT_WORLDS`` name; ValueError
     naming ``world`` otherwise): only ``flowsim.habits`` changes (``--set world=dynamic``)."""
-    if not hasattr(cfg, "flowsim"):
+    if not isinstance(cfg, TrainConfig):
         raise ValueError(f"world={habits!r}: --set world=... chooses a habit world of the 2-D "
                          f"FlowSim presets; preset {cfg.preset!r} trains on another world")
     return dataclasses.replace(cfg, flowsim=world_config(habits, cfg.flowsim))
@@ -581,7 +582,6 @@ def recorded_config(preset: str | None, data: str) -> RecordedTrainConfig:
     with ``homes`` derived from the dataset (its vocabulary, sizes and hours,
     :func:`flowmaps_jax.worlds.recorded.homes_config_of`), ``model.history`` at most half its
     hours and ``max_horizon`` what fits after it. ValueError naming ``--preset`` or ``data``."""
-    from flowmaps_jax.recorded.format import content_digest
     from flowmaps_jax.worlds.recorded import homes_config_of, load_data
 
     preset = preset or "homes"
@@ -591,27 +591,36 @@ def recorded_config(preset: str | None, data: str) -> RecordedTrainConfig:
     base = RECORDED_PRESETS[preset]()
     base = dataclasses.replace(base, data=os.path.abspath(data))
     with prefix_errors("--data: "):
-        recorded = load_data(base)
+        recorded, digest = load_data(base.data)
         homes = homes_config_of(recorded)
-    base = dataclasses.replace(base, data_digest=content_digest(recorded))
+    base = dataclasses.replace(base, data_digest=digest)
     history = min(base.model.history, max(1, homes.num_hours // 2))
     return dataclasses.replace(
         base, homes=homes, model=dataclasses.replace(base.model, history=history),
         max_horizon=min(base.max_horizon, homes.num_hours - history))
 
 
-PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "smoke": smoke_preset,
-           "habits": habits_preset, "homes": homes_preset, "homes-smoke": homes_smoke_preset,
-           "homes-rhythms": homes_rhythms_preset}
+FLOWSIM_PRESETS = {"paper": paper_preset, "cpu": cpu_preset, "smoke": smoke_preset,
+                   "habits": habits_preset}
+HOMES_PRESETS = {"homes": homes_preset, "homes-smoke": homes_smoke_preset,
+                 "homes-rhythms": homes_rhythms_preset}
+PRESETS = {**FLOWSIM_PRESETS, **HOMES_PRESETS}
 DEFAULT_PRESET = "cpu"
 
 
-def get_preset(name: str = DEFAULT_PRESET) -> TrainConfig | HomesTrainConfig:
-    """The named preset (``paper``, ``cpu``, ``smoke``, ``habits``, ``homes``,
-    ``homes-smoke``, ``homes-rhythms``) as a fresh run config."""
-    if name not in PRESETS:
-        raise ValueError(f"preset must be one of {sorted(PRESETS)}; got {name!r}")
-    return PRESETS[name]()
+def presets() -> dict:
+    """The presets of every registered world whose data is generated (``--preset NAME``; with
+    ``--data`` the files world's), by name: :data:`PRESETS` and those of worlds added since."""
+    return {name: make for w in WORLDS.values() if not w.reads_files
+            for name, make in w.hook("presets").items()}
+
+
+def get_preset(name: str = DEFAULT_PRESET):
+    """The preset ``name`` (of :func:`presets`) as a fresh run config."""
+    table = presets()
+    if name not in table:
+        raise ValueError(f"preset must be one of {sorted(table)}; got {name!r}")
+    return table[name]()
 
 
 _UNPRINTED = ("flowsim.furniture_kinds", "flowsim.categories", "homes.room_types",

@@ -30,11 +30,11 @@ from flowmaps_jax.store.integrity import NonFiniteStateError
 from flowmaps_jax.training import objectives, runlog
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import (
-    RUN_CONFIGS,
     TrainConfig,
     check_run_resources,
     compile_key,
     format_config,
+    run_configs,
 )
 from flowmaps_jax.training.resume import restore_for_resume
 from flowmaps_jax.training.runlog import RunResult
@@ -48,7 +48,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
         overwrite: bool = False, from_step: int | None = None, stop_at: int | None = None,
         progress: bool = True, on_step: Callable[[int, dict], None] | None = None,
         log: Callable[[str], None] = print) -> RunResult:
-    """Train per ``cfg`` (a :data:`~flowmaps_jax.training.config.RUN_CONFIGS` instance) into
+    """Train per ``cfg`` (an instance of a registered world's run config class) into
     ``run_dir``.
 
     resume: continue from the latest checkpoint (or the saved step ``from_step``, later steps
@@ -60,7 +60,7 @@ def run(cfg: TrainConfig, run_dir: str | pathlib.Path, *, resume: bool = False,
     :class:`~flowmaps_jax.store.checkpoint_store.CheckpointSaveError`.
     """
     # ---- Prelude: every check, then the run's pieces; nothing is written before the last one.
-    check_instance("cfg", cfg, RUN_CONFIGS)
+    check_instance("cfg", cfg, run_configs())
     run_dir = pathlib.Path(check_output_dir("run_dir", run_dir))
     if stop_at is not None:
         check_int("stop_at", stop_at, 1, cfg.steps)

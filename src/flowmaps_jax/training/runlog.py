@@ -15,9 +15,10 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from flowmaps_jax.model.families import MODEL_FAMILIES
 from flowmaps_jax.store import rundir
 from flowmaps_jax.store.checkpoint_store import CheckpointSaveError, CheckpointStore
+from flowmaps_jax.store.model_spec import DEFAULT_FAMILY
+from flowmaps_jax.store.pretrained import HOLDS
 from flowmaps_jax.store.rundir import METRICS
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import TrainConfig
@@ -203,12 +204,12 @@ def _export_name(run_dir: pathlib.Path) -> str:
     """The pretrained name a run's model exports as (from its config.json)."""
     try:
         config = read_json("", run_dir / "config.json")
-        kind, model = str(config.get("model_kind", "flowmaps")), config.get("model", {})
-        learned = model.get("baseline_variance") == "learned"
+        kind = str(config.get("model_kind", DEFAULT_FAMILY))
+        variance = config.get("model", {}).get("baseline_variance")
     except (OSError, ValueError, AttributeError):
-        return "flowmaps"
-    gaussian = kind in MODEL_FAMILIES and MODEL_FAMILIES[kind].gaussian is not None
-    return f"{kind}-learned" if gaussian and learned else kind
+        return DEFAULT_FAMILY
+    return next((name for name, (family, held) in HOLDS.items()
+                 if family == kind and held in (None, variance)), kind)
 
 
 def write_routine_curve(run_dir: pathlib.Path, log: Callable[[str], None]) -> None:

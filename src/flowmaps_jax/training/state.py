@@ -13,7 +13,7 @@ from flax import struct
 from jax.sharding import Mesh
 
 from flowmaps_jax import distributed
-from flowmaps_jax.training.config import RUN_CONFIGS, TrainConfig
+from flowmaps_jax.training.config import TrainConfig, run_configs
 from flowmaps_jax.training.objectives import Objective, objective_for
 from flowmaps_jax.validation import check_instance
 from flowmaps_jax.worlds import world
@@ -75,7 +75,7 @@ def init_state(cfg: TrainConfig, key: jax.Array | None = None,
                start_params: Params | None = None) -> TrainState:
     """Fresh state at step 0 from ``key`` (default ``PRNGKey(cfg.seed)``), EMA = params, with
     ``start_params`` laid over (:func:`overlay_params`); on the first device or over ``mesh``."""
-    check_instance("cfg", cfg, RUN_CONFIGS)
+    check_instance("cfg", cfg, run_configs())
     objective = objective or objective_for(cfg)
     if key is None:
         key = jax.random.PRNGKey(cfg.seed)

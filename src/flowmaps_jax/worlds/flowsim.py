@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import Any
@@ -23,15 +24,18 @@ import jax.numpy as jnp
 
 from flowmaps_jax.boxes import from_centre, to_centre
 from flowmaps_jax.distributed import host_part
+from flowmaps_jax.flowsim.config import FlowSimConfig
 from flowmaps_jax.flowsim.generate import generate, layout_bytes
 from flowmaps_jax.flowsim.scenes import make_train_batch, train_split, validation_split
+from flowmaps_jax.model.config import ModelConfig
 from flowmaps_jax.model.families import MODEL_FAMILIES, model_family
-from flowmaps_jax.model.family import LossOptions
+from flowmaps_jax.model.family import LossOptions, ModelFamily
 from flowmaps_jax.model.flowmaps_family import DEFAULT_NUM_STEPS
 from flowmaps_jax.resources import embedding_bytes, network_flops, solver_evaluations
 from flowmaps_jax.tables import protocol_sigma
 from flowmaps_jax.tokens import TrainBatch, check_train_batch, trim_padding
-from flowmaps_jax.worlds.world import World, chunk_key
+from flowmaps_jax.validation import check_instance, check_int
+from flowmaps_jax.worlds.world import Inference, World, chunk_key
 
 # batch_fn(key, scenes) -> TrainBatch, traceable
 BatchFn = Callable[[jax.Array, Any], TrainBatch]
@@ -229,11 +233,90 @@ def resource_estimate(cfg, devices: int = 1) -> list[tuple[str, int, int]]:
     ]
 
 
+# --------------------------------------------------------------------------- inference
+
+DEFAULT_FAMILY = "flowmaps"
+"""The family of a stored config without ``model_kind`` (``TrainConfig``'s default)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """The part of a stored 2-D run config that inference needs (``family_name``: stored as
+    ``"model_kind"``, a pretrained ``.json``'s ``"kind"``); made only for a model that fits its
+    simulator (ValueError otherwise)."""
+
+    family_name: str
+    model: ModelConfig
+    flowsim: FlowSimConfig
+
+    @property
+    def family(self) -> ModelFamily:
+        """The model family itself (:func:`flowmaps_jax.model.families.model_family`)."""
+        return model_family(self.family_name)
+
+    def __post_init__(self):
+        check_instance("flowsim", self.flowsim, FlowSimConfig)
+        check_instance("model", self.model, ModelConfig)
+        # a time embedding for each of its timesteps, descriptor ids for all its descriptors
+        if self.model.tau_max != self.flowsim.num_timesteps:
+            raise ValueError(f"model.tau_max must be flowsim.num_timesteps = "
+                             f"{self.flowsim.num_timesteps}; got {self.model.tau_max}")
+        check_int("model.num_descriptors", self.model.num_descriptors,
+                  self.flowsim.num_descriptors)
+
+    def abstract_params(self):
+        """Structure, shapes and dtypes of the params this model initialises."""
+        return jax.eval_shape(lambda key: self.family.init(key, self.model), jax.random.key(0))
+
+
+def read_spec(config: dict) -> ModelSpec:
+    """The :class:`ModelSpec` of a stored 2-D run config (its training fields not read)."""
+    family_name = config.get("model_kind", DEFAULT_FAMILY)
+    model_family(family_name)  # ValueError listing the families
+    model = ModelConfig.from_dict(config["model"]) if "model" in config else ModelConfig()
+    flowsim = FlowSimConfig.from_dict(config["flowsim"]) if "flowsim" in config \
+        else FlowSimConfig()
+    return ModelSpec(family_name=family_name, model=model, flowsim=flowsim)
+
+
+def _check_model(predictor) -> None:
+    model_family(predictor.family_name)  # ValueError listing the families
+    check_instance("model", predictor.model, ModelConfig)
+    check_instance("flowsim", predictor.flowsim, FlowSimConfig)
+    if predictor.homes is not None:
+        raise ValueError(f"homes must be None for a {predictor.family_name!r} model (it reads "
+                         "2-D FlowSim maps)")
+
+
+def _no_receptacles(predictor, *args, **kwargs):
+    raise ValueError(f"probabilities and as_prior take homes; this is a "
+                     f"{predictor.family_name!r} model of 2-D FlowSim maps: use table_weights "
+                     "or table_probabilities(tokens, queries, ...)")
+
+
+INFERENCE = Inference(
+    read_spec=read_spec, spec_of=lambda p: ModelSpec(p.family_name, p.model, p.flowsim),
+    fields=lambda spec: {"flowsim": spec.flowsim}, check=_check_model,
+    sample=lambda p, *args, **options: p._sample_scenes(*args, **options),
+    probabilities=_no_receptacles, as_prior=_no_receptacles, scenes=True,
+    label=lambda p: p.family.label(p.model))
+"""The Predictor's 2-D methods (scene tokens and queries)."""
+
 WORLD = World(
     name="flowsim", splits=load_splits,
     endless=lambda cfg, data_key, step, mesh=None: endless_scenes(cfg, data_key, step, mesh),
     chunk_steps=endless_chunk_steps, is_endless=lambda cfg: cfg.data == "endless",
     batch_fn=default_batch_fn, val_batches=make_val_batches, objective=objective,
     check_batch=check_train_batch, resources=resource_estimate, host_part=host_train_part,
-    families=tuple(MODEL_FAMILIES))
+    families=tuple(MODEL_FAMILIES), inference=INFERENCE,
+    config="flowmaps_jax.training.config:TrainConfig",
+    presets="flowmaps_jax.training.config:FLOWSIM_PRESETS",
+    evaluate="flowmaps_jax.evaluation.cli:evaluate_flowsim",
+    search="flowmaps_jax.search.cli:search_flowsim",
+    options={"evaluate": ("baseline", "samples", "kl_draws", "num_steps", "logp_steps",
+                          "likelihood_steps", "likelihood_draws", "method", "chunk_envs",
+                          "scenes", "devices", "world", "history"),
+             "search": ("baseline", "times_per_env", "horizons", "world", "history", "samples",
+                        "table_method", "policies", "budget", "p_miss", "start", "chunk_rows",
+                        "devices")})
 """The 2-D FlowSim world."""

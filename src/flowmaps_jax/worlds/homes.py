@@ -24,9 +24,17 @@ import jax.numpy as jnp
 
 from flowmaps_jax.flowsim.homes.queries import DEFAULT_HORIZONS, HomesQueries
 from flowmaps_jax.flowsim.homes.rollout import generate_homes
-from flowmaps_jax.model.homes_family import FAMILY_NAME, HISTORY_KEY, homes_loss, init_params
+from flowmaps_jax.model import homes_inference
+from flowmaps_jax.model.homes_family import (
+    FAMILY_NAME,
+    HISTORY_KEY,
+    HomesSpec,
+    homes_loss,
+    homes_spec,
+    init_params,
+)
 from flowmaps_jax.model.homes_inputs import HomesBatch, shared_tau_batch
-from flowmaps_jax.worlds.world import World, chunk_key
+from flowmaps_jax.worlds.world import Inference, World, chunk_key
 
 VAL_SEED = 0x40E5_0001
 """The fixed seed of the validation homes (distinct from every training key and from the
@@ -152,10 +160,23 @@ def host_part(cfg) -> None:
     return None
 
 
+INFERENCE = Inference(
+    read_spec=homes_spec, spec_of=lambda p: HomesSpec(p.family_name, p.model, p.homes),
+    fields=lambda spec: {"homes": spec.homes}, check=homes_inference.check_model,
+    sample=homes_inference.sample, probabilities=homes_inference.probabilities,
+    as_prior=homes_inference.as_prior, scenes=False, label=lambda p: "FlowMaps")
+"""The Predictor on homes (:mod:`flowmaps_jax.model.homes_inference`)."""
+
 WORLD = World(
     name="homes", splits=splits, endless=endless_homes,
     chunk_steps=lambda cfg: cfg.chunk_steps, is_endless=lambda cfg: True,
     batch_fn=lambda cfg: lambda key, homes: draw_batch(key, homes, cfg),
     val_batches=validation_batches, objective=objective, check_batch=check_batch,
-    resources=resource_estimate, host_part=host_part, families=(FAMILY_NAME,))
+    resources=resource_estimate, host_part=host_part, families=(FAMILY_NAME,),
+    inference=INFERENCE, config="flowmaps_jax.training.config:HomesTrainConfig",
+    presets="flowmaps_jax.training.config:HOMES_PRESETS",
+    evaluate="flowmaps_jax.evaluation.receptacle_protocol:evaluate",
+    search="flowmaps_jax.evaluation.receptacle_protocol:search",
+    options={"evaluate": ("samples", "queries", "regime", "horizons", "history"),
+             "search": ("samples", "queries", "regime", "horizons", "history", "budget")})
 """The FlowSim homes world."""

@@ -361,40 +361,35 @@ def describe_split(recorded, split: dict, time_fraction: float) -> str:
     return "\n".join(lines)
 
 
-def part_of(recorded, config: HomesConfig, cfg_split: tuple, part: str) -> RecordedHomes:
-    """The part ``part`` of the split ``cfg_split`` = (val_fraction, test_fraction,
-    time_fraction, seed): its environments as homes, their target hours set (test: the held-out
-    environments whole, and the held-out hours of the training ones; with no validation
-    environment, the first half of those hours validates, the second tests)."""
+def split(recorded, cfg_split: tuple) -> dict:
+    """The split ``cfg_split`` = (val_fraction, test_fraction, time_fraction, seed) of
+    ``recorded``, the one split of train, evaluate and search: ``"environments"``
+    (:func:`split_environments`), and for each part of :data:`SPLITS` ``(index, start, stop)``:
+    its environments in the homes' order and their target hours (None: all). Test: the held-out
+    environments whole, then the held-out hours of the training ones; with no validation
+    environment, the first half of those hours validates, the second tests."""
     val_fraction, test_fraction, time_fraction, seed = cfg_split
-    split = split_environments(recorded.names(), val_fraction, test_fraction, seed)
-    train = split["train"]
+    envs = split_environments(recorded.names(), val_fraction, test_fraction, seed)
+    train = envs["train"]
     cut = time_cut(recorded, train, time_fraction)
-    index = part_index(recorded, cfg_split, part)
-    if part == "train":
-        return recorded_homes(recorded, config, index, stop=cut)
-    mid = cut if split["val"] else time_cut(recorded, train, time_fraction / 2)
-    if part == "test" and time_fraction > 0:
-        start = np.concatenate([np.zeros(len(split["test"]), np.int32), mid])
-        return recorded_homes(recorded, config, index, start=start)
-    if part == "val" and time_fraction > 0 and not split["val"]:  # validation by time
-        return recorded_homes(recorded, config, index, start=cut, stop=mid)
+    parts = {"environments": envs, "train": (train, None, cut),
+             "val": (envs["val"], None, None), "test": (envs["test"], None, None)}
+    if time_fraction > 0:
+        mid = cut if envs["val"] else time_cut(recorded, train, time_fraction / 2)
+        parts["test"] = ((*envs["test"], *train),
+                         np.concatenate([np.zeros(len(envs["test"]), np.int32), mid]), None)
+        if not envs["val"]:  # validation by time
+            parts["val"] = (train, cut, mid)
+    return parts
+
+
+def part_of(recorded, config: HomesConfig, parts: dict, part: str) -> RecordedHomes:
+    """The part ``part`` of :func:`split`'s ``parts``: its environments as homes of
+    ``config``, their target hours set."""
+    index, start, stop = parts[part]
     if not index:
         raise ValueError(f"the split has no {part} environment (val_fraction / test_fraction)")
-    return recorded_homes(recorded, config, index)
-
-
-def part_index(recorded, cfg_split: tuple, part: str) -> tuple[int, ...]:
-    """The environments (indices into ``recorded``) of :func:`part_of`'s homes, in its order:
-    the part's environments, and for ``"test"`` with a time cut the training ones after
-    them (for ``"val"`` by time, the training ones alone)."""
-    val_fraction, test_fraction, time_fraction, seed = cfg_split
-    split = split_environments(recorded.names(), val_fraction, test_fraction, seed)
-    if part == "test" and time_fraction > 0:
-        return (*split["test"], *split["train"])
-    if part == "val" and time_fraction > 0 and not split["val"]:
-        return split["train"]
-    return split[part]
+    return recorded_homes(recorded, config, index, start=start, stop=stop)
 
 
 # --------------------------------------------------------------------------------------------
@@ -482,18 +477,37 @@ def draw_batch(key, data: RecordedHomes, cfg, index=None):
     return shared_tau_batch(data.homes, queries, cfg.homes, cfg.model.history, data.observed)
 
 
-def _split_of(cfg) -> tuple:
-    return (cfg.val_fraction, cfg.test_fraction, cfg.time_fraction, cfg.split_seed)
+def split_of(cfg) -> tuple:
+    """The split fields of a recorded run config ``cfg`` (a dict or a config), :func:`split`'s
+    ``cfg_split``."""
+    get = cfg.get if isinstance(cfg, dict) else lambda k, d: getattr(cfg, k)
+    return (get("val_fraction", 0.0), get("test_fraction", 0.0), get("time_fraction", 0.0),
+            get("split_seed", 0))
 
 
-def load_data(cfg, log: Callable[[str], None] = print):
-    """``cfg.data`` read (ValueError on a missing or bad dataset; callers name the option)."""
-    if not cfg.data:
+_LOADED: dict = {}
+
+
+def load_data(path) -> tuple:
+    """(the dataset in the folder ``path``, its :func:`content_digest`): read and digested
+    once per process while its files stay the same (their names, sizes and times); ValueError
+    on a missing or bad dataset (callers name the option)."""
+    if not path:
         raise ValueError("a recorded run needs a dataset (--data PATH)")
     try:
-        return load_recorded(cfg.data)
+        stamp = (path, sorted((str(f), s.st_ino, s.st_size, s.st_mtime_ns) for f in
+                              [pathlib.Path(path), *pathlib.Path(path).rglob("*")]
+                              for s in [f.stat()]))
+    except OSError:
+        stamp = None  # load_recorded says what is wrong
+    try:
+        if stamp is None or _LOADED.get("stamp") != stamp:
+            recorded = load_recorded(path)
+            _LOADED.clear()  # at most one dataset in memory
+            _LOADED.update(stamp=stamp, data=(recorded, content_digest(recorded)))
     except OSError as err:
-        raise ValueError(f"cannot read {cfg.data}: {err.strerror or err}") from None
+        raise ValueError(f"cannot read {path}: {err.strerror or err}") from None
+    return _LOADED["data"]
 
 
 def splits(cfg, log: Callable[[str], None] = print, mesh=None):
@@ -501,25 +515,24 @@ def splits(cfg, log: Callable[[str], None] = print, mesh=None):
     ``cfg`` says (printed)."""
     start = time.perf_counter()
     with prefix_errors("data: "):
-        recorded = load_data(cfg)
-        if cfg.data_digest and content_digest(recorded) != cfg.data_digest:
+        recorded, digest = load_data(cfg.data)
+        if cfg.data_digest and digest != cfg.data_digest:
             raise ValueError(f"{cfg.data} changed since the run began (its contents no longer "
                              f"match the digest in config.json, data_digest); train a new run "
                              f"on the new data")
-        split = split_environments(recorded.names(), cfg.val_fraction, cfg.test_fraction,
-                                   cfg.split_seed)
+        parts = split(recorded, split_of(cfg))
         log(f"Recorded data {cfg.data}: {len(recorded.environments)} environments, split by "
             f"environment (split_seed={cfg.split_seed}):\n"
-            + describe_split(recorded, split, cfg.time_fraction))
-        train = part_of(recorded, cfg.homes, _split_of(cfg), "train")
+            + describe_split(recorded, parts["environments"], cfg.time_fraction))
+        train = part_of(recorded, cfg.homes, parts, "train")
         if not bool(target_hours(train).any()):
             raise ValueError(f"the training environments of {cfg.data} hold no observation "
                              "to train on")
         names = recorded.names()
-        check_drawable(train, [names[i] for i in split["train"]], cfg, "training")
-        val_part = "val" if split["val"] or cfg.time_fraction > 0 else "train"
-        val = part_of(recorded, cfg.homes, _split_of(cfg), val_part)
-        check_drawable(val, [names[i] for i in part_index(recorded, _split_of(cfg), val_part)],
+        check_drawable(train, [names[i] for i in parts["train"][0]], cfg, "training")
+        val_part = "val" if parts["val"][0] else "train"
+        val = part_of(recorded, cfg.homes, parts, val_part)
+        check_drawable(val, [names[i] for i in parts[val_part][0]],
                        cfg, "validation" if val_part == "val" else "training")
     log(f"  data ready in {time.perf_counter() - start:.1f} s")
     return train, val
@@ -553,5 +566,11 @@ WORLD = World(
     batch_fn=lambda cfg: lambda key, data: draw_batch(key, data, cfg),
     val_batches=validation_batches, objective=homes_world.objective,
     check_batch=homes_world.check_batch, resources=resource_estimate,
-    host_part=homes_world.host_part, families=(FAMILY_NAME,), reads_files=True)
+    host_part=homes_world.host_part, families=(FAMILY_NAME,), reads_files=True,
+    inference=homes_world.INFERENCE, config="flowmaps_jax.training.config:RecordedTrainConfig",
+    presets="flowmaps_jax.training.config:RECORDED_PRESETS",
+    evaluate="flowmaps_jax.evaluation.realised:evaluate",
+    search="flowmaps_jax.evaluation.realised:search",
+    options={"evaluate": ("data", "queries", "budget"),
+             "search": ("data", "queries", "budget")})
 """The recorded world."""

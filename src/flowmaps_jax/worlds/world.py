@@ -3,12 +3,46 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+
+class Inference(NamedTuple):
+    """How the :class:`~flowmaps_jax.predictor.Predictor` runs a world's models.
+
+    read_spec(stored config dict) -> spec: ``family_name``, ``model``, ``abstract_params()``
+        and the world's config (ValueError naming what is wrong).
+    spec_of(predictor) -> its spec; fields(spec) -> the Predictor's world fields of a spec.
+    check(predictor): its fields (ValueError naming the field).
+    sample(predictor, inputs, queries, num_samples, key, num_steps, **options),
+    probabilities(predictor, homes, queries, config, observed), as_prior(predictor, config,
+        observed): the verbs in the world's inputs.
+    scenes: whether the model reads 2-D scene tokens; label(predictor): its row in reports.
+    """
+
+    read_spec: Callable
+    spec_of: Callable
+    fields: Callable
+    check: Callable
+    sample: Callable
+    probabilities: Callable
+    as_prior: Callable
+    scenes: bool
+    label: Callable
+
+
+def resolve(hook):
+    """A hook of a layer above the worlds, named ``"module:attribute"`` (imported when first
+    used, so that a world sits below the layers that use it), or the hook itself."""
+    if not isinstance(hook, str):
+        return hook
+    module, _, name = hook.partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,7 +61,13 @@ class World:
     check_batch(batch) -> None: ValueError naming the array of a batch that does not fit.
     resources(cfg, devices) -> ``[(what, bytes, FLOPs), ...]``: what a run needs, part by part.
     host_part(cfg) -> this host's share of the training data on a multi-host job (None on one).
-    families: the model families that train on this world.
+    families: the model families that train on this world (the first world listing a family
+        is the world of its models).
+    inference: how the Predictor runs its models (:class:`Inference`).
+    configs: its run config class (``from_dict``, ``to_dict``, ``world``) and presets
+        ``{name: () -> cfg}``; evaluate, search: its commands ``(parser, args, argv) -> exit
+        code``; options: ``{command: the options it reads beyond the common ones}``; each a
+        ``"module:attribute"`` of the layer above (:func:`resolve`) or the object itself.
     reads_files: whether the world's data is a dataset on disk (``--data PATH``) rather than
         generated.
     """
@@ -44,7 +84,17 @@ class World:
     resources: Callable[[Any, int], list]
     host_part: Callable[[Any], slice | None]
     families: tuple[str, ...]
+    inference: Inference
+    config: Any
+    presets: Any
+    evaluate: Any
+    search: Any
+    options: dict
     reads_files: bool = False
+
+    def hook(self, name: str):
+        """The hook ``name`` (``"config"``, ``"presets"``, ``"evaluate"``, ``"search"``)."""
+        return resolve(getattr(self, name))
 
 
 def chunk_key(data_key, salt: int, chunk: int) -> jax.Array:
