@@ -72,7 +72,8 @@ def test_the_model_reads_only_training_pairs_and_known_classes():
     texts = lambda *names: [types.SimpleNamespace(text=n) for n in names]  # noqa: E731
     config = types.SimpleNamespace(object_classes=texts("mug", "book"),
                                    receptacle_classes=texts("table", "shelf"),
-                                   room_types=texts("kitchen", "living_room"))
+                                   room_types=texts("kitchen", "living_room"),
+                                   max_receptacles=2, num_rooms=2, num_hours=3)
     envs, removed = sgm.readable(recorded, config, {("mug", "shelf")})
     assert removed == 1  # the cup: a class the training log never showed
     (env,) = envs
@@ -81,6 +82,8 @@ def test_the_model_reads_only_training_pairs_and_known_classes():
     # the mug only where training saw mugs; the book (no pair) anywhere; not import-log's pairs
     assert env.allowed[0].tolist() == [r == shelf for r in range(2)]
     assert env.allowed[1].all()
+    small = types.SimpleNamespace(**{**vars(config), "max_receptacles": 1})
+    assert sgm.readable(recorded, small, set()) == ([], 3)  # larger than the model's homes
 
 
 def _written(rows):
@@ -125,3 +128,13 @@ def test_the_driver_draws_uniformly_from_all_zero_weights():
         random.choices(["a", "b"], weights=[0.0, 0.0])  # what SGM hits on Python >= 3.9
     assert {pick({"a": 0.0, "b": 0.0}) for _ in range(50)} == {"a", "b"}
     assert {pick({"a": 0.0, "b": 2.0}) for _ in range(50)} == {"b"}
+
+
+def test_a_scene_larger_than_the_default_token_and_class_budgets_gets_a_config():
+    from flowmaps_jax.worlds.recorded import homes_config_of
+
+    rows = [r for k in range(60) for r in _look(k, f"shelf{k}|{k}", f"room{k % 3}",
+                                                (f"thing{k}|{100 + k}",) if k < 15 else ())]
+    config = homes_config_of(import_log(_written(rows), warn=lambda line: None))
+    assert config.max_receptacles >= 60 and config.max_tokens > 48  # the defaults: 48, 128
+    assert config.max_vocabulary == config.vocabulary_size > 60

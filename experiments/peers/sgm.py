@@ -123,18 +123,21 @@ def class_pairs(recorded) -> set:
 
 def readable(recorded, config, pairs: set) -> tuple[list, int]:
     """``recorded``'s environments as the model can read them without the future: objects of
-    classes ``config`` lacks removed (environments with such receptacle or room classes, or no
-    object left, dropped), ``allowed`` the training log's class ``pairs`` (every receptacle for
-    an object with none; import-log's own comes from this log's sightings, future ones
-    included); and the number of objects removed."""
+    classes ``config`` lacks removed (environments with such receptacle or room classes, larger
+    than ``config``'s homes, or with no object left, dropped), ``allowed`` the training log's
+    class ``pairs`` (every receptacle for an object with none; import-log's own comes from this
+    log's sightings, future ones included); and the number of objects removed."""
     voc = {f: {c.text for c in getattr(config, f)} for f in
            ("object_classes", "receptacle_classes", "room_types")}
     envs, removed = [], 0
     for env in recorded.environments:
         keep = np.asarray([c in voc["object_classes"] for c in env.object_classes])
         removed += int((~keep).sum())
+        rooms = len(env.room_classes) + bool(np.any(np.asarray(env.receptacle_room) < 0))
         if not keep.any() or not set(env.receptacle_classes) <= voc["receptacle_classes"] \
-                or not set(env.room_classes) <= voc["room_types"]:
+                or not set(env.room_classes) <= voc["room_types"] \
+                or env.num_receptacles > config.max_receptacles or rooms > config.num_rooms \
+                or int(env.hours[-1]) >= config.num_hours:
             removed += int(keep.sum())
             continue
         pick = functools.partial(_keep, keep)

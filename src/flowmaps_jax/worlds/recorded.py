@@ -35,7 +35,6 @@ long ago it was last seen).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import pathlib
 import time
@@ -151,9 +150,10 @@ def homes_config_of(recorded) -> HomesConfig:
         rooms=(NO_ROOM,) * rooms, grid_rows=1, home_width=(width, width),
         home_depth=(2.0, 2.0), split_jitter=0.0, receptacles_per_room=(1, per_room),
         objects_per_home=(1, m_max), num_hours=max(hours, 2), regime="mixed",
-        room_types=room_types, receptacle_classes=receptacles, object_classes=tuple(objects))
-    return dataclasses.replace(config, max_tokens=config.num_rooms + config.max_receptacles
-                               + config.max_objects, max_vocabulary=config.vocabulary_size)
+        room_types=room_types, receptacle_classes=receptacles, object_classes=tuple(objects),
+        max_tokens=rooms * (1 + per_room) + m_max,
+        max_vocabulary=len(room_types) + len(receptacles) + len(objects))
+    return config
 
 
 def _ids(config: HomesConfig, field: str) -> dict[str, int]:
