@@ -231,9 +231,10 @@ def _validate(args) -> str:
         *(f"  {kind[:-1]} classes: {some(voc[kind]) or 'none'}"
           for kind in ("objects", "receptacles", "rooms")),
         f"  rooms per environment: {span([len(e.room_classes) for e in envs])}",
-        f"  geometry: receptacle boxes in all; rooms in {share('room_boxes')}, doors in "
-        f"{share('door_rooms')}, stored walking distances in {share('distance')} (else "
-        f"derived), object boxes in {share('object_corners')}",
+        f"  geometry: receptacle boxes in {share('receptacle_corners')}; rooms in "
+        f"{share('room_boxes')}, doors in {share('door_rooms')}, stored walking distances in "
+        f"{share('distance')} (else derived), object boxes in {share('object_corners')}; "
+        f"negative evidence (not_at) in {share('not_at')}",
         f"  the default recipe's split (val_fraction={cfg.val_fraction}, test_fraction="
         f"{cfg.test_fraction}, split_seed={cfg.split_seed}; docs/protocol.md):",
         describe_split(recorded, split, cfg.time_fraction).replace("  ", "    ")])

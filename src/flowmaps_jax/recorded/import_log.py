@@ -119,8 +119,10 @@ def parse_times(file: str, values: list) -> tuple[np.ndarray, str]:
 def check_clock(file: str, hours: np.ndarray, env: np.ndarray, numeric: bool,
                 warn: Callable[[str], None]) -> None:
     """Refuse a clock beyond the format's hours; warn (one line) of a suspicious one."""
-    spans = [(hours[env == e].min(), hours[env == e].max()) for e in np.unique(env)]
-    gaps = np.concatenate([np.diff(np.unique(hours[env == e])) for e in np.unique(env)])
+    order = np.lexsort((hours, env))
+    h, same = hours[order], env[order][1:] == env[order][:-1]
+    starts, ends = h[np.r_[True, ~same]], h[np.r_[~same, True]]
+    gaps = np.diff(h)[same & (np.diff(h) > 0)]
     gap = float(np.median(gaps)) if gaps.size else 1.0
     fix = ("give hours (minutes / 60, seconds / 3600) or ISO 8601 times" if numeric else
            "check the dates")
@@ -132,10 +134,9 @@ def check_clock(file: str, hours: np.ndarray, env: np.ndarray, numeric: bool,
     if numeric and gap >= 2:
         notes.append(f"timestamps are mostly {gap:g} apart, not 1 hour: if they count minutes "
                      f"or seconds, {fix}")
-    if max(b - a for a, b in spans) > YEAR:
-        notes.append(f"the timestamps span {max(b - a for a, b in spans) / 8766:.1f} years: "
-                     f"{fix}")
-    if numeric and all(a == 1 for a, _ in spans):
+    if np.max(ends - starts) > YEAR:
+        notes.append(f"the timestamps span {np.max(ends - starts) / 8766:.1f} years: {fix}")
+    if numeric and np.all(starts == 1):
         notes.append("hour 0 never occurs and every environment starts at hour 1: if the hours "
                      "count from 1, subtract 1 (hour 0 is Monday 00:00)")
     if notes:
@@ -175,11 +176,14 @@ def import_log(table, layout=None, progress: Progress = None,
     get = {c: cols.get(c, [None] * n) for c in REQUIRED + OPTIONAL}
     hours, origin = parse_times(file, get["timestamp"])
     names = [_text(file, i, "environment", v) for i, v in enumerate(get["environment"], 1)]
-    for name in dict.fromkeys(names):
+    first: dict[str, int] = {}  # each name's first row
+    for row, name in enumerate(names, 1):
+        first.setdefault(name, row)
+    for name, row in first.items():
         try:
             check_environment_name(name, "environment")
         except ValueError as err:
-            raise ValueError(f"{file}: row {names.index(name) + 1}: {err}") from None
+            raise ValueError(f"{file}: row {row}: {err}") from None
     codes = np.unique(np.array(names), return_inverse=True)[1]
     check_clock(file, hours, codes, origin.startswith("the table"), warn)
     envs: dict[str, _Env] = {}
@@ -192,8 +196,9 @@ def import_log(table, layout=None, progress: Progress = None,
             raise ValueError(f"{file}: row {row}: found: {get['found'][i]!r} is not true/false "
                              f"or 1/0"[:300])
         if not (rec or room) or (found and not (obj and rec)):
-            raise ValueError(f"{file}: row {row}: receptacle: is empty; a sighting names the "
-                             f"object and its receptacle, a not-found row a receptacle or a room")
+            raise ValueError(f"{file}: row {row}: {'receptacle' if obj else 'object'}: is empty; "
+                             f"a sighting names the object and its receptacle, a not-found row "
+                             f"a receptacle or a room")
         e = envs.setdefault(names[i], _Env(file))
         for column, key in (("object_class", obj), ("object_text", obj), ("receptacle_class", rec),
                             ("receptacle_text", rec), ("room_class", room)):
