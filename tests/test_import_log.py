@@ -246,6 +246,10 @@ def test_a_layout_gives_geometry_and_must_name_every_receptacle(tmp_path):
     assert env.walking_distance()[0, 1] == pytest.approx(2 * np.hypot(1.5, 0.5))
     del layout["h"]["receptacles"]["b"]
     (tmp_path / "layout.json").write_text(json.dumps(layout))
-    with pytest.raises(ValueError, match=r"layout.json: h: receptacles: misses 'b', a receptacle "
-                                         r"of the table"):
+    with pytest.raises(ValueError, match=r"layout.json: h: receptacles: misses 'b' \(give every "
+                                         r"receptacle a box, or none\)"):
+        import_log(table, tmp_path / "layout.json")
+    layout["h"] = {"receptacles": {"a": [0, 0, 0, 1, 1, 1], "b": [3, 0, 0, 1, 1, 1]}}
+    (tmp_path / "layout.json").write_text(json.dumps(layout))
+    with pytest.raises(ValueError, match=r"layout.json: h: rooms: misses 'k' \(give every room"):
         import_log(table, tmp_path / "layout.json")

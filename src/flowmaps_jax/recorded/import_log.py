@@ -264,6 +264,13 @@ def _numbers(where: str, value, sizes: tuple, what: str) -> np.ndarray:
     return array
 
 
+def _corners(where: str, value) -> np.ndarray:
+    """float32 (8, 3): 8 corners as given, or those of an axis-aligned box (cx, cy, cz, w, d, h)."""
+    a = _numbers(where, value, ((8, 3), (6,)), "8 corners [x, y, z] or a box [cx, cy, cz, w, d, h]")
+    signs = np.array(list(itertools.product((-0.5, 0.5), repeat=3)))
+    return (a if a.shape == (8, 3) else a[:3] + signs * a[3:]).astype(np.float32)
+
+
 def _layout(file: str, envs: dict[str, _Env]) -> dict:
     """Per environment the layout file names: (receptacle corners (R, 8, 3) or None, room boxes
     (K, 4) or None, (door rooms (D, 2), door positions (D, 2)) or None); rooms only the layout
@@ -271,7 +278,7 @@ def _layout(file: str, envs: dict[str, _Env]) -> dict:
     data = read_json("--layout", file)
     if not isinstance(data, dict):
         raise ValueError(f"{file}: (top level): must be an object of environment -> layout")
-    out, signs = {}, np.array(list(itertools.product((-0.5, 0.5), repeat=3)))
+    out = {}
     for name, spec in data.items():
         where = f"{file}: {name}"
         spec = spec if isinstance(spec, dict) else {"": spec}
@@ -284,16 +291,14 @@ def _layout(file: str, envs: dict[str, _Env]) -> dict:
         for key in rooms:
             e.index("k", key)
         for kind, ids, given in (("receptacles", e.ids["r"], recs), ("rooms", e.ids["k"], rooms)):
-            extra, missing = (sorted(set(a) - set(b)) for a, b in ((given, ids),
-                                                                   (ids, given or ids)))
+            extra = sorted(set(given) - set(ids))
+            missing = sorted(set(ids) - set(given)) if given or recs else []  # boxes need rooms
             if extra or missing:
                 raise ValueError(f"{where}: {kind}: " + (
                     f"names {extra[0]!r}, not a {kind[:-1]} of the table" if extra else
-                    f"misses {missing[0]!r}, a {kind[:-1]} of the table (give all or none)"))
-        corners = None if not recs else np.stack([(lambda a: a if a.shape == (8, 3) else a[:3] + (
-            signs * a[3:]))(_numbers(f"{where}: receptacles.{r}", recs[r], ((8, 3), (6,)),
-                                     "8 corners [x, y, z] or a box [cx, cy, cz, w, d, h]"))
-            for r in e.ids["r"]]).astype(np.float32)
+                    f"misses {missing[0]!r} (give every {kind[:-1]} a box, or none)"))
+        corners = None if not recs else np.stack([
+            _corners(f"{where}: receptacles.{r}", recs[r]) for r in e.ids["r"]])
         boxes = None if not rooms else np.stack([_numbers(
             f"{where}: rooms.{k}", rooms[k], ((4,),), "a box [x0, y0, x1, y1]")
             for k in e.ids["k"]]).astype(np.float32)
@@ -301,7 +306,7 @@ def _layout(file: str, envs: dict[str, _Env]) -> dict:
         for i, door in enumerate(doors):
             ok = isinstance(door, dict) and set(door) - {"position"} == {"rooms"} and isinstance(
                 door["rooms"], list) and len(door["rooms"]) == 2
-            if not ok or any(k not in e.ids["k"] for k in door["rooms"]):
+            if not ok or any(not isinstance(k, str) or k not in e.ids["k"] for k in door["rooms"]):
                 raise ValueError(f"{where}: doors[{i}]: must be {{\"rooms\": [two room ids], "
                                  f"\"position\": [x, y] (optional)}}; got {door!r}"[:300])
             pairs.append(([e.ids["k"][k] for k in door["rooms"]], None if "position" not in door
