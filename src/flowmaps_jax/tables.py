@@ -61,8 +61,8 @@ def assign_radius(slot_boxes: jnp.ndarray) -> jnp.ndarray:
 
 @jax.jit
 def assign_slots(samples, slot_boxes, slot_mask, radius=ASSIGN_RADIUS):
-    """(..., N) int slot index of each sample, K for "off" (the rule of the module doc); no
-    checks (samples and slot_boxes float32, slot_mask bool)."""
+    """(..., N) int slot index of each sample: the slot with the nearest object centre, K ("off")
+    beyond its :func:`assign_radius`; no checks (samples and slot_boxes float32, slot_mask bool)."""
     centre = lambda b: b[..., :2] + 0.5 * b[..., 2:]  # noqa: E731
     diff = centre(samples)[..., :, None, :] - centre(slot_boxes)[..., None, :, :]  # (..., N, K, 2)
     limit = jnp.maximum(radius, assign_radius(slot_boxes))  # (..., K)
@@ -82,7 +82,7 @@ def histogram(assignment, num_slots):
 
 def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jnp.ndarray,
                     radius: float = ASSIGN_RADIUS) -> jnp.ndarray:
-    """p̂ of samples under the protocol's assignment (module doc), else off.
+    """p̂ of samples under the protocol's assignment (:func:`assign_slots`), else off.
 
     samples: (..., N, 4). slot_boxes: (..., K, 4), the same leading dims. slot_mask: (..., K)
     bool (or 0/1). radius: the least radius, > 0.
