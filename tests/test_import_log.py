@@ -5,6 +5,7 @@ one-line refusals (docs/data.md, "Importing a log of sightings")."""
 from __future__ import annotations
 
 import csv
+import datetime
 import json
 
 import numpy as np
@@ -58,8 +59,9 @@ def _expected_rows():
 
 @pytest.mark.parametrize("kind", ["csv", "parquet"])
 def test_a_table_round_trips_through_the_command(tmp_path, kind, capsys):
-    rows = [(*r[:7], {"true": True, "1": True, "": None}.get(r[7], False)) if kind == "parquet"
-            else r for r in ROWS]
+    parquet = [(r[0], datetime.datetime.fromisoformat(r[1]), *r[2:7],
+                {"true": 1.0, "1": 1.0, "": float("nan")}.get(r[7], 0.0)) for r in ROWS]
+    rows = parquet if kind == "parquet" else ROWS  # parquet: native times, found 0/1/NaN
     table = (_csv if kind == "csv" else _parquet)(tmp_path / f"log.{kind}", rows)
     assert data_main(["import-log", str(table), "--out", str(tmp_path / "d"),
                       "--no-progress"]) == 0

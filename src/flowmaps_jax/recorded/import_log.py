@@ -190,8 +190,10 @@ def import_log(table, layout=None, progress: Progress = None,
     for i in progress(range(n)) if progress else range(n):
         row = i + 1
         obj, rec, room = (_text(file, row, c, get[c][i]) for c in ("object", "receptacle", "room"))
-        found = get["found"][i]
-        found = FOUND.get(str(found).strip().lower() if found is not None else "")
+        found = get["found"][i]  # text, a boolean, or a number (0/1; NaN: empty) from parquet
+        found = "" if found is None or found != found else str(
+            int(found) if isinstance(found, float) and found in (0, 1) else found)
+        found = FOUND.get(found.strip().lower())
         if found is None:
             raise ValueError(f"{file}: row {row}: found: {get['found'][i]!r} is not true/false "
                              f"or 1/0"[:300])
