@@ -460,20 +460,8 @@ def write_figure(results: dict, out: pathlib.Path, part: str) -> str:
 # --------------------------------------------------------------------------- command line
 
 
-def evaluate(parser, args, argv, stored) -> int:
-    """``python -m flowmaps_jax.evaluate`` on recorded data: the posterior scores."""
-    return run_command(parser, args, "posterior", "python -m flowmaps_jax.evaluate", argv,
-                       stored)
-
-
-def search(parser, args, argv, stored) -> int:
-    """``python -m flowmaps_jax.search`` on recorded data: navigation."""
-    return run_command(parser, args, "navigation", "python -m flowmaps_jax.search", argv,
-                       stored)
-
-
-def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part: str,
-                prog: str, argv: Sequence[str] | None, stored: dict) -> int:
+def run_command(part: str, prog: str, parser: argparse.ArgumentParser,
+                args: argparse.Namespace, argv: Sequence[str] | None, stored: dict) -> int:
     """``evaluate`` (``part`` "posterior") or ``search`` ("navigation") of ``--checkpoint``
     (``stored``: its run config, {} for a pretrained model) on ``--data`` (default: the data
     the run trained on). Exit 0, 2 on bad input (one line), 74 on a failed write."""
@@ -544,3 +532,8 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
           + "".join(f", {out / f}" for f in results["figures"])
           + f" ({results['seconds']:.0f} s)")
     return 0
+
+
+evaluate = functools.partial(run_command, "posterior", "python -m flowmaps_jax.evaluate")
+search = functools.partial(run_command, "navigation", "python -m flowmaps_jax.search")
+"""The recorded world's commands (``hook(parser, args, argv, stored)``)."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import pathlib
 import shlex
 import sys
@@ -284,18 +285,8 @@ def _one_count(samples) -> int:
     return counts[0]
 
 
-def evaluate(parser, args, argv, stored) -> int:
-    """``python -m flowmaps_jax.evaluate`` of a homes model: the posterior part."""
-    return run_command(parser, args, "posterior", "python -m flowmaps_jax.evaluate", argv)
-
-
-def search(parser, args, argv, stored) -> int:
-    """``python -m flowmaps_jax.search`` of a homes model: the navigation part."""
-    return run_command(parser, args, "navigation", "python -m flowmaps_jax.search", argv)
-
-
-def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part: str,
-                prog: str, argv: Sequence[str] | None) -> int:
+def run_command(part: str, prog: str, parser: argparse.ArgumentParser,
+                args: argparse.Namespace, argv: Sequence[str] | None, stored: dict) -> int:
     """The ``part`` (``"posterior"`` for ``evaluate``, ``"navigation"`` for ``search``) of the
     homes protocol for ``--checkpoint``, from the parsed ``args`` of ``prog``; without ``--out``
     the files go to :data:`DEFAULT_OUT` (a pretrained model needs ``--out``). Returns the exit
@@ -353,5 +344,10 @@ def run_command(parser: argparse.ArgumentParser, args: argparse.Namespace, part:
           + "".join(f", {out / f}" for f in results["figures"])
           + f" ({results['seconds']:.0f} s)")
     return 0
+
+
+evaluate = functools.partial(run_command, "posterior", "python -m flowmaps_jax.evaluate")
+search = functools.partial(run_command, "navigation", "python -m flowmaps_jax.search")
+"""The homes world's commands (``hook(parser, args, argv, stored)``)."""
 
 
