@@ -255,3 +255,22 @@ def test_a_layout_gives_geometry_and_must_name_every_receptacle(tmp_path):
     (tmp_path / "layout.json").write_text(json.dumps(layout))
     with pytest.raises(ValueError, match=r"layout.json: h: rooms: misses 'k' \(give every room"):
         import_log(table, tmp_path / "layout.json")
+
+
+@pytest.mark.parametrize(("layout", "says"), [
+    ({"h": {"receptacles": []}}, "h: must be an environment of the table, with an object"),
+    ({"g": {}}, "g: must be an environment of the table"),
+    ({"h": {"receptacles": {"a": [1, 2, 3]}}}, "h: receptacles.a: must be 8 corners"),
+    ({"h": {"doors": [{"rooms": ["k", "x"]}]}}, "h: doors[0]: must be"),
+    ([1], "(top level): must be an object"),
+    (None, "--layout: '"),
+])
+def test_a_bad_layout_is_one_line_naming_it(tmp_path, capsys, layout, says):
+    table = _csv(tmp_path / "t.csv", [("h", "0", "m", "", "a", "", "", "")])
+    if layout is not None:
+        (tmp_path / "layout.json").write_text(json.dumps(layout))
+    assert data_main(["import-log", str(table), "--layout", str(tmp_path / "layout.json"),
+                      "--out", str(tmp_path / "d"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and says in err and "layout.json" in err, err
+    assert not (tmp_path / "d").exists()

@@ -170,6 +170,8 @@ def import_log(table, layout=None, progress: Progress = None,
     """The recorded world of the table ``table`` (CSV or parquet) and the optional layout JSON;
     ``warn`` gets the one line about a suspicious clock (default: printed to stderr)."""
     file = os.fspath(table)
+    if layout is not None and not os.path.isfile(layout):
+        raise ValueError(f"--layout: {os.fspath(layout)!r} is missing, or not a regular file")
     warn = warn or (lambda line: print(f"warning: {line}", file=sys.stderr))
     cols = read_table(file)
     n = len(cols["environment"])
@@ -284,7 +286,7 @@ def _layout(file: str, envs: dict[str, _Env]) -> dict:
     for name, spec in data.items():
         where = f"{file}: {name}"
         spec = spec if isinstance(spec, dict) else {"": spec}
-        recs, rooms, doors = (spec.get(k) or t() for k, t in KEYS.items())
+        recs, rooms, doors = (spec.get(k, t()) for k, t in KEYS.items())
         if name not in envs or set(spec) - set(KEYS) or not all(
                 isinstance(v, t) for v, t in zip((recs, rooms, doors), KEYS.values(), strict=True)):
             raise ValueError(f"{where}: must be an environment of the table, with an object of "
