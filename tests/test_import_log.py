@@ -222,11 +222,14 @@ def test_iso_times_with_days_between_and_a_good_clock_say_nothing(tmp_path):
     (("h", "1", "m", "book", "r", "", "", ""), "row 2: object_class: 'm' is 'book' here"),
     (("h", "1", "m", "", "r", "", ""), "row 2: (all): has 7 cells; the header has 8"),
     (None, "(header): misses the column 'object'"),
+    ("typo", "(header): 'recepatcle_class' is not a column of the schema"),
 ])
 def test_bad_input_is_one_line_naming_the_file_row_and_column(tmp_path, capsys, row, says):
     first = ("h", "0", "m", "mug", "r", "", "k", "")
-    table = (_csv(tmp_path / "t.csv", [first, row]) if row else
-             _csv(tmp_path / "t.csv", [first[:2] + first[3:]], HEADER[:2] + HEADER[3:]))
+    header = (*HEADER[:5], "recepatcle_class", *HEADER[6:]) if row == "typo" else HEADER
+    table = (_csv(tmp_path / "t.csv", [first, row], header) if isinstance(row, tuple) else
+             _csv(tmp_path / "t.csv", [first[:2] + first[3:]], HEADER[:2] + HEADER[3:]) if not row
+             else _csv(tmp_path / "t.csv", [first], header))
     assert data_main(["import-log", str(table), "--out", str(tmp_path / "d")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{table}: {says}" in err, err

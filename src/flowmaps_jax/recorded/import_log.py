@@ -58,9 +58,12 @@ def read_table(file: str) -> dict[str, list]:
         columns = [list(c) for c in zip(*rows, strict=True)] if rows else [[] for _ in header]
     twice = sorted({h for h in header if header.count(h) > 1})
     missing = [c for c in REQUIRED if c not in header]
-    if twice or missing:
-        raise ValueError(f"{file}: (header): " + (f"names {twice[0]!r} twice" if twice else
-                         f"misses the column {missing[0]!r} (required: {', '.join(REQUIRED)})"))
+    other = [h for h in header if h not in REQUIRED + OPTIONAL and not h.startswith("__index")]
+    if twice or missing or other:
+        raise ValueError(f"{file}: (header): " + (
+            f"names {twice[0]!r} twice" if twice else f"misses the column {missing[0]!r} "
+            f"(required: {', '.join(REQUIRED)})" if missing else f"{other[0]!r} is not a column "
+            f"of the schema (optional: {', '.join(OPTIONAL)}); rename or drop it")[:300])
     if not columns[0]:
         raise ValueError(f"{file}: (all): the table has no rows")
     return {h: [None if v == "" else v for v in c] for h, c in zip(header, columns, strict=True)
