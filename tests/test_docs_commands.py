@@ -51,6 +51,16 @@ The rules (what runs, what is shortened, what is skipped and why):
   (:func:`support.fast_compile`; the programs are the same, compiled faster). Any other block
   (``VAR=value`` prefixes, ``python -c``, other programs) runs in ``bash`` as a script.
 
+* **Each distinct command once.** A command the suite has already run (on this page or an
+  earlier one) is not run again: its output (``--run-dir`` / ``--out``) is a copy of the first
+  run's, kept aside when it ran (:class:`Ran`). Commands are compared after shortening, with their
+  output path left out and every input path that an earlier command made named by that command
+  (``runs/a/checkpoints`` and ``runs/b/checkpoints`` are the same input when ``runs/a`` and
+  ``runs/b`` were made by the same command). Only commands that name their output, and trainings
+  (their default run directory is new each time and nothing names it), are compared; a
+  ``--resume`` or ``--overwrite`` always runs, and so does a command whose output already exists
+  (it must fail or act on it as written).
+
 * **Known broken** blocks (:data:`KNOWN_BROKEN`: a page owner's fix is pending) run and must
   fail; once one passes, the test fails until it is taken off the list.
 
@@ -66,6 +76,7 @@ import os
 import pathlib
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 
@@ -276,15 +287,75 @@ def in_process_commands(block: Block) -> list[list[str]] | None:
     return commands
 
 
+OUTPUT_OPTIONS = ("--run-dir", "--out")
+
+
+@dataclasses.dataclass
+class Ran:
+    """The distinct commands run so far (shared by the pages of one session): key -> (where it
+    ran, a copy of its output or None); made: output path -> the key of the command that made
+    it. ``cache``: where the copies are kept."""
+
+    cache: pathlib.Path
+    done: dict = dataclasses.field(default_factory=dict)
+    made: dict = dataclasses.field(default_factory=dict)
+
+    def key(self, cmd: list[str], workdir: pathlib.Path
+            ) -> tuple[str | None, pathlib.Path | None]:
+        """(the command's key, or None when it always runs; its output path, or None)."""
+        out = next((workdir / cmd[i + 1] for i, token in enumerate(cmd[:-1])
+                    if token in OUTPUT_OPTIONS), None)
+        if "--resume" in cmd or "--overwrite" in cmd or (
+                out is None and _target(cmd) != "flowmaps_jax.train"):
+            return None, out
+        words = []
+        for i, token in enumerate(cmd):
+            path = (workdir / token).resolve() if token and i and token[0] != "-" else None
+            if i and cmd[i - 1] in OUTPUT_OPTIONS:
+                token = "<out>"
+            elif path is not None and path.exists():
+                origin = next((p for p in self.made if path == p or path.is_relative_to(p)), None)
+                token = (f"<{self.made[origin]}>/{path.relative_to(origin)}" if origin
+                         else str(path))
+            words.append(token)
+        return shlex.join(words), out
+
+    def run(self, cmd: list[str], workdir: pathlib.Path, where: str
+            ) -> tuple[int, str, str | None]:
+        """Run ``cmd`` in ``workdir`` unless the same command ran before: (exit code, output,
+        a note when it was not run again)."""
+        key, out = self.key(cmd, workdir)
+        if out is not None:  # what it writes is no longer what made it
+            self.made = {p: k for p, k in self.made.items()
+                         if not (p == out.resolve() or p.is_relative_to(out.resolve()))}
+        if key in self.done and (out is None or not out.exists()):
+            first, copy = self.done[key]
+            if copy is not None:
+                shutil.copytree(copy, out, symlinks=True)
+                self.made[out.resolve()] = key
+            return 0, "", f"{where}: {shlex.join(cmd)}  ->  not run again (as at {first})"
+        code, output = run_python_in_process(cmd[1:], workdir)
+        if code == 0 and key is not None:
+            copy = None
+            if out is not None and out.exists():
+                copy = self.cache / str(len(self.done))
+                shutil.copytree(out, copy, symlinks=True)
+                self.made[out.resolve()] = key
+            self.done[key] = (where, copy)
+        return code, output, None
+
+
 def _known_broken(block: Block) -> str | None:
     return next((why for (page, text), why in KNOWN_BROKEN.items()
                  if page == block.page and text in block.code), None)
 
 
-def run_page(page: str, text: str, workdir: pathlib.Path, namespace: dict | None = None
-             ) -> list[str]:
+def run_page(page: str, text: str, workdir: pathlib.Path, namespace: dict | None = None,
+             ran: Ran | None = None) -> list[str]:
     """Run a page's blocks in order in ``workdir``; returns the notes. AssertionError (with the
-    block, the command and the end of its output) on the first block that fails."""
+    block, the command and the end of its output) on the first block that fails. ``ran``: the
+    commands already run (a fresh record when None)."""
+    ran = Ran(workdir / ".ran") if ran is None else ran
     (workdir / "experiments").symlink_to(REPO / "experiments", target_is_directory=True)
     env = dict(os.environ, MPLBACKEND="Agg", PYTHONUNBUFFERED="1",
                PATH=os.pathsep.join([str(pathlib.Path(sys.executable).parent),
@@ -315,7 +386,8 @@ def run_page(page: str, text: str, workdir: pathlib.Path, namespace: dict | None
             commands = in_process_commands(block)
             if commands is not None:
                 for command in commands:
-                    code, output = run_python_in_process(command[1:], workdir)
+                    code, output, note = ran.run(command, workdir, block.where)
+                    notes += [note] if note else []
                     if code != 0:
                         error = f"exit code {code}\n$ {shlex.join(command)}\n{output[-4000:]}"
                         break
@@ -334,13 +406,19 @@ def run_page(page: str, text: str, workdir: pathlib.Path, namespace: dict | None
     return notes
 
 
+@pytest.fixture(scope="module")
+def ran(tmp_path_factory) -> Ran:
+    """The commands the pages of this module have run (each distinct one runs once)."""
+    return Ran(tmp_path_factory.mktemp("ran"))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("page", PAGES)
-def test_every_command_block_runs_in_order(page, tmp_path):
+def test_every_command_block_runs_in_order(page, tmp_path, ran):
     if page in NOT_RUN:
         pytest.skip(f"{page}: {NOT_RUN[page]}")
     with fast_compile():
-        notes = run_page(page, (REPO / page).read_text(), tmp_path)
+        notes = run_page(page, (REPO / page).read_text(), tmp_path, ran=ran)
     print("\n".join(notes))
 
 
@@ -449,3 +527,30 @@ def test_a_failing_block_fails_its_page(tmp_path):
         run_page("page.md", "```python\nprint(undefined_name)\n```\n", tmp_path / "python")
     skipped = "<!-- docs-test: skip (slow) -->\n```bash\nfalse\n```\n"
     assert run_page("page.md", skipped, tmp_path / "skipped") == ["page.md:2: block not run (slow)"]
+
+
+def test_each_distinct_command_runs_once(tmp_path):
+    """Pages share one record of what ran: a command seen before gets a copy of the first run's
+    output, an input is named by the command that made it, and an existing output is run on."""
+    script, log = tmp_path / "make.py", tmp_path / "log"
+    script.write_text(
+        "import pathlib, sys\n"
+        f"open({str(log)!r}, 'a').write(' '.join(sys.argv[1:]) + '\\n')\n"
+        "out = pathlib.Path(sys.argv[-1])\n"
+        "value = (pathlib.Path(sys.argv[1]) / 'v').read_text() + '+' if len(sys.argv) > 3 "
+        "else '0'\n"
+        "out.mkdir(exist_ok=True)\n"
+        "(out / 'v').write_text(value)\n")
+    first = (f"```bash\npython {script} --out a\npython {script} --out b\n"
+             f"python {script} a --out c\n```\n")
+    second = (f"```bash\npython {script} --out x\npython {script} x --out y\n"
+              f"python {script} --out x\n```\n")
+    ran = Ran(tmp_path / "ran")
+    for name in ("one", "two"):
+        (tmp_path / name).mkdir()
+    notes = run_page("one.md", first, tmp_path / "one", ran=ran)
+    notes += run_page("two.md", second, tmp_path / "two", ran=ran)
+    assert log.read_text().splitlines() == ["--out a", "a --out c", "--out x"]
+    assert [(tmp_path / p / "v").read_text() for p in ("one/b", "one/c", "two/x", "two/y")] == [
+        "0", "0+", "0", "0+"]
+    assert sum("not run again (as at one.md:1)" in note for note in notes) == 3, notes
