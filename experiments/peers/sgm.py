@@ -277,11 +277,13 @@ def run_scenes(args, scenes: str, out: pathlib.Path) -> dict:
         datasets[name] = out / f"{name}_data"
         if not (datasets[name] / "recorded.json").is_file():
             sh([sys.executable, "-m", "flowmaps_jax.data", "import-log", str(path), "--out",
-                str(datasets[name])], log)
+                str(datasets[name]), "--no-progress"], log)
     run_dir = out / "run"
     if not (run_dir / "checkpoints").is_dir():
         sh([sys.executable, "-m", "flowmaps_jax.train", "--data", str(datasets["train"]),
-            "--run-dir", str(run_dir), "--steps", str(args.train_steps), "--no-progress"], log)
+            "--run-dir", str(run_dir), "--steps", str(args.train_steps), "--no-progress",
+            *(["--set", f"warmup_steps={args.train_steps // 5}"] if args.train_steps <= 200
+              else [])], log)  # a smoke run: the recipe's warm-up (200 steps) shortened
     answers = flowmaps_rows(run_dir, datasets["train"], datasets["eval"], queries, eval_part)
     rows = {a: {"own": float(np.mean(own[a])) if own.get(a) else None,
                 "shared": sgm_accuracy([q[a] for q in queries],
@@ -293,10 +295,11 @@ def run_scenes(args, scenes: str, out: pathlib.Path) -> dict:
             "flowmaps_step": answers["step"], "rows": rows}
 
 
-def markdown(results: dict, command: str) -> str:
-    lines = [f"`{command}`", ""]
+def markdown(results: dict) -> str:
+    lines = []
     for scenes, r in results["scenes"].items():
-        lines += [f"**{scenes} scenes** ({r['queries']} queries; FlowMaps at step "
+        lines += [f"`{r['command']}`", "",
+                  f"**{scenes} scenes** ({r['queries']} queries; FlowMaps at step "
                   f"{r['flowmaps_step']}; {r['objects_of_unknown_class']} evaluation objects of "
                   "classes the training log never showed)", "",
                   "| agent | SGM accuracy, own looks | SGM accuracy, shared looks | log score "
@@ -335,10 +338,12 @@ def main(argv=None) -> int:
     out = pathlib.Path(args.out)
     command = "python experiments/peers/sgm.py " + shlex.join(sys.argv[1:] if argv is None
                                                                else list(argv))
-    results = {"command": command,
-               "scenes": {s: run_scenes(args, s, out / s) for s in scenes}}
-    (out / "results.json").write_text(json.dumps(results, indent=1))
-    text = markdown(results, command)
+    path = out / "results.json"  # one file for every scene size run into --out
+    results = json.loads(path.read_text()) if path.is_file() else {"scenes": {}}
+    for s in scenes:
+        results["scenes"][s] = {"command": command, **run_scenes(args, s, out / s)}
+    path.write_text(json.dumps(results, indent=1))
+    text = markdown(results)
     (out / "results.md").write_text(text)
     print(text)
     return 0

@@ -28,6 +28,7 @@ import csv
 import functools
 import importlib.util
 import json
+import logging
 import os
 import random
 import sys
@@ -231,6 +232,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     out = os.path.abspath(args.out)
     os.makedirs(out, exist_ok=True)
+    logging.getLogger().setLevel(logging.ERROR)  # SGM warns on every failed move draw
     sgm = import_sgm(os.path.abspath(args.sgm))
     cfg = load_config(os.path.abspath(args.sgm), args.scenes)
     steps = args.steps or int(cfg.task.num_steps)
