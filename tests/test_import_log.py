@@ -209,6 +209,9 @@ def test_iso_times_with_days_between_and_a_good_clock_say_nothing(tmp_path):
     assert (env.location[2:-2] == -1).all()  # the days between: not observed
     _, lines = _clock(tmp_path, ["2024-01-01T00:00", "2026-06-01T00:00"])
     assert len(lines) == 1 and "span 2.4 years" in lines[0]
+    with pytest.raises(ValueError, match=r"t\.csv: timestamp: reaches hour 70128, beyond the "
+                                         r"format's 65536 hours \(7\.5 years\): check the dates"):
+        _clock(tmp_path, ["2024-01-01T00:00", "2032-01-01T00:00"])
 
 
 @pytest.mark.parametrize(("row", "says"), [

@@ -131,8 +131,8 @@ def check_clock(file: str, hours: np.ndarray, env: np.ndarray, numeric: bool,
            "check the dates")
     if hours.max() >= MAX_HOURS:
         raise ValueError(f"{file}: timestamp: reaches hour {int(hours.max())}, beyond the "
-                         f"format's {MAX_HOURS} hours (7.5 years): if the column holds minutes "
-                         f"or seconds, {fix}")
+                         f"format's {MAX_HOURS} hours (7.5 years): " + "if the column holds "
+                         "minutes or seconds, " * numeric + fix)
     notes = []
     if numeric and gap >= 2:
         notes.append(f"timestamps are mostly {gap:g} apart, not 1 hour: if they count minutes "
