@@ -6,8 +6,11 @@ should use this size to reuse the compiled function."""
 from __future__ import annotations
 
 import atexit
+import functools
 import os
+import pathlib
 import shutil
+import signal
 import tempfile
 
 # One persistent XLA compilation cache per test session, shared by the xdist workers and by the
@@ -73,3 +76,116 @@ def small_scenes(flowsim_config) -> Scenes:
 # FLOWMAPS_MULTIDEVICE=1. A plain `pytest` does not collect it directly.
 collect_ignore_glob = [] if os.environ.get("FLOWMAPS_MULTIDEVICE") else ["multidevice/*"]
 
+
+
+# ------------------------------------------------------------------ one trained run per world
+
+class SmokeRuns:
+    """A world's smoke preset trained once per test session (once per xdist worker), each run on
+    first use, through the train CLI in this process (:func:`support.run_python_in_process`):
+
+    * ``straight``: never stopped (its output ``printed``; ``saves``: the (folder, step) of every
+      checkpoint write, in order);
+    * ``stopped``: Ctrl-C (SIGINT from a step callback) at step ``stop_at``, not a multiple of
+      the checkpoint interval (``interrupted``: the loop's result);
+    * ``resumed``: a copy of ``stopped`` resumed to the end with ``--resume``.
+
+    A test that changes a run works on ``copy(name, tmp_path)``."""
+
+    def __init__(self, root: pathlib.Path, args: list[str], stop_at: int):
+        self.root, self.args, self.stop_at = root, args, stop_at
+        from flowmaps_jax.training import cli
+
+        self.cfg = cli.resolve_config(cli.build_parser().parse_args(
+            [*args, "--run-dir", str(root / "x")]))[0]
+
+    def _train(self, name: str, *extra: str) -> str:
+        from support import run_python_in_process
+
+        code, out = run_python_in_process(
+            ["-m", "flowmaps_jax.train", "--run-dir", str(self.root / name), "--no-progress",
+             *extra], self.root)
+        assert code == 0, out
+        return out
+
+    @functools.cached_property
+    def straight(self) -> pathlib.Path:
+        from flowmaps_jax.store.checkpoint_store import CheckpointStore
+        from flowmaps_jax.worlds import flowsim
+
+        flowsim._SPLIT_CACHE.clear()  # the split is generated (and said) by this run
+        self.saves, write = [], CheckpointStore._write
+
+        def counted(store, manager, step, *args, **kwargs):
+            write(store, manager, step, *args, **kwargs)
+            self.saves.append((pathlib.Path(str(manager.directory)).name, step))
+
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(CheckpointStore, "_write", counted)
+            self.printed = self._train("straight", *self.args)
+        return self.root / "straight"
+
+    @functools.cached_property
+    def stopped(self) -> pathlib.Path:
+        from flowmaps_jax.training import loop
+
+        def ctrl_c(step, metrics):
+            if step == self.stop_at:
+                os.kill(os.getpid(), signal.SIGINT)
+
+        self.interrupted = loop.run(self.cfg, self.root / "stopped", on_step=ctrl_c,
+                                    progress=False, log=lambda _: None)
+        return self.root / "stopped"
+
+    @functools.cached_property
+    def resumed(self) -> pathlib.Path:
+        shutil.copytree(self.stopped, self.root / "resumed")
+        self.resumed_printed = self._train("resumed", "--resume")
+        return self.root / "resumed"
+
+    def copy(self, name: str, tmp_path: pathlib.Path) -> pathlib.Path:
+        """A fresh copy of run ``name`` (``straight``, ``stopped`` or ``resumed``)."""
+        return pathlib.Path(shutil.copytree(getattr(self, name), tmp_path / "run"))
+
+
+@pytest.fixture(scope="session")
+def flowsim_runs(tmp_path_factory) -> SmokeRuns:
+    """The 2-D FlowSim ``smoke`` preset (20 steps; Ctrl-C at 12: last/ holds 10 and 12)."""
+    return SmokeRuns(tmp_path_factory.mktemp("flowsim-runs"), ["--preset", "smoke"], 12)
+
+
+@pytest.fixture
+def at12(flowsim_runs, tmp_path) -> pathlib.Path:
+    """A fresh copy of the 2-D smoke run stopped (Ctrl-C) at step 12, in ``tmp_path / "run"``."""
+    return flowsim_runs.copy("stopped", tmp_path)
+
+
+@pytest.fixture(scope="session")
+def homes_runs(tmp_path_factory) -> SmokeRuns:
+    """FlowSim homes, ``homes-smoke`` (6 steps; Ctrl-C at 4: last/ holds 3 and 4)."""
+    return SmokeRuns(tmp_path_factory.mktemp("homes-runs"), ["--preset", "homes-smoke"], 4)
+
+
+@pytest.fixture(scope="session")
+def recorded_data(tmp_path_factory) -> pathlib.Path:
+    """3 FlowSim homes x 72 hours as a recorded dataset, 30 % of the object-hours masked."""
+    from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes
+    from flowmaps_jax.recorded.format import save_recorded
+    from flowmaps_jax.recorded.from_homes import from_homes
+
+    config = HomesConfig(regime="mixed", num_hours=72,
+                         rooms=("kitchen", "living_room", "bedroom", "bathroom"),
+                         objects_per_home=(4, 6))
+    path = tmp_path_factory.mktemp("recorded") / "data"
+    save_recorded(from_homes(generate_homes(jax.random.key(0), config, 3), config,
+                             mask_fraction=0.3, seed=0), path)
+    return path
+
+
+@pytest.fixture(scope="session")
+def recorded_runs(tmp_path_factory, recorded_data) -> SmokeRuns:
+    """``--preset smoke --data`` on :func:`recorded_data`, 4 steps, a checkpoint every 2
+    (Ctrl-C at 3: last/ holds 2 and 3)."""
+    return SmokeRuns(tmp_path_factory.mktemp("recorded-runs"), [
+        "--preset", "smoke", "--data", str(recorded_data), "--steps", "4", "--set",
+        "val_every=2", "--set", "ckpt_every=2", "--set", "log_every=1"], 3)

@@ -49,14 +49,9 @@ def queries(homes):
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    """A homes-smoke run trained through the train CLI."""
-    path = tmp_path_factory.mktemp("homes") / "run"
-    code, out = run_python_in_process(
-        ["-m", "flowmaps_jax.train", "--preset", "homes-smoke", "--run-dir", str(path),
-         "--no-progress"], path.parent)
-    assert code == 0, out
-    return path
+def run_dir(homes_runs):
+    """A homes-smoke run trained through the train CLI (the session's, tests/conftest.py)."""
+    return homes_runs.straight
 
 
 # --------------------------------------------------------------------------- tokens
@@ -348,31 +343,6 @@ def test_the_train_cli_trains_the_smoke_preset_and_the_predictor_loads_its_best(
                  lambda: predictor.log_prob(None, None, None)):
         with pytest.raises(ValueError, match="2-D FlowSim scene tokens"):
             call()  # a 2-D method names the homes methods
-
-
-def _untimed(path) -> list[dict]:
-    """A run's metrics.jsonl records without their timings (steps/s, samples/s)."""
-    return [{k: v for k, v in json.loads(line).items() if not k.endswith("_per_sec")}
-            for line in path.read_text().splitlines()]
-
-
-def test_a_homes_run_stopped_and_resumed_writes_the_records_of_one_never_stopped(run_dir,
-                                                                                tmp_path):
-    """The homes world enters the one training loop: --stop-at, then --resume, continue the
-    run exactly (the same data chunks, batches, noise and records as the uninterrupted run)."""
-    split = tmp_path / "split"
-    args = ["-m", "flowmaps_jax.train", "--run-dir", str(split), "--no-progress"]
-    code, out = run_python_in_process([*args, "--preset", "homes-smoke", "--stop-at", "4"],
-                                      tmp_path)
-    assert code == 0, out
-    assert [(r["kind"], r["step"]) for r in _untimed(split / "metrics.jsonl")] == [
-        ("val", 0), ("train", 2), ("val", 3), ("train", 4)]
-    code, out = run_python_in_process([*args, "--resume"], tmp_path)
-    assert code == 0 and "Resumed from" in out, out
-    assert _untimed(split / "metrics.jsonl") == _untimed(run_dir / "metrics.jsonl")
-    code, out = run_python_in_process([*args, "--resume", "--set", "homes.num_hours=120"],
-                                      tmp_path)
-    assert code == 2 and "cannot change homes.num_hours" in out, out
 
 
 def test_export_and_load_by_name_round_trip_with_integrity_checks(run_dir, homes, queries,

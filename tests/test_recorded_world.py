@@ -31,12 +31,10 @@ CONFIG = HomesConfig(regime="mixed", num_hours=72,
 
 
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory):
-    """3 FlowSim homes x 72 hours as a recorded dataset, 30 % of the object-hours masked."""
-    homes = generate_homes(jax.random.key(0), CONFIG, 3)
-    path = tmp_path_factory.mktemp("recorded") / "data"
-    save_recorded(from_homes(homes, CONFIG, mask_fraction=0.3, seed=0), path)
-    return path
+def data_dir(recorded_data):
+    """3 FlowSim homes x 72 hours (``CONFIG``) as a recorded dataset, 30 % of the object-hours
+    masked (the session's, tests/conftest.py)."""
+    return recorded_data
 
 
 @pytest.fixture(scope="module")
@@ -186,23 +184,8 @@ def test_realised_scores_break_ties_fairly():
     assert table["bins"][7]["realised"] == 1.0 and table["bins"][1]["realised"] == 0.0
 
 
-def _train(data_dir, run, tmp_path, *extra):
-    return run_python_in_process(
-        ["-m", "flowmaps_jax.train", "--preset", "smoke", "--data", str(data_dir),
-         "--run-dir", str(run), "--no-progress", "--steps", "4", "--set", "val_every=2",
-         "--set", "ckpt_every=2", "--set", "log_every=1", *extra], tmp_path)
-
-
-def _untimed(path):
-    """A run's metrics.jsonl records without their timings (steps/s, samples/s)."""
-    return [{k: v for k, v in json.loads(line).items() if not k.endswith("_per_sec")}
-            for line in path.read_text().splitlines()]
-
-
-def test_train_evaluate_and_search_with_data(data_dir, tmp_path):
-    run = tmp_path / "run"
-    code, out = _train(data_dir, run, tmp_path)
-    assert code == 0, out
+def test_train_evaluate_and_search_with_data(data_dir, recorded_runs, tmp_path):
+    run, out = recorded_runs.straight, recorded_runs.printed  # --preset smoke --data, 4 steps
     assert "train (1): " in out and "test (1): " in out  # the split, printed
     config = json.loads((run / "config.json").read_text())
     assert config["world"] == "recorded" and config["data"] == str(data_dir)
@@ -265,21 +248,6 @@ def test_bad_data_exits_2_with_one_line(args, message, data_dir, tmp_path):
     code, out = run_python_in_process([a.format(**fill) for a in args], tmp_path)
     assert code == 2, out
     assert message in out.strip().splitlines()[-1]
-
-
-def test_a_recorded_run_stopped_and_resumed_writes_the_records_of_one_never_stopped(
-        data_dir, tmp_path):
-    whole, split = tmp_path / "whole", tmp_path / "split"
-    assert _train(data_dir, whole, tmp_path)[0] == 0
-    code, out = _train(data_dir, split, tmp_path, "--stop-at", "2")
-    assert code == 0, out
-    code, out = run_python_in_process(["-m", "flowmaps_jax.train", "--run-dir", str(split),
-                                       "--resume", "--no-progress"], tmp_path)
-    assert code == 0 and "Resumed from" in out, out
-    assert _untimed(split / "metrics.jsonl") == _untimed(whole / "metrics.jsonl")
-    code, out = run_python_in_process(["-m", "flowmaps_jax.train", "--run-dir", str(split),
-                                       "--resume", "--data", str(tmp_path)], tmp_path)
-    assert code == 2 and "--data cannot change on --resume" in out, out  # its own: allowed
 
 
 def test_the_shipped_homes_model_reads_homes_through_recorded_files_as_it_reads_them(

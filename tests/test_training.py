@@ -3,12 +3,8 @@
 Compiled functions are shared through module-scoped fixtures; models are the tiny smoke preset.
 """
 
-import contextlib
-import io
 import json
 import math
-import os
-import signal
 
 import jax
 import jax.numpy as jnp
@@ -19,7 +15,7 @@ import pytest
 from flowmaps_jax.predictor import load
 from flowmaps_jax.store import checkpoints
 from flowmaps_jax.tokens import Queries, SceneTokens, TrainBatch
-from flowmaps_jax.training import cli, loop, objectives
+from flowmaps_jax.training import loop, objectives
 from flowmaps_jax.training import state as train_state
 from flowmaps_jax.training.config import apply_overrides, get_preset
 from flowmaps_jax.worlds import flowsim as data
@@ -228,14 +224,10 @@ def _leaves(state):
 
 
 @pytest.fixture(scope="module")
-def straight_run(tmp_path_factory):
-    """``python -m flowmaps_jax.train --preset smoke`` in-process: 20 steps straight."""
-    run_dir = tmp_path_factory.mktemp("straight")
-    data._SPLIT_CACHE.clear()  # generate the splits here, whatever ran before (it is printed)
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        code = cli.main(["--preset", "smoke", "--run-dir", str(run_dir), "--no-progress"])
-    return code, run_dir, out.getvalue()
+def straight_run(flowsim_runs):
+    """``python -m flowmaps_jax.train --preset smoke`` in-process: 20 steps straight (the
+    session's run, tests/conftest.py): (exit code, run dir, what it printed)."""
+    return 0, flowsim_runs.straight, flowsim_runs.printed
 
 
 def test_cli_smoke_run_writes_config_metrics_and_checkpoints(straight_run):
@@ -272,34 +264,6 @@ def test_cli_smoke_run_writes_config_metrics_and_checkpoints(straight_run):
     assert predictor.model == SMOKE.model and predictor.step == int(best.step)
     for got, want in zip(_leaves(predictor.params), _leaves(best.ema_params), strict=True):
         np.testing.assert_array_equal(got, want)
-
-
-def test_resume_continues_exactly(straight_run, tmp_path):
-    straight_dir = straight_run[1]
-    first = loop.run(SMOKE, tmp_path, stop_at=10, progress=False)
-    assert first.status == "stopped" and first.step == 10
-    second = loop.run(SMOKE, tmp_path, resume=True, progress=False)
-    assert second.status == "done" and second.step == 20
-    assert first.best_step == 10 and second.best_step in (10, 20)  # restored with the store
-    assert [second.best_step] == checkpoints.saved_steps(tmp_path / "checkpoints", "best")
-    target = train_state.abstract_state(SMOKE)
-    split = checkpoints.restore(tmp_path, target).state
-    straight = checkpoints.restore(straight_dir, target).state
-    for a, b in zip(_leaves(split), _leaves(straight), strict=True):
-        np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
-    records = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
-    assert [r["step"] for r in records if r["kind"] == "train"] == [5, 10, 15, 20]
-
-
-def test_ctrl_c_saves_a_checkpoint_and_stops(tmp_path):
-    def press_ctrl_c(step, metrics):
-        if step == 7:
-            os.kill(os.getpid(), signal.SIGINT)
-
-    result = loop.run(SMOKE, tmp_path, on_step=press_ctrl_c, progress=False)
-    assert result.status == "interrupted" and result.step == 7
-    state = checkpoints.restore(tmp_path, train_state.abstract_state(SMOKE)).state
-    assert int(state.step) == 7
 
 
 def test_nan_loss_stops_and_keeps_the_last_good_checkpoint(tmp_path, monkeypatch, capsys):
