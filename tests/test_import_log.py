@@ -99,17 +99,20 @@ def test_negative_rows_by_receptacle_by_room_and_for_every_object(tmp_path):
             ("h", "1", "cup", "", "t2", "", "", "false"),  # one receptacle
             ("h", "2", "pen", "", "", "", "k", "false"),  # every receptacle of the room
             ("h", "3", "key", "", "t1", "", "", "1"),
-            ("h", "3", "", "", "t1", "", "", "false")]  # everything not seen on t1 at hour 3
+            ("h", "3", "", "", "t1", "", "", "false"),  # everything not seen on t1 at hour 3
+            ("h", "3", "hat", "", "d1", "", "", "false")]  # never seen: may stand anywhere
     (env,) = import_log(_csv(tmp_path / "t.csv", rows)).environments
-    assert env.object_ids == ("cup", "pen", "key") and env.receptacle_ids == ("t1", "t2", "d1")
-    expected = np.zeros((4, 3, 3), bool)
+    assert env.object_ids == ("cup", "pen", "key", "hat")
+    assert env.receptacle_ids == ("t1", "t2", "d1")
+    expected = np.zeros((4, 4, 3), bool)
     expected[1, 0, 1] = True
     expected[2, 1, [0, 1]] = True
-    expected[3, [0, 1], 0] = True  # the key is on t1 at hour 3
+    expected[3, [0, 1, 3], 0] = True  # the key is on t1 at hour 3
+    expected[3, 3, 2] = True
     np.testing.assert_array_equal(env.not_at, expected)
-    assert env.location[3].tolist() == [-1, -1, 0]
+    assert env.location[3].tolist() == [-1, -1, 0, -1]
     assert env.allowed.tolist() == [[True, False, False], [False, True, False],
-                                    [True, False, True]]  # the classes seen: the ids
+                                    [True, False, True], [True] * 3]  # classes seen: the ids
 
 
 def _table_of(recorded: Recorded, path):
