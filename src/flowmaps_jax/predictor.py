@@ -233,24 +233,26 @@ class Predictor:
           ``pixels=False``, ``return_log_prob=False`` → boxes (B, Q, N, 4)
           (:meth:`_sample_scenes`);
         * homes: ``inputs`` homes, ``options`` ``config=None``, ``observed=None``,
-          ``return_receptacles=False`` → boxes (E, Q, N, 6) in metres
+          ``return_receptacles=False``, ``not_at=None`` → boxes (E, Q, N, 6) in metres
           (:func:`flowmaps_jax.model.homes_inference.sample`).
         """
         return self._inference.sample(self, inputs, queries, num_samples, key, num_steps,
                                       **options)
 
-    def probabilities(self, homes, queries, config=None, observed=None) -> jnp.ndarray:
+    def probabilities(self, homes, queries, config=None, observed=None,
+                      not_at=None) -> jnp.ndarray:
         """A homes model's receptacle weights (E, Q, R) for ``homes`` and ``queries`` (``config``:
         the homes' config, default the model's; ``observed`` (E, T, M) bool: the hours each
         object was seen, None for every hour, required by a model trained on partial
-        observation), read without sampling
+        observation; ``not_at`` (E, T, M, R) bool: looked for on r at hour t, not there),
+        read without sampling
         (:func:`flowmaps_jax.model.homes_inference.probabilities`); a 2-D model's are
         :meth:`table_weights`."""
-        return self._inference.probabilities(self, homes, queries, config, observed)
+        return self._inference.probabilities(self, homes, queries, config, observed, not_at)
 
-    def as_prior(self, config=None, observed=None):
+    def as_prior(self, config=None, observed=None, not_at=None):
         """A homes model as a prior ``(homes, queries) -> (E, Q, R)`` (:meth:`probabilities`)."""
-        return self._inference.as_prior(self, config, observed)
+        return self._inference.as_prior(self, config, observed, not_at)
 
     def _sample_scenes(self, tokens: SceneTokens, queries: Queries, num_samples: int, key,
                        num_steps: int = DEFAULT_NUM_STEPS, method: str = "midpoint",

@@ -222,6 +222,8 @@ def _validate(args) -> str:
         return f"{min(values)}" + (f"-{max(values)}" if max(values) > min(values) else "")
 
     spans = [int(e.hours[-1] - e.hours[0]) + 1 for e in envs]
+    total = sum(e.num_hours * e.num_objects for e in envs)
+    looked = sum(int(e.not_at.any(-1).sum()) for e in envs if e.not_at is not None)
     split = split_environments(recorded.names(), cfg.val_fraction, cfg.test_fraction,
                                cfg.split_seed)
     return "\n".join([
@@ -233,8 +235,11 @@ def _validate(args) -> str:
         f"  rooms per environment: {span([len(e.room_classes) for e in envs])}",
         f"  geometry: receptacle boxes in {share('receptacle_corners')}; rooms in "
         f"{share('room_boxes')}, doors in {share('door_rooms')}, stored walking distances in "
-        f"{share('distance')} (else derived), object boxes in {share('object_corners')}; "
-        f"negative evidence (not_at) in {share('not_at')}",
+        f"{share('distance')} (else derived), object boxes in {share('object_corners')}"
+        + ("" if share("receptacle_corners") == "all" else "; without boxes, walking costs "
+           "come from the room graph"),
+        f"  negative evidence (not_at) in {share('not_at')}: {100 * looked / total:.1f} % of "
+        f"the object-hours hold a look that found the object absent",
         f"  the default recipe's split (val_fraction={cfg.val_fraction}, test_fraction="
         f"{cfg.test_fraction}, split_seed={cfg.split_seed}; docs/protocol.md):",
         describe_split(recorded, split, cfg.time_fraction).replace("  ", "    ")])

@@ -52,10 +52,13 @@ METRIC_NAMES = {"log_score": "log score (nats)", "top1": "top-1", "top5": "top-5
                 "rank": "rank"}
 MODEL_ROW, UNIFORM, LAST_SEEN, FREQUENCY = ("FlowMaps", "uniform over allowed", "last seen",
                                             "frequency prior")
+RULED_OUT = "Negative evidence: log of the mass off the receptacles ruled out at τ_q"
 FIT_SEED, FIT_QUERIES = 35_000_048, 64
 """The count rows' fitting queries: ``FIT_QUERIES`` per environment, seeded apart."""
 REPORT = {"posterior": ("results", "reliability.png"),
           "navigation": ("search", "success_vs_looks.png")}
+
+
 
 
 # --------------------------------------------------------------------------- queries
@@ -87,7 +90,28 @@ def model_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries
     """(E, Q, R) the model's receptacle weights: the Predictor's own call, with the data's
     observation mask."""
     return np.asarray(predictor.probabilities(data.homes, queries, predictor.homes,
-                                              observed=data.observed))
+                                              observed=data.observed, not_at=data.not_at))
+
+
+def ruled_out_scores(key, predictor, data: rw.RecordedHomes, num_queries: int, max_horizon: int,
+                     fit: pr.CountFit | None) -> dict | None:
+    """Negative evidence as a realised outcome: Q queries per environment among the (object,
+    τ_q) pairs unseen at τ_q but looked for on some allowed receptacles then (drawn as
+    :func:`realised_queries` draws the observed ones); per row, the log of the mass the row
+    puts off those receptacles (floored at ``P_FLOOR``): {row: stats}, None without such
+    pairs."""
+    if data.not_at is None:
+        return None
+    looked = ~data.observed & jnp.any(data.not_at & data.homes.object_allowed[:, None], -1)
+    queries, valid = realised_queries(key, data.replace(observed=looked), num_queries,
+                                      max_horizon)
+    if not valid.any():
+        return None
+    e = np.arange(valid.shape[0])[:, None]
+    ruled = np.asarray(data.not_at)[e, np.asarray(queries.tau_q), np.asarray(queries.object_index)]
+    return {name: stats(np.log(np.maximum(1.0 - np.sum(np.where(ruled, p, 0.0), -1),
+                                          P_FLOOR))[valid])
+            for name, p in row_probabilities(predictor, data, queries, fit).items()}
 
 
 def row_probabilities(predictor, data: rw.RecordedHomes, queries: HomesQueries,
@@ -318,6 +342,10 @@ def run_evaluation(predictor, data: rw.RecordedHomes, *, num_queries: int, seed:
                                "reliability": reliability(p, target, allowed, valid)}
             bar.update(1)
         results["posterior"] = posterior
+        ruled = ruled_out_scores(jax.random.fold_in(key, 1), predictor, data, num_queries,
+                                 max(horizons), fit)
+        if ruled:
+            results["ruled_out"] = ruled
         best["posterior"] = best_rows(posterior, learned, "log_score", "object_class", True)
     if "navigation" in parts:
         start = start_distance(homes)
@@ -382,6 +410,11 @@ def markdown(results: dict) -> str:
             lines.append(f"| {name} | " + " | ".join(
                 _pm(row["metrics"][m]["overall"]) for m in METRICS)
                 + f" | {row['reliability']['ece']:.3f} |")
+        if results.get("ruled_out"):
+            lines += ["", f"{RULED_OUT} (nats; {next(iter(results['ruled_out'].values()))['count']}"
+                      " queries unseen at τ_q, with receptacles looked at and ruled out then):",
+                      "", "| row | log mass off the ruled-out receptacles |", "|---|---|",
+                      *(f"| {n} | {_pm(v)} |" for n, v in results["ruled_out"].items())]
         if best.get("posterior"):
             lines += ["", *best_lines(best["posterior"], "Best reference row per object class (by "
                                           "log score; the exact rows and the model excluded):",

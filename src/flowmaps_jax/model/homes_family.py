@@ -63,6 +63,7 @@ from flowmaps_jax.model.embeddings import FlatDense, SinusoidalMLP
 from flowmaps_jax.model.encoder import EncoderLayer
 from flowmaps_jax.model.homes_inputs import (
     DEFAULT_HISTORY,
+    NEGATIVE_FEATURES,
     QUERY_FEATURES,
     ROW_FEATURES,
     HomesBatch,
@@ -100,7 +101,9 @@ class HomesModelConfig:
     sinusoidal features of boxes; history: hours of history the network reads; history_heads:
     heads of the history read-out; history_observed: trained on partially observed data (every
     query must say which hours were observed); geometry_angle: the rows' geometry has the angle
-    around the home's centre (False: offsets and the distance only).
+    around the home's centre (False: offsets and the distance only); negative_evidence: the rows
+    end with ``homes_inputs.NEGATIVE_FEATURES``; geometry: False for data without boxes (token
+    boxes and the rows' geometry read as zeros, no placement loss).
     """
 
     dim: int = 64
@@ -115,6 +118,8 @@ class HomesModelConfig:
     history_heads: int = 8
     history_observed: bool = False
     geometry_angle: bool = False
+    negative_evidence: bool = False
+    geometry: bool = True
 
     def __post_init__(self):
         check_fields(self, _MODEL_RULES, prefix="model.", store=False)
@@ -145,7 +150,7 @@ _MODEL_RULES = {**{name: Int(1, 1 << 16) for name in (
     **{name: Int(1, MAX_BLOCKS, "each layer is compiled on its own") for name in (
         "encoder_layers", "weight_blocks", "cdit_blocks")}, "max_frequency": Real(1.0),
     **{name: Choice((False, True)) for name in (
-        "history_observed", "geometry_angle")}}
+        "history_observed", "geometry_angle", "negative_evidence", "geometry")}}
 """The rules of :class:`HomesModelConfig`'s fields (messages name ``model.<field>``)."""
 
 
@@ -239,7 +244,8 @@ class HomesNet(nn.Module):
 
     def encode(self, tokens: HomeTokens) -> Context:
         mask = tokens.mask.astype(bool)
-        x = (self.box_embed(tokens.boxes) + self.descriptor_embed(tokens.descriptor)
+        boxes = tokens.boxes if self.config.geometry else jnp.zeros_like(tokens.boxes)
+        x = (self.box_embed(boxes) + self.descriptor_embed(tokens.descriptor)
              + self.kind_embed(tokens.kind))
         for layer in self.encoder:
             x = layer(x, mask, True)
@@ -288,6 +294,7 @@ class HomesNet(nn.Module):
                                                                   self.homes_config),
                                              batch.current,
                                              angle=self.config.geometry_angle)  # (B, Q, R, G)
+        geometry = geometry * self.config.geometry
         features = jnp.concatenate([batch.rows, self.read_history(c, batch), geometry], -1)
         rows = (context.tokens[:, None, first:first + r] + self.row_mlp(features)
                 + self.weight_pos + c[:, :, None, :])  # (B, Q, R, D)
@@ -318,7 +325,8 @@ class HomesNet(nn.Module):
         return self.placement_velocity(context, c, z_t, t, table)
 
 
-def example_batch(homes_config: HomesConfig, b: int = 1, q: int = 1) -> HomesBatch:
+def example_batch(homes_config: HomesConfig, b: int = 1, q: int = 1,
+                  features: int = len(ROW_FEATURES)) -> HomesBatch:
     """The smallest batch of the right feature sizes (zeros; one allowed receptacle)."""
     s, r = homes_config.max_tokens, homes_config.max_receptacles
     tokens = HomeTokens(boxes=jnp.zeros((b, s, 6)), descriptor=jnp.zeros((b, s), jnp.int32),
@@ -327,7 +335,7 @@ def example_batch(homes_config: HomesConfig, b: int = 1, q: int = 1) -> HomesBat
     return HomesBatch(tokens=tokens, object_token=zeros, tau=zeros, tau_q=zeros + 1,
                       query=jnp.zeros((b, q, QUERY_FEATURES)),
                       events=jnp.zeros((b, q, DEFAULT_HISTORY), jnp.int32),
-                      rows=jnp.zeros((b, q, r, len(ROW_FEATURES))),
+                      rows=jnp.zeros((b, q, r, features)),
                       allowed=jnp.arange(r) == jnp.zeros((b, q, 1), jnp.int32),
                       current=jnp.zeros((b, q), jnp.int32), target=jnp.zeros((b, q), jnp.int32),
                       target_box=jnp.zeros((b, q, 6)))
@@ -339,7 +347,8 @@ def example_batch(homes_config: HomesConfig, b: int = 1, q: int = 1) -> HomesBat
 @functools.partial(jax.jit, static_argnames=("config", "homes_config"))
 def init_params(key, config: HomesModelConfig, homes_config: HomesConfig):
     """Fresh parameters (a nested dict pytree)."""
-    batch = example_batch(homes_config)
+    batch = example_batch(homes_config, features=len(ROW_FEATURES) + len(
+        NEGATIVE_FEATURES) * config.negative_evidence)
     return HomesNet(config, homes_config).init(key, batch, jnp.zeros((1, 1, 1, 6)),
                                                jnp.zeros((1, 1)))["params"]
 
@@ -393,7 +402,7 @@ def homes_loss(params, config: HomesModelConfig, homes_config: HomesConfig, batc
     v = placement_velocity(params, config, homes_config, context, c,
                            flow.linear_path(z0, z1, t[..., None]), t, table)
     cfm = jnp.mean(jnp.square(v - flow.target_velocity(z0, z1)))
-    loss = ce + cfm_weight * cfm
+    loss = ce + cfm_weight * config.geometry * cfm
     return loss, {"loss": loss, "ce": ce, "cfm": cfm, "selection": ce}
 
 

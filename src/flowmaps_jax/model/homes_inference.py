@@ -7,7 +7,9 @@
 
 ``observed`` (E, T, M) bool says which hours each object was seen (``homes.receptacle`` holds
 where it was last seen); None: every hour. A model trained on partially observed data
-(``history_observed``) refuses a query without it.
+(``history_observed``) refuses a query without it. ``not_at`` (E, T, M, R) bool: object m was
+looked for on receptacle r at hour t and was not there (read by a model with
+``negative_evidence``; None: no such looks).
 
 The :class:`~flowmaps_jax.predictor.Predictor` of a homes model (its family's world is
 ``"homes"``) calls these functions (the predictor's registry of world inference, not a branch):
@@ -65,7 +67,7 @@ ROWS_PER_CALL = 8192
 """Query rows one compiled call takes at most (queries × samples); larger requests run in
 chunks of queries of one padded shape (one compiled program), so memory stays bounded."""
 
-_query_batch = jax.jit(per_query_batch, static_argnames=("config", "history"))
+_query_batch = jax.jit(per_query_batch, static_argnames=("config", "history", "negative"))
 
 
 def _window(a, start: int, size: int):
@@ -104,11 +106,12 @@ def home_tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
 
 
 def check(predictor, homes: Homes, queries: HomesQueries, config: HomesConfig,
-          what: str = "the query", observed=None):
+          what: str = "the query", observed=None, not_at=None):
     """``ValueError`` naming the argument unless ``config`` agrees with the model's on the
     token layout and vocabulary (:data:`COMPATIBLE_FIELDS`) and ``homes`` / ``queries`` fit
     ``config``: finite, sensible home arrays (``validate_homes`` with values), at least one
-    home and one query per home, concrete arrays (``what`` is not run under ``jax.jit``)."""
+    home and one query per home, concrete arrays (``what`` is not run under ``jax.jit``).
+    Returns (observed, not_at) as arrays (or None)."""
     check_concrete(f"{what} of a homes model", homes, queries)
     validate_homes(homes, config)  # config is a HomesConfig from here on; values too
     if homes.num_homes == 0:
@@ -122,13 +125,16 @@ def check(predictor, homes: Homes, queries: HomesQueries, config: HomesConfig,
     if queries.tau.shape[1] == 0:
         raise ValueError("queries must hold at least one query per home; got shape "
                          f"{tuple(queries.tau.shape)}")
+    if not_at is not None:
+        not_at = jnp.asarray(check_mask("not_at", not_at, (*homes.receptacle.shape,
+                                                           homes.receptacle_class.shape[-1])))
     if observed is None:
         if predictor.model.history_observed:
             raise ValueError("observed is required: this model was trained on partially "
                              "observed data; pass observed (E, T, M) bool, the hours each "
                              "object was seen (all True if every hour was)")
-        return None
-    return jnp.asarray(check_mask("observed", observed, tuple(homes.receptacle.shape)))
+        return None, not_at
+    return jnp.asarray(check_mask("observed", observed, tuple(homes.receptacle.shape))), not_at
 
 
 def _chunked(fn, queries: HomesQueries, rows_per_query: int):
@@ -147,18 +153,21 @@ def _chunked(fn, queries: HomesQueries, rows_per_query: int):
 
 
 def probabilities(predictor, homes: Homes, queries: HomesQueries,
-                  config: HomesConfig | None = None, observed=None) -> jax.Array:
+                  config: HomesConfig | None = None, observed=None, not_at=None) -> jax.Array:
     """(E, Q, R) float32: the model's probability that each queried object stands on
     receptacle slot r at τ_q; 0 off its allowed receptacles, rows sum to 1. ``config``: the
-    config the homes were generated with (default: the model's); ``observed``: see above."""
+    config the homes were generated with (default: the model's); ``observed``, ``not_at``: see
+    above."""
     config = predictor.homes if config is None else config
-    observed = check(predictor, homes, queries, config, "probabilities", observed)
+    observed, not_at = check(predictor, homes, queries, config, "probabilities", observed,
+                             not_at)
     e = queries.tau.shape[0]
 
     def run(chunk):
         p = receptacle_probabilities(predictor.params, predictor.model, predictor.homes,
                                      _query_batch(homes, chunk, predictor.homes,
-                                                  predictor.model.history, observed))
+                                                  predictor.model.history, observed, not_at,
+                                                  predictor.model.negative_evidence))
         return p.reshape(e, chunk.tau.shape[1], -1)
 
     return _chunked(run, queries, predictor.homes.max_receptacles)
@@ -166,7 +175,7 @@ def probabilities(predictor, homes: Homes, queries: HomesQueries,
 
 def sample(predictor, homes: Homes, queries: HomesQueries, num_samples: int, key,
            num_steps: int = DEFAULT_NUM_STEPS, *, config: HomesConfig | None = None,
-           observed=None, return_receptacles: bool = False):
+           observed=None, return_receptacles: bool = False, not_at=None):
     """(E, Q, N, 6) float32 boxes (cx, cy, cz, w, d, h) in metres: a receptacle drawn from
     the weights, then the placement flow on it (``num_steps`` midpoint grid points). With
     ``return_receptacles``: (boxes, receptacles (E, Q, N) int32)."""
@@ -176,7 +185,7 @@ def sample(predictor, homes: Homes, queries: HomesQueries, num_samples: int, key
     num_steps = check_int("num_steps", num_steps, 2)
     return_receptacles = check_flag("return_receptacles", return_receptacles)
     config = predictor.homes if config is None else config
-    observed = check(predictor, homes, queries, config, "sample", observed)
+    observed, not_at = check(predictor, homes, queries, config, "sample", observed, not_at)
     e, q = queries.tau.shape
     check_resources(  # the shared budget: the boxes and receptacles, the solve's evaluations
         f"sample({e} x {q} queries x {num_samples} samples, num_steps={num_steps})",
@@ -187,7 +196,8 @@ def sample(predictor, homes: Homes, queries: HomesQueries, num_samples: int, key
         qc = chunk.tau.shape[1]
         table, boxes = sample_placements(predictor.params, predictor.model, predictor.homes,
                                          _query_batch(homes, chunk, predictor.homes,
-                                                      predictor.model.history, observed),
+                                                      predictor.model.history, observed,
+                                                      not_at, predictor.model.negative_evidence),
                                          jax.random.fold_in(key, next(calls)), num_samples,
                                          num_steps)
         return table.reshape(e, qc, num_samples), boxes.reshape(e, qc, num_samples, 6)
@@ -197,10 +207,10 @@ def sample(predictor, homes: Homes, queries: HomesQueries, num_samples: int, key
     return (boxes, table) if return_receptacles else boxes
 
 
-def as_prior(predictor, config: HomesConfig | None = None, observed=None):
+def as_prior(predictor, config: HomesConfig | None = None, observed=None, not_at=None):
     """``prior(homes, queries) -> (E, Q, R)``: :func:`probabilities` for ``config``."""
-    return functools.partial(_prior, predictor, config=config, observed=observed)
+    return functools.partial(_prior, predictor, config=config, observed=observed, not_at=not_at)
 
 
-def _prior(predictor, homes, queries, config, observed):
-    return probabilities(predictor, homes, queries, config, observed)
+def _prior(predictor, homes, queries, config, observed, not_at):
+    return probabilities(predictor, homes, queries, config, observed, not_at)

@@ -15,7 +15,9 @@ object's observation history. Only what any log has; nothing here imports a simu
   where it was not observed (or before hour 0). The network embeds each event's hour of day, day
   of week and age and attends over them (``model.homes_family``): the rhythms are learned.
 * **Row features** (…, R, :data:`ROW_FEATURES`): statistics of the observed history, per
-  (query, receptacle r), zero off the object's allowed receptacles (except ``allowed``).
+  (query, receptacle r), zero off the object's allowed receptacles (except ``allowed``); with
+  ``negative`` (a model's ``negative_evidence``), :data:`NEGATIVE_FEATURES` after them, from
+  ``not_at`` (E, T, M, R) bool ("looked for on r at hour t, not there"; None: no such looks).
 
 Hour t counts from the log's hour 0; hour of day t mod 24, day of week ⌊t / 24⌋ mod 7. Partial
 observation: ``observed`` (E, T, M) bool, None for every hour; ``homes.receptacle`` holds where
@@ -55,6 +57,10 @@ pushed over the hours from the last sighting to τ_q (with its log, scaled); the
 (n allowed receptacles), the fraction of the window observed, the fraction of its consecutive
 observed hour pairs that moved, unseen at τ, log(1 + hours since last seen) / log(1 + T) (the
 hours since −1 when never) and never seen up to τ."""
+NEGATIVE_FEATURES = ("ruled_out_since_seen", "ruled_out_recency")
+"""Per (query, receptacle r), over the history window up to τ: r was ruled out after the
+object's last sighting (any time, when never seen); 1 − log(1 + τ − t_r) / log(1 + H) for the
+last hour t_r it was ruled out on r, 0 when it was not."""
 STAY_PRIOR = 0.5
 """Pseudo-count on staying in every row of the empirical hourly chain."""
 LOG_FLOOR = 1e-3
@@ -246,7 +252,22 @@ def row_features(homes, queries, config, events, observed=None) -> jax.Array:
     return jnp.where(keep, out, 0.0).astype(jnp.float32)
 
 
-def _parts(homes, queries, config, history: int, observed=None) -> dict:
+def negative_features(not_at, queries, history: int, observed=None, allowed=None):
+    """(E, Q, R, len(NEGATIVE_FEATURES)) float32 (see :data:`NEGATIVE_FEATURES`) from
+    ``not_at`` (E, T, M, R) bool; zero off ``allowed`` (E, Q, R)."""
+    hours = queries.tau[..., None] - history + 1 + jnp.arange(history)  # (E, Q, H)
+    out = jax.vmap(lambda na, hh, obj: na[jnp.maximum(hh, 0), obj[:, None]] & (hh >= 0)[
+        ..., None])(not_at, hours, queries.object_index)  # (E, Q, H, R)
+    latest = jnp.max(jnp.where(out, hours[..., None], -1), axis=-2)  # (E, Q, R)
+    last = queries.tau if observed is None else _last_seen(observed, queries)
+    recency = 1.0 - jnp.log1p((queries.tau[..., None] - latest).astype(jnp.float32)) / \
+        jnp.log1p(float(history))
+    feats = jnp.stack([latest > last[..., None], jnp.where(latest >= 0, recency, 0.0)], -1)
+    return feats.astype(jnp.float32) * (1.0 if allowed is None else allowed[..., None])
+
+
+def _parts(homes, queries, config, history: int, observed=None, not_at=None,
+           negative: bool = False) -> dict:
     _, first_object, _ = token_layout(config)
     allowed = jax.vmap(lambda a, o: a[o])(homes.object_allowed, queries.object_index)
     boxes = jax.vmap(lambda hour: object_boxes(homes, hour, config), in_axes=1,
@@ -254,29 +275,38 @@ def _parts(homes, queries, config, history: int, observed=None) -> dict:
     box = jnp.take_along_axis(boxes, queries.object_index[..., None, None], axis=2)[:, :, 0]
     at = jax.vmap(lambda traj, t, o: traj[t, o])
     events = history_events(homes, queries, history, observed)
+    rows = row_features(homes, queries, config, events, observed)
+    if negative:
+        extra = (jnp.zeros((*rows.shape[:-1], len(NEGATIVE_FEATURES))) if not_at is None else
+                 negative_features(not_at, queries, history, observed, allowed))
+        rows = jnp.concatenate([rows, extra.astype(jnp.float32)], -1)
     return {"object_token": (first_object + queries.object_index).astype(jnp.int32),
             "tau": queries.tau.astype(jnp.int32), "tau_q": queries.tau_q.astype(jnp.int32),
             "query": query_features(queries.tau, queries.tau_q, config.num_hours),
-            "events": events, "rows": row_features(homes, queries, config, events, observed),
+            "events": events, "rows": rows,
             "allowed": allowed,
             "current": at(homes.receptacle, queries.tau, queries.object_index).astype(jnp.int32),
             "target": at(homes.receptacle, queries.tau_q, queries.object_index).astype(jnp.int32),
             "target_box": normalise_boxes(box, homes.home_size)}
 
 
-def shared_tau_batch(homes, queries, config, history: int, observed=None) -> HomesBatch:
+def shared_tau_batch(homes, queries, config, history: int, observed=None, not_at=None,
+                     negative: bool = False) -> HomesBatch:
     """One scene per home (B = E) at the map hour ``queries.tau[:, 0]``, which all the home's
     queries share (training)."""
     tokens = jax.tree.map(lambda a: a[:, 0], scene_tokens(homes, queries.tau[:, :1], config))
-    return HomesBatch(tokens=tokens, **_parts(homes, queries, config, history, observed))
+    return HomesBatch(tokens=tokens, **_parts(homes, queries, config, history, observed, not_at,
+                                              negative))
 
 
-def per_query_batch(homes, queries, config, history: int, observed=None) -> HomesBatch:
+def per_query_batch(homes, queries, config, history: int, observed=None, not_at=None,
+                    negative: bool = False) -> HomesBatch:
     """One scene per query (B = E·Q, one query each), each home at its own query's τ
     (inference)."""
     e, q = queries.tau.shape
     tokens = jax.tree.map(lambda a: a.reshape(e * q, *a.shape[2:]),
                           scene_tokens(homes, queries.tau, config))
     parts = {k: v.reshape(e * q, 1, *v.shape[2:])
-             for k, v in _parts(homes, queries, config, history, observed).items()}
+             for k, v in _parts(homes, queries, config, history, observed, not_at,
+                                negative).items()}
     return HomesBatch(tokens=tokens, **parts)

@@ -581,7 +581,9 @@ def recorded_config(preset: str | None, data: str) -> RecordedTrainConfig:
     """The run config of ``--preset PRESET --data DATA``: the recipe ``RECORDED_PRESETS[preset]``
     with ``homes`` derived from the dataset (its vocabulary, sizes and hours,
     :func:`flowmaps_jax.worlds.recorded.homes_config_of`), ``model.history`` at most half its
-    hours and ``max_horizon`` what fits after it. ValueError naming ``--preset`` or ``data``."""
+    hours, ``max_horizon`` what fits after it, ``model.negative_evidence`` on when some
+    environment has ``not_at`` and ``model.geometry`` off when one has no receptacle boxes.
+    ValueError naming ``--preset`` or ``data``."""
     from flowmaps_jax.worlds.recorded import homes_config_of, load_data
 
     preset = preset or "homes"
@@ -595,8 +597,13 @@ def recorded_config(preset: str | None, data: str) -> RecordedTrainConfig:
         homes = homes_config_of(recorded)
     base = dataclasses.replace(base, data_digest=digest)
     history = min(base.model.history, max(1, homes.num_hours // 2))
+    envs = recorded.environments
+    model = dataclasses.replace(
+        base.model, history=history,
+        negative_evidence=any(e.not_at is not None for e in envs) or base.model.negative_evidence,
+        geometry=all(e.receptacle_corners is not None for e in envs) and base.model.geometry)
     return dataclasses.replace(
-        base, homes=homes, model=dataclasses.replace(base.model, history=history),
+        base, homes=homes, model=model,
         max_horizon=min(base.max_horizon, homes.num_hours - history))
 
 

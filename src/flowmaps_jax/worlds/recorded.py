@@ -76,12 +76,14 @@ MIN_HELD_OUT = 3
 class RecordedHomes:
     """E recorded environments as homes: ``homes`` (a :class:`Homes` of the run's config),
     ``observed`` (E, T, M) bool, and the hours whose observations are targets of this part of
-    the split: ``start`` <= τ_q < ``stop`` (E,) int32."""
+    the split: ``start`` <= τ_q < ``stop`` (E,) int32; ``not_at`` (E, T, M, R) bool, looked
+    for on r at hour t and not there (None: the data has no such looks)."""
 
     homes: Homes
     observed: jax.Array
     start: jax.Array
     stop: jax.Array
+    not_at: jax.Array | None = None
 
     @property
     def num_homes(self) -> int:
@@ -97,6 +99,8 @@ def _class_sizes(recorded, kind: str) -> dict[str, tuple[float, float, float]]:
     object boxes, where recorded), metres."""
     sizes: dict[str, list] = {}
     for env in recorded.environments:
+        if kind == "receptacles" and env.receptacle_corners is None:
+            continue
         if kind == "receptacles":
             boxes = np.asarray(env.receptacle_boxes())[:, 3:]
             classes = env.receptacle_classes
@@ -190,7 +194,9 @@ def _environment_home(env, config: HomesConfig, ids: dict) -> dict:
                     "object_classes": "object"}[field]
             raise ValueError(f"{where}: the model's vocabulary has no {what} class "
                              f"{missing[0]!r} ({len(missing)} class(es) missing)")
-    corners = np.asarray(env.receptacle_corners, np.float64)  # (R, 8, 3)
+    geometry = env.receptacle_corners is not None  # else every box at 0, the home 1 m wide
+    corners = np.asarray(env.receptacle_corners if geometry else np.zeros((re, 8, 3)),
+                         np.float64)  # (R, 8, 3)
     points = [corners[..., :2].reshape(-1, 2)]
     room_box = (np.zeros((0, 4)) if env.room_boxes is None or k == 0
                 else np.asarray(env.room_boxes, np.float64))
@@ -202,13 +208,13 @@ def _environment_home(env, config: HomesConfig, ids: dict) -> dict:
     corners = corners - shift
     room_box = room_box - np.tile(low, 2)
     size = np.maximum(np.concatenate([corners[..., :2].reshape(-1, 2),
-                                      room_box[:, 2:]]).max(0), 0.01)
+                                      room_box[:, 2:]]).max(0), 0.01 if geometry else 1.0)
     boxes = np.asarray(env.receptacle_boxes(), np.float64)
     boxes[:, :3] -= shift
     boxes[:, 3:] = np.maximum(boxes[:, 3:], MIN_SIZE)
     boxes[:, 2] = np.maximum(boxes[:, 2], boxes[:, 5] / 2)
     rooms = np.tile(np.array([0.0, 0.0, *size]), (nr, 1))
-    rooms[:k] = room_box
+    rooms[:len(room_box)] = room_box  # rooms without boxes span the home
     names = [c.name for c in config.room_types]
     room_type = np.full(nr, names.index(NO_ROOM) if NO_ROOM in names else 0, np.int32)
     room_type[:k] = [ids["room_types"][c] for c in env.room_classes]
@@ -241,6 +247,10 @@ def _environment_home(env, config: HomesConfig, ids: dict) -> dict:
                       first_allowed[None, :])
     filled = np.where(valid_o[None, :], filled, -1)
     favourite = np.where(valid_o[:, None], first_allowed[:, None], -1)
+    not_at = None
+    if env.not_at is not None:
+        not_at = np.zeros((t, m, r), bool)
+        not_at[np.asarray(env.hours), :me, :re] = env.not_at
     d = config.max_doors
     return {
         "home_size": size.astype(np.float32), "room_type": room_type,
@@ -253,7 +263,7 @@ def _environment_home(env, config: HomesConfig, ids: dict) -> dict:
         "regime": np.zeros(m, np.int32), "cycle": cyc.astype(np.int32),
         "num_allowed": num.astype(np.int32),
         "favourite": np.broadcast_to(favourite, (m, NUM_CONTEXTS)).astype(np.int32),
-        "receptacle": filled.astype(np.int32), "_observed": observed,
+        "receptacle": filled.astype(np.int32), "_observed": observed, "_not_at": not_at,
         "_hours": int(env.hours[-1]) + 1}
 
 
@@ -269,6 +279,7 @@ def recorded_homes(recorded, config: HomesConfig, index=None, start=None,
     parts = [_environment_home(envs[i], config, ids) for i in index]
     if not parts:
         raise ValueError("no environment to read")
+    looks = [p.pop("_not_at") for p in parts]
     stacked = {k: np.stack([p[k] for p in parts]) for k in parts[0]}
     homes = Homes(**{k: jnp.asarray(v) for k, v in stacked.items() if not k.startswith("_")})
     validate_homes(homes, config, name="the homes of the data")
@@ -277,7 +288,10 @@ def recorded_homes(recorded, config: HomesConfig, index=None, start=None,
     stop = stacked["_hours"] if stop is None else np.asarray(stop)
     return RecordedHomes(homes=homes, observed=jnp.asarray(stacked["_observed"]),
                          start=jnp.asarray(start, jnp.int32),
-                         stop=jnp.asarray(stop, jnp.int32))
+                         stop=jnp.asarray(stop, jnp.int32),
+                         not_at=None if all(x is None for x in looks) else jnp.asarray(np.stack(
+                             [np.zeros((*stacked["_observed"].shape[1:], config.max_receptacles),
+                                       bool) if x is None else x for x in looks])))
 
 
 def answer(predictor, data, environment: str, object_id: str, tau: int, tau_q: int
@@ -300,7 +314,7 @@ def answer(predictor, data, environment: str, object_id: str, tau: int, tau_q: i
     queries = HomesQueries(*(jnp.full((1, 1), v, jnp.int32)
                              for v in (env.object_ids.index(object_id), tau, tau_q)))
     p = np.asarray(predictor.probabilities(homes.homes, queries, predictor.homes,
-                                           observed=homes.observed))[0, 0]
+                                           observed=homes.observed, not_at=homes.not_at))[0, 0]
     return {env.receptacle_ids[r]: float(p[r]) for r in np.argsort(-p[:env.num_receptacles])
             if p[r] > 0}
 
@@ -474,7 +488,8 @@ def draw_batch(key, data: RecordedHomes, cfg, index=None):
     data = jax.tree.map(lambda a: a[index], data)
     queries = draw_queries(k_query, data, cfg.queries_per_scene, cfg.max_horizon,
                            cfg.default_horizon_frac)
-    return shared_tau_batch(data.homes, queries, cfg.homes, cfg.model.history, data.observed)
+    return shared_tau_batch(data.homes, queries, cfg.homes, cfg.model.history, data.observed,
+                            data.not_at, cfg.model.negative_evidence)
 
 
 def split_of(cfg) -> tuple:
