@@ -83,25 +83,21 @@ def parse_times(file: str, values: list) -> tuple[np.ndarray, str]:
     timestamp's week, the wall-clock time as written; numbers: hours), and that origin in words."""
     numbers, dates = {}, {}
     for row, v in enumerate(values, 1):
-        if isinstance(v, int | float) and not isinstance(v, bool):
-            numbers[row] = float(v)
-            continue
-        if isinstance(v, str):
+        for parse in (float, datetime.datetime.fromisoformat) if isinstance(v, str) else ():
             try:
-                numbers[row] = float(v)
-                continue
-            except ValueError:
-                pass
-            try:
-                v = datetime.datetime.fromisoformat(v.strip())
+                v = parse(v.strip())
+                break
             except ValueError:
                 pass
         if isinstance(v, datetime.date) and not isinstance(v, datetime.datetime):
             v = datetime.datetime(v.year, v.month, v.day)
-        if not isinstance(v, datetime.datetime):
-            raise ValueError(f"{file}: row {row}: timestamp: {v!r} is neither an ISO 8601 time "
-                             f"nor a number of hours"[:300])
-        dates[row] = v.replace(tzinfo=None)
+        if isinstance(v, datetime.datetime):
+            dates[row] = v.replace(tzinfo=None)
+        elif isinstance(v, int | float) and not isinstance(v, bool):
+            numbers[row] = float(v)
+        else:
+            raise ValueError(f"{file}: row {row}: timestamp: {values[row - 1]!r} is neither an "
+                             f"ISO 8601 time nor a number of hours"[:300])
     if numbers and dates:
         row = min(numbers if len(numbers) < len(dates) else dates)
         raise ValueError(f"{file}: row {row}: timestamp: mixes numbers of hours and ISO 8601 "
