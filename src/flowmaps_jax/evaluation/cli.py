@@ -176,7 +176,7 @@ def run_for_world(parser: argparse.ArgumentParser, args: argparse.Namespace,
                   argv: Sequence[str] | None, command: str) -> int:
     """``command`` (``"evaluate"`` or ``"search"``) of ``--checkpoint``'s world, called as
     ``hook(parser, args, argv, stored)`` with the run config stored with it (read once; {} for
-    ``pretrained:NAME``): first the options every world reads, then the stored model's family
+    ``pretrained:NAME``): first the options' values, then the stored model's family
     and world (``--data``: the world that reads files), then any option given that the world
     does not read is refused, before any model is loaded. Exit 2 with one line on a bad
     option."""
@@ -185,6 +185,8 @@ def run_for_world(parser: argparse.ArgumentParser, args: argparse.Namespace,
         check_seed("--seed", args.seed)
         if args.history is not None:
             check_int("--history", args.history, 1)
+        if args.world is not None:
+            check_choice("--world", args.world, tuple(HABIT_WORLDS))
         if args.out:
             check_output_dir("--out", args.out)
     except ValueError as err:
@@ -214,21 +216,15 @@ def run_for_world(parser: argparse.ArgumentParser, args: argparse.Namespace,
 def evaluate_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
                      argv: Sequence[str] | None, stored: dict) -> int:
     """The 2-D FlowSim protocol (:func:`flowmaps_jax.evaluation.run.run_evaluation`)."""
-    try:  # the options, before any model is loaded
-        check_int("--num-envs", args.num_envs, 1)
+    try:  # the options (run_for_world's checked), before any model is loaded
         check_int("--kl-draws", args.kl_draws, 2)
         check_int("--num-steps", args.num_steps, 2)
         check_int("--chunk-envs", args.chunk_envs, 1)
-        check_seed("--seed", args.seed)
         if args.logp_steps is not None:
             check_int("--logp-steps", args.logp_steps, 2)
         if args.likelihood_steps is not None and args.likelihood_steps != 0:
             check_int("--likelihood-steps", args.likelihood_steps, 3)
         check_int("--likelihood-draws", args.likelihood_draws, 2)
-        if args.world is not None:
-            check_choice("--world", args.world, tuple(HABIT_WORLDS))
-        if args.history is not None:
-            check_int("--history", args.history, 1)
         likelihood_steps = args.likelihood_steps or None  # 0: only the paper's grid
         if args.out:
             out = pathlib.Path(args.out)

@@ -12,7 +12,7 @@ looked for on receptacle r at hour t and was not there (read by a model with
 ``negative_evidence``; None: no such looks).
 
 The :class:`~flowmaps_jax.predictor.Predictor` of a homes model (its family's world is
-``"homes"``) calls these functions (the predictor's registry of world inference, not a branch):
+``"homes"``) calls these functions (that world's ``Inference``, not a branch):
 ``probabilities`` are the model's mixture weights over each object's allowed receptacles, read
 without sampling, a prior ``(homes, queries) -> (E, Q, R)`` as
 :mod:`flowmaps_jax.flowsim.homes.queries` defines it (:func:`as_prior`); ``sample`` draws a

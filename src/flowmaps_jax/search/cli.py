@@ -38,11 +38,9 @@ from flowmaps_jax.search import simulator as sim
 from flowmaps_jax.search.report import markdown_table, write_report
 from flowmaps_jax.tables import TABLE_METHODS
 from flowmaps_jax.validation import (
-    check_choice,
     check_int,
     check_output_dir,
     check_real,
-    check_seed,
 )
 from flowmaps_jax.validation.scalars import ascii_float, ascii_int, int_list
 
@@ -161,17 +159,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 def search_flowsim(parser: argparse.ArgumentParser, args: argparse.Namespace,
                    argv: Sequence[str] | None, stored: dict) -> int:
     """The 2-D FlowSim search (:func:`flowmaps_jax.search.protocol.run_search`)."""
-    try:  # the options, before any model is loaded
-        check_int("--num-envs", args.num_envs)
+    try:  # the options (run_for_world's checked), before any model is loaded
         check_int("--times-per-env", args.times_per_env)
         check_int("--samples", args.samples)
         check_int("--budget", args.budget)
         check_int("--chunk-rows", args.chunk_rows)
-        check_seed("--seed", args.seed)
-        if args.world is not None:
-            check_choice("--world", args.world, tuple(HABIT_WORLDS))
-        if args.history is not None:
-            check_int("--history", args.history)
         # the chance a look at the right table misses
         check_real("--p-miss", args.p_miss, 0.0, 1.0, high_open=True)
         if args.out is None and args.checkpoint.startswith(PRETRAINED_PREFIX):
