@@ -217,3 +217,11 @@ def test_validate_summarises_geometry_and_looks(v2_dir, tmp_path):
     total = sum(e.num_hours * e.num_objects for e in recorded.environments)
     assert "receptacle boxes in 0 of 3" in out and "walking costs come from the room graph" in out
     assert f"not_at) in all: {100 * looked / total:.1f} % of the object-hours" in out
+
+
+def test_a_scene_graph_is_not_exported_to_the_authors_layout(tmp_path):
+    from flowmaps_jax.recorded.flowmaps2026 import export_flowmaps2026
+
+    with pytest.raises(ValueError, match="'home' has no receptacle boxes"):
+        export_flowmaps2026(Recorded((_tiny(),)), tmp_path / "authors")
+    assert not (tmp_path / "authors").exists()

@@ -527,6 +527,9 @@ def export_flowmaps2026(recorded: Recorded, root, *, progress: Progress = None
     validate_recorded(recorded)
     _pyarrow()
     for env in recorded.environments:  # every refusal before anything is written
+        if env.receptacle_corners is None:
+            raise ValueError(f"environment {env.name!r} has no receptacle boxes (a version-2 "
+                             f"scene graph); the authors' layout needs them")
         check_export_size(env)
         bad = [(i, c) for i, c in zip((*env.receptacle_ids, *env.object_ids),
                                       (*env.receptacle_classes, *env.object_classes),
