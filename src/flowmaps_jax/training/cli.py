@@ -111,7 +111,7 @@ def _unchanged(cfg: TrainConfig, flag: str, value: str) -> bool:
 def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]:
     """The run's config and directory from parsed arguments (ValueError on bad input). The
     options are checked before any is used."""
-    overrides, world = split_world(args.overrides)
+    overrides, habits = split_world(args.overrides)
     run_dir = None  # '' is refused, not the default; --resume reads it
     if args.run_dir is not None:
         run_dir = pathlib.Path(check_output_dir("run_dir", args.run_dir))
@@ -122,10 +122,10 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
             raise ValueError("--overwrite and --resume exclude each other")
         cfg = resume.resume_config(run_dir, args.from_step)
         for flag, value in (("--preset", args.preset), ("--family", args.family),
-                            ("--set world=...", world), ("--data", args.data)):
+                            ("--set world=...", habits), ("--data", args.data)):
             if value is not None and not _unchanged(cfg, flag, value):
                 raise ValueError(f"{flag} {_KEPT}")
-        world = None  # the run's own, repeated
+        habits = None  # the run's own, repeated
     elif args.data is not None:
         cfg = recorded_config(args.preset, args.data)
     else:
@@ -135,8 +135,8 @@ def resolve_config(args: argparse.Namespace) -> tuple[TrainConfig, pathlib.Path]
         if key == "data_digest" or (key == "data" and world(cfg.world).reads_files):
             raise ValueError(f"--set {key}: not a setting; the run stores the path of --data "
                              f"and the digest of its contents itself: give the data with --data")
-    if world is not None:
-        cfg = with_world(cfg, world)
+    if habits is not None:
+        cfg = with_world(cfg, habits)
     typed = {name: value for name, value in (("family", args.family), ("steps", args.steps),
                                              ("init_from", args.init_from)) if value is not None}
     cfg = replace_fields(cfg, overrides, typed)
