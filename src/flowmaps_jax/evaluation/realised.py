@@ -59,8 +59,6 @@ REPORT = {"posterior": ("results", "reliability.png"),
           "navigation": ("search", "success_vs_looks.png")}
 
 
-
-
 # --------------------------------------------------------------------------- queries
 
 

@@ -12,7 +12,7 @@ import dataclasses
 from flowmaps_jax.flowsim.config import DEFAULT_CONFIG, PAPER_HABITS, FlowSimConfig
 from flowmaps_jax.validation import check_choice, check_instance
 
-WORLDS: dict[str, tuple[tuple[str, float], ...]] = {
+HABIT_WORLDS: dict[str, tuple[tuple[str, float], ...]] = {
     "routine": PAPER_HABITS,
     "preferences": (("preferences", 1.0),),
     "dynamic": (("dynamic", 1.0),),
@@ -26,16 +26,16 @@ reference posterior of the evaluate and search CLIs uses by default in a world w
 
 
 def world_config(world: str, base: FlowSimConfig = DEFAULT_CONFIG) -> FlowSimConfig:
-    """``base`` with the habits of ``world`` (a ``WORLDS`` name)."""
-    check_choice("world", world, tuple(WORLDS))
+    """``base`` with the habits of ``world`` (a ``HABIT_WORLDS`` name)."""
+    check_choice("world", world, tuple(HABIT_WORLDS))
     check_instance("base", base, FlowSimConfig)
-    return dataclasses.replace(base, habits=WORLDS[world])
+    return dataclasses.replace(base, habits=HABIT_WORLDS[world])
 
 
 def world_of(config: FlowSimConfig) -> str | None:
-    """The ``WORLDS`` name whose habits ``config`` has, or None for another mixture."""
+    """The ``HABIT_WORLDS`` name whose habits ``config`` has, or None for another mixture."""
     probs = config.habit_probs
-    for name, habits in WORLDS.items():
+    for name, habits in HABIT_WORLDS.items():
         if dataclasses.replace(DEFAULT_CONFIG, habits=habits).habit_probs == probs:
             return name
     return None
