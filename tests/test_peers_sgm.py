@@ -82,6 +82,7 @@ def test_the_model_reads_only_training_pairs_and_known_classes():
     # the mug only where training saw mugs; the book (no pair) anywhere; not import-log's pairs
     assert env.allowed[0].tolist() == [r == shelf for r in range(2)]
     assert env.allowed[1].all()
+    assert (env.location[:, 0] == -1).all()  # the mug seen on the table only: read as unseen
     small = types.SimpleNamespace(**{**vars(config), "max_receptacles": 1})
     assert sgm.readable(recorded, small, set()) == ([], 3)  # larger than the model's homes
 

@@ -126,7 +126,8 @@ def readable(recorded, config, pairs: set) -> tuple[list, int]:
     classes ``config`` lacks removed (environments with such receptacle or room classes, larger
     than ``config``'s homes, or with no object left, dropped), ``allowed`` the training log's
     class ``pairs`` (every receptacle for an object with none; import-log's own comes from this
-    log's sightings, future ones included); and the number of objects removed."""
+    log's sightings, future ones included; a sighting outside them counts as unseen); and the
+    number of objects removed."""
     voc = {f: {c.text for c in getattr(config, f)} for f in
            ("object_classes", "receptacle_classes", "room_types")}
     envs, removed = [], 0
@@ -145,10 +146,13 @@ def readable(recorded, config, pairs: set) -> tuple[list, int]:
         allowed = np.asarray([[(o, r) in pairs for r in env.receptacle_classes]
                               for o in classes]).reshape(len(classes), -1)
         allowed[~allowed.any(1)] = True
+        location = pick(env.location)
+        location = np.where(allowed[np.arange(len(classes)), np.maximum(location, 0)],
+                            location, -1)  # a sighting on a receptacle not allowed: unseen
         envs.append(dataclasses.replace(
             env, object_ids=pick(env.object_ids), object_classes=classes,
             object_texts=pick(env.object_texts), allowed=allowed,
-            location=pick(env.location), not_at=pick(env.not_at),
+            location=location.astype(env.location.dtype), not_at=pick(env.not_at),
             object_corners=pick(env.object_corners), object_rotation=pick(env.object_rotation)))
     return envs, removed
 
@@ -163,8 +167,8 @@ def _keep(keep, a, axis=1):
 def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dict,
                   batch: int = 16) -> dict:
     """{row: (probabilities {receptacle id: p} or None per query)} for FlowMaps and the
-    reference rows (count rows fitted on the run's training part), None where the row cannot
-    read the query; and ``removed``: objects of unknown classes."""
+    reference rows (count rows fitted on the run's training part at horizon 1, the queries'),
+    None where the row cannot read the query; ``removed``: objects of unknown classes."""
     import jax.numpy as jnp
 
     from flowmaps_jax.evaluation import realised
@@ -177,8 +181,9 @@ def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dic
     _, stored = stored_run(str(run_dir))
     train, _ = rw.load_data(str(train_data))
     *_, train_part = realised.evaluation_part(train, predictor.homes, stored, str(train_data))
-    fit = realised.fit_counts(train_part, predictor.homes, predictor.model.history, 24)
-    envs, removed = readable(load_recorded(str(eval_data)), predictor.homes, class_pairs(train))
+    fit = realised.fit_counts(train_part, predictor.homes, predictor.model.history, 1)
+    every = load_recorded(str(eval_data))
+    envs, removed = readable(every, predictor.homes, class_pairs(train))
     recorded = Recorded(tuple(envs))
     index = {e.name: i for i, e in enumerate(envs)}
     asked = defaultdict(list)  # env index -> [(query number, object slot, hour)]
@@ -193,6 +198,7 @@ def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dic
     order = sorted(asked)
     for start in range(0, len(order), batch):
         chunk = order[start:start + batch]
+        chunk += chunk[-1:] * (batch - len(chunk))  # one shape: one compilation
         data = rw.recorded_homes(recorded, predictor.homes, index=chunk)
         cols = np.zeros((3, len(chunk), width), np.int32)
         cols[1], cols[2] = 0, 1
@@ -207,7 +213,8 @@ def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dic
                 for col, (n, _, _) in enumerate(asked[e]):
                     out[name][n] = {ids[r]: float(p[row, col, r]) for r in range(len(ids))}
     return {"rows": dict(out), "removed": removed,
-            "receptacles": {e.name: e.receptacle_ids for e in envs}, "step": predictor.step}
+            "receptacles": {e.name: e.receptacle_ids for e in every.environments},
+            "step": predictor.step}
 
 
 def score_row(answers: list, queries: list[dict], part: dict, receptacles: dict) -> dict:
