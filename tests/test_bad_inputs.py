@@ -370,11 +370,12 @@ def predictor():
 def test_predictor_sample_and_log_prob(predictor, tokens_queries, data, what):
     """Predictor.sample / log_prob, the planner's entry points: only ValueError comes out."""
     t, q = tokens_queries
-    good = {"tokens": t, "queries": q, "num_samples": 4, "key": jax.random.key(0),
+    good = {"inputs": t, "queries": q, "num_samples": 4, "key": jax.random.key(0),
             "num_steps": 3, "method": "euler", "pixels": False}
     bad = dict(good)
     if what in ("tokens", "queries"):
-        bad[what] = data.draw(st.one_of(junk, st.just(q if what == "tokens" else t)))
+        bad["inputs" if what == "tokens" else what] = data.draw(
+            st.one_of(junk, st.just(q if what == "tokens" else t)))
     elif what == "num_samples":
         bad[what] = data.draw(st.one_of(not_an_int, st.integers(max_value=0),
                                         st.just(10**9)))  # 10**9 boxes: more than memory
@@ -389,7 +390,7 @@ def test_predictor_sample_and_log_prob(predictor, tokens_queries, data, what):
     elif what == "field":  # one field of the tokens or queries broken
         name = data.draw(st.sampled_from(["boxes", "descriptor", "tau"]))
         low, high = _TOKEN_BOUNDS[name]
-        bad["tokens"] = t.replace(**{name: data.draw(st.one_of(
+        bad["inputs"] = t.replace(**{name: data.draw(st.one_of(
             junk, st.just(getattr(t, name).tolist()), broken_array(getattr(t, name), low, high)))})
     else:
         x = data.draw(st.one_of(junk, st.just(np.full((3, 2, 4, 4), np.nan, np.float32)),

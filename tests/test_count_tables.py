@@ -195,7 +195,7 @@ def test_the_recorded_report_names_the_best_reference_row_per_object_class(mixed
     class Uniform:
         homes, model = CONFIG, type("Model", (), {"history": HISTORY})
 
-        def probabilities(self, homes, queries, config, observed=None):
+        def probabilities(self, homes, queries, config, observed=None, not_at=None):
             return pr.uniform_prior(homes, queries)
 
     homes, _ = mixed
