@@ -202,13 +202,12 @@ def test_a_run_killed_between_any_two_saves_resumes_to_the_same_records(
 
 def _damage(step_dir: pathlib.Path, how: str) -> None:
     state = step_dir / "state"
-    if how == "flipped bytes":  # 64 bytes in the middle of the largest data file
-        data = max((p for p in state.rglob("*") if p.is_file() and p.parent.name == "d"),
-                   key=lambda p: p.stat().st_size)
-        raw = bytearray(data.read_bytes())
-        middle = len(raw) // 2
-        raw[middle:middle + 64] = bytes(b ^ 0xFF for b in raw[middle:middle + 64])
-        data.write_bytes(bytes(raw))
+    if how == "flipped bytes":  # 64 bytes in the middle of every data file (one may be unread)
+        for data in (p for p in state.rglob("*") if p.is_file() and p.parent.name == "d"):
+            raw = bytearray(data.read_bytes())
+            middle = len(raw) // 2
+            raw[middle:middle + 64] = bytes(b ^ 0xFF for b in raw[middle:middle + 64])
+            data.write_bytes(bytes(raw))
     elif how == "no data folder":
         shutil.rmtree(state / "ocdbt.process_0")
     elif how == "a data file gone":
