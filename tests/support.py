@@ -7,6 +7,7 @@ config means sharing compiled functions across test modules, which is most of th
 from __future__ import annotations
 
 import contextlib
+import json
 from collections.abc import Sequence
 
 import jax
@@ -177,3 +178,22 @@ def error_line(err: str) -> str:
     lines = [line for line in err.strip().splitlines() if "error:" in line]
     assert len(lines) == 1, err
     return lines[0]
+
+
+def only_error_line(err: str) -> str:
+    """The error line of stderr, which holds nothing else but argparse's usage lines."""
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    errors = [i for i, line in enumerate(lines) if "error:" in line]
+    assert errors and errors[-1] == len(lines) - 1, err
+    assert len(errors) == 1 and "Traceback" not in err, err
+    assert errors[0] == 0 or lines[0].startswith("usage:"), err
+    return lines[-1]
+
+
+def unsaved_run(run_dir, config: dict):
+    """What a run of ``config`` (its dict) leaves when it is killed before its first checkpoint."""
+    (run_dir / "checkpoints" / "last" / "10.orbax-checkpoint-tmp-1").mkdir(parents=True)
+    (run_dir / "checkpoints" / "best").mkdir()
+    (run_dir / "config.json").write_text(json.dumps(config))
+    (run_dir / "metrics.jsonl").write_text('{"kind": "train", "step": 5, "loss": 9.0}\n')
+    return run_dir

@@ -14,7 +14,7 @@ import pathlib
 
 import jax
 import pytest
-from support import error_line, run_cli
+from support import error_line, only_error_line, run_cli
 from test_recorded import tiny_environment
 
 from flowmaps_jax import atomic_files, export
@@ -36,14 +36,7 @@ from flowmaps_jax.training import runlog
 _cli, _error_line = run_cli, error_line  # tests/support.py
 
 
-def _one_line(err: str) -> str:
-    """The error line of stderr, which holds nothing else but argparse's usage lines."""
-    lines = [line for line in err.strip().splitlines() if line.strip()]
-    errors = [i for i, line in enumerate(lines) if "error:" in line]
-    assert errors and errors[-1] == len(lines) - 1, err
-    assert len(errors) == 1 and "Traceback" not in err, err
-    assert errors[0] == 0 or lines[0].startswith("usage:"), err
-    return lines[-1]
+_one_line = only_error_line  # tests/support.py
 
 
 """Per class: one entry per reproduction tried, True when it behaved (reported at the end)."""

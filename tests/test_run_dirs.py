@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 import pytest
-from support import error_line, run_cli
+from support import error_line, only_error_line, run_cli, unsaved_run
 
 from flowmaps_jax import export as export_cli
 from flowmaps_jax.predictor import load
@@ -44,23 +44,11 @@ QUIET = ["--preset", "smoke", "--set", "routine_envs=0", "--no-progress"]
 _cli, _error_line = run_cli, error_line  # tests/support.py
 
 
-def _one_line(err: str) -> str:
-    """The error line of stderr, which holds nothing else but argparse's usage lines."""
-    lines = [line for line in err.strip().splitlines() if line.strip()]
-    errors = [i for i, line in enumerate(lines) if "error:" in line]
-    assert errors and errors[-1] == len(lines) - 1, err
-    assert len(errors) == 1 and "Traceback" not in err, err
-    assert errors[0] == 0 or lines[0].startswith("usage:"), err
-    return lines[-1]
+_one_line = only_error_line  # tests/support.py
 
 
 def _unsaved_run(run_dir: pathlib.Path, cfg=CFG) -> pathlib.Path:
-    """What a run leaves when it is killed before its first checkpoint."""
-    (run_dir / "checkpoints" / "last" / "10.orbax-checkpoint-tmp-1").mkdir(parents=True)
-    (run_dir / "checkpoints" / "best").mkdir()
-    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict()))
-    (run_dir / "metrics.jsonl").write_text('{"kind": "train", "step": 5, "loss": 9.0}\n')
-    return run_dir
+    return unsaved_run(run_dir, cfg.to_dict())
 
 
 TIMING = ("steps_per_sec", "samples_per_sec")

@@ -5,14 +5,21 @@ one resource estimate and is refused before anything is written or compiled.
 from __future__ import annotations
 
 import dataclasses
-import json
 import pathlib
 import typing
 
 import jax
 import numpy as np
 import pytest
-from support import TINY, error_line, run_cli, synthetic_queries, synthetic_tokens
+from support import (
+    TINY,
+    error_line,
+    only_error_line,
+    run_cli,
+    synthetic_queries,
+    synthetic_tokens,
+    unsaved_run,
+)
 
 from flowmaps_jax import model as model_lib
 from flowmaps_jax import resources
@@ -34,23 +41,11 @@ CFG = dataclasses.replace(get_preset("smoke"), routine_envs=0)
 _cli, _error_line = run_cli, error_line  # tests/support.py
 
 
-def _one_line(err: str) -> str:
-    """The error line of stderr, which holds nothing else but argparse's usage lines."""
-    lines = [line for line in err.strip().splitlines() if line.strip()]
-    errors = [i for i, line in enumerate(lines) if "error:" in line]
-    assert errors and errors[-1] == len(lines) - 1, err
-    assert len(errors) == 1 and "Traceback" not in err, err
-    assert errors[0] == 0 or lines[0].startswith("usage:"), err
-    return lines[-1]
+_one_line = only_error_line  # tests/support.py
 
 
 def _unsaved_run(run_dir: pathlib.Path, cfg=CFG) -> pathlib.Path:
-    """What a run leaves when it is killed before its first checkpoint."""
-    (run_dir / "checkpoints" / "last" / "10.orbax-checkpoint-tmp-1").mkdir(parents=True)
-    (run_dir / "checkpoints" / "best").mkdir()
-    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict()))
-    (run_dir / "metrics.jsonl").write_text('{"kind": "train", "step": 5, "loss": 9.0}\n')
-    return run_dir
+    return unsaved_run(run_dir, cfg.to_dict())
 
 
 """Per class: one entry per reproduction tried, True when it behaved (reported at the end)."""
