@@ -21,6 +21,7 @@ import sys
 import jax
 import numpy as np
 import pytest
+from support import run_cli
 
 from flowmaps_jax.evaluation import cli as eval_cli
 from flowmaps_jax.predictor import load
@@ -60,13 +61,7 @@ def _leaves(run_dir: pathlib.Path, which: str = "latest") -> list[np.ndarray]:
                                                                        which=which).state)]
 
 
-def _main(main, argv, capfd) -> tuple[int, str, str]:
-    try:
-        code = main(argv)
-    except SystemExit as exit_info:
-        code = exit_info.code
-    out = capfd.readouterr()
-    return code, out.out, out.err
+_main = run_cli  # tests/support.py (capfd here: the C-level streams too)
 
 
 # --------------------------------------------------------------------------- resume, Ctrl-C
