@@ -85,6 +85,9 @@ def test_the_model_reads_only_training_pairs_and_known_classes():
     assert (env.location[:, 0] == -1).all()  # the mug seen on the table only: read as unseen
     small = types.SimpleNamespace(**{**vars(config), "max_receptacles": 1})
     assert sgm.readable(recorded, small, set()) == ([], 3)  # larger than the model's homes
+    (env,), _ = sgm.readable(recorded, config)  # no pairs: every receptacle, every sighting
+    assert env.allowed.all() and (env.location[[0, 2], 0] == env.receptacle_ids.index("table|1")
+                                  ).all()
 
 
 def _written(rows):
@@ -102,12 +105,44 @@ def test_sgm_accuracy_and_the_rows_scores_by_hand():
                {"environment": "s", "object": "o|1", "receptacle": "b|2", "receptacles": "b|2"},
                {"environment": "s", "object": "o|2", "receptacle": "b|2", "receptacles": "b|2"}]
     answers = [{"a|1": 0.7, "b|2": 0.3}, {"a|1": 0.5, "b|2": 0.5}, None]
-    part = {("s", "o|1"): "s/part0", ("s", "o|2"): "s/part0"}
-    scores = sgm.score_row(answers, queries, part, {"s/part0": ("a|1", "b|2")})
-    # a hit; a tie read as the first (a miss); a uniform guess over 2 receptacles (half a hit)
-    assert scores["accuracy"] == pytest.approx(0.5)
-    assert scores["log_score"] == pytest.approx((math.log(0.7) + 2 * math.log(0.5)) / 3)
-    assert scores["uniform_fallback"] == 1
+    fallback = [None, None, {"a|1": 0.25, "b|2": 0.75}]
+    scores = sgm.score_row(answers, queries, fallback)
+    # a hit; a tie read as the first (a miss); the fallback's guess (a hit)
+    assert scores["accuracy"] == pytest.approx(2 / 3)
+    assert scores["log_score"] == pytest.approx((math.log(0.7) + math.log(0.5)
+                                                 + math.log(0.75)) / 3)
+    assert scores["fallback"] == 1
+
+
+def test_the_log_fallback_is_the_last_place_seen_then_the_class_frequency():
+    # training: the mug on the table twice, then the shelf (one stay in two), the book once
+    train = [*_look(0, "table|1", "kitchen", ("mug|5",)), *_look(1, "table|1", "kitchen",
+             ("mug|5",)), *_look(2, "shelf|2", "living_room", ("mug|5", "book|7"))]
+    queries = [{"environment": "small-s0-scene0000", "timestamp": t, "object": o,
+                "object_class": o.split("|")[0]} for t, o in
+               [(0, "mug|5"), (1, "mug|5"), (3, "mug|5"), (1, "cup|6"), (1, "vase|8")]]
+    never, seen_table, seen_again, cup, vase = sgm.log_fallback(queries, LOG, train)
+    # mugs: 2 on tables, 1 on shelves, add-one: 3/5 and 2/5; never seen before hour 0
+    assert never == pytest.approx({"table|1": 3 / 5, "shelf|2": 2 / 5})
+    # seen on the table at hour 0: stay 1/2 there, else the class frequency
+    assert seen_table == pytest.approx({"table|1": 0.5 + 0.5 * 3 / 5, "shelf|2": 0.5 * 2 / 5})
+    assert seen_again == seen_table  # last seen at hour 2, on the table again
+    # the cup was seen on the table at hour 0; no cup in training: every class pooled, 2+1 on
+    # tables and 2+1 on shelves
+    assert cup == pytest.approx({"table|1": 0.5 + 0.5 / 2, "shelf|2": 0.5 / 2})
+    assert vase == pytest.approx({"table|1": 1 / 2, "shelf|2": 1 / 2})  # never seen
+
+
+def test_a_dataset_allowed_everywhere_keeps_everything_else(tmp_path):
+    from flowmaps_jax.recorded.format import load_recorded, save_recorded
+
+    save_recorded(import_log(_written(LOG), warn=lambda line: None), tmp_path / "a")
+    sgm.allow_everywhere(tmp_path / "a", tmp_path / "b", True)
+    sgm.allow_everywhere(tmp_path / "a", tmp_path / "c", False)
+    (a,), (b,), (c,) = (load_recorded(tmp_path / n).environments for n in "abc")
+    assert not a.allowed.all() and b.allowed.all() and (c.allowed == a.allowed).all()
+    np.testing.assert_array_equal(b.location, a.location)
+    np.testing.assert_array_equal(b.not_at, a.not_at)
 
 
 def test_a_path_that_is_not_sgm_is_refused_naming_sgm(tmp_path, capsys):

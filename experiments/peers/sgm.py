@@ -2,6 +2,7 @@
 
     python experiments/peers/sgm.py --sgm PATH --sgm-python PY --out DIR \\
         [--scenes small,large] [--steps N] [--seeds 0] [--train-sim-steps N] [--train-steps N]
+        [--allowed all|training]
 
 SGM ("Modeling Dynamic Environments with Scene Graph Memory", Kurenkov et al., ICML 2023) is
 andreykurenkov/modeling_env_dynamics, GPL-3: it runs from the checkout ``--sgm`` under its own
@@ -21,10 +22,11 @@ to every part; the homes network takes at most that many objects), converted wit
 every shared query at τ_q = its hour from the log up to τ = τ_q − 1 (the look of τ_q comes after
 the query, as in SGM's loop). SGM's accuracy: the share of queries whose predicted receptacle
 holds an object of the query's description; FlowMaps and the count rows predict their most
-probable receptacle. A query FlowMaps cannot read (hour 0, an object never seen in the whole
-log, or a class the training log never showed) gets a uniform guess over the environment's
-receptacles (its expected accuracy and log score), counted in the table. Writes
-``DIR/results.md`` (printed) and ``DIR/results.json``.
+probable receptacle; an evaluation object may be on any receptacle of its scene (``--allowed
+training``: only on classes the training log saw its class on). A query a row cannot read (hour
+0, an object never seen in the whole log, a class the training log never showed, a scene larger
+than any trained on) gets :func:`log_fallback`'s guess from the logs (last seen, else the class
+frequency), counted in the table. Writes ``DIR/results.md`` (printed) and ``DIR/results.json``.
 """
 
 from __future__ import annotations
@@ -47,6 +49,8 @@ import numpy as np
 AGENTS = ("random", "priors", "memorization", "frequentist", "bayesian", "upper_bound")
 DRIVER = pathlib.Path(__file__).with_name("sgm_driver.py")
 P_FLOOR = 1e-9
+FALLBACK_ROW = "last seen, else class frequency"
+"""The row that answers every query with :func:`log_fallback`."""
 MAX_OBJECTS = 15
 """The homes network's objects per environment (flowmaps_jax.flowsim.homes.config)."""
 
@@ -121,13 +125,13 @@ def class_pairs(recorded) -> set:
     return pairs
 
 
-def readable(recorded, config, pairs: set) -> tuple[list, int]:
+def readable(recorded, config, pairs: set | None = None) -> tuple[list, int]:
     """``recorded``'s environments as the model can read them without the future: objects of
     classes ``config`` lacks removed (environments with such receptacle or room classes, larger
-    than ``config``'s homes, or with no object left, dropped), ``allowed`` the training log's
-    class ``pairs`` (every receptacle for an object with none; import-log's own comes from this
-    log's sightings, future ones included; a sighting outside them counts as unseen); and the
-    number of objects removed."""
+    than ``config``'s homes, or with no object left, dropped), ``allowed`` every receptacle, or
+    with ``pairs`` the training log's class pairs (every receptacle for an object with none; a
+    sighting outside them counts as unseen; import-log's own allowed comes from this log's
+    sightings, future ones included); and the number of objects removed."""
     voc = {f: {c.text for c in getattr(config, f)} for f in
            ("object_classes", "receptacle_classes", "room_types")}
     envs, removed = [], 0
@@ -143,7 +147,7 @@ def readable(recorded, config, pairs: set) -> tuple[list, int]:
             continue
         pick = functools.partial(_keep, keep)
         classes = pick(env.object_classes)
-        allowed = np.asarray([[(o, r) in pairs for r in env.receptacle_classes]
+        allowed = np.asarray([[pairs is None or (o, r) in pairs for r in env.receptacle_classes]
                               for o in classes]).reshape(len(classes), -1)
         allowed[~allowed.any(1)] = True
         location = pick(env.location)
@@ -164,8 +168,20 @@ def _keep(keep, a, axis=1):
     return None if a is None else np.compress(keep, a, axis)
 
 
+def allow_everywhere(source, target, everywhere: bool) -> None:
+    """The dataset ``source`` written to ``target``, with every object allowed on every
+    receptacle of its environment if ``everywhere`` (import-log allows only the class pairs
+    its log sighted, so a model trained on it never learns the moves that log did not show)."""
+    from flowmaps_jax.recorded.format import Recorded, load_recorded, save_recorded
+
+    envs = load_recorded(str(source)).environments
+    if everywhere:
+        envs = [dataclasses.replace(e, allowed=np.ones_like(e.allowed)) for e in envs]
+    save_recorded(Recorded(tuple(envs)), str(target))
+
+
 def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dict,
-                  batch: int = 16) -> dict:
+                  batch: int = 16, allowed: str = "all") -> dict:
     """{row: (probabilities {receptacle id: p} or None per query)} for FlowMaps and the
     reference rows (count rows fitted on the run's training part at horizon 1, the queries'),
     None where the row cannot read the query; ``removed``: objects of unknown classes."""
@@ -183,7 +199,8 @@ def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dic
     *_, train_part = realised.evaluation_part(train, predictor.homes, stored, str(train_data))
     fit = realised.fit_counts(train_part, predictor.homes, predictor.model.history, 1)
     every = load_recorded(str(eval_data))
-    envs, removed = readable(every, predictor.homes, class_pairs(train))
+    envs, removed = readable(every, predictor.homes,
+                             class_pairs(train) if allowed == "training" else None)
     recorded = Recorded(tuple(envs))
     index = {e.name: i for i, e in enumerate(envs)}
     asked = defaultdict(list)  # env index -> [(query number, object slot, hour)]
@@ -217,27 +234,57 @@ def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dic
             "step": predictor.step}
 
 
-def score_row(answers: list, queries: list[dict], part: dict, receptacles: dict) -> dict:
+def log_fallback(queries: list[dict], trace: list[dict], train: list[dict]) -> list[dict]:
+    """For each query, a guess from the logs alone: with probability ``stay`` where the object
+    was last seen before the query's hour (``trace``, the evaluation log), else (and for an
+    object never seen) the training log's frequency of the object's class on each receptacle
+    class of the scene (add-one; all classes pooled for a class it never showed). ``stay``: the
+    share of the training log's consecutive sightings of an object on the same receptacle."""
+    pairs, per_class, last, stays = defaultdict(float), defaultdict(float), {}, []
+    for r in train:
+        if r["object"]:
+            pairs[r["object_class"], r["receptacle_class"]] += 1
+            per_class[r["receptacle_class"]] += 1
+            key = (r["environment"], r["object"])
+            if key in last:
+                stays.append(last[key] == r["receptacle"])
+            last[key] = r["receptacle"]
+    stay = float(np.mean(stays)) if stays else 0.5
+    known = {o for o, _ in pairs}
+    scene, seen = defaultdict(dict), defaultdict(list)  # env -> {receptacle: class}; sightings
+    for r in trace:
+        scene[r["environment"]][r["receptacle"]] = r["receptacle_class"]
+        if r["object"]:
+            seen[r["environment"], r["object"]].append((int(r["timestamp"]), r["receptacle"]))
+    out = []
+    for q in queries:
+        receptacles, hour = scene[q["environment"]], int(q["timestamp"])
+        counts = {r: 1 + (pairs[q["object_class"], c] if q["object_class"] in known
+                          else per_class[c]) for r, c in receptacles.items()}
+        total = sum(counts.values())
+        guess = {r: n / total for r, n in counts.items()}
+        before = [r for h, r in seen[q["environment"], q["object"]] if h < hour]
+        if before:
+            guess = {r: (1 - stay) * p + stay * (r == before[-1]) for r, p in guess.items()}
+        out.append(guess)
+    return out
+
+
+def score_row(answers: list, queries: list[dict], fallback: list[dict]) -> dict:
     """SGM accuracy (the most probable receptacle; first on ties) and the mean log score of the
-    query object's receptacle over ``answers``; a query without an answer gets a uniform guess
-    over its environment's receptacles (none known: accuracy 0, log score at the floor)."""
-    acc, logs, fallback = [], [], 0
-    for a, q in zip(answers, queries, strict=True):
+    query object's receptacle over ``answers``; a query without an answer gets its
+    ``fallback`` guess (:func:`log_fallback`)."""
+    acc, logs, used = [], [], 0
+    for a, q, guess in zip(answers, queries, fallback, strict=True):
         correct = [q["receptacle"], *(c for c in q["receptacles"].split(";")
                                       if c != q["receptacle"])]
         if a is None:
-            fallback += 1
-            ids = receptacles.get(part.get((q["environment"], q["object"])), ())
-            hit = sum(c in ids for c in correct)
-            acc.append(hit / len(ids) if ids else 0.0)
-            logs.append(math.log(1 / len(ids)) if ids and correct[0] in ids
-                        else math.log(P_FLOOR))
-            continue
+            a, used = guess, used + 1
         best = max(a, key=a.get)
         acc.append(float(best in correct))
         logs.append(math.log(max(a.get(correct[0], 0.0), P_FLOOR)))
     return {"accuracy": float(np.mean(acc)), "log_score": float(np.mean(logs)),
-            "uniform_fallback": fallback}
+            "fallback": used}
 
 
 def sh(cmd: list[str], log, **kw) -> None:
@@ -283,21 +330,26 @@ def run_scenes(args, scenes: str, out: pathlib.Path) -> dict:
         write_csv(path, table)
         datasets[name] = out / f"{name}_data"
         if not (datasets[name] / "recorded.json").is_file():
+            sighted = out / f"{name}_data_sighted"
             sh([sys.executable, "-m", "flowmaps_jax.data", "import-log", str(path), "--out",
-                str(datasets[name]), "--no-progress"], log)
+                str(sighted), "--no-progress"], log)
+            allow_everywhere(sighted, datasets[name], args.allowed == "all")
     run_dir = out / "run"
     if not (run_dir / "checkpoints").is_dir():
         sh([sys.executable, "-m", "flowmaps_jax.train", "--data", str(datasets["train"]),
             "--run-dir", str(run_dir), "--steps", str(args.train_steps), "--no-progress",
             *(["--set", f"warmup_steps={args.train_steps // 5}"] if args.train_steps <= 200
               else [])], log)  # a smoke run: the recipe's warm-up (200 steps) shortened
-    answers = flowmaps_rows(run_dir, datasets["train"], datasets["eval"], queries, eval_part)
+    answers = flowmaps_rows(run_dir, datasets["train"], datasets["eval"], queries, eval_part,
+                            allowed=args.allowed)
+    fallback = log_fallback(queries, trace, read_csv(t / "trace.csv"))
+    answers["rows"][FALLBACK_ROW] = [None] * len(queries)
     rows = {a: {"own": float(np.mean(own[a])) if own.get(a) else None,
                 "shared": sgm_accuracy([q[a] for q in queries],
                                        [q["receptacles"] for q in queries])}
             for a in shared}
     for name, ans in answers["rows"].items():
-        rows[name] = {"own": None, **score_row(ans, queries, eval_part, answers["receptacles"])}
+        rows[name] = {"own": None, **score_row(ans, queries, fallback)}
     return {"queries": len(queries), "objects_of_unknown_class": answers["removed"],
             "flowmaps_step": answers["step"], "rows": rows}
 
@@ -310,12 +362,12 @@ def markdown(results: dict) -> str:
                   f"{r['flowmaps_step']}; {r['objects_of_unknown_class']} evaluation objects of "
                   "classes the training log never showed)", "",
                   "| agent | SGM accuracy, own looks | SGM accuracy, shared looks | log score "
-                  "(nats) | uniform fallbacks |", "| --- | --- | --- | --- | --- |"]
+                  "(nats) | log fallbacks |", "| --- | --- | --- | --- | --- |"]
         for name, row in r["rows"].items():
             f = lambda v, d=3: "–" if v is None else f"{v:.{d}f}"  # noqa: E731
             lines.append(f"| {name} | {f(row.get('own'))} | "
                          f"{f(row.get('shared', row.get('accuracy')))} | "
-                         f"{f(row.get('log_score'))} | {row.get('uniform_fallback', '–')} |")
+                         f"{f(row.get('log_score'))} | {row.get('fallback', '–')} |")
         lines.append("")
     return "\n".join(lines)
 
@@ -334,6 +386,9 @@ def main(argv=None) -> int:
     p.add_argument("--train-sim-steps", type=int, default=22000)
     p.add_argument("--train-steps", type=int, default=1500)
     p.add_argument("--observation-prob", type=float, default=1.0)
+    p.add_argument("--allowed", choices=("all", "training"), default="all",
+                   help="where an evaluation object may be: every receptacle of its scene, or "
+                   "those of the classes the training log saw its class on")
     args = p.parse_args(argv)
     try:
         args.sgm = check_sgm(args.sgm)
