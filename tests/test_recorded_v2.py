@@ -1,8 +1,11 @@
 """Recorded format v2 (issue 56): negative evidence (``not_at``) and scene graphs without
-geometry load, train, evaluate and search; v1 datasets load unchanged."""
+geometry load, train, evaluate and search; v1 datasets load unchanged. One load per run (issue
+55): that training reads, digests and splits its dataset once, and its evaluation reads the run's
+stored config once and the data once."""
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
 import zipfile
@@ -19,6 +22,7 @@ from flowmaps_jax.model import homes_inputs
 from flowmaps_jax.recorded import format as fmt
 from flowmaps_jax.recorded.format import Environment, Recorded, load_recorded, save_recorded
 from flowmaps_jax.recorded.from_homes import from_homes
+from flowmaps_jax.store import checkpoints
 from flowmaps_jax.training.config import recorded_config
 from flowmaps_jax.worlds import recorded as rw
 
@@ -181,19 +185,48 @@ def test_looks_reach_the_rows_of_the_network_as_computed_by_hand(v2_dir):
     assert np.asarray(batch.rows)[..., k:].any()
 
 
-def test_a_v2_scene_graph_with_looks_trains_evaluates_and_searches(v2_dir, tmp_path):
+@pytest.fixture
+def counted(monkeypatch):
+    """Calls of the data's read, digest and split and of the stored config's read, counted,
+    with nothing read before (as in a fresh process)."""
+    calls = collections.Counter()
+
+    def counting(module, name):
+        real = getattr(module, name)
+
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(module, name, wrapper)
+
+    for name in ("load_recorded", "content_digest", "split_environments"):
+        counting(rw, name)
+    counting(checkpoints, "stored_config")
+    rw._LOADED.clear()
+    return calls
+
+
+def test_a_v2_scene_graph_with_looks_trains_evaluates_and_searches(v2_dir, tmp_path, counted):
+    """Also one load per run: the training and the evaluation (each as in a process of its own)
+    read, digest and split the data once; the evaluation reads the stored config once."""
     run = tmp_path / "run"
     code, out = run_python_in_process(
         ["-m", "flowmaps_jax.train", "--preset", "smoke", "--data", str(v2_dir),
          "--run-dir", str(run), "--no-progress", "--steps", "4", "--set", "val_every=2",
          "--set", "ckpt_every=2", "--set", "log_every=1"], tmp_path)
     assert code == 0, out
+    assert counted == {"load_recorded": 1, "content_digest": 1, "split_environments": 1}
     model = json.loads((run / "config.json").read_text())["model"]
     assert model["negative_evidence"] and not model["geometry"]
+    counted.clear()
+    rw._LOADED.clear()  # evaluate in a process of its own
     code, out = run_python_in_process(
         ["-m", "flowmaps_jax.evaluate", "--checkpoint", str(run), "--out",
          str(tmp_path / "eval"), "--queries", "8", "--no-progress"], tmp_path)
     assert code == 0, out
+    assert counted == {"load_recorded": 1, "content_digest": 1, "split_environments": 1,
+                       "stored_config": 1}
     results = json.loads((tmp_path / "eval" / "results.json").read_text())
     ruled = results["ruled_out"]
     assert {"FlowMaps", "uniform over allowed", "last seen"} <= set(ruled)
