@@ -2,8 +2,9 @@
 
 Two models, each on boxes drawn from the protocol's smoothed q one step ahead:
 
-1. A route-head FlowMaps whose residual is zero (fresh weights): its flow carries noise exactly
-   onto a Gaussian mixture, so log p has a closed form to compare with.
+1. A route-head FlowMaps whose residual is zero (fresh weights, ``--preset``'s model size):
+   its flow carries noise exactly onto a Gaussian mixture, so log p has a closed form to
+   compare with.
 2. A trained model (``--checkpoint``, default the pretrained ``pretrained:flowmaps``).
 
 For each, the mean log p at increasing grid sizes with the paper's midpoint solver (uniform grid)
@@ -57,9 +58,11 @@ def main(argv=None) -> None:
     parser.add_argument("--draws", type=int, default=32, help="boxes from q per query")
     parser.add_argument("--midpoint", type=int, nargs="+", default=[10, 40, 160, 640])
     parser.add_argument("--accurate", type=int, nargs="+", default=[12, 24, 48, 96, 192])
+    parser.add_argument("--preset", default="cpu", choices=["smoke", "cpu", "paper"],
+                        help="the fresh route head's model size and world (smoke: a tiny check)")
     args = parser.parse_args(argv)
     grids = [("midpoint", args.midpoint), ("accurate", args.accurate)]
-    cfg = get_preset("cpu")
+    cfg = get_preset(args.preset)
     scenes = validation_split(cfg.flowsim, num_envs=args.envs)
     ev = build_eval_queries(scenes, cfg.flowsim, jax.random.key(3), kl_draws=args.draws,
                             horizon=1)

@@ -54,7 +54,9 @@ The rules (what runs, what is shortened, what is skipped and why):
 * **Each distinct command once.** A command the suite has already run (on this page or an
   earlier one) is not run again: its output (``--run-dir`` / ``--out``) is a copy of the first
   run's, kept aside when it ran (:class:`Ran`). Commands are compared after shortening, with their
-  output path left out and every input path that an earlier command made named by that command
+  output option left out (a training into its default run directory is the same command as one
+  into a named one; it has no copy to give a later command that names its output, which runs)
+  and every input path that an earlier command made named by that command
   (``runs/a/checkpoints`` and ``runs/b/checkpoints`` are the same input when ``runs/a`` and
   ``runs/b`` were made by the same command). Only commands that name their output, and trainings
   (their default run directory is new each time and nothing names it), are compared; a
@@ -311,9 +313,9 @@ class Ran:
         words = []
         for i, token in enumerate(cmd):
             path = (workdir / token).resolve() if token and i and token[0] != "-" else None
-            if i and cmd[i - 1] in OUTPUT_OPTIONS:
-                token = "<out>"
-            elif path is not None and path.exists():
+            if token in OUTPUT_OPTIONS or (i and cmd[i - 1] in OUTPUT_OPTIONS):
+                continue
+            if path is not None and path.exists():
                 origin = next((p for p in self.made if path == p or path.is_relative_to(p)), None)
                 token = (f"<{self.made[origin]}>/{path.relative_to(origin)}" if origin
                          else str(path))
@@ -328,7 +330,7 @@ class Ran:
         if out is not None:  # what it writes is no longer what made it
             self.made = {p: k for p, k in self.made.items()
                          if not (p == out.resolve() or p.is_relative_to(out.resolve()))}
-        if key in self.done and (out is None or not out.exists()):
+        if key in self.done and (out is None or (not out.exists() and self.done[key][1])):
             first, copy = self.done[key]
             if copy is not None:
                 shutil.copytree(copy, out, symlinks=True)
@@ -554,3 +556,5 @@ def test_each_distinct_command_runs_once(tmp_path):
     assert [(tmp_path / p / "v").read_text() for p in ("one/b", "one/c", "two/x", "two/y")] == [
         "0", "0+", "0", "0+"]
     assert sum("not run again (as at one.md:1)" in note for note in notes) == 3, notes
+    train = ["python", "-m", "flowmaps_jax.train", "--preset", "smoke"]
+    assert ran.key([*train, "--run-dir", "runs/a"], tmp_path)[0] == ran.key(train, tmp_path)[0]

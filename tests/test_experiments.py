@@ -91,9 +91,11 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
     "check_behaviour.py": (
         ["--smoke", "--out", "fingerprint.json", "--compare", "fingerprint.json"],
         r"^identical to fingerprint\.json \(atol 0\.0\)$", ["fingerprint.json"]),
-    # ~60 s: 1 environment, 2 draws, one grid size per solver, both models
+    # ~30 s: 1 environment, 2 draws, one grid size per solver, both models (the fresh route
+    # head at the smoke preset's size)
     "check_likelihood.py": (
-        ["--envs", "1", "--draws", "2", "--midpoint", "3", "--accurate", "3"],
+        ["--envs", "1", "--draws", "2", "--midpoint", "3", "--accurate", "3", "--preset",
+         "smoke"],
         rf"^pretrained:flowmaps \(step \d+\)\n.*\n^\s+midpoint\s+3\s+{NUM}.*\n^\s+accurate\s+3\s+"
         rf"{NUM}", []),
     # ~20 s: the preferences world, 2 environments
