@@ -1,6 +1,9 @@
 """Tests for flowmaps_jax.evaluation's protocol, report, figures and CLI: the protocol's queries,
 reference rows with known answers, the wiring of model rows, the report and figures, and
-``python -m flowmaps_jax.evaluate`` on a freshly trained checkpoint.
+``python -m flowmaps_jax.evaluate`` on a freshly trained checkpoint. The CLI on the shipped
+models (``--checkpoint pretrained:flowmaps --baseline pretrained:mlp ...``, docs/results.md's
+table) is README.md's command, run by tests/test_docs_commands.py; loading them by name is
+tests/test_pretrained.py's.
 
 Tiny models and a handful of environments; compiled functions are shared through module fixtures.
 """
@@ -308,21 +311,6 @@ def test_non_finite_samples_are_refused_not_scored(evalset, predictors):
                               progress=False)
 
 
-def test_cli_evaluates_the_shipped_models(tmp_path, capsys):
-    """``--checkpoint pretrained:flowmaps --baseline pretrained:mlp``: the command that
-    reproduces docs/results.md's table, at the sizes the documented commands run at in
-    tests/test_docs_commands.py (so that the two share compiled programs through the suite's
-    XLA cache): 2 environments, 4 samples, 4 KL draws, the accurate likelihood on 3 grid points
-    (its default 48-point solve runs slowly without most of XLA's optimisations)."""
-    code = main(["--checkpoint", "pretrained:flowmaps", "--baseline", "pretrained:mlp",
-                    "--num-envs", "2", "--samples", "4", "--kl-draws", "4", "--no-figures",
-                    "--likelihood-steps", "3", "--no-progress", "--out", str(tmp_path)])
-    assert code == 0
-    data = json.loads((tmp_path / "results.json").read_text())
-    assert {"FlowMaps", "MLP (mean)"} <= set(data["rows"])
-    assert data["rows"]["FlowMaps"]["info"]["source"] == "pretrained:flowmaps"
-
-
 def test_evaluate_cli_on_saved_checkpoints(tmp_path, capsys):
     """``python -m flowmaps_jax.evaluate`` on a FlowMaps and an MLP checkpoint as training saves
     them (training through the CLI is tests/test_training.py's; here the states are fresh)."""
@@ -346,5 +334,6 @@ def test_evaluate_cli_on_saved_checkpoints(tmp_path, capsys):
     assert list(data["rows"]) == ["oracle", "oracle samples", "smoothed-q samples", "last-seen",
                                   "uniform", "MLP (mean)", "FlowMaps"]
     assert data["rows"]["FlowMaps"]["info"]["step"] == 4
+    assert data["rows"]["FlowMaps"]["info"]["source"] == str(run / "checkpoints")
     assert data["protocol"]["num_queries"] == NUM_ENVS * SIM.num_objects
     assert "FlowMaps" in capsys.readouterr().out
