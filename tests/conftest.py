@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import atexit
 import functools
+import gc
 import os
 import pathlib
 import shutil
 import signal
 import tempfile
+import time
 
 # One persistent XLA compilation cache per test session, shared by the xdist workers and by the
 # subprocesses and notebook kernels the tests start (they inherit the environment): a function
@@ -46,6 +48,24 @@ import pytest
 from flowmaps_jax.flowsim import FlowSimConfig, Scenes, generate
 
 SMALL_NUM_ENVS = 256
+
+
+_collected = [time.monotonic()]
+
+
+@pytest.fixture(autouse=True)
+def _young_heap():
+    """Garbage collection during a test sees only the objects made in it (``gc.freeze`` of the
+    older ones): the store collects after every checkpoint read (store/checkpoints.py), and a
+    full collection of a session's heap (every compiled program: about 700,000 objects) takes
+    about a second. What died in earlier tests is collected between two tests, at most every
+    30 s."""
+    gc.freeze()
+    yield
+    gc.unfreeze()
+    if time.monotonic() - _collected[0] > 30:
+        gc.collect()
+        _collected[0] = time.monotonic()
 
 
 @pytest.fixture(scope="module")
