@@ -57,9 +57,10 @@ def toy_splits(cfg, log=print, mesh=None):
 
 
 def _queries(args):
-    """The toy model and 4 of its validation maps x 2 queries (tokens, queries, targets)."""
+    """The toy model and 4 draws from its validation maps x 2 queries (tokens, queries,
+    targets)."""
     model = load_model(args.checkpoint, args.which)
-    scenes = generate(jax.random.key(12), 4, model.flowsim)
+    scenes = generate(jax.random.key(12), toy_preset().val_envs, model.flowsim)  # toy_splits'
     batch = make_train_batch(jax.random.key(args.seed), scenes, 4, 2, model.flowsim)
     return model, batch
 
