@@ -35,9 +35,8 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "true")
 # XLA:CPU's newer fusion emitters take about twice as long to compile as the classic elemental
 # emitter (docs/results.md, "Test suite time", measured by bench_compile.py before issue 49).
-# Same programs, rounded differently in places (tests/test_distributed.py keeps the default
-# emitter for the two-device comparison its tolerances were measured with). Appended unless
-# XLA_FLAGS chooses.
+# Same programs, rounded differently in places (tests/multidevice's tolerances hold under both).
+# Appended unless XLA_FLAGS chooses.
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()

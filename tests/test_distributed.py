@@ -20,13 +20,8 @@ TESTS = pathlib.Path(__file__).parent
 
 def _forced_devices_env(count: int) -> dict[str, str]:
     env = dict(os.environ)
-    # XLA's default CPU emitter, not the suite's faster-compiling classic one (tests/conftest.py):
-    # the tolerances of tests/multidevice were measured with it (1.6e-7 between the parameters
-    # after 6 steps on 1 and 2 devices; the classic emitter sums in another order, 1.4e-5). Said
-    # explicitly, so that the child's conftest does not append the classic one again.
-    flags = env.get("XLA_FLAGS", "").replace("--xla_cpu_use_fusion_emitters=false",
-                                             "--xla_cpu_use_fusion_emitters=true")
-    env["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={count}".strip()
+    env["XLA_FLAGS"] = (f"{env.get('XLA_FLAGS', '')} "
+                        f"--xla_force_host_platform_device_count={count}").strip()
     env["FLOWMAPS_MULTIDEVICE"] = "1"
     env["JAX_PLATFORMS"] = "cpu"
     # These tests compare programs with each other, not with stored numbers: skipping most of

@@ -28,9 +28,12 @@ assert jax.device_count() == 2, "run with XLA_FLAGS=--xla_force_host_platform_de
 STEPS = 6
 SMOKE = apply_overrides(get_preset("smoke"), [f"steps={STEPS}", "routine_envs=0", "log_every=1",
                                               "val_every=3", "ckpt_every=3"])
-# Measured: 6e-8 (loss) and 1.6e-7 (params) between 1 and 2 devices after 6 steps; float
-# summation order is the only difference.
-LOSS_TOL, PARAM_TOL = 1e-5, 1e-5
+# Measured between 1 and 2 devices after 6 steps (float summation order is the only
+# difference): 1e-7 (loss, relative) and 1.4e-5 (state; Adam magnifies the rounding of tiny
+# gradients) with the suite's classic XLA:CPU emitter (tests/conftest.py), 6e-8 and 1.6e-7 with
+# the default fusion emitters. Adam moves a parameter by about lr = 1e-3 a step whatever the
+# scale of its gradient: a step with a wrong gradient is off by about that much.
+LOSS_TOL, PARAM_TOL = 1e-5, 1e-4
 
 
 def _train(tmp: pathlib.Path, devices: int, **kwargs):
@@ -107,7 +110,7 @@ def test_incompatible_checkpoint_is_a_value_error(runs):
                  log=lambda _: None)
 
 
-@pytest.mark.parametrize("num_envs", [7, 64])
+@pytest.mark.parametrize("num_envs", [63, 64])  # 63: padded to 64 on two devices
 def test_sharded_generate_equals_unsharded(num_envs):
     key = jax.random.key(5)
     whole = generate(key, num_envs)
@@ -121,14 +124,16 @@ def test_sharded_generate_equals_unsharded(num_envs):
 def test_sharded_sampling_and_evaluation_equal_unsharded():
     """Predictor.sample / log_prob split over both devices equal one device's, and so does the
     evaluation protocol built on them (6 environments in chunks of 3: padded to 4 on two
-    devices; the accurate likelihood on its smallest grid, as its default 48-point solve runs
-    slowly without most of XLA's optimisations). The direct calls use the protocol's shapes, so
-    both share compiled code."""
+    devices; the paper's likelihood only: the solver is inside the model's log_prob, which the
+    split wraps the same way for every solver). The direct calls use the protocol's shapes, so
+    both share compiled code; the scenes are 6 of 64, the size of the other tests' (one compiled
+    generator)."""
     from flowmaps_jax.evaluation import build_eval_queries, run_evaluation
     from flowmaps_jax.flowsim import FlowSimConfig, validation_split
 
     sim = FlowSimConfig()
-    scenes = validation_split(sim, num_envs=6, mesh=distributed.data_mesh())
+    scenes = jax.tree.map(lambda a: a[:6], validation_split(sim, SMOKE.val_envs,
+                                                            mesh=distributed.data_mesh()))
     params = perturb(init_params(jax.random.key(0), TINY), jax.random.key(1))
     one = Predictor.from_params(params, TINY)
     two = one.sharded()
@@ -139,13 +144,14 @@ def test_sharded_sampling_and_evaluation_equal_unsharded():
     keys = jax.random.split(jax.random.key(2), 3)
     a, b = (p.sample(part.tokens, part.queries, 4, keys) for p in (one, two))
     assert a.shape == b.shape == (3, 3, 4, 4)
-    np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=1e-6)
+    # Measured: 3.8e-6 (classic emitter; 0 with the fusion emitters), 4.4e-6 relative (log p).
+    np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=2e-5)
     np.testing.assert_allclose(np.asarray(two.log_prob(part.tokens, part.queries, part.kl_points)),
                                np.asarray(one.log_prob(part.tokens, part.queries, part.kl_points)),
-                               rtol=1e-5, atol=1e-5)  # measured: 2.8e-6 relative at most
+                               rtol=1e-5, atol=1e-5)
 
     reports = [run_evaluation([p], scenes, sim, None, seed=0, sample_counts=(4,), kl_draws=8,
-                              chunk_envs=3, likelihood_steps=3, figures=False,
+                              chunk_envs=3, likelihood_steps=None, figures=False,
                               progress=False)[0]
                for p in (one, two)]
     rows = [r["rows"] for r in reports]
