@@ -332,7 +332,7 @@ class Ran:
                          if not (p == out.resolve() or p.is_relative_to(out.resolve()))}
         if key in self.done and (out is None or (not out.exists() and self.done[key][1])):
             first, copy = self.done[key]
-            if copy is not None:
+            if copy is not None and out is not None:
                 shutil.copytree(copy, out, symlinks=True)
                 self.made[out.resolve()] = key
             return 0, "", f"{where}: {shlex.join(cmd)}  ->  not run again (as at {first})"
@@ -556,5 +556,25 @@ def test_each_distinct_command_runs_once(tmp_path):
     assert [(tmp_path / p / "v").read_text() for p in ("one/b", "one/c", "two/x", "two/y")] == [
         "0", "0+", "0", "0+"]
     assert sum("not run again (as at one.md:1)" in note for note in notes) == 3, notes
+
+def test_a_training_into_its_default_run_directory_is_the_same_command(tmp_path, monkeypatch):
+    """A training without ``--run-dir`` after the same into a named one is not run again; one
+    into a named run directory after the same without runs (there is no copy to give it)."""
+    calls = []
+
+    def fake_run(args, cwd):
+        calls.append(args)
+        out = pathlib.Path(cwd) / args[args.index("--run-dir") + 1] if "--run-dir" in args else None
+        if out is not None:
+            out.mkdir(parents=True)
+        return 0, ""
+
+    monkeypatch.setitem(globals(), "run_python_in_process", fake_run)
     train = ["python", "-m", "flowmaps_jax.train", "--preset", "smoke"]
-    assert ran.key([*train, "--run-dir", "runs/a"], tmp_path)[0] == ran.key(train, tmp_path)[0]
+    named = Ran(tmp_path / "named")
+    assert named.run([*train, "--run-dir", "runs/a"], tmp_path, "a.md:1")[2] is None
+    assert "not run again (as at a.md:1)" in named.run(train, tmp_path, "a.md:2")[2]
+    default = Ran(tmp_path / "default")
+    assert default.run(train, tmp_path, "b.md:1")[2] is None
+    assert default.run([*train, "--run-dir", "runs/b"], tmp_path, "b.md:2")[2] is None
+    assert len(calls) == 3 and (tmp_path / "runs" / "b").is_dir()
