@@ -6,14 +6,17 @@ should use this size to reuse the compiled function."""
 from __future__ import annotations
 
 import atexit
+import fcntl
 import functools
 import gc
+import json
 import os
 import pathlib
 import shutil
 import signal
 import tempfile
 import time
+import types
 
 # One persistent XLA compilation cache per test session, shared by the xdist workers and by the
 # subprocesses and notebook kernels the tests start (they inherit the environment): a function
@@ -99,17 +102,43 @@ collect_ignore_glob = [] if os.environ.get("FLOWMAPS_MULTIDEVICE") else ["multid
 
 # ------------------------------------------------------------------ one trained run per world
 
+def _shared_dir(tmp_path_factory, name: str) -> pathlib.Path:
+    """The folder ``name`` that every xdist worker of this session finds (in the parent of their
+    base temporary folders); a new one of this process's without xdist."""
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return tmp_path_factory.mktemp(name)
+    path = tmp_path_factory.getbasetemp().parent / name
+    path.mkdir(exist_ok=True)
+    return path
+
+
+def _made_once(root: pathlib.Path, name: str, make) -> dict:
+    """``root / name`` made by ``make()`` once per session: by the first process (xdist worker)
+    that asks, holding a lock, while the others wait. Returns the dict (JSON) ``make`` returned,
+    saved as ``name.json`` when it is done; a try that failed is removed and made again."""
+    record = root / f"{name}.json"
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file is closed
+        if not record.exists():
+            shutil.rmtree(root / name, ignore_errors=True)
+            made = json.dumps(make())
+            (root / f"{name}.json.tmp").write_text(made)
+            os.replace(root / f"{name}.json.tmp", record)
+        return json.loads(record.read_text())
+
+
 class SmokeRuns:
-    """A world's smoke preset trained once per test session (once per xdist worker), each run on
-    first use, through the train CLI in this process (:func:`support.run_python_in_process`):
+    """A world's smoke preset trained once per test session (the xdist workers share it: the
+    first to ask trains, :func:`_made_once`), each run on first use, through the train CLI in
+    this process (:func:`support.run_python_in_process`):
 
     * ``straight``: never stopped (its output ``printed``; ``saves``: the (folder, step) of every
       checkpoint write, in order);
     * ``stopped``: Ctrl-C (SIGINT from a step callback) at step ``stop_at``, not a multiple of
-      the checkpoint interval (``interrupted``: the loop's result);
+      the checkpoint interval (``interrupted``: the loop result's ``status`` and ``step``);
     * ``resumed``: a copy of ``stopped`` resumed to the end with ``--resume``.
 
-    A test that changes a run works on ``copy(name, tmp_path)``."""
+    Tests only read them; a test that changes a run works on ``copy(name, tmp_path)``."""
 
     def __init__(self, root: pathlib.Path, args: list[str], stop_at: int):
         self.root, self.args, self.stop_at = root, args, stop_at
@@ -132,16 +161,20 @@ class SmokeRuns:
         from flowmaps_jax.store.checkpoint_store import CheckpointStore
         from flowmaps_jax.worlds import flowsim
 
-        flowsim._SPLIT_CACHE.clear()  # the split is generated (and said) by this run
-        self.saves, write = [], CheckpointStore._write
+        def make():
+            flowsim._SPLIT_CACHE.clear()  # the split is generated (and said) by this run
+            saves, write = [], CheckpointStore._write
 
-        def counted(store, manager, step, *args, **kwargs):
-            write(store, manager, step, *args, **kwargs)
-            self.saves.append((pathlib.Path(str(manager.directory)).name, step))
+            def counted(store, manager, step, *args, **kwargs):
+                write(store, manager, step, *args, **kwargs)
+                saves.append((pathlib.Path(str(manager.directory)).name, step))
 
-        with pytest.MonkeyPatch.context() as patch:
-            patch.setattr(CheckpointStore, "_write", counted)
-            self.printed = self._train("straight", *self.args)
+            with pytest.MonkeyPatch.context() as patch:
+                patch.setattr(CheckpointStore, "_write", counted)
+                return {"printed": self._train("straight", *self.args), "saves": saves}
+
+        made = _made_once(self.root, "straight", make)
+        self.printed, self.saves = made["printed"], [tuple(save) for save in made["saves"]]
         return self.root / "straight"
 
     @functools.cached_property
@@ -152,14 +185,23 @@ class SmokeRuns:
             if step == self.stop_at:
                 os.kill(os.getpid(), signal.SIGINT)
 
-        self.interrupted = loop.run(self.cfg, self.root / "stopped", on_step=ctrl_c,
-                                    progress=False, log=lambda _: None)
+        def make():
+            result = loop.run(self.cfg, self.root / "stopped", on_step=ctrl_c, progress=False,
+                              log=lambda _: None)
+            return {"status": result.status, "step": result.step}
+
+        self.interrupted = types.SimpleNamespace(**_made_once(self.root, "stopped", make))
         return self.root / "stopped"
 
     @functools.cached_property
     def resumed(self) -> pathlib.Path:
-        shutil.copytree(self.stopped, self.root / "resumed")
-        self.resumed_printed = self._train("resumed", "--resume")
+        stopped = self.stopped
+
+        def make():
+            shutil.copytree(stopped, self.root / "resumed")
+            return {"printed": self._train("resumed", "--resume")}
+
+        self.resumed_printed = _made_once(self.root, "resumed", make)["printed"]
         return self.root / "resumed"
 
     def copy(self, name: str, tmp_path: pathlib.Path) -> pathlib.Path:
@@ -170,7 +212,7 @@ class SmokeRuns:
 @pytest.fixture(scope="session")
 def flowsim_runs(tmp_path_factory) -> SmokeRuns:
     """The 2-D FlowSim ``smoke`` preset (20 steps; Ctrl-C at 12: last/ holds 10 and 12)."""
-    return SmokeRuns(tmp_path_factory.mktemp("flowsim-runs"), ["--preset", "smoke"], 12)
+    return SmokeRuns(_shared_dir(tmp_path_factory, "flowsim-runs"), ["--preset", "smoke"], 12)
 
 
 @pytest.fixture
@@ -182,12 +224,13 @@ def at12(flowsim_runs, tmp_path) -> pathlib.Path:
 @pytest.fixture(scope="session")
 def homes_runs(tmp_path_factory) -> SmokeRuns:
     """FlowSim homes, ``homes-smoke`` (6 steps; Ctrl-C at 4: last/ holds 3 and 4)."""
-    return SmokeRuns(tmp_path_factory.mktemp("homes-runs"), ["--preset", "homes-smoke"], 4)
+    return SmokeRuns(_shared_dir(tmp_path_factory, "homes-runs"), ["--preset", "homes-smoke"], 4)
 
 
 @pytest.fixture(scope="session")
 def recorded_data(tmp_path_factory) -> pathlib.Path:
-    """3 FlowSim homes x 72 hours as a recorded dataset, 30 % of the object-hours masked."""
+    """3 FlowSim homes x 72 hours as a recorded dataset, 30 % of the object-hours masked (made
+    once per session, :func:`_made_once`)."""
     from flowmaps_jax.flowsim.homes import HomesConfig, generate_homes
     from flowmaps_jax.recorded.format import save_recorded
     from flowmaps_jax.recorded.from_homes import from_homes
@@ -195,16 +238,21 @@ def recorded_data(tmp_path_factory) -> pathlib.Path:
     config = HomesConfig(regime="mixed", num_hours=72,
                          rooms=("kitchen", "living_room", "bedroom", "bathroom"),
                          objects_per_home=(4, 6))
-    path = tmp_path_factory.mktemp("recorded") / "data"
-    save_recorded(from_homes(generate_homes(jax.random.key(0), config, 3), config,
-                             mask_fraction=0.3, seed=0), path)
-    return path
+    root = _shared_dir(tmp_path_factory, "recorded")
+
+    def make():
+        save_recorded(from_homes(generate_homes(jax.random.key(0), config, 3), config,
+                                 mask_fraction=0.3, seed=0), root / "data")
+        return {}
+
+    _made_once(root, "data", make)
+    return root / "data"
 
 
 @pytest.fixture(scope="session")
 def recorded_runs(tmp_path_factory, recorded_data) -> SmokeRuns:
     """``--preset smoke --data`` on :func:`recorded_data`, 4 steps, a checkpoint every 2
     (Ctrl-C at 3: last/ holds 2 and 3)."""
-    return SmokeRuns(tmp_path_factory.mktemp("recorded-runs"), [
+    return SmokeRuns(_shared_dir(tmp_path_factory, "recorded-runs"), [
         "--preset", "smoke", "--data", str(recorded_data), "--steps", "4", "--set",
         "val_every=2", "--set", "ckpt_every=2", "--set", "log_every=1"], 3)
