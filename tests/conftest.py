@@ -70,6 +70,14 @@ def _young_heap():
         _collected[0] = time.monotonic()
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _collected_at_the_end():
+    """What is left is collected while the last test ends, not after it: an xdist worker still
+    busy 5 s after it is told to stop gets a SIGINT (execnet), which can land in a gc callback."""
+    yield
+    gc.collect()
+
+
 @pytest.fixture(scope="module")
 def fast_compiled_module():
     """For a module that compiles under ``support.fast_compile``: JAX's caches are dropped when
