@@ -303,7 +303,8 @@ def test_a_few_dozen_steps_lower_the_loss(homes):
         updates, opt_state = tx.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, aux
 
-    params, opt_state = state.params, tx.init(state.params)
+    # committed to the device as step's outputs are: one compiled step, not a second for them
+    params, opt_state = jax.device_put((state.params, tx.init(state.params)), jax.devices()[0])
     _, _, before = step(params, opt_state)
     for _ in range(cfg.steps):
         params, opt_state, aux = step(params, opt_state)
