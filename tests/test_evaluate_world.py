@@ -248,18 +248,19 @@ def test_cli_evaluates_a_history_model_on_another_world(tmp_path, capsys):
     with CheckpointStore(run / "checkpoints", keep_last=1) as store:
         store.save(train_state.init_state(cfg), cfg.to_dict())
     out = tmp_path / "eval"
+    # NUM_ENVS environments in one chunk, as mixed_report: the same compiled programs
     code = main(["--checkpoint", str(run), "--world", "preferences", "--history", "3",
-                 "--num-envs", "3", "--samples", "4", "--kl-draws", "4", "--likelihood-steps",
-                 "0", "--no-figures", "--no-progress", "--out", str(out)])
+                 "--num-envs", str(NUM_ENVS), "--samples", "4", "--kl-draws", "4",
+                 "--likelihood-steps", "0", "--no-figures", "--no-progress", "--out", str(out)])
     assert code == 0, capsys.readouterr().err
     data = json.loads((out / "results.json").read_text())
     assert data["protocol"]["world"] == "preferences" and data["protocol"]["history"] == 3
     assert list(data["by_habit"]) == ["preferences"]
-    assert data["by_habit"]["preferences"]["count"] == 3 * SIM.num_objects
+    assert data["by_habit"]["preferences"]["count"] == NUM_ENVS * SIM.num_objects
     assert {"exact, H = 1", "empirical frequency, H = 3", "FlowMaps (H = 2)"} <= set(data["rows"])
     printed = capsys.readouterr().out
     assert "of the preferences world" in printed
-    assert f"## Habit: preferences ({3 * SIM.num_objects} queries, @4)" in printed
+    assert f"## Habit: preferences ({NUM_ENVS * SIM.num_objects} queries, @4)" in printed
     assert "route offsets" not in printed  # no object on a routine: no routine diagnostic
 
 
