@@ -96,10 +96,10 @@ def test_routine_world_with_one_map_is_the_papers_protocol():
 
 
 def test_routine_report_has_no_habit_sections(predictors, tmp_path):
-    scenes = validation_split(SIM, num_envs=2)
+    scenes = validation_split(SIM, num_envs=NUM_ENVS)  # the scenes of the test above
     results, rows, evalset = ev.run_evaluation(
         [predictors[0]], scenes, SIM, tmp_path, sample_counts=COUNTS, kl_draws=KL_DRAWS,
-        likelihood_steps=None, figures=False, progress=False)
+        chunk_envs=NUM_ENVS, likelihood_steps=None, figures=False, progress=False)
     assert evalset.habit is None
     assert [r.name for r in rows] == [*ev.REFERENCE_ROWS, "FlowMaps"]
     assert "by_habit" not in results
