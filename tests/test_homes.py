@@ -425,7 +425,8 @@ def test_history_posterior_matches_enumeration_of_the_whole_process(request, con
             if REGIMES[r] == "preferences":  # the test can fail: the window alone is wrong
                 window_only, _ = _enumerated_posteriors(home, m, tau, tau_q, config, False)
                 differs = max(differs, np.abs(window_only - want).max())
-                weights = np.asarray(favourite_weights(home, m, tau, 5, config))
+                weights = np.asarray(jax.jit(favourite_weights, static_argnums=(3, 4))(
+                    home, m, tau, 5, config))  # one compiled program, not one per operation
                 np.testing.assert_allclose(weights.sum(-1), 1.0, atol=1e-6)
             else:  # Markov: the history changes nothing
                 np.testing.assert_allclose(got, np.broadcast_to(
