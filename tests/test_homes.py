@@ -366,14 +366,15 @@ def _doc_law(home, m, config: HomesConfig):
 
 
 def _enumerated_posteriors(home, m, tau, tau_q, config: HomesConfig, from_hour_0: bool = True,
-                           seen=None):
+                           seen=None, first=None):
     """(τ + 1, n) float64: row a is P(s_{τ_q} = cycle position j | s_a … s_τ), by brute force
     over the whole generative process: every favourite assignment (uniform), the uniform start
     at hour 0 and every path, as one forward pass over the joint (assignment, state) that
     multiplies in each observation of the window. ``from_hour_0=False`` starts the joint at
     hour a instead (the window's transitions only: the formula issue 46 found wrong). With
     ``seen`` ((τ + 1,) bool), the law is known (the home's own favourites only) and only the
-    hours ``seen`` marks are observed (row 0: the known-parameters filter's posterior)."""
+    hours ``seen`` marks are observed (row 0: the known-parameters filter's posterior). With
+    ``first`` (ints), only those rows a, in that order."""
     favs, step, cycle = _doc_law(home, m, config)
     n = cycle.size
     where = {int(rec): i for i, rec in enumerate(cycle)}
@@ -382,8 +383,9 @@ def _enumerated_posteriors(home, m, tau, tau_q, config: HomesConfig, from_hour_0
         mine = [where.get(int(f), -1) for f in np.asarray(home.favourite[m])]
         favs = favs[np.all(favs == mine, axis=1)]
     seen = np.ones(tau + 1, bool) if seen is None else seen
-    first = np.arange(tau + 1)  # the window's first hour a (history τ + 1 − a)
-    p = np.full((tau + 1, len(favs), n), 1.0 / (len(favs) * n))
+    # the window's first hour a (history τ + 1 − a); each row is its own forward pass
+    first = np.arange(tau + 1) if first is None else np.asarray(first)
+    p = np.full((first.size, len(favs), n), 1.0 / (len(favs) * n))
     for t in range(tau_q):
         if t <= tau and seen[t]:
             p[first <= t] *= np.eye(n)[s[t]]
@@ -478,8 +480,9 @@ def test_history_posterior_matches_rejection_sampling_of_the_generator(homes):
         p = np.asarray(homes_history_posterior(home, m, tau, tau_q, history, CONFIG), np.float64)
         se = np.sqrt(np.maximum(p * (1 - p), 1e-12) / accepted)
         assert np.all(np.abs(freq - p) <= 4 * se + 1e-4), (tau, freq, p)
-        window_only, cycle = _enumerated_posteriors(home, m, tau, tau_q, CONFIG, False)
-        old = window_only[tau - history + 1]
+        window_only, cycle = _enumerated_posteriors(home, m, tau, tau_q, CONFIG, False,
+                                                    first=[tau - history + 1])
+        old = window_only[0]
         z = np.abs(freq[cycle] - old) / np.sqrt(old * (1 - old) / accepted)
         assert z.max() > 10, (freq[cycle], old)
 
