@@ -198,8 +198,7 @@ def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dic
     train, _ = rw.load_data(str(train_data))
     *_, train_part = realised.evaluation_part(train, predictor.homes, stored, str(train_data))
     fit = realised.fit_counts(train_part, predictor.homes, predictor.model.history, 1)
-    every = load_recorded(str(eval_data))
-    envs, removed = readable(every, predictor.homes,
+    envs, removed = readable(load_recorded(str(eval_data)), predictor.homes,
                              class_pairs(train) if allowed == "training" else None)
     recorded = Recorded(tuple(envs))
     index = {e.name: i for i, e in enumerate(envs)}
@@ -229,9 +228,7 @@ def flowmaps_rows(run_dir, train_data, eval_data, queries: list[dict], part: dic
                 ids = envs[e].receptacle_ids
                 for col, (n, _, _) in enumerate(asked[e]):
                     out[name][n] = {ids[r]: float(p[row, col, r]) for r in range(len(ids))}
-    return {"rows": dict(out), "removed": removed,
-            "receptacles": {e.name: e.receptacle_ids for e in every.environments},
-            "step": predictor.step}
+    return {"rows": dict(out), "removed": removed, "step": predictor.step}
 
 
 def log_fallback(queries: list[dict], trace: list[dict], train: list[dict]) -> list[dict]:
