@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import json
 import zipfile
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from support import run_python_in_process
@@ -154,6 +154,14 @@ def test_bad_looks_in_memory_are_refused_naming_the_field(tmp_path):
     assert not (tmp_path / "d").exists()
 
 
+@functools.partial(jax.jit, static_argnums=(2, 3))
+def _with_and_without_looks(homes, queries, config, history, observed, not_at):
+    """The training batch with the negative features, and without (one compiled program)."""
+    return (homes_inputs.shared_tau_batch(homes, queries, config, history, observed, not_at,
+                                          True),
+            homes_inputs.shared_tau_batch(homes, queries, config, history, observed))
+
+
 def test_looks_reach_the_rows_of_the_network_as_computed_by_hand(v2_dir):
     recorded = load_recorded(v2_dir)
     cfg = recorded_config("smoke", str(v2_dir))
@@ -163,14 +171,13 @@ def test_looks_reach_the_rows_of_the_network_as_computed_by_hand(v2_dir):
     picks = [np.argwhere(not_at[e, 5:-1].any(-1))[:4] for e in range(data.num_homes)]
     obj = np.stack([p[:, 1] for p in picks])  # (E, 4) objects looked for at hours tau
     tau = np.stack([p[:, 0] + 5 for p in picks])
-    queries = HomesQueries(*(jnp.asarray(a, jnp.int32) for a in (obj, tau, tau + 1)))
+    queries = HomesQueries(*(np.asarray(a, np.int32) for a in (obj, tau, tau + 1)))
     h = cfg.model.history
-    batch = homes_inputs.shared_tau_batch(data.homes, queries, cfg.homes, h, data.observed,
-                                          data.not_at, True)
-    plain = homes_inputs.shared_tau_batch(data.homes, queries, cfg.homes, h, data.observed)
-    k = len(homes_inputs.ROW_FEATURES)
-    assert batch.rows.shape[-1] == k + len(homes_inputs.NEGATIVE_FEATURES)
-    np.testing.assert_array_equal(batch.rows[..., :k], plain.rows)
+    batch, plain = _with_and_without_looks(data.homes, queries, cfg.homes, h, data.observed,
+                                           data.not_at)
+    rows, k = np.asarray(batch.rows), len(homes_inputs.ROW_FEATURES)
+    assert rows.shape[-1] == k + len(homes_inputs.NEGATIVE_FEATURES)
+    np.testing.assert_array_equal(rows[..., :k], plain.rows)
     for ee, j in np.ndindex(obj.shape):
         o, tq = int(obj[ee, j]), int(tau[ee, j])
         allowed = np.asarray(data.homes.object_allowed)[ee, o]
@@ -180,9 +187,9 @@ def test_looks_reach_the_rows_of_the_network_as_computed_by_hand(v2_dir):
             looks = [s for s in range(max(0, tq - h + 1), tq + 1) if not_at[ee, s, o, r]]
             since = float(bool(looks) and looks[-1] > last)
             recency = 1 - np.log1p(tq - looks[-1]) / np.log1p(h) if looks else 0.0
-            np.testing.assert_allclose(np.asarray(batch.rows)[ee, j, r, k:],
+            np.testing.assert_allclose(rows[ee, j, r, k:],
                                        np.array([since, recency]) * allowed[r], atol=1e-6)
-    assert np.asarray(batch.rows)[..., k:].any()
+    assert rows[..., k:].any()
 
 
 @pytest.fixture
