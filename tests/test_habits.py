@@ -93,15 +93,16 @@ def test_matrices_match_numpy_and_are_stochastic():
     centres = rng.uniform(0, 1, (f, 2)).astype(np.float32)
     params = sim_params(cfg)
     _family, _favourites, needs = hb.hypothesis_table(f)
+    both = jax.jit(lambda k: (hb.transition_matrices(k, centres, params),  # one program
+                              hb.habit_prior(k, cfg.habit_probs, f)))
     for k in (1, 3, 4):
-        got = np.asarray(hb.transition_matrices(np.int32(k), centres, params))
+        got, got_prior = (np.asarray(a) for a in both(np.int32(k)))
         exists = needs <= k
         want, prior = np_hypotheses(k, f, centres.astype(np.float64), cfg.habit_probs, cfg)
         np.testing.assert_allclose(got[exists], want, atol=1e-6)
         np.testing.assert_allclose(got[exists][:, :k].sum(-1), 1.0, atol=1e-6)
-        np.testing.assert_allclose(
-            np.asarray(hb.habit_prior(np.int32(k), cfg.habit_probs, f))[exists], prior, atol=1e-7)
-        assert not np.any(np.asarray(hb.habit_prior(np.int32(k), cfg.habit_probs, f))[~exists])
+        np.testing.assert_allclose(got_prior[exists], prior, atol=1e-7)
+        assert not np.any(got_prior[~exists])
 
 
 # ------------------------------------------------------ the posterior against enumeration
@@ -185,23 +186,27 @@ def test_history_sharpens_the_preferences_posterior(mixed):
 # ------------------------------------------------------- rollouts against the step laws
 
 
-def _own_matrices(cfg, scenes):
+@pytest.fixture(scope="module")
+def own_matrices(mixed):
+    """(env, obj, own (N, F, F) float64, family (N,)): the matrix of the habit drawn for each
+    of the first three objects of every mixed environment."""
+    cfg, scenes = mixed
     env, obj = np.meshgrid(np.arange(scenes.num_envs), np.arange(3), indexing="ij")
     env, obj = env.ravel(), obj.ravel()
-    mats, _ = hb.scene_hypotheses(scenes, cfg, env, obj)
     habit = np.asarray(scenes.habit)[env, obj]
-    own = np.asarray(mats, np.float64)[np.arange(env.size), habit]  # (N, F, F)
+    own = jax.jit(lambda s, e, o, h: hb.scene_hypotheses(s, cfg, e, o)[0][np.arange(env.size), h])
+    own = np.asarray(own(scenes, env, obj, habit), np.float64)  # (N, F, F); one program
     family = hb.hypothesis_table(cfg.num_furniture)[0][habit]
     return env, obj, own, family
 
 
-def test_rollouts_follow_their_habit_matrices(mixed):
+def test_rollouts_follow_their_habit_matrices(mixed, own_matrices):
     """Monte Carlo: every step (slot -> next) of 4,096 mixed-world environments against its
     object's own matrix row: per family, the mean of onehot(next) − P[slot] is zero within 5
     standard errors; habit families are drawn with the config's weights."""
     cfg, scenes = mixed
     f = cfg.num_furniture
-    env, obj, own, family = _own_matrices(cfg, scenes)
+    env, obj, own, family = own_matrices
     slots = np.asarray(scenes.slot)[env, :, obj]  # (N, T)
     share = np.bincount(family, minlength=3) / family.size
     # the dynamic habit's matrix is built over SimShape.max_places places: K never exceeds it
@@ -216,12 +221,12 @@ def test_rollouts_follow_their_habit_matrices(mixed):
         assert np.all(np.abs(residual.mean(axis=(0, 1))) <= 5 * se + 1e-6), fam
 
 
-def test_rollouts_reach_the_stationary_law(mixed):
+def test_rollouts_reach_the_stationary_law(mixed, own_matrices):
     """Preferences and dynamic objects forget their start within 19 steps: the slot at the last
     timestep follows each object's stationary distribution (left eigenvector of its matrix),
     within 5 binomial standard errors per (family, K); the preferences stationary law is π."""
     cfg, scenes = mixed
-    env, obj, own, family = _own_matrices(cfg, scenes)
+    env, obj, own, family = own_matrices
     k = np.asarray(scenes.num_slots)[env, obj]
     own = own / np.maximum(own.sum(-1, keepdims=True), 1e-12)  # float32 rows, renormalised
     stationary = np.stack([np.linalg.matrix_power(m, 256)[0] for m in own])
