@@ -1,9 +1,14 @@
 """The notebooks in experiments/ run end to end and produce their key outputs.
 
-Each notebook is executed at most once per module, when the first test that needs it runs (so
-``-m "not slow"`` does not pay for the slow one), in its own temporary working directory, with
-nbclient and the "python3" kernel of this venv.
-The kernels run with ``JAX_DISABLE_MOST_OPTIMIZATIONS=true``: compilation dominates these small
+The module's notebooks run one after the other in ONE "python3" kernel of this venv (nbclient),
+started when the first notebook is needed and shut down at the end of the module, so they share
+its imports and its in-memory compiled programs. Each notebook is executed at most once per
+module, when the first test that needs it runs (so ``-m "not slow"`` does not pay for the slow
+one), top to bottom in a clean namespace (``%reset -f`` first) with its own temporary directory as
+working directory. A notebook's failure (its error, a cell over ``CELL_TIMEOUT``, a dead kernel) is
+raised by that notebook's tests only; the kernel is then shut down and the next notebook gets a
+fresh one.
+The kernel runs with ``JAX_DISABLE_MOST_OPTIMIZATIONS=true``: compilation dominates these small
 runs and skipping most of XLA's optimisation passes about halves it (the programs are the same,
 only their machine code is less optimised); ``kl_plots.ipynb`` turns it on for ``smoke`` anyway.
 ``kl_plots.ipynb`` runs with its default parameters: the ``smoke`` preset (it trains FlowMaps and
@@ -22,6 +27,8 @@ import re
 import nbformat
 import numpy as np
 import pytest
+from jupyter_client.manager import AsyncKernelManager
+from jupyter_core.utils import run_sync
 from nbclient import NotebookClient
 
 EXPERIMENTS = pathlib.Path(__file__).resolve().parents[1] / "experiments"
@@ -35,28 +42,52 @@ CELL_TIMEOUT = 900  # seconds; a cold kernel on a loaded 2-core machine compiles
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
-def _execute(name: str, workdir: pathlib.Path) -> nbformat.NotebookNode | Exception:
-    """Execute one notebook in its working directory. A failure is returned (and raised by the
-    tests of that notebook), not raised here."""
-    notebook = nbformat.read(EXPERIMENTS / name, as_version=4)
-    client = NotebookClient(notebook, kernel_name="python3", timeout=CELL_TIMEOUT,
-                            resources={"metadata": {"path": str(workdir)}})
-    try:
-        client.execute(env=dict(os.environ, JAX_DISABLE_MOST_OPTIMIZATIONS="true"))
-    except Exception as err:
-        return err
-    return notebook
+class _Kernel:
+    """The module's kernel: started by the first notebook run, replaced after a failed one."""
+
+    def __init__(self):
+        self.km: AsyncKernelManager | None = None
+
+    def execute(self, name: str, workdir: pathlib.Path) -> nbformat.NotebookNode | Exception:
+        """Execute one notebook in a clean namespace in its working directory. A failure is
+        returned (and raised by the tests of that notebook), not raised here."""
+        notebook = nbformat.read(EXPERIMENTS / name, as_version=4)
+        # Leaves no name behind: a notebook that forgets an import still fails.
+        notebook.cells.insert(0, nbformat.v4.new_code_cell(
+            f"%reset -f\n__import__('os').chdir({str(workdir)!r})"))
+        if self.km is None:
+            self.km = AsyncKernelManager(kernel_name="python3")
+        client = NotebookClient(notebook, km=self.km, timeout=CELL_TIMEOUT,
+                                resources={"metadata": {"path": str(workdir)}})
+        try:  # the environment applies when this call starts the kernel
+            client.execute(env=dict(os.environ, JAX_DISABLE_MOST_OPTIMIZATIONS="true"))
+        except Exception as err:
+            self.shutdown()  # it may still be running the failed cell
+            return err
+        finally:
+            if client.kc is not None:
+                client.kc.stop_channels()
+        del notebook.cells[0]
+        return notebook
+
+    def shutdown(self):
+        """Kill the kernel (a graceful shutdown waits seconds for its exit; nothing is lost: each
+        notebook's files are written by the time its last cell returns)."""
+        if self.km is not None and self.km.has_kernel:
+            run_sync(self.km.shutdown_kernel)(now=True)
+        self.km = None
 
 
 class _Executed(dict):
     """name -> executed notebook (or its failure), run on first access."""
 
-    def __init__(self, workdirs: dict[str, pathlib.Path]):
+    def __init__(self, kernel: _Kernel, workdirs: dict[str, pathlib.Path]):
         super().__init__()
+        self.kernel = kernel
         self.workdirs = workdirs
 
     def __missing__(self, name: str):
-        self[name] = _execute(name, self.workdirs[name])
+        self[name] = self.kernel.execute(name, self.workdirs[name])
         return self[name]
 
 
@@ -66,8 +97,12 @@ def workdirs(tmp_path_factory) -> dict[str, pathlib.Path]:
 
 
 @pytest.fixture(scope="module")
-def executed(workdirs) -> dict:
-    return _Executed(workdirs)
+def executed(workdirs):
+    kernel = _Kernel()
+    try:
+        yield _Executed(kernel, workdirs)
+    finally:
+        kernel.shutdown()
 
 
 def _notebook(executed: dict, name: str) -> nbformat.NotebookNode:
