@@ -28,6 +28,7 @@ from flowmaps_jax.tokens import FURNITURE
 
 SIM = FlowSimConfig()
 MIXTURE = dataclasses.replace(TINY, head="mixture", weight_blocks=1)
+GEOMETRY = jax.jit(mixture.relative_geometry, static_argnames="angle")  # one program per shape
 
 
 @pytest.fixture(scope="module")
@@ -47,15 +48,20 @@ def fresh():
 
 def _closed_form(predictor, part):
     """log Σ_s π_s N(z_s; 0, I) / Π scale over every table (the zero flow's exact density)."""
-    tokens, queries = canonical_inputs(part.tokens, part.queries)
-    context = encode(predictor.params, MIXTURE, tokens)
-    log_w = jax.nn.log_softmax(table_logits(predictor.params, MIXTURE, context, queries), -1)
+    return np.asarray(_closed_form_kernel(predictor.params,
+                                          *canonical_inputs(part.tokens, part.queries),
+                                          part.kl_points))
+
+
+@jax.jit  # one program, not one per operation
+def _closed_form_kernel(params, tokens, queries, x):
+    context = encode(params, MIXTURE, tokens)
+    log_w = jax.nn.log_softmax(table_logits(params, MIXTURE, context, queries), -1)
     means, scale, _ = mixture.placement_frame(context, queries.descriptor)
-    x = jnp.asarray(part.kl_points)
     z = (mixture.to_centre(x)[:, :, :, None] - means[:, :, None]) / scale[:, :, None, None]
     log_n = -0.5 * jnp.sum(z ** 2 + jnp.log(2 * jnp.pi), -1) + mixture.local_log_det(scale)[
         ..., None]
-    return np.asarray(jax.nn.logsumexp(log_n + log_w[:, :, None], axis=-1))
+    return jax.nn.logsumexp(log_n + log_w[:, :, None], axis=-1)
 
 
 def test_weights_are_a_distribution_over_the_tables(evalset, fresh):
@@ -108,19 +114,23 @@ def test_sample_with_log_prob_matches_log_prob(evalset, fresh):
 
 
 def test_frame_round_trip_and_start_table(evalset):
-    tokens, queries = canonical_inputs(evalset.tokens, evalset.queries)
-    params = init_params(jax.random.key(0), MIXTURE)
-    context = encode(params, MIXTURE, tokens)
-    means, scale, start = mixture.placement_frame(context, queries.descriptor)
-    box = jnp.asarray(evalset.kl_points[:, :, :3])
-    rows = jnp.broadcast_to(start[..., None], box.shape[:3])
-    local = mixture.to_local(box, mixture.gather_rows(means, rows), scale)
-    back = mixture.from_local(local, mixture.gather_rows(means, rows), scale)
-    np.testing.assert_allclose(np.asarray(back), np.asarray(box), atol=1e-6)
+    @jax.jit  # one program, not one per operation
+    def frames(params, tokens, queries, box, slots):
+        context = encode(params, MIXTURE, tokens)
+        means, scale, start = mixture.placement_frame(context, queries.descriptor)
+        rows = jnp.broadcast_to(start[..., None], box.shape[:3])
+        local = mixture.to_local(box, mixture.gather_rows(means, rows), scale)
+        back = mixture.from_local(local, mixture.gather_rows(means, rows), scale)
+        table, _ = mixture.nearest_tables(slots, context, terms=1)
+        z = mixture.to_local(slots, mixture.gather_rows(means, table[..., 0]), scale)
+        return back, z, start
+
+    box = np.asarray(evalset.kl_points[:, :, :3])
+    slots = np.asarray(evalset.slot_boxes)  # (E, M, F, 4)
+    back, z, start = frames(init_params(jax.random.key(0), MIXTURE),
+                            *canonical_inputs(evalset.tokens, evalset.queries), box, slots)
+    np.testing.assert_allclose(np.asarray(back), box, atol=1e-6)
     # every slot's box sits at the origin of its own table's frame (FlowSim centres objects)
-    slots = jnp.asarray(evalset.slot_boxes)  # (E, M, F, 4)
-    table, _ = mixture.nearest_tables(slots, context, terms=1)
-    z = mixture.to_local(slots, mixture.gather_rows(means, table[..., 0]), scale)
     real = np.asarray(evalset.slot_mask)
     np.testing.assert_allclose(np.asarray(z)[real], 0.0, atol=1e-4)
     assert np.all(np.asarray(start) >= 0)
@@ -182,11 +192,11 @@ def test_relative_geometry_is_zero_at_the_start_table_and_feeds_the_rows(evalset
     option changes the table weights (the rows read them)."""
     part = evalset.take(np.arange(6))
     tokens, _ = canonical_inputs(part.tokens, part.queries)
-    start = jnp.asarray([[0, 3], [2, 1]] * 3)  # (6, 2) token indices
-    feats = np.asarray(mixture.relative_geometry(tokens.boxes, start))
+    start = np.asarray([[0, 3], [2, 1]] * 3, np.int32)  # (6, 2) token indices
+    feats = np.asarray(GEOMETRY(tokens.boxes, start))
     assert feats.shape == (6, 2, tokens.boxes.shape[1], 2 + 4 * len(mixture.GEOMETRY_FREQUENCIES)
                            + 4)
-    at_start = np.take_along_axis(feats, np.asarray(start)[:, :, None, None], axis=2)[:, :, 0]
+    at_start = np.take_along_axis(feats, start[:, :, None, None], axis=2)[:, :, 0]
     np.testing.assert_allclose(at_start[..., :2], 0.0, atol=1e-7)  # no offset
     np.testing.assert_allclose(at_start[..., -4:],  # no turn
                                np.broadcast_to([0.0, 0.0, 1.0, 1.0], at_start[..., -4:].shape),
@@ -196,7 +206,7 @@ def test_relative_geometry_is_zero_at_the_start_table_and_feeds_the_rows(evalset
     w = np.asarray(Predictor.from_params(params, cfg).table_weights(part.tokens, part.queries))
     np.testing.assert_allclose(w.sum(-1), 1.0, rtol=1e-5)
     flat = dict(params)
-    flat["geometry_embed"] = jax.tree.map(jnp.zeros_like, params["geometry_embed"])
+    flat["geometry_embed"] = jax.tree.map(np.zeros_like, params["geometry_embed"])
     w0 = np.asarray(Predictor.from_params(flat, cfg).table_weights(part.tokens, part.queries))
     assert np.abs(w - w0).max() > 1e-4
     with pytest.raises(ValueError, match="weight_geometry"):
@@ -209,17 +219,18 @@ def test_offsets_geometry_has_no_angle_and_moves_with_the_map(evalset):
     angle features change), and a model with them gives table weights."""
     part = evalset.take(np.arange(4))
     tokens, _ = canonical_inputs(part.tokens, part.queries)
-    start = jnp.asarray([[0, 3], [2, 1]] * 2)
+    start = np.asarray([[0, 3], [2, 1]] * 2, np.int32)
     k = len(mixture.GEOMETRY_FREQUENCIES)
-    shifted = tokens.boxes + jnp.asarray([0.07, -0.05, 0.0, 0.0])  # (y, x, h, w): a translation
-    plain = np.asarray(mixture.relative_geometry(tokens.boxes, start, angle=False))
-    moved = np.asarray(mixture.relative_geometry(shifted, start, angle=False))
+    boxes = np.asarray(tokens.boxes)
+    shifted = boxes + np.float32([0.07, -0.05, 0.0, 0.0])  # (y, x, h, w): a translation
+    plain = np.asarray(GEOMETRY(boxes, start, angle=False))
+    moved = np.asarray(GEOMETRY(shifted, start, angle=False))
     assert plain.shape[-1] == 2 + 4 * k + 1
     np.testing.assert_allclose(moved, plain, atol=1e-5)
     distance = np.linalg.norm(plain[..., :2], axis=-1)
     np.testing.assert_allclose(plain[..., -1], distance, atol=1e-6)
-    with_angle = np.asarray(mixture.relative_geometry(tokens.boxes, start))
-    assert np.abs(np.asarray(mixture.relative_geometry(shifted, start)) - with_angle).max() > 1e-2
+    with_angle = np.asarray(GEOMETRY(boxes, start))
+    assert np.abs(np.asarray(GEOMETRY(shifted, start)) - with_angle).max() > 1e-2
     cfg = dataclasses.replace(MIXTURE, weight_geometry="offsets", weight_attention="self")
     params = init_params(jax.random.key(3), cfg)
     w = np.asarray(Predictor.from_params(params, cfg).table_weights(part.tokens, part.queries))

@@ -195,7 +195,7 @@ def test_bf16_train_steps_track_float32(smoke_batches):
         final[precision] = state.params
         assert step._cache_size() == 1  # one compilation per precision (CPU time)
     assert {x.dtype for x in jax.tree.leaves(final["bf16"])} == {jnp.dtype(jnp.float32)}
-    assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(final["bf16"]))
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(final["bf16"]))
     assert np.all(np.isfinite(norms["bf16"])) and min(norms["bf16"]) > 0
     rel = _relative(losses["bf16"], losses["float32"])
     # measured: step 1 (same params) 4.3e-4, max over the 5 steps 1.3e-3; grad norms 1.2e-3
