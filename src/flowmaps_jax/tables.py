@@ -144,10 +144,10 @@ def check_query_objects(tokens: SceneTokens, queries: Queries) -> None:
     check_array("tokens.boxes", tokens.boxes, (None, None, 4))
     check_instance("queries", queries, Queries)
     check_array("queries.descriptor", queries.descriptor, (tokens.boxes.shape[0], None))
-    matches = _object_matches(tokens, queries)
+    matches = np.asarray(jax.jit(_object_matches)(tokens, queries))  # one program, not one per op
     if tokens.age is not None:  # a history's past maps hold the object again: its map is age 0
-        matches = matches & (jnp.asarray(tokens.age) == 0)[:, None, :]
-    counts = np.asarray(matches.sum(-1))
+        matches = matches & (np.asarray(tokens.age) == 0)[:, None, :]
+    counts = matches.sum(-1)
     if np.any(counts != 1):
         b, q = np.argwhere(counts != 1)[0]
         raise ValueError(f"queries.descriptor[{b}, {q}] must name exactly one object token of its "

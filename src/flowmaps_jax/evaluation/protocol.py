@@ -274,9 +274,9 @@ def _slot_entry(evalset: EvalSet, p_hat) -> dict[str, np.ndarray]:
 def scores_against_q(evalset: EvalSet, p_hat) -> dict[str, np.ndarray]:
     """The slot scores (``slots.slot_scores``'s kernels) of p̂ (E, M, F + 1) against the set's
     exact posterior."""
-    return score_slots(jnp.asarray(p_hat, jnp.float32),
-                       jnp.asarray(evalset.slot_probs, jnp.float32),
-                       jnp.asarray(evalset.slot_mask, bool))
+    return score_slots(np.asarray(p_hat, np.float32),
+                       np.asarray(evalset.slot_probs, np.float32),
+                       np.asarray(evalset.slot_mask, bool))
 
 
 def slot_shares(evalset: EvalSet, samples) -> jnp.ndarray:

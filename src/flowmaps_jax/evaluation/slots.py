@@ -69,10 +69,11 @@ def _search_cost(scores, q, slot_mask):
 
 def score_slots(p_hat, q, slot_mask) -> dict[str, np.ndarray]:
     """The kernels of :func:`slot_scores` (no checks): p̂ (..., K + 1), q (..., K) float32,
-    slot_mask (..., K) bool."""
-    ratio = _search_cost(p_hat[..., :-1], q, slot_mask) / _search_cost(q, q, slot_mask)
+    slot_mask (..., K) bool. Slicing and dividing on the host: no program per shape for them."""
+    ratio = (np.asarray(_search_cost(np.asarray(p_hat)[..., :-1], q, slot_mask))
+             / np.asarray(_search_cost(q, q, slot_mask)))
     return {"tv": np.asarray(_tv(p_hat, q)), "top1": np.asarray(_top1(p_hat, q, slot_mask)),
-            "search_cost_ratio": np.asarray(ratio)}
+            "search_cost_ratio": ratio}
 
 
 def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
@@ -96,8 +97,8 @@ def slot_scores(p_hat: jnp.ndarray, q: jnp.ndarray, slot_mask: jnp.ndarray
     p_hat = check_probabilities("p_hat", p_hat, (*batch, k + 1), atol=PROB_ATOL,
                                 min_value=-PROB_ATOL, support=slot_mask,
                                 support_name="slot_mask")
-    return score_slots(jnp.asarray(p_hat, jnp.float32), jnp.asarray(q, jnp.float32),
-                       jnp.asarray(slot_mask, bool))
+    return score_slots(np.asarray(p_hat, np.float32), np.asarray(q, np.float32),
+                       np.asarray(slot_mask, bool))
 
 
 # --------------------------------------------------------------------------- routines

@@ -101,7 +101,8 @@ def home_tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
     e = homes.num_homes
     if tau.ndim not in (1, 2) or tau.shape[0] != e:
         raise ValueError(f"tau must have shape (E={e},) or (E, K); got {tau.shape}")
-    out = scene_tokens(homes, jnp.asarray(tau, jnp.int32).reshape(e, -1), config)
+    out = jax.jit(scene_tokens, static_argnums=2)(homes, tau.astype(jnp.int32).reshape(e, -1),
+                                                  config)  # one program, not one per operation
     return jax.tree.map(lambda a: a[:, 0], out) if tau.ndim == 1 else out
 
 

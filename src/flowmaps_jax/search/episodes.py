@@ -317,12 +317,12 @@ def predictor_tables(predictor: Any, search_set: SearchSet, num_samples: int, ke
     predictor = _Finite(predictor)
     row_keys = jax.vmap(lambda r: jax.random.fold_in(jax.random.fold_in(key, _SALT_SAMPLES), r))(
         jnp.arange(s.num_rows))
-    parts = []
+    parts, host = [], jax.tree_util.tree_map(np.asarray, (s.tokens, s.queries))
     starts = range(0, s.num_rows, chunk)
     label = desc or f"table probabilities ({getattr(predictor, 'name', '')})"
     for first in tqdm(starts, desc=label, unit="chunk", disable=not progress, leave=False):
         index = np.minimum(np.arange(first, first + chunk), s.num_rows - 1)
-        part = jax.tree_util.tree_map(lambda a, i=index: a[i], (s.tokens, s.queries))
+        part = jax.tree_util.tree_map(lambda a, i=index: a[i], host)  # no gather program
         probs = table_probabilities(predictor, *part, num_samples, row_keys[index], method,
                                     **sample_kwargs)
         parts.append(np.asarray(probs)[: min(chunk, s.num_rows - first)])

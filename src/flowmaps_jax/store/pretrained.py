@@ -20,7 +20,7 @@ import pathlib
 import re
 from typing import Any, NamedTuple
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 from flax import traverse_util
 
@@ -199,7 +199,7 @@ def read_weights(name: str, directory: str | pathlib.Path = PRETRAINED_DIR) -> P
         raise ValueError(f"pretrained {name!r}: {npz.name} holds NaN or inf in {bad[0]}"
                          f"{f' and {len(bad) - 1} more' if len(bad) > 1 else ''}; "
                          f"reinstall the package")
-    params = traverse_util.unflatten_dict({k: jnp.asarray(a) for k, a in arrays.items()},
+    params = traverse_util.unflatten_dict({k: jax.device_put(a) for k, a in arrays.items()},
                                           sep="/")
     return PretrainedWeights(name=name, params=params, spec=spec, step=meta.get("step"),
                              meta=meta)

@@ -84,8 +84,8 @@ def init_state(cfg: TrainConfig, key: jax.Array | None = None,
     if start_params is not None:
         params = overlay_params(params, start_params)
     opt_state = make_optimizer(cfg).init(params)
-    state = TrainState(step=jnp.zeros((), jnp.int32), params=params,
-                       ema_params=jax.tree.map(jnp.copy, params), opt_state=opt_state,
+    state = TrainState(step=jnp.zeros((), jnp.int32), params=params,  # EMA: a copy, no program
+                       ema_params=jax.device_put(params, may_alias=False), opt_state=opt_state,
                        rng=rng, data_key=data_key)
     # Committed, as a restored state is: fresh and resumed runs share one compiled step.
     if mesh is None:

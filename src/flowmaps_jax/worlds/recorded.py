@@ -234,9 +234,9 @@ def _environment_home(env, config: HomesConfig, ids: dict) -> dict:
     allowed[:me, :re] = np.asarray(env.allowed, bool)
     valid_o = allowed.any(-1)
     obj_class = np.where(valid_o, obj_class, -1)
-    cyc, num = (np.asarray(a) for a in cycles(jnp.asarray(allowed),
-                                              jnp.asarray(rec_box, jnp.float32),
-                                              jnp.asarray(size, jnp.float32)))
+    cyc, num = (np.asarray(a) for a in jax.jit(cycles)(allowed,  # one program, not one per op
+                                                       np.asarray(rec_box, np.float32),
+                                                       np.asarray(size, np.float32)))
     location = np.full((t, m), -1, np.int64)
     location[np.asarray(env.hours), :me] = np.asarray(env.location)
     location[:, ~valid_o] = -1
@@ -281,15 +281,14 @@ def recorded_homes(recorded, config: HomesConfig, index=None, start=None,
         raise ValueError("no environment to read")
     looks = [p.pop("_not_at") for p in parts]
     stacked = {k: np.stack([p[k] for p in parts]) for k in parts[0]}
-    homes = Homes(**{k: jnp.asarray(v) for k, v in stacked.items() if not k.startswith("_")})
+    homes = Homes(**{k: jax.device_put(v) for k, v in stacked.items() if not k.startswith("_")})
     validate_homes(homes, config, name="the homes of the data")
     e = len(parts)
     start = np.zeros(e, np.int32) if start is None else np.asarray(start, np.int32)
     stop = stacked["_hours"] if stop is None else np.asarray(stop)
-    return RecordedHomes(homes=homes, observed=jnp.asarray(stacked["_observed"]),
-                         start=jnp.asarray(start, jnp.int32),
-                         stop=jnp.asarray(stop, jnp.int32),
-                         not_at=None if all(x is None for x in looks) else jnp.asarray(np.stack(
+    return RecordedHomes(homes=homes, observed=jax.device_put(stacked["_observed"]),
+                         start=jax.device_put(start), stop=jax.device_put(stop.astype(np.int32)),
+                         not_at=None if all(x is None for x in looks) else jax.device_put(np.stack(
                              [np.zeros((*stacked["_observed"].shape[1:], config.max_receptacles),
                                        bool) if x is None else x for x in looks])))
 

@@ -58,6 +58,11 @@ def draw_queries(key, homes: Homes, config: HomesConfig, num_queries: int, *,
     t = config.num_hours
     history = check_int("history", history, 1, t - 1)
     horizons = check_horizons("horizons", horizons, t - history)
+    return _draw_queries(key, homes, t, num_queries, history, horizons)
+
+
+@jax.jit(static_argnums=(2, 3, 4, 5))  # one program, not one per operation
+def _draw_queries(key, homes, t, num_queries, history, horizons) -> HomesQueries:
     e, m = homes.object_valid.shape
     k_obj, k_h, k_tau = jax.random.split(key, 3)
     logits = jnp.where(homes.object_valid, 0.0, -jnp.inf)[:, None, :]
