@@ -23,19 +23,16 @@ TINY = ModelConfig(dim=16, encoder_layers=1, cdit_blocks=1, heads=2, mlp_ratio=2
 SLOTS, FURNITURE = 20, 10  # FlowSim's token slots and tables
 
 
-@jax.jit
-def _perturb_leaf(x, key, scale):
-    return x + scale * jax.random.normal(key, x.shape, x.dtype)
-
-
 def perturb(params, key: jax.Array, scale=0.3):
     """Noise of std ``scale`` on every parameter, so zero-initialised layers (AdaLN-Zero gates,
-    final projections) become active and the model's output is non-trivial. Leaf i gets
-    ``normal(split(key, n)[i])``, drawn by one small program per leaf shape that every model
-    shares (one program over the whole tree took seconds to compile for each model config)."""
+    final projections) become active and the model's output is non-trivial. The noise is drawn
+    on the host, leaf by leaf in tree order, by numpy's generator seeded with the key's data:
+    deterministic in ``key``, and no XLA program to compile; the leaves come back on device."""
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel().tolist())
     leaves, treedef = jax.tree_util.tree_flatten(params)
-    keys = jax.random.split(key, len(leaves))
-    return treedef.unflatten([_perturb_leaf(x, keys[i], scale) for i, x in enumerate(leaves)])
+    return treedef.unflatten(jax.device_put(
+        [np.asarray(x) + (scale * rng.standard_normal(np.shape(x))).astype(x.dtype)
+         for x in leaves]))
 
 
 def synthetic_tokens(seed: int, num_real: Sequence[int] = (13, 13), slots: int = SLOTS,
