@@ -104,14 +104,17 @@ def test_solver_rejects_bad_arguments():
 
 
 def test_divergence_is_exact_trace():
-    x = jax.random.normal(jax.random.key(1), (2, 3, 4))
-    v, div = divergence(nonlinear_field, x, jnp.float32(0.3))
-    np.testing.assert_allclose(v, nonlinear_field(x, 0.3), rtol=1e-6)
-    jac = jax.vmap(jax.jacfwd(lambda row: nonlinear_field(row, 0.3)))(x.reshape(-1, 4))
-    np.testing.assert_allclose(div.reshape(-1), jnp.trace(jac, axis1=1, axis2=2), rtol=1e-5,
-                               atol=1e-6)
-    _, div_affine = divergence(affine_field, x, jnp.float32(0.0))
-    np.testing.assert_allclose(div_affine, jnp.trace(A), rtol=1e-6)
+    @jax.jit  # one program, not one per operation
+    def parts(x):
+        v, div = divergence(nonlinear_field, x, jnp.float32(0.3))
+        jac = jax.vmap(jax.jacfwd(lambda row: nonlinear_field(row, 0.3)))(x.reshape(-1, 4))
+        _, div_affine = divergence(affine_field, x, jnp.float32(0.0))
+        return v, nonlinear_field(x, 0.3), div, jnp.trace(jac, axis1=1, axis2=2), div_affine
+
+    v, field, div, trace, div_affine = parts(jax.random.normal(jax.random.key(1), (2, 3, 4)))
+    np.testing.assert_allclose(v, field, rtol=1e-6)
+    np.testing.assert_allclose(div.reshape(-1), trace, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(div_affine, np.trace(A), rtol=1e-6)
 
 
 def test_log_prob_of_affine_flow_matches_closed_form_gaussian():
@@ -128,7 +131,8 @@ def test_forward_log_prob_gives_the_samples_and_their_density_in_one_solve():
     closed form (affine flow) and the backward solve of log_prob as the grid is refined."""
     x0 = jax.random.normal(jax.random.key(11), (64, 4))
     x1, log_p = jax.jit(lambda x: sample_with_log_prob(nonlinear_field, x, num_steps=41))(x0)
-    np.testing.assert_allclose(x1, integrate(nonlinear_field, x0, num_steps=41), atol=1e-5)
+    np.testing.assert_allclose(x1, jax.jit(lambda x: integrate(nonlinear_field, x, num_steps=41))(
+        x0), atol=1e-5)
     backward = jax.jit(lambda x: log_prob(nonlinear_field, x, num_steps=41))(x1)
     np.testing.assert_allclose(log_p, backward, atol=5e-3)
     y1, log_q = sample_with_log_prob(affine_field, x0, num_steps=41)
@@ -151,7 +155,7 @@ def test_log_prob_of_nonlinear_flow_is_a_normalised_density():
     A wrong log p (a missing or mis-signed divergence) breaks this by far more than MC error.
     """
     x0 = jax.random.normal(jax.random.key(4), (20000, 4))
-    x1 = integrate(nonlinear_field, x0, num_steps=41)
+    x1 = jax.jit(lambda x: integrate(nonlinear_field, x, num_steps=41))(x0)
     log_p = jax.jit(lambda x: log_prob(nonlinear_field, x, num_steps=41))(x1)
     mean, cov = x1.mean(0), jnp.cov(x1.T) * 1.5
     log_q = jax.scipy.stats.multivariate_normal.logpdf(x1, mean, cov)

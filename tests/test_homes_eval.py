@@ -6,6 +6,7 @@ Tiny sizes: the "mixed" config over 8 days (every regime in one compiled program
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 
@@ -68,12 +69,17 @@ class StandIn:
         return self.exact(homes, queries)
 
     def sample(self, homes, queries, num_samples, key, config=None):
-        p = self.exact(homes, queries)
-        draws = jax.random.categorical(key, jnp.log(p)[..., None, :], shape=(*p.shape[:-1],
-                                                                             num_samples))
-        centre = jnp.take_along_axis(object_positions(homes, queries, config),
-                                     draws[..., None], axis=2)  # (E, Q, N, 3)
-        return jnp.concatenate([centre, jnp.full(centre.shape, 0.1)], axis=-1)
+        return _placed(self.exact(homes, queries), homes, queries, key, num_samples, config)
+
+
+@functools.partial(jax.jit, static_argnums=(4, 5))  # one program, not one per operation
+def _placed(p, homes, queries, key, num_samples, config):
+    """``num_samples`` boxes per query on receptacles drawn from ``p``, centred on them."""
+    draws = jax.random.categorical(key, jnp.log(p)[..., None, :], shape=(*p.shape[:-1],
+                                                                         num_samples))
+    centre = jnp.take_along_axis(object_positions(homes, queries, config),
+                                 draws[..., None], axis=2)  # (E, Q, N, 3)
+    return jnp.concatenate([centre, jnp.full(centre.shape, 0.1)], axis=-1)
 
 
 # --------------------------------------------------------------------------- priors

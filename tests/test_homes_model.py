@@ -80,7 +80,8 @@ def test_tokens_have_the_layout_masks_and_normalised_boxes(homes):
     scale = np.concatenate([scale, scale], 1)[:, None]  # (E, 1, 6)
     boxes = np.asarray(tok.boxes)
     np.testing.assert_allclose(boxes[:, nr:nr + r] * scale, homes.receptacle_box, atol=1e-5)
-    objects = np.stack([np.asarray(object_boxes(homes, int(t), CONFIG))[i]
+    at_hour = jax.jit(object_boxes, static_argnums=2)  # one program for every hour
+    objects = np.stack([np.asarray(at_hour(homes, np.int32(t), CONFIG))[i]
                         for i, t in enumerate(tau)])
     np.testing.assert_allclose(boxes[:, nr + r:nr + r + m] * scale, objects, atol=1e-5)
     inside = boxes[mask][:, :2]
@@ -139,20 +140,26 @@ def _hand_rows(homes, e, obj, tau, tau_q, history):
     return np.asarray(events), out
 
 
+@jax.jit
+def _events_and_rows(homes, queries, observed=None):
+    """``history_events`` and ``row_features`` as numpy, in one compiled program."""
+    events = homes_inputs.history_events(homes, queries, H, observed)
+    return events, homes_inputs.row_features(homes, queries, CONFIG, events, observed)
+
+
 def test_history_inputs_match_a_hand_computation(homes, queries):
-    events = homes_inputs.history_events(homes, queries, H)
-    rows = np.asarray(homes_inputs.row_features(homes, queries, CONFIG, events))
+    events, rows = (np.asarray(a) for a in _events_and_rows(homes, queries))
     assert rows.shape == (homes.num_homes, 3, CONFIG.max_receptacles,
                           len(homes_inputs.ROW_FEATURES))
-    early = queries.replace(tau=jnp.full_like(queries.tau, 2), tau_q=jnp.full_like(queries.tau, 5))
-    early_events = homes_inputs.history_events(homes, early, H)
-    early_rows = np.asarray(homes_inputs.row_features(homes, early, CONFIG, early_events))
+    early = queries.replace(tau=np.full(queries.tau.shape, 2, np.int32),
+                            tau_q=np.full(queries.tau.shape, 5, np.int32))
+    early_events, early_rows = (np.asarray(a) for a in _events_and_rows(homes, early))
     for qs, ev, got in ((queries, events, rows), (early, early_events, early_rows)):
         for e in range(3):
             for j in range(3):
                 want_ev, want = _hand_rows(homes, e, int(qs.object_index[e, j]),
                                            int(qs.tau[e, j]), int(qs.tau_q[e, j]), H)
-                np.testing.assert_array_equal(np.asarray(ev)[e, j], want_ev)
+                np.testing.assert_array_equal(ev[e, j], want_ev)
                 np.testing.assert_allclose(got[e, j], want, atol=1e-5,
                                            err_msg=f"home {e} query {j}")
 
@@ -160,12 +167,10 @@ def test_history_inputs_match_a_hand_computation(homes, queries):
 def test_unobserved_hours_are_events_of_nothing(homes, queries):
     observed = np.ones(homes.receptacle.shape, bool)
     observed[:, 30:41] = False  # hours 30 … 40 unseen: τ = 40 is unseen too
-    events = np.asarray(homes_inputs.history_events(homes, queries, H, jnp.asarray(observed)))
+    events, rows = (np.asarray(a) for a in _events_and_rows(homes, queries, observed))
     hours = np.asarray(queries.tau)[..., None] - H + 1 + np.arange(H)
     assert (events[(hours >= 30) & (hours <= 40)] == -1).all()
     assert (events[(hours >= 0) & ((hours < 30) | (hours > 40))] >= 0).all()
-    rows = np.asarray(homes_inputs.row_features(homes, queries, CONFIG, jnp.asarray(events),
-                                                jnp.asarray(observed)))
     unseen = rows[..., homes_inputs.ROW_FEATURES.index("unseen_at_tau")].max(-1)
     np.testing.assert_array_equal(unseen[:, 1], 1.0)  # the query at τ = 40
     np.testing.assert_array_equal(unseen[:, 2], 0.0)  # τ = 50 was seen
@@ -234,7 +239,7 @@ def params():
 
 @pytest.fixture(scope="module")
 def batch(homes, queries):
-    return homes_inputs.per_query_batch(homes, queries, CONFIG, H)
+    return jax.jit(homes_inputs.per_query_batch, static_argnums=(2, 3))(homes, queries, CONFIG, H)
 
 
 def test_weights_are_a_distribution_over_the_allowed_receptacles_only(params, batch):
@@ -263,17 +268,18 @@ def test_rows_without_the_angle_read_offsets_and_distance_only(params, batch):
 
 
 def test_placement_velocity_is_zero_at_init(params, batch):
-    context, c = homes_model._encode_and_condition(params, MODEL, CONFIG, batch)
-    b, q = batch.current.shape
-    z = jax.random.normal(jax.random.key(2), (b, q, 3, 6))
-    t = jax.random.uniform(jax.random.key(3), (b, q))
-    table = jnp.broadcast_to(batch.current[..., None], (b, q, 3))
-    v = homes_model.placement_velocity(params, MODEL, CONFIG, context, c, z, t, table)
-    assert v.shape == (b, q, 3, 6) and np.all(np.asarray(v) == 0.0)
-    noisy = perturb(params, jax.random.key(1))
-    context, c = homes_model._encode_and_condition(noisy, MODEL, CONFIG, batch)
-    v = homes_model.placement_velocity(noisy, MODEL, CONFIG, context, c, z, t, table)
-    assert np.abs(np.asarray(v)).max() > 1e-3
+    @jax.jit  # one program for both parameter sets
+    def velocity(p, batch):
+        context, c = homes_model._encode_and_condition(p, MODEL, CONFIG, batch)
+        b, q = batch.current.shape
+        z = jax.random.normal(jax.random.key(2), (b, q, 3, 6))
+        t = jax.random.uniform(jax.random.key(3), (b, q))
+        table = jnp.broadcast_to(batch.current[..., None], (b, q, 3))
+        return homes_model.placement_velocity(p, MODEL, CONFIG, context, c, z, t, table)
+
+    v = np.asarray(velocity(params, batch))
+    assert v.shape == (*batch.current.shape, 3, 6) and np.all(v == 0.0)
+    assert np.abs(np.asarray(velocity(perturb(params, jax.random.key(1)), batch))).max() > 1e-3
 
 
 def test_samples_stand_on_a_receptacle_drawn_from_the_weights(params, batch):
@@ -281,7 +287,8 @@ def test_samples_stand_on_a_receptacle_drawn_from_the_weights(params, batch):
                                                  jax.random.key(4), 8)
     assert table.shape == (*batch.current.shape, 8) and boxes.shape == (*table.shape, 6)
     assert np.all(np.take_along_axis(np.asarray(batch.allowed), np.asarray(table), -1))
-    mean, scale = homes_model.placement_frame(batch.tokens.boxes, batch.object_token, CONFIG)
+    mean, scale = jax.jit(homes_model.placement_frame, static_argnums=2)(
+        batch.tokens.boxes, batch.object_token, CONFIG)
     mean = np.take_along_axis(np.asarray(mean), np.asarray(table)[..., None], 2)
     scale = np.take_along_axis(np.asarray(scale), np.asarray(table)[..., None], 2)
     z = (np.asarray(boxes) - mean) / scale  # zero velocity at init: the noise itself
@@ -304,7 +311,7 @@ def test_a_few_dozen_steps_lower_the_loss(homes):
         return optax.apply_updates(params, updates), opt_state, aux
 
     # committed to the device as step's outputs are: one compiled step, not a second for them
-    params, opt_state = jax.device_put((state.params, tx.init(state.params)), jax.devices()[0])
+    params, opt_state = jax.device_put((state.params, state.opt_state), jax.devices()[0])
     _, _, before = step(params, opt_state)
     for _ in range(cfg.steps):
         params, opt_state, aux = step(params, opt_state)

@@ -147,13 +147,16 @@ def test_unseen_objects_carry_where_and_how_long_ago_they_were_seen(cfg, recorde
     e, t, i = (int(v) for v in np.argwhere(~observed[:, 10:60, :1])[0])
     t += 10
     last = np.flatnonzero(observed[e, :t + 1, i])
-    queries = HomesQueries(object_index=jnp.full((3, 1), i, jnp.int32),
-                           tau=jnp.full((3, 1), t, jnp.int32),
-                           tau_q=jnp.full((3, 1), t + 1, jnp.int32))
-    def rows(observed):
+    queries = HomesQueries(object_index=np.full((3, 1), i, np.int32),
+                           tau=np.full((3, 1), t, np.int32), tau_q=np.full((3, 1), t + 1, np.int32))
+
+    @jax.jit  # one program for both masks
+    def features(observed):
         events = homes_inputs.history_events(data.homes, queries, 24, observed)
-        return np.asarray(homes_inputs.row_features(data.homes, queries, cfg.homes, events,
-                                                    observed))
+        return homes_inputs.row_features(data.homes, queries, cfg.homes, events, observed)
+
+    def rows(observed):
+        return np.asarray(features(observed))
 
     f = rows(data.observed)[e, 0]
     names = homes_inputs.ROW_FEATURES
@@ -163,7 +166,7 @@ def test_unseen_objects_carry_where_and_how_long_ago_they_were_seen(cfg, recorde
     np.testing.assert_allclose(unseen[0], [1.0, np.log1p(ago) / np.log1p(72),
                                            float(not len(last))], atol=1e-6)
     # every hour observed: the features of FlowSim homes, the last three 0
-    full, none = rows(jnp.ones_like(data.observed)), rows(None)
+    full, none = rows(np.ones(data.observed.shape, bool)), rows(None)
     np.testing.assert_array_equal(full, none)
     assert np.all(none[..., -3:] == 0)
 
