@@ -103,6 +103,7 @@ def empirical_slots(samples: jnp.ndarray, slot_boxes: jnp.ndarray, slot_mask: jn
 # --------------------------------------------------------------------------- table masses
 
 
+@jax.jit  # one program, not one per operation (check_query_objects calls it eagerly)
 def _object_matches(tokens: SceneTokens, queries: Queries) -> jnp.ndarray:
     """(B, Q, S) bool: the real object tokens whose descriptor is the query's."""
     is_object = jnp.asarray(tokens.mask, bool) & (jnp.asarray(tokens.kind) == OBJECT)
@@ -144,7 +145,7 @@ def check_query_objects(tokens: SceneTokens, queries: Queries) -> None:
     check_array("tokens.boxes", tokens.boxes, (None, None, 4))
     check_instance("queries", queries, Queries)
     check_array("queries.descriptor", queries.descriptor, (tokens.boxes.shape[0], None))
-    matches = np.asarray(jax.jit(_object_matches)(tokens, queries))  # one program, not one per op
+    matches = np.asarray(_object_matches(tokens, queries))
     if tokens.age is not None:  # a history's past maps hold the object again: its map is age 0
         matches = matches & (np.asarray(tokens.age) == 0)[:, None, :]
     counts = matches.sum(-1)

@@ -91,6 +91,9 @@ def check_model(predictor) -> None:
         predictor.homes.validate()  # the token budget too, should a config skip its checks
 
 
+_scene_tokens = jax.jit(scene_tokens, static_argnums=2)  # one program, not one per operation
+
+
 def home_tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
     """Tokens of every home at hour ``tau``: (E,) ints → (E, S); (E, K) → (E, K, S)."""
     check_instance("config", config, HomesConfig)
@@ -101,8 +104,7 @@ def home_tokens(homes: Homes, tau, config: HomesConfig) -> HomeTokens:
     e = homes.num_homes
     if tau.ndim not in (1, 2) or tau.shape[0] != e:
         raise ValueError(f"tau must have shape (E={e},) or (E, K); got {tau.shape}")
-    out = jax.jit(scene_tokens, static_argnums=2)(homes, tau.astype(jnp.int32).reshape(e, -1),
-                                                  config)  # one program, not one per operation
+    out = _scene_tokens(homes, tau.astype(jnp.int32).reshape(e, -1), config)
     return jax.tree.map(lambda a: a[:, 0], out) if tau.ndim == 1 else out
 
 

@@ -173,6 +173,9 @@ def _ids(config: HomesConfig, field: str) -> dict[str, int]:
 # Environments as homes
 
 
+_cycles = jax.jit(cycles)  # one program, not one per operation
+
+
 def _environment_home(env, config: HomesConfig, ids: dict) -> dict:
     """One environment as the fields of one home (numpy) and its observed mask (T, M)."""
     nr, r, m, t = (config.num_rooms, config.max_receptacles, config.max_objects,
@@ -234,9 +237,8 @@ def _environment_home(env, config: HomesConfig, ids: dict) -> dict:
     allowed[:me, :re] = np.asarray(env.allowed, bool)
     valid_o = allowed.any(-1)
     obj_class = np.where(valid_o, obj_class, -1)
-    cyc, num = (np.asarray(a) for a in jax.jit(cycles)(allowed,  # one program, not one per op
-                                                       np.asarray(rec_box, np.float32),
-                                                       np.asarray(size, np.float32)))
+    cyc, num = (np.asarray(a) for a in _cycles(allowed, np.asarray(rec_box, np.float32),
+                                               np.asarray(size, np.float32)))
     location = np.full((t, m), -1, np.int64)
     location[np.asarray(env.hours), :me] = np.asarray(env.location)
     location[:, ~valid_o] = -1
