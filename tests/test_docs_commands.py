@@ -29,9 +29,11 @@ The rules (what runs, what is shortened, what is skipped and why):
 
 * **Shortened** (what the command does stays, its size shrinks; :data:`SHORTEN`):
 
-  - ``python -m flowmaps_jax.train``: ``--preset smoke`` (replacing any preset; not with
-    ``--resume``, which keeps the run's saved config), ``--steps 4`` (``6`` with ``--resume``, so
-    that it does continue), ``--no-progress``;
+  - ``python -m flowmaps_jax.train``: the smoke preset of the world the command trains on
+    (``smoke``, ``homes-smoke``; with ``--data``, the files world's ``smoke``) replaces any
+    preset (not with ``--resume``, which keeps the run's saved config; a preset the CLI does not
+    know stays, and the command fails as it would for a user), ``--steps 4`` (``6`` with
+    ``--resume``, so that it does continue), ``--no-progress``;
   - ``python -m flowmaps_jax.evaluate``: 2 environments, 4 samples, 4 KL draws, the accurate
     likelihood on its smallest grid (3 points; its 48-point RK4 solve, run without most of XLA's
     optimisations, was about a sixth of an evaluation of the shipped models);
@@ -221,6 +223,32 @@ def _target(argv: list[str]) -> str | None:
     return None
 
 
+def _option_value(argv: list[str], option: str) -> str | None:
+    """The value of ``option`` in ``argv`` (``--x V`` or ``--x=V``; the last one), or None."""
+    value = None
+    for i, arg in enumerate(argv):
+        if arg == option and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif arg.startswith(option + "="):
+            value = arg.split("=", 1)[1]
+    return value
+
+
+def _smoke_preset(preset: str | None, data: bool) -> str | None:
+    """The smoke preset of the world ``--preset PRESET`` trains on (the default preset when
+    None; with ``--data``, the files world's), or None when the CLI does not know ``PRESET``."""
+    from flowmaps_jax.training.config import DEFAULT_PRESET, RECORDED_PRESETS
+    from flowmaps_jax.worlds import WORLDS
+
+    if data:
+        return "smoke" if preset is None or preset in RECORDED_PRESETS else None
+    for w in WORLDS.values():
+        table = {} if w.reads_files else w.hook("presets")
+        if (preset or DEFAULT_PRESET) in table:
+            return next(name for name in table if name.endswith("smoke"))
+    return None
+
+
 def rewrite(argv: list[str]) -> tuple[list[str] | None, str | None]:
     """(the command to run, or None; why it was changed or dropped, or None)."""
     env, cmd = _program(argv)
@@ -242,7 +270,10 @@ def rewrite(argv: list[str]) -> tuple[list[str] | None, str | None]:
     if target == "flowmaps_jax.train":
         resume = "--resume" in cmd
         if not resume:
-            cmd = _set_option(cmd, "--preset", "smoke")
+            smoke = _smoke_preset(_option_value(cmd, "--preset"), data="--data" in cmd)
+            if smoke is None:  # a preset the CLI does not know: it fails as a user's would
+                return [*env, *cmd], None
+            cmd = _set_option(cmd, "--preset", smoke)
         cmd = _set_option(cmd, "--steps", RESUME_STEPS if resume else TRAIN_STEPS)
         cmd = _set_option(cmd, "--no-progress", None)
         note = "shortened training"
@@ -478,6 +509,14 @@ def test_commands_are_shortened_or_dropped_by_the_rules():
     train = "python -m flowmaps_jax.train --preset paper --steps 30000 --run-dir runs/p"
     assert rewrite(shlex.split(train))[0] == shlex.split(
         "python -m flowmaps_jax.train --run-dir runs/p --preset smoke --steps 4 --no-progress")
+    # the smoke preset of the command's world; a preset the CLI does not know stays as written
+    for given, smoke in (("homes-rhythms", "homes-smoke"), ("habits", "smoke"),
+                         ("homes --data d", "smoke")):
+        assert rewrite(shlex.split(f"python -m flowmaps_jax.train --preset {given}"))[0][-5:] == [
+            "--preset", smoke, "--steps", "4", "--no-progress"], given
+    for unknown in ("--preset cpu-pointer", "--preset paper --data d"):
+        command = shlex.split(f"python -m flowmaps_jax.train {unknown} --steps 7000")
+        assert rewrite(command) == (command, None), unknown
     resume = rewrite(shlex.split("python -m flowmaps_jax.train --run-dir r --resume"))[0]
     assert "--preset" not in resume and resume[-3:] == ["--steps", "6", "--no-progress"]
     assert "--num-envs" in rewrite(shlex.split("python -m flowmaps_jax.evaluate --checkpoint x"))[0]
