@@ -8,12 +8,15 @@ An opt-in pytest plugin (not loaded by a plain ``pytest``), and the summary of w
 Each process (the xdist workers, or the one process with ``-n 0``) listens to JAX's monitoring
 events (``jax.monitoring``: ``jaxpr_trace_duration``, ``jaxpr_to_mlir_module_duration``,
 ``backend_compile_duration`` with the compiled function's name, and the persistent cache's
-``compile_time_saved_sec``) and writes ``<dir>/<worker>.json``: one row per test (its wall
-seconds, its CPU seconds with those of the child processes it waited for, and the seconds of
-each event inside it) and the compile seconds per function. Inside child processes (notebook
-kernels, the forced-devices run) no events are seen, only their wall and CPU time. The summary
-prints the totals, each worker's test-seconds against its CPU-seconds (whether the cores were
-busy), the seconds per test file and the functions that took longest to compile.
+``compile_time_saved_sec``), times the checkpoint store's writes and reads
+(``CheckpointStore._write``, ``checkpoints._read_step``: orbax) and Python's garbage collections
+(``gc.callbacks``), and writes ``<dir>/<worker>.json``: one row per test (its wall seconds, its
+CPU seconds with those of the child processes it waited for, and the seconds of each event
+inside it), the compile seconds per function and the process's peak resident memory. Inside
+child processes (notebook kernels, the forced-devices run) nothing is seen but their wall and
+CPU time. The summary prints the totals, each worker's test-seconds against its CPU-seconds
+(whether the cores were busy), the seconds per test file and the functions that took longest to
+compile.
 
 It also counts lowerings and compiles by the line of the repository (``src/``, ``tests/``,
 ``experiments/``; the innermost on the stack) that started them. A line with hundreds of compiles
@@ -24,6 +27,8 @@ operation and shape), and one ``jax.jit`` around its function makes them one pro
 from __future__ import annotations
 
 import collections
+import functools
+import gc
 import json
 import os
 import pathlib
@@ -33,6 +38,7 @@ import time
 
 EVENTS = {"jaxpr_trace_duration": "trace", "jaxpr_to_mlir_module_duration": "lower",
           "backend_compile_duration": "compile", "compile_time_saved_sec": "cache_saved"}
+OTHER_COSTS = ("ckpt_write", "ckpt_read", "gc")  # timed around the store's calls, gc.callbacks
 
 
 _REPO = str(pathlib.Path(__file__).resolve().parents[1]) + os.sep
@@ -58,6 +64,7 @@ class _Recorder:
         self.site_counts = collections.Counter()  # repository line -> compiles
         self.rows: list[dict] = []
         self.start = self.cpu_start = 0.0
+        self.gc_start: float | None = None
 
     def listen(self, event: str, seconds: float, **kwargs) -> None:
         name = EVENTS.get(event.rsplit("/", 1)[-1])
@@ -74,6 +81,30 @@ class _Recorder:
             self.site_counts[site] += name == "compile"
 
 
+    def timed(self, name: str, function):
+        """``function``, adding its seconds to ``name`` and its calls to ``name + "_n"``."""
+
+        @functools.wraps(function)
+        def run(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                self.current[name] += time.perf_counter() - start
+                self.current[name + "_n"] += 1
+
+        return run
+
+    def collecting(self, phase: str, info: dict) -> None:
+        """A ``gc.callbacks`` entry: the seconds of every collection, under ``gc``."""
+        if phase == "start":
+            self.gc_start = time.perf_counter()
+        elif self.gc_start is not None:
+            self.current["gc"] += time.perf_counter() - self.gc_start
+            self.current["gc_n"] += 1
+            self.gc_start = None
+
+
 _RECORDER: _Recorder | None = None
 
 
@@ -83,8 +114,14 @@ def pytest_configure(config):
         raise SystemExit("-p compile_profile needs FLOWMAPS_COMPILE_PROFILE=<directory>")
     from jax import monitoring
 
+    from flowmaps_jax.store import checkpoint_store, checkpoints
+
     _RECORDER = _Recorder()
     monitoring.register_event_duration_secs_listener(_RECORDER.listen)
+    store = checkpoint_store.CheckpointStore
+    store._write = _RECORDER.timed("ckpt_write", store._write)
+    checkpoints._read_step = _RECORDER.timed("ckpt_read", checkpoints._read_step)
+    gc.callbacks.append(_RECORDER.collecting)
 
 
 def _cpu_seconds() -> float:
@@ -114,7 +151,8 @@ def pytest_sessionfinish(session):
     (out / f"{worker}.json").write_text(json.dumps(
         {"rows": _RECORDER.rows, "functions": _RECORDER.functions.most_common(),
          "counts": dict(_RECORDER.counts), "sites": dict(_RECORDER.sites),
-         "site_counts": dict(_RECORDER.site_counts)}))
+         "site_counts": dict(_RECORDER.site_counts),
+         "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024}))
 
 
 def summarise(directory: str, top: int = 25) -> None:
@@ -127,29 +165,37 @@ def summarise(directory: str, top: int = 25) -> None:
         rows += data["rows"]
         if data["rows"]:  # the xdist controller runs no tests
             workers[path.stem] = (sum(r["wall"] for r in data["rows"]),
-                                  sum(r.get("cpu", 0) for r in data["rows"]))
+                                  sum(r.get("cpu", 0) for r in data["rows"]),
+                                  data.get("max_rss_mb"))
         functions.update(dict(data["functions"]))
         counts.update(data.get("counts", {}))
         sites.update(data.get("sites", {}))
         site_counts.update(data.get("site_counts", {}))
     if not rows:
         raise SystemExit(f"no profile in {directory}: run pytest -p compile_profile first")
-    total = {k: sum(r.get(k, 0) for r in rows) for k in ("wall", *EVENTS.values(), "compiles")}
+    total = {k: sum(r.get(k, 0) for r in rows) for k in (
+        "wall", *EVENTS.values(), "compiles", *OTHER_COSTS, *(k + "_n" for k in OTHER_COSTS))}
     print(f"{len(rows)} tests, {total['wall']:.0f} test-seconds: XLA compile "
           f"{total['compile']:.0f} s ({total['compiles']:.0f} compiles), tracing "
           f"{total['trace']:.0f} s, lowering {total['lower']:.0f} s; the persistent cache "
           f"saved {total['cache_saved']:.0f} s")
+    print(f"checkpoint writes {total['ckpt_write']:.0f} s ({total['ckpt_write_n']:.0f}), "
+          f"checkpoint reads {total['ckpt_read']:.0f} s ({total['ckpt_read_n']:.0f}), garbage "
+          f"collection {total['gc']:.0f} s ({total['gc_n']:.0f}); in the test processes only")
     # CPU below wall: a worker waited (I/O, threads); at ~100 % both cores were busy throughout
-    for worker, (wall, cpu) in workers.items():
+    for worker, (wall, cpu, rss) in workers.items():
         print(f"{worker}: {wall:.0f} test-seconds, {cpu:.0f} CPU-seconds "
-              f"({100 * cpu / max(wall, 1e-9):.0f} %, its children included)")
+              f"({100 * cpu / max(wall, 1e-9):.0f} %, its children included)"
+              + ("" if rss is None else f", peak memory {rss:,} MB"))
     by_file = collections.defaultdict(collections.Counter)
     for r in rows:
         by_file[r["test"].split("::")[0]].update(
-            {k: r.get(k, 0) for k in ("wall", "compile", "trace", "lower")})
-    print(f"\n{'test file':<40} {'wall':>7} {'compile':>8} {'trace+lower':>12}")
+            {k: r.get(k, 0) for k in ("wall", "compile", "trace", "lower", *OTHER_COSTS)})
+    print(f"\n{'test file':<40} {'wall':>7} {'compile':>8} {'trace+lower':>12} "
+          f"{'checkpoints':>12} {'gc':>5}")
     for name, c in sorted(by_file.items(), key=lambda kv: -kv[1]["wall"]):
-        print(f"{name:<40} {c['wall']:7.0f} {c['compile']:8.0f} {c['trace'] + c['lower']:12.0f}")
+        print(f"{name:<40} {c['wall']:7.0f} {c['compile']:8.0f} {c['trace'] + c['lower']:12.0f} "
+              f"{c['ckpt_write'] + c['ckpt_read']:12.0f} {c['gc']:5.0f}")
     print(f"\n{'function (XLA compile)':<40} {'seconds':>8} {'compiles':>9}")
     for name, seconds in functions.most_common(top):
         print(f"{name:<40} {seconds:8.1f} {counts[name]:9d}")

@@ -53,19 +53,23 @@ SMALL_NUM_ENVS = 256
 
 
 _collected = [time.monotonic()]
+# Python collects its oldest generation after every 10 collections of the middle one; in a test
+# that traces and compiles (millions of objects made, most kept by JAX's caches) each such pass
+# takes about 0.2 s, and garbage collection was 7 % of the suite's time (tests/compile_profile.py;
+# docs/results.md). After every 100: what a test leaves is collected between tests (below).
+gc.set_threshold(700, 10, 100)
 
 
 @pytest.fixture(autouse=True)
 def _young_heap():
     """Garbage collection during a test sees only the objects made in it (``gc.freeze`` of the
-    older ones): the store collects after every checkpoint read (store/checkpoints.py), and a
-    full collection of a session's heap (every compiled program: about 700,000 objects) takes
-    about a second. What died in earlier tests is collected between two tests, at most every
-    30 s."""
+    older ones): a full collection of a session's heap (every compiled program: about 700,000
+    objects) takes about a second. What died in earlier tests is collected between two tests,
+    at most every 120 s."""
     gc.freeze()
     yield
     gc.unfreeze()
-    if time.monotonic() - _collected[0] > 30:
+    if time.monotonic() - _collected[0] > 120:
         gc.collect()
         _collected[0] = time.monotonic()
 

@@ -45,13 +45,18 @@ def test_summary_adds_the_workers_up(tmp_path, capsys):
     for worker, wall in (("gw0", 10.0), ("gw1", 4.0)):
         (tmp_path / f"{worker}.json").write_text(json.dumps({
             "rows": [{"test": f"tests/test_{worker}.py::t", "wall": wall, "cpu": wall * 0.9,
-                      "compile": wall / 2, "compiles": 3, "trace": 1.0, "lower": 0.5}],
+                      "compile": wall / 2, "compiles": 3, "trace": 1.0, "lower": 0.5,
+                      "ckpt_write": 1.0, "ckpt_write_n": 2, "ckpt_read": 0.5, "ckpt_read_n": 1,
+                      "gc": 0.25, "gc_n": 4}],
             "functions": [["jit(step)", wall / 2]], "counts": {"jit(step)": 3},
-            "sites": {"src/a.py:7": wall / 4}, "site_counts": {"src/a.py:7": 3}}))
+            "sites": {"src/a.py:7": wall / 4}, "site_counts": {"src/a.py:7": 3},
+            "max_rss_mb": 1500}))
     compile_profile.summarise(str(tmp_path))
     out = capsys.readouterr().out
     assert out.startswith("2 tests, 14 test-seconds: XLA compile 7 s (6 compiles), tracing 2 s")
+    assert "checkpoint writes 2 s (4), checkpoint reads 1 s (2), garbage collection 0 s (8)" in out
     assert "gw0: 10 test-seconds, 9 CPU-seconds (90 %" in out and "gw1: 4 test-seconds" in out
+    assert "peak memory 1,500 MB" in out
     lines = out.splitlines()
     assert "tests/test_gw0.py" in lines[lines.index(next(x for x in lines if x.startswith(
         "test file"))) + 1]  # the slowest file first
@@ -62,3 +67,30 @@ def test_summary_adds_the_workers_up(tmp_path, capsys):
 def test_summary_of_nothing_says_so(tmp_path):
     with pytest.raises(SystemExit, match="no profile"):
         compile_profile.summarise(str(tmp_path))
+
+
+def test_recorder_times_the_store_and_the_collector():
+    """``timed`` adds a call's seconds and count even when it raises; ``collecting`` (a
+    ``gc.callbacks`` entry) adds the seconds of each collection."""
+    import gc
+    import time
+
+    rec = compile_profile._Recorder()
+
+    def slow(fail: bool):
+        time.sleep(0.02)
+        if fail:
+            raise ValueError("damaged")
+        return 7
+
+    timed = rec.timed("ckpt_read", slow)
+    assert timed(False) == 7
+    with pytest.raises(ValueError, match="damaged"):
+        timed(True)
+    assert rec.current["ckpt_read_n"] == 2 and rec.current["ckpt_read"] >= 0.04
+    gc.callbacks.append(rec.collecting)
+    try:
+        gc.collect()
+    finally:
+        gc.callbacks.remove(rec.collecting)
+    assert rec.current["gc_n"] == 1 and rec.current["gc"] > 0
