@@ -80,7 +80,6 @@ class _Recorder:
             self.sites[site] += seconds
             self.site_counts[site] += name == "compile"
 
-
     def timed(self, name: str, function):
         """``function``, adding its seconds to ``name`` and its calls to ``name + "_n"``."""
 

@@ -235,16 +235,17 @@ def _option_value(argv: list[str], option: str) -> str | None:
 
 
 def _smoke_preset(preset: str | None, data: bool) -> str | None:
-    """The smoke preset of the world ``--preset PRESET`` trains on (the default preset when
-    None; with ``--data``, the files world's), or None when the CLI does not know ``PRESET``."""
-    from flowmaps_jax.training.config import DEFAULT_PRESET, RECORDED_PRESETS
+    """The smoke preset (its first preset named ``*smoke``) of the world ``--preset PRESET``
+    trains on, found in the world registry: among the worlds that read files with ``--data``,
+    among the generated ones without (no ``--preset``: ``DEFAULT_PRESET``; with ``--data``, the
+    files world's own default). None when the CLI does not know ``PRESET``."""
+    from flowmaps_jax.training.config import DEFAULT_PRESET
     from flowmaps_jax.worlds import WORLDS
 
-    if data:
-        return "smoke" if preset is None or preset in RECORDED_PRESETS else None
+    given = preset or (None if data else DEFAULT_PRESET)
     for w in WORLDS.values():
-        table = {} if w.reads_files else w.hook("presets")
-        if (preset or DEFAULT_PRESET) in table:
+        table = w.hook("presets") if w.reads_files == data else {}
+        if table and (given is None or given in table):
             return next(name for name in table if name.endswith("smoke"))
     return None
 

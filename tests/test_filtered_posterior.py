@@ -26,18 +26,14 @@ CONFIG = HomesConfig(regime="mixed", num_hours=48,
 
 @pytest.fixture(scope="module")
 def homes():
-    return generate_homes(jax.random.key(3), CONFIG, 4)
+    """Four homes as numpy arrays: one home is then taken without a program per field."""
+    return jax.tree.map(np.asarray, generate_homes(jax.random.key(3), CONFIG, 4))
 
 
 def _objects(homes, max_allowed=18):
     """(home, object) pairs: every valid object with 2 … ``max_allowed`` places."""
     valid, num = np.asarray(homes.object_valid), np.asarray(homes.num_allowed)
     return [(int(e), int(m)) for e, m in np.argwhere(valid & (num >= 2) & (num <= max_allowed))]
-
-
-def _on_host(homes):
-    """``homes`` as numpy arrays: one home is then taken without a program per field."""
-    return jax.tree.map(np.asarray, homes)
 
 
 def _matrices(home, m):
@@ -71,7 +67,7 @@ def test_the_filter_matches_a_numpy_forward_filter_on_a_random_mask(homes):
     rng = np.random.default_rng(0)
     seen_regimes = set()
     for e, m in _objects(homes):
-        home = _on_host(homes).home(e)
+        home = homes.home(e)
         observed = rng.random((CONFIG.num_hours, CONFIG.max_objects)) < 0.6
         for tau, tau_q in ((0, 1), (13, 14), (20, 33), (40, 47)):
             want = _brute_filter(home, m, observed, tau, tau_q)
@@ -86,7 +82,7 @@ def test_the_filter_matches_enumeration_of_all_paths(homes):
     agrees with the sightings: independent of the filter's recursion."""
     rng = np.random.default_rng(1)
     for e, m in _objects(homes, max_allowed=3)[:4]:
-        home = _on_host(homes).home(e)
+        home = homes.home(e)
         mats = _matrices(home, m)
         allowed = np.flatnonzero(np.asarray(home.object_allowed[m]))
         where = np.asarray(home.receptacle[:, m])
@@ -105,7 +101,7 @@ def test_the_filter_matches_enumeration_of_all_paths(homes):
 def test_every_hour_observed_is_the_posterior_with_the_law_known(homes):
     observed = np.ones((CONFIG.num_hours, CONFIG.max_objects), bool)
     for e, m in _objects(homes):
-        home = _on_host(homes).home(e)
+        home = homes.home(e)
         for tau, tau_q in ((0, 5), (17, 30), (46, 47)):
             np.testing.assert_allclose(
                 filtered_posterior(home, m, observed, tau, tau_q, CONFIG),
@@ -114,7 +110,7 @@ def test_every_hour_observed_is_the_posterior_with_the_law_known(homes):
 
 def test_the_filter_jits_and_vmaps_over_queries_and_homes(homes):
     e, m = _objects(homes)[0]
-    home = _on_host(homes).home(e)
+    home = homes.home(e)
     observed = np.random.default_rng(2).random((CONFIG.num_hours, CONFIG.max_objects)) < 0.5
     taus, tau_qs = jnp.asarray([0, 10, 30]), jnp.asarray([5, 11, 47])
     batched = jax.jit(jax.vmap(lambda a, b: filtered_posterior(home, m, observed, a, b,
@@ -141,5 +137,5 @@ def test_bad_arguments_name_themselves(homes, change, message):
     args = {"object_index": m, "observed": np.ones((48, 15), bool), "tau": 5, "tau_q": 9,
             **change}
     with pytest.raises(ValueError, match=message):
-        filtered_posterior(_on_host(homes).home(e), args["object_index"], args["observed"],
+        filtered_posterior(homes.home(e), args["object_index"], args["observed"],
                            args["tau"], args["tau_q"], CONFIG)
