@@ -196,6 +196,11 @@ def _edit_json(path, edit):
      "stored config differs"),
     (lambda d: shutil.rmtree(d / "meta"), "missing ['meta']"),
     (lambda d: (d / "_CHECKPOINT_METADATA").unlink(), "_CHECKPOINT_METADATA"),
+    (lambda d: _edit_json(d / "meta" / "metadata", lambda m: m["layout"].pop()),
+     "layout that does not match its packed bytes"),
+    (lambda d: _edit_json(d / "meta" / "metadata", lambda m: m["layout"][0].__setitem__(2, -1)),
+     "unreadable layout"),
+    (lambda d: _edit_json(d / "meta" / "metadata", lambda m: m.pop("layout")), "no layout"),
 ])
 def test_damaged_newest_step_names_the_newest_intact_one(saved, damage, fragment):
     damage(saved / "last" / "4")
@@ -265,6 +270,29 @@ def test_steps_saved_before_checksums_still_restore_but_are_checked_for_nan(tmp_
     legacy_save(5, _poisoned("params"))
     with pytest.raises(ValueError, match=r"NaN or inf.*newest intact checkpoint is step 3"):
         checkpoints.restore(tmp_path, _target())
+
+
+def test_a_state_is_one_packed_array_and_steps_of_one_array_per_leaf_still_restore(tmp_path):
+    """A save stores the state as one array of bytes (orbax's time grows with the number of
+    arrays); a step of the earlier format (one array per leaf, meta format 1) restores into a
+    target and as raw dicts to the same arrays."""
+    with CheckpointStore(tmp_path / "new", keep_last=2) as store:
+        store.save(_state_at(3), CFG.to_dict())
+    stored = ocp.StandardCheckpointHandler().metadata(tmp_path / "new" / "last" / "3" / "state")
+    assert list(stored) == ["packed"] and len(jax.tree.leaves(stored)) == 1
+    old = tmp_path / "old" / "last"
+    manager = ocp.CheckpointManager(old, item_names=checkpoints.ITEMS)
+    meta = {**integrity.describe_state(_state_at(3), CFG.to_dict()), "format": 1}
+    manager.save(3, args=ocp.args.Composite(state=ocp.args.StandardSave(_state_at(3)),
+                                            config=ocp.args.JsonSave(CFG.to_dict()),
+                                            meta=ocp.args.JsonSave(meta)))
+    manager.wait_until_finished()
+    manager.close()
+    for root in (tmp_path / "new", old.parent):
+        _assert_same(checkpoints.restore(root, _target()).state, _state_at(3))
+    raw_new, raw_old = (checkpoints.restore(root).state for root in (tmp_path / "new", old.parent))
+    for part in ("step", "params", "ema_params"):
+        _assert_same(raw_new[part], raw_old[part])
 
 
 def test_set_aside_moves_later_steps_out_of_the_way(saved):

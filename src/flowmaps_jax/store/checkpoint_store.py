@@ -19,6 +19,7 @@ import orbax.checkpoint as ocp
 from flowmaps_jax.atomic_files import check_tree_no_links
 from flowmaps_jax.store.checkpoints import BEST, LATEST, SUBDIRS, best_manager, last_manager
 from flowmaps_jax.store.integrity import describe_state, shorten
+from flowmaps_jax.store.packing import pack
 from flowmaps_jax.validation import check_int
 
 
@@ -84,8 +85,10 @@ class CheckpointStore:
 
     def _write(self, manager, step: int, state, config: dict, meta: dict, **kwargs) -> None:
         sub = self.directory / pathlib.Path(str(manager.directory)).name
-        args = ocp.args.Composite(state=ocp.args.StandardSave(state),
-                                  config=ocp.args.JsonSave(config), meta=ocp.args.JsonSave(meta))
+        item, layout = pack(state)
+        args = ocp.args.Composite(state=ocp.args.StandardSave(item),
+                                  config=ocp.args.JsonSave(config),
+                                  meta=ocp.args.JsonSave({**meta, "layout": layout}))
         try:
             with _quiet():
                 manager.save(step, args=args, force=True, **kwargs)

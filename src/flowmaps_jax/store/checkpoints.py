@@ -22,6 +22,7 @@ import orbax.checkpoint as ocp
 from flowmaps_jax.atomic_files import check_tree_no_links
 from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
 from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
+from flowmaps_jax.store.packing import PACKED, unpack
 from flowmaps_jax.untrusted_files import parse_json
 from flowmaps_jax.validation import check_choice, check_dir, check_flag, check_int, prefix_errors
 
@@ -168,11 +169,12 @@ def _missing_state_files(state_dir: pathlib.Path) -> list[str]:
 @contextlib.contextmanager
 def _silenced():
     """Hold back what orbax and tensorstore print (fd 2 and unraisable exceptions) while a step
-    is read: shown again after a read that succeeded, dropped after one that failed (a
-    :class:`Damaged` sums it up)."""
+    is read: shown again after a read that succeeded, dropped after one that failed. Any
+    exception of the read (orbax and tensorstore raise many types) becomes one
+    :class:`Damaged` that sums it up."""
     sys.stderr.flush()
     saved_fd, saved_hook, text = os.dup(2), sys.unraisablehook, io.StringIO()
-    failed = True
+    failed, failure = True, None
     with tempfile.TemporaryFile() as sink:
         os.dup2(sink.fileno(), 2)
         sys.unraisablehook = lambda _: None
@@ -180,9 +182,11 @@ def _silenced():
             with contextlib.redirect_stderr(text):
                 yield
             failed = False
+        except Exception as err:
+            failure = f"{type(err).__name__}: {_first_line(err)}"
         finally:
-            if failed:  # its un-awaited coroutines report here, unheard (a read that
-                gc.collect()  # succeeded leaves none; a full collection costs ~1 s on a big heap)
+            if failed:  # its un-awaited coroutines report here, unheard, once the exception
+                gc.collect()  # that held them is gone (a full collection: ~1 s on a big heap)
             sys.stderr.flush()
             os.dup2(saved_fd, 2)
             os.close(saved_fd)
@@ -192,6 +196,8 @@ def _silenced():
                 shown = sink.read().decode(errors="replace") + text.getvalue()
                 if shown:
                     sys.stderr.write(shown)
+    if failure is not None:
+        raise Damaged(f"is corrupt, incomplete or does not match the model ({failure})")
 
 
 def _saved_structure(state_dir: pathlib.Path):
@@ -213,32 +219,33 @@ def _read_step(sub: pathlib.Path, step: int, target_state=None, *,
         missing += _missing_state_files(step_dir / "state")
     if missing:
         raise Damaged(f"is incomplete or corrupt: missing {missing}")
-    args = {"config": ocp.args.JsonRestore()}
+    args, packed = {"config": ocp.args.JsonRestore()}, False
     if "meta" in items:
         args["meta"] = ocp.args.JsonRestore()
-    try:
-        with _silenced():
-            manager = _reader(sub)
-            try:
-                if with_state:
-                    target = _saved_structure(step_dir / "state") if target_state is None \
-                        else target_state
-                    args["state"] = ocp.args.StandardRestore(target)
-                restored = manager.restore(step, args=ocp.args.Composite(**args))
-            finally:
-                manager.close()
-    except Exception as err:  # orbax/tensorstore raise many types; report them uniformly
-        raise Damaged(f"is corrupt, incomplete or does not match the model "
-                      f"({type(err).__name__}: {_first_line(err)})") from None
+    with _silenced():
+        manager = _reader(sub)
+        try:
+            if with_state:  # a packed state (store.packing) is restored as saved
+                stored = _saved_structure(step_dir / "state")
+                packed = PACKED in stored
+                args["state"] = ocp.args.StandardRestore(
+                    stored if packed or target_state is None else target_state)
+            restored = manager.restore(step, args=ocp.args.Composite(**args))
+        finally:
+            manager.close()
     config, meta = restored["config"], restored["meta"] if "meta" in items else None
     if not isinstance(config, dict):
         raise Damaged("has no config")
+    state = restored["state"] if with_state else None
+    if with_state and packed:
+        if not isinstance(meta, dict) or "layout" not in meta:
+            raise Damaged("has a packed state but no layout in its meta item")
+        state = unpack(state[PACKED], meta["layout"], target_state)
     if with_state:
-        verify(restored["state"], config, meta)
+        verify(state, config, meta)
     else:
         verify_config(config, meta)
-    return Restored(state=restored["state"] if with_state else None, config=config, meta=meta,
-                    step=step, path=step_dir)
+    return Restored(state=state, config=config, meta=meta, step=step, path=step_dir)
 
 
 def _first_line(err: Exception) -> str:

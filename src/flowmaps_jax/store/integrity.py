@@ -12,8 +12,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-META_FORMAT = 1
-"""The version of the ``meta`` item :func:`describe_state` writes."""
+META_FORMAT = 2
+"""The version of the ``meta`` item :func:`describe_state` writes (2: the store adds the packed
+state's ``layout``, :mod:`flowmaps_jax.store.packing`; 1: a state of one array per leaf)."""
 
 
 class NonFiniteStateError(ValueError):
@@ -47,7 +48,9 @@ def shorten(err: Exception | str, limit: int = 400) -> str:
     return text if len(text) <= limit else text[:limit] + " ..."
 
 
-def _host_leaves(tree) -> list[tuple[str, np.ndarray]]:
+def host_leaves(tree) -> list[tuple[str, np.ndarray]]:
+    """(:func:`leaf_name`, host copy) of every leaf of ``tree`` in flattening order; a typed
+    PRNG key as its key data."""
     out = []
     for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]:
         if jnp.issubdtype(getattr(leaf, "dtype", np.float32), jax.dtypes.prng_key):
@@ -80,7 +83,7 @@ def _non_finite(leaves: list[tuple[str, np.ndarray]]) -> list[str]:
 def state_checksums(state) -> tuple[dict[str, str], list[str]]:
     """(SHA-256 of every array leaf of ``state`` by :func:`leaf_name`, ``name (k of n)`` of every
     floating leaf holding NaN or inf): what a save records and a restore checks."""
-    leaves = _host_leaves(state)
+    leaves = host_leaves(state)
     return {name: _digest(arr) for name, arr in leaves}, _non_finite(leaves)
 
 
