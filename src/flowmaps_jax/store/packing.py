@@ -18,14 +18,23 @@ from flowmaps_jax.store.integrity import Damaged, host_leaves, leaf_name, name_l
 PACKED = "packed"
 
 
+def _placed(arr: np.ndarray, sharding) -> jax.Array:
+    """``arr`` (the same on every process) on ``sharding``'s devices; on this process's first
+    device when None."""
+    if sharding is None or sharding.is_fully_addressable:
+        return jax.device_put(arr, sharding)
+    return jax.make_array_from_callback(arr.shape, sharding, lambda index: arr[index])
+
+
 def pack(state) -> tuple[dict, list]:
-    """(the ``state`` item ``{"packed": 1-D uint8 numpy array}``, the layout ``[[name, dtype
-    name, shape], ...]``) of ``state`` (a pytree of arrays; a typed PRNG key is stored as its
-    key data, and restores as that raw data)."""
+    """(the ``state`` item ``{"packed": (n,) uint8 array}``, placed as ``state``'s first leaf
+    is, the layout ``[[name, dtype name, shape], ...]``) of ``state`` (a pytree of arrays; a
+    typed PRNG key is stored as its key data, and restores as that raw data)."""
     leaves = host_leaves(state)
-    data = b"".join(np.ascontiguousarray(arr).tobytes() for _, arr in leaves)
+    data = np.frombuffer(b"".join(np.ascontiguousarray(arr).tobytes() for _, arr in leaves),
+                         np.uint8)
     layout = [[name, arr.dtype.name, list(arr.shape)] for name, arr in leaves]
-    return {PACKED: np.frombuffer(data, np.uint8)}, layout
+    return {PACKED: _placed(data, getattr(jax.tree.leaves(state)[0], "sharding", None))}, layout
 
 
 def _host_arrays(packed, layout) -> list[tuple[str, np.ndarray]]:
@@ -53,13 +62,13 @@ def unpack(packed: dict, layout, target=None):
     unreadable or does not match ``target``."""
     arrays = _host_arrays(packed, layout)
     if target is None:
-        device, state = jax.local_devices()[0], {}
+        device, state = jax.sharding.SingleDeviceSharding(jax.local_devices()[0]), {}
         for name, arr in arrays:
             *parents, last = name.split("/")
             node = state
             for part in parents:
                 node = node.setdefault(part, {})
-            node[last] = jax.device_put(arr, device)
+            node[last] = _placed(arr, device)
         return state
     paths, treedef = jax.tree_util.tree_flatten_with_path(target)
     names = [leaf_name(path) for path, _ in paths]
@@ -73,5 +82,5 @@ def unpack(packed: dict, layout, target=None):
             raise Damaged(f"does not match the model: {name} is {arr.dtype.name}"
                           f"{tuple(arr.shape)} in the checkpoint, {np.dtype(want.dtype).name}"
                           f"{tuple(want.shape)} in the model")
-        leaves.append(jax.device_put(arr, getattr(want, "sharding", None)))
+        leaves.append(_placed(arr, getattr(want, "sharding", None)))
     return jax.tree_util.tree_unflatten(treedef, leaves)
