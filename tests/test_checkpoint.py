@@ -293,6 +293,12 @@ def test_a_state_is_one_packed_array_and_steps_of_one_array_per_leaf_still_resto
     raw_new, raw_old = (checkpoints.restore(root).state for root in (tmp_path / "new", old.parent))
     for part in ("step", "params", "ema_params"):
         _assert_same(raw_new[part], raw_old[part])
+    layout = tmp_path / "new" / "last" / "3" / "meta" / "metadata"
+    _edit_json(layout, lambda m: m["layout"][1].__setitem__(0, m["layout"][0][0]))
+    with pytest.raises(ValueError, match="the name step twice"):
+        checkpoints.restore(tmp_path / "new")
+    with pytest.raises(ValueError, match="does not match the model: arrays"):
+        checkpoints.restore(tmp_path / "new", _target())
 
 
 def test_set_aside_moves_later_steps_out_of_the_way(saved):
