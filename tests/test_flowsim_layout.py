@@ -152,6 +152,19 @@ def test_vectorised_equals_loop_over_environments(small_scenes, flowsim_config):
                                           np.asarray(getattr(small_scenes, name))[e], name)
 
 
+def test_small_requests_share_one_program_and_are_their_own_rows(small_scenes,
+                                                                 flowsim_config):
+    """Fewer than SMALL_REQUEST environments are computed as that many and cut back: one
+    compiled program for every small size, and the rows are the request's own, bit for bit."""
+    compiled = scenes_from_env_keys._cache_size()
+    for n in (1, 2, 5):
+        scenes = generate(jax.random.key(0), n, flowsim_config)
+        for name, value in dataclasses.asdict(scenes).items():
+            np.testing.assert_array_equal(np.asarray(value),
+                                          np.asarray(getattr(small_scenes, name))[:n], name)
+    assert scenes_from_env_keys._cache_size() - compiled <= 1
+
+
 def test_some_layouts_are_redrawn_and_counted(small_scenes):
     redraws = np.asarray(small_scenes.layout_redraws)
     assert 0 < np.mean(redraws > 0) < 0.5

@@ -27,6 +27,7 @@ from flowmaps_jax.flowsim.homes import (
     favourite_weights,
     filtered_posterior,
     generate_homes,
+    homes_from_keys,
     homes_history_posterior,
     homes_posterior,
     load_homes,
@@ -191,6 +192,17 @@ def test_shapes_determinism_and_validity(homes):
         wrong.flat[0] = CONFIG.max_receptacles
         with pytest.raises(ValueError, match=f"homes.{field} must lie"):
             validate_homes(dataclasses.replace(homes, **{field: wrong}), CONFIG)
+
+
+def test_small_requests_share_one_program_and_are_their_own_homes(homes):
+    """Fewer than SMALL_REQUEST homes are computed as that many and cut back: one compiled
+    program for every small number, and the homes are the request's own, bit for bit."""
+    compiled = homes_from_keys._cache_size()
+    for n in (1, 2):
+        for a, b in zip(jax.tree.leaves(generate_homes(jax.random.key(0), CONFIG, n)),
+                        jax.tree.leaves(homes), strict=True):
+            np.testing.assert_array_equal(a, np.asarray(b)[:n])
+    assert homes_from_keys._cache_size() - compiled <= 1
 
 
 def test_rooms_receptacles_and_doors(homes):

@@ -1,6 +1,6 @@
 """Resource budgets, checked up front: a request above one is a ``ValueError`` naming it, the
 estimate and the limit (:func:`check_resources`); memory :data:`MAX_BYTES_ENV`, work
-:data:`MAX_FLOPS_ENV`.
+:data:`MAX_FLOPS_ENV`. And the size a small request is computed at (:func:`computed_rows`).
 """
 
 from __future__ import annotations
@@ -86,6 +86,31 @@ def check_request_size(name: str, num_bytes: int, limit: int | None = None) -> i
                          f"{limit / 1e9:.3g} GB available ({MAX_BYTES_ENV} overrides it); ask "
                          f"for less or split the request")
     return int(num_bytes)
+
+
+SMALL_REQUEST = 64
+"""Requests of fewer rows (environments, homes) are computed at this many and cut back
+(:func:`computed_rows`), so every small request of one configuration runs one compiled
+program."""
+
+
+def computed_rows(count: int, bytes_per_row: int) -> int:
+    """The rows to compute for a request of ``count`` independent rows drawn from
+    ``jax.random.split(key, rows)``: :data:`SMALL_REQUEST` for a smaller request when that
+    many rows take at most 64 MB (and the memory limit), else ``count``. The first ``count``
+    keys are those of ``split(key, count)`` (JAX's partitionable threefry, the default; without
+    it, ``count``), so the first ``count`` rows are the request's, bit for bit."""
+    small = min(2**26, memory_limit()) // SMALL_REQUEST
+    if count < SMALL_REQUEST and bytes_per_row <= small and jax.config.jax_threefry_partitionable:
+        return SMALL_REQUEST
+    return count
+
+
+def first_rows(tree: Any, count: int) -> Any:
+    """Every leaf's first ``count`` rows, on the leaf's devices (cut on the host: no program per
+    size)."""
+    return jax.tree.map(lambda x: x if x.shape[0] == count else
+                        jax.device_put(np.asarray(x)[:count], x.sharding), tree)
 
 
 def check_resources(name: str, *, num_bytes: int = 0, flops: int = 0,

@@ -22,7 +22,7 @@ from flowmaps_jax.flowsim.config import (
     sim_params,
     sim_shape,
 )
-from flowmaps_jax.resources import array_bytes, check_request_size
+from flowmaps_jax.resources import array_bytes, check_request_size, computed_rows, first_rows
 from flowmaps_jax.validation import (
     check_array,
     check_instance,
@@ -282,8 +282,12 @@ def generate(key, num_envs: int, config: FlowSimConfig = DEFAULT_CONFIG, *, mesh
     check_request_size(f"generate({count} environments, layout_candidates="
                        f"{config.layout_candidates})",
                        count * scenes_bytes_per_env(config) + layout_bytes(config, count))
-    env_keys = jax.random.split(key, num_envs)
-    scenes, ok = _generate_on(env_keys if part is None else env_keys[part], config, mesh)
+    if part is None:  # a small request as SMALL_REQUEST environments: one program for all
+        rows = count if mesh is not None else computed_rows(
+            count, scenes_bytes_per_env(config) + layout_bytes(config, 1))
+        scenes, ok = first_rows(_generate_on(jax.random.split(key, rows), config, mesh), count)
+    else:
+        scenes, ok = _generate_on(jax.random.split(key, num_envs)[part], config, mesh)
     failed = int(np.sum(~np.asarray(ok)))
     if failed:
         raise LayoutError(

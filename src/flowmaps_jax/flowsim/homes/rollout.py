@@ -16,7 +16,7 @@ from flowmaps_jax.flowsim.homes import floorplan, furnish, schedules
 from flowmaps_jax.flowsim.homes.config import DEFAULT_HOMES_CONFIG, HomesConfig, context_of
 from flowmaps_jax.flowsim.homes.schedules import BALANCED, FREQUENT, PREFERENCES, ROUTINE
 from flowmaps_jax.flowsim.homes.world import FIELDS, Homes, field_shape, sizes, validate_homes
-from flowmaps_jax.resources import array_bytes, check_request_size
+from flowmaps_jax.resources import array_bytes, check_request_size, computed_rows, first_rows
 from flowmaps_jax.validation import check_instance, check_int, check_key
 
 
@@ -192,8 +192,9 @@ def generate_homes(key, config: HomesConfig = DEFAULT_HOMES_CONFIG, num_homes: i
     check_request_size(f"generate_homes({num_homes} homes)",
                        num_homes * (homes_bytes_per_home(config)
                                     + 8 * config.num_hours * config.max_objects * 4))
-    keys = jax.random.split(key, num_homes)
-    return homes_from_keys(keys, config)
+    rows = computed_rows(num_homes, homes_bytes_per_home(config)
+                         + 8 * config.num_hours * config.max_objects * 4)
+    return first_rows(homes_from_keys(jax.random.split(key, rows), config), num_homes)
 
 
 @functools.partial(jax.jit, static_argnames=("steps", "num_chains", "config"))
