@@ -159,9 +159,11 @@ def test_small_requests_share_one_program_and_are_their_own_rows(small_scenes,
     compiled = scenes_from_env_keys._cache_size()
     for n in (1, 2, 5):
         scenes = generate(jax.random.key(0), n, flowsim_config)
-        for name, value in dataclasses.asdict(scenes).items():
-            np.testing.assert_array_equal(np.asarray(value),
-                                          np.asarray(getattr(small_scenes, name))[:n], name)
+        for field in dataclasses.fields(scenes):  # (asdict would deep-copy every array)
+            value = getattr(scenes, field.name)
+            assert not value.committed, field.name  # as a program's output: no new programs
+            np.testing.assert_array_equal(np.asarray(value), np.asarray(
+                getattr(small_scenes, field.name))[:n], field.name)
     assert scenes_from_env_keys._cache_size() - compiled <= 1
 
 

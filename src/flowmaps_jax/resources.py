@@ -107,10 +107,10 @@ def computed_rows(count: int, bytes_per_row: int) -> int:
 
 
 def first_rows(tree: Any, count: int) -> Any:
-    """Every leaf's first ``count`` rows, on the leaf's devices (cut on the host: no program per
-    size)."""
-    return jax.tree.map(lambda x: x if x.shape[0] == count else
-                        jax.device_put(np.asarray(x)[:count], x.sharding), tree)
+    """Every leaf's first ``count`` rows, placed and committed as the leaf is (cut on the host:
+    no program per size; a committed array would make later eager operations new programs)."""
+    return jax.tree.map(lambda x: x if x.shape[0] == count else jax.device_put(
+        np.asarray(x)[:count], x.sharding if x.committed else None), tree)
 
 
 def check_resources(name: str, *, num_bytes: int = 0, flops: int = 0,
