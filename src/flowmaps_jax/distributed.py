@@ -157,20 +157,23 @@ def shard_rows(tree: Any, mesh: Mesh | None) -> Any:
     return jax.device_put(jax.tree.map(pad, tree), batch_sharding(mesh))
 
 
+def place(x: Any, sharding: jax.sharding.Sharding | None) -> jax.Array:
+    """``x`` on ``sharding``'s devices (None: the default device), also when they span several
+    hosts: every host must pass the same value (each fills its own devices from its copy)."""
+    if sharding is None or sharding.is_fully_addressable:
+        return jax.device_put(x, sharding)
+    x = np.asarray(x)
+    return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
+
+
 def replicate(tree: Any, mesh: Mesh | None) -> Any:
-    """Place a pytree on every device of the mesh (unchanged without a mesh). On a multi-host
-    mesh every host must pass the same values (each fills its own devices from its copy)."""
+    """Place a pytree on every device of the mesh (unchanged without a mesh; :func:`place`)."""
     if mesh is None:
         return tree
     sharding = replicated(mesh)
     if sharding.is_fully_addressable:
         return jax.device_put(tree, sharding)
-
-    def put(x):
-        x = np.asarray(x)
-        return jax.make_array_from_callback(x.shape, sharding, lambda index: x[index])
-
-    return jax.tree.map(put, tree)
+    return jax.tree.map(lambda x: place(x, sharding), tree)
 
 
 def from_hosts(tree: Any, mesh: Mesh) -> Any:

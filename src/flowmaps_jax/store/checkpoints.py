@@ -236,15 +236,15 @@ def _read_step(sub: pathlib.Path, step: int, target_state=None, *,
     config, meta = restored["config"], restored["meta"] if "meta" in items else None
     if not isinstance(config, dict):
         raise Damaged("has no config")
-    state = restored["state"] if with_state else None
-    if with_state and packed:
+    if not with_state:
+        verify_config(config, meta)
+        return Restored(state=None, config=config, meta=meta, step=step, path=step_dir)
+    state = restored["state"]
+    if packed:
         if not isinstance(meta, dict) or "layout" not in meta:
             raise Damaged("has a packed state but no layout in its meta item")
         state = unpack(state[PACKED], meta["layout"], target_state)
-    if with_state:
-        verify(state, config, meta)
-    else:
-        verify_config(config, meta)
+    verify(state, config, meta)
     return Restored(state=state, config=config, meta=meta, step=step, path=step_dir)
 
 

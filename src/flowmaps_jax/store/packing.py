@@ -13,17 +13,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flowmaps_jax.distributed import place
 from flowmaps_jax.store.integrity import Damaged, host_leaves, leaf_name, name_list
 
 PACKED = "packed"
-
-
-def _placed(arr: np.ndarray, sharding) -> jax.Array:
-    """``arr`` (the same on every process) on ``sharding``'s devices; on this process's first
-    device when None."""
-    if sharding is None or sharding.is_fully_addressable:
-        return jax.device_put(arr, sharding)
-    return jax.make_array_from_callback(arr.shape, sharding, lambda index: arr[index])
 
 
 def pack(state) -> tuple[dict, list]:
@@ -34,7 +27,7 @@ def pack(state) -> tuple[dict, list]:
     data = np.frombuffer(b"".join(np.ascontiguousarray(arr).tobytes() for _, arr in leaves),
                          np.uint8)
     layout = [[name, arr.dtype.name, list(arr.shape)] for name, arr in leaves]
-    return {PACKED: _placed(data, getattr(jax.tree.leaves(state)[0], "sharding", None))}, layout
+    return {PACKED: place(data, getattr(jax.tree.leaves(state)[0], "sharding", None))}, layout
 
 
 def _host_arrays(packed, layout) -> list[tuple[str, np.ndarray]]:
@@ -70,7 +63,7 @@ def unpack(packed, layout, target=None):
                 node = node.setdefault(part, {})
             if not isinstance(node, dict) or last in node:
                 raise Damaged(f"has an unreadable layout (the name {name} twice)")
-            node[last] = _placed(arr, device)
+            node[last] = place(arr, device)
         return state
     paths, treedef = jax.tree_util.tree_flatten_with_path(target)
     names = [leaf_name(path) for path, _ in paths]
@@ -84,5 +77,5 @@ def unpack(packed, layout, target=None):
             raise Damaged(f"does not match the model: {name} is {arr.dtype.name}"
                           f"{tuple(arr.shape)} in the checkpoint, {np.dtype(want.dtype).name}"
                           f"{tuple(want.shape)} in the model")
-        leaves.append(_placed(arr, getattr(want, "sharding", None)))
+        leaves.append(place(arr, getattr(want, "sharding", None)))
     return jax.tree_util.tree_unflatten(treedef, leaves)

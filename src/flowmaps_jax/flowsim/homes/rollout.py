@@ -189,11 +189,9 @@ def generate_homes(key, config: HomesConfig = DEFAULT_HOMES_CONFIG, num_homes: i
     check_instance("config", config, HomesConfig)
     num_homes = check_int("num_homes", num_homes)
     # the trajectories' working set: a few (T, M) float/int arrays per home besides the output
-    check_request_size(f"generate_homes({num_homes} homes)",
-                       num_homes * (homes_bytes_per_home(config)
-                                    + 8 * config.num_hours * config.max_objects * 4))
-    rows = computed_rows(num_homes, homes_bytes_per_home(config)
-                         + 8 * config.num_hours * config.max_objects * 4)
+    per_home = homes_bytes_per_home(config) + 8 * config.num_hours * config.max_objects * 4
+    check_request_size(f"generate_homes({num_homes} homes)", num_homes * per_home)
+    rows = computed_rows(num_homes, per_home)
     return first_rows(homes_from_keys(jax.random.split(key, rows), config), num_homes)
 
 
