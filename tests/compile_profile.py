@@ -12,11 +12,15 @@ events (``jax.monitoring``: ``jaxpr_trace_duration``, ``jaxpr_to_mlir_module_dur
 (``CheckpointStore._write``, ``checkpoints._read_step``: orbax) and Python's garbage collections
 (``gc.callbacks``), and writes ``<dir>/<worker>.json``: one row per test (its wall seconds, its
 CPU seconds with those of the child processes it waited for, and the seconds of each event
-inside it), the compile seconds per function and the process's peak resident memory. Inside
-child processes (notebook kernels, the forced-devices run) nothing is seen but their wall and
-CPU time. The summary prints the totals, each worker's test-seconds against its CPU-seconds
+inside it), the compile seconds per function, every program written to or loaded from the
+persistent compilation cache (its key, the test file, its compile seconds; by wrapping JAX's
+private ``compiler._cache_write`` and ``_cache_read``) and the process's peak resident memory.
+Inside child processes (notebook kernels, the forced-devices run) nothing is seen but their wall
+and CPU time. The summary prints the totals, each worker's test-seconds against its CPU-seconds
 (whether the cores were busy), the seconds per test file and the functions that took longest to
-compile.
+compile, and how many compiled programs were loaded again (by another test or worker) against
+how many were compiled once and never needed again: sharing a cache cannot save the latter, only
+tests that need fewer distinct programs can.
 
 It also counts lowerings and compiles by the line of the repository (``src/``, ``tests/``,
 ``experiments/``; the innermost on the stack) that started them. A line with hundreds of compiles
@@ -63,6 +67,8 @@ class _Recorder:
         self.sites = collections.Counter()  # repository line -> lowering + compile seconds
         self.site_counts = collections.Counter()  # repository line -> compiles
         self.rows: list[dict] = []
+        self.programs: list[list] = []  # ["write" | "load", cache key, test file, compile s]
+        self.test = "?"
         self.start = self.cpu_start = 0.0
         self.gc_start: float | None = None
 
@@ -94,6 +100,28 @@ class _Recorder:
 
         return run
 
+    def cache_write(self, write):
+        """JAX's ``compiler._cache_write(cache_key, compile_time_secs, ...)``, noting it."""
+
+        @functools.wraps(write)
+        def run(cache_key, compile_time_secs, *args, **kwargs):
+            self.programs.append(["write", cache_key, self.test, round(compile_time_secs, 4)])
+            return write(cache_key, compile_time_secs, *args, **kwargs)
+
+        return run
+
+    def cache_read(self, read):
+        """JAX's ``compiler._cache_read(module_name, cache_key, ...)``, noting a find."""
+
+        @functools.wraps(read)
+        def run(module_name, cache_key, *args, **kwargs):
+            executable, seconds = read(module_name, cache_key, *args, **kwargs)
+            if executable is not None:
+                self.programs.append(["load", cache_key, self.test, 0.0])
+            return executable, seconds
+
+        return run
+
     def collecting(self, phase: str, info: dict) -> None:
         """A ``gc.callbacks`` entry: the seconds of every collection, under ``gc``."""
         if phase == "start":
@@ -112,6 +140,7 @@ def pytest_configure(config):
     if not os.environ.get("FLOWMAPS_COMPILE_PROFILE"):
         raise SystemExit("-p compile_profile needs FLOWMAPS_COMPILE_PROFILE=<directory>")
     from jax import monitoring
+    from jax._src import compiler  # private: wrapped only under -p compile_profile
 
     from flowmaps_jax.store import checkpoint_store, checkpoints
 
@@ -121,6 +150,8 @@ def pytest_configure(config):
     store._write = _RECORDER.timed("ckpt_write", store._write)
     checkpoints._read_step = _RECORDER.timed("ckpt_read", checkpoints._read_step)
     gc.callbacks.append(_RECORDER.collecting)
+    compiler._cache_write = _RECORDER.cache_write(compiler._cache_write)
+    compiler._cache_read = _RECORDER.cache_read(compiler._cache_read)
 
 
 def _cpu_seconds() -> float:
@@ -132,6 +163,7 @@ def _cpu_seconds() -> float:
 
 def pytest_runtest_protocol(item, nextitem):
     _RECORDER.current.clear()
+    _RECORDER.test = item.nodeid.split("::")[0]
     _RECORDER.start = time.perf_counter()
     _RECORDER.cpu_start = _cpu_seconds()
 
@@ -150,7 +182,7 @@ def pytest_sessionfinish(session):
     (out / f"{worker}.json").write_text(json.dumps(
         {"rows": _RECORDER.rows, "functions": _RECORDER.functions.most_common(),
          "counts": dict(_RECORDER.counts), "sites": dict(_RECORDER.sites),
-         "site_counts": dict(_RECORDER.site_counts),
+         "site_counts": dict(_RECORDER.site_counts), "programs": _RECORDER.programs,
          "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024}))
 
 
@@ -158,7 +190,7 @@ def summarise(directory: str, top: int = 25) -> None:
     """Print the totals, seconds per test file and the slowest-compiling functions."""
     rows, functions, counts = [], collections.Counter(), collections.Counter()
     sites, site_counts = collections.Counter(), collections.Counter()
-    workers = {}
+    workers, programs = {}, []
     for path in sorted(pathlib.Path(directory).glob("*.json")):
         data = json.loads(path.read_text())
         rows += data["rows"]
@@ -170,6 +202,7 @@ def summarise(directory: str, top: int = 25) -> None:
         counts.update(data.get("counts", {}))
         sites.update(data.get("sites", {}))
         site_counts.update(data.get("site_counts", {}))
+        programs += data.get("programs", [])
     if not rows:
         raise SystemExit(f"no profile in {directory}: run pytest -p compile_profile first")
     total = {k: sum(r.get(k, 0) for r in rows) for k in (
@@ -181,6 +214,8 @@ def summarise(directory: str, top: int = 25) -> None:
     print(f"checkpoint writes {total['ckpt_write']:.0f} s ({total['ckpt_write_n']:.0f}), "
           f"checkpoint reads {total['ckpt_read']:.0f} s ({total['ckpt_read_n']:.0f}), garbage "
           f"collection {total['gc']:.0f} s ({total['gc_n']:.0f}); in the test processes only")
+    if programs:
+        _summarise_programs(programs)
     # CPU below wall: a worker waited (I/O, threads); at ~100 % both cores were busy throughout
     for worker, (wall, cpu, rss) in workers.items():
         print(f"{worker}: {wall:.0f} test-seconds, {cpu:.0f} CPU-seconds "
@@ -202,6 +237,28 @@ def summarise(directory: str, top: int = 25) -> None:
         print(f"\n{'repository line (most compiles)':<60} {'compiles':>9} {'seconds':>8}")
         for site, n in site_counts.most_common(top):
             print(f"{site:<60} {n:9d} {sites[site]:8.1f}")
+
+
+def _summarise_programs(programs: list[list], top: int = 5) -> None:
+    """Programs compiled (persistent-cache writes) against those loaded again, and the test
+    files that shared the most."""
+    written, loads, pairs = {}, collections.Counter(), collections.Counter()
+    for kind, key, test, seconds in programs:
+        if kind == "write":
+            written.setdefault(key, (test, seconds))
+    for kind, key, test, _ in programs:
+        if kind == "load" and key in written:
+            loads[key] += 1
+            pairs[written[key][0], test] += 1
+    total = sum(s for _, s in written.values())
+    again = sum(written[k][1] for k in loads)
+    print(f"programs: {len(written):,} compiled ({total:.0f} s); {len(loads):,} of them loaded "
+          f"again from the persistent cache ({sum(loads.values()):,} loads, {again:.0f} s of "
+          f"compile spared); the other {len(written) - len(loads):,} "
+          f"({100 * (total - again) / max(total, 1e-9):.0f} % of the compile seconds) were "
+          f"compiled once and never loaded again")
+    for (source, user), n in pairs.most_common(top):
+        print(f"  {n:5d} programs of {source} loaded by {user}")
 
 
 if __name__ == "__main__":

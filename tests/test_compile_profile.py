@@ -94,3 +94,33 @@ def test_recorder_times_the_store_and_the_collector():
     finally:
         gc.callbacks.remove(rec.collecting)
     assert rec.current["gc_n"] == 1 and rec.current["gc"] > 0
+
+
+def test_programs_loaded_again_are_told_from_those_compiled_once(capsys):
+    """The persistent cache's writes (compiled) and successful reads (loaded again), by test
+    file; the wrapped functions are JAX's own, with the arguments the wrappers read."""
+    import inspect
+
+    from jax._src import compiler
+
+    assert list(inspect.signature(compiler._cache_write).parameters)[:2] == [
+        "cache_key", "compile_time_secs"]
+    assert list(inspect.signature(compiler._cache_read).parameters)[:2] == [
+        "module_name", "cache_key"]
+    rec = compile_profile._Recorder()
+    rec.test = "tests/test_a.py"
+    write = rec.cache_write(lambda key, seconds, *rest: None)
+    read = rec.cache_read(lambda name, key, *rest: (object(), 2) if key == "k1" else (None, None))
+    write("k1", 2.0, "jit_f")
+    write("k2", 6.0, "jit_g")
+    rec.test = "tests/test_b.py"
+    assert read("jit_f", "k1")[1] == 2 and read("jit_h", "k3") == (None, None)
+    assert rec.programs == [["write", "k1", "tests/test_a.py", 2.0],
+                            ["write", "k2", "tests/test_a.py", 6.0],
+                            ["load", "k1", "tests/test_b.py", 0.0]]
+    compile_profile._summarise_programs(rec.programs)
+    out = capsys.readouterr().out
+    assert out.startswith("programs: 2 compiled (8 s); 1 of them loaded again from the persistent "
+                          "cache (1 loads, 2 s of compile spared); the other 1 (75 % of the "
+                          "compile seconds) were compiled once and never loaded again")
+    assert "    1 programs of tests/test_a.py loaded by tests/test_b.py" in out
