@@ -110,20 +110,6 @@ def small_scenes(flowsim_config) -> Scenes:
 # FLOWMAPS_MULTIDEVICE=1. A plain `pytest` does not collect it directly.
 collect_ignore_glob = [] if os.environ.get("FLOWMAPS_MULTIDEVICE") else ["multidevice/*"]
 
-# Test files that run the same commands share one xdist worker (``--dist loadgroup``; every other
-# file is a group of its own, as ``loadfile`` makes it): there the later ones find their programs
-# traced and compiled in memory, not only compiled in the persistent cache. The README's
-# trainings, evaluation and search and ``check_behaviour.py --smoke``'s are the same commands.
-SAME_WORKER = {"test_docs_commands.py": "smoke-commands", "test_experiments.py": "smoke-commands"}
-
-
-@pytest.hookimpl(tryfirst=True)  # before xdist names the group in each test's id
-def pytest_collection_modifyitems(config, items):
-    if getattr(config.option, "dist", "no") == "loadgroup":
-        for item in items:
-            item.add_marker(pytest.mark.xdist_group(SAME_WORKER.get(item.path.name,
-                                                                    item.path.name)))
-
 
 
 # ------------------------------------------------------------------ one trained run per world
