@@ -20,9 +20,9 @@ import jax
 import orbax.checkpoint as ocp
 
 from flowmaps_jax.atomic_files import check_tree_no_links
-from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config
+from flowmaps_jax.store.integrity import Damaged, shorten, verify, verify_config, verify_leaves
 from flowmaps_jax.store.model_spec import ModelSpec, check_params, model_spec
-from flowmaps_jax.store.packing import PACKED, unpack
+from flowmaps_jax.store.packing import PACKED, host_arrays, unpack
 from flowmaps_jax.untrusted_files import parse_json
 from flowmaps_jax.validation import check_choice, check_dir, check_flag, check_int, prefix_errors
 
@@ -240,11 +240,14 @@ def _read_step(sub: pathlib.Path, step: int, target_state=None, *,
         verify_config(config, meta)
         return Restored(state=None, config=config, meta=meta, step=step, path=step_dir)
     state = restored["state"]
-    if packed:
-        if not isinstance(meta, dict) or "layout" not in meta:
-            raise Damaged("has a packed state but no layout in its meta item")
-        state = unpack(state[PACKED], meta["layout"], target_state)
-    verify(state, config, meta)
+    if not packed:
+        verify(state, config, meta)
+        return Restored(state=state, config=config, meta=meta, step=step, path=step_dir)
+    if not isinstance(meta, dict) or "layout" not in meta:
+        raise Damaged("has a packed state but no layout in its meta item")
+    arrays = host_arrays(state[PACKED], meta["layout"])
+    state = unpack(arrays, target_state)
+    verify_leaves(arrays, config, meta)  # the bytes as read, not a copy back from the devices
     return Restored(state=state, config=config, meta=meta, step=step, path=step_dir)
 
 

@@ -83,7 +83,11 @@ def _non_finite(leaves: list[tuple[str, np.ndarray]]) -> list[str]:
 def state_checksums(state) -> tuple[dict[str, str], list[str]]:
     """(SHA-256 of every array leaf of ``state`` by :func:`leaf_name`, ``name (k of n)`` of every
     floating leaf holding NaN or inf): what a save records and a restore checks."""
-    leaves = host_leaves(state)
+    return leaf_checksums(host_leaves(state))
+
+
+def leaf_checksums(leaves: list[tuple[str, np.ndarray]]) -> tuple[dict[str, str], list[str]]:
+    """:func:`state_checksums` of a state given as its (:func:`leaf_name`, host array) pairs."""
     return {name: _digest(arr) for name, arr in leaves}, _non_finite(leaves)
 
 
@@ -109,7 +113,13 @@ def verify_config(config: dict, meta: dict | None) -> None:
 def verify(state, config: dict, meta: dict | None) -> None:
     """Raise :class:`Damaged` unless ``state``/``config`` match the checksums in ``meta`` and
     are finite (``meta`` None: finiteness only)."""
-    got, bad = state_checksums(state)
+    verify_leaves(host_leaves(state), config, meta)
+
+
+def verify_leaves(leaves: list[tuple[str, np.ndarray]], config: dict, meta: dict | None) -> None:
+    """:func:`verify` of a state given as its (:func:`leaf_name`, host array) pairs (a packed
+    step's arrays as read: no copy back from the devices)."""
+    got, bad = leaf_checksums(leaves)
     if meta is not None:
         expected = meta.get("checksums") if isinstance(meta, dict) else None
         if not isinstance(expected, dict):

@@ -30,8 +30,10 @@ def pack(state) -> tuple[dict, list]:
     return {PACKED: place(data, getattr(jax.tree.leaves(state)[0], "sharding", None))}, layout
 
 
-def _host_arrays(packed, layout) -> list[tuple[str, np.ndarray]]:
-    """(name, array) of every leaf the ``layout`` (untrusted: read from disk) lists."""
+def host_arrays(packed, layout) -> list[tuple[str, np.ndarray]]:
+    """(name, host array) of every leaf the ``layout`` (untrusted: read from disk) lists, from
+    the restored ``packed`` bytes. :class:`Damaged` if the layout is unreadable or does not fit
+    them."""
     data, offset, out = np.asarray(packed).tobytes(), 0, []
     try:
         for name, dtype, shape in layout:
@@ -48,12 +50,11 @@ def _host_arrays(packed, layout) -> list[tuple[str, np.ndarray]]:
     return out
 
 
-def unpack(packed, layout, target=None):
-    """The state :func:`pack` stored, from its restored ``packed`` bytes: in ``target``'s
-    structure, dtypes and shardings (a TrainState or its ``jax.eval_shape``), or as nested dicts
-    on this process's first device (``target`` None). :class:`Damaged` if the layout is
-    unreadable or does not match ``target``."""
-    arrays = _host_arrays(packed, layout)
+def unpack(arrays: list[tuple[str, np.ndarray]], target=None):
+    """The state :func:`pack` stored, from its :func:`host_arrays`: in ``target``'s structure,
+    dtypes and shardings (a TrainState or its ``jax.eval_shape``), or as nested dicts on this
+    process's first device (``target`` None). :class:`Damaged` if the arrays do not match
+    ``target`` or a name comes twice."""
     if target is None:
         device, state = jax.sharding.SingleDeviceSharding(jax.local_devices()[0]), {}
         for name, arr in arrays:
