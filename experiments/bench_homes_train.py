@@ -22,12 +22,13 @@ import time
 from pathlib import Path
 
 
-def measure(preset: str, steps: int, data: str | None) -> dict:
-    """Median steps/s of one fresh training run of ``preset`` (on ``data`` if given)."""
+def measure(preset: str, steps: int, data: str | None, log_every: int = 25) -> dict:
+    """Median steps/s of one fresh training run of ``preset`` (on ``data`` if given), a record
+    every ``log_every`` steps."""
     with tempfile.TemporaryDirectory() as tmp:
         run = Path(tmp) / "run"
         cmd = [sys.executable, "-m", "flowmaps_jax.train", "--preset", preset, "--run-dir",
-               str(run), "--no-progress", "--steps", str(steps), "--set", "log_every=25",
+               str(run), "--no-progress", "--steps", str(steps), "--set", f"log_every={log_every}",
                "--set", f"val_every={steps + 1}", "--set", f"ckpt_every={steps + 1}"]
         if data:
             cmd += ["--data", data]
@@ -47,14 +48,19 @@ def main(argv=None) -> None:
     parser.add_argument("--presets", nargs="+", default=["homes"])
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--data", default=None, help="a recorded dataset (--data of train)")
+    parser.add_argument("--log-every", type=int, default=25,
+                        help="steps per logged rate (the first, which compiles, is left out)")
     args = parser.parse_args(argv)
-    if args.steps < 51:
-        parser.error("--steps must be at least 51 (two log records of 25 steps)")
+    if args.log_every < 1:
+        parser.error(f"--log-every must be at least 1; got {args.log_every}")
+    if args.steps < 2 * args.log_every + 1:
+        parser.error(f"--steps must be at least {2 * args.log_every + 1} (two log records of "
+                     f"{args.log_every} steps)")
     import jax
 
     print(f"jax {jax.__version__} on {jax.default_backend()}, {jax.device_count()} device(s)")
     for preset in args.presets:
-        print(json.dumps(measure(preset, args.steps, args.data)))
+        print(json.dumps(measure(preset, args.steps, args.data, args.log_every)))
 
 
 if __name__ == "__main__":

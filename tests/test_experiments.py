@@ -53,9 +53,10 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         ["--sizes", "4", "--repeats", "1", "--world", "routine", "mixed", "--history", "2"],
         rf"^world: mixed .*\n(?:.*\n)*^\s+4\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}$",
         []),
-    # ~30 s: the homes-smoke preset, 51 steps (one child process)
+    # ~10 s: the homes-smoke preset's own 6 steps, a rate every 2 (one child process; the
+    # program is that of the suite's homes-smoke run, tests/conftest.py, found in its cache)
     "bench_homes_train.py": (
-        ["--presets", "homes-smoke", "--steps", "51"],
+        ["--presets", "homes-smoke", "--steps", "6", "--log-every", "2"],
         rf'^\{{"preset": "homes-smoke", .*"steps_per_sec": {NUM}\}}$', []),
     # ~10 s: 8 homes x 4 queries, 16 DP episodes, the priors on 4 homes x 2 queries, 1 repeat
     "bench_homes_navigation.py": (
@@ -86,7 +87,7 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
     "bench_train.py": (
         ["--presets", "smoke", "--queries", "1", "--steps", "1", "--envs", "4", "--batch", "2"],
         rf"^smoke\s+32\s+1\+1\s+2\s+1\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}\s+{NUM}$", []),
-    # ~125 s: the three smoke trainings (4 steps each) and a 2-environment evaluation; compared
+    # ~40 s: two smoke trainings (4 steps each) and a 2-environment evaluation; compared
     # with itself, so the comparison runs too
     "check_behaviour.py": (
         ["--smoke", "--out", "fingerprint.json", "--compare", "fingerprint.json"],
@@ -117,12 +118,14 @@ TINY: dict[str, tuple[list[str], str, list[str]]] = {
         ["figures/flowsim_scene.png", "figures/flowsim_timeline.png",
          "figures/flowsim_orders.png", "figures/flowsim_posterior.png",
          "figures/quickstart_fork.png"]),
-    # ~50 s: one variant with an override, the smoke preset, 2 steps, 2 environments scored
-    # (16 KL draws, the accurate likelihood on 3 grid points)
+    # ~10 s: one variant with an override, the smoke preset, 2 environments scored (4 KL draws,
+    # the accurate likelihood on 3 grid points). At the preset's own 20 steps (warm-up 2) and lr,
+    # the training is the suite's smoke run's program (tests/conftest.py), and the KL draws
+    # those of the README's shortened evaluate (tests/test_docs_commands.py)
     "sweep_settings.py": (
-        ["tiny:lr=1e-3", "--preset", "smoke", "--steps", "2", "--eval-envs", "2", "--kl-draws",
-         "16", "--likelihood-steps", "3", "--out", "sweep_settings"],
-        rf'^\{{"name": "tiny", "overrides": \["lr=1e-3"\], "steps": 2, .*"kl": {NUM}',
+        ["tiny:lr=1e-3", "--preset", "smoke", "--steps", "20", "--eval-envs", "2", "--kl-draws",
+         "4", "--likelihood-steps", "3", "--out", "sweep_settings"],
+        rf'^\{{"name": "tiny", "overrides": \["lr=1e-3"\], "steps": 20, .*"kl": {NUM}',
         ["sweep_settings/tiny/metrics.jsonl"]),
 }
 NOT_RUN = {
