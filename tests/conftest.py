@@ -105,6 +105,34 @@ def small_scenes(flowsim_config) -> Scenes:
     return generate(jax.random.key(0), SMALL_NUM_ENVS, flowsim_config)
 
 
+# ------------------------------------------------------------------ the two test commands
+
+SLOW_COMMAND = "pytest -m slow"
+
+
+def _leaves_slow(config) -> bool:
+    return not config.option.markexpr and config.args_source == pytest.Config.ArgsSource.TESTPATHS
+
+
+def pytest_collection_modifyitems(config, items):
+    """A plain ``pytest`` (no test named, no ``-m``) runs the suite without the tests marked
+    ``slow``: the end-to-end runs of the documented commands, the experiments/ scripts, the
+    notebooks and the two-device child process. ``pytest -m slow`` runs those; the README's test
+    command runs both, one after the other. Naming tests (a file, a node id) or giving ``-m``
+    selects as usual, the slow ones included."""
+    if not _leaves_slow(config):
+        return
+    slow = [item for item in items if item.get_closest_marker("slow")]
+    items[:] = [item for item in items if not item.get_closest_marker("slow")]
+    config.hook.pytest_deselected(items=slow)
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    if _leaves_slow(config) and not os.environ.get("PYTEST_XDIST_WORKER"):
+        terminalreporter.write_line(f"The tests marked slow were left to `{SLOW_COMMAND}` (the "
+                                    f"README's test command runs it after this one).")
+
+
 # tests/multidevice needs several JAX devices, fixed when JAX starts: tests/test_distributed.py
 # runs it in a subprocess with XLA_FLAGS=--xla_force_host_platform_device_count=2 and
 # FLOWMAPS_MULTIDEVICE=1. A plain `pytest` does not collect it directly.

@@ -1,13 +1,13 @@
 """The notebooks in experiments/ run end to end and produce their key outputs.
 
 The module's notebooks run one after the other in ONE "python3" kernel of this venv (nbclient),
-started when the first notebook is needed and shut down at the end of the module, so they share
-its imports and its in-memory compiled programs. Each notebook is executed at most once per
-module, when the first test that needs it runs (so ``-m "not slow"`` does not pay for the slow
-one), top to bottom in a clean namespace (``%reset -f`` first) with its own temporary directory as
-working directory. A notebook's failure (its error, a cell over ``CELL_TIMEOUT``, a dead kernel) is
-raised by that notebook's tests only; the kernel is then shut down and the next notebook gets a
-fresh one.
+started when the first notebook is needed and shut down at the end of the module, so they share its
+imports and its in-memory compiled programs. Each notebook is executed at most once per module, when
+the first test that needs it runs, top to bottom in a clean namespace (``%reset -f`` first) with its
+own temporary directory as working directory. A notebook's failure (its error, a cell over
+``CELL_TIMEOUT``, a dead kernel) is raised by that notebook's tests only; the kernel is then shut
+down and the next notebook gets a fresh one. The module is marked ``slow`` (a kernel in a child
+process, end to end): ``pytest -m slow`` runs it, a plain ``pytest`` leaves it (tests/conftest.py).
 The kernel runs with ``JAX_DISABLE_MOST_OPTIMIZATIONS=true``: compilation dominates these small
 runs and skipping most of XLA's optimisation passes about halves it (the programs are the same,
 only their machine code is less optimised); ``kl_plots.ipynb`` turns it on for ``smoke`` anyway.
@@ -38,6 +38,7 @@ SEARCH = "search_demo.ipynb"
 HABITS = "habits.ipynb"
 HOMES = "homes.ipynb"
 NOTEBOOKS = (TOUR, KL_PLOTS, SEARCH, HABITS, HOMES)
+pytestmark = pytest.mark.slow
 CELL_TIMEOUT = 900  # seconds; a cold kernel on a loaded 2-core machine compiles slowly
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -171,7 +172,6 @@ def test_flowsim_tour_runs_and_checks_the_posterior(executed):
 # --------------------------------------------------------------------------- kl_plots
 
 
-@pytest.mark.slow
 def test_kl_plots_shows_the_results_table(executed):
     nb = _notebook(executed, KL_PLOTS)
     tables = [o["data"]["text/markdown"] for o in _outputs(nb)
@@ -183,14 +183,12 @@ def test_kl_plots_shows_the_results_table(executed):
     assert "TV @25" in tables[0]
 
 
-@pytest.mark.slow
 def test_kl_plots_shows_the_figures(executed):
     images = _images(_notebook(executed, KL_PLOTS))
     assert len(images) == 3  # KL, samples, slot bars
     assert all(image.startswith(PNG_MAGIC) for image in images)
 
 
-@pytest.mark.slow
 def test_kl_plots_trains_both_models_and_writes_the_report(executed, workdirs):
     _notebook(executed, KL_PLOTS)
     runs = workdirs[KL_PLOTS] / "runs"
