@@ -117,8 +117,9 @@ def _leaves_slow(config) -> bool:
 def pytest_collection_modifyitems(config, items):
     """A plain ``pytest`` (no test named, no ``-m``) runs the suite without the tests marked
     ``slow``: the end-to-end runs of the documented commands, the experiments/ scripts, the
-    notebooks and the two-device child process. ``pytest -m slow`` runs those; the README's test
-    command runs both, one after the other. Naming tests (a file, a node id) or giving ``-m``
+    notebooks, the two-device child process and the tests that train, evaluate and search through
+    the CLIs. ``pytest -m slow`` runs those; the README's test command runs both, one after the
+    other. Naming tests (a file, a node id) or giving ``-m``
     selects as usual, the slow ones included."""
     if not _leaves_slow(config):
         return

@@ -311,6 +311,7 @@ def test_non_finite_samples_are_refused_not_scored(evalset, predictors):
                               progress=False)
 
 
+@pytest.mark.slow  # end to end: pytest -m slow (tests/conftest.py)
 def test_evaluate_cli_on_saved_checkpoints(tmp_path, capsys):
     """``python -m flowmaps_jax.evaluate`` on a FlowMaps and an MLP checkpoint as training saves
     them (training through the CLI is tests/test_training.py's; here the states are fresh)."""

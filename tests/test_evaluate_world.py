@@ -236,6 +236,7 @@ def test_cli_refuses_a_bogus_world_cleanly(tmp_path, capsys):
     assert "--history" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # end to end: pytest -m slow (tests/conftest.py)
 def test_cli_evaluates_a_history_model_on_another_world(tmp_path, capsys):
     """A two-map checkpoint trained on the routine world, evaluated on the preferences world
     with ``--history 3``: the world's scenes, its habit table, the model's own 2 maps."""

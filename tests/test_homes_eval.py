@@ -376,6 +376,7 @@ def _homes_cli(monkeypatch):
     return evaluate_cli.main, search_cli.main
 
 
+@pytest.mark.slow  # end to end: pytest -m slow (tests/conftest.py)
 def test_evaluate_and_search_run_the_homes_protocol_for_a_homes_model(tmp_path, monkeypatch,
                                                                        capsys):
     """One evaluate and one search command for every world: a homes model gets the homes
@@ -421,6 +422,7 @@ def test_the_homes_commands_name_a_bad_or_foreign_argument(command, args, named,
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow  # end to end: pytest -m slow (tests/conftest.py)
 def test_the_homes_defaults_fit_the_model_and_write_beside_the_run(tmp_path, monkeypatch):
     """A model of 96-hour homes: the default history (at most half the hours) and horizons (those
     that fit after it) are its own, and without --out the files go to <checkpoint>/eval and

@@ -136,6 +136,7 @@ def test_frame_round_trip_and_start_table(evalset):
     assert np.all(np.asarray(start) >= 0)
 
 
+@pytest.mark.slow  # end to end: pytest -m slow (tests/conftest.py)
 def test_default_load_picks_the_lowest_validation_table_cross_entropy(tmp_path):
     """The checkpoint rule (issue 33): a mixture-head run's validation score is the table
     weights' cross-entropy on the fixed validation batches, and the default load (``best``, what

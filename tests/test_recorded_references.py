@@ -143,6 +143,7 @@ def test_data_not_written_by_from_homes_gets_no_rows_and_a_reason(full_dir, home
         assert rows == {} and note.startswith("No exact reference rows: ") and reason in note
 
 
+@pytest.mark.slow  # end to end: pytest -m slow (tests/conftest.py)
 def test_evaluate_data_adds_the_rows_for_from_homes_data_and_says_why_not_otherwise(
         full_dir, homes, tmp_path):
     """The shipped homes model reads from-homes data (its vocabulary); the table gets the two

@@ -214,6 +214,7 @@ def counted(monkeypatch):
     return calls
 
 
+@pytest.mark.slow  # end to end: pytest -m slow (tests/conftest.py)
 def test_a_v2_scene_graph_with_looks_trains_evaluates_and_searches(v2_dir, tmp_path, counted):
     """Also one load per run: the training and the evaluation (each as in a process of its own)
     read, digest and split the data once; the evaluation reads the stored config once."""

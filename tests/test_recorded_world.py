@@ -187,6 +187,7 @@ def test_realised_scores_break_ties_fairly():
     assert table["bins"][7]["realised"] == 1.0 and table["bins"][1]["realised"] == 0.0
 
 
+@pytest.mark.slow  # end to end: pytest -m slow (tests/conftest.py)
 def test_train_evaluate_and_search_with_data(data_dir, recorded_runs, tmp_path):
     run, out = recorded_runs.straight, recorded_runs.printed  # --preset smoke --data, 4 steps
     assert "train (1): " in out and "test (1): " in out  # the split, printed

@@ -107,6 +107,7 @@ def toy_world():
     del worlds.WORLDS[TOY.name]
 
 
+@pytest.mark.slow  # end to end: pytest -m slow (tests/conftest.py)
 def test_a_fourth_world_in_one_module_trains_evaluates_and_searches(toy_world, tmp_path):
     run = tmp_path / "run"
     assert train.main(["--preset", "toy", "--run-dir", str(run), "--no-progress"]) == 0
