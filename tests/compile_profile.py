@@ -5,6 +5,8 @@ An opt-in pytest plugin (not loaded by a plain ``pytest``), and the summary of w
     FLOWMAPS_COMPILE_PROFILE=/tmp/profile PYTHONPATH=tests pytest -p compile_profile
     python tests/compile_profile.py /tmp/profile
 
+(the suite; ``-m slow`` profiles its end-to-end runs, ``-m "slow or not slow"`` both at once).
+
 Each process (the xdist workers, or the one process with ``-n 0``) listens to JAX's monitoring
 events (``jax.monitoring``: ``jaxpr_trace_duration``, ``jaxpr_to_mlir_module_duration``,
 ``backend_compile_duration`` with the compiled function's name, and the persistent cache's
