@@ -119,8 +119,8 @@ def pytest_collection_modifyitems(config, items):
     ``slow``: the end-to-end runs of the documented commands, the experiments/ scripts, the
     notebooks, the two-device child process and the tests that train, evaluate and search through
     the CLIs. ``pytest -m slow`` runs those; the README's test command runs both, one after the
-    other. Naming tests (a file, a node id) or giving ``-m``
-    selects as usual, the slow ones included."""
+    other. Naming tests (a file, a node id) or giving ``-m`` selects as usual, the slow ones
+    included."""
     if not _leaves_slow(config):
         return
     slow = [item for item in items if item.get_closest_marker("slow")]
